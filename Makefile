@@ -1,0 +1,50 @@
+# compd — set-up, demo, tests. Everything is installed from this repository's own files.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+BASE_STAMP := $(VENV)/.base-installed
+TEST_STAMP := $(VENV)/.test-installed
+# Debian packages the protocol tests need (serial ptys, an independent Modbus client).
+APT_PACKAGES := socat mbpoll
+
+.PHONY: venv demo test accept bench lint sysdeps clean
+
+$(BASE_STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[plot]'
+	touch $@
+
+$(TEST_STAMP): pyproject.toml $(BASE_STAMP)
+	$(PY) -m pip install -q -e '.[test]'
+	touch $@
+
+venv: $(BASE_STAMP)
+
+demo: $(BASE_STAMP)
+	$(VENV)/bin/compd run configs/demo.yaml
+
+sysdeps:
+	@missing=""; for p in $(APT_PACKAGES); do command -v $$p >/dev/null || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+test: $(TEST_STAMP) sysdeps
+	$(VENV)/bin/ruff check .
+	$(PY) -m pytest -q -m "not accept and not bench"
+
+accept: $(TEST_STAMP) sysdeps
+	$(PY) -m pytest -q -m accept
+
+bench: $(TEST_STAMP) sysdeps
+	$(VENV)/bin/compd bench --json bench.json
+
+lint: $(TEST_STAMP)
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

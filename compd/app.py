@@ -1,0 +1,237 @@
+"""Builds a running pipeline from a validated config: wiring, log, console, summary."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from compd.clock import SimClock, WallClock
+from compd.codec import Encoder
+from compd.config import Config
+from compd.errors import BadInput
+from compd.frame import Frame
+from compd.guard import Guard
+from compd.log import LogWriter
+from compd.loop import Loop
+
+
+def build_model(spec: Any) -> Any:
+    """Instantiate the model of a ModelSpec."""
+    model = spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
+    if spec.update_period_s is not None:
+        model.update_period_s = spec.update_period_s
+    return model
+
+
+class LogObserver:
+    """Pushes a log row every `period_s` of loop time and on every change of the word."""
+
+    def __init__(self, loop: Loop, path: Path, period_s: float, flush_s: float) -> None:
+        outs = loop.model.outputs
+        self.columns = (
+            ["t_s"]
+            + list(loop.frame.names)
+            + [f"pred_{a}_um" for a in outs]
+            + [f"corr_{a}_um" for a in outs]
+            + [f"applied_{a}_um" for a in outs]
+            + ["word"]
+        )
+        self.writer = LogWriter(path, self.columns, flush_s)
+        self.period_s = period_s
+        self._next_s = -math.inf
+        self._last_word = -1
+
+    def __call__(self, loop: Loop, now: float) -> None:
+        if now < self._next_s and loop.word == self._last_word:
+            return
+        if now >= self._next_s:
+            self._next_s = now + self.period_s
+        self._last_word = loop.word
+        row = (
+            (now,)
+            + tuple(loop.frame.values.tolist())
+            + tuple(loop.pred_um.tolist())
+            + tuple(loop.guard.out_um.tolist())
+            + tuple(loop.applied().tolist())
+            + (float(loop.word),)
+        )
+        self.writer.push(row)
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+class CompensationSummary:
+    """Accumulates RMS of the true error without and with the applied correction.
+
+    Only where the sources publish the true error `err_<axis>_um` (simulator,
+    replay of a measured log); residual = error + applied correction.
+    """
+
+    def __init__(self, loop: Loop) -> None:
+        self.pairs: list[tuple[int, int]] = []
+        for a, axis in enumerate(loop.model.outputs):
+            name = f"err_{axis}_um"
+            if name in loop.frame.index:
+                self.pairs.append((a, loop.frame.index[name]))
+        n = len(loop.model.outputs)
+        self.n = 0
+        self.sum_before = np.zeros(n)
+        self.sum_after = np.zeros(n)
+        self.max_before = np.zeros(n)
+        self.max_after = np.zeros(n)
+
+    def __call__(self, loop: Loop, now: float) -> None:
+        if not self.pairs:
+            return
+        applied = loop.applied()
+        self.n += 1
+        for a, i in self.pairs:
+            e = loop.frame.values[i]
+            r = e + applied[a]
+            self.sum_before[a] += e * e
+            self.sum_after[a] += r * r
+            if abs(e) > self.max_before[a]:
+                self.max_before[a] = abs(e)
+            if abs(r) > self.max_after[a]:
+                self.max_after[a] = abs(r)
+
+    def result(self, axes: list[str]) -> dict[str, dict[str, float]]:
+        out = {}
+        for a, _ in self.pairs:
+            before = math.sqrt(self.sum_before[a] / max(self.n, 1))
+            after = math.sqrt(self.sum_after[a] / max(self.n, 1))
+            out[axes[a]] = {
+                "rms_before_um": before,
+                "rms_after_um": after,
+                "max_abs_before_um": float(self.max_before[a]),
+                "max_abs_after_um": float(self.max_after[a]),
+                "reduction_pct": 100.0 * (1.0 - after / before) if before > 0 else 0.0,
+            }
+        return out
+
+
+class Console:
+    """A compact live table: time, inputs, prediction, word, error without/with compensation."""
+
+    def __init__(self, loop: Loop, period_s: float, out: TextIO = sys.stdout) -> None:
+        self.period_s = period_s
+        self.out = out
+        self._next_s = -math.inf
+        self.inputs = loop.model.inputs[:3]
+        self.axes = loop.model.outputs
+        self.err_idx = [loop.frame.index.get(f"err_{a}_um") for a in self.axes]
+        cols = ["time"] + [f"{n}/°C" for n in self.inputs]
+        for a in self.axes:
+            cols += [f"pred_{a}/µm"]
+        cols += ["word"]
+        for a, i in zip(self.axes, self.err_idx, strict=True):
+            if i is not None:
+                cols += [f"err_{a}/µm", f"comp_{a}/µm"]
+        self.header = " ".join(f"{c:>11}" for c in cols)
+
+    def __call__(self, loop: Loop, now: float) -> None:
+        if now < self._next_s:
+            return
+        if self._next_s == -math.inf:
+            print(self.header, file=self.out)
+        self._next_s = now + self.period_s
+        el = now - loop.t_start_s
+        cells = [f"{int(el // 3600):d}:{int(el % 3600 // 60):02d}:{int(el % 60):02d}"]
+        for n in self.inputs:
+            cells.append(f"{loop.frame.values[loop.frame.index[n]]:.2f}")
+        cells += [f"{p:.2f}" for p in loop.pred_um]
+        cells.append(f"0x{loop.word:04X}")
+        applied = loop.applied()
+        for a, i in enumerate(self.err_idx):
+            if i is not None:
+                e = loop.frame.values[i]
+                cells += [f"{e:.2f}", f"{e + applied[a]:.2f}"]
+        print(" ".join(f"{c:>11}" for c in cells), file=self.out, flush=True)
+
+
+class App:
+    """A loop and what hangs on it, from a config."""
+
+    def __init__(self, cfg: Config, *, duration_s: float | None = None, out: TextIO = sys.stdout):
+        self.cfg = cfg
+        self.out = out
+        top = cfg.top
+        lp = top.loop
+        base = str(Path(cfg.file).parent)
+        self.sources = [cls(scfg, base_dir=base) for cls, scfg, _ in cfg.sources]
+        names = [n for s in self.sources for n in s.signal_names()]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise cfg.doc.error(f"signal {sorted(dup)[0]!r} is published by two sources", ("sources",))
+        self.frame = Frame(names)
+        for s in self.sources:
+            s.bind(self.frame)
+        self.model = build_model(cfg.model)
+        try:
+            self.guard = Guard(top.guard, self.model.outputs, self.frame, self.model.inputs)
+        except BadInput as e:
+            raise cfg.doc.error(e.message, ("model", "inputs")) from None
+        for name in top.guard.signals:
+            if name not in self.frame.index:
+                raise cfg.doc.error(f"{name!r} is not a signal of any source", ("guard", "signals", name))
+        word_axes_names = top.codec.axes or self.model.outputs[:2]
+        word_axes = [self.model.outputs.index(a) for a in word_axes_names]
+        self.encoder = Encoder(top.codec.lsb_um, top.codec.deadband_um)
+        sink_cls, sink_cfg, _ = cfg.sink
+        self.sink = sink_cls(sink_cfg, base_dir=base)
+        self.sink.bind(word_axes_names, top.codec.lsb_um)
+        if lp.clock == "sim":
+            start = min((getattr(s, "start_s", 0.0) for s in self.sources), default=0.0)
+            self.clock: Any = SimClock(start, lp.speedup)
+        else:
+            self.clock = WallClock(lp.spin_margin_s)
+        self.loop = Loop(
+            period_s=lp.period_s,
+            clock=self.clock,
+            frame=self.frame,
+            sources=self.sources,
+            model=self.model,
+            guard=self.guard,
+            encoder=self.encoder,
+            sink=self.sink,
+            word_axes=word_axes,
+        )
+        self.summary = CompensationSummary(self.loop)
+        self.loop.observers.append(self.summary)
+        self.logger: LogObserver | None = None
+        if top.log.path:
+            self.logger = LogObserver(
+                self.loop, cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s
+            )
+            self.loop.observers.append(self.logger)
+        if top.console.period_s > 0:
+            self.loop.observers.append(Console(self.loop, top.console.period_s, out))
+        self.duration_s = duration_s if duration_s is not None else lp.duration_s
+        if self.duration_s is None and lp.clock == "sim":
+            ends = [getattr(s, "end_s", None) or getattr(getattr(s, "scenario", None), "duration_s", None) for s in self.sources]
+            ends = [e for e in ends if e]
+            if ends:
+                self.duration_s = min(ends) - self.clock.now()
+
+    def run(self) -> dict[str, Any]:
+        """Open, run until done or stopped, close with the safe output; returns a summary."""
+        self.loop.open()
+        try:
+            stats = self.loop.run(self.duration_s)
+        finally:
+            try:
+                self.loop.close()
+            finally:
+                if self.logger:
+                    self.logger.close()
+        return {
+            "loop": stats.as_dict(),
+            "compensation": self.summary.result(self.model.outputs),
+            "faults": dict(self.guard.faults),
+            "log_error": self.logger.writer.error if self.logger else None,
+        }

@@ -1,0 +1,474 @@
+"""YAML config → typed, validated objects; every error names file, line and key path.
+
+The top-level sections are pydantic models with unknown keys forbidden. The
+`sources`, `model` and `sink` sections are validated in a second pass against the
+`Config` (or `Params`) model of the class that their `kind` names, found through the
+registries, so each driver owns its options (STYLE: one config section, one module).
+"""
+
+from __future__ import annotations
+
+import difflib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from compd.errors import BadInput, ConfigError, format_path
+
+PathT = tuple[str | int, ...]
+
+
+class Strict(BaseModel):
+    """Base of every config model: unknown keys are errors, values are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+PositiveS = Annotated[float, Field(gt=0)]
+
+
+# --------------------------------------------------------------------------- YAML
+
+
+@dataclass
+class Document:
+    """A parsed YAML file and the line (1-based) of every key path in it."""
+
+    data: Any
+    file: str
+    lines: dict[PathT, int] = field(default_factory=dict)
+
+    def line_of(self, path: PathT) -> int | None:
+        """The line of `path`, or of its nearest ancestor that has one."""
+        path = tuple(path)
+        while path:
+            if path in self.lines:
+                return self.lines[path]
+            path = path[:-1]
+        return self.lines.get(())
+
+    def error(self, message: str, path: PathT) -> ConfigError:
+        return ConfigError(message, file=self.file, line=self.line_of(path), path=path)
+
+
+def load_yaml(file: str | Path, text: str | None = None) -> Document:
+    """Parse a YAML file keeping each key's line; syntax errors are ConfigError."""
+    file = str(file)
+    if text is None:
+        try:
+            text = Path(file).read_text(encoding="utf-8")
+        except OSError as e:
+            raise ConfigError(f"cannot read: {e.strerror or e}", file=file) from None
+        except UnicodeDecodeError:
+            raise ConfigError("not a UTF-8 text file", file=file) from None
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        doc = Document(None, file)
+        doc.data = _construct(loader, node, (), doc) if node is not None else None
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        line = mark.line + 1 if mark is not None else None
+        raise ConfigError(f"YAML syntax: {e.problem or e}", file=file, line=line) from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"YAML: {e}", file=file) from None
+    finally:
+        loader.dispose()
+    return doc
+
+
+def _construct(loader: yaml.SafeLoader, node: yaml.Node, path: PathT, doc: Document) -> Any:
+    doc.lines.setdefault(path, node.start_mark.line + 1)
+    if isinstance(node, yaml.MappingNode):
+        loader.flatten_mapping(node)
+        out: dict[Any, Any] = {}
+        for key_node, value_node in node.value:
+            key = loader.construct_object(key_node, deep=True)
+            if not isinstance(key, str | int | float | bool) or key is None:
+                raise ConfigError(
+                    "keys must be plain names",
+                    file=doc.file,
+                    line=key_node.start_mark.line + 1,
+                    path=path,
+                )
+            key = str(key)
+            sub = (*path, key)
+            if key in out:
+                raise ConfigError(
+                    "duplicate key", file=doc.file, line=key_node.start_mark.line + 1, path=sub
+                )
+            doc.lines[sub] = key_node.start_mark.line + 1
+            out[key] = _construct(loader, value_node, sub, doc)
+        return out
+    if isinstance(node, yaml.SequenceNode):
+        return [_construct(loader, item, (*path, i), doc) for i, item in enumerate(node.value)]
+    return loader.construct_object(node, deep=True)
+
+
+# ---------------------------------------------------------------- pydantic errors
+
+
+def _unwrap(annotation: Any) -> list[Any]:
+    """The classes inside Optional/Union/Annotated/list/dict annotations."""
+    origin = typing.get_origin(annotation)
+    if origin is Annotated:
+        return _unwrap(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        return [c for a in typing.get_args(annotation) for c in _unwrap(a)]
+    if origin in (list, tuple, dict):
+        args = typing.get_args(annotation)
+        return _unwrap(args[-1]) if args else []
+    return [annotation]
+
+
+def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] | None:
+    """The pydantic model class that owns the last key of `loc`."""
+    current: Any = model
+    for part in loc[:-1]:
+        if isinstance(part, int) or not (isinstance(current, type) and issubclass(current, BaseModel)):
+            continue
+        f = current.model_fields.get(part)
+        if f is None:
+            return None
+        candidates = [c for c in _unwrap(f.annotation) if isinstance(c, type) and issubclass(c, BaseModel)]
+        if not candidates:
+            return None
+        current = candidates[0]
+    return current if isinstance(current, type) and issubclass(current, BaseModel) else None
+
+
+def validate(
+    model: type[Strict], data: Any, doc: Document, base: PathT = (), what: str = "section"
+) -> Any:
+    """Validate `data` against `model`; the first error becomes a ConfigError."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise doc.error(f"expected a mapping for this {what}, got {type(data).__name__}", base)
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and "[" in p))
+        path = (*base, *loc)
+        if err["type"] == "extra_forbidden":
+            owner = _model_at(model, loc)
+            known = sorted(owner.model_fields) if owner else []
+            close = difflib.get_close_matches(str(loc[-1]), known, n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            msg = f"unknown key{hint} (known: {', '.join(known)})" if known else "unknown key"
+        elif err["type"] == "missing":
+            msg = "required key is missing"
+        else:
+            msg = err["msg"]
+            if "input" in err and err["type"] not in ("model_type", "dict_type"):
+                msg += f" (got {err['input']!r})"
+        raise doc.error(msg, path) from None
+
+
+# -------------------------------------------------------------- top-level schema
+
+
+class RealtimeConfig(Strict):
+    """Real-time options; compd applies what the OS permits and logs the rest."""
+
+    scheduler: Literal["other", "fifo"] = "other"
+    priority: int = Field(50, ge=1, le=99)
+    cpu_affinity: list[Annotated[int, Field(ge=0)]] | None = None
+    lock_memory: bool = False
+
+
+class LoopConfig(Strict):
+    """The fixed-period cycle."""
+
+    period_s: float = Field(0.002, gt=0, le=60, description="cycle period")
+    clock: Literal["wall", "sim"] = Field("wall", description="wall time or simulated time")
+    speedup: float = Field(
+        0.0, ge=0, description="sim clock only: simulated seconds per wall second, 0 = flat out"
+    )
+    spin_margin_s: float = Field(
+        0.0002, ge=0, le=0.01, description="sleep until this long before a deadline, then spin"
+    )
+    duration_s: float | None = Field(None, gt=0, description="stop after this long (loop time)")
+    realtime: RealtimeConfig = RealtimeConfig()
+
+
+class SignalLimits(Strict):
+    """Plausibility limits of one signal."""
+
+    min: float = Field(-40.0, description="lowest plausible value (°C for temperatures)")
+    max: float = Field(150.0, description="highest plausible value")
+    max_rate_per_s: float | None = Field(None, gt=0, description="largest plausible change per s")
+    stale_after_s: float | None = Field(None, gt=0, description="older than this is stale")
+
+
+class AxisGuardConfig(Strict):
+    """Per-axis overrides of the guard."""
+
+    fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = None
+    max_abs_um: float | None = Field(None, gt=0)
+    max_slew_um_per_s: float | None = Field(None, gt=0)
+
+
+class GuardConfig(Strict):
+    """What reaches the machine: plausibility, clamp, slew, fault policy."""
+
+    max_abs_um: float = Field(63.0, gt=0, description="magnitude clamp on the correction")
+    max_slew_um_per_s: float = Field(5.0, gt=0, description="largest rate of change")
+    fault_policy: Literal["hold", "ramp_to_zero", "disable"] = Field(
+        "hold", description="what an axis does when an input it needs goes bad"
+    )
+    ramp_um_per_s: float = Field(1.0, gt=0, description="ramp_to_zero rate")
+    recovery_s: float = Field(5.0, ge=0, description="inputs good this long before recovery")
+    stale_after_s: float = Field(5.0, gt=0, description="default staleness limit of a signal")
+    signals: dict[str, SignalLimits] = Field(default_factory=dict)
+    axes: dict[str, AxisGuardConfig] = Field(default_factory=dict)
+
+
+class CodecConfig(Strict):
+    """The 16-bit word of SPEC §2."""
+
+    lsb_um: float = Field(1.0, gt=0, description="µm per magnitude LSB")
+    deadband_um: float = Field(1.0, ge=0, description="|c| at or below this is sent as disabled")
+    axes: list[str] | None = Field(
+        None, max_length=2, description="model outputs on the high and low byte (default: in order)"
+    )
+
+
+class LogConfig(Strict):
+    """The CSV data log."""
+
+    path: str | None = Field(None, description="log file; none = no log")
+    period_s: float = Field(1.0, gt=0, description="one row per this period, plus every word change")
+    flush_s: float = Field(1.0, gt=0, description="flush to disk at least this often")
+
+
+class ConsoleConfig(Strict):
+    """A live table on stdout (demo, commissioning)."""
+
+    period_s: float = Field(0.0, ge=0, description="one row per this much loop time; 0 = off")
+    summary: bool = Field(True, description="print RMS without/with compensation at exit")
+
+
+class StateConfig(Strict):
+    """Where model state (AR memory, T0 references) is persisted."""
+
+    path: str | None = None
+
+
+class ConfigModel(Strict):
+    """The whole file."""
+
+    loop: LoopConfig = LoopConfig()
+    sources: list[dict[str, Any]] = Field(min_length=1)
+    model: dict[str, Any]
+    guard: GuardConfig = GuardConfig()
+    codec: CodecConfig = CodecConfig()
+    sink: dict[str, Any]
+    log: LogConfig = LogConfig()
+    console: ConsoleConfig = ConsoleConfig()
+    state: StateConfig = StateConfig()
+
+
+# ---------------------------------------------------------------- plugin sections
+
+
+class SourceConfig(Strict):
+    """Common keys of every source section (drivers subclass it)."""
+
+    kind: str
+    name: str = Field(min_length=1)
+
+
+class SinkConfig(Strict):
+    """Common keys of every sink section (drivers subclass it)."""
+
+    kind: str
+
+
+class ModelSection(Strict):
+    """The model section: a model file, or inline params."""
+
+    kind: str
+    file: str | None = Field(None, description="model YAML written by `compd fit`")
+    inputs: list[str] | None = Field(None, description="signal names, in the model's order")
+    outputs: list[str] | None = Field(None, description="axis names")
+    params: dict[str, Any] | None = None
+    update_period_s: float | None = Field(None, ge=0, description="model step; 0 = every cycle")
+
+
+@dataclass
+class ModelSpec:
+    """A resolved model: its class, validated params and wiring."""
+
+    cls: type
+    params: Any
+    inputs: list[str]
+    outputs: list[str]
+    update_period_s: float | None
+    fit: dict[str, Any]
+    doc: Document
+    path: PathT
+
+
+@dataclass
+class Config:
+    """A validated config: top-level sections plus resolved plugin objects."""
+
+    file: str
+    doc: Document
+    top: ConfigModel
+    sources: list[tuple[type, Any, PathT]]
+    model: ModelSpec
+    sink: tuple[type, Any, PathT]
+
+    @property
+    def loop(self) -> LoopConfig:
+        return self.top.loop
+
+    @property
+    def guard(self) -> GuardConfig:
+        return self.top.guard
+
+    @property
+    def codec(self) -> CodecConfig:
+        return self.top.codec
+
+    def resolve_path(self, p: str) -> Path:
+        """A path from the config, relative to the config file's folder."""
+        path = Path(p)
+        return path if path.is_absolute() else Path(self.file).parent / path
+
+
+def _plugin(registry: Any, data: Any, doc: Document, path: PathT) -> tuple[type, Any]:
+    if not isinstance(data, dict):
+        raise doc.error("expected a mapping with a 'kind'", path)
+    if "kind" not in data:
+        raise doc.error(f"'kind' is missing (known: {', '.join(registry.kinds())})", path)
+    try:
+        cls = registry.get(data["kind"])
+    except BadInput as e:
+        raise doc.error(e.message, (*path, "kind")) from None
+    return cls, validate(cls.Config, data, doc, path)
+
+
+def load_model_file(file: str | Path) -> tuple[Document, dict[str, Any]]:
+    """Read a model YAML (CONTRACT: kind, inputs, outputs, params, fit)."""
+    doc = load_yaml(file)
+    data = doc.data
+    if not isinstance(data, dict):
+        raise doc.error("a model file is a mapping with kind, inputs, outputs, params", ())
+    for key in ("kind", "inputs", "outputs", "params"):
+        if key not in data:
+            raise doc.error("required key is missing", (key,))
+    extra = set(data) - {"kind", "inputs", "outputs", "params", "fit"}
+    if extra:
+        raise doc.error("unknown key (known: kind, inputs, outputs, params, fit)", (sorted(extra)[0],))
+    return doc, data
+
+
+def resolve_model(section: Any, doc: Document, path: PathT, base_dir: Path) -> ModelSpec:
+    """Resolve a model section (inline or from a file) to a ModelSpec."""
+    from compd.models import MODELS
+
+    sec = validate(ModelSection, section, doc, path)
+    try:
+        cls = MODELS.get(sec.kind)
+    except BadInput as e:
+        raise doc.error(e.message, (*path, "kind")) from None
+    fit: dict[str, Any] = {}
+    pdoc, ppath = doc, (*path, "params")
+    if sec.file is not None:
+        if sec.params is not None:
+            raise doc.error("give either 'file' or 'params', not both", (*path, "params"))
+        fpath = Path(sec.file)
+        if not fpath.is_absolute():
+            fpath = base_dir / fpath
+        mdoc, mdata = load_model_file(fpath)
+        if mdata["kind"] != sec.kind:
+            raise doc.error(
+                f"model file {fpath} is of kind {mdata['kind']!r}, not {sec.kind!r}", (*path, "kind")
+            )
+        raw_params, pdoc, ppath = mdata["params"], mdoc, ("params",)
+        inputs = sec.inputs or mdata["inputs"]
+        outputs = sec.outputs or mdata["outputs"]
+        fit = mdata.get("fit") or {}
+        if sec.inputs and len(sec.inputs) != len(mdata["inputs"]):
+            raise doc.error(
+                f"model file has {len(mdata['inputs'])} inputs, config names {len(sec.inputs)}",
+                (*path, "inputs"),
+            )
+    else:
+        if sec.params is None:
+            raise doc.error("give 'file' (a fitted model) or 'params'", path)
+        raw_params = sec.params
+        if sec.inputs is None or sec.outputs is None:
+            raise doc.error("inline models need 'inputs' and 'outputs'", path)
+        inputs, outputs = sec.inputs, sec.outputs
+    params = validate(cls.Params, raw_params, pdoc, ppath, what="params")
+    for what, names in (("inputs", inputs), ("outputs", outputs)):
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise doc.error(f"{what} must be a list of names", (*path, what))
+    try:
+        cls.check_wiring(params, list(inputs), list(outputs))
+    except BadInput as e:
+        raise pdoc.error(e.message, ppath) from None
+    return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path)
+
+
+def load_config(file: str | Path, text: str | None = None) -> Config:
+    """Load and validate a config file; raises ConfigError (exit 2) on any problem."""
+    from compd.sinks import SINKS
+    from compd.sources import SOURCES
+
+    doc = load_yaml(file, text)
+    if doc.data is None:
+        raise ConfigError("the config is empty", file=doc.file)
+    top = validate(ConfigModel, doc.data, doc, (), what="config")
+    sources = []
+    names: set[str] = set()
+    for i, sec in enumerate(top.sources):
+        cls, cfg = _plugin(SOURCES, sec, doc, ("sources", i))
+        if cfg.name in names:
+            raise doc.error(f"source name {cfg.name!r} is used twice", ("sources", i, "name"))
+        names.add(cfg.name)
+        sources.append((cls, cfg, ("sources", i)))
+    sink_cls, sink_cfg = _plugin(SINKS, top.sink, doc, ("sink",))
+    base_dir = Path(doc.file).parent
+    model = resolve_model(top.model, doc, ("model",), base_dir)
+    if len(model.outputs) > 2 and top.codec.axes is None:
+        raise doc.error("the word carries two axes: name them in codec.axes", ("model", "outputs"))
+    for i, axis in enumerate(top.codec.axes or []):
+        if axis not in model.outputs:
+            raise doc.error(
+                f"{axis!r} is not an output of the model ({', '.join(model.outputs)})",
+                ("codec", "axes", i),
+            )
+    for axis in top.guard.axes:
+        if axis not in model.outputs:
+            raise doc.error(
+                f"{axis!r} is not an output of the model ({', '.join(model.outputs)})",
+                ("guard", "axes", axis),
+            )
+    return Config(doc.file, doc, top, sources, model, (sink_cls, sink_cfg, ("sink",)))
+
+
+__all__ = [
+    "Config",
+    "ConfigError",
+    "Document",
+    "ModelSpec",
+    "SinkConfig",
+    "SourceConfig",
+    "Strict",
+    "format_path",
+    "load_config",
+    "load_yaml",
+    "resolve_model",
+    "validate",
+]

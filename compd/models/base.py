@@ -1,0 +1,103 @@
+"""The model interface: declared inputs and outputs, per-cycle evaluation, state, fitting."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from compd.config import Strict
+from compd.errors import BadInput
+
+
+@dataclass
+class FitResult:
+    """What a fit returns: the model and a JSON-able report."""
+
+    model: Model
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+class Model(ABC):
+    """A thermal-error model.
+
+    `inputs` are signal names (the frame supplies them in this order), `outputs`
+    axis names. `evaluate` writes the predicted thermal error in µm per output axis
+    (the correction is its negative; the guard does that). `update_period_s` > 0
+    makes the loop call `evaluate` only that often (AR(1) steps every Δτ) and hold
+    the output between steps.
+    """
+
+    kind: ClassVar[str]
+    Params: ClassVar[type[Strict]]
+    update_period_s: float = 0.0
+
+    def __init__(
+        self,
+        params: Strict,
+        inputs: list[str],
+        outputs: list[str],
+        fit: dict[str, Any] | None = None,
+    ) -> None:
+        self.check_wiring(params, inputs, outputs)
+        self.params = params
+        self.inputs = list(inputs)
+        self.outputs = list(outputs)
+        self.fit_info = dict(fit or {})
+
+    @classmethod
+    def check_wiring(cls, params: Strict, inputs: list[str], outputs: list[str]) -> None:
+        """Raise BadInput if the number of inputs or outputs does not suit the params."""
+        if not outputs:
+            raise BadInput("a model needs at least one output axis")
+        if len(set(inputs)) != len(inputs):
+            raise BadInput("the model's inputs name a signal twice")
+
+    def start(self, x: np.ndarray, t_s: float) -> None:
+        """Called once with the first good input vector (capture references such as T0)."""
+
+    @abstractmethod
+    def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
+        """Write the predicted thermal error (µm) per output axis into `out`."""
+
+    def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        """Batch prediction over a log: X (n × inputs) → (n × outputs), µm.
+
+        The default steps `evaluate` through the rows (honouring update_period_s),
+        starting the model on the first row.
+        """
+        n = X.shape[0]
+        out = np.zeros((n, len(self.outputs)))
+        if n == 0:
+            return out
+        self.start(X[0], float(t_s[0]))
+        row = np.zeros(len(self.outputs))
+        next_t = -np.inf
+        for i in range(n):
+            if t_s[i] >= next_t:
+                self.evaluate(X[i], float(t_s[i]), row)
+                next_t = t_s[i] + self.update_period_s if self.update_period_s > 0 else -np.inf
+            out[i] = row
+        return out
+
+    def get_state(self) -> dict[str, Any]:
+        """The model's memory (for persistence); plain JSON types."""
+        return {}
+
+    def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0) -> None:
+        """Restore memory saved `elapsed_s` ago."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """The model file of CONTRACT.md: kind, inputs, outputs, params, fit."""
+        return {
+            "kind": self.kind,
+            "inputs": list(self.inputs),
+            "outputs": list(self.outputs),
+            "params": self.params.model_dump(mode="json"),
+            "fit": self.fit_info,
+        }
+
+    def get_status(self) -> dict[str, Any]:
+        return {"kind": self.kind, "inputs": self.inputs, "outputs": self.outputs}

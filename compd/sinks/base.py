@@ -1,0 +1,59 @@
+"""The sink interface: hand the CNC the word (or corrections) every cycle; know the safe output."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+
+from compd.config import SinkConfig
+
+
+class Sink(ABC):
+    """Where corrections go.
+
+    `write` is called every cycle with the encoded word, the guarded per-axis
+    corrections (µm) and enable flags, and whether the word changed; a sink does
+    device I/O only when it must (a changed value, a heartbeat). `safe` puts the
+    output in its safe state (every enable bit off) and must work at any time,
+    including from a signal handler's exit path. `applied_um` reports what the
+    machine actually applies, as far as the sink can know it.
+    """
+
+    Config: ClassVar[type[SinkConfig]] = SinkConfig
+
+    def __init__(self, cfg: SinkConfig, base_dir: str = ".") -> None:
+        self.cfg = cfg
+        self.base_dir = base_dir
+        self.axes: list[str] = []
+        self.lsb_um = 1.0
+        self.writes = 0
+
+    def bind(self, axes: list[str], lsb_um: float) -> None:
+        """The word's axes (high byte first) and the codec's LSB."""
+        self.axes = list(axes)
+        self.lsb_um = lsb_um
+
+    def open(self, now_s: float) -> None:
+        """Connect to the device; called once before the first cycle."""
+
+    @abstractmethod
+    def write(
+        self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
+    ) -> None:
+        """Hand the CNC this cycle's output."""
+
+    @abstractmethod
+    def safe(self) -> None:
+        """Emit the safe output (enable bits off)."""
+
+    @abstractmethod
+    def applied_um(self, out: np.ndarray) -> None:
+        """Write what the machine applies now, per axis (µm), into `out`."""
+
+    def close(self) -> None:
+        """Release the device (after `safe`)."""
+
+    def get_status(self) -> dict[str, Any]:
+        return {"kind": self.cfg.kind, "writes": self.writes}

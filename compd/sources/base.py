@@ -1,0 +1,118 @@
+"""The source interface: publish named signals into the frame without blocking the cycle."""
+
+from __future__ import annotations
+
+import threading
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+
+from compd.config import SourceConfig
+from compd.frame import Frame, Quality
+
+
+class Source(ABC):
+    """A source of signals. `read` is called every cycle and must never block.
+
+    Fast, in-process sources fill the frame directly in `read`. Slow ones (serial,
+    network) subclass `PolledSource`, which polls on its own thread and lets `read`
+    copy the freshest sample with its time stamp.
+    """
+
+    Config: ClassVar[type[SourceConfig]] = SourceConfig
+
+    def __init__(self, cfg: SourceConfig, base_dir: str = ".") -> None:
+        self.cfg = cfg
+        self.name = cfg.name
+        self.base_dir = base_dir
+        self._idx = np.zeros(0, dtype=np.intp)
+
+    @abstractmethod
+    def signal_names(self) -> list[str]:
+        """The names this source publishes (fixed after construction)."""
+
+    def bind(self, frame: Frame) -> None:
+        """Remember where this source's signals live in the frame."""
+        self._idx = frame.indices(self.signal_names(), what="signal")
+
+    def open(self, now_s: float) -> None:
+        """Connect or start polling; called once before the first cycle."""
+
+    @abstractmethod
+    def read(self, frame: Frame, now_s: float) -> None:
+        """Copy the freshest values into the frame. Never blocks."""
+
+    def close(self) -> None:
+        """Release connections and threads."""
+
+    def get_status(self) -> dict[str, Any]:
+        return {"kind": self.cfg.kind, "name": self.name}
+
+
+class PolledSource(Source):
+    """A source whose device is polled on its own thread (SPEC §1: slow I/O off the cycle).
+
+    Subclasses implement `poll(values, quality)` which performs one blocking
+    request/response and fills the two arrays; it returns normally even on a
+    device fault (by setting quality). The thread stamps each completed poll with
+    the loop clock, and `read` copies the last completed sample under a lock.
+    """
+
+    poll_period_s: float = 0.1
+
+    def __init__(self, cfg: SourceConfig, base_dir: str = ".") -> None:
+        super().__init__(cfg, base_dir)
+        n = len(self.signal_names())
+        self._values = np.full(n, np.nan)
+        self._quality = np.full(n, Quality.NO_DATA, dtype=np.uint8)
+        self._stamp = -np.inf
+        self._buf_values = np.full(n, np.nan)
+        self._buf_quality = np.full(n, Quality.NO_DATA, dtype=np.uint8)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._clock: Any = None
+        self.polls = 0
+        self.poll_errors = 0
+
+    @abstractmethod
+    def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
+        """One blocking read of the device into `values` and `quality`."""
+
+    def start_polling(self, clock: Any) -> None:
+        self._clock = clock
+        self._thread = threading.Thread(target=self._run, name=f"poll-{self.name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import time
+
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            try:
+                self.poll(self._buf_values, self._buf_quality)
+            except Exception:  # a driver bug must not kill the daemon: report as comms lost
+                self._buf_quality[:] = Quality.COMMS_LOST
+                self.poll_errors += 1
+            stamp = self._clock.now()
+            with self._lock:
+                self._values[:] = self._buf_values
+                self._quality[:] = self._buf_quality
+                self._stamp = stamp
+                self.polls += 1
+            rest = self.poll_period_s - (time.monotonic() - t0)
+            if rest > 0:
+                self._stop.wait(rest)
+
+    def read(self, frame: Frame, now_s: float) -> None:
+        with self._lock:
+            frame.values[self._idx] = self._values
+            frame.quality[self._idx] = self._quality
+            frame.stamp_s[self._idx] = self._stamp
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None

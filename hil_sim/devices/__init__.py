@@ -1,0 +1,1 @@
+"""Emulated devices that compd talks to (cards, transmitters, CNC controllers)."""
