@@ -234,4 +234,5 @@ class App:
             "compensation": self.summary.result(self.model.outputs),
             "faults": dict(self.guard.faults),
             "log_error": self.logger.writer.error if self.logger else None,
+            "sink": self.sink.get_status(),
         }

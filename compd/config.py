@@ -204,6 +204,9 @@ class SignalLimits(Strict):
     min: float = Field(-40.0, description="lowest plausible value (°C for temperatures)")
     max: float = Field(150.0, description="highest plausible value")
     max_rate_per_s: float | None = Field(None, gt=0, description="largest plausible change per s")
+    rate_allowance: float = Field(
+        0.3, ge=0, description="added to max_rate_per_s × dt: room for noise and quantization"
+    )
     stale_after_s: float | None = Field(None, gt=0, description="older than this is stale")
 
 

@@ -63,6 +63,7 @@ class Guard:
         self._rate = np.array(
             [lm.max_rate_per_s if lm and lm.max_rate_per_s else math.inf for lm in lim]
         )
+        self._rate_allow = np.array([lm.rate_allowance if lm else 0.0 for lm in lim])
         self._stale = np.array(
             [lm.stale_after_s if lm and lm.stale_after_s else cfg.stale_after_s for lm in lim]
         )
@@ -94,10 +95,9 @@ class Guard:
                     q = Quality.STALE
                 else:
                     pt = self._prev_t[j]
-                    if frame.stamp_s[i] > pt:
-                        if pt == pt and abs(v - self._prev_val[j]) > self._rate[j] * (
-                            frame.stamp_s[i] - pt
-                        ):
+                    if not frame.stamp_s[i] <= pt:  # a new sample (pt is NaN at first)
+                        allowed = self._rate[j] * (frame.stamp_s[i] - pt) + self._rate_allow[j]
+                        if pt == pt and abs(v - self._prev_val[j]) > allowed:
                             q = Quality.IMPLAUSIBLE
                         else:
                             self._prev_val[j] = v

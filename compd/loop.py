@@ -4,8 +4,9 @@ Stages run in the order of SPEC §1: read → model → guard → codec → sink
 cycle's deadline is start + k·period (never "sleep(period)"); the loop records its
 lateness (wake-up time − deadline) in a fixed histogram, every stage's time and
 worst time, and counts misses (a cycle that started more than half a period late
-or ran past its deadline). A cycle that overran is counted, then the schedule
-skips the deadlines already past instead of bursting to catch up.
+or ran past its deadline). A cycle that overran is counted; when the loop is more
+than half a period behind, the deadlines already past are skipped (and counted)
+instead of bursting to catch up.
 """
 
 from __future__ import annotations
@@ -199,11 +200,10 @@ class Loop:
             if lateness > half or done > deadline + period:
                 stats.misses += 1
             k += 1
-            nxt = t0 + k * period
-            if done > nxt + period:  # overran by more than a cycle: skip what is past
-                skip = int((done - nxt) / period)
-                stats.skipped += skip
-                k += skip
+            if done > t0 + k * period + half:  # far behind: skip to the next future deadline
+                behind = int((done - t0) / period) + 1
+                stats.skipped += behind - k
+                k = behind
             for hook in self.cycle_hooks:
                 hook(self, now)
         return stats

@@ -1,0 +1,54 @@
+"""PCI-1756 emulator (latch, reset, DI) and the sink (word bytes, heartbeat, safe output)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
+from hil_sim.devices.pci1756 import Pci1756Card
+
+
+def test_card_latches_and_resets() -> None:
+    card = Pci1756Card()
+    card.write_do_word(0, 0xC543)
+    assert card.read_do_byte(0) == 0x43 and card.read_do_byte(1) == 0xC5  # low byte first
+    assert card.read_do_word(0) == 0xC543  # latched until written again
+    card.write_do_bit(31, True)
+    assert card.read_do() == 0x8000C543
+    card.reset()
+    assert card.read_do() == 0
+    card.set_di(0x01020304)
+    assert card.read_di_byte(0) == 0x04 and card.read_di_byte(3) == 0x01
+    with pytest.raises(ValueError):
+        card.write_do_word(3, 1)
+
+
+def make_sink(**kw) -> Pci1756Sink:  # noqa: ANN003
+    sink = Pci1756Sink(Pci1756Config(kind="pci1756", **kw))
+    sink.bind(["x1", "x2"], 1.0)
+    return sink
+
+
+def test_word_on_configured_port_and_heartbeat_toggles() -> None:
+    sink = make_sink(word_port=2, heartbeat_bit=0)
+    corr = np.array([5.0, -3.0])
+    en = np.array([True, True])
+    beats = []
+    for _ in range(4):
+        sink.write(0xC543, corr, en, False, 0.0)
+        beats.append(sink.card.read_do() & 1)
+    assert sink.card.read_do_word(2) == 0xC543
+    assert beats == [1, 0, 1, 0]
+    out = np.zeros(2)
+    sink.applied_um(out)
+    assert out.tolist() == [5.0, -3.0]
+    sink.safe()
+    assert sink.card.read_do_word(2) == 0
+    sink.applied_um(out)
+    assert out.tolist() == [0.0, 0.0]
+
+
+def test_heartbeat_may_not_overlap_the_word() -> None:
+    with pytest.raises(ValueError, match="heartbeat"):
+        Pci1756Config(kind="pci1756", word_port=1, heartbeat_bit=12)

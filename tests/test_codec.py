@@ -1,0 +1,119 @@
+"""The 16-bit word of SPEC §2: examples, properties, no-chatter rule, CLI."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from compd import codec
+from compd.cli import main
+
+finite = st.floats(min_value=-200, max_value=200, allow_nan=False, allow_infinity=False)
+lsbs = st.sampled_from([0.1, 0.5, 1.0, 2.0])
+
+
+@pytest.mark.parametrize(
+    ("c1", "c2", "word"),
+    [(5, -3, 0xC543), (0.8, 70, 0x00FF), (-1.0, 1.01, 0x00C1), (0, 0, 0x0000), (-63, 63, 0x7FFF)],
+)
+def test_spec_examples(c1: float, c2: float, word: int) -> None:
+    assert codec.encode(c1, c2) == word
+
+
+def test_saturation_is_reported() -> None:
+    word, s1, s2 = codec.encode_ex(0.8, 70)
+    assert word == 0x00FF and not s1 and s2
+
+
+def test_decode_example() -> None:
+    x1, x2 = codec.decode(0xC543)
+    assert x1 == (1, True, 5)
+    assert x2 == (-1, True, 3)
+    assert codec.word_to_um(0xC543) == (5.0, -3.0)
+
+
+@given(finite, finite, lsbs)
+def test_round_trip_within_half_lsb(c1: float, c2: float, lsb: float) -> None:
+    deadband = 1.0
+    word, s1, s2 = codec.encode_ex(c1, c2, lsb, deadband)
+    back = codec.word_to_um(word, lsb)
+    codes = codec.decode(word)
+    for c, b, sat, code in ((c1, back[0], s1, codes[0]), (c2, back[1], s2, codes[1])):
+        assert code.magnitude <= 63
+        if abs(c) <= deadband:
+            assert b == 0.0
+        elif sat:
+            assert abs(c) / lsb > 63.5 - 1e-9 or math.floor(abs(c) / lsb + 0.5) > 63
+            assert b == math.copysign(63 * lsb, c)
+        elif b != 0.0:
+            assert abs(b - c) <= lsb / 2 + 1e-9
+            assert math.copysign(1, b) == math.copysign(1, c)
+
+
+@given(st.integers(min_value=0, max_value=0xFFFF))
+def test_decode_encode_word(word: int) -> None:
+    """Every enabled byte re-encodes to itself from its decoded value."""
+    x1, x2 = codec.decode(word)
+    for code, byte in ((x1, word >> 8), (x2, word & 0xFF)):
+        assert 0 <= code.magnitude <= 63
+        if code.enable and code.magnitude > 1:
+            assert codec.encode_byte(code.direction * code.magnitude)[0] == byte
+
+
+def test_nan_and_inf_encode_disabled() -> None:
+    assert codec.encode(math.nan, math.inf) == 0
+
+
+def test_bad_lsb_rejected() -> None:
+    with pytest.raises(ValueError):
+        codec.encode(1, 1, lsb_um=0)
+
+
+def test_no_chatter_at_rounding_boundary() -> None:
+    enc = codec.Encoder()
+    assert enc.update(5.0, 0.0)
+    first = enc.word
+    # hovering around the 5.5 rounding boundary must not toggle the word
+    for c in (5.49, 5.51, 5.49, 5.52, 5.48, 5.9):
+        assert not enc.update(c, 0.0)
+        assert enc.word == first
+    assert enc.update(6.0, 0.0)  # moved by a full dead-band from 5.0
+    assert codec.decode(enc.word)[0].magnitude == 6
+
+
+def test_encoder_enable_change_always_emits() -> None:
+    enc = codec.Encoder()
+    enc.update(10.0, -10.0)
+    assert enc.update(10.0, -10.0, en1=False)
+    assert enc.word >> 8 == 0
+
+
+def test_cli_encode(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["encode", "5", "-3"]) == 0
+    out = capsys.readouterr().out
+    assert out.split()[0] == "0xC543"
+
+
+def test_cli_encode_negative_first_argument() -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "compd", "encode", "--", "-5", "3"], capture_output=True, text=True
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[0] == "0x45C3"
+
+
+def test_cli_decode(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["decode", "0xC543"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "X1" in out[0] and "+5" in out[0] and "enable 1" in out[0]
+    assert "X2" in out[1] and "-3" in out[1]
+
+
+def test_cli_decode_bad_word(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["decode", "0x1FFFF"]) == 2
+    assert "16 bits" in capsys.readouterr().err

@@ -1,0 +1,86 @@
+"""The guard: clamp, slew, plausibility, fault policies, recovery without steps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from compd.config import GuardConfig, SignalLimits
+from compd.frame import Frame, Quality
+from compd.guard import Guard
+
+
+def run(guard: Guard, frame: Frame, preds, dt=0.1, t0=0.0, bad_from=None, bad_to=None):  # noqa: ANN001
+    outs, ens = [], []
+    t = t0
+    for k, p in enumerate(preds):
+        frame.set(0, 25.0, Quality.GOOD, t)
+        if bad_from is not None and bad_from <= k < bad_to:
+            frame.quality[0] = Quality.BURNOUT
+        ok = guard.check_inputs(frame, t)
+        guard.update(np.array([p]), ok, t)
+        outs.append(guard.out_um[0])
+        ens.append(bool(guard.enable[0]))
+        t += dt
+    return np.array(outs), ens
+
+
+def make(policy: str = "hold", **kw) -> tuple[Guard, Frame]:  # noqa: ANN003
+    frame = Frame(["T"])
+    cfg = GuardConfig(fault_policy=policy, max_slew_um_per_s=10.0, recovery_s=1.0, **kw)
+    return Guard(cfg, ["z"], frame, ["T"]), frame
+
+
+def test_slew_and_clamp() -> None:
+    g, f = make(max_abs_um=20.0)
+    out, _ = run(g, f, [100.0] * 40)
+    steps = np.abs(np.diff(np.concatenate([[0.0], out])))
+    assert steps.max() <= 1.0 + 1e-12  # 10 µm/s × 0.1 s
+    assert out[-1] == pytest.approx(-20.0)  # correction = −prediction, clamped
+
+
+@pytest.mark.parametrize("policy", ["hold", "ramp_to_zero", "disable"])
+def test_fault_policies_and_recovery(policy: str) -> None:
+    g, f = make(policy, ramp_um_per_s=2.0)
+    out, en = run(g, f, [10.0] * 200, bad_from=60, bad_to=100)
+    held = out[59]
+    assert held == pytest.approx(-10.0)
+    if policy == "hold":
+        assert np.allclose(out[60:100], held)
+        assert all(en[60:100])
+    elif policy == "ramp_to_zero":
+        assert np.all(np.abs(np.diff(out[59:100])) <= 0.2 + 1e-12)
+        assert out[99] == pytest.approx(held + 2.0 * 4.0, abs=0.21)
+    else:
+        assert not any(en[60:100])
+        assert np.allclose(out[60:100], 0.0)
+    # recovery waits recovery_s (1 s = 10 cycles) of good input, then slews, never steps
+    steps = np.abs(np.diff(out[99:]))
+    assert steps.max() <= 1.0 + 1e-12
+    assert out[-1] == pytest.approx(-10.0)
+    assert g.get_status()["z"]["state"] == "normal"
+    assert g.faults.get("bad:burnout") == 1
+
+
+def test_nan_prediction_is_a_fault() -> None:
+    g, f = make("hold")
+    out, _ = run(g, f, [5.0] * 20 + [math.nan] * 5)
+    assert np.isfinite(out).all()
+    assert out[-1] == out[19]
+
+
+def test_plausibility_range_rate_stale() -> None:
+    frame = Frame(["T"])
+    cfg = GuardConfig(signals={"T": SignalLimits(min=0, max=50, max_rate_per_s=1.0, rate_allowance=0.2, stale_after_s=2.0)})
+    g = Guard(cfg, ["z"], frame, ["T"])
+    frame.set(0, 25.0, Quality.GOOD, 0.0)
+    assert g.check_inputs(frame, 0.0)
+    frame.set(0, 60.0, Quality.GOOD, 1.0)
+    assert not g.check_inputs(frame, 1.0) and frame.quality[0] == Quality.OUT_OF_RANGE
+    frame.set(0, 30.0, Quality.GOOD, 2.0)  # +5 °C in 2 s: implausible rate
+    assert not g.check_inputs(frame, 2.0) and frame.quality[0] == Quality.IMPLAUSIBLE
+    frame.set(0, 25.5, Quality.GOOD, 3.0)
+    assert g.check_inputs(frame, 3.0)
+    assert not g.check_inputs(frame, 6.0) and frame.quality[0] == Quality.STALE

@@ -1,0 +1,75 @@
+"""The log CSV: malformed files name row and column; the writer loses nothing on close."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from compd.errors import BadInput
+from compd.log import LogWriter, is_temperature_column, read_log, write_log
+
+
+def csv(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "log.csv"
+    p.write_text(text)
+    return p
+
+
+def test_reads_a_good_log(tmp_path: Path) -> None:
+    log = read_log(csv(tmp_path, "t_s,T1,err_x_um\n0,20.0,0\n1,20.5,1.5\n1,20.6,1.6\n"))
+    assert log.columns == ["t_s", "T1", "err_x_um"]
+    assert log.data.shape == (3, 3)
+    assert log.temperature_columns() == ["T1"]
+    assert log.error_columns() == ["err_x_um"]
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "path", "what"),
+    [
+        ("time,T1\n0,1\n", 1, "time", "first column must be 't_s'"),
+        ("t_s,T1\n0,20\n1,abc\n", 3, "T1", "not a number"),
+        ("t_s,T1\n0,20\n2,20\n1,20\n", 4, "t_s", "backwards"),
+        ("t_s,T1\n0,20,5\n", 2, None, "cells"),
+        ("t_s,T1\n0,\n", 2, "T1", "not a number"),
+        ("t_s,T1,T1\n0,1,2\n", 1, "T1", "twice"),
+    ],
+)
+def test_malformed_log_names_row_and_column(tmp_path, text, line, path, what) -> None:  # noqa: ANN001
+    with pytest.raises(BadInput) as ei:
+        read_log(csv(tmp_path, text))
+    e = ei.value
+    assert e.line == line and e.path == path and what in e.message
+    assert str(e).startswith(str(tmp_path / "log.csv"))
+
+
+def test_empty_and_missing(tmp_path: Path) -> None:
+    with pytest.raises(BadInput, match="empty"):
+        read_log(csv(tmp_path, ""))
+    with pytest.raises(BadInput, match="cannot read"):
+        read_log(tmp_path / "missing.csv")
+
+
+def test_temperature_columns_follow_contract() -> None:
+    for name in ("t_s", "err_x_um", "pos_y_mm", "speed_rpm", "current_y_a"):
+        assert not is_temperature_column(name)
+    assert is_temperature_column("T_xi")
+
+
+def test_writer_round_trip(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "w.csv"
+    w = LogWriter(path, ["t_s", "T1", "err_z_um"], flush_s=0.05)
+    rows = [(float(i), 20.0 + i / 10, i / 3) for i in range(500)]
+    for r in rows:
+        w.push(r)
+    w.close()
+    log = read_log(path)
+    assert len(log) == 500 and w.rows_written == 500 and w.error is None
+    np.testing.assert_allclose(log.data, np.array(rows), rtol=1e-5)
+
+
+def test_write_log_and_read_back(tmp_path: Path) -> None:
+    data = np.array([[0.0, 21.25, -0.5], [60.0, 22.0, 1.25]])
+    write_log(tmp_path / "a.csv", ["t_s", "T", "err_z_um"], data)
+    np.testing.assert_allclose(read_log(tmp_path / "a.csv").data, data)
