@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 from pathlib import Path
@@ -17,6 +18,10 @@ from compd.frame import Frame
 from compd.guard import Guard
 from compd.log import LogWriter
 from compd.loop import Loop
+from compd.realtime import apply_realtime, reset_scheduler
+from compd.state import StateWriter, load_state
+
+log = logging.getLogger("compd")
 
 
 def build_model(spec: Any) -> Any:
@@ -218,8 +223,28 @@ class App:
             if ends:
                 self.duration_s = min(ends) - self.clock.now()
 
+    def restore_state(self) -> StateWriter | None:
+        """Load persisted model state (if any) and start the state writer."""
+        path = self.cfg.top.state.path
+        if not path:
+            return None
+        spath = self.cfg.resolve_path(path)
+        m = self.model
+        loaded = load_state(spath, m.kind, m.inputs, m.outputs)
+        if loaded is not None:
+            state, elapsed_s = loaded
+            m.set_state(state, elapsed_s)
+            log.info("event=state_restored path=%s elapsed_s=%.0f", spath, elapsed_s)
+        writer = StateWriter(spath, m.kind, m.inputs, m.outputs)
+        self.loop.on_model_state = writer.submit
+        return writer
+
     def run(self) -> dict[str, Any]:
         """Open, run until done or stopped, close with the safe output; returns a summary."""
+        self.realtime = {}
+        if not self.clock.simulated:
+            self.realtime = apply_realtime(self.cfg.loop.realtime)
+        state_writer = self.restore_state()
         self.loop.open()
         try:
             stats = self.loop.run(self.duration_s)
@@ -229,10 +254,18 @@ class App:
             finally:
                 if self.logger:
                     self.logger.close()
+                if state_writer is not None:
+                    if self.loop.model_started:
+                        state_writer.submit(self.model.get_state())
+                    state_writer.close()
+                if self.realtime.get("scheduler", "").startswith("applied"):
+                    reset_scheduler()
         return {
             "loop": stats.as_dict(),
             "compensation": self.summary.result(self.model.outputs),
             "faults": dict(self.guard.faults),
             "log_error": self.logger.writer.error if self.logger else None,
             "sink": self.sink.get_status(),
+            "realtime": self.realtime,
+            "state_error": state_writer.error if state_writer is not None else None,
         }

@@ -11,6 +11,7 @@ instead of bursting to catch up.
 
 from __future__ import annotations
 
+import gc
 import math
 import time
 from array import array
@@ -45,6 +46,7 @@ class TimingStats:
         self.stage_sum_ns = array("q", [0] * len(STAGES))
         self.compute_hist = array("q", bytes(8 * HIST_US))
         self.compute_max_ns = 0
+        self.gc_runs = 0
 
     def record(self, lateness_s: float, compute_ns: int) -> None:
         self.cycles += 1
@@ -58,6 +60,12 @@ class TimingStats:
         self.compute_hist[cu if cu < HIST_US else HIST_US - 1] += 1
         if compute_ns > self.compute_max_ns:
             self.compute_max_ns = compute_ns
+
+    def stage(self, i: int, d_ns: int) -> None:
+        self.stage_last_ns[i] = d_ns
+        self.stage_sum_ns[i] += d_ns
+        if d_ns > self.stage_max_ns[i]:
+            self.stage_max_ns[i] = d_ns
 
     @staticmethod
     def _percentile(hist: array, q: float) -> float:
@@ -106,6 +114,7 @@ class TimingStats:
             "cycles": self.cycles,
             "misses": self.misses,
             "skipped": self.skipped,
+            "gc_runs": self.gc_runs,
             "lateness_us": self.lateness_us(),
             "cycle_compute_us": self.compute_us(),
             "stages": self.stages(),
@@ -153,6 +162,8 @@ class Loop:
         self.t_start_s = 0.0
         self.now_s = 0.0
         self.word = 0
+        self.on_model_state: Callable[[dict[str, Any]], None] | None = None
+        self.gc_period_s = 1.0
 
     def stop(self) -> None:
         """Ask the loop to finish after the current cycle (signal-safe)."""
@@ -185,27 +196,45 @@ class Loop:
         end = t0 + duration_s if duration_s is not None else math.inf
         k = 0
         half = period * 0.5
-        while not self._stop:
-            deadline = t0 + k * period
-            if deadline > end or (max_cycles is not None and stats.cycles >= max_cycles):
-                break
-            clock.wait_until(deadline)
-            now = clock.now()
-            lateness = now - deadline
-            c0 = perf()
-            self._cycle(now, perf)
-            compute = perf() - c0
-            stats.record(lateness, compute)
-            done = clock.now()
-            if lateness > half or done > deadline + period:
-                stats.misses += 1
-            k += 1
-            if done > t0 + k * period + half:  # far behind: skip to the next future deadline
-                behind = int((done - t0) / period) + 1
-                stats.skipped += behind - k
-                k = behind
-            for hook in self.cycle_hooks:
-                hook(self, now)
+        # Garbage collection: everything allocated at start-up is frozen out of the
+        # collector's view; automatic collection is off, and a young-generation
+        # collection runs only at a safe point (right after a cycle, when at least
+        # half a period is left before the next deadline), about every gc_period_s.
+        gc.collect()
+        gc.freeze()
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
+        next_gc = t0 + self.gc_period_s
+        try:
+            while not self._stop:
+                deadline = t0 + k * period
+                if deadline > end or (max_cycles is not None and stats.cycles >= max_cycles):
+                    break
+                clock.wait_until(deadline)
+                now = clock.now()
+                lateness = now - deadline
+                c0 = perf()
+                self._cycle(now, perf)
+                compute = perf() - c0
+                stats.record(lateness, compute)
+                done = clock.now()
+                if lateness > half or done > deadline + period:
+                    stats.misses += 1
+                k += 1
+                if done > t0 + k * period + half:  # far behind: skip to the next future deadline
+                    behind = int((done - t0) / period) + 1
+                    stats.skipped += behind - k
+                    k = behind
+                for hook in self.cycle_hooks:
+                    hook(self, now)
+                if done >= next_gc and t0 + k * period - clock.now() > half:
+                    gc.collect(0)
+                    stats.gc_runs += 1
+                    next_gc = done + self.gc_period_s
+        finally:
+            gc.unfreeze()
+            if gc_was_enabled:
+                gc.enable()
         return stats
 
     def _cycle(self, now: float, perf: Callable[[], int]) -> None:
@@ -223,9 +252,14 @@ class Loop:
                 if not self.model_started:
                     self.model.start(self.x, now)
                     self.model_started = True
+                    if self.on_model_state is not None:
+                        self.on_model_state(self.model.get_state())
                 self.model.evaluate(self.x, now, self.pred_um)
                 ups = self.model.update_period_s
-                self._next_model_s = now + ups if ups > 0 else -math.inf
+                if ups > 0:
+                    self._next_model_s = now + ups
+                    if self.on_model_state is not None:
+                        self.on_model_state(self.model.get_state())
             else:
                 self.pred_um.fill(math.nan)
         t2 = perf()
@@ -241,12 +275,11 @@ class Loop:
         t4 = perf()
         self.sink.write(self.word, g.out_um, g.enable, changed, now)
         t5 = perf()
-        for i, (a, b) in enumerate(((t, t1), (t1, t2), (t2, t3), (t3, t4), (t4, t5))):
-            d = b - a
-            st.stage_last_ns[i] = d
-            st.stage_sum_ns[i] += d
-            if d > st.stage_max_ns[i]:
-                st.stage_max_ns[i] = d
+        st.stage(0, t1 - t)
+        st.stage(1, t2 - t1)
+        st.stage(2, t3 - t2)
+        st.stage(3, t4 - t3)
+        st.stage(4, t5 - t4)
         for obs in self.observers:
             obs(self, now)
 

@@ -1,0 +1,69 @@
+"""Persisted model state: atomic writes, checked loading, restored across a restart."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from compd.app import App
+from compd.config import load_config
+from compd.state import StateWriter, load_state, write_atomic
+
+CONFIG = """\
+loop: {clock: sim, period_s: 1.0}
+sources:
+  - kind: sim
+    name: spindle
+    plant: spindle
+    scenario: {segments: [{duration_s: 7200, speed_rpm: 12000}]}
+model:
+  kind: xi_spindle
+  inputs: [T_xi]
+  outputs: [z]
+  params: {alpha_per_k: 13.6e-6, length_mm: 165.0}
+sink: {kind: pci1756}
+state: {path: state/model.json}
+"""
+
+
+def test_write_atomic_leaves_no_temp(tmp_path: Path) -> None:
+    p = tmp_path / "s" / "state.json"
+    write_atomic(p, {"a": 1})
+    write_atomic(p, {"a": 2})
+    assert json.loads(p.read_text()) == {"a": 2}
+    assert [f.name for f in p.parent.iterdir()] == ["state.json"]
+
+
+def test_load_state_checks(tmp_path: Path) -> None:
+    p = tmp_path / "state.json"
+    assert load_state(p, "xi_spindle", ["T"], ["z"]) is None
+    w = StateWriter(p, "xi_spindle", ["T"], ["z"])
+    w.submit({"t0_c": 21.5})
+    w.close()
+    state, elapsed = load_state(p, "xi_spindle", ["T"], ["z"])
+    assert state == {"t0_c": 21.5} and 0 <= elapsed < 5
+    assert load_state(p, "ar1", ["T"], ["z"]) is None  # another model
+    assert load_state(p, "xi_spindle", ["T2"], ["z"]) is None
+    raw = json.loads(p.read_text())
+    raw["saved_unix_s"] = time.time() + 3600  # clock jumped back since
+    p.write_text(json.dumps(raw))
+    assert load_state(p, "xi_spindle", ["T"], ["z"]) is None
+    p.write_text("{not json")
+    assert load_state(p, "xi_spindle", ["T"], ["z"]) is None
+
+
+def test_reference_survives_restart(tmp_path: Path) -> None:
+    cfg_path = tmp_path / "c.yaml"
+    cfg_path.write_text(CONFIG)
+    first = App(load_config(cfg_path), duration_s=3600)
+    first.run()
+    t0 = first.model.t0_c
+    saved = json.loads((tmp_path / "state" / "model.json").read_text())
+    assert saved["state"]["t0_c"] == t0
+    # restart on a warm spindle: the reference is the saved one, not the first new reading
+    second = App(load_config(cfg_path), duration_s=10)
+    second.sources[0].plant.advance_to(3600)
+    second.run()
+    assert second.model.t0_c == t0
+    assert second.loop.pred_um[0] > 10.0  # still sees the growth since the cold start
