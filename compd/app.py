@@ -209,11 +209,9 @@ class App:
         self.summary = CompensationSummary(self.loop)
         self.loop.observers.append(self.summary)
         self.logger: LogObserver | None = None
-        if top.log.path:
-            self.logger = LogObserver(
-                self.loop, cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s
-            )
-            self.loop.observers.append(self.logger)
+        self.state_writer: StateWriter | None = None
+        self.realtime: dict[str, str] = {}
+        self._adopted: set[int] = set()
         if top.console.period_s > 0:
             self.loop.observers.append(Console(self.loop, top.console.period_s, out))
         self.duration_s = duration_s if duration_s is not None else lp.duration_s
@@ -223,11 +221,11 @@ class App:
             if ends:
                 self.duration_s = min(ends) - self.clock.now()
 
-    def restore_state(self) -> StateWriter | None:
+    def restore_state(self) -> None:
         """Load persisted model state (if any) and start the state writer."""
         path = self.cfg.top.state.path
         if not path:
-            return None
+            return
         spath = self.cfg.resolve_path(path)
         m = self.model
         loaded = load_state(spath, m.kind, m.inputs, m.outputs)
@@ -235,37 +233,97 @@ class App:
             state, elapsed_s = loaded
             m.set_state(state, elapsed_s)
             log.info("event=state_restored path=%s elapsed_s=%.0f", spath, elapsed_s)
-        writer = StateWriter(spath, m.kind, m.inputs, m.outputs)
-        self.loop.on_model_state = writer.submit
-        return writer
+        self.state_writer = StateWriter(spath, m.kind, m.inputs, m.outputs)
+        self.loop.on_model_state = self.state_writer.submit
 
-    def run(self) -> dict[str, Any]:
-        """Open, run until done or stopped, close with the safe output; returns a summary."""
-        self.realtime = {}
+    def adopt(self, previous: App) -> None:
+        """Config reload: take over what did not change from the running App (no I/O).
+
+        Sources and the sink whose config is unchanged are taken over still open;
+        the model's memory is carried over when the model is the same; and the
+        guard starts from the correction the machine has now, so a reload never
+        steps the output.
+        """
+        if self.clock.simulated and previous.clock.simulated:  # time goes on where it was
+            self.clock = self.loop.clock = SimClock(previous.clock.now(), self.cfg.loop.speedup)
+        for i, (old, new) in enumerate(zip(previous.sources, self.sources, strict=False)):
+            if old.cfg == new.cfg and old.signal_names() == new.signal_names():
+                self.sources[i] = old
+                old.bind(self.frame)
+                self._adopted.add(id(old))
+        self.loop.sources = self.sources
+        pm, m = previous.model, self.model
+        same_model = (pm.kind, pm.inputs, pm.outputs) == (m.kind, m.inputs, m.outputs)
+        if same_model and previous.loop.model_started:
+            m.set_state(pm.get_state(), 0.0)
+        if previous.sink.cfg == self.sink.cfg:
+            self.sink = self.loop.sink = previous.sink
+            self._adopted.add(id(self.sink))
+            for a, axis in enumerate(m.outputs):
+                if axis in pm.outputs:
+                    b = pm.outputs.index(axis)
+                    self.guard.out_um[a] = previous.guard.out_um[b]
+                    self.guard.enable[a] = previous.guard.enable[b]
+                    self.guard.state[a] = previous.guard.state[b]
+
+    def open(self) -> None:
+        """Start I/O: real-time options, state, log, and the sources and sink not adopted."""
+        top = self.cfg.top
         if not self.clock.simulated:
-            self.realtime = apply_realtime(self.cfg.loop.realtime)
-        state_writer = self.restore_state()
-        self.loop.open()
+            self.realtime = apply_realtime(top.loop.realtime)
+        self.restore_state()
+        if top.log.path:
+            self.logger = LogObserver(
+                self.loop, self.cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s
+            )
+            self.loop.observers.append(self.logger)
+        now = self.clock.now()
+        for src in self.sources:
+            if id(src) not in self._adopted:
+                src.open(now)
+        if id(self.sink) not in self._adopted:
+            self.sink.open(now)
+
+    def close(self, *, handing_over_to: App | None = None) -> None:
+        """Stop I/O. Normally: safe output first, then release everything. When handing
+        over to a reloaded App, what it took over stays open and untouched."""
+        keep_sink = handing_over_to is not None and handing_over_to.sink is self.sink
+        keep_sources = {id(s) for s in handing_over_to.sources} if handing_over_to else set()
         try:
-            stats = self.loop.run(self.duration_s)
+            if not keep_sink:
+                self.guard.safe()
+                self.sink.safe()
         finally:
-            try:
-                self.loop.close()
-            finally:
-                if self.logger:
-                    self.logger.close()
-                if state_writer is not None:
-                    if self.loop.model_started:
-                        state_writer.submit(self.model.get_state())
-                    state_writer.close()
-                if self.realtime.get("scheduler", "").startswith("applied"):
-                    reset_scheduler()
+            if not keep_sink:
+                self.sink.close()
+            for src in self.sources:
+                if id(src) not in keep_sources:
+                    src.close()
+            if self.logger:
+                self.logger.close()
+            if self.state_writer is not None:
+                if self.loop.model_started:
+                    self.state_writer.submit(self.model.get_state())
+                self.state_writer.close()
+            if self.realtime.get("scheduler", "").startswith("applied") and handing_over_to is None:
+                reset_scheduler()
+
+    def summary_dict(self) -> dict[str, Any]:
         return {
-            "loop": stats.as_dict(),
+            "loop": self.loop.stats.as_dict(),
             "compensation": self.summary.result(self.model.outputs),
             "faults": dict(self.guard.faults),
             "log_error": self.logger.writer.error if self.logger else None,
             "sink": self.sink.get_status(),
             "realtime": self.realtime,
-            "state_error": state_writer.error if state_writer is not None else None,
+            "state_error": self.state_writer.error if self.state_writer is not None else None,
         }
+
+    def run(self) -> dict[str, Any]:
+        """Open, run until done or stopped, close with the safe output; returns a summary."""
+        self.open()
+        try:
+            self.loop.run(self.duration_s)
+        finally:
+            self.close()
+        return self.summary_dict()

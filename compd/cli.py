@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import signal
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from compd.errors import BadInput
+
+log = logging.getLogger("compd")
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
 
@@ -77,20 +81,63 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("run")
-def cmd_run(args: argparse.Namespace) -> int:
+def run_with_reload(config_path: str, duration_s: float | None) -> dict[str, Any]:
+    """Run the loop until SIGTERM/SIGINT or the duration; SIGHUP reloads the config.
+
+    A reload validates the new config and builds the new pipeline before touching
+    the running one; if that fails the daemon logs why and goes on with the old
+    config. Returns the summary of the last pipeline.
+    """
     from compd.app import App
     from compd.config import load_config
 
-    cfg = load_config(args.config)
-    app = App(cfg, duration_s=args.duration)
+    app = App(load_config(config_path), duration_s=duration_s)
+    flags = {"reload": False}
+    current = [app]
 
-    def on_signal(signum: int, frame: object) -> None:
-        app.loop.stop()
+    def on_stop(signum: int, frame: object) -> None:
+        flags["reload"] = False
+        current[0].loop.stop()
 
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    result = app.run()
+    def on_hup(signum: int, frame: object) -> None:
+        flags["reload"] = True
+        current[0].loop.stop()
+
+    signal.signal(signal.SIGTERM, on_stop)
+    signal.signal(signal.SIGINT, on_stop)
+    signal.signal(signal.SIGHUP, on_hup)
+    remaining = app.duration_s
+    app.open()
+    try:
+        while True:
+            t0 = app.clock.now()
+            app.loop.run(remaining)
+            if remaining is not None:
+                remaining -= app.clock.now() - t0
+            if not flags["reload"] or (remaining is not None and remaining <= 0):
+                break
+            flags["reload"] = False
+            try:
+                new = App(load_config(config_path), duration_s=remaining)
+            except BadInput as e:
+                log.error("event=reload_rejected config=%s reason=%r", config_path, str(e))
+                print(f"compd: reload rejected, still running the old config: {e}", file=sys.stderr)
+                app.loop.resume()
+                continue
+            new.adopt(app)
+            app.close(handing_over_to=new)
+            current[0] = app = new
+            app.open()
+            log.info("event=reloaded config=%s", config_path)
+            print(f"compd: reloaded {config_path}", file=sys.stderr)
+    finally:
+        app.close()
+    return app.summary_dict()
+
+
+@command("run")
+def cmd_run(args: argparse.Namespace) -> int:
+    result = run_with_reload(args.config, args.duration)
     comp = result["compensation"]
     loop = result["loop"]
     print(
@@ -103,8 +150,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             f" with {r['rms_after_um']:.2f} um; max {r['max_abs_before_um']:.2f} ->"
             f" {r['max_abs_after_um']:.2f} um; reduction {r['reduction_pct']:.1f} %"
         )
-    if result["log_error"]:
-        print(f"compd: {result['log_error']}", file=sys.stderr)
+    for key in ("log_error", "state_error"):
+        if result[key]:
+            print(f"compd: {result[key]}", file=sys.stderr)
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(result, fh, indent=2)

@@ -169,21 +169,9 @@ class Loop:
         """Ask the loop to finish after the current cycle (signal-safe)."""
         self._stop = True
 
-    def open(self) -> None:
-        now = self.clock.now()
-        for s in self.sources:
-            s.open(now)
-        self.sink.open(now)
-
-    def close(self) -> None:
-        """Safe output first, then release everything."""
-        try:
-            self.guard.safe()
-            self.sink.safe()
-        finally:
-            self.sink.close()
-            for s in self.sources:
-                s.close()
+    def resume(self) -> None:
+        """Clear a stop request (after a config reload was rejected)."""
+        self._stop = False
 
     def run(self, duration_s: float | None = None, max_cycles: int | None = None) -> TimingStats:
         """Run cycles until stopped, `duration_s` of loop time, or `max_cycles`."""

@@ -68,9 +68,9 @@ def test_absolute_schedule_and_misses(tmp_path: Path) -> None:
     app = make_app(tmp_path)
     clock = ScriptedClock([0.0, 0.01, 0.06, 0.0, 0.25, 0.0, 0.0])
     app.loop.clock = clock
-    app.loop.open()
+    app.open()
     stats = app.loop.run(max_cycles=7)
-    app.loop.close()
+    app.close()
     # deadlines are start + k·period, never drifting with lateness
     assert clock.deadlines[:5] == [0.0, 0.1, 0.2, 0.30000000000000004, 0.4]
     # 0.06 s late is more than half a 0.1 s period: a miss; 0.25 s overran two deadlines
@@ -83,9 +83,9 @@ def test_absolute_schedule_and_misses(tmp_path: Path) -> None:
 
 def test_stage_times_recorded(tmp_path: Path) -> None:
     app = make_app(tmp_path)
-    app.loop.open()
+    app.open()
     stats = app.loop.run(max_cycles=50)
-    app.loop.close()
+    app.close()
     stages = stats.stages()
     assert list(stages) == ["read", "model", "guard", "codec", "sink"]
     assert all(s["max_us"] > 0 for s in stages.values())
