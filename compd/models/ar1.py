@@ -21,7 +21,14 @@ from compd.config import Strict
 from compd.errors import BadInput
 from compd.log import Log
 from compd.models.base import FitResult, Model
-from compd.models.fitdata import axis_names, columns, default_targets, require_rows, step_rows
+from compd.models.fitdata import (
+    axis_names,
+    columns,
+    default_targets,
+    progress,
+    require_rows,
+    step_rows,
+)
 
 
 def coefficients_from_physics(
@@ -278,7 +285,7 @@ class AR1(Model):
 
         # log(1 − C1) spans time constants from a few Δτ to 10⁵ Δτ.
         grid = np.linspace(np.log(0.5), np.log(1e-5), 40)
-        costs = [solve(1.0 - np.exp(z))[0] for z in grid]
+        costs = [solve(1.0 - np.exp(z))[0] for z in progress(grid, desc="ar1 C1 search")]
         i = int(np.argmin(costs))
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
         res = optimize.minimize_scalar(

@@ -32,7 +32,7 @@ from compd.config import Strict
 from compd.errors import BadInput
 from compd.log import Log
 from compd.models.base import FitResult, Model
-from compd.models.fitdata import axis_names, columns, default_targets, require_rows
+from compd.models.fitdata import axis_names, columns, default_targets, progress, require_rows
 
 Role = Literal["position", "current", "motor_temp", "ambient"]
 
@@ -287,6 +287,12 @@ class FeedAxis(Model):
         self._t_prev, self._p_prev = float(t[-1]), float(pw[-1])
         return out
 
+    def heating(self, X: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(heating time s, heat J) at each row of a log, from its first row (for reports)."""
+        t = np.asarray(t_s, dtype=float)
+        pw = np.array([self._power(row) for row in X])
+        return t - t[0], heat_j(t, pw)
+
     def get_state(self) -> dict[str, Any]:
         heating = None if self.t_start_s is None else self._t_prev - self.t_start_s
         return {"heating_s": heating, "heat_j": self.heat_j}
@@ -353,7 +359,7 @@ class FeedAxis(Model):
             chi_grid = np.array([opt.chi_per_m])
         else:
             chi_grid = np.geomspace(0.05, 30.0, 40) / (length / 1000.0)
-        costs = [linear(c, a0)[0] for c in chi_grid]
+        costs = [linear(c, a0)[0] for c in progress(chi_grid, desc="feed_axis χ start")]
         chi0 = float(chi_grid[int(np.argmin(costs))])
         _, (u1, u2, eta) = linear(chi0, a0)
         free_chi = opt.chi_per_m is None

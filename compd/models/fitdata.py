@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 
 import numpy as np
@@ -79,3 +80,12 @@ def step_rows(t_s: np.ndarray, period_s: float) -> np.ndarray:
             out.append(i)
             next_t = t + period_s
     return np.asarray(out, dtype=np.intp)
+
+
+def progress(iterable, desc: str, total: int | None = None):
+    """A progress bar on stderr that appears only when the work takes over a second (tqdm)."""
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover - tqdm is a core dependency
+        return iterable
+    return tqdm(iterable, desc=desc, total=total, delay=1.0, leave=False, file=sys.stderr)
