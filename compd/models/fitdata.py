@@ -88,4 +88,5 @@ def progress(iterable, desc: str, total: int | None = None):
         from tqdm import tqdm
     except ImportError:  # pragma: no cover - tqdm is a core dependency
         return iterable
+    tqdm.monitor_interval = 0  # no monitor thread: a fit leaves nothing running behind it
     return tqdm(iterable, desc=desc, total=total, delay=1.0, leave=False, file=sys.stderr)
