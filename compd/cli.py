@@ -159,6 +159,72 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+@command("fit")
+def cmd_fit(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from compd import fitting, report
+
+    options = fitting.parse_options(args.option)
+    if args.ambient:
+        options["ambient"] = args.ambient
+    log = fitting.read_fit_log(args.log)
+    if args.kind == "all":
+        rows = fitting.fit_all(log, args.inputs, args.target, options)
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        for _, label, oc, _ in rows:
+            if oc is not None:
+                fitting.write_model(oc.model, out / f"{label}.yaml")
+                if args.plot:
+                    p = Path(args.plot)
+                    report.plot_fit(oc, log, p.with_name(f"{p.stem}_{label}{p.suffix or '.png'}"))
+                fitting.warn(oc.warnings)
+        print(fitting.comparison_table(rows))
+        if args.report:
+            report.write_json(args.report, {
+                label: oc.report if oc else {"skipped": why} for _, label, oc, why in rows
+            })
+        return 0
+    oc = fitting.fit_model(args.kind, log, args.inputs, args.target, options)
+    fitting.write_model(oc.model, args.out)
+    if args.report:
+        report.write_json(args.report, oc.report)
+    if args.plot:
+        report.plot_fit(oc, log, args.plot)
+    for axis, s in oc.report["axes"].items():
+        print(f"{args.kind} axis {axis}: RMSE {s['rmse_um']:.3f} um, max {s['max_abs_err_um']:.3f} um,"
+              f" {oc.report['rows']} rows, {oc.report['fit_time_s']:.2f} s -> {args.out}")
+    fitting.warn(oc.warnings)
+    return 0
+
+
+@command("predict")
+def cmd_predict(args: argparse.Namespace) -> int:
+    from compd import fitting
+
+    model = fitting.load_model(args.model)
+    log = fitting.read_fit_log(args.log)
+    pred = fitting.predict_log(model, log)
+    fitting.write_prediction(args.out, log.t_s, model.outputs, pred)
+    print(f"{model.kind}: {len(log)} rows -> {args.out}")
+    return 0
+
+
+@command("xi")
+def cmd_xi(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from compd import fitting
+    from compd.models.xi_spindle import find_xi
+
+    x, t = fitting.read_profile(args.profile)
+    xi = find_xi(x, t)
+    mean = float(np.trapezoid(t, x) / (x[-1] - x[0]))
+    print(f"xi_mm {xi:.2f}  (mean temperature {mean:.3f} C over {x[0]:g}..{x[-1]:g} mm)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="compd", description="Real-time thermal-error compensation for CNC machine tools."
@@ -182,6 +248,25 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("decode", help="direction, enable and magnitude of both axes of a word")
     s.add_argument("word", metavar="WORD")
     s.add_argument("--lsb-um", type=float, default=1.0, dest="lsb_um")
+    s = sub.add_parser("fit", help="identify a model's coefficients from a log")
+    s.add_argument("--kind", required=True, choices=["feed_axis", "lvr", "xi_spindle", "ar1", "mlr", "all"])
+    s.add_argument("--log", required=True, metavar="LOG.csv")
+    s.add_argument("--out", required=True, metavar="MODEL.yaml", help="model file (a folder with --kind all)")
+    s.add_argument("--target", nargs="+", action="extend", default=None, metavar="COL")
+    s.add_argument("--inputs", nargs="+", action="extend", default=None, metavar="COL")
+    s.add_argument("--ambient", default=None, metavar="COL", help="ambient sensor (ar1 C3, feed_axis ζ)")
+    s.add_argument("--option", action="append", default=None, metavar="KEY=VALUE",
+                   help="a fit option of the kind (value read as YAML)")
+    s.add_argument("--report", default=None, metavar="REPORT.json")
+    s.add_argument("--plot", default=None, metavar="FILE.png")
+
+    s = sub.add_parser("predict", help="batch prediction of a fitted model over a log")
+    s.add_argument("model", metavar="MODEL.yaml")
+    s.add_argument("--log", required=True, metavar="LOG.csv")
+    s.add_argument("--out", required=True, metavar="PRED.csv")
+
+    s = sub.add_parser("xi", help="the mean-value point ξ of a temperature profile (CSV x_mm, T_c)")
+    s.add_argument("--profile", required=True, metavar="FILE.csv")
     return p
 
 

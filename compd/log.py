@@ -17,11 +17,23 @@ from compd.errors import BadInput
 
 RESERVED_PREFIXES = ("err_", "pos_", "current_")
 RESERVED_NAMES = ("t_s", "speed_rpm")
+# Columns the loop itself writes into its log (compd.app.LogObserver): never inputs.
+OUTPUT_PREFIXES = ("pred_", "corr_", "applied_")
+OUTPUT_NAMES = ("word",)
 
 
 def is_temperature_column(name: str) -> bool:
-    """CONTRACT: any column but t_s, err_*, pos_*, speed_rpm, current_* is a temperature."""
-    return name not in RESERVED_NAMES and not name.startswith(RESERVED_PREFIXES)
+    """CONTRACT: any column but t_s, err_*, pos_*, speed_rpm, current_* is a temperature.
+
+    compd's own output columns (pred_*, corr_*, applied_*, word) are excluded too, so
+    a fit on a log that compd wrote does not take its own predictions as inputs.
+    """
+    return (
+        name not in RESERVED_NAMES
+        and name not in OUTPUT_NAMES
+        and not name.startswith(RESERVED_PREFIXES)
+        and not name.startswith(OUTPUT_PREFIXES)
+    )
 
 
 def error_axis(name: str) -> str | None:

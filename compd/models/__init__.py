@@ -6,5 +6,9 @@ MODELS = Registry(
     "model",
     {
         "xi_spindle": ("compd.models.xi_spindle", "XiSpindle"),
+        "feed_axis": ("compd.models.feed_axis", "FeedAxis"),
+        "lvr": ("compd.models.lvr", "LVR"),
+        "ar1": ("compd.models.ar1", "AR1"),
+        "mlr": ("compd.models.mlr", "MLR"),
     },
 )

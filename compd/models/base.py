@@ -4,12 +4,16 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
+from pydantic import ValidationError
 
 from compd.config import Strict
 from compd.errors import BadInput
+
+if TYPE_CHECKING:
+    from compd.log import Log
 
 
 @dataclass
@@ -18,6 +22,10 @@ class FitResult:
 
     model: Model
     report: dict[str, Any] = field(default_factory=dict)
+
+
+class NoFitOptions(Strict):
+    """A model kind that takes no fit options."""
 
 
 class Model(ABC):
@@ -32,6 +40,7 @@ class Model(ABC):
 
     kind: ClassVar[str]
     Params: ClassVar[type[Strict]]
+    FitOptions: ClassVar[type[Strict]] = NoFitOptions
     update_period_s: float = 0.0
 
     def __init__(
@@ -81,6 +90,34 @@ class Model(ABC):
                 next_t = t_s[i] + self.update_period_s if self.update_period_s > 0 else -np.inf
             out[i] = row
         return out
+
+    @classmethod
+    def fit(
+        cls, log: Log, inputs: list[str] | None, targets: list[str] | None, **options: Any
+    ) -> FitResult:
+        """Identify the model from a log (CONTRACT `compd fit`).
+
+        `inputs`/`targets` None means the kind's defaults (every temperature column,
+        every `err_*_um` column); `options` are validated against `FitOptions`. The
+        report holds what is specific to the kind (Q², Ljung–Box, convergence);
+        compd.fitting adds the common figures (rows, RMSE, max error, fit time).
+        """
+        raise BadInput(f"{cls.kind} models cannot be fitted from a log")
+
+    @classmethod
+    def fit_options(cls, options: dict[str, Any]) -> Any:
+        """`options` validated against `FitOptions`; a bad one is BadInput naming it."""
+        try:
+            return cls.FitOptions.model_validate(options)
+        except ValidationError as e:
+            err = e.errors()[0]
+            key = ".".join(str(p) for p in err["loc"]) or "option"
+            known = ", ".join(sorted(cls.FitOptions.model_fields)) or "none"
+            if err["type"] == "extra_forbidden":
+                msg = f"unknown fit option for {cls.kind} (known: {known})"
+            else:
+                msg = err["msg"] + (f" (got {err['input']!r})" if "input" in err else "")
+            raise BadInput(msg, path=f"--option {key}") from None
 
     def get_state(self) -> dict[str, Any]:
         """The model's memory (for persistence); plain JSON types."""

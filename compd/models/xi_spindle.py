@@ -1,15 +1,18 @@
-"""ξ-point spindle model, axial (paper 003, SPEC §3.3): ΔL = α L [T(ξ) − T0]."""
+"""ξ-point spindle model, axial ΔL = α L [T(ξ) − T0] and radial bearing-ring model (paper 003, SPEC §3.3)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from compd.config import Strict
 from compd.errors import BadInput
-from compd.models.base import Model
+from compd.log import Log
+from compd.models.base import FitResult, Model
+from compd.models.fitdata import axis_names, columns, default_targets, require_rows
 
 
 def axial_growth_um(t_xi_c: float | np.ndarray, t0_c: float, alpha_per_k: float, length_mm: float):
@@ -45,6 +48,92 @@ def find_xi(x_mm: np.ndarray, t_c: np.ndarray) -> float:
     return float(x[-1])
 
 
+def ring_integral(t_in: float, t_out: float, a_mm: float, b_mm: float) -> float:
+    """∫_a^b T(r) r dr (K·mm²) for T linear in r from t_in at r = a to t_out at r = b."""
+    s = (t_out - t_in) / (b_mm - a_mm)
+    return (t_in - s * a_mm) * (b_mm**2 - a_mm**2) / 2.0 + s * (b_mm**3 - a_mm**3) / 3.0
+
+
+def ring_displacement_um(
+    r_mm: float, a_mm: float, b_mm: float, r_nodes_mm: np.ndarray, dt_nodes_k: np.ndarray,
+    alpha_per_k: float, mu: float,
+) -> float:
+    """Radial displacement u(r) of a ring a ≤ r ≤ b with temperature rise T(r) (paper 003, eq. 8), µm.
+
+    u(r) = α/r [(1+μ) ∫_a^r T r' dr' + ((1−μ) r² + (1+μ) a²)/(b² − a²) ∫_a^b T r' dr'];
+    T(r) is given at nodes and integrated by the trapezoid rule. A uniform rise ΔT gives α r ΔT.
+    """
+    r_nodes = np.asarray(r_nodes_mm, dtype=float)
+    f = np.asarray(dt_nodes_k, dtype=float) * r_nodes
+    total = float(np.trapezoid(f, r_nodes))
+    inside = r_nodes <= r_mm
+    rr = np.r_[r_nodes[inside], r_mm]
+    ff = np.r_[f[inside], np.interp(r_mm, r_nodes, f)]
+    part = float(np.trapezoid(ff, rr))
+    u_mm = alpha_per_k / r_mm * (
+        (1 + mu) * part + ((1 - mu) * r_mm**2 + (1 + mu) * a_mm**2) / (b_mm**2 - a_mm**2) * total
+    )
+    return u_mm * 1000.0
+
+
+def inner_ring_um(dt_in_k: float, dt_out_k: float, r_a_mm: float, r_b_mm: float, alpha_per_k: float, mu: float) -> float:
+    """u_B: inner ring (a = r_A, b = r_B) at its outer surface r_B, linear T(r), µm (paper 003)."""
+    i = ring_integral(dt_in_k, dt_out_k, r_a_mm, r_b_mm)
+    k = (1 + mu) + ((1 - mu) * r_b_mm**2 + (1 + mu) * r_a_mm**2) / (r_b_mm**2 - r_a_mm**2)
+    return alpha_per_k / r_b_mm * k * i * 1000.0
+
+
+def outer_ring_um(dt_in_k: float, dt_out_k: float, r_c_mm: float, r_d_mm: float, alpha_per_k: float) -> float:
+    """u_C = 2 α r_C/(r_D² − r_C²) ∫_{r_C}^{r_D} T r dr: outer ring at its inner surface, µm (paper 003)."""
+    i = ring_integral(dt_in_k, dt_out_k, r_c_mm, r_d_mm)
+    return 2.0 * alpha_per_k * r_c_mm / (r_d_mm**2 - r_c_mm**2) * i * 1000.0
+
+
+def clearance_um(dl_um: float, d_w_mm: float, f: float, contact_deg: float = 18.0, share: float = 0.8) -> float:
+    """Radial clearance opened by preload loss from an axial growth ΔL (paper 003, eqs. 11–13), µm.
+
+    α' = arcsin(sin α0 − share·ΔL / (D_w (f − 0.5))), θ = (180° − (α0 − α'))/2 − (90° − α0),
+    c = share·ΔL·tan θ. α0 = 18° gives the paper's 72°. ΔL in µm (converted to mm inside).
+    """
+    dl_mm = dl_um / 1000.0
+    arg = math.sin(math.radians(contact_deg)) - share * dl_mm / (d_w_mm * (f - 0.5))
+    arg = min(1.0, max(-1.0, arg))
+    a1 = math.degrees(math.asin(arg))
+    theta = (180.0 - (contact_deg - a1)) / 2.0 - (90.0 - contact_deg)
+    return share * dl_um * math.tan(math.radians(theta))
+
+
+class RadialParams(Strict):
+    """Radial model of one angular-contact bearing (paper 003; defaults: 7010 CETA)."""
+
+    r_a_mm: float = Field(25.0, gt=0, description="inner ring bore radius")
+    r_b_mm: float = Field(27.34, gt=0, description="inner ring outer (raceway) radius")
+    r_c_mm: float = Field(37.66, gt=0, description="outer ring inner (raceway) radius")
+    r_d_mm: float = Field(40.0, gt=0, description="outer ring outer radius")
+    alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3, description="bearing steel α")
+    mu: float = Field(0.26, gt=0, lt=0.5, description="Poisson's ratio")
+    d_w_mm: float = Field(10.319, gt=0, description="ball diameter D_w")
+    f: float = Field(0.53, gt=0.5, lt=1, description="raceway groove radius ratio")
+    contact_deg: float = Field(18.0, gt=0, lt=90, description="initial contact angle")
+    preload_share: float = Field(0.8, ge=0, le=1, description="share of ΔL between the bearings")
+    clearance: bool = Field(True, description="add the preload-loss clearance term c")
+    inner_sensors: int = Field(1, ge=1, le=2, description="1: uniform ring; 2: T at bore and raceway")
+    outer_sensors: int = Field(1, ge=1, le=2, description="1: uniform ring; 2: T at raceway and OD")
+    k_um_per_rpm2: float | None = Field(
+        None, description="centrifugal lift k·n²; set it to take a speed input (last)"
+    )
+
+    @model_validator(mode="after")
+    def _radii(self) -> RadialParams:
+        if not self.r_a_mm < self.r_b_mm < self.r_c_mm < self.r_d_mm:
+            raise ValueError("radii must satisfy r_a < r_b < r_c < r_d")
+        return self
+
+    @property
+    def n_inputs(self) -> int:
+        return self.inner_sensors + self.outer_sensors + (self.k_um_per_rpm2 is not None)
+
+
 class XiSpindleParams(Strict):
     """Parameters of the axial ξ-point model."""
 
@@ -54,37 +143,119 @@ class XiSpindleParams(Strict):
         None, ge=-40, le=150, description="reference temperature; none = first reading at start"
     )
     xi_mm: float | None = Field(None, ge=0, description="where the sensor sits (documentation)")
+    radial: RadialParams | None = Field(
+        None, description="add a radial output: inputs [T_xi, inner ring, outer ring, (speed)]"
+    )
+
+
+class XiFitOptions(Strict):
+    """`compd fit --kind xi_spindle --option KEY=VALUE`: the axial gain α L is fitted."""
+
+    alpha_per_k: float = Field(13.6e-6, gt=0, lt=1e-3, description="α; the fit reports L = gain/α")
+    xi_mm: float | None = Field(None, ge=0, description="where the sensor sits (kept in the file)")
 
 
 class XiSpindle(Model):
-    """Axial ξ-point model: one input (the sensor at ξ), one output axis."""
+    """ξ-point model: axial output from the ξ sensor; optional radial output from the bearing rings.
+
+    Inputs: [T_xi] or, with `radial`, [T_xi, inner ring sensor(s), outer ring sensor(s),
+    (speed_rpm if k_um_per_rpm2 is set)]. Outputs: [axial] or [axial, radial].
+    """
 
     kind = "xi_spindle"
     Params = XiSpindleParams
+    FitOptions = XiFitOptions
 
     def __init__(self, params: XiSpindleParams, inputs: list[str], outputs: list[str], fit=None):
         super().__init__(params, inputs, outputs, fit)
         self._gain_um_per_k = params.alpha_per_k * params.length_mm * 1000.0
         self.t0_c: float | None = params.t0_c
+        self.ref_c: np.ndarray | None = None  # references of the ring sensors
 
     @classmethod
     def check_wiring(cls, params, inputs, outputs) -> None:
         super().check_wiring(params, inputs, outputs)
-        if len(inputs) != 1:
-            raise BadInput(f"xi_spindle takes one input (the ξ sensor), got {len(inputs)}")
-        if len(outputs) != 1:
-            raise BadInput(f"xi_spindle has one output axis, got {len(outputs)}")
+        rad = params.radial
+        need_in = 1 + (rad.n_inputs if rad else 0)
+        need_out = 2 if rad else 1
+        if len(inputs) != need_in:
+            what = "the ξ sensor" + (", ring sensors" if rad else "")
+            raise BadInput(f"xi_spindle takes {need_in} inputs ({what}), got {len(inputs)}")
+        if len(outputs) != need_out:
+            raise BadInput(f"xi_spindle has {need_out} output axes (axial{', radial' if rad else ''}), got {len(outputs)}")
 
     def start(self, x: np.ndarray, t_s: float) -> None:
         if self.t0_c is None:
             self.t0_c = float(x[0])
+        if self.params.radial is not None and self.ref_c is None:
+            self.ref_c = np.array(x, dtype=float)
 
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
-        out[0] = self._gain_um_per_k * (x[0] - self.t0_c)
+        """Axial ΔL = α L (T(ξ) − T0); radial E = u_C − u_B + c(ΔL) + k n² (paper 003), µm."""
+        dl = self._gain_um_per_k * (x[0] - self.t0_c)
+        out[0] = dl
+        rad = self.params.radial
+        if rad is None:
+            return
+        ref = self.ref_c
+        k = 1
+        ti = x[k] - ref[k]
+        to = x[k + 1] - ref[k + 1] if rad.inner_sensors == 2 else ti
+        k += rad.inner_sensors
+        oi = x[k] - ref[k]
+        oo = x[k + 1] - ref[k + 1] if rad.outer_sensors == 2 else oi
+        k += rad.outer_sensors
+        e = outer_ring_um(oi, oo, rad.r_c_mm, rad.r_d_mm, rad.alpha_per_k) - inner_ring_um(
+            ti, to, rad.r_a_mm, rad.r_b_mm, rad.alpha_per_k, rad.mu
+        )
+        if rad.clearance:
+            e += clearance_um(max(dl, 0.0), rad.d_w_mm, rad.f, rad.contact_deg, rad.preload_share)
+        if rad.k_um_per_rpm2 is not None:
+            e += rad.k_um_per_rpm2 * x[k] * x[k]
+        out[1] = e
 
     def get_state(self) -> dict[str, Any]:
-        return {"t0_c": self.t0_c}
+        ref = None if self.ref_c is None else [float(v) for v in self.ref_c]
+        return {"t0_c": self.t0_c, "ref_c": ref}
 
     def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0) -> None:
         if self.params.t0_c is None and state.get("t0_c") is not None:
             self.t0_c = float(state["t0_c"])
+        ref = state.get("ref_c")
+        if ref is not None and len(ref) == len(self.inputs):
+            self.ref_c = np.asarray(ref, dtype=float)
+
+    @classmethod
+    def fit(cls, log: Log, inputs=None, targets=None, **options: Any) -> FitResult:
+        """Axial gain α L by least squares through the origin on the ξ sensor's rise."""
+        opt = cls.fit_options(options)
+        targets = default_targets(log, targets)
+        if len(targets) != 1:
+            raise BadInput(f"xi_spindle fits one axis; targets: {', '.join(targets)}", path="--target")
+        if not inputs:
+            temps = log.temperature_columns()
+            if len(temps) != 1:
+                raise BadInput(
+                    "name the ξ sensor with --inputs (the log has "
+                    f"{len(temps)} temperature columns)", file=log.file, path="--inputs",
+                )
+            inputs = temps
+        if len(inputs) != 1:
+            raise BadInput(f"xi_spindle takes one input (the ξ sensor), got {len(inputs)}", path="--inputs")
+        x = columns(log, inputs)[:, 0]
+        e = columns(log, targets)[:, 0]
+        require_rows(log, x.size, 3, "xi_spindle")
+        rise = x - x[0]
+        ss = float(rise @ rise)
+        if ss == 0.0:
+            raise BadInput("the ξ sensor never changes", file=log.file, path=inputs[0])
+        gain = float(rise @ e) / ss
+        if gain <= 0:
+            raise BadInput(
+                f"the error falls as {inputs[0]} rises (gain {gain:.3g} µm/K): not a ξ sensor",
+                file=log.file, path=inputs[0],
+            )
+        length = gain / (opt.alpha_per_k * 1000.0)
+        params = XiSpindleParams(alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm)
+        model = cls(params, list(inputs), axis_names(targets))
+        return FitResult(model, {"gain_um_per_k": gain, "length_mm": length})

@@ -1,4 +1,4 @@
-"""ξ-point axial model (paper 003 Table 1) and the mean-value point tool."""
+"""ξ-point spindle (paper 003): Table 1, ξ from a profile, radial rings, clearance, fit."""
 
 from __future__ import annotations
 
@@ -6,7 +6,86 @@ import numpy as np
 import pytest
 
 from compd.errors import BadInput
-from compd.models.xi_spindle import XiSpindle, XiSpindleParams, axial_growth_um, find_xi
+from compd.log import Log
+from compd.models.xi_spindle import (
+    RadialParams,
+    XiSpindle,
+    XiSpindleParams,
+    axial_growth_um,
+    clearance_um,
+    find_xi,
+    inner_ring_um,
+    outer_ring_um,
+    ring_displacement_um,
+)
+
+
+@pytest.mark.parametrize(
+    "t_c, dl_um", [(23.2, 1.57), (26.8, 9.65), (28.5, 13.46), (29.9, 16.61), (30.7, 18.40), (31.5, 20.20)]
+)
+def test_table1_rows(t_c, dl_um):
+    # paper 003 Table 1 (its 30.7 °C row prints 18.50, a typo for 18.40; SPEC §3.3)
+    assert round(float(axial_growth_um(t_c, 22.5, 13.6e-6, 165.0)), 2) == pytest.approx(dl_um, abs=0.006)
+
+
+def test_find_xi_is_mean_value_point():
+    x = np.linspace(0, 165, 34)
+    t = 30 - 8 * x / 165
+    xi = find_xi(x, t)
+    assert xi == pytest.approx(82.5, abs=1e-9)
+    with pytest.raises(BadInput):
+        find_xi(x, np.full_like(x, 20.0))
+
+
+def test_uniform_ring_reduces_to_alpha_r_dt():
+    a, dt = 12e-6, 5.0
+    nodes = np.linspace(25, 35, 11)
+    for r in (25.0, 28.0, 35.0):
+        assert ring_displacement_um(r, 25, 35, nodes, np.full(11, dt), a, 0.26) == pytest.approx(a * r * dt * 1e3)
+    assert inner_ring_um(dt, dt, 25, 27.34, a, 0.26) == pytest.approx(a * 27.34 * dt * 1e3)
+    assert outer_ring_um(dt, dt, 37.66, 40, a) == pytest.approx(a * 37.66 * dt * 1e3)
+
+
+def test_linear_profile_closed_form_matches_numeric():
+    nodes = np.linspace(25, 27.34, 201)
+    dts = 3 + 2 * (nodes - 25) / 2.34
+    num = ring_displacement_um(27.34, 25, 27.34, nodes, dts, 11.5e-6, 0.26)
+    assert inner_ring_um(3, 5, 25, 27.34, 11.5e-6, 0.26) == pytest.approx(num, rel=1e-5)
+
+
+def test_clearance():
+    assert clearance_um(0.0, 10.319, 0.53) == 0.0
+    c1, c2 = clearance_um(5.0, 10.319, 0.53), clearance_um(10.0, 10.319, 0.53)
+    assert 0 < c1 < c2
+
+
+def test_radial_evaluate():
+    params = XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=RadialParams(k_um_per_rpm2=1e-7))
+    m = XiSpindle(params, ["T_xi", "T_in", "T_out", "speed_rpm"], ["z", "x"])
+    m.start(np.array([22.5, 22.5, 22.5, 0.0]), 0.0)
+    out = np.zeros(2)
+    m.evaluate(np.array([26.8, 27.0, 25.0, 6000.0]), 1.0, out)
+    rad = params.radial
+    expect = (
+        outer_ring_um(2.5, 2.5, rad.r_c_mm, rad.r_d_mm, rad.alpha_per_k)
+        - inner_ring_um(4.5, 4.5, rad.r_a_mm, rad.r_b_mm, rad.alpha_per_k, rad.mu)
+        + clearance_um(out[0], rad.d_w_mm, rad.f)
+        + 1e-7 * 6000.0**2
+    )
+    assert out[0] == pytest.approx(9.6492, abs=1e-3)
+    assert out[1] == pytest.approx(expect)
+    with pytest.raises(BadInput):
+        XiSpindle(params, ["T_xi"], ["z"])
+
+
+def test_fit_axial_length():
+    t = np.arange(100.0)
+    T = 22.5 + 8 * (1 - np.exp(-t / 30))
+    e = 13.6e-6 * 165e3 * (T - T[0])
+    log = Log("x.csv", ["t_s", "T_xi", "err_z_um"], np.column_stack([t, T, e]))
+    m = XiSpindle.fit(log, None, None).model
+    assert m.params.length_mm == pytest.approx(165.0)
+
 
 # paper 003, Table 1: T(ξ) °C → modelled ΔL µm (α = 13.6e-6 /K, L = 165 mm, T0 = 22.5 °C).
 # The paper prints 18.50 for 30.7 °C; α L ΔT gives 18.40 (SPEC §3.3).
@@ -44,7 +123,7 @@ def test_t0_taken_at_start_and_restored() -> None:
 
 def test_wiring_checked() -> None:
     params = XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165.0)
-    with pytest.raises(BadInput, match="one input"):
+    with pytest.raises(BadInput, match="takes 1 inputs"):
         XiSpindle(params, ["a", "b"], ["z"])
 
 

@@ -1,0 +1,259 @@
+"""`compd fit` / `compd predict` / `compd xi`: fit a model from a log, score it against MLR, write files."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from compd.errors import BadInput
+from compd.log import Log, read_log
+from compd.models import MODELS
+from compd.models.base import Model
+
+KINDS = ("feed_axis", "lvr", "xi_spindle", "ar1", "mlr")
+
+
+@dataclass
+class FitOutcome:
+    """One fitted model with its scores and report (what `compd fit` prints and writes)."""
+
+    kind: str
+    model: Model
+    report: dict[str, Any]
+    pred: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+
+
+def parse_options(pairs: list[str] | None) -> dict[str, Any]:
+    """`KEY=VALUE` strings → dict; values are read as YAML (numbers, lists, mappings)."""
+    out: dict[str, Any] = {}
+    for pair in pairs or []:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise BadInput(f"expected KEY=VALUE, got {pair!r}", path="--option")
+        try:
+            out[key.strip()] = yaml.safe_load(value) if value.strip() else None
+        except yaml.YAMLError:
+            raise BadInput(f"cannot read the value of {key!r}", path="--option") from None
+    return out
+
+
+def read_fit_log(file: str | Path) -> Log:
+    """A log for fitting: empty cells allowed here, refused later only in the columns a fit uses."""
+    return read_log(file, allow_nan=True)
+
+
+def clone(model: Model) -> Model:
+    """A fresh instance of a model (no run-time state), as a model file would load it."""
+    return type(model)(model.params, model.inputs, model.outputs, model.fit_info)
+
+
+def predict_log(model: Model, log: Log) -> np.ndarray:
+    """Batch prediction on a log from a fresh start: (n × outputs) µm."""
+    from compd.models.fitdata import columns
+
+    X = columns(log, model.inputs)
+    return clone(model).predict(X, log.t_s)
+
+
+def _targets_for(model: Model, log: Log, targets: list[str] | None) -> list[str]:
+    if targets:
+        return list(targets)
+    return [f"err_{a}_um" for a in model.outputs]
+
+
+def scores(model: Model, log: Log, targets: list[str], pred: np.ndarray) -> dict[str, dict[str, float]]:
+    """RMSE and max |error| per output axis (µm) of prediction against the logged error."""
+    from compd.models.fitdata import columns
+
+    Y = columns(log, targets)
+    out = {}
+    for k, axis in enumerate(model.outputs):
+        r = Y[:, k] - pred[:, k]
+        out[axis] = {"rmse_um": float(np.sqrt(np.mean(r * r))), "max_abs_err_um": float(np.max(np.abs(r)))}
+    return out
+
+
+def fit_model(
+    kind: str,
+    log: Log,
+    inputs: list[str] | None,
+    targets: list[str] | None,
+    options: dict[str, Any],
+    *,
+    baseline: bool = True,
+) -> FitOutcome:
+    """Fit `kind`, score it on the log, compare with MLR on the same targets."""
+    cls = MODELS.get(kind, path="--kind")
+    t0 = time.perf_counter()
+    result = cls.fit(log, inputs, targets, **options)
+    fit_s = time.perf_counter() - t0
+    model = result.model
+    tcols = _targets_for(model, log, targets)
+    pred = predict_log(model, log)
+    axes = scores(model, log, tcols, pred)
+    warnings: list[str] = []
+    if result.report.get("converged") is False:
+        warnings.append(f"{kind}: the fit did not converge ({result.report.get('optimizer', 'see report')})")
+    if result.report.get("warning"):
+        warnings.append(f"{kind}: {result.report['warning']}")
+    report: dict[str, Any] = {
+        "kind": kind,
+        "log": log.file,
+        "rows": len(log),
+        "inputs": model.inputs,
+        "targets": tcols,
+        "fit_time_s": fit_s,
+        "axes": axes,
+        "details": result.report,
+    }
+    if baseline and kind != "mlr":
+        try:
+            from compd.models.mlr import MLR
+
+            base = MLR.fit(log, None, tcols).model
+            base_axes = scores(base, log, tcols, predict_log(base, log))
+            report["baseline_mlr"] = base_axes
+            for axis, s in axes.items():
+                b = base_axes[axis]["rmse_um"]
+                if s["rmse_um"] > b:
+                    warnings.append(
+                        f"{kind}: axis {axis} RMSE {s['rmse_um']:.3f} um is worse than MLR's {b:.3f} um"
+                    )
+        except BadInput as e:
+            report["baseline_mlr"] = {"skipped": str(e)}
+    report["warnings"] = warnings
+    fit_info: dict[str, Any] = {
+        "log": Path(log.file).name,
+        "rows": len(log),
+        "rmse_um": {a: s["rmse_um"] for a, s in axes.items()},
+        "max_abs_err_um": {a: s["max_abs_err_um"] for a, s in axes.items()},
+    }
+    for key in ("q2", "n_components", "ljung_box", "converged", "dt_s"):
+        if key in result.report:
+            fit_info[key] = result.report[key]
+    model.fit_info = json.loads(json.dumps(fit_info))
+    return FitOutcome(kind, model, report, pred, warnings)
+
+
+def write_model(model: Model, path: str | Path) -> None:
+    """The model YAML of CONTRACT.md (kind, inputs, outputs, params, fit)."""
+    data = json.loads(json.dumps(model.to_dict()))
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False, allow_unicode=True), encoding="utf-8")
+
+
+def load_model(path: str | Path) -> Model:
+    """A model from its YAML file, validated like a config's `model: {kind, file}`."""
+    from compd.config import load_model_file, resolve_model
+
+    doc, data = load_model_file(path)
+    p = Path(path).resolve()
+    spec = resolve_model({"kind": data["kind"], "file": str(p)}, doc, (), p.parent)
+    return spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
+
+
+def write_prediction(path: str | Path, t_s: np.ndarray, axes: list[str], pred: np.ndarray) -> None:
+    """PRED.csv of CONTRACT: t_s and one pred_<axis>_um column per axis."""
+    from compd.log import write_log
+
+    write_log(path, ["t_s"] + [f"pred_{a}_um" for a in axes], np.column_stack([t_s, pred]))
+
+
+def applicable(kind: str, log: Log, inputs: list[str] | None, options: dict[str, Any]) -> str | None:
+    """Why `kind` cannot be fitted on this log in `--kind all` (None if it can)."""
+    if kind == "ar1" and "speed_rpm" not in log.columns:
+        return "no speed_rpm column"
+    if kind == "feed_axis" and not any(c.startswith("pos_") for c in log.columns):
+        return "no pos_<axis>_mm column"
+    if kind == "xi_spindle" and len(inputs or log.temperature_columns()) != 1:
+        return "needs exactly one ξ sensor (--inputs)"
+    return None
+
+
+def fit_all(
+    log: Log, inputs: list[str] | None, targets: list[str] | None, options: dict[str, Any]
+) -> list[tuple[str, str, FitOutcome | None, str | None]]:
+    """Every applicable kind on the same log: (kind, label, outcome or None, why skipped)."""
+    from compd.models.fitdata import default_targets, progress
+
+    tcols = default_targets(log, targets)
+    single_axis = {"feed_axis", "ar1", "xi_spindle"}
+    jobs: list[tuple[str, list[str]]] = []
+    for kind in KINDS:
+        if kind in single_axis:
+            jobs += [(kind, [t]) for t in tcols]
+        else:
+            jobs.append((kind, tcols))
+    known = {k: set(MODELS.get(k).FitOptions.model_fields) for k in KINDS}
+    unknown = set(options) - set().union(*known.values())
+    if unknown:
+        raise BadInput(f"no model takes fit option {sorted(unknown)[0]!r}", path="--option")
+    out = []
+    for kind, tc in progress(jobs, desc="fitting"):
+        label = kind if kind not in single_axis or len(tcols) == 1 else f"{kind}_{tc[0][4:-3]}"
+        why = applicable(kind, log, inputs, options)
+        if why is None:
+            try:
+                opts = {k: v for k, v in options.items() if k in known[kind]}
+                out.append((kind, label, fit_model(kind, log, inputs, tc, opts, baseline=False), None))
+                continue
+            except BadInput as e:
+                why = str(e)
+        out.append((kind, label, None, why))
+    return out
+
+
+def comparison_table(rows: list[tuple[str, str, FitOutcome | None, str | None]]) -> str:
+    """One line per model and axis: RMSE, max error, fit time (the papers' comparison)."""
+    lines = [f"{'model':<16} {'axis':<8} {'rmse_um':>9} {'max_um':>9} {'fit_s':>8}"]
+    for _, label, oc, why in rows:
+        if oc is None:
+            lines.append(f"{label:<16} {'-':<8} {'-':>9} {'-':>9} {'-':>8}  skipped: {why}")
+            continue
+        for axis, s in oc.report["axes"].items():
+            lines.append(
+                f"{label:<16} {axis:<8} {s['rmse_um']:>9.3f} {s['max_abs_err_um']:>9.3f}"
+                f" {oc.report['fit_time_s']:>8.3f}"
+            )
+    return "\n".join(lines)
+
+
+def read_profile(file: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A temperature profile CSV: two columns x (mm) and T (°C); a header row is optional."""
+    x, t = [], []
+    try:
+        lines = Path(file).read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise BadInput(f"cannot read profile: {e}", file=str(file)) from None
+    for lineno, line in enumerate(lines, start=1):
+        cells = [c.strip() for c in line.split(",")]
+        if not line.strip():
+            continue
+        if len(cells) < 2:
+            raise BadInput("a profile row needs two cells: x, T", file=str(file), line=lineno)
+        try:
+            xv, tv = float(cells[0]), float(cells[1])
+        except ValueError:
+            if lineno == 1:
+                continue  # header
+            raise BadInput(f"not a number in {cells[:2]}", file=str(file), line=lineno) from None
+        if not (math.isfinite(xv) and math.isfinite(tv)):
+            raise BadInput("not a finite number", file=str(file), line=lineno)
+        x.append(xv)
+        t.append(tv)
+    if len(x) < 2:
+        raise BadInput("a profile needs at least two rows", file=str(file))
+    return np.asarray(x), np.asarray(t)
+
+
+def warn(lines: list[str]) -> None:
+    for w in lines:
+        print(f"compd: warning: {w}", file=sys.stderr)

@@ -1,0 +1,92 @@
+"""Shared fit-time helpers: pick columns from a log and refuse data no fit can use."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+import numpy as np
+
+from compd.errors import BadInput
+from compd.log import Log, error_axis
+
+
+def default_inputs(log: Log, inputs: Sequence[str] | None) -> list[str]:
+    """The named inputs, or every temperature column of the log (CONTRACT)."""
+    if inputs:
+        return list(inputs)
+    names = log.temperature_columns()
+    if not names:
+        raise BadInput("the log has no temperature columns to use as inputs", file=log.file)
+    return names
+
+
+def default_targets(log: Log, targets: Sequence[str] | None) -> list[str]:
+    """The named targets, or every `err_<axis>_um` column of the log (CONTRACT)."""
+    names = list(targets) if targets else log.error_columns()
+    if not names:
+        raise BadInput("the log has no err_<axis>_um column to fit to", file=log.file)
+    for n in names:
+        log.index(n)
+    return names
+
+
+def axis_names(targets: Sequence[str]) -> list[str]:
+    """`err_x1_um` → `x1`; any other target column keeps its own name."""
+    return [error_axis(t) or t for t in targets]
+
+
+def columns(log: Log, names: Sequence[str]) -> np.ndarray:
+    """Columns `names` (n × k); a missing column or an empty/NaN cell is BadInput."""
+    X = log.matrix(names)
+    bad = ~np.isfinite(X)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise BadInput(
+            "empty or non-finite cell in a column the fit needs",
+            file=log.file,
+            line=int(row) + 2,
+            path=names[int(col)],
+        )
+    return X
+
+
+def require_rows(log: Log, n: int, need: int, why: str) -> None:
+    """BadInput unless `n` ≥ `need` rows."""
+    if n < need:
+        raise BadInput(f"{n} rows are too few: {why} needs at least {need}", file=log.file)
+
+
+def check_not_constant(log: Log, X: np.ndarray, names: Sequence[str]) -> None:
+    """BadInput naming the first column of X that never changes (it carries no information)."""
+    for j, name in enumerate(names):
+        col = X[:, j]
+        if col.size and np.ptp(col) <= 1e-12 * max(1.0, float(np.max(np.abs(col)))):
+            raise BadInput("the column is constant: it cannot enter the fit", file=log.file, path=name)
+
+
+def step_rows(t_s: np.ndarray, period_s: float) -> np.ndarray:
+    """Indices of the rows at which the loop steps a model of update period `period_s`.
+
+    Same rule as Model.predict and the loop: step at the first row, then at the first
+    row at or after the previous step time plus the period.
+    """
+    if period_s <= 0:
+        return np.arange(t_s.size)
+    out = []
+    next_t = -np.inf
+    for i, t in enumerate(t_s):
+        if t >= next_t:
+            out.append(i)
+            next_t = t + period_s
+    return np.asarray(out, dtype=np.intp)
+
+
+def progress(iterable, desc: str, total: int | None = None):
+    """A progress bar on stderr that appears only when the work takes over a second (tqdm)."""
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover - tqdm is a core dependency
+        return iterable
+    tqdm.monitor_interval = 0  # no monitor thread: a fit leaves nothing running behind it
+    return tqdm(iterable, desc=desc, total=total, delay=1.0, leave=False, file=sys.stderr)

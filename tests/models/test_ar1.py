@@ -1,0 +1,144 @@
+"""AR(1): paper 001's physics figures, C2 scaling, Ljung–Box, fits, ambient-aware form, state."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from statsmodels.stats.diagnostic import acorr_ljungbox
+
+from compd.fitting import predict_log
+from compd.log import Log
+from compd.models.ar1 import (
+    AR1,
+    AR1Params,
+    c2_of_speed,
+    coefficients_from_physics,
+    ljung_box,
+    scale_c2_by_rise,
+)
+from hil_sim.rod import Rod
+
+
+def test_physics_reproduces_paper():
+    c1, c2 = coefficients_from_physics(55, 50, 7850, 460, 0.1, 12e-6, 2000, 30)
+    assert round(c1, 4) == 0.9909 and round(c2, 4) == 0.1985
+    c1b, c2b = coefficients_from_physics(55, 50, 7850, 460, 0.1, 12e-6, 3000, 30)
+    assert c1b == c1 and round(c2b, 4) == 0.2977
+
+
+def test_rise_scaling_reproduces_paper():
+    got = scale_c2_by_rise(0.22, 7.46, {1000: 3.02, 1500: 4.11})
+    assert round(got[1000.0], 3) == 0.089 and round(got[1500.0], 3) == 0.121
+
+
+def test_c2_interpolation_monotone_and_zero_at_rest():
+    rpm, c2 = [1000.0, 2000.0], [0.089, 0.22]
+    assert c2_of_speed(0.0, rpm, c2) == 0.0
+    assert c2_of_speed(500.0, rpm, c2) == pytest.approx(0.0445)
+    assert c2_of_speed(1500.0, rpm, c2) == pytest.approx(0.1545)
+    assert c2_of_speed(3000.0, rpm, c2) == 0.22
+    vals = [c2_of_speed(n, rpm, c2) for n in np.linspace(0, 3000, 61)]
+    assert all(b >= a for a, b in zip(vals, vals[1:], strict=False))
+
+
+def test_ljung_box_matches_statsmodels():
+    rng = np.random.default_rng(0)
+    e = rng.normal(size=200)
+    e[1:] += 0.3 * e[:-1]
+    q, p = ljung_box(e, 10)
+    ref = acorr_ljungbox(e, lags=[10])
+    assert q == pytest.approx(float(ref["lb_stat"].iloc[0]), rel=1e-10)
+    assert p == pytest.approx(float(ref["lb_pvalue"].iloc[0]), rel=1e-8)
+
+
+def _lathe(noise_um=0.2, seed=0):
+    """Paper 001's T65 lathe Z: 12 µm/K bed sensor minus an AR(1) spindle (C1 0.9955, C2 0.22/0.089)."""
+    rng = np.random.default_rng(seed)
+    dt, K = 60.0, 480
+    t = np.arange(K) * dt
+    phase = (t // 3600) % 3
+    speed = np.select([phase == 0, phase == 1], [2000.0, 0.0], 1000.0)
+    bed = 20 + 3 * (1 - np.exp(-t / 15000))
+    c2 = {2000.0: 0.22, 1000.0: 0.089}
+    s, E = 0.0, np.zeros(K)
+    for k in range(K):
+        s = 0.9955 * s + c2.get(speed[k], 0.0)
+        E[k] = 12.0 * (bed[k] - bed[0]) - s
+    E += rng.normal(0, noise_um, K)
+    return Log("lathe.csv", ["t_s", "speed_rpm", "T3", "err_z_um"], np.column_stack([t, speed, bed, E]))
+
+
+def test_fit_recovers_lathe_coefficients():
+    res = AR1.fit(_lathe(), ["T3"], None)
+    p = res.model.params
+    assert p.spindle_sign == -1 and p.dt_s == 60.0
+    assert p.c1 == pytest.approx(0.9955, abs=0.001)
+    table = dict(p.c2_table)
+    assert table[1000.0] == pytest.approx(0.089, abs=0.01)
+    assert table[2000.0] == pytest.approx(0.22, abs=0.02)
+    assert p.bed_gain_um_per_k[0] == pytest.approx(12.0, rel=0.05)
+    assert res.report["converged"] and res.report["ljung_box"]["lags"] == 10
+    assert res.report["step_rmse_um"] < 0.3
+
+
+def test_fit_with_rise_scaling_adds_speeds():
+    res = AR1.fit(
+        _lathe(), ["T3"], None,
+        c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1500: 4.11}},
+    )
+    table = dict(res.model.params.c2_table)
+    assert table[1500.0] == pytest.approx(table[2000.0] * 4.11 / 7.46)
+    assert res.report["c2_rise"]["monotone"]
+
+
+def _drifting_rod_log():
+    """A rod heated at one end by the spindle, convecting to an ambient that drifts 1.5 K."""
+    rod = Rod(0.4, 20, 0.05, h_w_m2k=30.0, dt_s=10.0, t_init_c=20.0)
+    rng = np.random.default_rng(1)
+    rows = []
+    for k in range(6 * 360):  # 6 h at 10 s
+        t = k * 10.0
+        speed = 2000.0 if (t // 5400) % 2 == 0 else 0.0
+        amb = 20.0 + 1.5 * np.sin(2 * np.pi * t / (8 * 3600)) + 0.5 * t / 21600
+        heat = np.zeros(rod.n)
+        heat[0] = 40.0 * speed / 2000.0
+        rod.step(amb, heat)
+        if k % 6 == 0:
+            rows.append([t, speed, amb + rng.normal(0, 0.02), rod.growth_um(12e-6) + rng.normal(0, 0.2)])
+    return Log("rod.csv", ["t_s", "speed_rpm", "T_amb", "err_z_um"], np.asarray(rows))
+
+
+def test_ambient_aware_form_beats_paper_form_on_drifting_shop():
+    log = _drifting_rod_log()
+    e = log.col("err_z_um")
+    pure = AR1.fit(log, None, None)
+    aware = AR1.fit(log, None, None, ambient="T_amb")
+    assert pure.model.params.c3_um_per_k is None
+    assert aware.model.inputs == ["speed_rpm", "T_amb"]
+    rmse = {k: float(np.sqrt(np.mean((predict_log(r.model, log)[:, 0] - e) ** 2))) for k, r in
+            (("pure", pure), ("aware", aware))}
+    assert rmse["aware"] < 0.6 * rmse["pure"], rmse
+
+
+def test_evaluate_matches_predict_and_state_cools():
+    params = AR1Params(dt_s=60, c1=0.99, c2_table=[(2000.0, 0.2)], c3_um_per_k=0.1,
+                       bed_gain_um_per_k=[10.0], spindle_sign=-1)
+    m = AR1(params, ["n", "bed", "amb"], ["z"])
+    t = np.arange(0, 3600, 20.0)
+    X = np.column_stack([np.full(t.size, 2000.0), 20 + t / 3600, 20 + 0.5 * np.sin(t / 600)])
+    P = AR1(params, m.inputs, m.outputs).predict(X, t)
+    m.start(X[0], t[0])
+    out = np.zeros(1)
+    held = []
+    nxt = -np.inf
+    for i in range(t.size):
+        if t[i] >= nxt:
+            m.evaluate(X[i], t[i], out)
+            nxt = t[i] + 60
+        held.append(out[0])
+    np.testing.assert_allclose(held, P[:, 0], atol=1e-12)
+    state = m.get_state()
+    m2 = AR1(params, m.inputs, m.outputs)
+    m2.set_state(state, elapsed_s=600.0)
+    assert m2.s_um == pytest.approx(state["s_um"] * 0.99**10)
+    np.testing.assert_allclose(m2.x0, m.x0)
