@@ -70,6 +70,7 @@ class Guard:
         self._prev_val = np.full(len(inputs), math.nan)
         self._prev_t = np.full(len(inputs), math.nan)
         self.inputs_ok = False
+        self.degraded = False
         self.bad_input: int = -1  # index into inputs of the first bad one, -1 if none
         self.faults: dict[str, int] = {}
         self.events: list[tuple[float, str, str, str]] = []  # (t, subject, event, reason)
@@ -125,8 +126,15 @@ class Guard:
             del self.events[:500]
 
     # ----------------------------------------------------------------- output
-    def update(self, pred_um: np.ndarray, inputs_ok: bool, now_s: float) -> None:
-        """Advance every axis by one cycle; results in `out_um` and `enable`."""
+    def update(self, pred_um: np.ndarray, inputs_ok: bool, now_s: float, degraded: bool = False) -> None:
+        """Advance every axis by one cycle; results in `out_um` and `enable`.
+
+        `degraded`: some model inputs are bad and the model predicts from the others;
+        an axis it could serve has a finite prediction, the others NaN (→ fault).
+        """
+        if degraded != self.degraded:
+            self.degraded = degraded
+            self._event(now_s, "model", "degraded" if degraded else "complete", "inputs")
         dt = now_s - self._last_t if self._last_t == self._last_t else 0.0
         if dt < 0:
             dt = 0.0  # a clock that went backwards never licenses a step
@@ -190,6 +198,7 @@ class Guard:
                 "enable": bool(self.enable[i]),
                 "state": STATE_NAMES[int(self.state[i])],
                 "policy": POLICIES[self.policy[i]],
+                "degraded": self.degraded,
             }
             for i, a in enumerate(self.axes)
         }

@@ -152,6 +152,8 @@ class Loop:
         self.cycle_hooks = cycle_hooks or []
         n_out = len(model.outputs)
         self.x = np.zeros(len(model.inputs))
+        self._good = np.zeros(len(model.inputs), dtype=bool)
+        self.degraded = False
         self.pred_um = np.full(n_out, math.nan)
         self.applied_um = np.zeros(n_out)
         self._word_applied = np.zeros(2)
@@ -248,10 +250,17 @@ class Loop:
                     self._next_model_s = now + ups
                     if self.on_model_state is not None:
                         self.on_model_state(self.model.get_state())
+            elif self.model_started and self.model.supports_degraded:
+                # some inputs bad: predict from the others where they carry the information
+                np.equal(frame.quality[self.guard.input_idx], 0, out=self._good)
+                self.model.evaluate_degraded(self.x, self._good, now, self.pred_um)
+                self.degraded = True
             else:
                 self.pred_um.fill(math.nan)
+            if ok:
+                self.degraded = False
         t2 = perf()
-        self.guard.update(self.pred_um, ok, now)
+        self.guard.update(self.pred_um, ok or self.degraded, now, degraded=self.degraded)
         t3 = perf()
         g = self.guard
         wa = self.word_axes

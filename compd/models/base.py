@@ -71,6 +71,15 @@ class Model(ABC):
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
         """Write the predicted thermal error (µm) per output axis into `out`."""
 
+    @property
+    def supports_degraded(self) -> bool:
+        """True when the model can predict with some inputs bad (`evaluate_degraded`)."""
+        return False
+
+    def evaluate_degraded(self, x: np.ndarray, good: np.ndarray, t_s: float, out: np.ndarray) -> None:
+        """Predict from the inputs where `good` is True; NaN for axes it cannot serve."""
+        out.fill(np.nan)
+
     def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         """Batch prediction over a log: X (n × inputs) → (n × outputs), µm.
 

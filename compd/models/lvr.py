@@ -28,7 +28,7 @@ from compd.errors import BadInput
 from compd.log import Log
 from compd.models.base import FitResult
 from compd.models.fitdata import axis_names, require_rows
-from compd.models.mlr import RiseLinear, RiseLinearParams, linear_data, rises
+from compd.models.mlr import RiseLinear, RiseLinearParams, linear_data, rise_stats, rises
 
 Q2_LIMIT = 0.0975  # 1 − 0.95² (paper 002)
 
@@ -289,6 +289,7 @@ class LVR(RiseLinear):
             intercept_um=np.atleast_1d(intercept).tolist(),
             t0_c=None,
             n_components=n_comp,
+            **rise_stats(R),
         )
         axes = axis_names(targets)
         model = cls(params, inputs, axes)

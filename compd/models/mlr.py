@@ -33,6 +33,15 @@ class RiseLinearParams(Strict):
     t0_c: list[float] | None = Field(
         None, description="reference readings T_j0; none = the readings at start"
     )
+    rise_mean_k: list[float] | None = Field(
+        None, description="mean rise of each input over the fit data (degraded mode)"
+    )
+    rise_cov_k2: list[list[float]] | None = Field(
+        None, description="p × p covariance of the rises over the fit data (degraded mode)"
+    )
+    degraded_max_sigma_um: float = Field(
+        2.0, gt=0, description="largest added prediction σ an axis accepts when inputs are bad"
+    )
 
 
 class RiseLinear(Model):
@@ -46,6 +55,8 @@ class RiseLinear(Model):
         self.b0 = np.asarray(params.intercept_um, dtype=float)
         self.x0 = np.asarray(params.t0_c, dtype=float) if params.t0_c is not None else None
         self._rise = np.zeros(len(inputs))
+        self._deg_key = b""
+        self.degraded_sigma_um = np.zeros(len(outputs))
 
     @classmethod
     def check_wiring(cls, params, inputs, outputs) -> None:
@@ -59,6 +70,52 @@ class RiseLinear(Model):
             raise BadInput(f"intercept_um needs one value per output ({len(outputs)})")
         if params.t0_c is not None and len(params.t0_c) != len(inputs):
             raise BadInput(f"t0_c needs one value per input ({len(inputs)})")
+
+    @property
+    def supports_degraded(self) -> bool:
+        return self.params.rise_mean_k is not None and self.params.rise_cov_k2 is not None
+
+    def _degraded_form(self, good: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Coefficients for the good inputs alone, and the σ they add per axis.
+
+        The rises r_m of the bad inputs are replaced by their conditional expectation
+        given the good ones under the fit data's Gaussian statistics,
+        r_m ≈ μ_m + Σ_mo Σ_oo⁻¹ (r_o − μ_o), so
+        E = b0 + B_m'(μ_m − K μ_o) + (B_o' + B_m' K) r_o with K = Σ_mo Σ_oo⁻¹, and the
+        prediction loses σ² = diag(B_m' (Σ_mm − K Σ_om) B_m) per axis.
+        """
+        mu = np.asarray(self.params.rise_mean_k, dtype=float)
+        cov = np.asarray(self.params.rise_cov_k2, dtype=float)
+        o, m = np.flatnonzero(good), np.flatnonzero(~good)
+        B = self.B
+        q = B.shape[1]
+        if o.size == 0:
+            return np.zeros_like(B), self.b0 + mu @ B, np.full(q, np.inf)
+        S_oo = cov[np.ix_(o, o)] + 1e-9 * np.eye(o.size)
+        K = np.linalg.solve(S_oo, cov[np.ix_(o, m)]).T  # |m| × |o|
+        B_eff = np.zeros_like(B)
+        B_eff[o] = B[o] + K.T @ B[m]
+        b_eff = self.b0 + (mu[m] - K @ mu[o]) @ B[m]
+        cond = cov[np.ix_(m, m)] - K @ cov[np.ix_(o, m)]
+        sigma = np.sqrt(np.maximum(np.einsum("iq,ij,jq->q", B[m], cond, B[m]), 0.0))
+        return B_eff, b_eff, sigma
+
+    def evaluate_degraded(self, x: np.ndarray, good: np.ndarray, t_s: float, out: np.ndarray) -> None:
+        """Predict from the good inputs only; NaN for an axis whose added σ is too large.
+
+        The degraded form is computed when the set of bad inputs changes (rare),
+        then evaluated like the normal one.
+        """
+        key = good.tobytes()
+        if key != self._deg_key:
+            self._deg_key = key
+            self._deg_B, self._deg_b0, self.degraded_sigma_um = self._degraded_form(good.copy())
+            self._deg_bad = ~good.copy()
+        np.subtract(x, self.x0, out=self._rise)
+        np.copyto(self._rise, 0.0, where=self._deg_bad)
+        np.dot(self._rise, self._deg_B, out=out)
+        out += self._deg_b0
+        np.copyto(out, np.nan, where=self.degraded_sigma_um > self.params.degraded_max_sigma_um)
 
     def start(self, x: np.ndarray, t_s: float) -> None:
         if self.x0 is None:
@@ -84,6 +141,12 @@ class RiseLinear(Model):
             x0 = np.asarray(state["t0_c"], dtype=float)
             if x0.shape == (len(self.inputs),):
                 self.x0 = x0
+
+
+def rise_stats(R: np.ndarray) -> dict[str, Any]:
+    """Mean and covariance of the rises (what degraded mode needs), as params."""
+    cov = np.atleast_2d(np.cov(R, rowvar=False)) if R.shape[0] > 1 else np.zeros((R.shape[1],) * 2)
+    return {"rise_mean_k": R.mean(axis=0).tolist(), "rise_cov_k2": cov.tolist()}
 
 
 def rises(X: np.ndarray) -> np.ndarray:
@@ -129,6 +192,6 @@ def fit_mlr_model(inputs: list[str], axes: list[str], X: np.ndarray, Y: np.ndarr
     A = np.hstack([np.ones((R.shape[0], 1)), R])
     sol, *_ = np.linalg.lstsq(A, Y, rcond=None)
     params = RiseLinearParams(
-        coef_um_per_k=sol[1:].tolist(), intercept_um=sol[0].tolist(), t0_c=None
+        coef_um_per_k=sol[1:].tolist(), intercept_um=sol[0].tolist(), t0_c=None, **rise_stats(R)
     )
     return MLR(params, inputs, axes)
