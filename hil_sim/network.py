@@ -34,6 +34,7 @@ class Network:
         self.bodies: dict[str, np.ndarray] = {}
         self.x_m: dict[str, np.ndarray] = {}
         self.dx_m: dict[str, float] = {}
+        # per mode: [M C/dt | M], M G_r, M, G_r  with M = (C/dt + K + diag ΣG_r)⁻¹
         self._modes: dict[Hashable, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self._mode: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.T = np.zeros(0)
@@ -122,7 +123,7 @@ class Network:
                 raise ValueError(f"reservoir conductances must be ({self.n} × R)")
             a = np.diag(self.cap_j_k / self.dt_s + g.sum(axis=1)) + self.K
             m = np.linalg.inv(a)
-            mode = (m * (self.cap_j_k / self.dt_s), m @ g, m, g)
+            mode = (np.hstack([m * (self.cap_j_k / self.dt_s), m]), m @ g, m, g)
             if len(self._modes) > 256:
                 self._modes.clear()
             self._modes[key] = mode
@@ -133,11 +134,9 @@ class Network:
         """Advance one dt with reservoir temperatures `t_res_c` and `heat_w` (W into each node)."""
         if self._mode is None:
             raise RuntimeError("call use() before step()")
-        mc, mg, m, _ = self._mode
-        t = mc @ self.T + mg @ np.asarray(t_res_c, float)
-        if heat_w is not None:
-            t += m @ heat_w
-        self.T = t
+        mcm, mg, _, _ = self._mode
+        q = np.zeros(self.n) if heat_w is None else heat_w
+        self.T = mcm @ np.concatenate((self.T, q)) + mg @ t_res_c
 
     def steady_state(self, g_res: np.ndarray, t_res_c: np.ndarray, heat_w: np.ndarray) -> np.ndarray:
         """The steady temperatures for constant inputs: (K + diag ΣG_r) T = G_r T_r + Q."""
@@ -151,6 +150,13 @@ class Network:
             raise RuntimeError("call use() first")
         g = self._mode[3]
         return (g * (self.T[:, None] - np.asarray(t_res_c, float)[None, :])).sum(axis=0)
+
+    def probe(self, body: str, x_m: float) -> np.ndarray:
+        """Weights w over all nodes with w·T = the rod's temperature at `x_m` (linear interpolation)."""
+        idx = self.bodies[body]
+        w = np.zeros(self.n)
+        w[idx] = _interp_weights(self.x_m[body], x_m)
+        return w
 
     def energy_j(self, t_ref_c: float) -> float:
         """Stored heat Σ C_i (T_i − t_ref) (J)."""
@@ -169,6 +175,20 @@ class Network:
         """Temperature of a rod at `x_m` (linear between cell centres)."""
         idx = self.bodies[body]
         return float(np.interp(x_m, self.x_m[body], self.T[idx]))
+
+
+def _interp_weights(xs: np.ndarray, x: float) -> np.ndarray:
+    """Weights over the points `xs` that linearly interpolate at `x` (held flat outside)."""
+    w = np.zeros(xs.size)
+    if x <= xs[0]:
+        w[0] = 1.0
+    elif x >= xs[-1]:
+        w[-1] = 1.0
+    else:
+        k = int(np.searchsorted(xs, x)) - 1
+        f = (x - xs[k]) / (xs[k + 1] - xs[k])
+        w[k], w[k + 1] = 1.0 - f, f
+    return w
 
 
 def integrate_cells(values: np.ndarray, dx_m: float, upto_m: float | None = None) -> float:

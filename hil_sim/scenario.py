@@ -69,8 +69,8 @@ class Ambient:
             if len(p) != 2:
                 raise ValueError("ambient.points are [hour, offset_c] pairs")
         self.points = sorted(pts)  # type: ignore[arg-type]
-        self._ph = np.array([p[0] for p in self.points]) * 3600.0
-        self._pc = np.array([p[1] for p in self.points])
+        self._ph = [p[0] * 3600.0 for p in self.points]
+        self._pc = [p[1] for p in self.points]
 
     def at(self, t_s: float) -> float:
         v = (
@@ -79,9 +79,21 @@ class Ambient:
             + self.daily_amplitude_c
             * math.sin(2 * math.pi * (t_s / 3600.0 - self.daily_phase_h) / 24.0)
         )
-        if self._ph.size:
-            v += float(np.interp(t_s, self._ph, self._pc))
+        if self._ph:
+            v += _interp(t_s, self._ph, self._pc)
         return v
+
+
+def _interp(x: float, xs: list[float], ys: list[float]) -> float:
+    """Linear interpolation in sorted `xs`, held flat outside (scalar, no numpy overhead)."""
+    if x <= xs[0]:
+        return ys[0]
+    if x >= xs[-1]:
+        return ys[-1]
+    k = bisect.bisect_right(xs, x) - 1
+    if xs[k + 1] == xs[k]:
+        return ys[k + 1]
+    return ys[k] + (ys[k + 1] - ys[k]) * (x - xs[k]) / (xs[k + 1] - xs[k])
 
 
 @dataclass

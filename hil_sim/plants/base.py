@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -133,13 +134,21 @@ class Plant:
         meas = self.sensors.read(self.true_temperatures_c(), self.t_s)
         return np.concatenate([meas, self.extras(), self.true_error_um()])
 
-    def record(self, times_s: np.ndarray) -> np.ndarray:
-        """Run to each of `times_s` (ascending) and return rows of `signal_names` (sensor model applied)."""
+    def record(
+        self, times_s: np.ndarray, on_row: Callable[[int, float], None] | None = None
+    ) -> np.ndarray:
+        """Run to each of `times_s` (ascending) and return rows of `signal_names`.
+
+        The sensor model is applied to the whole batch at the end (same statistics as
+        `sample()`). `on_row(k, t_s)` is called after row k is taken, plant at t_s.
+        """
         times = np.asarray(times_s, float)
         rows = np.empty((times.size, len(self.signal_names)))
         for k, t in enumerate(times):
             self.advance_to(t)
             rows[k] = self.true_row()
+            if on_row is not None:
+                on_row(k, t)
         ns = len(self.sensor_names)
         rows[:, :ns] = self.sensors.read(rows[:, :ns], times[:, None])
         return rows
