@@ -38,9 +38,10 @@ class GantryPlant(Plant):
         "table_cap_j_k": 20000.0,
         "table_surface_m2": 0.6,
         "tool_offset_mm": 250.0,  # read head to the measuring point on the beam
-        "current_a": 0.8,
+        "current_a": 1.0,
         "current_a_per_m_min": 0.5,
         "hold_current_a": 0.6,  # the gantry's weight on the motors' force ripple and the servo
+        "r_cu_ohm": 3.0,
         "load_x1": 1.0,
         "load_x2": 1.3,
         "beam_cap_j_k": 60000.0,
