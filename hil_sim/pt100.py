@@ -8,10 +8,11 @@ import numpy as np
 class Pt100Bank:
     """A bank of PT100 sensors read through a transmitter.
 
-    Each sensor gets a fixed offset within the class-A tolerance ±(0.15 + 0.002|T|) °C
-    (drawn once, uniform over ±0.15 °C so it is within tolerance at any T), white
+    Each sensor gets a fixed error u·(0.15 + 0.002|T|) °C, u drawn once uniform in
+    [−1, 1], so it stays within the IEC 60751 class-A tolerance at any T; white
     noise of `noise_c` (1 σ) and quantization to `resolution_c`. `drift_c_per_h`
-    makes chosen sensors drift linearly with time.
+    makes chosen sensors drift linearly with time. `read` takes one sample (n,) or a
+    batch (rows × n) with `t_s` a column.
     """
 
     def __init__(
@@ -25,15 +26,18 @@ class Pt100Bank:
         drift_c_per_h: np.ndarray | None = None,
     ) -> None:
         self.rng = rng
-        self.offset_c = rng.uniform(-0.15, 0.15, n) if tolerance else np.zeros(n)
+        self.tolerance_u = rng.uniform(-1.0, 1.0, n) if tolerance else np.zeros(n)
         self.noise_c = noise_c
         self.resolution_c = resolution_c
         self.drift_c_per_s = (
             np.zeros(n) if drift_c_per_h is None else np.asarray(drift_c_per_h, float) / 3600.0
         )
 
-    def read(self, true_c: np.ndarray, t_s: float) -> np.ndarray:
-        v = true_c + self.offset_c + self.drift_c_per_s * t_s
+    def read(self, true_c: np.ndarray, t_s: float | np.ndarray) -> np.ndarray:
+        """Readings (°C) for true temperatures `true_c` at time `t_s`."""
+        true_c = np.asarray(true_c, float)
+        tol = self.tolerance_u * (0.15 + 0.002 * np.abs(true_c))
+        v = true_c + tol + self.drift_c_per_s * np.asarray(t_s, float)
         if self.noise_c > 0:
             v = v + self.rng.normal(0.0, self.noise_c, v.shape)
         if self.resolution_c > 0:

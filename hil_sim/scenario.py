@@ -1,9 +1,24 @@
-"""Duty-cycle scenarios: piecewise-constant speed/feed segments and the ambient over time."""
+"""Duty-cycle scenarios: piecewise-constant speed/feed segments and the ambient over time.
+
+A scenario file is YAML:
+
+    machine: lathe            # plant name (hil_sim.plants.PLANTS)
+    params: {...}             # optional plant parameters
+    seed: 3
+    ambient: {start_c: 20, drift_c_per_h: 0.05, daily_amplitude_c: 1.0, points: [[0, 0], [6, 0.5]]}
+    segments:
+      - {duration_s: 3600, speed_rpm: 2000}
+      - repeat: 4             # a group repeated
+        segments:
+          - {duration_s: 900, feed_mm_min: 6000, stroke_mm: [0, 600]}
+          - {duration_s: 300, pos_mm: 300}
+"""
 
 from __future__ import annotations
 
+import bisect
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -13,69 +28,213 @@ import yaml
 
 @dataclass
 class Segment:
+    """What the machine does for `duration_s` seconds.
+
+    `speed_rpm` spindle speed; `feed_mm_min` feed of the linear axes, reciprocating
+    over `stroke_mm` = [low, high] (the plant's default stroke if None); with no feed
+    the axes stand at `pos_mm` (where they were if None). `load` scales the spindle
+    power and the axis force (1 = nominal); `axis_load` scales one axis more
+    ({x2: 1.3}). `coolant` switches the spindle coolant.
+    """
+
     duration_s: float
     speed_rpm: float = 0.0
     feed_mm_min: float = 0.0
     load: float = 1.0
+    stroke_mm: tuple[float, float] | None = None
+    pos_mm: float | None = None
+    coolant: bool = False
+    axis_load: dict[str, float] = field(default_factory=dict)
+
+    def load_of(self, axis: str) -> float:
+        return self.load * self.axis_load.get(axis, 1.0)
 
 
 @dataclass
 class Ambient:
-    """Ambient temperature: start value, linear drift and a daily sine."""
+    """Ambient temperature: start value, linear drift, a daily sine and piecewise-linear offsets.
+
+    `points` are [hour, offset °C] pairs interpolated linearly (held flat outside).
+    """
 
     start_c: float = 20.0
     drift_c_per_h: float = 0.0
     daily_amplitude_c: float = 0.0
     daily_phase_h: float = 0.0
+    points: list[tuple[float, float]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        pts = [tuple(map(float, p)) for p in self.points]
+        for p in pts:
+            if len(p) != 2:
+                raise ValueError("ambient.points are [hour, offset_c] pairs")
+        self.points = sorted(pts)  # type: ignore[arg-type]
+        self._ph = [p[0] * 3600.0 for p in self.points]
+        self._pc = [p[1] for p in self.points]
 
     def at(self, t_s: float) -> float:
-        return (
+        v = (
             self.start_c
             + self.drift_c_per_h * t_s / 3600.0
             + self.daily_amplitude_c
             * math.sin(2 * math.pi * (t_s / 3600.0 - self.daily_phase_h) / 24.0)
         )
+        if self._ph:
+            v += _interp(t_s, self._ph, self._pc)
+        return v
+
+
+def _interp(x: float, xs: list[float], ys: list[float]) -> float:
+    """Linear interpolation in sorted `xs`, held flat outside (scalar, no numpy overhead)."""
+    if x <= xs[0]:
+        return ys[0]
+    if x >= xs[-1]:
+        return ys[-1]
+    k = bisect.bisect_right(xs, x) - 1
+    if xs[k + 1] == xs[k]:
+        return ys[k + 1]
+    return ys[k] + (ys[k + 1] - ys[k]) * (x - xs[k]) / (xs[k + 1] - xs[k])
 
 
 @dataclass
 class Scenario:
-    """What the machine does over time."""
+    """What the machine does over time (and, from a file, which machine and its params)."""
 
     segments: list[Segment]
     ambient: Ambient = field(default_factory=Ambient)
     seed: int = 0
+    machine: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._ends = list(np.cumsum([s.duration_s for s in self.segments]))
 
     @property
     def duration_s(self) -> float:
         return float(sum(s.duration_s for s in self.segments))
 
+    def index_at(self, t_s: float) -> int:
+        """Index of the segment running at `t_s` (the last one after the end)."""
+        i = bisect.bisect_right(self._ends, t_s)
+        return min(i, len(self.segments) - 1)
+
     def segment_at(self, t_s: float) -> Segment:
-        acc = 0.0
-        for seg in self.segments:
-            acc += seg.duration_s
-            if t_s < acc:
-                return seg
-        return self.segments[-1] if self.segments else Segment(0.0)
+        if not self.segments:
+            return Segment(0.0)
+        return self.segments[self.index_at(t_s)]
 
     def boundaries(self) -> np.ndarray:
         return np.cumsum([0.0] + [s.duration_s for s in self.segments])
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Scenario:
-        segs = [Segment(**s) for s in data.get("segments", [])]
+        """Build from a mapping; errors are ValueError naming the key path."""
+        if not isinstance(data, dict):
+            raise ValueError("a scenario is a mapping")
+        known = {"segments", "ambient", "seed", "machine", "params"}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown key {sorted(unknown)[0]!r} (known: {', '.join(sorted(known))})")
+        segs = _segments(data.get("segments"), "segments")
         if not segs:
-            raise ValueError("a scenario needs at least one segment")
-        for s in segs:
-            if not s.duration_s > 0:
-                raise ValueError("segment duration_s must be > 0")
-        amb = Ambient(**(data.get("ambient") or {}))
-        return cls(segs, amb, int(data.get("seed", 0)))
+            raise ValueError("segments: a scenario needs at least one segment")
+        amb_data = data.get("ambient") or {}
+        if not isinstance(amb_data, dict):
+            raise ValueError("ambient: must be a mapping")
+        amb_known = {f.name for f in fields(Ambient)}
+        for k, v in amb_data.items():
+            if k not in amb_known:
+                raise ValueError(f"ambient.{k}: unknown key (known: {', '.join(sorted(amb_known))})")
+            if k != "points":
+                _number(v, f"ambient.{k}")
+        amb = Ambient(**amb_data)
+        machine = data.get("machine")
+        if machine is not None and not isinstance(machine, str):
+            raise ValueError("machine: must be a plant name")
+        params = data.get("params") or {}
+        if not isinstance(params, dict):
+            raise ValueError("params: must be a mapping")
+        seed = data.get("seed", 0)
+        if not isinstance(seed, int) or isinstance(seed, bool):
+            raise ValueError("seed: must be an integer")
+        return cls(segs, amb, seed, machine, dict(params))
 
     @classmethod
     def load(cls, file: str | Path) -> Scenario:
-        data = yaml.safe_load(Path(file).read_text(encoding="utf-8"))
-        if not isinstance(data, dict):
-            raise ValueError(f"{file}: a scenario is a mapping")
-        data.pop("machine", None)
-        data.pop("params", None)
-        return cls.from_dict(data)
+        """Read a scenario YAML; errors are ValueError starting with the file name."""
+        try:
+            data = yaml.safe_load(Path(file).read_text(encoding="utf-8"))
+        except OSError as e:
+            raise ValueError(f"{file}: cannot read: {e.strerror or e}") from None
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            where = f":{mark.line + 1}" if mark is not None else ""
+            raise ValueError(f"{file}{where}: not valid YAML: {getattr(e, 'problem', e)}") from None
+        try:
+            return cls.from_dict(data)
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{file}: {e}") from None
+
+
+_SEG_KEYS = {f.name for f in fields(Segment)}
+
+
+def _number(v: Any, path: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ValueError(f"{path}: must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _segments(items: Any, path: str) -> list[Segment]:
+    if not isinstance(items, list):
+        raise ValueError(f"{path}: must be a list of segments")
+    out: list[Segment] = []
+    for k, item in enumerate(items):
+        p = f"{path}[{k}]"
+        if not isinstance(item, dict):
+            raise ValueError(f"{p}: a segment is a mapping")
+        if "repeat" in item:
+            extra = set(item) - {"repeat", "segments"}
+            if extra:
+                raise ValueError(f"{p}.{sorted(extra)[0]}: a repeat group has only repeat and segments")
+            n = item["repeat"]
+            if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+                raise ValueError(f"{p}.repeat: must be an integer >= 1")
+            group = _segments(item.get("segments"), f"{p}.segments")
+            out += [Segment(**{**g.__dict__, "axis_load": dict(g.axis_load)}) for _ in range(n) for g in group]
+            continue
+        for key in item:
+            if key not in _SEG_KEYS:
+                raise ValueError(f"{p}.{key}: unknown key (known: {', '.join(sorted(_SEG_KEYS))})")
+        if "duration_s" not in item:
+            raise ValueError(f"{p}.duration_s: missing")
+        kw: dict[str, Any] = {}
+        for key in ("duration_s", "speed_rpm", "feed_mm_min", "load"):
+            if key in item:
+                kw[key] = _number(item[key], f"{p}.{key}")
+        if not kw["duration_s"] > 0:
+            raise ValueError(f"{p}.duration_s: must be > 0")
+        for key in ("speed_rpm", "feed_mm_min", "load"):
+            if kw.get(key, 0.0) < 0:
+                raise ValueError(f"{p}.{key}: must be >= 0")
+        if item.get("pos_mm") is not None:
+            kw["pos_mm"] = _number(item["pos_mm"], f"{p}.pos_mm")
+        if item.get("stroke_mm") is not None:
+            s = item["stroke_mm"]
+            if not isinstance(s, list) or len(s) != 2:
+                raise ValueError(f"{p}.stroke_mm: must be [low, high]")
+            lo, hi = (_number(v, f"{p}.stroke_mm") for v in s)
+            if not hi > lo:
+                raise ValueError(f"{p}.stroke_mm: high must be > low")
+            kw["stroke_mm"] = (lo, hi)
+        if "coolant" in item:
+            if not isinstance(item["coolant"], bool):
+                raise ValueError(f"{p}.coolant: must be true or false")
+            kw["coolant"] = item["coolant"]
+        if item.get("axis_load") is not None:
+            al = item["axis_load"]
+            if not isinstance(al, dict):
+                raise ValueError(f"{p}.axis_load: must be a mapping axis: factor")
+            kw["axis_load"] = {str(a): _number(v, f"{p}.axis_load.{a}") for a, v in al.items()}
+        out.append(Segment(**kw))
+    return out

@@ -6,5 +6,8 @@ PLANTS = Registry(
     "plant",
     {
         "spindle": ("hil_sim.plants.spindle", "SpindlePlant"),
+        "feed_axis": ("hil_sim.plants.feed_axis", "FeedAxisPlant"),
+        "lathe": ("hil_sim.plants.lathe", "LathePlant"),
+        "gantry": ("hil_sim.plants.gantry", "GantryPlant"),
     },
 )
