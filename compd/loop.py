@@ -161,6 +161,9 @@ class Loop:
         now = self.clock.now()
         for s in self.sources:
             s.open(now)
+            start_polling = getattr(s, "start_polling", None)
+            if start_polling is not None:  # PolledSource: its own thread, on the loop clock
+                start_polling(self.clock)
         self.sink.open(now)
 
     def close(self) -> None:
