@@ -211,6 +211,12 @@ class Loop:
                 hook(self, now)
         return stats
 
+    def step(self, now_s: float) -> None:
+        """One cycle at loop time `now_s`, outside the schedule (replay drives the clock)."""
+        c0 = time.perf_counter_ns()
+        self._cycle(now_s, time.perf_counter_ns)
+        self.stats.record(0.0, time.perf_counter_ns() - c0)
+
     def _cycle(self, now: float, perf: Callable[[], int]) -> None:
         st = self.stats
         self.now_s = now
