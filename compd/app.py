@@ -185,6 +185,9 @@ class App:
         sink_cls, sink_cfg, _ = cfg.sink
         self.sink = sink_cls(sink_cfg, base_dir=base)
         self.sink.bind(word_axes_names, top.codec.lsb_um)
+        bind_model = getattr(self.sink, "bind_model", None)
+        if bind_model is not None:  # sinks that speak per-axis values (siemens)
+            bind_model(self.model)
         if lp.clock == "sim":
             start = min((getattr(s, "start_s", 0.0) for s in self.sources), default=0.0)
             self.clock: Any = SimClock(start, lp.speedup)

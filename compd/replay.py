@@ -79,6 +79,9 @@ def replay_log(
     word_names = list(codec_cfg.axes or model.outputs[:2])
     word_axes = [model.outputs.index(a) for a in word_names]
     sink.bind(word_names, codec_cfg.lsb_um)
+    bind_model = getattr(sink, "bind_model", None)
+    if bind_model is not None:
+        bind_model(model)
     clock = SimClock(float(log.t_s[0]))
     loop = Loop(
         period_s=1.0,
