@@ -93,6 +93,7 @@ class FanucPmcSink(Sink):
         self._strobe = 0
         self._next_update_s = -math.inf
         self.updates = 0
+        self._dirty = False
         self._max_step_lsb = 1
 
     def bind(self, axes: list[str], lsb_um: float) -> None:
@@ -145,6 +146,7 @@ class FanucPmcSink(Sink):
             lsb = self.lsb_um
             self._write(cfg.r_command, [int(round(c1 * lsb)), int(round(c2 * lsb))])
         self.updates += 1
+        self._dirty = True
         self._next_update_s = now_s + cfg.min_update_s
 
     def write(
@@ -161,11 +163,27 @@ class FanucPmcSink(Sink):
             self._deliver(now_s)
 
     def settle(self, now_s: float) -> None:
-        """Let the PMC act on what was written (replay): two scans later, in process."""
+        """Let the PMC act on what was written (replay): in process, run two scans past
+        `now_s`; over Modbus, wait until the PMC has scanned twice since the write went
+        out and read back its status."""
         if self.pmc is not None:
             self.pmc.advance_to(now_s + 2 * self.pmc.scan_s)
-        elif self.link is not None:
-            self.link.flush()
+            return
+        if self.link is None or not self._dirty:
+            return
+        import time
+
+        self.link.flush()
+        addr = self.cfg.status_address
+        first = self.link.read_now(addr, 8)
+        deadline = time.monotonic() + 2.0
+        while first is not None and time.monotonic() < deadline:
+            regs = self.link.read_now(addr, 8)
+            if regs is not None and (regs[0] | regs[1] << 16) >= (first[0] | first[1] << 16) + 2:
+                self.link.status = regs
+                break
+            time.sleep(0.002)
+        self._dirty = False
 
     def safe(self) -> None:
         """Walk the shift back to zero in allowed steps (the PMC would alarm on one jump)."""
