@@ -190,6 +190,9 @@ class App:
         sink_cls, sink_cfg, _ = cfg.sink
         self.sink = sink_cls(sink_cfg, base_dir=base)
         self.sink.bind(word_axes_names, top.codec.lsb_um)
+        bind_model = getattr(self.sink, "bind_model", None)
+        if bind_model is not None:  # sinks that speak per-axis values (siemens)
+            bind_model(self.model)
         if lp.clock == "sim":
             start = min((getattr(s, "start_s", 0.0) for s in self.sources), default=0.0)
             self.clock: Any = SimClock(start, lp.speedup)
@@ -277,28 +280,15 @@ class App:
                 self.loop, self.cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s
             )
             self.loop.observers.append(self.logger)
-        now = self.clock.now()
-        for src in self.sources:
-            if id(src) not in self._adopted:
-                src.open(now)
-        if id(self.sink) not in self._adopted:
-            self.sink.open(now)
+        self.loop.open(self._adopted)
 
     def close(self, *, handing_over_to: App | None = None) -> None:
         """Stop I/O. Normally: safe output first, then release everything. When handing
         over to a reloaded App, what it took over stays open and untouched."""
-        keep_sink = handing_over_to is not None and handing_over_to.sink is self.sink
-        keep_sources = {id(s) for s in handing_over_to.sources} if handing_over_to else set()
+        keep = handing_over_to._adopted if handing_over_to is not None else set()
         try:
-            if not keep_sink:
-                self.guard.safe()
-                self.sink.safe()
+            self.loop.close(keep)
         finally:
-            if not keep_sink:
-                self.sink.close()
-            for src in self.sources:
-                if id(src) not in keep_sources:
-                    src.close()
             if self.logger:
                 self.logger.close()
             if self.state_writer is not None:

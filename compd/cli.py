@@ -225,6 +225,35 @@ def cmd_xi(args: argparse.Namespace) -> int:
     return 0
 
 
+@command("replay")
+def cmd_replay(args: argparse.Namespace) -> int:
+    import time
+
+    from compd.replay import replay_config, replay_model, write_plot
+
+    if (args.config is None) == (args.model is None):
+        raise BadInput("give a CONFIG or --model MODEL.yaml (one of them)", path="CONFIG")
+    t0 = time.perf_counter()
+    if args.model is not None:
+        result = replay_model(args.model, args.log)
+    else:
+        result = replay_config(args.config, args.log)
+    rep = result.report
+    rep["wall_s"] = round(time.perf_counter() - t0, 3)
+    print(f"compd replay: {rep['rows']} rows in {rep['wall_s']:.2f} s, {rep['codes_sent']} codes sent, PLC {rep['plc']}")
+    for axis, r in rep["axes"].items():
+        print(
+            f"axis {axis}: RMS {r['rms_before_um']:.2f} -> {r['rms_after_um']:.2f} um,"
+            f" max |residual| {r['max_abs_after_um']:.2f} um, reduction {r['reduction_pct']:.1f} %"
+        )
+    if args.report:
+        with open(args.report, "w", encoding="utf-8") as fh:
+            json.dump(rep, fh, indent=2)
+    if args.plot:
+        write_plot(result, args.plot)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="compd", description="Real-time thermal-error compensation for CNC machine tools."
@@ -238,6 +267,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("check-config", help="validate a config; prints ok or exits 2")
     s.add_argument("config")
+
+    s = sub.add_parser("replay", help="replay a log through the pipeline into the software PLC")
+    s.add_argument("config", nargs="?", default=None, metavar="CONFIG")
+    s.add_argument("--model", default=None, metavar="MODEL.yaml", help="a model file instead of a config")
+    s.add_argument("--log", required=True, metavar="LOG.csv")
+    s.add_argument("--report", default=None, metavar="REPORT.json")
+    s.add_argument("--plot", default=None, metavar="FILE.png")
 
     s = sub.add_parser("encode", help="the 16-bit word for two corrections (µm)")
     s.add_argument("c1_um", type=float, metavar="C1_UM")

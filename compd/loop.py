@@ -171,6 +171,34 @@ class Loop:
         """Ask the loop to finish after the current cycle (signal-safe)."""
         self._stop = True
 
+    def open(self, adopted: frozenset[int] | set[int] = frozenset()) -> None:
+        """Open the sources and the sink (those whose id() is in `adopted` are open already)."""
+        now = self.clock.now()
+        for s in self.sources:
+            if id(s) in adopted:
+                continue
+            s.open(now)
+            start_polling = getattr(s, "start_polling", None)
+            if start_polling is not None:  # PolledSource: its own thread, on the loop clock
+                start_polling(self.clock)
+        if id(self.sink) not in adopted:
+            self.sink.open(now)
+
+    def close(self, keep: frozenset[int] | set[int] = frozenset()) -> None:
+        """Safe output first, then release everything — except what a reloaded
+        pipeline took over (ids in `keep`), which stays open and untouched."""
+        keep_sink = id(self.sink) in keep
+        try:
+            if not keep_sink:
+                self.guard.safe()
+                self.sink.safe()
+        finally:
+            if not keep_sink:
+                self.sink.close()
+            for s in self.sources:
+                if id(s) not in keep:
+                    s.close()
+
     def resume(self) -> None:
         """Clear a stop request (after a config reload was rejected)."""
         self._stop = False
@@ -226,6 +254,12 @@ class Loop:
             if gc_was_enabled:
                 gc.enable()
         return stats
+
+    def step(self, now_s: float) -> None:
+        """One cycle at loop time `now_s`, outside the schedule (replay drives the clock)."""
+        c0 = time.perf_counter_ns()
+        self._cycle(now_s, time.perf_counter_ns)
+        self.stats.record(0.0, time.perf_counter_ns() - c0)
 
     def _cycle(self, now: float, perf: Callable[[], int]) -> None:
         st = self.stats

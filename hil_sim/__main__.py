@@ -9,12 +9,21 @@ from collections.abc import Sequence
 from compd.errors import BadInput
 
 
+def _serve(args: argparse.Namespace) -> int:
+    from hil_sim.serve import main as serve_main
+
+    return serve_main(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m hil_sim", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     from hil_sim import logcmd
 
     logcmd.add_parser(sub)
+    s = sub.add_parser("serve", help="start the devices a YAML file describes, until Ctrl-C")
+    s.add_argument("--config", required=True, metavar="FILE")
+    s.set_defaults(func=_serve)
     return parser
 
 

@@ -6,5 +6,7 @@ SINKS = Registry(
     "sink",
     {
         "pci1756": ("compd.sinks.pci1756", "Pci1756Sink"),
+        "fanuc_pmc": ("compd.sinks.fanuc_pmc", "FanucPmcSink"),
+        "siemens": ("compd.sinks.siemens", "SiemensSink"),
     },
 )

@@ -23,8 +23,17 @@ class DoCard(Protocol):
 class Pci1756Config(SinkConfig):
     """The word on DO bytes `word_port`, `word_port`+1 (low byte first); heartbeat on a spare bit."""
 
-    device: Literal["emulated"] = Field(
-        "emulated", description="driver: the in-process card emulator"
+    device: Literal["emulated", "modbus"] = Field(
+        "emulated",
+        description="driver: the in-process card emulator, or its DO bytes sent over Modbus TCP"
+        " to the X inputs of a PMC in another process",
+    )
+    host: str = Field("127.0.0.1", description="modbus: the PMC's address")
+    port: int = Field(502, ge=1, le=65535, description="modbus: the PMC's port")
+    device_id: int = Field(1, ge=0, le=247)
+    x_register: int = Field(0, ge=0, description="modbus: register of the X byte wired to DO0")
+    strobe_bit: int | None = Field(
+        None, ge=0, le=31, description="DO bit toggled with every new word (the PMC latches on its edge)"
     )
     word_port: int = Field(0, ge=0, le=2, description="DO byte offset of the word's low byte")
     heartbeat_bit: int | None = Field(
@@ -34,9 +43,49 @@ class Pci1756Config(SinkConfig):
     @model_validator(mode="after")
     def _heartbeat_outside_word(self) -> Pci1756Config:
         hb = self.heartbeat_bit
-        if hb is not None and 8 * self.word_port <= hb < 8 * self.word_port + 16:
+        word_bits = range(8 * self.word_port, 8 * self.word_port + 16)
+        if hb is not None and hb in word_bits:
             raise ValueError("heartbeat_bit must not be one of the word's 16 bits")
+        sb = self.strobe_bit
+        if sb is not None and (sb in word_bits or sb == hb):
+            raise ValueError("strobe_bit must be a spare bit (not the word's, not the heartbeat)")
         return self
+
+
+class ModbusDoCard:
+    """The card's DO lines as seen by a PMC elsewhere: every write sends DO bytes 0–3 to
+    four X registers over Modbus TCP (queued; the cycle never waits on the network)."""
+
+    def __init__(self, host: str, port: int, device_id: int = 1, x_register: int = 0) -> None:
+        from compd.sinks.modbus_link import ModbusLink
+
+        self._do = bytearray(4)
+        self.x_register = x_register
+        self.link = ModbusLink(host, port, device_id=device_id, name="pci1756")
+
+    def start(self) -> None:
+        self.link.start()
+
+    def _push(self) -> None:
+        self.link.submit(self.x_register, list(self._do))
+
+    def write_do_word(self, port: int, value: int) -> None:
+        self._do[port] = value & 0xFF
+        self._do[port + 1] = (value >> 8) & 0xFF
+        self._push()
+
+    def write_do_bit(self, bit: int, on: bool) -> None:
+        if on:
+            self._do[bit // 8] |= 1 << (bit % 8)
+        else:
+            self._do[bit // 8] &= ~(1 << (bit % 8)) & 0xFF
+        self._push()
+
+    def read_do_word(self, port: int) -> int:
+        return self._do[port] | (self._do[port + 1] << 8)
+
+    def close(self) -> None:
+        self.link.stop()
 
 
 class Pci1756Sink(Sink):
@@ -46,13 +95,21 @@ class Pci1756Sink(Sink):
 
     def __init__(self, cfg: Pci1756Config, base_dir: str = ".", card: DoCard | None = None) -> None:
         super().__init__(cfg, base_dir)
-        if card is None:
+        if card is None and cfg.device == "modbus":
+            card = ModbusDoCard(cfg.host, cfg.port, cfg.device_id, cfg.x_register)
+        elif card is None:
             from hil_sim.devices.pci1756 import Pci1756Card
 
             card = Pci1756Card()
         self.card = card
         self._heartbeat = False
+        self._strobe = False
         self.word = 0
+
+    def open(self, now_s: float) -> None:
+        start = getattr(self.card, "start", None)
+        if start is not None:
+            start()
 
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
@@ -60,6 +117,9 @@ class Pci1756Sink(Sink):
         if changed or self.writes == 0:
             self.card.write_do_word(self.cfg.word_port, word)
             self.word = word
+            if self.cfg.strobe_bit is not None:
+                self._strobe = not self._strobe
+                self.card.write_do_bit(self.cfg.strobe_bit, self._strobe)
         self.writes += 1
         if self.cfg.heartbeat_bit is not None:
             self._heartbeat = not self._heartbeat
@@ -68,6 +128,14 @@ class Pci1756Sink(Sink):
     def safe(self) -> None:
         self.card.write_do_word(self.cfg.word_port, 0)
         self.word = 0
+        if self.cfg.strobe_bit is not None:
+            self._strobe = not self._strobe
+            self.card.write_do_bit(self.cfg.strobe_bit, self._strobe)
+
+    def close(self) -> None:
+        close = getattr(self.card, "close", None)
+        if close is not None:
+            close()
 
     def applied_um(self, out: np.ndarray) -> None:
         c1, c2 = word_to_um(self.card.read_do_word(self.cfg.word_port), self.lsb_um)

@@ -7,5 +7,8 @@ SOURCES = Registry(
     {
         "sim": ("compd.sources.sim", "SimSource"),
         "replay": ("compd.sources.replay", "ReplaySource"),
+        "modbus": ("compd.sources.modbus", "ModbusSource"),
+        "dcon": ("compd.sources.dcon", "DconSource"),
+        "can": ("compd.sources.can", "CanSource"),
     },
 )

@@ -55,11 +55,14 @@ class PolledSource(Source):
 
     Subclasses implement `poll(values, quality)` which performs one blocking
     request/response and fills the two arrays; it returns normally even on a
-    device fault (by setting quality). The thread stamps each completed poll with
-    the loop clock, and `read` copies the last completed sample under a lock.
+    device fault (by setting quality). The thread stamps each poll with the loop
+    clock at the moment the request went out (the sample is at least that old), and
+    `read` copies the last completed sample under a lock. With `stale_after_s` set,
+    `read` marks a good sample older than that STALE.
     """
 
     poll_period_s: float = 0.1
+    stale_after_s: float | None = None
 
     def __init__(self, cfg: SourceConfig, base_dir: str = ".") -> None:
         super().__init__(cfg, base_dir)
@@ -90,12 +93,12 @@ class PolledSource(Source):
 
         while not self._stop.is_set():
             t0 = time.monotonic()
+            stamp = self._clock.now()
             try:
                 self.poll(self._buf_values, self._buf_quality)
             except Exception:  # a driver bug must not kill the daemon: report as comms lost
                 self._buf_quality[:] = Quality.COMMS_LOST
                 self.poll_errors += 1
-            stamp = self._clock.now()
             with self._lock:
                 self._values[:] = self._buf_values
                 self._quality[:] = self._buf_quality
@@ -110,6 +113,10 @@ class PolledSource(Source):
             frame.values[self._idx] = self._values
             frame.quality[self._idx] = self._quality
             frame.stamp_s[self._idx] = self._stamp
+        stale = self.stale_after_s
+        if stale is not None and now_s - self._stamp > stale:
+            q = frame.quality[self._idx]
+            frame.quality[self._idx] = np.where(q == Quality.GOOD, Quality.STALE, q)
 
     def close(self) -> None:
         self._stop.set()

@@ -1,0 +1,242 @@
+"""FANUC PMC sink (paper 003, SPEC §4.2): the word on X addresses with a strobe, or the shift directly.
+
+A FANUC external machine coordinate shift is absolute and a single change larger
+than the PMC's limit raises an alarm, so this sink never changes an axis by more
+than `max_step_um` per update, and updates no faster than `min_update_s` (at least
+two PMC scans, so the ladder sees every strobe edge). What the machine should apply
+is the codec's word (dead-band and saturation included); the sink walks its output
+toward it in steps.
+
+`mode: word` writes X(word), X(word)+1 (low byte first) and toggles the strobe bit;
+`mode: shift` writes the commanded shift per axis (signed µm) into R registers.
+Without `host` the PMC is the hil_sim software PLC, run in process on the loop's
+clock (replay, demo); with `host` it is a PMC reached over Modbus TCP, written from
+a background thread so the cycle never waits on the network.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from compd.codec import MAX_MAG, word_to_um
+from compd.config import SinkConfig
+from compd.sinks.base import Sink
+
+
+def step_toward(sent: list[int], target: list[int], max_step: int) -> list[int]:
+    """Move each value toward its target by at most `max_step` (integers, LSB)."""
+    out = []
+    for s, t in zip(sent, target, strict=True):
+        d = t - s
+        out.append(s + (max_step if d > max_step else (-max_step if d < -max_step else d)))
+    return out
+
+
+def encode_lsb(c1: int, c2: int) -> int:
+    """The word for two corrections already in LSB (0 → byte 0x00, disabled)."""
+    word = 0
+    for c in (c1, c2):
+        mag = min(abs(c), MAX_MAG)
+        byte = 0 if mag == 0 else (0x40 | mag | (0x80 if c > 0 else 0))
+        word = (word << 8) | byte
+    return word
+
+
+class FanucPmcConfig(SinkConfig):
+    """Where the PMC is and how its memory is laid out (defaults: hil_sim's PMC map)."""
+
+    mode: Literal["word", "shift"] = Field("word", description="word + strobe on X, or R shift registers")
+    host: str | None = Field(None, description="PMC over Modbus TCP; none = hil_sim PMC in process")
+    port: int = Field(502, ge=1, le=65535)
+    device_id: int = Field(1, ge=0, le=247)
+    timeout_s: float = Field(0.25, gt=0)
+    max_step_um: float = Field(5.0, gt=0, description="largest change of an axis per update")
+    min_update_s: float = Field(0.02, gt=0, description="time between updates (>= 2 PMC scans)")
+    x_word: int = Field(0, ge=0, description="register of the X byte holding the word's low byte")
+    x_strobe: int = Field(2, ge=0, description="register of the X byte holding the strobe")
+    strobe_bit: int = Field(0, ge=0, le=7)
+    r_command: int = Field(202, ge=0, description="register of axis 1's commanded shift (shift mode)")
+    status_address: int = Field(400, ge=0, description="scan counter lo, hi, alarm, reset, applied 1, 2")
+    reset_alarm_on_start: bool = True
+    scan_s: float = Field(0.008, gt=0, description="in-process PMC: scan time")
+    step_limit_um: int = Field(10, ge=1, description="in-process PMC: its step limit (D0)")
+
+    @model_validator(mode="after")
+    def _check(self) -> FanucPmcConfig:
+        if self.mode == "word" and self.x_strobe in (self.x_word, self.x_word + 1):
+            raise ValueError("x_strobe must not be one of the word's two X bytes")
+        if self.host is None and self.max_step_um > self.step_limit_um:
+            raise ValueError("max_step_um exceeds the in-process PMC's step_limit_um: every update would alarm")
+        return self
+
+
+class FanucPmcSink(Sink):
+    """Steps the machine's shift toward the codec's word, within the PMC's step limit."""
+
+    Config = FanucPmcConfig
+
+    def __init__(self, cfg: FanucPmcConfig, base_dir: str = ".", pmc: Any = None) -> None:
+        super().__init__(cfg, base_dir)
+        self.cfg: FanucPmcConfig = cfg
+        self.pmc = pmc
+        self.link: Any = None
+        if pmc is None and cfg.host is None:
+            from hil_sim.devices.fanuc_pmc import FanucPmc
+
+            self.pmc = FanucPmc(scan_s=cfg.scan_s, step_limit_um=cfg.step_limit_um)
+        self.sent_lsb = [0, 0]
+        self.target_lsb = [0, 0]
+        self._strobe = 0
+        self._next_update_s = -math.inf
+        self.updates = 0
+        self._dirty = False
+        self._max_step_lsb = 1
+
+    def bind(self, axes: list[str], lsb_um: float) -> None:
+        super().bind(axes, lsb_um)
+        self._max_step_lsb = max(1, int(math.floor(self.cfg.max_step_um / lsb_um + 1e-9)))
+        if self.pmc is not None:
+            from hil_sim.devices.fanuc_pmc import LSB_NM
+
+            self.pmc.write_registers(LSB_NM, [int(round(lsb_um * 1000))])
+
+    def open(self, now_s: float) -> None:
+        cfg = self.cfg
+        if self.pmc is not None:
+            self.pmc.next_scan_s = self.pmc.t_s = now_s
+        else:
+            from compd.sinks.modbus_link import ModbusLink
+
+            self.link = ModbusLink(
+                cfg.host or "",
+                cfg.port,
+                device_id=cfg.device_id,
+                timeout_s=cfg.timeout_s,
+                status=(cfg.status_address, 8),
+                name="fanuc_pmc",
+            )
+            self.link.start()
+        if cfg.reset_alarm_on_start:
+            self._write(cfg.status_address + 3, [1])
+        self._deliver(now_s)
+
+    def _write(self, address: int, values: list[int]) -> None:
+        if self.pmc is not None:
+            self.pmc.write_registers(address, values)
+        else:
+            self.link.submit(address, values)
+
+    def _deliver(self, now_s: float) -> None:
+        cfg = self.cfg
+        c1, c2 = self.sent_lsb
+        if cfg.mode == "word":
+            word = encode_lsb(c1, c2)
+            self._strobe ^= 1
+            regs = [word & 0xFF, (word >> 8) & 0xFF]
+            if cfg.x_strobe == cfg.x_word + 2:
+                self._write(cfg.x_word, regs + [self._strobe << cfg.strobe_bit])
+            else:
+                self._write(cfg.x_word, regs)
+                self._write(cfg.x_strobe, [self._strobe << cfg.strobe_bit])
+        else:
+            lsb = self.lsb_um
+            self._write(cfg.r_command, [int(round(c1 * lsb)), int(round(c2 * lsb))])
+        self.updates += 1
+        self._dirty = True
+        self._next_update_s = now_s + cfg.min_update_s
+
+    def write(
+        self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
+    ) -> None:
+        if self.pmc is not None:
+            self.pmc.advance_to(now_s)
+        if changed or self.writes == 0:
+            t1, t2 = word_to_um(word, self.lsb_um)
+            self.target_lsb = [int(round(t1 / self.lsb_um)), int(round(t2 / self.lsb_um))]
+        self.writes += 1
+        if self.sent_lsb != self.target_lsb and now_s >= self._next_update_s:
+            self.sent_lsb = step_toward(self.sent_lsb, self.target_lsb, self._max_step_lsb)
+            self._deliver(now_s)
+
+    def settle(self, now_s: float) -> None:
+        """Let the PMC act on what was written (replay): in process, run two scans past
+        `now_s`; over Modbus, wait until the PMC has scanned twice since the write went
+        out and read back its status."""
+        if self.pmc is not None:
+            self.pmc.advance_to(now_s + 2 * self.pmc.scan_s)
+            return
+        if self.link is None or not self._dirty:
+            return
+        import time
+
+        self.link.flush()
+        addr = self.cfg.status_address
+        first = self.link.read_now(addr, 8)
+        deadline = time.monotonic() + 2.0
+        while first is not None and time.monotonic() < deadline:
+            regs = self.link.read_now(addr, 8)
+            if regs is not None and (regs[0] | regs[1] << 16) >= (first[0] | first[1] << 16) + 2:
+                self.link.status = regs
+                break
+            time.sleep(0.002)
+        self._dirty = False
+
+    def safe(self) -> None:
+        """Walk the shift back to zero in allowed steps (the PMC would alarm on one jump)."""
+        self.target_lsb = [0, 0]
+        t = self.pmc.t_s if self.pmc is not None else 0.0
+        for _ in range(10_000):
+            if self.sent_lsb == [0, 0]:
+                break
+            self.sent_lsb = step_toward(self.sent_lsb, [0, 0], self._max_step_lsb)
+            if self.pmc is not None:
+                self._deliver(t)
+                t += self.cfg.min_update_s
+                self.pmc.advance_to(t)
+            else:
+                import time
+
+                self._deliver(0.0)
+                self.link.flush()
+                time.sleep(self.cfg.min_update_s)
+        if self.pmc is not None:
+            self.pmc.advance_to(t + 2 * self.pmc.scan_s)
+
+    def status_registers(self) -> list[int] | None:
+        """scan lo, scan hi, alarm, reset, applied 1, applied 2, alarm count 1, 2."""
+        if self.pmc is not None:
+            return self.pmc.read_registers(self.cfg.status_address, 8)
+        return self.link.status if self.link is not None else None
+
+    def applied_um(self, out: np.ndarray) -> None:
+        regs = self.status_registers()
+        if regs is None:
+            out[:] = np.nan
+            return
+        for a in range(min(2, out.shape[0])):
+            v = regs[4 + a]
+            out[a] = float(v - 0x10000 if v & 0x8000 else v)
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.stop()
+            self.link = None
+
+    def get_status(self) -> dict[str, Any]:
+        regs = self.status_registers()
+        st: dict[str, Any] = {
+            **super().get_status(),
+            "mode": self.cfg.mode,
+            "updates": self.updates,
+            "sent_um": [c * self.lsb_um for c in self.sent_lsb],
+            "target_um": [c * self.lsb_um for c in self.target_lsb],
+        }
+        if regs is not None:
+            st["alarm"] = regs[2]
+            st["scans"] = regs[0] | (regs[1] << 16)
+            st["alarm_count"] = regs[6:8]
+        return st

@@ -1,0 +1,163 @@
+"""A Modbus TCP link for sinks: writes from the cycle are queued, a thread does the I/O.
+
+The cycle never waits on the network: `submit` stores the newest values per
+register range, the link's thread writes them (in order of first submission) and
+reads a status block every `status_period_s`. A lost connection is retried with
+exponential back-off; what the sink knows of the device is the last status read.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+
+class ModbusLink:
+    """Holding-register writes and a status read on a background thread."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        device_id: int = 1,
+        timeout_s: float = 0.25,
+        status: tuple[int, int] | None = None,
+        status_period_s: float = 0.05,
+        reconnect_min_s: float = 0.1,
+        reconnect_max_s: float = 5.0,
+        name: str = "sink",
+    ) -> None:
+        self.host, self.port, self.device_id = host, port, device_id
+        self.timeout_s = timeout_s
+        self.status_range = status
+        self.status_period_s = status_period_s
+        self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
+        self.status: list[int] | None = None
+        self.status_stamp = -1.0
+        self.writes = 0
+        self.errors = 0
+        self.last_error: str | None = None
+        self.name = name
+        self._pending: dict[int, list[int]] = {}
+        self._cv = threading.Condition()
+        self._io = threading.Lock()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._client: Any = None
+
+    def start(self) -> None:
+        from pymodbus.client import ModbusTcpClient
+
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+        self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
+        self._thread = threading.Thread(target=self._run, name=f"modbus-link-{self.name}", daemon=True)
+        self._thread.start()
+
+    def submit(self, address: int, values: list[int]) -> None:
+        """Queue a write; a newer write to the same address replaces an unsent one."""
+        with self._cv:
+            self._pending[address] = [v & 0xFFFF for v in values]
+            self._cv.notify()
+
+    def pending(self) -> bool:
+        with self._cv:
+            return bool(self._pending)
+
+    def flush(self, timeout_s: float = 2.0) -> bool:
+        """Wait until every queued write has gone out (or `timeout_s`)."""
+        deadline = time.monotonic() + timeout_s
+        while self.pending():
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.002)
+        return True
+
+    def read_now(self, address: int, count: int) -> list[int] | None:
+        """A synchronous read from the caller's thread (tests, settle); None on error."""
+        with self._io:
+            return self._read(address, count)
+
+    def _read(self, address: int, count: int) -> list[int] | None:
+        try:
+            if not self._client.connected and not self._client.connect():
+                return None
+            rr = self._client.read_holding_registers(address, count=count, device_id=self.device_id)
+        except Exception as e:
+            self._fail(e)
+            return None
+        if rr.isError():
+            self.errors += 1
+            self.last_error = f"exception reply {getattr(rr, 'exception_code', '?')}"
+            return None
+        return list(rr.registers)
+
+    def _fail(self, e: Exception) -> None:
+        self.errors += 1
+        self.last_error = f"{type(e).__name__}: {e}"
+        self._client.close()
+
+    def _run(self) -> None:
+        backoff = self.reconnect_min_s
+        next_status = 0.0
+        while True:
+            with self._cv:
+                if not self._pending and not self._stop:
+                    self._cv.wait(max(0.0, min(self.status_period_s, next_status - time.monotonic())))
+                if self._stop and not self._pending:
+                    break
+                item = None
+                if self._pending:
+                    address = next(iter(self._pending))
+                    item = (address, self._pending.pop(address))
+            with self._io:  # network I/O without holding the cycle's lock
+                try:
+                    ok = self._client.connected or bool(self._client.connect())
+                except Exception as e:
+                    ok = False
+                    self.last_error = str(e)
+                if ok and item is not None:
+                    try:
+                        rr = self._client.write_registers(item[0], item[1], device_id=self.device_id)
+                        if rr.isError():
+                            self.errors += 1
+                            self.last_error = f"write exception reply {getattr(rr, 'exception_code', '?')}"
+                        else:
+                            self.writes += 1
+                        item = None
+                    except Exception as e:
+                        self._fail(e)
+                        ok = False
+                now = time.monotonic()
+                if ok and self.status_range is not None and now >= next_status:
+                    regs = self._read(*self.status_range)
+                    if regs is not None:
+                        self.status = regs
+                        self.status_stamp = now
+                    next_status = now + self.status_period_s
+            if not ok:
+                self.errors += 1
+                with self._cv:
+                    if item is not None:
+                        self._pending.setdefault(item[0], item[1])  # unless superseded meanwhile
+                    if self._stop:
+                        break
+                    self._cv.wait(backoff)
+                backoff = min(backoff * 2, self.reconnect_max_s)
+            else:
+                backoff = self.reconnect_min_s
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Send what is queued (up to `timeout_s`), then close."""
+        if self._thread is not None:
+            self.flush(timeout_s)
+            with self._cv:
+                self._stop = True
+                self._pending.clear()
+                self._cv.notify()
+            self._thread.join(5)
+            self._thread = None
+        if self._client is not None:
+            self._client.close()

@@ -1,0 +1,165 @@
+"""Siemens temperature compensation sink (paper 001, SPEC §4.3): K0, tanβ, P0 per axis.
+
+The NC applies ΔK = K0 + tanβ·(P − P0) and spreads every change over its IPO cycles
+(MD32760). This sink writes SD43900 K0 (mm) from the guarded correction of each
+axis; when the model also exposes `linear_terms()` — per output the error's slope
+(µm/mm) and reference position P0 (mm), its outputs being the error at P0 — it
+writes SD43910 tanβ = −slope/1000 and SD43920 P0 too, and sets MD32750 bit 1
+(position dependent) as well as bit 0. Writes go out when a value moved by
+`min_change_um` and no faster than `min_update_s`. Without `host` the NC is hil_sim's
+emulator in process, on the loop clock.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from compd.config import SinkConfig
+from compd.sinks.base import Sink
+
+BLOCK, K0, TYPE, APPLIED = 16, 0, 6, 11
+
+
+def f32_regs(v: float) -> list[int]:
+    """float32, high word first (IEEE 754 big-endian)."""
+    import struct
+
+    b = struct.pack(">f", v)
+    return [int.from_bytes(b[0:2], "big"), int.from_bytes(b[2:4], "big")]
+
+
+def regs_f32(hi: int, lo: int) -> float:
+    import struct
+
+    return struct.unpack(">f", hi.to_bytes(2, "big") + lo.to_bytes(2, "big"))[0]
+
+
+class SiemensConfig(SinkConfig):
+    """The NC's data over Modbus TCP (or the emulator in process)."""
+
+    host: str | None = Field(None, description="NC gateway over Modbus TCP; none = emulator in process")
+    port: int = Field(502, ge=1, le=65535)
+    device_id: int = Field(1, ge=0, le=247)
+    axes: dict[str, int] | None = Field(None, description="model output → NC axis index (default: in order)")
+    min_change_um: float = Field(0.1, ge=0)
+    min_update_s: float = Field(0.05, gt=0)
+    ipo_s: float = Field(0.004, gt=0, description="in-process NC: IPO cycle")
+    velo_factor: float = Field(1e-5, gt=0, description="in-process NC: MD32760")
+
+
+class SiemensSink(Sink):
+    """K0 (and tanβ, P0 for position-dependent models) per axis."""
+
+    Config = SiemensConfig
+
+    def __init__(self, cfg: SiemensConfig, base_dir: str = ".", nc: Any = None) -> None:
+        super().__init__(cfg, base_dir)
+        self.cfg: SiemensConfig = cfg
+        self.nc = nc
+        self.link: Any = None
+        self.model: Any = None
+        self.outputs: list[str] = []
+        self.nc_axis: list[int] = []
+        self.sent_k0_um: np.ndarray = np.zeros(0)
+        self._next_s = -math.inf
+        self.updates = 0
+        if nc is None and cfg.host is None:
+            from hil_sim.devices.siemens_nc import SiemensNc
+
+            n = max(2, len(cfg.axes or {}), max((cfg.axes or {}).values(), default=0) + 1)
+            self.nc = SiemensNc(n, ipo_s=cfg.ipo_s, velo_factor=cfg.velo_factor)
+
+    def bind_model(self, model: Any) -> None:
+        """The model (for its output names and, if it has them, its linear terms)."""
+        self.model = model
+        self.outputs = list(model.outputs)
+        m = self.cfg.axes or {a: i for i, a in enumerate(self.outputs)}
+        self.nc_axis = [m.get(a, -1) for a in self.outputs]
+        self.sent_k0_um = np.full(len(self.outputs), np.nan)
+
+    def _write(self, address: int, values: list[int]) -> None:
+        if self.nc is not None:
+            self.nc.write_registers(address, values)
+        else:
+            self.link.submit(address, values)
+
+    def open(self, now_s: float) -> None:
+        if self.nc is not None:
+            self.nc.next_ipo_s = self.nc.t_s = now_s
+        else:
+            from compd.sinks.modbus_link import ModbusLink
+
+            n = max(self.nc_axis, default=0) + 1
+            self.link = ModbusLink(
+                self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, BLOCK * n), name="siemens"
+            )
+            self.link.start()
+        linear = self.model is not None and hasattr(self.model, "linear_terms")
+        for ax in self.nc_axis:
+            if ax >= 0:
+                self._write(BLOCK * ax + TYPE, [3 if linear else 1])
+
+    def write(
+        self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
+    ) -> None:
+        if self.nc is not None:
+            self.nc.advance_to(now_s)
+        self.writes += 1
+        if now_s < self._next_s or not self.outputs:
+            return
+        terms = self.model.linear_terms() if hasattr(self.model, "linear_terms") else None
+        sent = False
+        for i, ax in enumerate(self.nc_axis):
+            if ax < 0:
+                continue
+            k0 = float(corr_um[i]) if enable[i] else 0.0
+            if abs(k0 - self.sent_k0_um[i]) < self.cfg.min_change_um:  # NaN (first time): send
+                continue
+            regs = f32_regs(k0 / 1000.0)
+            if terms is not None:
+                slope_um_per_mm, p0_mm = terms[i]
+                regs += f32_regs(-slope_um_per_mm / 1000.0) + f32_regs(p0_mm)
+            self._write(BLOCK * ax + K0, regs)
+            self.sent_k0_um[i] = k0
+            sent = True
+        if sent:
+            self.updates += 1
+            self._next_s = now_s + self.cfg.min_update_s
+
+    def settle(self, now_s: float) -> None:
+        if self.nc is not None:
+            self.nc.advance_to(now_s)
+        elif self.link is not None:
+            self.link.flush()
+
+    def safe(self) -> None:
+        """K0 = 0 (and tanβ = 0): the NC ramps ΔK away at its own MD32760 rate."""
+        for ax in self.nc_axis:
+            if ax >= 0:
+                self._write(BLOCK * ax + K0, f32_regs(0.0) + f32_regs(0.0))
+        if self.link is not None:
+            self.link.flush()
+
+    def applied_um(self, out: np.ndarray) -> None:
+        """ΔK the NC applies now, for the word's axes (high byte first), µm."""
+        regs = self.nc.mem if self.nc is not None else (self.link.status if self.link else None)
+        out[:] = np.nan
+        if regs is None:
+            return
+        for slot, name in enumerate(self.axes[: out.shape[0]]):
+            if name in self.outputs:
+                ax = self.nc_axis[self.outputs.index(name)]
+                if ax >= 0 and BLOCK * ax + APPLIED + 1 < len(regs):
+                    out[slot] = 1000.0 * regs_f32(regs[BLOCK * ax + APPLIED], regs[BLOCK * ax + APPLIED + 1])
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.stop()
+            self.link = None
+
+    def get_status(self) -> dict[str, Any]:
+        return {**super().get_status(), "updates": self.updates, "k0_um": self.sent_k0_um.tolist()}

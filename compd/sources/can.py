@@ -1,0 +1,168 @@
+"""Temperatures carried in CAN frames (python-can): socketcan in production, `virtual` in tests.
+
+Each signal is an integer of `size` bytes at `offset` in the frame with id `id`,
+value_c = raw · scale + offset_c. A receive thread decodes frames as they come and
+stamps each signal with the loop clock; `read` copies the newest values. Raw codes
+mean burn-out or out of range; a frame too short for its signals makes them
+COMMS_LOST at once; no frame for `timeout_s` (silence, or only error frames, which
+is what a bad CRC produces on a real bus) makes them COMMS_LOST; a sample older
+than `stale_after_s` reads STALE.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from compd.config import SourceConfig, Strict
+from compd.frame import Frame, Quality
+from compd.sources.base import Source
+
+
+class CanSignal(Strict):
+    """Where one temperature sits in a frame."""
+
+    name: str = Field(min_length=1)
+    id: int = Field(ge=0, le=0x1FFFFFFF, description="arbitration id")
+    offset: int = Field(0, ge=0, le=7, description="first byte")
+    size: Literal[1, 2, 4] = 2
+    signed: bool = True
+    byte_order: Literal["little", "big"] = "little"
+    scale: float = Field(0.1, description="°C per count")
+    offset_c: float = 0.0
+
+    @model_validator(mode="after")
+    def _fits(self) -> CanSignal:
+        if self.offset + self.size > 8:
+            raise ValueError("offset + size exceeds the 8 data bytes of a CAN frame")
+        return self
+
+
+class CanConfig(SourceConfig):
+    """A CAN bus and the temperatures it carries."""
+
+    interface: str = Field("socketcan", description="python-can interface (virtual in tests)")
+    channel: str = Field("can0")
+    bitrate: int | None = Field(None, gt=0)
+    burnout_codes: list[int] = Field(default_factory=lambda: [0x8000], description="raw unsigned codes")
+    out_of_range_codes: list[int] = Field(default_factory=lambda: [0x7FFF, 0x8001])
+    timeout_s: float = Field(1.0, gt=0, description="no frame this long: COMMS_LOST")
+    stale_after_s: float | None = Field(None, gt=0)
+    signals: list[CanSignal] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _unique(self) -> CanConfig:
+        names = [s.name for s in self.signals]
+        if len(set(names)) != len(names):
+            raise ValueError("a signal name is used twice")
+        return self
+
+
+class CanSource(Source):
+    """Decodes frames on a receive thread; `read` never blocks."""
+
+    Config = CanConfig
+
+    def __init__(self, cfg: CanConfig, base_dir: str = ".") -> None:
+        super().__init__(cfg, base_dir)
+        self.cfg: CanConfig = cfg
+        n = len(cfg.signals)
+        self._by_id: dict[int, list[tuple[int, CanSignal]]] = {}
+        for i, s in enumerate(cfg.signals):
+            self._by_id.setdefault(s.id, []).append((i, s))
+        self._values = np.full(n, np.nan)
+        self._quality = np.full(n, Quality.NO_DATA, dtype=np.uint8)
+        self._stamp = np.full(n, -np.inf)
+        self._rx = np.full(n, -np.inf)  # last frame (good or not) per signal
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._bus: Any = None
+        self._clock: Any = None
+        self.frames = 0
+        self.error_frames = 0
+        self.bad_frames = 0
+
+    def signal_names(self) -> list[str]:
+        return [s.name for s in self.cfg.signals]
+
+    def decode(self, data: bytes, sig: CanSignal) -> tuple[float, int]:
+        """(value °C, quality) of one signal in a frame's data."""
+        if len(data) < sig.offset + sig.size:
+            return np.nan, Quality.COMMS_LOST
+        b = bytes(data[sig.offset : sig.offset + sig.size])
+        raw = int.from_bytes(b, sig.byte_order, signed=False)
+        if raw in self.cfg.burnout_codes:
+            return np.nan, Quality.BURNOUT
+        if raw in self.cfg.out_of_range_codes:
+            return np.nan, Quality.OUT_OF_RANGE
+        v = int.from_bytes(b, sig.byte_order, signed=sig.signed)
+        return v * sig.scale + sig.offset_c, Quality.GOOD
+
+    def start_polling(self, clock: Any) -> None:
+        import can
+
+        self._clock = clock
+        kw: dict[str, Any] = {"interface": self.cfg.interface, "channel": self.cfg.channel}
+        if self.cfg.bitrate:
+            kw["bitrate"] = self.cfg.bitrate
+        self._bus = can.Bus(**kw)
+        self._thread = threading.Thread(target=self._run, name=f"can-{self.name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self._bus.recv(timeout=0.05)
+            if msg is None:
+                continue
+            if msg.is_error_frame:
+                self.error_frames += 1
+                continue
+            sigs = self._by_id.get(msg.arbitration_id)
+            if not sigs:
+                continue
+            self.frames += 1
+            now = self._clock.now()
+            with self._lock:
+                for i, sig in sigs:
+                    v, q = self.decode(msg.data, sig)
+                    if q == Quality.COMMS_LOST:
+                        self.bad_frames += 1
+                    elif q == Quality.GOOD:
+                        self._values[i] = v
+                    self._quality[i] = q
+                    self._stamp[i] = now
+                    self._rx[i] = now
+
+    def read(self, frame: Frame, now_s: float) -> None:
+        idx = self._idx
+        with self._lock:
+            frame.values[idx] = self._values
+            frame.quality[idx] = self._quality
+            frame.stamp_s[idx] = self._stamp
+        age = now_s - frame.stamp_s[idx]
+        q = frame.quality[idx]
+        q = np.where((age > self.cfg.timeout_s) & (q != Quality.NO_DATA), Quality.COMMS_LOST, q)
+        if self.cfg.stale_after_s is not None:
+            q = np.where((q == Quality.GOOD) & (age > self.cfg.stale_after_s), Quality.STALE, q)
+        frame.quality[idx] = q
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+            self._thread = None
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+
+    def get_status(self) -> dict[str, Any]:
+        return {
+            **super().get_status(),
+            "frames": self.frames,
+            "error_frames": self.error_frames,
+            "bad_frames": self.bad_frames,
+        }

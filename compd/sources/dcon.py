@@ -1,0 +1,154 @@
+"""PT100 modules speaking DCON ASCII (ADAM-4015 style) over a serial line (pyserial), polled.
+
+`#AA\\r` asks module AA (hex) for all channels; it answers `>+025.30+024.90…\\r` in
+engineering units (°C). With `checksum: true` both carry the sum of their bytes mod
+256 as two hex digits before the CR. The module signals out of range and burn-out
+with fixed texts in place of a value (`out_of_range_codes`, `burnout_codes`: the
+defaults are the ADAM-4000 engineering-unit codes +9999 / -0000 and -9999.9; set
+them to your module's manual). No reply within `timeout_s`, a garbled or wrong-length
+reply, a bad checksum or `?AA` (command rejected) make every channel COMMS_LOST.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from typing import Any
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from compd.config import SourceConfig
+from compd.frame import Quality
+from compd.sources.base import PolledSource
+
+_FIELD = re.compile(rb"[+-][0-9.]+")
+
+
+def dcon_checksum(data: bytes) -> bytes:
+    """Two upper-case hex digits: the sum of the bytes mod 256."""
+    return f"{sum(data) & 0xFF:02X}".encode()
+
+
+def parse_reply(reply: bytes, address: int, use_checksum: bool) -> list[bytes]:
+    """The value fields of a `>…` reply; ValueError names what is wrong with it."""
+    if not reply.endswith(b"\r"):
+        raise ValueError("no reply (timeout)" if not reply else "reply not terminated by CR")
+    body = reply[:-1]
+    if use_checksum:
+        if len(body) < 3 or dcon_checksum(body[:-2]) != body[-2:].upper():
+            raise ValueError("checksum error")
+        body = body[:-2]
+    if body.startswith(b"?"):
+        raise ValueError(f"command rejected ({body.decode('ascii', 'replace')})")
+    if not body.startswith(b">"):
+        raise ValueError("reply does not start with '>'")
+    fields = _FIELD.findall(body[1:])
+    if b"".join(fields) != body[1:]:
+        raise ValueError("garbled reply")
+    return fields
+
+
+class DconConfig(SourceConfig):
+    """One DCON module on a serial port; `channels` name its values in reply order."""
+
+    serial_port: str = Field(description="serial device, e.g. /dev/ttyUSB0")
+    baudrate: int = Field(9600, gt=0)
+    address: int = Field(1, ge=0, le=255, description="module address (AA, hex on the wire)")
+    checksum: bool = False
+    channels: list[str | None] = Field(min_length=1, description="signal per channel; null skips one")
+    out_of_range_codes: list[str] = Field(default_factory=lambda: ["+9999", "-0000"])
+    burnout_codes: list[str] = Field(default_factory=lambda: ["-9999.9"])
+    poll_period_s: float = Field(0.2, gt=0, le=60)
+    timeout_s: float = Field(0.3, gt=0, le=30)
+    stale_after_s: float | None = Field(None, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> DconConfig:
+        names = [c for c in self.channels if c]
+        if not names:
+            raise ValueError("name at least one channel")
+        if len(set(names)) != len(names):
+            raise ValueError("a channel name is used twice")
+        return self
+
+
+class DconSource(PolledSource):
+    """Polls `#AA` on its own thread; `read` never blocks."""
+
+    Config = DconConfig
+
+    def __init__(self, cfg: DconConfig, base_dir: str = ".") -> None:
+        self._slots = [(i, n) for i, n in enumerate(cfg.channels) if n]
+        super().__init__(cfg, base_dir)
+        self.cfg: DconConfig = cfg
+        self.poll_period_s = cfg.poll_period_s
+        self.stale_after_s = cfg.stale_after_s
+        cmd = f"#{cfg.address:02X}".encode()
+        self.command = cmd + (dcon_checksum(cmd) if cfg.checksum else b"") + b"\r"
+        self._ser: Any = None
+        self._next_open_s = 0.0
+        self.comm_errors = 0
+        self.last_error: str | None = None
+
+    def signal_names(self) -> list[str]:
+        return [n for _, n in self._slots]
+
+    def _open(self) -> bool:
+        if self._ser is not None:
+            return True
+        if time.monotonic() < self._next_open_s:
+            return False
+        import serial
+
+        try:
+            self._ser = serial.Serial(self.cfg.serial_port, self.cfg.baudrate, timeout=self.cfg.timeout_s)
+        except (serial.SerialException, OSError) as e:
+            self.last_error = f"open: {e}"
+            self._next_open_s = time.monotonic() + 1.0
+            return False
+        return True
+
+    def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
+        if not self._open():
+            quality[:] = Quality.COMMS_LOST
+            return
+        try:
+            self._ser.reset_input_buffer()  # a late reply to an earlier request
+            self._ser.write(self.command)
+            reply = self._ser.read_until(b"\r")
+        except OSError as e:  # the port went away: reopen later
+            self.last_error = f"serial: {e}"
+            self._ser.close()
+            self._ser = None
+            quality[:] = Quality.COMMS_LOST
+            return
+        try:
+            fields = parse_reply(reply, self.cfg.address, self.cfg.checksum)
+            if len(fields) < len(self.cfg.channels):
+                raise ValueError(f"{len(fields)} values, {len(self.cfg.channels)} channels configured")
+        except ValueError as e:
+            self.comm_errors += 1
+            self.last_error = str(e)
+            quality[:] = Quality.COMMS_LOST
+            return
+        burnout = {c.encode() for c in self.cfg.burnout_codes}
+        oor = {c.encode() for c in self.cfg.out_of_range_codes}
+        for k, (i, _) in enumerate(self._slots):
+            f = fields[i]
+            if f in burnout:
+                quality[k] = Quality.BURNOUT
+            elif f in oor:
+                quality[k] = Quality.OUT_OF_RANGE
+            else:
+                values[k] = float(f)
+                quality[k] = Quality.GOOD
+
+    def close(self) -> None:
+        super().close()
+        if self._ser is not None:
+            self._ser.close()
+            self._ser = None
+
+    def get_status(self) -> dict[str, Any]:
+        return {**super().get_status(), "polls": self.polls, "comm_errors": self.comm_errors, "last_error": self.last_error}

@@ -1,0 +1,152 @@
+"""A DCON ASCII PT100 module (ADAM-4015 style) on a serial line: `#AA\\r` → `>+025.30+024.90…\\r`.
+
+Commands and replies are ASCII ending in CR. With the checksum option both carry
+two upper-case hex digits before the CR: the sum of all preceding bytes mod 256.
+`#AA` (AA = the module's hex address) returns every channel in engineering units,
+`+ddd.dd`; over range reads `over_text`, under range `under_text` and a burned-out
+sensor `burnout_text`. Any other command addressed to the module gets `?AA`; a
+command for another address, or with a bad checksum, gets no answer.
+Wire faults a test can switch on: no_answer, garbage, crc_error (a wrong checksum,
+or a corrupted delimiter without the checksum option), slow (reply after `slow_s`),
+invalid (`?AA` to everything).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from typing import Any
+
+import serial
+
+from hil_sim.devices.pt100 import Pt100Transmitter
+
+WIRE_FAULTS = ("none", "no_answer", "garbage", "crc_error", "slow", "invalid")
+
+
+def checksum(text: bytes) -> bytes:
+    """Two hex digits: the sum of the bytes mod 256."""
+    return f"{sum(text) & 0xFF:02X}".encode()
+
+
+class DconModule:
+    """Answers DCON commands for one address on a serial port, on its own thread."""
+
+    def __init__(
+        self,
+        transmitter: Pt100Transmitter,
+        serial_port: str,
+        *,
+        address: int = 1,
+        baudrate: int = 9600,
+        use_checksum: bool = False,
+        over_text: str = "+9999",
+        under_text: str = "-0000",
+        burnout_text: str = "-9999.9",
+    ) -> None:
+        self.tx = transmitter
+        self.serial_port = serial_port
+        self.address = address
+        self.baudrate = baudrate
+        self.use_checksum = use_checksum
+        self.texts = {"over": over_text, "under": under_text, "burnout": burnout_text}
+        self.fault = "none"
+        self.slow_s = 0.5
+        self.requests = 0
+        self._ser: serial.Serial | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def set_fault(self, fault: str, slow_s: float | None = None) -> None:
+        if fault not in WIRE_FAULTS:
+            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(WIRE_FAULTS)})")
+        if slow_s is not None:
+            self.slow_s = slow_s
+        self.fault = fault
+
+    def reply(self, command: bytes) -> bytes | None:
+        """The reply to one command (without the wire faults), or None for silence."""
+        body = command
+        if self.use_checksum:
+            if len(body) < 3 or checksum(body[:-2]) != body[-2:].upper():
+                return None
+            body = body[:-2]
+        text = body.decode("ascii", "replace")
+        if len(text) < 3 or text[1:3].upper() != f"{self.address:02X}":
+            return None
+        aa = f"{self.address:02X}"
+        if text == f"#{aa}" and self.fault != "invalid":
+            fields = []
+            for state, v in self.tx.readings():
+                fields.append(f"{v:+07.2f}" if state == "ok" else self.texts[state])
+            out = (">" + "".join(fields)).encode()
+        else:
+            out = f"?{aa}".encode()
+        if self.use_checksum:
+            out += checksum(out)
+        return out + b"\r"
+
+    def _run(self) -> None:
+        buf = b""
+        assert self._ser is not None
+        while not self._stop.is_set():
+            chunk = self._ser.read(64)
+            if not chunk:
+                continue
+            buf += chunk
+            while b"\r" in buf:
+                line, buf = buf.split(b"\r", 1)
+                self.requests += 1
+                out = self.reply(line)
+                if out is None or self.fault == "no_answer":
+                    continue
+                if self.fault == "garbage":
+                    out = os.urandom(len(out) - 1).replace(b"\r", b"#") + b"\r"
+                elif self.fault == "crc_error":
+                    if self.use_checksum:
+                        out = out[:-3] + (b"0" if out[-3:-2] != b"0" else b"1") + out[-2:]
+                    else:
+                        out = b"!" + out[1:]
+                elif self.fault == "slow":
+                    self._stop.wait(self.slow_s)
+                self._ser.write(out)
+
+    def start(self) -> DconModule:
+        self._ser = serial.Serial(self.serial_port, self.baudrate, timeout=0.05)
+        self._thread = threading.Thread(target=self._run, name="dcon-module", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+            self._thread = None
+        if self._ser is not None:
+            self._ser.close()
+            self._ser = None
+
+    def where(self) -> str:
+        return f"dcon:{self.serial_port}@{self.baudrate} address {self.address:02X}"
+
+    def __enter__(self) -> DconModule:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, DconModule]:
+    """Transmitter and (unstarted) module from a hil_sim device section."""
+    cfg = dict(cfg)
+    channels = cfg.pop("channels")
+    tx = Pt100Transmitter(
+        [c["name"] for c in channels],
+        [float(c.get("value_c", 20.0)) for c in channels],
+        range_min_c=float(cfg.pop("range_min_c", -50.0)),
+        range_max_c=float(cfg.pop("range_max_c", 250.0)),
+    )
+    fault = cfg.pop("wire_fault", "none")
+    mod = DconModule(tx, cfg.pop("serial_port"), **cfg)
+    mod.set_fault(fault)
+    return tx, mod

@@ -1,0 +1,206 @@
+"""FANUC PMC software PLC (SPEC §4.2): fixed scan, X/Y/R/D memory, the external-shift ladder.
+
+Memory map (Modbus holding registers, one register per PMC byte for X and Y, one
+16-bit word per register for R, D and status; signed values are two's complement):
+
+| register | PMC | meaning |
+|---|---|---|
+| 0–15     | X0–X15  | inputs; X0 = word low byte, X1 = word high byte, X2.0 = strobe (defaults, see D2–D4) |
+| 100–115  | Y0–Y15  | outputs; Y0.0 = alarm lamp, Y0.1 = strobe acknowledge (the strobe level last latched) |
+| 200      | R0      | latched word |
+| 201      | R1      | latch count (mod 65536) |
+| 202, 203 | R2, R3  | commanded shift, axis 1 and 2, µm (written by the ladder on a strobe edge, or directly) |
+| 300      | D0      | step limit, µm: a larger single change of the shift raises the axis alarm |
+| 301      | D1      | word LSB, nm (1000 = 1 µm) |
+| 302–304  | D2–D4   | X byte of the word's low byte, X byte of the strobe, strobe bit |
+| 400, 401 | —       | scan counter, low and high word |
+| 402      | —       | alarm bits (bit 0 axis 1, bit 1 axis 2); latched until reset |
+| 403      | —       | alarm reset: write non-zero, the next scan clears the alarms and this register |
+| 404, 405 | —       | applied external machine coordinate shift, axis 1 and 2, µm |
+| 406, 407 | —       | alarm count, axis 1 and 2 |
+
+Ladder, every scan (default 8 ms): copy the wired card's DO bytes into X0–X3 (if a
+PCI-1756 emulator is wired); on any edge of the strobe bit latch X(word)..X(word)+1
+into R0 and decode it (bit 7 direction, 1 = positive; bit 6 enable; bits 5..0
+magnitude × LSB) into R2/R3; then per axis, if the command differs from the applied
+shift: apply it when the change is within the step limit, otherwise raise the
+axis alarm and hold the shift until reset (the shift is absolute: the axis moves by
+the difference, FANUC external machine coordinate shift).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+X_BASE, Y_BASE, R_BASE, D_BASE, S_BASE = 0, 100, 200, 300, 400
+N_X, N_Y, N_R, N_D, N_S = 16, 16, 16, 16, 16
+REGISTER_COUNT = S_BASE + N_S
+SCAN_LO, SCAN_HI, ALARM, RESET, APPLIED, ALARM_COUNT = 400, 401, 402, 403, 404, 406
+LATCHED, LATCH_COUNT, COMMAND = 200, 201, 202
+STEP_LIMIT, LSB_NM, WORD_X, STROBE_X, STROBE_BIT = 300, 301, 302, 303, 304
+AREAS = [(X_BASE, N_X), (Y_BASE, N_Y), (R_BASE, N_R), (D_BASE, N_D), (S_BASE, N_S)]
+
+
+def _signed(v: int) -> int:
+    return v - 0x10000 if v & 0x8000 else v
+
+
+def decode_byte_um(byte: int, lsb_um: float) -> float:
+    """One axis byte of the word in µm: bit 7 sign (1 = +), bit 6 enable, bits 5..0 magnitude."""
+    if not byte & 0x40:
+        return 0.0
+    mag = (byte & 0x3F) * lsb_um
+    return mag if byte & 0x80 else -mag
+
+
+class FanucPmc:
+    """The PLC's memory and ladder; `scan` runs one scan, `advance_to` all scans up to a time."""
+
+    def __init__(
+        self,
+        *,
+        scan_s: float = 0.008,
+        step_limit_um: int = 10,
+        lsb_um: float = 1.0,
+        word_x: int = 0,
+        strobe_x: int = 2,
+        strobe_bit: int = 0,
+        card: Any = None,
+    ) -> None:
+        self.scan_s = scan_s
+        self.mem = [0] * REGISTER_COUNT
+        self.mem[STEP_LIMIT] = step_limit_um
+        self.mem[LSB_NM] = int(round(lsb_um * 1000))
+        self.mem[WORD_X], self.mem[STROBE_X], self.mem[STROBE_BIT] = word_x, strobe_x, strobe_bit
+        self.card = card
+        self.register_count = REGISTER_COUNT
+        self.t_s = 0.0
+        self.next_scan_s = 0.0
+        self.scans = 0
+        self._last_strobe = 0
+        self._lock = threading.Lock()
+
+    # ----------------------------------------------------------- Modbus access
+    @staticmethod
+    def _valid(address: int, count: int) -> bool:
+        return any(base <= address and address + count <= base + n for base, n in AREAS)
+
+    def read_registers(self, address: int, count: int) -> list[int] | None:
+        if not self._valid(address, count):
+            return None
+        with self._lock:
+            return self.mem[address : address + count]
+
+    def write_registers(self, address: int, values: list[int]) -> bool:
+        if not self._valid(address, len(values)):
+            return False
+        with self._lock:
+            for k, v in enumerate(values):
+                self.mem[address + k] = v & 0xFFFF
+        return True
+
+    # ------------------------------------------------------------------ ladder
+    def scan(self) -> bool:
+        """One scan of the ladder; True when it changed anything but the scan counter."""
+        with self._lock:
+            m = self.mem
+            before = m[Y_BASE : Y_BASE + N_Y] + m[R_BASE : R_BASE + N_R] + m[S_BASE + 2 : S_BASE + N_S]
+            if self.card is not None:
+                do = self.card.read_do()
+                for k in range(4):
+                    m[X_BASE + k] = (do >> (8 * k)) & 0xFF
+            sx, sb, wx = m[STROBE_X], m[STROBE_BIT], m[WORD_X]
+            strobe = (m[X_BASE + sx] >> sb) & 1 if sx < N_X and sb < 8 else 0
+            if strobe != self._last_strobe and wx + 1 < N_X:
+                word = (m[X_BASE + wx] & 0xFF) | ((m[X_BASE + wx + 1] & 0xFF) << 8)
+                m[LATCHED] = word
+                m[LATCH_COUNT] = (m[LATCH_COUNT] + 1) & 0xFFFF
+                lsb = m[LSB_NM] / 1000.0
+                for a, byte in enumerate((word >> 8, word & 0xFF)):
+                    m[COMMAND + a] = int(round(decode_byte_um(byte, lsb))) & 0xFFFF
+                m[Y_BASE] = (m[Y_BASE] & ~0x02) | (strobe << 1)
+            self._last_strobe = strobe
+            if m[RESET]:
+                m[ALARM] = 0
+                m[RESET] = 0
+            limit = m[STEP_LIMIT]
+            for a in range(2):
+                if m[ALARM] & (1 << a):
+                    continue
+                cmd, applied = _signed(m[COMMAND + a]), _signed(m[APPLIED + a])
+                if cmd != applied:
+                    if abs(cmd - applied) > limit:
+                        m[ALARM] |= 1 << a
+                        m[ALARM_COUNT + a] = (m[ALARM_COUNT + a] + 1) & 0xFFFF
+                    else:
+                        m[APPLIED + a] = cmd & 0xFFFF
+            m[Y_BASE] = (m[Y_BASE] & ~0x01) | (1 if m[ALARM] else 0)
+            self.scans += 1
+            m[SCAN_LO], m[SCAN_HI] = self.scans & 0xFFFF, (self.scans >> 16) & 0xFFFF
+            after = m[Y_BASE : Y_BASE + N_Y] + m[R_BASE : R_BASE + N_R] + m[S_BASE + 2 : S_BASE + N_S]
+            return after != before
+
+    def advance_to(self, t_s: float) -> None:
+        """Run every scan due up to `t_s` (simulated time).
+
+        Once a scan changes nothing and no card is wired, later scans until `t_s`
+        cannot change anything either (inputs only change between calls), so they
+        are counted without being run: a day of replay costs a few scans per row.
+        """
+        while self.next_scan_s <= t_s:
+            changed = self.scan()
+            self.next_scan_s += self.scan_s
+            if not changed and self.card is None and self.next_scan_s <= t_s:
+                n = int((t_s - self.next_scan_s) / self.scan_s) + 1
+                with self._lock:
+                    self.scans += n
+                    self.mem[SCAN_LO] = self.scans & 0xFFFF
+                    self.mem[SCAN_HI] = (self.scans >> 16) & 0xFFFF
+                self.next_scan_s += n * self.scan_s
+        self.t_s = t_s
+
+    # ------------------------------------------------------------- convenience
+    def applied_um(self) -> list[float]:
+        with self._lock:
+            return [float(_signed(self.mem[APPLIED + a])) for a in range(2)]
+
+    def alarms(self) -> int:
+        with self._lock:
+            return self.mem[ALARM]
+
+    def reset_alarms(self) -> None:
+        self.write_registers(RESET, [1])
+
+
+class PmcScanThread:
+    """Runs a PMC's scans on wall time, on an absolute schedule (start + k·scan_s)."""
+
+    def __init__(self, pmc: FanucPmc) -> None:
+        self.pmc = pmc
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> PmcScanThread:
+        self._thread = threading.Thread(target=self._run, name="pmc-scan", daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        t0 = time.monotonic()
+        k = 0
+        while not self._stop.is_set():
+            self.pmc.scan()
+            k += 1
+            rest = t0 + k * self.pmc.scan_s - time.monotonic()
+            if rest > 0:
+                self._stop.wait(rest)
+            elif rest < -self.pmc.scan_s:  # overran: skip what is past
+                k += int(-rest / self.pmc.scan_s)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+            self._thread = None

@@ -1,0 +1,75 @@
+"""A PT100 transmitter's measuring side: channels, their temperatures and sensor faults.
+
+The transport-specific devices (Modbus, DCON, CAN) wrap one `Pt100Transmitter` and
+encode what `reading` returns in their own protocol. A channel reads as:
+`ok` (a temperature), `burnout` (open sensor), `over`/`under` (outside the
+transmitter's range). Temperatures come from the test (`set`) or from a feed
+function called on every reading (a plant).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Sequence
+
+SENSOR_FAULTS = ("none", "burnout", "over", "under")
+
+
+class Pt100Transmitter:
+    """Channels named in order, a measuring range in °C and per-channel sensor faults."""
+
+    def __init__(
+        self,
+        names: Sequence[str],
+        values_c: Sequence[float] | None = None,
+        *,
+        range_min_c: float = -50.0,
+        range_max_c: float = 250.0,
+    ) -> None:
+        self.names = list(names)
+        if not self.names:
+            raise ValueError("a transmitter needs at least one channel")
+        self.values_c = list(values_c) if values_c is not None else [20.0] * len(self.names)
+        if len(self.values_c) != len(self.names):
+            raise ValueError("one value per channel")
+        self.faults = ["none"] * len(self.names)
+        self.range_min_c = range_min_c
+        self.range_max_c = range_max_c
+        self.feed: Callable[[], Sequence[float]] | None = None
+        self._lock = threading.Lock()
+
+    def index(self, channel: int | str) -> int:
+        if isinstance(channel, str):
+            return self.names.index(channel)
+        return channel
+
+    def set(self, channel: int | str, value_c: float) -> None:
+        with self._lock:
+            self.values_c[self.index(channel)] = float(value_c)
+
+    def set_all(self, values_c: Sequence[float]) -> None:
+        with self._lock:
+            self.values_c[:] = [float(v) for v in values_c]
+
+    def set_fault(self, channel: int | str, fault: str) -> None:
+        if fault not in SENSOR_FAULTS:
+            raise ValueError(f"unknown sensor fault {fault!r} (known: {', '.join(SENSOR_FAULTS)})")
+        with self._lock:
+            self.faults[self.index(channel)] = fault
+
+    def readings(self) -> list[tuple[str, float]]:
+        """(state, °C) per channel; state is ok, burnout, over or under."""
+        if self.feed is not None:
+            self.set_all(self.feed())
+        out = []
+        with self._lock:
+            for v, f in zip(self.values_c, self.faults, strict=True):
+                if f != "none":
+                    out.append((f, v))
+                elif v > self.range_max_c:
+                    out.append(("over", v))
+                elif v < self.range_min_c:
+                    out.append(("under", v))
+                else:
+                    out.append(("ok", v))
+        return out

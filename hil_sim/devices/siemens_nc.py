@@ -1,0 +1,121 @@
+"""Siemens NC temperature compensation data (SPEC §4.3), reachable over Modbus TCP.
+
+ΔK = K0 + tanβ·(P − P0), with K0 = SD43900 TEMP_COMP_ABS_VALUE (mm), tanβ = SD43910
+TEMP_COMP_SLOPE, P0 = SD43920 TEMP_COMP_REF_POSITION (mm). MD32750 TEMP_COMP_TYPE:
+bit 0 enables the position-independent part K0, bit 1 the position-dependent part.
+The NC never steps: per interpolation (IPO) cycle the applied ΔK moves toward the
+target by at most MD32760 COMP_ADD_VELO_FACTOR × max axis velocity × IPO cycle.
+
+Register map, 16 holding registers per axis at 16·axis (float32 as two registers,
+high word first, IEEE 754 big-endian):
++0 K0 mm, +2 tanβ, +4 P0 mm, +6 MD32750 (uint16), +7 MD32760 (fraction of the max
+velocity per IPO cycle), +9 axis position P mm (written by the plant or a test),
++11 applied ΔK mm (read only), +13 target ΔK mm (read only), +15 IPO counter (mod 65536).
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+
+K0, SLOPE, P0, TYPE, VELO_FACTOR, POSITION, APPLIED, TARGET, IPO = 0, 2, 4, 6, 7, 9, 11, 13, 15
+BLOCK = 16
+READ_ONLY = (APPLIED, APPLIED + 1, TARGET, TARGET + 1, IPO)
+
+
+def f32_to_regs(v: float) -> list[int]:
+    b = struct.pack(">f", v)
+    return [int.from_bytes(b[0:2], "big"), int.from_bytes(b[2:4], "big")]
+
+
+def regs_to_f32(hi: int, lo: int) -> float:
+    return struct.unpack(">f", hi.to_bytes(2, "big") + lo.to_bytes(2, "big"))[0]
+
+
+class SiemensNc:
+    """Per-axis setting data, machine data and the IPO-cycle rate limit."""
+
+    def __init__(
+        self,
+        axes: int = 2,
+        *,
+        ipo_s: float = 0.004,
+        max_velo_mm_min: float = 30000.0,
+        velo_factor: float = 1e-5,
+        comp_type: int = 1,
+    ) -> None:
+        self.n = axes
+        self.ipo_s = ipo_s
+        self.max_velo_mm_min = max_velo_mm_min
+        self.register_count = BLOCK * axes
+        self.mem = [0] * self.register_count
+        for a in range(axes):
+            self._set(a, VELO_FACTOR, velo_factor)
+            self.mem[BLOCK * a + TYPE] = comp_type
+        self.t_s = 0.0
+        self.next_ipo_s = 0.0
+        self.cycles = 0
+        self._lock = threading.Lock()
+
+    def _get(self, a: int, off: int) -> float:
+        return regs_to_f32(self.mem[BLOCK * a + off], self.mem[BLOCK * a + off + 1])
+
+    def _set(self, a: int, off: int, v: float) -> None:
+        self.mem[BLOCK * a + off : BLOCK * a + off + 2] = f32_to_regs(v)
+
+    def read_registers(self, address: int, count: int) -> list[int] | None:
+        if address < 0 or address + count > self.register_count:
+            return None
+        with self._lock:
+            return self.mem[address : address + count]
+
+    def write_registers(self, address: int, values: list[int]) -> bool:
+        if address < 0 or address + len(values) > self.register_count:
+            return False
+        if any((address + k) % BLOCK in READ_ONLY for k in range(len(values))):
+            return False
+        with self._lock:
+            self.mem[address : address + len(values)] = [v & 0xFFFF for v in values]
+        return True
+
+    def cap_mm(self, a: int) -> float:
+        """Largest change of ΔK per IPO cycle (MD32760 × max velocity × IPO cycle), mm."""
+        return self._get(a, VELO_FACTOR) * self.max_velo_mm_min / 60.0 * self.ipo_s
+
+    def ipo(self) -> None:
+        with self._lock:
+            for a in range(self.n):
+                typ = self.mem[BLOCK * a + TYPE]
+                target = 0.0
+                if typ & 1:
+                    target += self._get(a, K0)
+                if typ & 2:
+                    target += self._get(a, SLOPE) * (self._get(a, POSITION) - self._get(a, P0))
+                applied = self._get(a, APPLIED)
+                cap = self.cap_mm(a)
+                d = target - applied
+                applied += cap if d > cap else (-cap if d < -cap else d)
+                self._set(a, APPLIED, applied)
+                self._set(a, TARGET, target)
+                self.mem[BLOCK * a + IPO] = (self.mem[BLOCK * a + IPO] + 1) & 0xFFFF
+            self.cycles += 1
+
+    def advance_to(self, t_s: float) -> None:
+        """Run the IPO cycles due up to `t_s`; once every axis sits on its target the
+        rest are counted without being run (nothing can change between writes)."""
+        while self.next_ipo_s <= t_s:
+            self.ipo()
+            self.next_ipo_s += self.ipo_s
+            if all(self._get(a, APPLIED) == self._get(a, TARGET) for a in range(self.n)):
+                n = int((t_s - self.next_ipo_s) / self.ipo_s) + 1 if self.next_ipo_s <= t_s else 0
+                self.cycles += n
+                self.next_ipo_s += n * self.ipo_s
+        self.t_s = t_s
+
+    def applied_mm(self) -> list[float]:
+        with self._lock:
+            return [self._get(a, APPLIED) for a in range(self.n)]
+
+    def set_position(self, a: int, p_mm: float) -> None:
+        with self._lock:
+            self._set(a, POSITION, p_mm)

@@ -1,0 +1,185 @@
+"""`python -m hil_sim serve --config FILE`: start the devices a YAML file describes, until Ctrl-C.
+
+The file is a list of devices (like pyvisa-sim's device files), each a mapping with
+`kind` and `name`:
+
+* `pt100_modbus` — a PT100 Modbus module (`transport: tcp` with `host`/`port`, or
+  `rtu` with `serial_port`); `pty_link: PATH` makes a socat pair and serves on
+  `serial_port`, so compd opens `pty_link`. Options of `Pt100ModbusDevice`.
+* `dcon` — an ADAM-4015-style DCON module on `serial_port` (with `pty_link` likewise).
+* `can_pt100` — temperatures broadcast on a python-can bus (`interface`, `channel`).
+* `fanuc_pmc` — the PMC software PLC on Modbus TCP (`host`, `port`, `scan_s`,
+  `step_limit_um`, `device_id`).
+* `siemens_nc` — the NC's temperature-compensation data on Modbus TCP (`axes`, `ipo_s`,
+  `max_velo_mm_min`, `velo_factor`).
+
+Ports 0 pick a free port; every device prints where it listens.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TextIO
+
+import yaml
+
+KINDS = ("pt100_modbus", "dcon", "can_pt100", "fanuc_pmc", "siemens_nc")
+
+
+class Running:
+    """One device's started parts, stopped in reverse order."""
+
+    def __init__(self, name: str, kind: str) -> None:
+        self.name = name
+        self.kind = kind
+        self.parts: list[Any] = []
+        self.where: Callable[[], str] = lambda: ""
+        self.device: Any = None
+
+    def start(self, part: Any) -> Any:
+        part.start()
+        self.parts.append(part)
+        return part
+
+    def stop(self) -> None:
+        for p in reversed(self.parts):
+            p.stop()
+        self.parts.clear()
+
+
+def _pty(run: Running, cfg: dict[str, Any]) -> None:
+    link = cfg.pop("pty_link", None)
+    if link is not None:
+        from hil_sim.devices.ptypair import PtyPair
+
+        run.start(PtyPair(cfg["serial_port"], link))
+
+
+def start_device(cfg: dict[str, Any]) -> Running:
+    """Build and start one device from its section."""
+    cfg = dict(cfg)
+    kind = cfg.pop("kind", None)
+    name = str(cfg.pop("name", kind))
+    if kind not in KINDS:
+        raise ValueError(f"device {name!r}: unknown kind {kind!r} (known: {', '.join(KINDS)})")
+    run = Running(name, kind)
+    try:
+        if kind == "pt100_modbus":
+            from hil_sim.devices import pt100_modbus
+
+            _pty(run, cfg)
+            link = run.parts[0].b if run.parts else None
+            tx, dev, srv = pt100_modbus.from_config(cfg)
+            run.device = tx
+            run.start(srv)
+            run.where = lambda: srv.where() + (f" (compd opens {link})" if link else "")
+        elif kind == "dcon":
+            from hil_sim.devices import dcon
+
+            _pty(run, cfg)
+            link = run.parts[0].b if run.parts else None
+            tx, mod = dcon.from_config(cfg)
+            run.device = tx
+            run.start(mod)
+            run.where = lambda: mod.where() + (f" (compd opens {link})" if link else "")
+        elif kind == "can_pt100":
+            from hil_sim.devices import can_pt100
+
+            tx, dev = can_pt100.from_config(cfg)
+            run.device = tx
+            run.start(dev)
+            run.where = dev.where
+        elif kind == "fanuc_pmc":
+            from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
+            from hil_sim.devices.modbus_server import ModbusServerThread
+
+            host, port, dev_id = cfg.pop("host", "127.0.0.1"), int(cfg.pop("port", 0)), int(cfg.pop("device_id", 1))
+            pmc = FanucPmc(**cfg)
+            run.device = pmc
+            run.start(PmcScanThread(pmc))
+            srv = run.start(ModbusServerThread(pmc, host=host, port=port, device_id=dev_id))
+            run.where = lambda: srv.where() + f" scan {pmc.scan_s * 1000:g} ms"
+        else:  # siemens_nc
+            from hil_sim.devices.modbus_server import ModbusServerThread
+            from hil_sim.devices.siemens_nc import SiemensNc
+
+            host, port, dev_id = cfg.pop("host", "127.0.0.1"), int(cfg.pop("port", 0)), int(cfg.pop("device_id", 1))
+            nc = SiemensNc(**cfg)
+            run.device = nc
+            run.start(_NcClock(nc))
+            srv = run.start(ModbusServerThread(nc, host=host, port=port, device_id=dev_id))
+            run.where = lambda: srv.where() + f" IPO {nc.ipo_s * 1000:g} ms"
+    except BaseException:
+        run.stop()
+        raise
+    return run
+
+
+class _NcClock:
+    """Runs the NC's IPO cycles on wall time."""
+
+    def __init__(self, nc: Any) -> None:
+        self.nc = nc
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        import time
+
+        t0 = time.monotonic()
+        self.nc.next_ipo_s = self.nc.t_s = 0.0
+
+        def run() -> None:
+            while not self._stop.wait(self.nc.ipo_s):
+                self.nc.advance_to(time.monotonic() - t0)
+
+        self._thread = threading.Thread(target=run, name="nc-ipo", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+
+
+def load(path: str | Path) -> list[dict[str, Any]]:
+    data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    devices = data.get("devices") if isinstance(data, dict) else None
+    if not isinstance(devices, list) or not all(isinstance(d, dict) for d in devices):
+        raise ValueError(f"{path}: expected a mapping with a 'devices' list")
+    return devices
+
+
+def serve(path: str | Path, out: TextIO = sys.stdout, stop: threading.Event | None = None) -> int:
+    """Start every device, print where each listens, run until `stop` (or SIGINT/SIGTERM)."""
+    stop = stop or threading.Event()
+    running: list[Running] = []
+    try:
+        for cfg in load(path):
+            run = start_device(cfg)
+            running.append(run)
+            print(f"{run.name}: {run.kind} on {run.where()}", file=out, flush=True)
+        print("hil_sim: ready (Ctrl-C stops)", file=out, flush=True)
+        while not stop.wait(0.2):
+            pass
+    finally:
+        for run in reversed(running):
+            run.stop()
+        print("hil_sim: stopped", file=out, flush=True)
+    return 0
+
+
+def main(args: Any) -> int:
+    """The `serve` subcommand."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        return serve(args.config, stop=stop)
+    except (OSError, ValueError, TypeError, RuntimeError) as e:
+        print(f"hil_sim: {e}", file=sys.stderr)
+        return 2

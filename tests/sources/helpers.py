@@ -1,0 +1,43 @@
+"""Helpers for source tests: run a source on its own against a wall clock."""
+
+from __future__ import annotations
+
+import time
+
+from compd.clock import WallClock
+from compd.frame import Frame, Quality
+
+
+class Harness:
+    """A frame, a wall clock and one source, opened and polling."""
+
+    def __init__(self, source) -> None:
+        self.source = source
+        self.clock = WallClock()
+        self.frame = Frame(source.signal_names())
+        source.bind(self.frame)
+
+    def __enter__(self) -> Harness:
+        self.source.open(self.clock.now())
+        if hasattr(self.source, "start_polling"):
+            self.source.start_polling(self.clock)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.source.close()
+
+    def sample(self, polls: int = 2, timeout_s: float = 10.0) -> dict[str, tuple[float, str]]:
+        """Wait for `polls` more completed polls, then read: name → (value, quality name)."""
+        src = self.source
+        if hasattr(src, "polls"):
+            want = src.polls + polls
+            deadline = time.monotonic() + timeout_s
+            while src.polls < want:
+                if time.monotonic() > deadline:
+                    raise TimeoutError("source did not poll")
+                time.sleep(0.005)
+        src.read(self.frame, self.clock.now())
+        return {
+            n: (float(self.frame.values[i]), Quality(int(self.frame.quality[i])).name)
+            for i, n in enumerate(self.frame.names)
+        }

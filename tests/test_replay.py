@@ -1,0 +1,185 @@
+"""`compd replay` of a hil_sim spindle log through the PMC software PLC, checked from the log."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from compd.cli import main
+from compd.log import read_log, write_log
+from compd.replay import replay_model
+from hil_sim.plants.spindle import SpindlePlant
+from hil_sim.scenario import Scenario
+
+ALPHA, LENGTH_MM = 13.6e-6, 165.0
+
+
+def spindle_log(path, hours: float = 3.0, seed: int = 3) -> None:
+    """A 1 Hz log of the spindle plant: warm up, pause, warm again."""
+    seg = hours * 3600.0 / 3
+    sc = Scenario.from_dict(
+        {
+            "seed": seed,
+            "segments": [
+                {"duration_s": seg, "speed_rpm": 12000},
+                {"duration_s": seg, "speed_rpm": 0},
+                {"duration_s": seg, "speed_rpm": 8000},
+            ],
+        }
+    )
+    plant = SpindlePlant(sc)
+    n = int(hours * 3600)
+    rows = np.zeros((n, 1 + len(plant.signal_names)))
+    for i in range(n):
+        plant.advance_to(float(i))
+        rows[i, 0] = i
+        rows[i, 1:] = plant.sample()
+    write_log(path, ["t_s", *plant.signal_names], rows)
+
+
+@pytest.fixture(scope="module")
+def log_and_model(tmp_path_factory):
+    d = tmp_path_factory.mktemp("replay")
+    log = d / "spindle.csv"
+    spindle_log(log)
+    model = d / "xi.yaml"
+    model.write_text(
+        yaml.safe_dump(
+            {
+                "kind": "xi_spindle",
+                "inputs": ["T_xi"],
+                "outputs": ["z"],
+                "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM, "t0_c": None},
+                "fit": {},
+            }
+        )
+    )
+    return log, model
+
+
+def test_report_matches_independent_computation(log_and_model):
+    log_path, model_path = log_and_model
+    result = replay_model(model_path, log_path)
+    rep = result.report
+    log = read_log(log_path)
+    err = log.col("err_z_um")
+    t_xi = log.col("T_xi")
+    assert rep["rows"] == len(log)
+
+    # before: straight from the log
+    rms_before = float(np.sqrt(np.mean(err**2)))
+    assert rep["axes"]["z"]["rms_before_um"] == pytest.approx(rms_before, rel=1e-12)
+
+    # the correction the PLC should end up applying, computed from the log alone:
+    # −α L (T_xi − T_xi[0]) rounded to 1 µm, subject to the 1 µm dead-band and the
+    # guard's 5 µm/s slew. Where the slew does not bind, the PLC's shift is within
+    # dead-band + ½ LSB of it.
+    want = -ALPHA * LENGTH_MM * 1000.0 * (t_xi - t_xi[0])
+    applied = result.applied_um[:, 0]
+    settled = np.arange(len(log)) > 60
+    assert np.max(np.abs(applied[settled] - want[settled])) <= 1.5 + 1e-9
+    assert np.all(applied == np.round(applied))  # the PMC's shift is in whole µm
+
+    # after: error + what the PLC applied, recomputed independently of the report
+    resid = err + applied
+    assert rep["axes"]["z"]["rms_after_um"] == pytest.approx(float(np.sqrt(np.mean(resid**2))), rel=1e-12)
+    assert rep["axes"]["z"]["max_abs_after_um"] == pytest.approx(float(np.max(np.abs(resid))))
+    # and bounded by the ideal compensation from the log
+    ideal = float(np.sqrt(np.mean((err + want) ** 2)))
+    assert abs(rep["axes"]["z"]["rms_after_um"] - ideal) < 1.0
+    assert rep["axes"]["z"]["reduction_pct"] == pytest.approx(
+        100 * (1 - rep["axes"]["z"]["rms_after_um"] / rms_before)
+    )
+    assert rep["axes"]["z"]["reduction_pct"] > 50
+    # every change of the word is one code; each is at most a few µm on a 1 Hz log
+    n_changes = int(np.count_nonzero(np.diff(np.concatenate([[0], result.word]))))
+    assert rep["codes_sent"] == n_changes > 10
+    assert rep["saturated"] == 0
+    assert "plc_alarm" not in rep["faults"]
+
+
+def test_cli_replay_writes_report_and_plot(log_and_model, tmp_path, capsys):
+    log_path, model_path = log_and_model
+    report, plot = tmp_path / "r.json", tmp_path / "r.png"
+    rc = main(["replay", "--model", str(model_path), "--log", str(log_path), "--report", str(report), "--plot", str(plot)])
+    assert rc == 0
+    rep = json.loads(report.read_text())
+    assert set(rep) >= {"rows", "codes_sent", "axes", "saturated", "faults"}
+    assert set(rep["axes"]["z"]) >= {"rms_before_um", "rms_after_um", "max_abs_after_um", "reduction_pct"}
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "rows" in capsys.readouterr().out
+
+
+def test_cli_replay_needs_config_or_model(log_and_model, capsys):
+    log_path, _ = log_and_model
+    assert main(["replay", "--log", str(log_path)]) == 2
+    assert "CONFIG" in capsys.readouterr().err
+
+
+def test_replay_bad_log_is_exit_2(tmp_path, log_and_model, capsys):
+    _, model_path = log_and_model
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,T_xi,err_z_um\n0,20,0\n1,abc,0\n")
+    assert main(["replay", "--model", str(model_path), "--log", str(bad)]) == 2
+    assert "T_xi" in capsys.readouterr().err
+
+
+def test_replay_missing_input_column_is_exit_2(tmp_path, log_and_model, capsys):
+    _, model_path = log_and_model
+    bad = tmp_path / "nocol.csv"
+    bad.write_text("t_s,T_other,err_z_um\n0,20,0\n1,20,0\n")
+    assert main(["replay", "--model", str(model_path), "--log", str(bad)]) == 2
+    assert "T_xi" in capsys.readouterr().err
+
+
+def test_config_replay_against_pmc_over_modbus(tmp_path):
+    """A config whose fanuc_pmc sink names an address: the replay drives a PMC scanning
+    on its own over Modbus TCP, and agrees with the in-process PMC."""
+    from compd.replay import replay_config
+    from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
+    from hil_sim.devices.modbus_server import ModbusServerThread
+
+    log = tmp_path / "short.csv"
+    spindle_log(log, hours=0.75)
+    pmc = FanucPmc(step_limit_um=10)
+    scan = PmcScanThread(pmc).start()
+    try:
+        with ModbusServerThread(pmc, port=0) as srv:
+            doc = {
+                "sources": [{"kind": "sim", "name": "unused", "plant": "spindle", "scenario": {"segments": [{"duration_s": 1}]}}],
+                "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
+                          "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM}},
+                "sink": {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": srv.port, "max_step_um": 5},
+            }
+            cfg = tmp_path / "c.yaml"
+            cfg.write_text(yaml.safe_dump(doc))
+            remote = replay_config(cfg, log)
+    finally:
+        scan.stop()
+    doc["sink"] = {"kind": "fanuc_pmc", "max_step_um": 5}
+    local_cfg = tmp_path / "local.yaml"
+    local_cfg.write_text(yaml.safe_dump(doc))
+    local = replay_config(local_cfg, log)
+    assert remote.report["plc"].startswith("127.0.0.1:") and local.report["plc"] == "in_process"
+    assert remote.report["codes_sent"] == local.report["codes_sent"] > 5
+    np.testing.assert_array_equal(remote.applied_um, local.applied_um)
+    assert pmc.alarms() == 0
+
+
+@pytest.mark.bench
+def test_bench_day_of_1hz_log(tmp_path, log_and_model):
+    """86 400 rows (a day at 1 Hz) through the PMC: the target is seconds, not minutes."""
+    import time
+
+    _, model_path = log_and_model
+    log = tmp_path / "day.csv"
+    spindle_log(log, hours=24.0)
+    t0 = time.perf_counter()
+    result = replay_model(model_path, log)
+    wall_s = time.perf_counter() - t0
+    print(f"replay of {result.report['rows']} rows: {wall_s:.2f} s")
+    assert result.report["rows"] == 86400
+    assert wall_s < 60.0
