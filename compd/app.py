@@ -157,7 +157,14 @@ class Console:
 class App:
     """A loop and what hangs on it, from a config."""
 
-    def __init__(self, cfg: Config, *, duration_s: float | None = None, out: TextIO = sys.stdout):
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        duration_s: float | None = None,
+        out: TextIO = sys.stdout,
+        observe: bool | None = None,
+    ):
         self.cfg = cfg
         self.out = out
         top = cfg.top
@@ -185,6 +192,11 @@ class App:
         sink_cls, sink_cfg, _ = cfg.sink
         self.sink = sink_cls(sink_cfg, base_dir=base)
         self.sink.bind(word_axes_names, top.codec.lsb_um)
+        self.observe = top.observe if observe is None else observe
+        if self.observe:  # commissioning: the full loop, the output held disabled
+            from compd.sinks.observe import ObserveSink
+
+            self.sink = ObserveSink(self.sink)
         if lp.clock == "sim":
             start = min((getattr(s, "start_s", 0.0) for s in self.sources), default=0.0)
             self.clock: Any = SimClock(start, lp.speedup)
@@ -217,21 +229,28 @@ class App:
             ends = [e for e in ends if e]
             if ends:
                 self.duration_s = min(ends) - self.clock.now()
+        from compd.service import Service
+
+        self.service = Service(self, self.observe)  # notify, status, metrics, event log
 
     def run(self) -> dict[str, Any]:
         """Open, run until done or stopped, close with the safe output; returns a summary."""
         self.loop.open()
         try:
+            self.service.start()
             stats = self.loop.run(self.duration_s)
         finally:
+            self.service.stopping()
             try:
                 self.loop.close()
             finally:
                 if self.logger:
                     self.logger.close()
+                self.service.stop()
         return {
             "loop": stats.as_dict(),
             "compensation": self.summary.result(self.model.outputs),
             "faults": dict(self.guard.faults),
             "log_error": self.logger.writer.error if self.logger else None,
+            "observe": self.observe,
         }

@@ -81,9 +81,11 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from compd.app import App
     from compd.config import load_config
+    from compd.logsetup import setup_logging
 
     cfg = load_config(args.config)
-    app = App(cfg, duration_s=args.duration)
+    setup_logging(args.log_level or cfg.top.logging.level)
+    app = App(cfg, duration_s=args.duration, observe=True if args.observe else None)
 
     def on_signal(signum: int, frame: object) -> None:
         app.loop.stop()
@@ -93,6 +95,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     result = app.run()
     comp = result["compensation"]
     loop = result["loop"]
+    if result.get("observe"):
+        print("compd: observe mode: the output was held disabled (no correction reached the machine)")
     print(
         f"compd: {loop['cycles']} cycles, {loop['misses']} missed, lateness p99"
         f" {loop['lateness_us']['p99']:.0f} us, compute p99 {loop['cycle_compute_us']['p99']:.0f} us"
@@ -111,6 +115,60 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+@command("status")
+def cmd_status(args: argparse.Namespace) -> int:
+    from compd.status import DEFAULT_PATH, liveness, read_status, render
+
+    if args.status:
+        path = args.status
+    elif args.config:
+        from pathlib import Path
+
+        from compd.config import load_config
+        from compd.service import status_path
+
+        found = status_path(load_config(args.config), env={})
+        # no status.path: where the systemd units put it (RuntimeDirectory=compd or compd/%i)
+        stem = Path(args.config).stem
+        path = str(found) if found else DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json"
+    else:
+        path = DEFAULT_PATH
+    data = read_status(path)
+    alive, why = liveness(data)
+    if args.json:
+        print(json.dumps({**data, "alive": alive, "liveness": why}, indent=1))
+    else:
+        print(render(data, alive, why))
+    if not alive:
+        print(f"compd: {path}: {why}", file=sys.stderr)
+    return 0 if alive else 1
+
+
+@command("docs")
+def cmd_docs(args: argparse.Namespace) -> int:
+    from compd.docgen import generate
+
+    text = generate()
+    if args.check:
+        if args.out is None:
+            raise BadInput("--check needs --out FILE")
+        try:
+            with open(args.out, encoding="utf-8") as fh:
+                same = fh.read() == text
+        except OSError as e:
+            raise BadInput(f"cannot read: {e.strerror}", file=args.out) from None
+        if not same:
+            print(f"compd: {args.out} is out of date: run compd docs --out {args.out}", file=sys.stderr)
+            return 1
+        return 0
+    if args.out is None:
+        sys.stdout.write(text)
+    else:
+        with open(args.out, "w", encoding="utf-8") as fh:
+            fh.write(text)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="compd", description="Real-time thermal-error compensation for CNC machine tools."
@@ -121,6 +179,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("config")
     s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     s.add_argument("--json", default=None, metavar="FILE", help="write the run summary as JSON")
+    s.add_argument(
+        "--observe", action="store_true", help="observe mode: full loop, output held disabled"
+    )
+    s.add_argument(
+        "--log-level", default=None, choices=("debug", "info", "warning", "error"), dest="log_level"
+    )
+
+    s = sub.add_parser("status", help="the live state of a running daemon")
+    s.add_argument("--json", action="store_true", help="print the status snapshot as JSON")
+    where = s.add_mutually_exclusive_group()
+    where.add_argument("--config", default=None, help="the daemon's config (finds its status file)")
+    where.add_argument("--status", default=None, metavar="PATH", help="the status file")
+
+    s = sub.add_parser("docs", help="generate docs/configuration.md from the config schema")
+    s.add_argument("--out", default=None, metavar="FILE", help="write here (default: stdout)")
+    s.add_argument("--check", action="store_true", help="exit 1 if FILE differs from a fresh generation")
 
     s = sub.add_parser("check-config", help="validate a config; prints ok or exits 2")
     s.add_argument("config")
