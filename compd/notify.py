@@ -13,7 +13,7 @@ import math
 import os
 import socket
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 
@@ -84,8 +84,15 @@ class WatchdogObserver:
     sends something only on the first cycle and once per interval.
     """
 
-    def __init__(self, notifier: Notifier, watchdog_s: float | None, status: str = "running") -> None:
+    def __init__(
+        self,
+        notifier: Notifier,
+        watchdog_s: float | None,
+        status: str = "running",
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.notifier = notifier
+        self.clock = clock
         self.interval_s = watchdog_s / 2 if watchdog_s else math.inf
         self.status = status
         self.ready = False
@@ -93,7 +100,7 @@ class WatchdogObserver:
         self._next_s = -math.inf
 
     def __call__(self, loop: Any, now_s: float) -> None:
-        t = time.monotonic()
+        t = self.clock()
         if t < self._next_s:
             return
         self._next_s = t + self.interval_s
