@@ -17,7 +17,7 @@ def test_committed_reference_is_current(root):
 
 def test_every_key_is_in_the_reference_with_its_default():
     text = generate()
-    for key, f in c.LoopConfig.model_fields.items():
+    for key in c.LoopConfig.model_fields:
         assert f"| `{key}` |" in text
     assert "| `period_s` | number | s | `0.002` | > 0, ≤ 60 | cycle period |" in text
     assert "| `max_slew_um_per_s` | number | µm/s | `5` | > 0 |" in text
