@@ -72,7 +72,9 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     from compd.config import load_config
 
     cfg = load_config(args.config)
-    App(cfg, out=sys.stderr)  # wiring is checked by building the pipeline (opens nothing)
+    app = App(cfg, out=sys.stderr)  # wiring is checked by building the pipeline (opens no device)
+    if app.logger is not None:  # App opens the data log when built: stop its writer thread
+        app.logger.close()
     print("ok")
     return 0
 

@@ -23,13 +23,18 @@ PIP_ARGS=${PIP_ARGS:-}
 SRC=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 
 say() { echo "install: $*"; }
+# an outer PYTHONPATH (a checkout) would make pip think compd is already installed
+unset PYTHONPATH
 
 venv="$DESTDIR$PREFIX/venv"
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 
 say "building the compd wheel"
-"$PYTHON" -m pip wheel -q --no-deps -w "$work" "$SRC" 2>"$work/build.log" || { cat "$work/build.log" >&2; exit 1; }
+# build from a copy so the checkout gets no build/ or egg-info litter
+mkdir "$work/src"
+tar -C "$SRC" --exclude=./.venv --exclude=./.git --exclude='*.egg-info' --exclude=./build -cf - . | tar -C "$work/src" -xf -
+"$PYTHON" -m pip wheel -q --no-deps -w "$work" "$work/src" 2>"$work/build.log" || { cat "$work/build.log" >&2; exit 1; }
 wheel=$(ls "$work"/compd-*.whl)
 
 say "venv $venv"
