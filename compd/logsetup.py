@@ -19,6 +19,8 @@ from typing import Any
 
 LOGGER = "compd"
 _PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
+# a library stays quiet until the CLI configures logging (no bare lastResort lines)
+logging.getLogger(LOGGER).addHandler(logging.NullHandler())
 _STANDARD = set(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {"message", "asctime", "event"}
 
 

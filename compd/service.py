@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from compd import logsetup  # noqa: F401  (installs the library's NullHandler)
 from compd import status as status_mod
 from compd.metrics import MetricsServer
 from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s

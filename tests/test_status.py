@@ -48,7 +48,7 @@ def test_snapshot_has_what_the_issue_asks_and_is_json(tmp_path):
     assert z["state"] == "normal" and z["policy"] == "hold" and z["enable"] is True
     assert z["correction_um"] == taken["out"] and z["correction_um"] < -1.0
     assert z["prediction_um"] == taken["pred"]
-    assert z["word_byte"] == "high"
+    assert z["word_byte"] == "high" and z["byte"] == f"0x{taken['word'] >> 8:02X}"
     assert snap["word"] == f"0x{taken['word']:04X}"
     assert snap["model"]["kind"] == "xi_spindle"
     sig = snap["signals"]["T_xi"]
