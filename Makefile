@@ -8,7 +8,7 @@ TEST_STAMP := $(VENV)/.test-installed
 # Debian packages the protocol tests need (serial ptys, an independent Modbus client).
 APT_PACKAGES := socat mbpoll
 
-.PHONY: venv demo test accept bench lint sysdeps clean
+.PHONY: venv demo test accept bench lint sysdeps clean install docs
 
 $(BASE_STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -42,6 +42,15 @@ accept: $(TEST_STAMP) sysdeps
 
 bench: $(TEST_STAMP) sysdeps
 	$(VENV)/bin/compd bench --json bench.json
+
+# installs the service: venv under /opt/compd, systemd units, /etc/compd/compd.yaml, user compd.
+# DESTDIR=/some/dir stages instead (no user, no systemctl); PREFIX=... moves the venv.
+install: $(BASE_STAMP)
+	PYTHON="$(abspath $(PY))" scripts/install.sh
+
+# regenerates the configuration reference from the config schema (a test checks it is current)
+docs: $(BASE_STAMP)
+	$(VENV)/bin/compd docs --out docs/configuration.md
 
 lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check .

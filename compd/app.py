@@ -18,7 +18,6 @@ from compd.frame import Frame
 from compd.guard import Guard
 from compd.log import LogWriter
 from compd.loop import Loop
-from compd.realtime import apply_realtime, reset_scheduler
 from compd.state import StateWriter, load_state
 
 log = logging.getLogger("compd")
@@ -162,7 +161,14 @@ class Console:
 class App:
     """A loop and what hangs on it, from a config."""
 
-    def __init__(self, cfg: Config, *, duration_s: float | None = None, out: TextIO = sys.stdout):
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        duration_s: float | None = None,
+        out: TextIO = sys.stdout,
+        observe: bool | None = None,
+    ):
         self.cfg = cfg
         self.out = out
         top = cfg.top
@@ -193,6 +199,11 @@ class App:
         bind_model = getattr(self.sink, "bind_model", None)
         if bind_model is not None:  # sinks that speak per-axis values (siemens)
             bind_model(self.model)
+        self.observe = top.observe if observe is None else observe
+        if self.observe:  # commissioning: the full loop, the output held disabled
+            from compd.sinks.observe import ObserveSink
+
+            self.sink = ObserveSink(self.sink)
         if lp.clock == "sim":
             start = min((getattr(s, "start_s", 0.0) for s in self.sources), default=0.0)
             self.clock: Any = SimClock(start, lp.speedup)
@@ -213,7 +224,6 @@ class App:
         self.loop.observers.append(self.summary)
         self.logger: LogObserver | None = None
         self.state_writer: StateWriter | None = None
-        self.realtime: dict[str, str] = {}
         self._adopted: set[int] = set()
         if top.console.period_s > 0:
             self.loop.observers.append(Console(self.loop, top.console.period_s, out))
@@ -223,6 +233,9 @@ class App:
             ends = [e for e in ends if e]
             if ends:
                 self.duration_s = min(ends) - self.clock.now()
+        from compd.service import Service
+
+        self.service = Service(self, self.observe)  # notify, status, metrics, event log
 
     def restore_state(self) -> None:
         """Load persisted model state (if any) and start the state writer."""
@@ -272,8 +285,6 @@ class App:
     def open(self) -> None:
         """Start I/O: real-time options, state, log, and the sources and sink not adopted."""
         top = self.cfg.top
-        if not self.clock.simulated:
-            self.realtime = apply_realtime(top.loop.realtime)
         self.restore_state()
         if top.log.path:
             self.logger = LogObserver(
@@ -281,11 +292,14 @@ class App:
             )
             self.loop.observers.append(self.logger)
         self.loop.open(self._adopted)
+        self.service.start()  # status, metrics, notify; then the real-time options
 
     def close(self, *, handing_over_to: App | None = None) -> None:
         """Stop I/O. Normally: safe output first, then release everything. When handing
         over to a reloaded App, what it took over stays open and untouched."""
         keep = handing_over_to._adopted if handing_over_to is not None else set()
+        if handing_over_to is None:
+            self.service.stopping()
         try:
             self.loop.close(keep)
         finally:
@@ -295,8 +309,7 @@ class App:
                 if self.loop.model_started:
                     self.state_writer.submit(self.model.get_state())
                 self.state_writer.close()
-            if self.realtime.get("scheduler", "").startswith("applied") and handing_over_to is None:
-                reset_scheduler()
+            self.service.stop()
 
     def summary_dict(self) -> dict[str, Any]:
         return {
@@ -305,8 +318,9 @@ class App:
             "faults": dict(self.guard.faults),
             "log_error": self.logger.writer.error if self.logger else None,
             "sink": self.sink.get_status(),
-            "realtime": self.realtime,
+            "realtime": self.service.realtime_result,
             "state_error": self.state_writer.error if self.state_writer is not None else None,
+            "observe": self.observe,
         }
 
     def run(self) -> dict[str, Any]:

@@ -76,12 +76,16 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     from compd.config import load_config
 
     cfg = load_config(args.config)
-    App(cfg, out=sys.stderr)  # wiring is checked by building the pipeline (opens nothing)
+    app = App(cfg, out=sys.stderr)  # wiring is checked by building the pipeline (opens no device)
+    if app.logger is not None:  # App opens the data log when built: stop its writer thread
+        app.logger.close()
     print("ok")
     return 0
 
 
-def run_with_reload(config_path: str, duration_s: float | None) -> dict[str, Any]:
+def run_with_reload(
+    config_path: str, duration_s: float | None, observe: bool = False, log_level: str | None = None
+) -> dict[str, Any]:
     """Run the loop until SIGTERM/SIGINT or the duration; SIGHUP reloads the config.
 
     A reload validates the new config and builds the new pipeline before touching
@@ -90,8 +94,12 @@ def run_with_reload(config_path: str, duration_s: float | None) -> dict[str, Any
     """
     from compd.app import App
     from compd.config import load_config
+    from compd.logsetup import setup_logging
 
-    app = App(load_config(config_path), duration_s=duration_s)
+    cfg = load_config(config_path)
+    setup_logging(log_level or cfg.top.logging.level)
+    observe_flag = True if observe else None
+    app = App(cfg, duration_s=duration_s, observe=observe_flag)
     flags = {"reload": False}
     current = [app]
 
@@ -118,7 +126,7 @@ def run_with_reload(config_path: str, duration_s: float | None) -> dict[str, Any
                 break
             flags["reload"] = False
             try:
-                new = App(load_config(config_path), duration_s=remaining)
+                new = App(load_config(config_path), duration_s=remaining, observe=observe_flag)
             except BadInput as e:
                 log.error("event=reload_rejected config=%s reason=%r", config_path, str(e))
                 print(f"compd: reload rejected, still running the old config: {e}", file=sys.stderr)
@@ -137,9 +145,11 @@ def run_with_reload(config_path: str, duration_s: float | None) -> dict[str, Any
 
 @command("run")
 def cmd_run(args: argparse.Namespace) -> int:
-    result = run_with_reload(args.config, args.duration)
+    result = run_with_reload(args.config, args.duration, args.observe, args.log_level)
     comp = result["compensation"]
     loop = result["loop"]
+    if result.get("observe"):
+        print("compd: observe mode: the output was held disabled (no correction reached the machine)")
     print(
         f"compd: {loop['cycles']} cycles, {loop['misses']} missed, lateness p99"
         f" {loop['lateness_us']['p99']:.0f} us, compute p99 {loop['cycle_compute_us']['p99']:.0f} us"
@@ -254,6 +264,60 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+@command("status")
+def cmd_status(args: argparse.Namespace) -> int:
+    from compd.status import DEFAULT_PATH, liveness, read_status, render
+
+    if args.status:
+        path = args.status
+    elif args.config:
+        from pathlib import Path
+
+        from compd.config import load_config
+        from compd.service import status_path
+
+        found = status_path(load_config(args.config), env={})
+        # no status.path: where the systemd units put it (RuntimeDirectory=compd or compd/%i)
+        stem = Path(args.config).stem
+        path = str(found) if found else DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json"
+    else:
+        path = DEFAULT_PATH
+    data = read_status(path)
+    alive, why = liveness(data)
+    if args.json:
+        print(json.dumps({**data, "alive": alive, "liveness": why}, indent=1))
+    else:
+        print(render(data, alive, why))
+    if not alive:
+        print(f"compd: {path}: {why}", file=sys.stderr)
+    return 0 if alive else 1
+
+
+@command("docs")
+def cmd_docs(args: argparse.Namespace) -> int:
+    from compd.docgen import generate
+
+    text = generate()
+    if args.check:
+        if args.out is None:
+            raise BadInput("--check needs --out FILE")
+        try:
+            with open(args.out, encoding="utf-8") as fh:
+                same = fh.read() == text
+        except OSError as e:
+            raise BadInput(f"cannot read: {e.strerror}", file=args.out) from None
+        if not same:
+            print(f"compd: {args.out} is out of date: run compd docs --out {args.out}", file=sys.stderr)
+            return 1
+        return 0
+    if args.out is None:
+        sys.stdout.write(text)
+    else:
+        with open(args.out, "w", encoding="utf-8") as fh:
+            fh.write(text)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="compd", description="Real-time thermal-error compensation for CNC machine tools."
@@ -264,6 +328,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("config")
     s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     s.add_argument("--json", default=None, metavar="FILE", help="write the run summary as JSON")
+    s.add_argument(
+        "--observe", action="store_true", help="observe mode: full loop, output held disabled"
+    )
+    s.add_argument(
+        "--log-level", default=None, choices=("debug", "info", "warning", "error"), dest="log_level"
+    )
+
+    s = sub.add_parser("status", help="the live state of a running daemon")
+    s.add_argument("--json", action="store_true", help="print the status snapshot as JSON")
+    where = s.add_mutually_exclusive_group()
+    where.add_argument("--config", default=None, help="the daemon's config (finds its status file)")
+    where.add_argument("--status", default=None, metavar="PATH", help="the status file")
+
+    s = sub.add_parser("docs", help="generate docs/configuration.md from the config schema")
+    s.add_argument("--out", default=None, metavar="FILE", help="write here (default: stdout)")
+    s.add_argument("--check", action="store_true", help="exit 1 if FILE differs from a fresh generation")
 
     s = sub.add_parser("check-config", help="validate a config; prints ok or exits 2")
     s.add_argument("config")

@@ -177,10 +177,14 @@ def validate(
 class RealtimeConfig(Strict):
     """Real-time options; compd applies what the OS permits and logs the rest."""
 
-    scheduler: Literal["other", "fifo"] = "other"
-    priority: int = Field(50, ge=1, le=99)
-    cpu_affinity: list[Annotated[int, Field(ge=0)]] | None = None
-    lock_memory: bool = False
+    scheduler: Literal["other", "fifo"] = Field(
+        "other", description="scheduling policy of the cycle thread (fifo needs realtime.conf)"
+    )
+    priority: int = Field(50, ge=1, le=99, description="SCHED_FIFO priority of the cycle thread")
+    cpu_affinity: list[Annotated[int, Field(ge=0)]] | None = Field(
+        None, description="CPUs the cycle thread may run on; none = any"
+    )
+    lock_memory: bool = Field(False, description="lock all memory (mlockall) against paging")
 
 
 class LoopConfig(Strict):
@@ -195,7 +199,7 @@ class LoopConfig(Strict):
         0.0002, ge=0, le=0.01, description="sleep until this long before a deadline, then spin"
     )
     duration_s: float | None = Field(None, gt=0, description="stop after this long (loop time)")
-    realtime: RealtimeConfig = RealtimeConfig()
+    realtime: RealtimeConfig = Field(RealtimeConfig(), description="real-time options")
 
 
 class SignalLimits(Strict):
@@ -213,9 +217,13 @@ class SignalLimits(Strict):
 class AxisGuardConfig(Strict):
     """Per-axis overrides of the guard."""
 
-    fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = None
-    max_abs_um: float | None = Field(None, gt=0)
-    max_slew_um_per_s: float | None = Field(None, gt=0)
+    fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = Field(
+        None, description="this axis's fault policy; none = guard.fault_policy"
+    )
+    max_abs_um: float | None = Field(None, gt=0, description="this axis's clamp; none = guard.max_abs_um")
+    max_slew_um_per_s: float | None = Field(
+        None, gt=0, description="this axis's slew limit; none = guard.max_slew_um_per_s"
+    )
 
 
 class GuardConfig(Strict):
@@ -229,8 +237,12 @@ class GuardConfig(Strict):
     ramp_um_per_s: float = Field(1.0, gt=0, description="ramp_to_zero rate")
     recovery_s: float = Field(5.0, ge=0, description="inputs good this long before recovery")
     stale_after_s: float = Field(5.0, gt=0, description="default staleness limit of a signal")
-    signals: dict[str, SignalLimits] = Field(default_factory=dict)
-    axes: dict[str, AxisGuardConfig] = Field(default_factory=dict)
+    signals: dict[str, SignalLimits] = Field(
+        default_factory=dict, description="plausibility limits by signal name"
+    )
+    axes: dict[str, AxisGuardConfig] = Field(
+        default_factory=dict, description="per-axis overrides by axis name"
+    )
 
 
 class CodecConfig(Strict):
@@ -261,21 +273,58 @@ class ConsoleConfig(Strict):
 class StateConfig(Strict):
     """Where model state (AR memory, T0 references) is persisted."""
 
-    path: str | None = None
+    path: str | None = Field(None, description="state file (relative to the config); none = not kept")
+
+
+class StatusConfig(Strict):
+    """The live status file that `compd status` reads, rewritten by a background thread."""
+
+    path: str | None = Field(
+        None,
+        description="JSON status file (relative to the config); none = $RUNTIME_DIRECTORY/status.json"
+        " under systemd, else no status file",
+    )
+    period_s: float = Field(1.0, ge=0.05, le=60, description="how often the file is rewritten")
+
+
+class MetricsConfig(Strict):
+    """Prometheus metrics over HTTP (needs the `metrics` extra: prometheus-client)."""
+
+    enabled: bool = Field(False, description="serve /metrics")
+    bind: str = Field("127.0.0.1", min_length=1, description="address to listen on")
+    port: int = Field(9105, ge=0, le=65535, description="TCP port; 0 = any free port")
+
+
+class LoggingConfig(Strict):
+    """Event log lines on stderr (journald under systemd): one line per event, never per cycle."""
+
+    level: Literal["debug", "info", "warning", "error"] = Field(
+        "info", description="lowest level printed"
+    )
 
 
 class ConfigModel(Strict):
     """The whole file."""
 
-    loop: LoopConfig = LoopConfig()
-    sources: list[dict[str, Any]] = Field(min_length=1)
-    model: dict[str, Any]
-    guard: GuardConfig = GuardConfig()
-    codec: CodecConfig = CodecConfig()
-    sink: dict[str, Any]
-    log: LogConfig = LogConfig()
-    console: ConsoleConfig = ConsoleConfig()
-    state: StateConfig = StateConfig()
+    loop: LoopConfig = Field(LoopConfig(), description="the fixed-period cycle")
+    sources: list[dict[str, Any]] = Field(
+        min_length=1, description="signal sources, one section per device (see Sources)"
+    )
+    model: dict[str, Any] = Field(description="the thermal-error model (see Models)")
+    guard: GuardConfig = Field(GuardConfig(), description="what reaches the machine")
+    codec: CodecConfig = Field(CodecConfig(), description="corrections → 16-bit word")
+    sink: dict[str, Any] = Field(description="where the correction goes (see Sinks)")
+    log: LogConfig = Field(LogConfig(), description="the CSV data log")
+    console: ConsoleConfig = Field(ConsoleConfig(), description="live table on stdout")
+    state: StateConfig = Field(StateConfig(), description="persisted model state")
+    observe: bool = Field(
+        False,
+        description="observe mode: run the full loop but hold the output disabled"
+        " (commissioning); `compd run --observe` sets it too",
+    )
+    status: StatusConfig = Field(StatusConfig(), description="live status for `compd status`")
+    metrics: MetricsConfig = Field(MetricsConfig(), description="Prometheus metrics endpoint")
+    logging: LoggingConfig = Field(LoggingConfig(), description="event log lines")
 
 
 # ---------------------------------------------------------------- plugin sections
@@ -284,24 +333,26 @@ class ConfigModel(Strict):
 class SourceConfig(Strict):
     """Common keys of every source section (drivers subclass it)."""
 
-    kind: str
-    name: str = Field(min_length=1)
+    kind: str = Field(description="the source kind")
+    name: str = Field(min_length=1, description="a name for this source, unique in the config")
 
 
 class SinkConfig(Strict):
     """Common keys of every sink section (drivers subclass it)."""
 
-    kind: str
+    kind: str = Field(description="the sink kind")
 
 
 class ModelSection(Strict):
     """The model section: a model file, or inline params."""
 
-    kind: str
+    kind: str = Field(description="the model kind")
     file: str | None = Field(None, description="model YAML written by `compd fit`")
     inputs: list[str] | None = Field(None, description="signal names, in the model's order")
     outputs: list[str] | None = Field(None, description="axis names")
-    params: dict[str, Any] | None = None
+    params: dict[str, Any] | None = Field(
+        None, description="inline parameters (see the kind's params); or give 'file'"
+    )
     update_period_s: float | None = Field(None, ge=0, description="model step; 0 = every cycle")
 
 

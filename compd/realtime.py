@@ -1,58 +1,52 @@
-"""Real-time options: SCHED_FIFO, CPU affinity, memory locking — applied as far as the OS permits."""
+"""Real-time options (`loop.realtime`) for the calling thread: SCHED_FIFO, CPU affinity, mlockall.
+
+Applied from the thread that runs the cycle, after the helper threads (pollers,
+status, metrics) exist, so only the cycle gets the real-time policy (Linux applies
+sched_setscheduler(0, …) and sched_setaffinity(0, …) to the calling thread). What
+the OS refuses is reported, not fatal: compd runs, slower to wake, and says so.
+Under systemd the opt-in drop-in `realtime.conf` grants what these need.
+"""
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import ctypes.util
-import logging
 import os
-
-from compd.config import RealtimeConfig
-
-log = logging.getLogger("compd.realtime")
+from typing import Any
 
 MCL_CURRENT = 1
 MCL_FUTURE = 2
 
 
-def apply_realtime(cfg: RealtimeConfig) -> dict[str, str]:
-    """Apply what `cfg` asks for; returns {option: "applied" | "not applied: why"}.
+def _mlockall() -> int:
+    """mlockall(MCL_CURRENT | MCL_FUTURE); returns 0 or the errno."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+        return ctypes.get_errno()
+    return 0
 
-    Nothing here raises: an unprivileged run goes on with a warning per option
-    that could not be applied.
-    """
-    result: dict[str, str] = {}
+
+def apply_realtime(cfg: Any) -> list[tuple[bool, str]]:
+    """Apply a RealtimeConfig to the calling thread; returns (ok, what) for each option tried."""
+    done: list[tuple[bool, str]] = []
     if cfg.cpu_affinity:
         try:
             os.sched_setaffinity(0, set(cfg.cpu_affinity))
-            result["cpu_affinity"] = "applied"
-        except (OSError, ValueError) as e:
-            result["cpu_affinity"] = f"not applied: {e}"
-    if cfg.lock_memory:
-        try:
-            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-            if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
-                err = ctypes.get_errno()
-                raise OSError(err, os.strerror(err))
-            result["lock_memory"] = "applied"
-        except (OSError, AttributeError) as e:
-            result["lock_memory"] = f"not applied: {e}"
+            done.append((True, f"cycle thread pinned to CPUs {sorted(cfg.cpu_affinity)}"))
+        except OSError as e:
+            done.append((False, f"cannot pin to CPUs {sorted(cfg.cpu_affinity)}: {e.strerror}"))
     if cfg.scheduler == "fifo":
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(cfg.priority))
-            result["scheduler"] = f"applied: SCHED_FIFO priority {cfg.priority}"
-        except (OSError, AttributeError) as e:
-            result["scheduler"] = f"not applied: {e} (needs CAP_SYS_NICE or root)"
-    for option, outcome in result.items():
-        if outcome.startswith("not applied"):
-            log.warning("event=realtime option=%s outcome=%r", option, outcome)
+            done.append((True, f"cycle thread on SCHED_FIFO priority {cfg.priority}"))
+        except OSError as e:
+            done.append(
+                (False, f"cannot use SCHED_FIFO {cfg.priority}: {e.strerror} (install realtime.conf)")
+            )
+    if cfg.lock_memory:
+        err = _mlockall()
+        if err == 0:
+            done.append((True, "memory locked (mlockall)"))
         else:
-            log.info("event=realtime option=%s outcome=%r", option, outcome)
-    return result
-
-
-def reset_scheduler() -> None:
-    """Back to SCHED_OTHER (tests, and before forking helpers)."""
-    with contextlib.suppress(OSError):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            done.append((False, f"cannot lock memory: {os.strerror(err)} (LimitMEMLOCK)"))
+    return done

@@ -1,0 +1,156 @@
+"""Prometheus metrics on an opt-in HTTP endpoint (127.0.0.1 by default), via prometheus-client.
+
+Nothing here runs in the cycle. The status thread hands `MetricsServer.update`
+the latest snapshot (compd/status.py) about once a second; a scrape renders the
+metric families from that snapshot. Metric names carry their unit (Prometheus
+convention: seconds, micrometres).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from compd.errors import BadInput
+
+# cycle lateness histogram bounds, µs (a 2 ms cycle: "late" starts around 1000)
+LATENESS_BOUNDS_US = (10.0, 25.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 5000.0, 10000.0)
+
+
+class SnapshotCollector:
+    """A prometheus-client collector that renders the last snapshot it was given."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._snap: dict[str, Any] | None = None
+        self._buckets: list[tuple[float, int]] = []
+        self._count = 0
+        self._sum_s = 0.0
+
+    def update(
+        self, snap: dict[str, Any], buckets: list[tuple[float, int]], count: int, sum_s: float
+    ) -> None:
+        with self._lock:
+            self._snap, self._buckets, self._count, self._sum_s = snap, buckets, count, sum_s
+
+    def collect(self) -> Any:
+        from prometheus_client.core import (
+            CounterMetricFamily,
+            GaugeMetricFamily,
+            HistogramMetricFamily,
+        )
+
+        with self._lock:
+            snap, buckets, count, sum_s = self._snap, list(self._buckets), self._count, self._sum_s
+        if snap is None:
+            return
+        lp = snap["loop"]
+        cycles = lp["cycles"]
+        yield HistogramMetricFamily(
+            "compd_cycle_lateness_seconds",
+            "Wake-up time minus deadline of each cycle",
+            buckets=[(f"{b * 1e-6:g}", n) for b, n in buckets] + [("+Inf", count)],
+            sum_value=sum_s,
+        )
+        yield CounterMetricFamily("compd_cycles", "Cycles run", value=cycles)
+        yield CounterMetricFamily(
+            "compd_cycle_misses", "Cycles that started over half a period late or overran", value=lp["misses"]
+        )
+        yield CounterMetricFamily("compd_cycles_skipped", "Deadlines skipped after an overrun", value=lp["skipped"])
+        g = GaugeMetricFamily("compd_cycle_compute_max_seconds", "Longest cycle compute time")
+        g.add_metric([], lp["cycle_compute_us"]["max"] * 1e-6)
+        yield g
+        mean = GaugeMetricFamily("compd_stage_mean_seconds", "Mean time of a loop stage", labels=["stage"])
+        worst = GaugeMetricFamily("compd_stage_max_seconds", "Worst time of a loop stage", labels=["stage"])
+        for stage, t in lp["stages"].items():
+            mean.add_metric([stage], t["mean_us"] * 1e-6)
+            worst.add_metric([stage], t["max_us"] * 1e-6)
+        yield mean
+        yield worst
+        up = GaugeMetricFamily("compd_uptime_seconds", "Loop time since the first cycle")
+        up.add_metric([], snap["uptime_s"] or 0.0)
+        yield up
+        obs = GaugeMetricFamily("compd_observe_mode", "1 when the output is held disabled (observe mode)")
+        obs.add_metric([], 1.0 if snap["observe"] else 0.0)
+        yield obs
+        word = GaugeMetricFamily("compd_word", "The 16-bit compensation word the loop computed")
+        word.add_metric([], float(int(snap["word"], 16)))
+        yield word
+        corr = GaugeMetricFamily("compd_correction_micrometres", "Guarded correction per axis", labels=["axis"])
+        pred = GaugeMetricFamily("compd_prediction_micrometres", "Predicted thermal error per axis", labels=["axis"])
+        en = GaugeMetricFamily("compd_axis_enabled", "1 when the axis's enable bit is on", labels=["axis"])
+        sat = GaugeMetricFamily("compd_axis_saturated", "1 when the axis's word byte is clamped at 63 LSB", labels=["axis"])
+        st = GaugeMetricFamily("compd_axis_state", "1 for the axis's current guard state", labels=["axis", "state"])
+        for axis, a in snap["axes"].items():
+            corr.add_metric([axis], _f(a["correction_um"]))
+            pred.add_metric([axis], _f(a.get("prediction_um")))
+            en.add_metric([axis], 1.0 if a["enable"] else 0.0)
+            sat.add_metric([axis], 1.0 if a.get("saturated") else 0.0)
+            for state in ("starting", "normal", "fault", "recovering"):
+                st.add_metric([axis, state], 1.0 if a["state"] == state else 0.0)
+        yield from (corr, pred, en, sat, st)
+        yield CounterMetricFamily("compd_saturations", "Words with a clamped axis byte", value=snap["saturations"])
+        val = GaugeMetricFamily("compd_signal_value", "Last value of a signal", labels=["signal"])
+        good = GaugeMetricFamily("compd_signal_good", "1 when the signal's quality is good", labels=["signal"])
+        qual = GaugeMetricFamily("compd_signal_quality", "1 for the signal's current quality", labels=["signal", "quality"])
+        age = GaugeMetricFamily("compd_signal_age_seconds", "Age of the signal's last sample", labels=["signal"])
+        for name, s in snap["signals"].items():
+            val.add_metric([name], _f(s["value"]))
+            good.add_metric([name], 1.0 if s["quality"] == "good" else 0.0)
+            qual.add_metric([name, s["quality"]], 1.0)
+            age.add_metric([name], _f(s["age_s"]))
+        yield from (val, good, qual, age)
+        faults = CounterMetricFamily("compd_faults", "Guard events by kind (event:reason)", labels=["kind"])
+        for kind, n in sorted(snap["faults"].items()):
+            faults.add_metric([kind], n)
+        yield faults
+
+
+def _f(value: Any) -> float:
+    return float("nan") if value is None else float(value)
+
+
+class MetricsServer:
+    """The HTTP endpoint: `start` binds (BadInput if it cannot), `stop` shuts it down."""
+
+    def __init__(self, bind: str = "127.0.0.1", port: int = 9105) -> None:
+        self.bind = bind
+        self.port = port
+        self.collector = SnapshotCollector()
+        self._httpd: Any = None
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> str:
+        """Serve /metrics; returns its URL."""
+        try:
+            from prometheus_client import CollectorRegistry, start_http_server
+        except ImportError:
+            raise BadInput(
+                "metrics.enabled needs prometheus-client: pip install 'compd[metrics]'", path="metrics.enabled"
+            ) from None
+        registry = CollectorRegistry(auto_describe=False)
+        registry.register(self.collector)
+        try:
+            self._httpd, self._thread = start_http_server(self.port, self.bind, registry)
+        except OSError as e:
+            raise BadInput(
+                f"cannot serve metrics on {self.bind}:{self.port}: {e.strerror or e}", path="metrics"
+            ) from None
+        self.port = self._httpd.server_address[1]
+        host = f"[{self.bind}]" if ":" in self.bind else self.bind
+        return f"http://{host}:{self.port}/metrics"
+
+    def update(self, snap: dict[str, Any], stats: Any) -> None:
+        from compd.status import lateness_buckets
+
+        buckets, count, sum_s = lateness_buckets(stats, LATENESS_BOUNDS_US)
+        self.collector.update(snap, buckets, count, sum_s)
+
+    def stop(self) -> None:
+        if self._httpd is not None:
+            self._httpd.shutdown()
+            self._httpd.server_close()
+            self._httpd = None
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None

@@ -1,0 +1,112 @@
+"""systemd notify protocol (sd_notify): READY, WATCHDOG, STOPPING and STATUS over $NOTIFY_SOCKET.
+
+No dependency: a datagram of `KEY=VALUE` lines sent to the unix socket named by
+$NOTIFY_SOCKET (a leading '@' names a socket in the abstract namespace). The
+watchdog is pinged from the cycle itself (`WatchdogObserver`), at half the
+interval systemd asks for in $WATCHDOG_USEC, so a hung loop — not merely a live
+process — is what systemd detects.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+
+def socket_address(value: str) -> str:
+    """$NOTIFY_SOCKET as a socket address: '@name' → '\\0name' (abstract namespace)."""
+    return "\0" + value[1:] if value.startswith("@") else value
+
+
+def watchdog_interval_s(env: Mapping[str, str] | None = None, pid: int | None = None) -> float | None:
+    """The watchdog timeout systemd set ($WATCHDOG_USEC, s), or None.
+
+    None too when $WATCHDOG_PID names another process (the watchdog is not ours).
+    """
+    env = os.environ if env is None else env
+    usec = env.get("WATCHDOG_USEC")
+    if not usec:
+        return None
+    want_pid = env.get("WATCHDOG_PID")
+    if want_pid and want_pid.strip() != str(os.getpid() if pid is None else pid):
+        return None
+    try:
+        value = int(usec)
+    except ValueError:
+        return None
+    return value / 1e6 if value > 0 else None
+
+
+class Notifier:
+    """Sends notify messages; every error is swallowed (no notify socket must ever stop compd)."""
+
+    def __init__(self, address: str) -> None:
+        self.address = socket_address(address)
+        self.sock: socket.socket | None = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.sent = 0
+        self.errors = 0
+
+    @classmethod
+    def from_env(cls, env: Mapping[str, str] | None = None) -> Notifier | None:
+        """A notifier for $NOTIFY_SOCKET, or None when compd is not run by systemd."""
+        env = os.environ if env is None else env
+        address = env.get("NOTIFY_SOCKET")
+        return cls(address) if address else None
+
+    def send(self, **fields: Any) -> bool:
+        """Send `KEY=value` lines, e.g. send(READY=1, STATUS="running"); True if sent."""
+        if self.sock is None:
+            return False
+        text = "\n".join(f"{k}={str(v).replace(chr(10), ' ')}" for k, v in fields.items())
+        try:
+            self.sock.sendto(text.encode("utf-8"), self.address)
+        except OSError:
+            self.errors += 1
+            return False
+        self.sent += 1
+        return True
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+
+
+class WatchdogObserver:
+    """A loop observer: READY=1 after the first cycle, then WATCHDOG=1 every `interval_s`.
+
+    Per cycle it reads the monotonic clock and compares it with a deadline; it
+    sends something only on the first cycle and once per interval.
+    """
+
+    def __init__(
+        self,
+        notifier: Notifier,
+        watchdog_s: float | None,
+        status: str = "running",
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.notifier = notifier
+        self.clock = clock
+        self.interval_s = watchdog_s / 2 if watchdog_s else math.inf
+        self.status = status
+        self.ready = False
+        self.pings = 0
+        self._next_s = -math.inf
+
+    def __call__(self, loop: Any, now_s: float) -> None:
+        t = self.clock()
+        if t < self._next_s:
+            return
+        self._next_s = t + self.interval_s
+        if not self.ready:
+            self.ready = True
+            self.notifier.send(READY=1, STATUS=self.status)
+        else:
+            self.notifier.send(WATCHDOG=1)
+            self.pings += 1

@@ -1,0 +1,212 @@
+"""What runs beside the loop when compd is a daemon: systemd notify, status file, metrics, event log.
+
+`Service` is built with the App (opens nothing) and started by `App.run` after
+the devices are open. The cycle carries only `WatchdogObserver` (READY after the
+first cycle, a watchdog ping at half of $WATCHDOG_USEC). Everything else happens
+on one background thread about once a second: snapshot the loop, write the
+status file, feed the metrics, log new guard events and late cycles, send
+STATUS= to systemd. At the end it writes a last snapshot (state `stopped`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from compd import logsetup  # noqa: F401  (installs the library's NullHandler)
+from compd import status as status_mod
+from compd.metrics import MetricsServer
+from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
+from compd.realtime import apply_realtime
+
+log = logging.getLogger("compd.service")
+
+_EVENT_LEVEL = {"bad": logging.WARNING, "fault": logging.WARNING}
+_EVENT_NAME = {
+    "bad": "sensor_bad",
+    "good": "sensor_good",
+    "fault": "axis_fault",
+    "recovering": "axis_recovering",
+    "normal": "axis_normal",
+}
+
+
+def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
+    """The status file: `status.path` (relative to the config), else $RUNTIME_DIRECTORY/status.json."""
+    env = dict(os.environ) if env is None else env
+    if cfg.top.status.path:
+        return cfg.resolve_path(cfg.top.status.path)
+    runtime = env.get("RUNTIME_DIRECTORY", "").split(":")[0]
+    return Path(runtime) / "status.json" if runtime else None
+
+
+class EventLogger:
+    """Turns the guard's new events (since the last call) into log lines."""
+
+    def __init__(self, guard: Any) -> None:
+        self.guard = guard
+        self._last: Any = None
+        self.logged = 0
+
+    def flush(self) -> int:
+        events = list(self.guard.events)
+        start = 0
+        if self._last is not None:
+            for i in range(len(events) - 1, -1, -1):
+                if events[i] is self._last:
+                    start = i + 1
+                    break
+        for t, subject, event, reason in events[start:]:
+            kind = "sensor" if event in ("bad", "good") else "axis"
+            log.log(
+                _EVENT_LEVEL.get(event, logging.INFO),
+                "%s %s: %s",
+                subject,
+                event,
+                reason,
+                extra={"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t},
+            )
+        if events:
+            self._last = events[-1]
+        n = len(events) - start
+        self.logged += n
+        return n
+
+
+class Service:
+    """Notify, status, metrics and event logging for one App."""
+
+    def __init__(self, app: Any, observe: bool = False) -> None:
+        self.app = app
+        self.loop = app.loop
+        top = app.cfg.top
+        self.observe = observe
+        self.period_s = top.status.period_s
+        self.path = status_path(app.cfg)
+        self.metrics = MetricsServer(top.metrics.bind, top.metrics.port) if top.metrics.enabled else None
+        self.metrics_url: str | None = None
+        self.realtime = top.loop.realtime
+        self.events = EventLogger(self.loop.guard)
+        self.notifier: Notifier | None = None
+        self.watchdog: WatchdogObserver | None = None
+        self.state = "starting"
+        self.status_errors = 0
+        self._misses = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._t0 = time.monotonic()
+        self.realtime_result: list[tuple[bool, str]] = []
+
+    # ------------------------------------------------------------------ life
+    def start(self) -> None:
+        """Bind metrics, start the status thread, hook the watchdog; then real-time options."""
+        app = self.app
+        log.info(
+            "compd starting: %s, model %s, sink %s%s",
+            app.cfg.file,
+            self.loop.model.kind,
+            getattr(self.loop.sink.cfg, "kind", "?"),
+            " (observe mode: output held disabled)" if self.observe else "",
+            extra={"event": "start", "config": app.cfg.file, "period_s": self.loop.period_s,
+                   "observe": self.observe, "pid": os.getpid()},
+        )
+        if self.metrics is not None:
+            self.metrics_url = self.metrics.start()
+            log.info("metrics on %s", self.metrics_url, extra={"event": "metrics", "url": self.metrics_url})
+        self.notifier = Notifier.from_env()
+        if self.notifier is not None:
+            wd = watchdog_interval_s()
+            status = "observe mode: output held disabled" if self.observe else "compensating"
+            self.watchdog = WatchdogObserver(self.notifier, wd, status)
+            self.loop.observers.append(self.watchdog)
+        self.state = "running"
+        self._tick()
+        self._thread = threading.Thread(target=self._run, name="compd-status", daemon=True)
+        self._thread.start()
+        self.realtime_result = apply_realtime(self.realtime) if not self.loop.clock.simulated else []
+        for ok, what in self.realtime_result:
+            log.log(logging.INFO if ok else logging.WARNING, what, extra={"event": "realtime", "ok": ok})
+
+    def stopping(self) -> None:
+        """The loop has returned: tell systemd we are shutting down."""
+        self.state = "stopping"
+        if self.notifier is not None:
+            self.notifier.send(STOPPING=1, STATUS="stopping: emitting the safe output")
+
+    def stop(self) -> None:
+        """After the safe output: last snapshot, close everything, log the summary line."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+            self._thread = None
+        self.state = "stopped"
+        try:
+            self._tick()
+        finally:
+            if self.metrics is not None:
+                self.metrics.stop()
+            if self.notifier is not None:
+                self.notifier.close()
+        st = self.loop.stats
+        log.info(
+            "compd stopped after %d cycles, %d missed",
+            st.cycles,
+            st.misses,
+            extra={"event": "stop", "cycles": st.cycles, "misses": st.misses},
+        )
+
+    # ------------------------------------------------------------- the thread
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            try:
+                self._tick()
+            except Exception:  # the status thread must never take the daemon down
+                self.status_errors += 1
+                if self.status_errors <= 3:
+                    log.exception("status update failed", extra={"event": "status_error"})
+
+    def snapshot(self) -> dict[str, Any]:
+        extra = {
+            "config": self.app.cfg.file,
+            "status_period_s": self.period_s,
+            "wall_uptime_s": time.monotonic() - self._t0,
+            "metrics_url": self.metrics_url,
+        }
+        return status_mod.snapshot(self.loop, state=self.state, observe=self.observe, extra=extra)
+
+    def _tick(self) -> None:
+        self.events.flush()
+        misses = self.loop.stats.misses
+        if misses > self._misses:
+            log.warning(
+                "%d late cycles (%d in all)",
+                misses - self._misses,
+                misses,
+                extra={"event": "late_cycles", "new": misses - self._misses, "misses": misses},
+            )
+            self._misses = misses
+        if self.path is None and self.metrics is None and self.notifier is None:
+            return
+        snap = self.snapshot()
+        if self.path is not None:
+            try:
+                status_mod.write_atomic(self.path, snap)
+            except OSError as e:
+                self.status_errors += 1
+                if self.status_errors <= 3:
+                    log.warning(
+                        "cannot write status %s: %s", self.path, e.strerror or e,
+                        extra={"event": "status_error"},
+                    )
+        if self.metrics is not None:
+            self.metrics.update(snap, self.loop.stats)
+        if self.notifier is not None and self.state == "running" and self.watchdog and self.watchdog.ready:
+            states = " ".join(f"{a}={s['state']}" for a, s in snap["axes"].items())
+            mode = "observe" if self.observe else "compensating"
+            self.notifier.send(
+                STATUS=f"{mode}: word {snap['word']}, {states}, {snap['loop']['misses']} missed"
+            )

@@ -1,0 +1,247 @@
+"""Live status of a running daemon: a JSON snapshot written atomically, and `compd status`.
+
+A background thread (compd/service.py), never the cycle, takes a `snapshot` of
+the loop about once a second and writes it with `write_atomic` (temp file +
+rename, so a reader never sees half a file). `compd status` reads it back with
+`read_status`, judges whether the daemon is alive (`liveness`) and prints it
+(`render`) or passes the JSON through.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from compd.errors import BadInput
+
+SCHEMA = 1
+DEFAULT_PATH = "/run/compd/status.json"
+
+
+def _percentiles(hist: Any, qs: tuple[float, ...]) -> list[float]:
+    """Bin index (µs) at which the cumulative count first reaches q·total, as TimingStats does."""
+    counts = np.frombuffer(hist, dtype=np.int64) if not isinstance(hist, np.ndarray) else hist
+    cum = np.cumsum(counts)
+    total = cum[-1] if cum.size else 0
+    if total == 0:
+        return [0.0 for _ in qs]
+    return [float(np.searchsorted(cum, q * total, side="left")) for q in qs]
+
+
+def timing(stats: Any) -> dict[str, Any]:
+    """The loop's timing figures (CONTRACT bench names), with numpy percentiles (≈ 50 µs)."""
+    p50, p99, p999 = _percentiles(stats.hist, (0.5, 0.99, 0.999))
+    c50, c99 = _percentiles(stats.compute_hist, (0.5, 0.99))
+    return {
+        "period_ms": stats.period_s * 1000.0,
+        "cycles": int(stats.cycles),
+        "misses": int(stats.misses),
+        "skipped": int(stats.skipped),
+        "lateness_us": {"p50": p50, "p99": p99, "p999": p999, "max": round(stats.late_max_s * 1e6, 1)},
+        "cycle_compute_us": {"p50": c50, "p99": c99, "max": round(stats.compute_max_ns / 1000, 1)},
+        "stages": stats.stages(),
+    }
+
+
+def lateness_buckets(
+    stats: Any, bounds_us: tuple[float, ...]
+) -> tuple[list[tuple[float, int]], int, float]:
+    """Cumulative lateness counts at each bound (µs), the count and an estimated sum (s).
+
+    For a histogram metric; all three come from one copy of the loop's histogram.
+
+    Bin i of the loop's histogram holds lateness in [i, i+1) µs; the sum takes each
+    bin's middle, so it is exact to ±0.5 µs per cycle.
+    """
+    counts = np.frombuffer(stats.hist, dtype=np.int64).copy()
+    cum = np.cumsum(counts)
+    out = []
+    for b in bounds_us:
+        i = int(b)  # bins 0..b-1 are all below b µs
+        out.append((b, int(cum[min(i, cum.size) - 1]) if i > 0 else 0))
+    total_us = float((counts * (np.arange(counts.size) + 0.5)).sum())  # np.dot of int·float is slow
+    return out, int(cum[-1]), total_us * 1e-6
+
+
+def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A plain, JSON-able picture of the loop: per axis, per signal, loop timing, model, sink."""
+    now = loop.now_s
+    guard = loop.guard
+    axes = guard.get_status()
+    enc = loop.encoder
+    slot_of = {axis: slot for slot, axis in enumerate(loop.word_axes)}
+    for i, name in enumerate(loop.model.outputs):
+        a = axes[name]
+        a["prediction_um"] = float(loop.pred_um[i])
+        slot = slot_of.get(i)
+        a["word_byte"] = ("high", "low")[slot] if slot is not None else None
+        a["byte"] = f"0x{(loop.word >> 8 if slot == 0 else loop.word) & 0xFF:02X}" if slot is not None else None
+        a["saturated"] = bool(enc.saturated[slot]) if slot is not None else False
+    events = [
+        {"t_s": float(t), "subject": subj, "event": ev, "reason": why}
+        for t, subj, ev, why in list(guard.events)[-20:]
+    ]
+    snap = {
+        "schema": SCHEMA,
+        "pid": os.getpid(),
+        "state": state,
+        "observe": observe,
+        "written_unix_s": time.time(),
+        "uptime_s": float(now - loop.t_start_s) if loop.stats.cycles else 0.0,
+        "loop_time_s": float(now),
+        "word": f"0x{loop.word:04X}",
+        "axes": axes,
+        "signals": loop.frame.snapshot(now),
+        "loop": timing(loop.stats),
+        "model": loop.model.get_status(),
+        "sink": loop.sink.get_status(),
+        "sources": [s.get_status() for s in loop.sources],
+        "faults": dict(guard.faults),
+        "saturations": int(enc.saturations),
+        "events": events,
+    }
+    if extra:
+        snap.update(extra)
+    return _jsonable(snap)
+
+
+def _jsonable(value: Any) -> Any:
+    """NaN and infinities become None (JSON has neither); numpy scalars become Python numbers."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_atomic(path: Path, data: dict[str, Any]) -> None:
+    """Write JSON to `path` through a temp file and a rename; readable by everyone (0644)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=1, sort_keys=False)
+        fh.write("\n")
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+
+
+def read_status(path: str | Path) -> dict[str, Any]:
+    """Read a status file; a missing or unreadable one is BadInput naming the file."""
+    path = str(path)
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except FileNotFoundError:
+        raise BadInput(
+            "no status file (is compd running, with a status path?)", file=path
+        ) from None
+    except OSError as e:
+        raise BadInput(f"cannot read status: {e.strerror or e}", file=path) from None
+    except json.JSONDecodeError as e:
+        raise BadInput(f"not a status file: {e.msg}", file=path, line=e.lineno) from None
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA:
+        raise BadInput("not a compd status file (schema)", file=path)
+    return data
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's process, but it exists
+    return True
+
+
+def liveness(data: dict[str, Any], now_unix_s: float | None = None) -> tuple[bool, str]:
+    """(alive, why): running and updated within max(3 periods, 5 s), by a process that exists."""
+    now = time.time() if now_unix_s is None else now_unix_s
+    age = now - float(data.get("written_unix_s", 0.0))
+    limit = max(3.0 * float(data.get("status_period_s", 1.0)), 5.0)
+    state = data.get("state", "?")
+    if state == "stopped":
+        return False, f"stopped ({age:.0f} s ago)"
+    pid = data.get("pid")
+    if isinstance(pid, int) and not _pid_alive(pid):
+        return False, f"not running: pid {pid} is gone (last update {age:.0f} s ago)"
+    if age > limit:
+        return False, f"stale: no update for {age:.0f} s (hung?)"
+    return True, state
+
+
+def _hms(seconds: float | None) -> str:
+    s = int(seconds or 0)
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
+def _num(value: Any, fmt: str) -> str:
+    return "nan" if value is None else format(value, fmt)
+
+
+def render(data: dict[str, Any], alive: bool, why: str) -> str:
+    """The human view of a status snapshot."""
+    lines = []
+    head = f"compd {why}"
+    head += f" — pid {data.get('pid')}, up {_hms(data.get('uptime_s'))} loop time"
+    if data.get("observe"):
+        head += ", OBSERVE MODE (output held disabled)"
+    lines.append(head)
+    if data.get("config"):
+        lines.append(f"config: {data['config']}")
+    lp = data.get("loop", {})
+    lt = lp.get("lateness_us", {})
+    lines.append(
+        f"loop: period {lp.get('period_ms', 0):g} ms, {lp.get('cycles', 0)} cycles,"
+        f" {lp.get('misses', 0)} missed, {lp.get('skipped', 0)} skipped;"
+        f" lateness p50 {lt.get('p50', 0):g} p99 {lt.get('p99', 0):g}"
+        f" p99.9 {lt.get('p999', 0):g} max {lt.get('max', 0):g} us"
+    )
+    model = data.get("model", {})
+    lines.append(
+        f"model: {model.get('kind')} ({', '.join(model.get('inputs', []))} ->"
+        f" {', '.join(model.get('outputs', []))})"
+    )
+    sink = data.get("sink", {})
+    sink_word = sink.get("word")
+    word = f"word: {data.get('word')}"
+    if sink_word is not None and sink_word != data.get("word"):
+        word += f" (on the output: {sink_word})"
+    lines.append(f"{word}; sink {sink.get('kind')}, {sink.get('writes', 0)} writes")
+    lines.append(
+        f"{'axis':<8} {'predicted':>10} {'correction':>11} {'target':>9} {'byte':>5} {'enabled':>8}"
+        f" {'state':<11} {'policy':<13} sat"
+    )
+    for name, a in data.get("axes", {}).items():
+        lines.append(
+            f"{name:<8} {_num(a.get('prediction_um'), '10.2f')} {_num(a.get('correction_um'), '11.2f')}"
+            f" {_num(a.get('target_um'), '9.2f')} {a.get('byte') or '-':>5}"
+            f" {('yes' if a.get('enable') else 'no'):>8}"
+            f" {a.get('state', '?'):<11} {a.get('policy', '?'):<13} {'yes' if a.get('saturated') else 'no'}"
+        )
+    lines.append(f"{'signal':<14} {'value':>10} {'quality':<13} {'age_s':>8}")
+    for name, s in data.get("signals", {}).items():
+        lines.append(
+            f"{name:<14} {_num(s.get('value'), '10.3f')} {s.get('quality', '?'):<13}"
+            f" {_num(s.get('age_s'), '8.2f')}"
+        )
+    faults = data.get("faults") or {}
+    lines.append("faults: " + (", ".join(f"{k} {v}" for k, v in sorted(faults.items())) or "none"))
+    events = data.get("events") or []
+    if events:
+        lines.append("recent events:")
+        for e in events[-5:]:
+            lines.append(f"  t={_num(e.get('t_s'), '.1f')} s {e.get('subject')} {e.get('event')} ({e.get('reason')})")
+    if data.get("metrics_url"):
+        lines.append(f"metrics: {data['metrics_url']}")
+    return "\n".join(lines)

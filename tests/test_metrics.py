@@ -1,0 +1,83 @@
+"""Prometheus endpoint: bound to 127.0.0.1, families from the status snapshot, a consistent histogram."""
+
+from __future__ import annotations
+
+import urllib.request
+
+import pytest
+
+from compd.app import App
+from compd.config import load_config
+from compd.errors import BadInput
+from compd.metrics import MetricsServer
+from compd.status import snapshot
+from tests.service_helpers import sim_config
+
+pytest.importorskip("prometheus_client")  # the `metrics` extra; the `test` extra installs it
+
+
+def _scrape(url: str) -> dict[str, float]:
+    with urllib.request.urlopen(url, timeout=5) as r:
+        text = r.read().decode()
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            out[name] = float(value)
+    return out
+
+
+def test_metrics_endpoint(tmp_path):
+    app = App(load_config(sim_config(tmp_path, duration_s=1200)))
+    app.run()
+    server = MetricsServer("127.0.0.1", 0)
+    url = server.start()
+    try:
+        assert url.startswith("http://127.0.0.1:")
+        assert _scrape(url) == {}  # nothing before the first snapshot
+        snap = snapshot(app.loop, state="running", observe=False)
+        server.update(snap, app.loop.stats)
+        m = _scrape(url)
+    finally:
+        server.stop()
+    cycles = app.loop.stats.cycles
+    assert m["compd_cycles_total"] == cycles
+    assert m['compd_cycle_lateness_seconds_bucket{le="+Inf"}'] == cycles
+    assert m["compd_cycle_lateness_seconds_count"] == cycles
+    buckets = [v for k, v in m.items() if k.startswith("compd_cycle_lateness_seconds_bucket")]
+    assert buckets == sorted(buckets)
+    assert m["compd_cycle_misses_total"] == app.loop.stats.misses
+    assert m['compd_correction_micrometres{axis="z"}'] == pytest.approx(snap["axes"]["z"]["correction_um"])
+    assert m['compd_prediction_micrometres{axis="z"}'] == pytest.approx(float(app.loop.pred_um[0]))
+    assert m['compd_prediction_micrometres{axis="z"}'] > 1.0
+    assert m['compd_axis_state{axis="z",state="normal"}'] == 1.0
+    assert m['compd_signal_good{signal="T_xi"}'] == 1.0
+    assert m['compd_signal_quality{quality="good",signal="T_xi"}'] == 1.0
+    assert 'compd_stage_max_seconds{stage="model"}' in m
+    assert m["compd_observe_mode"] == 0.0
+
+
+def test_faults_by_kind(tmp_path):
+    from tests.service_helpers import fault_config
+
+    app = App(load_config(fault_config(tmp_path)))
+    app.run()
+    server = MetricsServer("127.0.0.1", 0)
+    url = server.start()
+    try:
+        server.update(snapshot(app.loop, state="stopped", observe=False), app.loop.stats)
+        m = _scrape(url)
+    finally:
+        server.stop()
+    assert m['compd_faults_total{kind="bad:out_of_range"}'] == 1
+    assert m['compd_faults_total{kind="fault:input bad"}'] == 1
+
+
+def test_port_in_use_is_bad_input():
+    first = MetricsServer("127.0.0.1", 0)
+    first.start()
+    try:
+        with pytest.raises(BadInput, match="cannot serve metrics"):
+            MetricsServer("127.0.0.1", first.port).start()
+    finally:
+        first.stop()

@@ -1,0 +1,104 @@
+"""systemd notify protocol: addresses, watchdog interval, datagrams, the cycle observer."""
+
+from __future__ import annotations
+
+import os
+import socket
+
+import pytest
+
+from compd.notify import Notifier, WatchdogObserver, socket_address, watchdog_interval_s
+
+
+@pytest.fixture
+def listener(tmp_path):
+    """A bound unix datagram socket standing in for systemd."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    path = tmp_path / "notify.sock"
+    sock.bind(str(path))
+    sock.settimeout(5)
+    yield sock, str(path)
+    sock.close()
+
+
+def test_abstract_address():
+    assert socket_address("@compd/notify") == "\0compd/notify"
+    assert socket_address("/run/systemd/notify") == "/run/systemd/notify"
+
+
+def test_watchdog_interval():
+    assert watchdog_interval_s({}) is None
+    assert watchdog_interval_s({"WATCHDOG_USEC": "5000000"}) == 5.0
+    assert watchdog_interval_s({"WATCHDOG_USEC": "5000000", "WATCHDOG_PID": "1"}, pid=2) is None
+    assert watchdog_interval_s({"WATCHDOG_USEC": "250000", "WATCHDOG_PID": "7"}, pid=7) == 0.25
+    assert watchdog_interval_s({"WATCHDOG_USEC": "junk"}) is None
+    assert watchdog_interval_s({"WATCHDOG_USEC": "0"}) is None
+
+
+def test_send_to_path(listener):
+    sock, path = listener
+    n = Notifier.from_env({"NOTIFY_SOCKET": path})
+    try:
+        assert n.send(READY=1, STATUS="two\nlines")
+        assert sock.recv(4096).decode() == "READY=1\nSTATUS=two lines"
+    finally:
+        n.close()
+    assert not n.send(WATCHDOG=1)  # closed: nothing, no exception
+
+
+def test_send_to_abstract_socket():
+    name = f"@compd-test-{os.getpid()}"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(socket_address(name))
+    sock.settimeout(5)
+    n = Notifier(name)
+    try:
+        assert n.send(STOPPING=1)
+        assert sock.recv(4096) == b"STOPPING=1"
+    finally:
+        n.close()
+        sock.close()
+
+
+def test_no_socket_is_no_notifier_and_dead_socket_is_harmless(tmp_path):
+    assert Notifier.from_env({}) is None
+    n = Notifier(str(tmp_path / "nobody-listens"))
+    try:
+        assert not n.send(READY=1)
+        assert n.errors == 1
+    finally:
+        n.close()
+
+
+def test_observer_ready_once_then_pings_at_half_the_watchdog(listener):
+    sock, path = listener
+    t = [100.0]
+    n = Notifier(path)
+    obs = WatchdogObserver(n, 2.0, status="compensating", clock=lambda: t[0])
+    try:
+        obs(None, 0.0)
+        assert sock.recv(4096) == b"READY=1\nSTATUS=compensating"
+        for dt in (0.3, 0.3, 0.3):  # 0.9 s < 1.0 s: nothing
+            t[0] += dt
+            obs(None, 0.0)
+        assert obs.pings == 0
+        t[0] += 0.11
+        obs(None, 0.0)
+        assert sock.recv(4096) == b"WATCHDOG=1"
+        assert obs.pings == 1
+    finally:
+        n.close()
+
+
+def test_observer_without_watchdog_only_readies(listener):
+    sock, path = listener
+    t = [0.0]
+    n = Notifier(path)
+    obs = WatchdogObserver(n, None, clock=lambda: t[0])
+    try:
+        for _ in range(5):
+            obs(None, 0.0)
+            t[0] += 1000.0
+        assert obs.ready and obs.pings == 0 and n.sent == 1
+    finally:
+        n.close()

@@ -1,0 +1,173 @@
+"""The systemd units: they verify, they start compd to READY under a notify socket, they install."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+from compd.notify import socket_address
+from tests.service_helpers import sim_config
+
+ROOT = Path(__file__).resolve().parent.parent
+UNITS = ("compd.service", "compd@.service")
+COMPD = "/opt/compd/venv/bin/compd"
+
+
+def unit_entries(path: Path) -> list[tuple[str, str, str]]:
+    """(section, key, value) of a unit file, in order (keys may repeat)."""
+    out, section = [], ""
+    for raw in path.read_text(encoding="utf-8").splitlines():
+        line = raw.strip()
+        if not line or line.startswith(("#", ";")):
+            continue
+        if line.startswith("["):
+            section = line.strip("[]")
+            continue
+        key, _, value = line.partition("=")
+        out.append((section, key.strip(), value.strip()))
+    return out
+
+
+def unit_values(path: Path) -> dict[str, str]:
+    return {k: v for _, k, v in unit_entries(path)}
+
+
+@pytest.mark.parametrize("name", UNITS)
+def test_unit_has_the_service_settings(name):
+    v = unit_values(ROOT / "systemd" / name)
+    assert v["Type"] == "notify" and v["NotifyAccess"] == "main"
+    assert v["WatchdogSec"] and v["Restart"] == "on-failure"
+    assert int(v["StartLimitBurst"]) <= 10 and v["StartLimitIntervalSec"]
+    assert v["RestartPreventExitStatus"] == "2"
+    assert v["User"] == "compd" and v["SupplementaryGroups"] == "dialout"
+    assert v["StateDirectory"].startswith("compd") and v["LogsDirectory"].startswith("compd")
+    for key in ("ProtectHome", "PrivateTmp", "NoNewPrivileges"):
+        assert v[key] == "yes", key
+    assert v["ProtectSystem"] == "strict"
+    assert set(v["CapabilityBoundingSet"].split()) == {"CAP_SYS_NICE", "CAP_IPC_LOCK"}
+    assert v["AmbientCapabilities"] == ""
+    assert set(v["RestrictAddressFamilies"].split()) == {"AF_UNIX", "AF_INET", "AF_INET6", "AF_CAN"}
+    exe, cmd, cfg = shlex.split(v["ExecStart"])
+    assert (exe, cmd) == (COMPD, "run") and cfg.startswith("/etc/compd/")
+    assert shlex.split(v["ExecStartPre"])[:2] == [COMPD, "check-config"]
+
+
+def test_realtime_drop_in_is_opt_in():
+    v = unit_values(ROOT / "systemd" / "realtime.conf.example")
+    assert v["RestrictRealtime"] == "no"
+    assert v["LimitRTPRIO"] and v["LimitMEMLOCK"] == "infinity"
+    assert set(v["AmbientCapabilities"].split()) <= {"CAP_SYS_NICE", "CAP_IPC_LOCK"}
+    assert unit_values(ROOT / "systemd" / "compd.service")["RestrictRealtime"] == "yes"
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
+def test_systemd_analyze_verify(tmp_path):
+    """Offline verify; ExecStart must name an existing file, so the venv's path is swapped in."""
+    exe = shutil.which("compd") or sys.executable
+    for name in UNITS:
+        text = (ROOT / "systemd" / name).read_text(encoding="utf-8").replace(COMPD, exe)
+        (tmp_path / name).write_text(text, encoding="utf-8")
+    shutil.copy(tmp_path / "compd@.service", tmp_path / "compd@lathe1.service")
+    (tmp_path / "compd.service.d").mkdir()
+    shutil.copy(ROOT / "systemd" / "realtime.conf.example", tmp_path / "compd.service.d" / "realtime.conf")
+    env = {**os.environ, "SYSTEMD_UNIT_PATH": f"{tmp_path}:"}
+    for unit in ("compd.service", "compd@lathe1.service"):
+        r = subprocess.run(
+            ["systemd-analyze", "verify", str(tmp_path / unit)],
+            env=env, capture_output=True, text=True, timeout=60,
+        )
+        assert r.returncode == 0, r.stderr
+        lines = [ln for ln in r.stderr.splitlines() if "compd" in ln]
+        assert lines == [], "\n".join(lines)
+
+
+def test_unit_command_reaches_ready_pings_the_watchdog_and_stops_on_sigterm(tmp_path):
+    unit = unit_values(ROOT / "systemd" / "compd.service")
+    config = sim_config(tmp_path, duration_s=36000, period_s=0.5, speedup=3600)
+
+    def adapt(cmdline: str) -> list[str]:  # the unit's command line, in this venv
+        argv = shlex.split(cmdline)
+        assert argv[0] == COMPD and argv[-1] == "/etc/compd/compd.yaml"
+        return [sys.executable, "-m", "compd", *argv[1:-1], str(config)]
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    for setting in unit.get("Environment", "").split():
+        k, _, v = setting.partition("=")
+        env[k] = v
+    pre = subprocess.run(adapt(unit["ExecStartPre"]), env=env, capture_output=True, text=True, timeout=60)
+    assert pre.returncode == 0 and pre.stdout.strip() == "ok", pre.stderr
+
+    name = f"@compd-test-notify-{os.getpid()}"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(socket_address(name))
+    sock.settimeout(30)
+    env.update(NOTIFY_SOCKET=name, WATCHDOG_USEC="200000")
+    proc = subprocess.Popen(adapt(unit["ExecStart"]), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        messages = [sock.recv(4096).decode()]
+        assert messages[0].splitlines()[0] == "READY=1"
+        while "WATCHDOG=1" not in messages:
+            messages.append(sock.recv(4096).decode())
+        proc.send_signal(signal.SIGTERM)
+        while not any(m.startswith("STOPPING=1") for m in messages):
+            messages.append(sock.recv(4096).decode())
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        sock.close()
+    assert proc.returncode == 0, err
+    assert "cycles" in out
+    assert "event=start" in err and "event=stop" in err
+    assert any(m.startswith("STATUS=") or "\nSTATUS=" in m for m in messages)
+
+
+@pytest.mark.slow
+def test_install_script_stages_everything(tmp_path):
+    stage = tmp_path / "stage"
+    env = {
+        **os.environ,
+        "DESTDIR": str(stage),
+        "PREFIX": "/opt/compd-test",
+        "PYTHON": sys.executable,
+        "PIP_ARGS": "--no-deps --no-index",  # offline: the test checks compd's own files
+    }
+    r = subprocess.run(["bash", str(ROOT / "scripts" / "install.sh")], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    unit = stage / "etc/systemd/system/compd.service"
+    v = unit_values(unit)
+    assert v["ExecStart"] == "/opt/compd-test/venv/bin/compd run /etc/compd/compd.yaml"
+    assert (stage / "etc/systemd/system/compd@.service").is_file()
+    assert (stage / "usr/lib/sysusers.d/compd.conf").read_text().count("compd") >= 2
+    assert (stage / "opt/compd-test/systemd/realtime.conf.example").is_file()
+    for doc in ("configuration.md", "commissioning.md", "troubleshooting.md"):
+        assert (stage / "opt/compd-test/docs" / doc).is_file()
+    config = stage / "etc/compd/compd.yaml"
+    assert config.read_text() == (ROOT / "configs" / "service.yaml").read_text()
+    # the venv's compd validates the installed config (dependencies from this interpreter's site-packages)
+    deps = sysconfig.get_paths()["purelib"]
+    check = subprocess.run(
+        [str(stage / "opt/compd-test/venv/bin/compd"), "check-config", str(config)],
+        env={**os.environ, "PYTHONPATH": deps}, capture_output=True, text=True, timeout=60, cwd=tmp_path,
+    )
+    assert check.returncode == 0 and check.stdout.strip() == "ok", check.stderr
+    where = subprocess.run(
+        [str(stage / "opt/compd-test/venv/bin/python"), "-c", "import compd; print(compd.__file__)"],
+        env={**os.environ, "PYTHONPATH": deps}, capture_output=True, text=True, timeout=60, cwd=tmp_path,
+    )
+    assert str(stage) in where.stdout
+    # a second install keeps the user's config
+    config.write_text(config.read_text() + "# edited\n")
+    r = subprocess.run(["bash", str(ROOT / "scripts" / "install.sh")], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "keeping the existing" in r.stdout
+    assert config.read_text().endswith("# edited\n")
