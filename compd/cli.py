@@ -318,6 +318,19 @@ def cmd_docs(args: argparse.Namespace) -> int:
     return 0
 
 
+@command("bench")
+def cmd_bench(args: argparse.Namespace) -> int:
+    from compd.bench import format_table, run_bench, write_json
+
+    result = run_bench(
+        args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles
+    )
+    print(format_table(result))
+    if args.json:
+        write_json(args.json, result)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="compd", description="Real-time thermal-error compensation for CNC machine tools."
@@ -383,6 +396,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("xi", help="the mean-value point ξ of a temperature profile (CSV x_mm, T_c)")
     s.add_argument("--profile", required=True, metavar="FILE.csv")
+    s = sub.add_parser("bench", help="time the 2 ms cycle against real Modbus devices, beside a naive loop")
+    s.add_argument("--cycles", type=int, default=100_000, metavar="N", help="cycles of compd's loop")
+    s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON (CONTRACT)")
+    s.add_argument("--scheduler", choices=("other", "fifo"), default="other", help="loop.realtime.scheduler")
+    s.add_argument("--period-ms", type=float, default=2.0, dest="period_ms")
+    s.add_argument(
+        "--naive-cycles", type=int, default=None, dest="naive_cycles",
+        help="cycles of the hand-written loop (default min(N, 5000))",
+    )
     return p
 
 

@@ -18,7 +18,13 @@ from typing import Any
 import numpy as np
 
 from compd.config import GuardConfig
-from compd.frame import Frame, Quality
+from compd.frame import QUALITY_NAMES, Frame, Quality
+
+GOOD = int(Quality.GOOD)
+STALE = int(Quality.STALE)
+OUT_OF_RANGE = int(Quality.OUT_OF_RANGE)
+IMPLAUSIBLE = int(Quality.IMPLAUSIBLE)
+STARTING, NORMAL, FAULT, RECOVERING = 0, 1, 2, 3
 
 
 class AxisState(enum.IntEnum):
@@ -49,10 +55,15 @@ class Guard:
             POLICIES.index((cfg.axes.get(a) and cfg.axes[a].fault_policy) or cfg.fault_policy)
             for a in axes
         ]
+        self._n_axes = n
+        self._max_abs = [float(v) for v in self.max_abs_um]
+        self._slew = [float(v) for v in self.slew_um_per_s]
+        self._ramp = float(cfg.ramp_um_per_s)
+        self._recovery_s = float(cfg.recovery_s)
         self.out_um = np.zeros(n)
         self.enable = np.zeros(n, dtype=bool)
         self.target_um = np.zeros(n)
-        self.state = np.full(n, AxisState.STARTING, dtype=np.uint8)
+        self.state = np.full(n, STARTING, dtype=np.uint8)
         self._good_since = np.full(n, math.nan)
         self._last_t = math.nan
         # plausibility of the model inputs
@@ -69,6 +80,18 @@ class Guard:
         )
         self._prev_val = np.full(len(inputs), math.nan)
         self._prev_t = np.full(len(inputs), math.nan)
+        self._has_rate = bool(np.isfinite(self._rate).any())
+        n_in = len(inputs)
+        self._v = np.zeros(n_in)
+        self._q = np.zeros(n_in, dtype=np.uint8)
+        self._st = np.zeros(n_in)
+        self._age = np.zeros(n_in)
+        self._dt = np.zeros(n_in)
+        self._m = np.zeros(n_in, dtype=bool)
+        self._fin = np.zeros(n_in, dtype=bool)
+        self._new = np.zeros(n_in, dtype=bool)
+        self._tmp = np.zeros(n_in, dtype=bool)
+        self._tmp2 = np.zeros(n_in, dtype=bool)
         self.inputs_ok = False
         self.degraded = False
         self.bad_input: int = -1  # index into inputs of the first bad one, -1 if none
@@ -79,43 +102,65 @@ class Guard:
 
     # ------------------------------------------------------------ plausibility
     def check_inputs(self, frame: Frame, now_s: float) -> bool:
-        """Mark implausible inputs in the frame; True when every model input is good."""
+        """Mark implausible inputs in the frame; True when every model input is good.
+
+        Vectorised over the inputs with preallocated buffers (no allocation when
+        nothing changes); events are recorded only when an input changes state.
+        """
         idx = self.input_idx
-        ok = True
-        first_bad = -1
-        for j in range(idx.shape[0]):
-            i = idx[j]
-            q = frame.quality[i]
-            v = frame.values[i]
-            if q == Quality.GOOD:
-                if not math.isfinite(v):
-                    q = Quality.IMPLAUSIBLE
-                elif v < self._min[j] or v > self._max[j]:
-                    q = Quality.OUT_OF_RANGE
-                elif now_s - frame.stamp_s[i] > self._stale[j]:
-                    q = Quality.STALE
+        v, q, st, m, tmp = self._v, self._q, self._st, self._m, self._tmp
+        np.take(frame.values, idx, out=v)
+        np.take(frame.quality, idx, out=q)
+        np.take(frame.stamp_s, idx, out=st)
+        np.equal(q, GOOD, out=m)  # m: still good
+        # not finite → implausible
+        np.isfinite(v, out=self._fin)
+        np.logical_not(self._fin, out=tmp)
+        np.logical_and(tmp, m, out=tmp)
+        q[tmp] = IMPLAUSIBLE
+        np.logical_and(m, self._fin, out=m)
+        # out of the configured range
+        np.less(v, self._min, out=tmp)
+        np.logical_or(tmp, np.greater(v, self._max, out=self._tmp2), out=tmp)
+        np.logical_and(tmp, m, out=tmp)
+        q[tmp] = OUT_OF_RANGE
+        np.logical_and(m, np.logical_not(tmp, out=tmp), out=m)
+        # stale: sampled longer ago than the limit
+        np.subtract(now_s, st, out=self._age)
+        np.greater(self._age, self._stale, out=tmp)
+        np.logical_and(tmp, m, out=tmp)
+        q[tmp] = STALE
+        np.logical_and(m, np.logical_not(tmp, out=tmp), out=m)
+        # rate of change against the last accepted sample (new samples only)
+        if self._has_rate:
+            new = self._new
+            np.less_equal(st, self._prev_t, out=new)
+            np.logical_not(new, out=new)  # NaN prev_t: a first sample is new
+            np.logical_and(new, m, out=new)
+            np.subtract(st, self._prev_t, out=self._dt)
+            np.multiply(self._rate, self._dt, out=self._dt)
+            np.add(self._dt, self._rate_allow, out=self._dt)
+            np.subtract(v, self._prev_val, out=self._age)
+            np.abs(self._age, out=self._age)
+            np.greater(self._age, self._dt, out=tmp)  # False where prev is NaN
+            np.logical_and(tmp, new, out=tmp)
+            q[tmp] = IMPLAUSIBLE
+            np.logical_and(m, np.logical_not(tmp, out=tmp), out=m)
+            np.logical_and(new, m, out=new)
+            np.copyto(self._prev_val, v, where=new)
+            np.copyto(self._prev_t, st, where=new)
+        frame.quality[idx] = q
+        ok = bool(m.all())
+        np.logical_not(m, out=tmp)  # tmp: bad now
+        if not np.array_equal(tmp, self._was_bad):
+            for j in np.flatnonzero(tmp != self._was_bad):
+                if tmp[j]:
+                    self._event(now_s, self._input_names[j], "bad", QUALITY_NAMES.get(int(q[j]), "?"))
                 else:
-                    pt = self._prev_t[j]
-                    if not frame.stamp_s[i] <= pt:  # a new sample (pt is NaN at first)
-                        allowed = self._rate[j] * (frame.stamp_s[i] - pt) + self._rate_allow[j]
-                        if pt == pt and abs(v - self._prev_val[j]) > allowed:
-                            q = Quality.IMPLAUSIBLE
-                        else:
-                            self._prev_val[j] = v
-                            self._prev_t[j] = frame.stamp_s[i]
-                frame.quality[i] = q
-            if q != Quality.GOOD:
-                if not self._was_bad[j]:
-                    self._was_bad[j] = True
-                    self._event(now_s, self._input_names[j], "bad", Quality(q).name.lower())
-                if ok:
-                    first_bad = j
-                ok = False
-            elif self._was_bad[j]:
-                self._was_bad[j] = False
-                self._event(now_s, self._input_names[j], "good", "recovered")
+                    self._event(now_s, self._input_names[j], "good", "recovered")
+            self._was_bad[:] = tmp
         self.inputs_ok = ok
-        self.bad_input = first_bad
+        self.bad_input = -1 if ok else int(np.argmax(tmp))
         return ok
 
     def _event(self, t: float, subject: str, event: str, reason: str) -> None:
@@ -139,45 +184,43 @@ class Guard:
         if dt < 0:
             dt = 0.0  # a clock that went backwards never licenses a step
         self._last_t = now_s
-        cfg = self.cfg
-        for a in range(self.out_um.shape[0]):
-            p = pred_um[a]
+        recovery_s = self._recovery_s
+        for a in range(self._n_axes):
+            p = float(pred_um[a])
             good = inputs_ok and math.isfinite(p)
-            lim = self.max_abs_um[a]
+            lim = self._max_abs[a]
             target = -p if good else 0.0
             target = lim if target > lim else (-lim if target < -lim else target)
             self.target_um[a] = target
-            st = self.state[a]
+            st = int(self.state[a])
             if good:
-                if st == AxisState.FAULT:
-                    self.state[a] = st = AxisState.RECOVERING
+                if st == FAULT:
+                    self.state[a] = st = RECOVERING
                     self._good_since[a] = now_s
                     self._event(now_s, self.axes[a], "recovering", "inputs good")
-                if st == AxisState.RECOVERING and now_s - self._good_since[a] >= cfg.recovery_s:
-                    self.state[a] = st = AxisState.NORMAL
+                if st == RECOVERING and now_s - self._good_since[a] >= recovery_s:
+                    self.state[a] = st = NORMAL
                     self._event(now_s, self.axes[a], "normal", "recovered")
-                if st == AxisState.STARTING:
-                    self.state[a] = st = AxisState.NORMAL
-            elif st != AxisState.FAULT:
-                if st != AxisState.STARTING:
+                if st == STARTING:
+                    self.state[a] = st = NORMAL
+            elif st != FAULT:
+                if st != STARTING:
                     reason = "prediction not finite" if inputs_ok else "input bad"
                     self._event(now_s, self.axes[a], "fault", reason)
-                    if self.policy[a] == 2 and self.enable[a]:
-                        self.out_um[a] = 0.0
-                    self.state[a] = st = AxisState.FAULT
+                    self.state[a] = st = FAULT
                 else:
                     self.enable[a] = False
                     continue
-            out = self.out_um[a]
-            if st == AxisState.NORMAL:
-                step = self.slew_um_per_s[a] * dt
+            out = float(self.out_um[a])
+            if st == NORMAL:
+                step = self._slew[a] * dt
                 d = target - out
                 out = out + (step if d > step else (-step if d < -step else d))
                 self.enable[a] = True
-            elif st == AxisState.FAULT or st == AxisState.RECOVERING:
+            else:  # FAULT or RECOVERING: the axis's policy
                 pol = self.policy[a]
                 if pol == 1:  # ramp_to_zero
-                    step = cfg.ramp_um_per_s * dt
+                    step = self._ramp * dt
                     out = out - step if out > step else (out + step if out < -step else 0.0)
                     self.enable[a] = True
                 elif pol == 2:  # disable

@@ -1,0 +1,332 @@
+"""`compd bench`: the 2 ms cycle against real Modbus devices, beside the loop a user writes by hand.
+
+The devices run in a separate process (`python -m hil_sim serve`): three 8-channel
+PT100 Modbus TCP modules carrying the gantry's 19 sensors (paper 002: 9 per axis plus
+ambient), and the FANUC PMC software PLC. compd's own loop runs the LVR model of the
+gantry (fitted here on a short simulated warm-up) against them; then, in the same run,
+the naive loop — `while True:` one request per register, predict, write, sleep(period)
+— against the same devices. Timing is from the cycle's own statistics; memory is the
+resident size after warm-up and at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from compd.errors import BadInput
+
+N_SENSORS = 19
+MODULE_CHANNELS = 8
+
+
+def rss_kb() -> int:
+    """Resident set size of this process, kB (from /proc)."""
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    return 0
+
+
+def _fit_gantry_model(work: Path) -> tuple[Path, list[str]]:
+    """A short simulated gantry warm-up, logged and fitted with LVR (the bench's model)."""
+    from compd.log import read_log, write_log
+    from compd.models.lvr import LVR
+    from hil_sim.plants import PLANTS
+    from hil_sim.scenario import Scenario
+
+    scen = Scenario.load(Path(__file__).resolve().parent.parent / "hil_sim" / "scenarios" / "gantry_train.yaml")
+    plant = PLANTS.get("gantry")(scen, scen.params)
+    rows = []
+    for t in range(0, 6 * 3600 + 1, 30):
+        plant.advance_to(t)
+        rows.append([t, *plant.sample()])
+    log_path = work / "gantry_warmup.csv"
+    write_log(log_path, ["t_s", *plant.signal_names], np.array(rows))
+    log = read_log(log_path)
+    temps = log.temperature_columns()[:N_SENSORS]
+    model = LVR.fit(log, temps, None).model
+    path = work / "gantry_lvr.yaml"
+    path.write_text(yaml.safe_dump(model.to_dict(), sort_keys=False))
+    return path, temps
+
+
+def _device_file(work: Path, sensors: list[str]) -> Path:
+    modules = []
+    for m in range(0, len(sensors), MODULE_CHANNELS):
+        names = sensors[m : m + MODULE_CHANNELS]
+        names += [f"spare{m + i}" for i in range(MODULE_CHANNELS - len(names))]
+        modules.append(
+            {
+                "kind": "pt100_modbus",
+                "name": f"pt100_{m // MODULE_CHANNELS + 1}",
+                "transport": "tcp",
+                "host": "127.0.0.1",
+                "port": 0,
+                "channels": [{"name": n, "value_c": 21.0 + 0.1 * i} for i, n in enumerate(names)],
+            }
+        )
+    devices = {"devices": [*modules, {"kind": "fanuc_pmc", "name": "pmc", "host": "127.0.0.1", "port": 0}]}
+    path = work / "bench_devices.yaml"
+    path.write_text(yaml.safe_dump(devices, sort_keys=False))
+    return path
+
+
+class Devices:
+    """`python -m hil_sim serve` in a child process; parses where each device listens."""
+
+    def __init__(self, device_file: Path) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "hil_sim", "serve", "--config", str(device_file)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        self.ports: dict[str, int] = {}
+        assert self.proc.stdout is not None
+        deadline = time.monotonic() + 30
+        lines = []
+        for line in self.proc.stdout:
+            lines.append(line.rstrip())
+            if ": " in line and " on " in line:
+                name, rest = line.split(": ", 1)
+                where = rest.split(" on ", 1)[1].strip()
+                if ":" in where:
+                    self.ports[name] = int(where.rsplit(":", 1)[1].split()[0])
+            if "ready" in line or time.monotonic() > deadline:
+                break
+        if "ready" not in "".join(lines[-1:]):
+            self.stop()
+            raise RuntimeError("hil_sim serve did not start: " + " | ".join(lines))
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+
+
+def _compd_config(work: Path, model_path: Path, sensors: list[str], ports: dict[str, int], scheduler: str, period_s: float) -> Path:
+    sources = []
+    for m in range(0, len(sensors), MODULE_CHANNELS):
+        names = sensors[m : m + MODULE_CHANNELS]
+        sources.append(
+            {
+                "kind": "modbus",
+                "name": f"pt100_{m // MODULE_CHANNELS + 1}",
+                "transport": "tcp",
+                "host": "127.0.0.1",
+                "port": ports[f"pt100_{m // MODULE_CHANNELS + 1}"],
+                "data_type": "int16",
+                "scale": 0.1,
+                "poll_period_s": 0.05,
+                "timeout_s": 0.25,
+                "channels": [{"name": n, "address": i} for i, n in enumerate(names)],
+            }
+        )
+    cfg = {
+        "loop": {"period_s": period_s, "realtime": {"scheduler": scheduler, "priority": 50}},
+        "sources": sources,
+        "model": {"kind": "lvr", "file": str(model_path)},
+        "guard": {"max_slew_um_per_s": 20.0, "stale_after_s": 1.0},
+        "sink": {"kind": "fanuc_pmc", "mode": "word", "host": "127.0.0.1", "port": ports["pmc"]},
+        "status": {"period_s": 1.0},
+    }
+    path = work / "bench.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
+    """compd's loop for `cycles` cycles; timing stats and resident size."""
+    from compd.app import App
+    from compd.config import load_config
+
+    app = App(load_config(config))
+    rss: dict[str, int] = {}
+    warm = min(max(cycles // 10, 1000), cycles)
+
+    def sample_rss(loop: Any, now: float) -> None:
+        if loop.stats.cycles == warm:
+            rss["after_warmup_kb"] = rss_kb()
+
+    app.loop.cycle_hooks.append(sample_rss)
+    app.open()
+    try:
+        # wait for the pollers' first samples so the model starts on real readings
+        deadline = time.monotonic() + 5
+        while any(getattr(s, "polls", 1) == 0 for s in app.sources) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        app.loop.run(max_cycles=cycles)
+    finally:
+        app.close()
+    rss["end_kb"] = rss_kb()
+    rss["growth_kb"] = rss["end_kb"] - rss.get("after_warmup_kb", rss["end_kb"])
+    stats = app.loop.stats
+    out = stats.as_dict()
+    out["rss"] = rss
+    out["realtime"] = [what for _, what in app.service.realtime_result]
+    out["words_sent"] = app.encoder.words_emitted
+    return out
+
+
+def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], cycles: int, period_s: float) -> dict[str, Any]:
+    """The loop a user writes by hand: one request per register, predict, write, sleep(period)."""
+    from pymodbus.client import ModbusTcpClient
+
+    from compd.codec import encode
+    from compd.config import load_model_file, resolve_model  # noqa: F401
+    from compd.fitting import load_model
+
+    model = load_model(str(model_path))
+    clients = {}
+    for m in range(0, len(sensors), MODULE_CHANNELS):
+        name = f"pt100_{m // MODULE_CHANNELS + 1}"
+        clients[name] = ModbusTcpClient("127.0.0.1", port=ports[name], timeout=0.25)
+        clients[name].connect()
+    pmc = ModbusTcpClient("127.0.0.1", port=ports["pmc"], timeout=0.25)
+    pmc.connect()
+    x = np.zeros(len(sensors))
+    out = np.zeros(2)
+    lateness = np.zeros(cycles)
+    compute = np.zeros(cycles)
+    started = False
+    t0 = time.monotonic()
+    try:
+        for k in range(cycles):
+            start = time.monotonic()
+            lateness[k] = start - (t0 + k * period_s)
+            for j, _ in enumerate(sensors):
+                client = clients[f"pt100_{j // MODULE_CHANNELS + 1}"]
+                rr = client.read_holding_registers(j % MODULE_CHANNELS, count=1, device_id=1)
+                if not rr.isError():
+                    v = rr.registers[0]
+                    x[j] = (v - 65536 if v > 32767 else v) * 0.1
+            if not started:
+                model.start(x, 0.0)
+                started = True
+            model.evaluate(x, 0.0, out)
+            word = encode(-out[0], -out[1])
+            pmc.write_registers(0, [word & 0xFF, word >> 8], device_id=1)
+            compute[k] = time.monotonic() - start
+            time.sleep(period_s)
+    finally:
+        for c in clients.values():
+            c.close()
+        pmc.close()
+    lat_us = lateness * 1e6
+    return {
+        "cycles": cycles,
+        "misses": int(np.count_nonzero((lateness > period_s / 2) | (compute > period_s))),
+        "lateness_us": {
+            "p50": float(np.percentile(lat_us, 50)),
+            "p99": float(np.percentile(lat_us, 99)),
+            "p999": float(np.percentile(lat_us, 99.9)),
+            "max": float(lat_us.max()),
+        },
+        "cycle_compute_us": {
+            "p50": float(np.percentile(compute, 50) * 1e6),
+            "p99": float(np.percentile(compute, 99) * 1e6),
+            "max": float(compute.max() * 1e6),
+        },
+    }
+
+
+def run_bench(
+    cycles: int = 100_000,
+    *,
+    period_s: float = 0.002,
+    scheduler: str = "other",
+    naive_cycles: int | None = None,
+    model_evals: int = 2000,
+) -> dict[str, Any]:
+    """The whole benchmark; returns the CONTRACT JSON (plus baseline, ratio, memory)."""
+    from compd.models.bench import model_eval_us
+
+    if cycles < 1:
+        raise BadInput("--cycles must be at least 1", path="--cycles")
+    if naive_cycles is None:
+        naive_cycles = min(cycles, 5000)
+    with tempfile.TemporaryDirectory(prefix="compd-bench-") as tmp:
+        work = Path(tmp)
+        model_path, sensors = _fit_gantry_model(work)
+        devices = Devices(_device_file(work, sensors))
+        try:
+            cfg = _compd_config(work, model_path, sensors, devices.ports, scheduler, period_s)
+            compd = run_compd_loop(cfg, cycles)
+            naive = run_naive_loop(model_path, sensors, devices.ports, naive_cycles, period_s)
+        finally:
+            devices.stop()
+    evals = model_eval_us(model_evals)
+    result: dict[str, Any] = {
+        "period_ms": period_s * 1000,
+        "cycles": compd["cycles"],
+        "lateness_us": compd["lateness_us"],
+        "misses": compd["misses"],
+        "cycle_compute_us": compd["cycle_compute_us"],
+        "model_eval_us": evals,
+        "scheduler": scheduler,
+        "realtime": compd["realtime"],
+        "skipped": compd["skipped"],
+        "stages": compd["stages"],
+        "rss_kb": compd["rss"],
+        "words_sent": compd["words_sent"],
+        "naive": naive,
+    }
+    miss_rate = compd["misses"] / max(compd["cycles"], 1)
+    naive_rate = naive["misses"] / max(naive["cycles"], 1)
+    result["ratio_naive_to_compd"] = {
+        "miss_rate": naive_rate / miss_rate if miss_rate > 0 else None,
+        "p99_lateness": naive["lateness_us"]["p99"] / max(compd["lateness_us"]["p99"], 1.0),
+    }
+    return result
+
+
+def format_table(r: dict[str, Any]) -> str:
+    """The human table `compd bench` prints."""
+    c, n = r, r["naive"]
+    lines = [
+        f"compd bench: {r['cycles']} cycles at {r['period_ms']:g} ms, scheduler {r['scheduler']}"
+        f" ({'; '.join(r['realtime']) or 'no real-time options'})",
+        f"{'':24}{'compd loop':>14}{'naive loop':>14}",
+        f"{'cycles':24}{c['cycles']:>14}{n['cycles']:>14}",
+        f"{'misses':24}{c['misses']:>14}{n['misses']:>14}",
+        f"{'miss rate %':24}{100 * c['misses'] / max(c['cycles'], 1):>14.4f}{100 * n['misses'] / max(n['cycles'], 1):>14.2f}",
+    ]
+    for key in ("p50", "p99", "p999", "max"):
+        lines.append(f"{'lateness ' + key + ' us':24}{c['lateness_us'][key]:>14.0f}{n['lateness_us'][key]:>14.0f}")
+    for key in ("p50", "p99", "max"):
+        lines.append(
+            f"{'cycle compute ' + key + ' us':24}{c['cycle_compute_us'][key]:>14.0f}{n['cycle_compute_us'][key]:>14.0f}"
+        )
+    rss = r["rss_kb"]
+    lines.append(
+        f"memory: {rss.get('after_warmup_kb', 0)} kB after warm-up, {rss['end_kb']} kB at the end"
+        f" (growth {rss['growth_kb']} kB)"
+    )
+    lines.append("model evaluate, median us: " + ", ".join(f"{k} {v:.2f}" for k, v in r["model_eval_us"].items()))
+    ratio = r["ratio_naive_to_compd"]
+    mr = "n/a (compd missed none)" if ratio["miss_rate"] is None else f"{ratio['miss_rate']:.0f}x"
+    lines.append(f"naive / compd: miss rate {mr}, p99 lateness {ratio['p99_lateness']:.0f}x")
+    return "\n".join(lines)
+
+
+def write_json(path: str, result: dict[str, Any]) -> None:
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(result, fh, indent=2)
