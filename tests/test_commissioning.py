@@ -1,9 +1,8 @@
 """Walks docs/commissioning.md on hil_sim, from an empty folder to a compensated machine.
 
 The configs are the guide's own blocks (`<!-- file: NAME -->`), and every command run
-here must appear in the guide as written. `compd fit` and `compd replay` are not on
-this branch yet: the fit is stood in for by writing the model file it would write
-(marked below), the replay step is not run.
+here must appear in the guide as written. The one step the guide leaves to the machine,
+a second day's log to compare models on, comes from `python -m hil_sim log`.
 """
 
 from __future__ import annotations
@@ -97,14 +96,50 @@ def test_commissioning_walk(tmp_path, capsys, monkeypatch):
     assert rc == 1 and "stopped" in err  # the run is over; its last status stays readable
     assert "OBSERVE MODE" in out and "(on the output: 0x0000)" in out
 
-    # 3. fit.  STAND-IN until `compd fit` lands: write the model file it would write.
-    in_guide("compd fit --kind xi_spindle --log warmup.csv --inputs T_xi --out model.yaml --report fit.json")
-    (tmp_path / "model.yaml").write_text(
-        "kind: xi_spindle\ninputs: [T_xi]\noutputs: [z]\n"
-        "params: {alpha_per_k: 1.36e-5, length_mm: 165.0, t0_c: null, xi_mm: null}\nfit: {}\n"
+    # 3. fit the model on the warm-up log
+    r = compd("compd fit --kind xi_spindle --log warmup.csv --inputs T_xi --target err_z_um --out model.yaml --report fit.json", tmp_path)
+    assert r.returncode == 0, r.stderr
+    import yaml
+
+    model = yaml.safe_load((tmp_path / "model.yaml").read_text())
+    assert model["kind"] == "xi_spindle" and model["inputs"] == ["T_xi"] and model["outputs"] == ["z"]
+    assert model["fit"]["rows"] == len(log["t_s"])
+    fit_rmse = model["fit"]["rmse_um"]["z"]
+    assert 0 < fit_rmse < 1.5
+    fit_report = json.loads((tmp_path / "fit.json").read_text())
+    assert fit_report["axes"]["z"]["rmse_um"] == pytest.approx(fit_rmse)
+
+    # 4. compare models: the baseline on the same log, and both on an unseen day.
+    #    On hil_sim, "another day on the machine" is a day the simulator logs:
+    day2 = subprocess.run(
+        [sys.executable, "-m", "hil_sim", "log", "--scenario", str(ROOT / "hil_sim/scenarios/spindle_unseen.yaml"),
+         "--out", "day2.csv", "--rate-s", "30", "--duration-s", "14400"],
+        cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=120,
     )
-    # 4. compare models and 5. replay: `compd fit --kind mlr`, `compd predict`, `compd replay`
-    #    are not on this branch yet (see the module docstring).
+    assert day2.returncode == 0, day2.stderr
+    r = compd("compd fit --kind mlr --log warmup.csv --inputs T_xi T_amb --target err_z_um --out mlr.yaml --report mlr.json", tmp_path)
+    assert r.returncode == 0, r.stderr
+    mlr_report = json.loads((tmp_path / "mlr.json").read_text())
+    assert mlr_report["axes"]["z"]["rmse_um"] > 0
+    r = compd("compd predict model.yaml --log day2.csv --out pred.csv", tmp_path)
+    assert r.returncode == 0, r.stderr
+    pred, unseen = read_csv(tmp_path / "pred.csv"), read_csv(tmp_path / "day2.csv")
+    assert list(pred) == ["t_s", "pred_z_um"] and pred["t_s"] == unseen["t_s"]
+    resid = [p - e for p, e in zip(pred["pred_z_um"], unseen["err_z_um"], strict=True)]
+    rms_err = (sum(e * e for e in unseen["err_z_um"]) / len(resid)) ** 0.5
+    rms_resid = (sum(x * x for x in resid) / len(resid)) ** 0.5
+    assert rms_resid < 0.5 * rms_err  # the physics model carries over to a day it has not seen
+
+    # 5. replay the warm-up log through the enabling config against the software PLC
+    (tmp_path / "compensate.yaml").write_text(files["compensate.yaml"])
+    r = compd("compd replay compensate.yaml --log warmup.csv --report replay.json", tmp_path)
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "replay.json").read_text())
+    assert rep["rows"] == len(log["t_s"]) and rep["codes_sent"] > 5
+    assert rep["axes"]["z"]["reduction_pct"] > 70 and rep["saturated"] == 0
+    assert rep["axes"]["z"]["rms_before_um"] == pytest.approx(
+        (sum(e * e for e in log["err_z_um"]) / len(log["err_z_um"])) ** 0.5, rel=1e-6
+    )
 
     # 6. enable the output
     text = files["compensate.yaml"]
