@@ -220,6 +220,7 @@ class App:
             sink=self.sink,
             word_axes=word_axes,
         )
+        self.loop.gil_switch_interval_s = lp.gil_switch_interval_s
         self.summary = CompensationSummary(self.loop)
         self.loop.observers.append(self.summary)
         self.logger: LogObserver | None = None

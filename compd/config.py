@@ -199,6 +199,10 @@ class LoopConfig(Strict):
         0.0002, ge=0, le=0.01, description="sleep until this long before a deadline, then spin"
     )
     duration_s: float | None = Field(None, gt=0, description="stop after this long (loop time)")
+    gil_switch_interval_s: float = Field(
+        0.0001, gt=0, le=0.005,
+        description="wall clock: how soon a thread holding the GIL must hand it to the waking cycle",
+    )
     realtime: RealtimeConfig = Field(RealtimeConfig(), description="real-time options")
 
 

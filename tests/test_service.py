@@ -93,8 +93,9 @@ def test_observe_mode_holds_the_output_disabled(tmp_path):
     assert comp["rms_before_um"] > 1.0
     assert comp["rms_after_um"] == comp["rms_before_um"]
     assert app.sink.get_status()["observe"] is True
-    # the heartbeat bit keeps toggling: the PLC still sees compd alive
-    assert app.sink.inner.writes == app.loop.stats.cycles
+    # the heartbeat bit keeps toggling: the PLC still sees compd alive (every scheduled
+    # cycle, plus the loop's one priming cycle before the schedule starts)
+    assert app.sink.inner.writes == app.loop.stats.cycles + 1
 
 
 def test_observe_flag_overrides_the_config(tmp_path):
