@@ -34,7 +34,7 @@ def build_model(spec: Any) -> Any:
 class LogObserver:
     """Pushes a log row every `period_s` of loop time and on every change of the word."""
 
-    def __init__(self, loop: Loop, path: Path, period_s: float, flush_s: float) -> None:
+    def __init__(self, loop: Loop, path: Path, period_s: float, flush_s: float, **rotation: Any) -> None:
         outs = loop.model.outputs
         self.columns = (
             ["t_s"]
@@ -44,7 +44,7 @@ class LogObserver:
             + [f"applied_{a}_um" for a in outs]
             + ["word"]
         )
-        self.writer = LogWriter(path, self.columns, flush_s)
+        self.writer = LogWriter(path, self.columns, flush_s, **rotation)
         self.period_s = period_s
         self._next_s = -math.inf
         self._last_word = -1
@@ -288,7 +288,8 @@ class App:
         self.restore_state()
         if top.log.path:
             self.logger = LogObserver(
-                self.loop, self.cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s
+                self.loop, self.cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s,
+                rotate_bytes=top.log.rotate_bytes, rotate_s=top.log.rotate_s, keep=top.log.keep,
             )
             self.loop.observers.append(self.logger)
         self.loop.open(self._adopted)

@@ -67,6 +67,13 @@ class Guard:
         self._stale = np.array(
             [lm.stale_after_s if lm and lm.stale_after_s else cfg.stale_after_s for lm in lim]
         )
+        self._frozen_after = np.array(
+            [lm.frozen_after_s if lm and lm.frozen_after_s else math.inf for lm in lim]
+        )
+        self._frozen_band = np.array([lm.frozen_band if lm else 0.0 for lm in lim])
+        self._moved_val = np.full(len(inputs), math.nan)  # value at the last real change
+        self._moved_t = np.full(len(inputs), -math.inf)  # time of the last real change
+        self.max_dt_s = math.inf  # a cycle never licenses more slew than this much time
         self._prev_val = np.full(len(inputs), math.nan)
         self._prev_t = np.full(len(inputs), math.nan)
         self.inputs_ok = False
@@ -103,6 +110,12 @@ class Guard:
                         else:
                             self._prev_val[j] = v
                             self._prev_t[j] = frame.stamp_s[i]
+                            if not abs(v - self._moved_val[j]) <= self._frozen_band[j]:
+                                self._moved_val[j] = v
+                                self._moved_t[j] = now_s
+                    since = now_s - self._frozen_after[j]
+                    if q == Quality.GOOD and self._moved_t[j] < since and self._others_moved(j, since):
+                        q = Quality.FROZEN
                 frame.quality[i] = q
             if q != Quality.GOOD:
                 if not self._was_bad[j]:
@@ -117,6 +130,21 @@ class Guard:
         self.inputs_ok = ok
         self.bad_input = first_bad
         return ok
+
+    def _others_moved(self, j: int, since_s: float) -> bool:
+        """Did another model input change after `since_s`? (True when there is no other.)"""
+        n = self._moved_t.shape[0]
+        if n == 1:
+            return True
+        return any(k != j and self._moved_t[k] > since_s for k in range(n))
+
+    def clock_jump(self, now_s: float, period_s: float) -> None:
+        """The loop woke far too late (clock jump, suspend, stall): the next cycle may
+        move the output by one period's slew, not by the whole gap."""
+        gap = now_s - self._last_t
+        if gap == gap:
+            self._event(now_s, "clock", "jump", f"{gap:+.3f} s since the last cycle")
+        self._last_t = now_s - period_s
 
     def _event(self, t: float, subject: str, event: str, reason: str) -> None:
         key = f"{event}:{reason}"
@@ -138,6 +166,8 @@ class Guard:
         dt = now_s - self._last_t if self._last_t == self._last_t else 0.0
         if dt < 0:
             dt = 0.0  # a clock that went backwards never licenses a step
+        elif dt > self.max_dt_s:
+            dt = self.max_dt_s
         self._last_t = now_s
         cfg = self.cfg
         for a in range(self.out_um.shape[0]):
