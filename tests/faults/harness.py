@@ -145,7 +145,8 @@ class FaultRun:
         return self
 
     # ------------------------------------------------------------------ run
-    def run(self, sensor: str = SENSOR, reasons: tuple[str, ...] = ()) -> Measured:
+    def run(self, sensor: str = SENSOR, reasons: tuple[str, ...] = (), kind: str = "bad") -> Measured:
+        """Run; the row's event is the guard event (`sensor`, `kind`, one of `reasons`)."""
         path = self.tmp_path / "c.yaml"
         path.write_text(yaml.safe_dump(self.cfg))
         app = self.app = App(load_config(path), duration_s=self.duration_s)
@@ -204,10 +205,10 @@ class FaultRun:
             logger.removeHandler(capture)
             logger.setLevel(old_level)
             self.records = capture.records
-        return self._measure(sensor, reasons, running)
+        return self._measure(sensor, reasons, kind, running)
 
     # -------------------------------------------------------------- measure
-    def _measure(self, sensor: str, reasons: tuple[str, ...], running: bool) -> Measured:
+    def _measure(self, sensor: str, reasons: tuple[str, ...], kind: str, running: bool) -> Measured:
         app = self.app
         assert app is not None
         tr = self.trace
@@ -245,11 +246,12 @@ class FaultRun:
                     time_to_safe = t - t_fault
                     break
             policy_ok = self._policy_held()
-        events = [(s, e, r) for _, s, e, r in app.guard.events if s == sensor and e == "bad"]
+        events = [(s, e, r) for _, s, e, r in app.guard.events if s == sensor and e == kind]
         hit = next(((s, e, r) for s, e, r in events if not reasons or r in reasons), None)
         event = f"{hit[0]} {hit[1]}: {hit[2]}" if hit else None
+        log_event, key = {"bad": ("sensor_bad", "sensor"), "jump": ("clock_jump", "clock")}[kind]
         logged = hit is not None and any(
-            getattr(r, "event", None) == "sensor_bad" and getattr(r, "sensor", None) == sensor
+            getattr(r, "event", None) == log_event and getattr(r, key, None) == sensor
             and getattr(r, "reason", None) == hit[2]
             for r in self.records
         )
