@@ -31,6 +31,16 @@ def build_model(spec: Any) -> Any:
     return model
 
 
+def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
+    """A source or sink from its section; its own BadInput names the config file and key."""
+    try:
+        return cls(section, base_dir=base)
+    except BadInput as e:
+        if e.file:
+            raise
+        raise cfg.doc.error(e.message, path) from None
+
+
 class LogObserver:
     """Pushes a log row every `period_s` of loop time and on every change of the word."""
 
@@ -174,7 +184,7 @@ class App:
         top = cfg.top
         lp = top.loop
         base = str(Path(cfg.file).parent)
-        self.sources = [cls(scfg, base_dir=base) for cls, scfg, _ in cfg.sources]
+        self.sources = [_built(cfg, path, cls, scfg, base) for cls, scfg, path in cfg.sources]
         names = [n for s in self.sources for n in s.signal_names()]
         dup = {n for n in names if names.count(n) > 1}
         if dup:
@@ -194,7 +204,7 @@ class App:
         word_axes = [self.model.outputs.index(a) for a in word_axes_names]
         self.encoder = Encoder(top.codec.lsb_um, top.codec.deadband_um)
         sink_cls, sink_cfg, _ = cfg.sink
-        self.sink = sink_cls(sink_cfg, base_dir=base)
+        self.sink = _built(cfg, cfg.sink[2], sink_cls, sink_cfg, base)
         self.sink.bind(word_axes_names, top.codec.lsb_um)
         bind_model = getattr(self.sink, "bind_model", None)
         if bind_model is not None:  # sinks that speak per-axis values (siemens)

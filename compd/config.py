@@ -154,7 +154,11 @@ def validate(
         return model.model_validate(data)
     except ValidationError as e:
         err = e.errors()[0]
-        loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and "[" in p))
+        raw = tuple(err["loc"])
+        if err["type"] == "extra_forbidden" and raw:  # the last part is the user's key, whatever it holds
+            loc = (*(p for p in raw[:-1] if not (isinstance(p, str) and "[" in p)), raw[-1])
+        else:
+            loc = tuple(p for p in raw if not (isinstance(p, str) and "[" in p))
         path = (*base, *loc)
         if err["type"] == "extra_forbidden":
             owner = _model_at(model, loc)
@@ -418,6 +422,8 @@ def _plugin(registry: Any, data: Any, doc: Document, path: PathT) -> tuple[type,
         raise doc.error("expected a mapping with a 'kind'", path)
     if "kind" not in data:
         raise doc.error(f"'kind' is missing (known: {', '.join(registry.kinds())})", path)
+    if not isinstance(data["kind"], str):
+        raise doc.error(f"'kind' must be a name (known: {', '.join(registry.kinds())})", (*path, "kind"))
     try:
         cls = registry.get(data["kind"])
     except BadInput as e:

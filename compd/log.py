@@ -170,6 +170,11 @@ def _fmt(v: float) -> str:
     return f"{v:.6g}" if abs(v) < 1e6 else f"{v:.10g}"
 
 
+def _fmt_t(t_s: float) -> str:
+    """t_s to 0.1 ms whatever its size (a daemon's clock reads 10⁵ s after a day of uptime)."""
+    return f"{t_s:.4f}" if t_s == t_s else ""
+
+
 class LogWriter:
     """Writes log rows from a background thread so the cycle never waits on the disk.
 
@@ -303,7 +308,7 @@ class LogWriter:
             if row is None:
                 break
             if row:
-                self._pending.append((",".join(_fmt(v) for v in row) + "\n").encode())
+                self._pending.append((_fmt_t(row[0]) + "".join("," + _fmt(v) for v in row[1:]) + "\n").encode())
                 if len(self._pending) > self.max_pending_rows:
                     del self._pending[: len(self._pending) // 2]
                     self.rows_dropped += self.max_pending_rows // 2

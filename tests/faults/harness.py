@@ -302,7 +302,7 @@ def record(row: str, m: Measured, tmp_path: Path) -> Path:
     spec = MATRIX[row]
     out_dir = Path(os.environ.get(RESULTS_ENV) or tmp_path)
     out_dir.mkdir(parents=True, exist_ok=True)
-    data = {"row": row, "fault": spec.fault, "transport": spec.transport, "policy": spec.policy,
+    data = {"row": row, "order": list(MATRIX).index(row), "fault": spec.fault, "transport": spec.transport, "policy": spec.policy,
             "expected": spec.expected, **m.__dict__}
     file = out_dir / f"{row}.json"
     file.write_text(json.dumps(data, indent=1, default=str))
