@@ -37,3 +37,12 @@ def test_generator_round_trip() -> None:
     assert header == list(COLUMNS) and [r[0] for r in rows] == ["`x`", "`y`"]
     assert text.startswith("# R\n\nprose\n") and text.count("faults:begin") == 1
     assert rows[0][1] == "f \\| g" and rows[0][6] == "n/a"
+
+
+def test_committed_doc_has_the_degraded_table() -> None:
+    block = read_block(DOC.read_text(encoding="utf-8"), "degraded")
+    assert block is not None, "run scripts/degraded_table.py --doc docs/reliability.md"
+    header, rows = table_rows(block)
+    assert header[0] == "sensor removed" and header[-1] == "axes served"
+    singles = [r[0] for r in rows if not r[0].startswith(("(", "all of"))]
+    assert len(singles) == 19 and len(set(singles)) == 19  # every gantry sensor removed once
