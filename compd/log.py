@@ -233,7 +233,7 @@ class LogWriter:
         self._q.put(row)
 
     # ------------------------------------------------------------------ file
-    def _open(self) -> bool:
+    def _open(self, set_aside: bool = True) -> bool:
         """Open (or create) the file for appending; repair a cut last row; queue the header."""
         import time
 
@@ -248,6 +248,12 @@ class LogWriter:
             self._size = os.fstat(fd).st_size
             if self._size > 0:
                 self._repair()
+            if set_aside and self._size > 0 and not self._same_header():
+                # written with other columns (the config changed): set it aside, start anew
+                os.close(fd)
+                self._fd = None
+                self._shift()
+                return self._open(set_aside=False)
         except OSError:
             self._size = 0
         if self._size == 0:
@@ -269,11 +275,12 @@ class LogWriter:
         self.repaired_bytes += self._size - keep
         self._size = keep
 
-    def _rotate(self) -> None:
-        """Rename the full file away (`.1`, shifting older ones) and start a new one."""
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+    def _same_header(self) -> bool:
+        with open(self.path, "rb") as fh:
+            return fh.readline() == self._header
+
+    def _shift(self) -> None:
+        """`<name>` → `<name>.1` → `<name>.2` … (at most `keep`; with keep 0 it is deleted)."""
         try:
             for k in range(self.keep - 1, 0, -1):
                 older = self.path.with_name(f"{self.path.name}.{k}")
@@ -285,6 +292,13 @@ class LogWriter:
                 self.path.unlink()
         except OSError as e:
             self._fail(f"log rotation failed: {e.strerror or e}", 0)
+
+    def _rotate(self) -> None:
+        """Rename the full file away (`.1`, shifting older ones) and start a new one."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+        self._shift()
         self.rotations += 1
         self._open()
 

@@ -129,3 +129,13 @@ def test_writer_repairs_a_row_cut_by_a_crash(tmp_path: Path) -> None:
     w.close()
     log = read_log(path)
     assert log.t_s.tolist() == [0.0, 1.0, 3.0] and w.repaired_bytes == 3
+
+
+def test_writer_sets_aside_a_log_with_other_columns(tmp_path: Path) -> None:
+    path = tmp_path / "run.csv"
+    path.write_text("t_s,T_old\n0,20\n")  # the config changed between runs
+    w = LogWriter(path, ["t_s", "T1", "T2"], flush_s=0.01)
+    w.push((1.0, 21.0, 22.0))
+    w.close()
+    assert read_log(path).columns == ["t_s", "T1", "T2"] and len(read_log(path)) == 1
+    assert read_log(tmp_path / "run.csv.1").columns == ["t_s", "T_old"]

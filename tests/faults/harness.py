@@ -36,6 +36,8 @@ SLEW_UM_PER_S = 20.0
 RAMP_UM_PER_S = 20.0
 FAULT_S = 0.6  # the correction (−8.98 µm at 24 °C) has settled by then at 20 µm/s
 CLEAR_S = 1.4
+MIN_S = 1.0  # a run lasts at least this long, and 0.3 s past its last action
+MAX_S = 10.0  # … and stops once the axis has settled (see FaultRun.settled), at most after this
 SENSOR = "T_xi"
 T0_C = 20.0
 WANT_UM = -13.6e-6 * 165.0 * 1000.0 * (24.0 - T0_C)  # the correction at 24 °C
@@ -124,7 +126,7 @@ class Trace:
 class FaultRun:
     """One matrix row: a config, a schedule of actions (the fault), a run, the measurements."""
 
-    def __init__(self, tmp_path: Path, cfg: dict[str, Any], *, duration_s: float = 2.0,
+    def __init__(self, tmp_path: Path, cfg: dict[str, Any], *, duration_s: float = MAX_S,
                  clock: WallClock | None = None) -> None:
         self.tmp_path = tmp_path
         self.cfg = cfg
@@ -164,6 +166,8 @@ class FaultRun:
             if not started.is_set():
                 t0[0] = time.monotonic()
                 started.set()
+            elif len(self.times) == len(self.actions) and self.settled(now):
+                loop.stop()  # the outcome is decided: no need to wait for MAX_S
             jumps = sum(1 for e in guard.events if e[2] == "jump")
             tr.jumps.append(jumps != n_jumps[0])
             n_jumps[0] = jumps
@@ -206,6 +210,19 @@ class FaultRun:
             logger.setLevel(old_level)
             self.records = capture.records
         return self._measure(sensor, reasons, kind, running)
+
+    def settled(self, now: float) -> bool:
+        """All actions done, 0.3 s past the last, MIN_S run, and the axis either back at the
+        model's correction (NORMAL, within 0.25 µm of its target) or in its safe state."""
+        tr = self.trace
+        if not tr.t or now - tr.t[0] < MIN_S or (self.times and now - max(self.times.values()) < 0.3):
+            return False
+        k = len(tr.t) - 1
+        if tr.state[k] == AxisState.NORMAL:
+            return abs(tr.out[k] - tr.target[k]) <= 0.25
+        return tr.state[k] == AxisState.FAULT and self._safe(k) and (
+            self.policy != "ramp_to_zero" or tr.out[k] == 0.0
+        )
 
     # -------------------------------------------------------------- measure
     def _measure(self, sensor: str, reasons: tuple[str, ...], kind: str, running: bool) -> Measured:
@@ -267,8 +284,9 @@ class FaultRun:
             logged=logged,
             word_valid=word_valid,
             policy_ok=policy_ok,
-            # ran to the end (late cycles near the end may be skipped: a quarter second of slack)
-            running=running and bool(tr.t) and tr.t[-1] >= tr.t[0] + self.duration_s - 0.25,
+            # still cycling 0.3 s after the last action (the run stops itself once settled)
+            running=running and bool(tr.t) and tr.t[-1] - tr.t[0] >= max(
+                [MIN_S, *(t - tr.t[0] + 0.3 for t in self.times.values())]) - 2 * PERIOD_S,
             cycles=len(tr.t),
             fault_t_s=None if t_fault is None else t_fault - tr.t[0],
         )

@@ -85,7 +85,7 @@ def test_frozen_value(tmp_path: Path, module) -> None:  # noqa: ANN001
 
     tx.feed = feed
     cfg = base_config(modbus_tcp_source(server.port), "disable", limits={"frozen_after_s": 0.4})
-    run = FaultRun(tmp_path, cfg, duration_s=2.2)
+    run = FaultRun(tmp_path, cfg)
     run.at(FAULT_S, "fault", lambda: frozen.__setitem__(0, True))
     run.at(CLEAR_S, "clear", lambda: frozen.__setitem__(0, False))
     m = run.run(reasons=("frozen",))

@@ -78,7 +78,7 @@ def test_server_restarted(tmp_path: Path) -> None:
         servers.append(ModbusServerThread(dev, port=port).start())
 
     try:
-        run = FaultRun(tmp_path, base_config(modbus_tcp_source(port), "ramp_to_zero"), duration_s=2.4)
+        run = FaultRun(tmp_path, base_config(modbus_tcp_source(port), "ramp_to_zero"))
         run.at(FAULT_S, "fault", servers[0].stop)
         run.at(CLEAR_S, "restart", restart)
         m = run.run(reasons=COMMS)
@@ -143,7 +143,7 @@ def test_clock_jump(tmp_path: Path) -> None:
     with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
         # loop time runs 60 s ahead after the jump: the duration counts it
         run = FaultRun(tmp_path, base_config(modbus_tcp_source(server.port), "hold"),
-                       duration_s=61.6, clock=clock)
+                       duration_s=60.0 + 10.0, clock=clock)
         run.at(FAULT_S, "fault", lambda: setattr(clock, "offset_s", 60.0))
         m = run.run(sensor="clock", kind="jump")
     record("clock_jump", m, tmp_path)
