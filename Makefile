@@ -8,7 +8,7 @@ TEST_STAMP := $(VENV)/.test-installed
 # Debian packages the protocol tests need (serial ptys, an independent Modbus client).
 APT_PACKAGES := socat mbpoll
 
-.PHONY: venv demo test accept bench lint sysdeps clean install docs
+.PHONY: venv demo test accept bench lint sysdeps clean install docs reliability
 
 $(BASE_STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -53,6 +53,13 @@ install: $(BASE_STAMP)
 # regenerates the configuration reference from the config schema (a test checks it is current)
 docs: $(BASE_STAMP)
 	$(VENV)/bin/compd docs --out docs/configuration.md
+
+# reruns the fault-injection matrix and the lvr degraded-mode table into docs/reliability.md
+reliability: $(TEST_STAMP) sysdeps
+	rm -rf build/faults
+	COMPD_FAULTS_OUT=build/faults $(PY) -m pytest -q tests/faults
+	$(PY) -m compd.faultdoc build/faults --doc docs/reliability.md
+	$(PY) scripts/degraded_table.py --doc docs/reliability.md
 
 lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check .

@@ -31,10 +31,20 @@ def build_model(spec: Any) -> Any:
     return model
 
 
+def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
+    """A source or sink from its section; its own BadInput names the config file and key."""
+    try:
+        return cls(section, base_dir=base)
+    except BadInput as e:
+        if e.file:
+            raise
+        raise cfg.doc.error(e.message, path) from None
+
+
 class LogObserver:
     """Pushes a log row every `period_s` of loop time and on every change of the word."""
 
-    def __init__(self, loop: Loop, path: Path, period_s: float, flush_s: float) -> None:
+    def __init__(self, loop: Loop, path: Path, period_s: float, flush_s: float, **rotation: Any) -> None:
         outs = loop.model.outputs
         self.columns = (
             ["t_s"]
@@ -44,7 +54,7 @@ class LogObserver:
             + [f"applied_{a}_um" for a in outs]
             + ["word"]
         )
-        self.writer = LogWriter(path, self.columns, flush_s)
+        self.writer = LogWriter(path, self.columns, flush_s, **rotation)
         self.period_s = period_s
         self._next_s = -math.inf
         self._last_word = -1
@@ -174,7 +184,7 @@ class App:
         top = cfg.top
         lp = top.loop
         base = str(Path(cfg.file).parent)
-        self.sources = [cls(scfg, base_dir=base) for cls, scfg, _ in cfg.sources]
+        self.sources = [_built(cfg, path, cls, scfg, base) for cls, scfg, path in cfg.sources]
         names = [n for s in self.sources for n in s.signal_names()]
         dup = {n for n in names if names.count(n) > 1}
         if dup:
@@ -194,7 +204,7 @@ class App:
         word_axes = [self.model.outputs.index(a) for a in word_axes_names]
         self.encoder = Encoder(top.codec.lsb_um, top.codec.deadband_um)
         sink_cls, sink_cfg, _ = cfg.sink
-        self.sink = sink_cls(sink_cfg, base_dir=base)
+        self.sink = _built(cfg, cfg.sink[2], sink_cls, sink_cfg, base)
         self.sink.bind(word_axes_names, top.codec.lsb_um)
         bind_model = getattr(self.sink, "bind_model", None)
         if bind_model is not None:  # sinks that speak per-axis values (siemens)
@@ -289,7 +299,8 @@ class App:
         self.restore_state()
         if top.log.path:
             self.logger = LogObserver(
-                self.loop, self.cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s
+                self.loop, self.cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s,
+                rotate_bytes=top.log.rotate_bytes, rotate_s=top.log.rotate_s, keep=top.log.keep,
             )
             self.loop.observers.append(self.logger)
         self.loop.open(self._adopted)

@@ -154,7 +154,11 @@ def validate(
         return model.model_validate(data)
     except ValidationError as e:
         err = e.errors()[0]
-        loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and "[" in p))
+        raw = tuple(err["loc"])
+        if err["type"] == "extra_forbidden" and raw:  # the last part is the user's key, whatever it holds
+            loc = (*(p for p in raw[:-1] if not (isinstance(p, str) and "[" in p)), raw[-1])
+        else:
+            loc = tuple(p for p in raw if not (isinstance(p, str) and "[" in p))
         path = (*base, *loc)
         if err["type"] == "extra_forbidden":
             owner = _model_at(model, loc)
@@ -216,6 +220,13 @@ class SignalLimits(Strict):
         0.3, ge=0, description="added to max_rate_per_s × dt: room for noise and quantization"
     )
     stale_after_s: float | None = Field(None, gt=0, description="older than this is stale")
+    frozen_after_s: float | None = Field(
+        None,
+        gt=0,
+        description="a value that has not changed by more than frozen_band for this long, while"
+        " another model input changed, is frozen (a stuck transmitter); none = not checked",
+    )
+    frozen_band: float = Field(0.0, ge=0, description="a change of at most this much is no change")
 
 
 class AxisGuardConfig(Strict):
@@ -265,6 +276,13 @@ class LogConfig(Strict):
     path: str | None = Field(None, description="log file; none = no log")
     period_s: float = Field(1.0, gt=0, description="one row per this period, plus every word change")
     flush_s: float = Field(1.0, gt=0, description="flush to disk at least this often")
+    rotate_bytes: int | None = Field(
+        None, ge=1024, description="start a new file when the log reaches this size; none = never"
+    )
+    rotate_s: float | None = Field(
+        None, gt=0, description="start a new file after this long (wall time); none = never"
+    )
+    keep: int = Field(5, ge=0, le=1000, description="rotated files kept (<name>.1 newest)")
 
 
 class ConsoleConfig(Strict):
@@ -408,6 +426,8 @@ def _plugin(registry: Any, data: Any, doc: Document, path: PathT) -> tuple[type,
         raise doc.error("expected a mapping with a 'kind'", path)
     if "kind" not in data:
         raise doc.error(f"'kind' is missing (known: {', '.join(registry.kinds())})", path)
+    if not isinstance(data["kind"], str):
+        raise doc.error(f"'kind' must be a name (known: {', '.join(registry.kinds())})", (*path, "kind"))
     try:
         cls = registry.get(data["kind"])
     except BadInput as e:

@@ -24,6 +24,7 @@ class Quality(enum.IntEnum):
     COMMS_LOST = 4
     NO_DATA = 5
     IMPLAUSIBLE = 6
+    FROZEN = 7  # unchanged for guard.signals.<name>.frozen_after_s while the others moved
 
 
 QUALITY_NAMES = {q.value: q.name.lower() for q in Quality}

@@ -24,6 +24,7 @@ GOOD = int(Quality.GOOD)
 STALE = int(Quality.STALE)
 OUT_OF_RANGE = int(Quality.OUT_OF_RANGE)
 IMPLAUSIBLE = int(Quality.IMPLAUSIBLE)
+FROZEN = int(Quality.FROZEN)
 STARTING, NORMAL, FAULT, RECOVERING = 0, 1, 2, 3
 
 
@@ -78,9 +79,17 @@ class Guard:
         self._stale = np.array(
             [lm.stale_after_s if lm and lm.stale_after_s else cfg.stale_after_s for lm in lim]
         )
+        self._frozen_after = np.array(
+            [lm.frozen_after_s if lm and lm.frozen_after_s else math.inf for lm in lim]
+        )
+        self._frozen_band = np.array([lm.frozen_band if lm else 0.0 for lm in lim])
+        self._moved_val = np.full(len(inputs), math.nan)  # value at the last real change
+        self._moved_t = np.full(len(inputs), -math.inf)  # time of the last real change
+        self.max_dt_s = math.inf  # a cycle never licenses more slew than this much time
         self._prev_val = np.full(len(inputs), math.nan)
         self._prev_t = np.full(len(inputs), math.nan)
         self._has_rate = bool(np.isfinite(self._rate).any())
+        self._has_frozen = bool(np.isfinite(self._frozen_after).any())
         n_in = len(inputs)
         self._v = np.zeros(n_in)
         self._q = np.zeros(n_in, dtype=np.uint8)
@@ -131,24 +140,41 @@ class Guard:
         np.logical_and(tmp, m, out=tmp)
         q[tmp] = STALE
         np.logical_and(m, np.logical_not(tmp, out=tmp), out=m)
-        # rate of change against the last accepted sample (new samples only)
-        if self._has_rate:
-            new = self._new
+        if self._has_rate or self._has_frozen:
+            new = self._new  # a new sample (NaN prev_t: the first one is new)
             np.less_equal(st, self._prev_t, out=new)
-            np.logical_not(new, out=new)  # NaN prev_t: a first sample is new
+            np.logical_not(new, out=new)
             np.logical_and(new, m, out=new)
-            np.subtract(st, self._prev_t, out=self._dt)
-            np.multiply(self._rate, self._dt, out=self._dt)
-            np.add(self._dt, self._rate_allow, out=self._dt)
-            np.subtract(v, self._prev_val, out=self._age)
-            np.abs(self._age, out=self._age)
-            np.greater(self._age, self._dt, out=tmp)  # False where prev is NaN
-            np.logical_and(tmp, new, out=tmp)
-            q[tmp] = IMPLAUSIBLE
-            np.logical_and(m, np.logical_not(tmp, out=tmp), out=m)
-            np.logical_and(new, m, out=new)
+            if self._has_rate:  # rate of change against the last accepted sample
+                np.subtract(st, self._prev_t, out=self._dt)
+                np.multiply(self._rate, self._dt, out=self._dt)
+                np.add(self._dt, self._rate_allow, out=self._dt)
+                np.subtract(v, self._prev_val, out=self._age)
+                np.abs(self._age, out=self._age)
+                np.greater(self._age, self._dt, out=tmp)  # False where prev is NaN
+                np.logical_and(tmp, new, out=tmp)
+                q[tmp] = IMPLAUSIBLE
+                np.logical_and(m, np.logical_not(tmp, out=tmp), out=m)
+                np.logical_and(new, m, out=new)
             np.copyto(self._prev_val, v, where=new)
             np.copyto(self._prev_t, st, where=new)
+            if self._has_frozen:  # frozen: no real change for frozen_after_s while others moved
+                moved = self._tmp2
+                np.subtract(v, self._moved_val, out=self._age)
+                np.abs(self._age, out=self._age)
+                np.less_equal(self._age, self._frozen_band, out=moved)  # False where NaN
+                np.logical_not(moved, out=moved)
+                np.logical_and(moved, new, out=moved)
+                np.copyto(self._moved_val, v, where=moved)
+                np.copyto(self._moved_t, now_s, where=moved)
+                np.subtract(now_s, self._frozen_after, out=self._dt)
+                np.less(self._moved_t, self._dt, out=tmp)
+                np.logical_and(tmp, m, out=tmp)
+                if tmp.any():
+                    for j in np.flatnonzero(tmp):
+                        if self._others_moved(int(j), float(self._dt[j])):
+                            q[j] = FROZEN
+                            m[j] = False
         frame.quality[idx] = q
         ok = bool(m.all())
         np.logical_not(m, out=tmp)  # tmp: bad now
@@ -162,6 +188,21 @@ class Guard:
         self.inputs_ok = ok
         self.bad_input = -1 if ok else int(np.argmax(tmp))
         return ok
+
+    def _others_moved(self, j: int, since_s: float) -> bool:
+        """Did another model input change after `since_s`? (True when there is no other.)"""
+        n = self._moved_t.shape[0]
+        if n == 1:
+            return True
+        return any(k != j and self._moved_t[k] > since_s for k in range(n))
+
+    def clock_jump(self, now_s: float, period_s: float) -> None:
+        """The loop woke far too late (clock jump, suspend, stall): the next cycle may
+        move the output by one period's slew, not by the whole gap."""
+        gap = now_s - self._last_t
+        if gap == gap:
+            self._event(now_s, "clock", "jump", f"{gap:+.3f} s since the last cycle")
+        self._last_t = now_s - period_s
 
     def _event(self, t: float, subject: str, event: str, reason: str) -> None:
         key = f"{event}:{reason}"
@@ -183,6 +224,8 @@ class Guard:
         dt = now_s - self._last_t if self._last_t == self._last_t else 0.0
         if dt < 0:
             dt = 0.0  # a clock that went backwards never licenses a step
+        elif dt > self.max_dt_s:
+            dt = self.max_dt_s
         self._last_t = now_s
         recovery_s = self._recovery_s
         for a in range(self._n_axes):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import logging
 import math
 import os
 import queue
@@ -20,6 +22,8 @@ RESERVED_NAMES = ("t_s", "speed_rpm")
 # Columns the loop itself writes into its log (compd.app.LogObserver): never inputs.
 OUTPUT_PREFIXES = ("pred_", "corr_", "applied_")
 OUTPUT_NAMES = ("word",)
+
+log = logging.getLogger("compd.log")
 
 
 def is_temperature_column(name: str) -> bool:
@@ -166,35 +170,146 @@ def _fmt(v: float) -> str:
     return f"{v:.6g}" if abs(v) < 1e6 else f"{v:.10g}"
 
 
+def _fmt_t(t_s: float) -> str:
+    """t_s to 0.1 ms whatever its size (a daemon's clock reads 10⁵ s after a day of uptime)."""
+    return f"{t_s:.4f}" if t_s == t_s else ""
+
+
 class LogWriter:
     """Writes log rows from a background thread so the cycle never waits on the disk.
 
     The cycle calls `push(row)` with a tuple of floats (allocated only at the log
-    period, not every cycle). The thread writes and flushes at least every
-    `flush_s`; `close()` drains what is queued. Disk errors (full disk) are counted
-    and reported through `error`, never raised into the loop.
+    period, not every cycle). The thread formats rows into a pending buffer and
+    writes, then fsyncs, it at least every `flush_s`, so a `kill -9` loses at most
+    the rows of the last `flush_s`. `close()` drains what is queued.
+
+    Rotation: when the file reaches `rotate_bytes`, or has been written for
+    `rotate_s`, it is renamed `<name>.1` (older ones shift to `.2` … `.keep`, the
+    oldest is deleted) and a new file with the header starts; every file is a
+    complete log.
+
+    Disk errors (full disk, file gone) never reach the loop: the rows of a failed
+    write are dropped and counted (`rows_dropped`), a partial row is cut off again
+    (the file stays a valid CSV), `error` says why, one `event=log_error` line is
+    logged when writing starts failing and one `event=log_ok` when it works again.
+    A file whose last row was cut by a crash is repaired (truncated to its last
+    whole row) when it is opened again.
     """
 
-    def __init__(self, path: str | Path, columns: Sequence[str], flush_s: float = 1.0) -> None:
+    max_pending_rows = 100_000  # while the disk is full, older unwritten rows are dropped
+
+    def __init__(
+        self,
+        path: str | Path,
+        columns: Sequence[str],
+        flush_s: float = 1.0,
+        *,
+        rotate_bytes: int | None = None,
+        rotate_s: float | None = None,
+        keep: int = 5,
+    ) -> None:
         self.path = Path(path)
         self.columns = list(columns)
         self.flush_s = flush_s
+        self.rotate_bytes = rotate_bytes
+        self.rotate_s = rotate_s
+        self.keep = keep
         self.rows_written = 0
         self.rows_dropped = 0
+        self.rotations = 0
+        self.repaired_bytes = 0
         self.error: str | None = None
+        self._header = (",".join(self.columns) + "\n").encode()
         self._q: queue.SimpleQueue[tuple[float, ...] | None] = queue.SimpleQueue()
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        self._fh = open(self.path, "a", newline="", encoding="utf-8")  # noqa: SIM115
-        if new:
-            self._fh.write(",".join(self.columns) + "\n")
-            self._fh.flush()
+        self._pending: list[bytes] = []
+        self._fd: int | None = None
+        self._size = 0
+        self._opened_s = 0.0
+        self._open()
         self._thread = threading.Thread(target=self._run, name="compd-log", daemon=True)
         self._thread.start()
 
     def push(self, row: tuple[float, ...]) -> None:
         self._q.put(row)
 
+    # ------------------------------------------------------------------ file
+    def _open(self, set_aside: bool = True) -> bool:
+        """Open (or create) the file for appending; repair a cut last row; queue the header."""
+        import time
+
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        except OSError as e:
+            self._fail(f"cannot open log: {e.strerror or e}", 0)
+            return False
+        self._fd = fd
+        try:
+            self._size = os.fstat(fd).st_size
+            if self._size > 0:
+                self._repair()
+            if set_aside and self._size > 0 and not self._same_header():
+                # written with other columns (the config changed): set it aside, start anew
+                os.close(fd)
+                self._fd = None
+                self._shift()
+                return self._open(set_aside=False)
+        except OSError:
+            self._size = 0
+        if self._size == 0:
+            self._pending.insert(0, self._header)
+        self._opened_s = time.monotonic()
+        return True
+
+    def _repair(self) -> None:
+        """Cut a partial last row (a crash mid-write) so appended rows start on a new line."""
+        assert self._fd is not None
+        with open(self.path, "rb") as fh:
+            fh.seek(max(self._size - 65536, 0))
+            tail = fh.read()
+        if tail.endswith(b"\n"):
+            return
+        cut = tail.rfind(b"\n")
+        keep = self._size - len(tail) + cut + 1 if cut >= 0 else 0
+        os.ftruncate(self._fd, keep)
+        self.repaired_bytes += self._size - keep
+        self._size = keep
+
+    def _same_header(self) -> bool:
+        with open(self.path, "rb") as fh:
+            return fh.readline() == self._header
+
+    def _shift(self) -> None:
+        """`<name>` → `<name>.1` → `<name>.2` … (at most `keep`; with keep 0 it is deleted)."""
+        try:
+            for k in range(self.keep - 1, 0, -1):
+                older = self.path.with_name(f"{self.path.name}.{k}")
+                if older.exists():
+                    os.replace(older, self.path.with_name(f"{self.path.name}.{k + 1}"))
+            if self.keep > 0:
+                os.replace(self.path, self.path.with_name(f"{self.path.name}.1"))
+            else:
+                self.path.unlink()
+        except OSError as e:
+            self._fail(f"log rotation failed: {e.strerror or e}", 0)
+
+    def _rotate(self) -> None:
+        """Rename the full file away (`.1`, shifting older ones) and start a new one."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+        self._shift()
+        self.rotations += 1
+        self._open()
+
+    def _due_rotation(self, now_s: float) -> bool:
+        if self._fd is None or self._size <= len(self._header):
+            return False
+        if self.rotate_bytes is not None and self._size >= self.rotate_bytes:
+            return True
+        return self.rotate_s is not None and now_s - self._opened_s >= self.rotate_s
+
+    # ------------------------------------------------------------ the thread
     def _run(self) -> None:
         import time
 
@@ -207,29 +322,80 @@ class LogWriter:
             if row is None:
                 break
             if row:
-                try:
-                    self._fh.write(",".join(_fmt(v) for v in row) + "\n")
-                    self.rows_written += 1
-                except OSError as e:
-                    self.rows_dropped += 1
-                    self.error = f"log write failed: {e.strerror or e}"
+                self._pending.append((_fmt_t(row[0]) + "".join("," + _fmt(v) for v in row[1:]) + "\n").encode())
+                if len(self._pending) > self.max_pending_rows:
+                    del self._pending[: len(self._pending) // 2]
+                    self.rows_dropped += self.max_pending_rows // 2
             now = time.monotonic()
             if now - last_flush >= self.flush_s:
-                self._flush()
+                self._flush(now)
                 last_flush = now
-        self._flush()
+        self._flush(time.monotonic())
 
-    def _flush(self) -> None:
+    def _flush(self, now_s: float) -> None:
+        """Write the pending rows in one go and fsync; on failure cut any partial write."""
+        if self._due_rotation(now_s):
+            self._rotate()
+        if self._fd is None and not self._open():
+            self._drop_pending()
+            return
+        if not self._pending:
+            return
+        assert self._fd is not None
+        data = b"".join(self._pending)
+        rows = len(self._pending) - (1 if self._pending[0] is self._header else 0)
         try:
-            self._fh.flush()
-            os.fsync(self._fh.fileno())
+            written = 0
+            while written < len(data):
+                written += os.write(self._fd, data[written:])
+            os.fsync(self._fd)
         except OSError as e:
-            self.error = f"log flush failed: {e.strerror or e}"
+            if written:
+                with contextlib.suppress(OSError):  # keep the file a valid CSV: cut the partial write
+                    os.ftruncate(self._fd, self._size)
+            self._fail(f"log write failed: {e.strerror or e}", rows)
+            self._pending.clear()
+            return
+        self._size += len(data)
+        self.rows_written += rows
+        self._pending.clear()
+        if self.error is not None:
+            log.info(
+                "data log writes again: %s", self.path,
+                extra={"event": "log_ok", "path": str(self.path), "rows_dropped": self.rows_dropped},
+            )
+            self.error = None
+
+    def _drop_pending(self) -> None:
+        rows = sum(1 for p in self._pending if p is not self._header)
+        self.rows_dropped += rows
+        self._pending = [p for p in self._pending if p is self._header]
+
+    def _fail(self, reason: str, rows: int) -> None:
+        self.rows_dropped += rows
+        if self.error is None:
+            log.error(
+                "data log: %s (%s); compensation goes on, rows are dropped until it works again",
+                reason, self.path,
+                extra={"event": "log_error", "path": str(self.path), "reason": reason},
+            )
+        self.error = reason
 
     def close(self) -> None:
         self._q.put(None)
         self._thread.join(timeout=10)
-        try:
-            self._fh.close()
-        except OSError as e:
-            self.error = f"log close failed: {e.strerror or e}"
+        if self._fd is not None:
+            try:
+                os.close(self._fd)
+            except OSError as e:
+                self.error = f"log close failed: {e.strerror or e}"
+            self._fd = None
+
+    def get_status(self) -> dict[str, object]:
+        return {
+            "path": str(self.path),
+            "rows_written": self.rows_written,
+            "rows_dropped": self.rows_dropped,
+            "rotations": self.rotations,
+            "error": self.error,
+        }

@@ -227,6 +227,7 @@ class Loop:
         end = t0 + duration_s if duration_s is not None else math.inf
         k = 0
         half = period * 0.5
+        jump_s = max(20.0 * period, 0.5)
         # Garbage collection: everything allocated at start-up is frozen out of the
         # collector's view; automatic collection is off, and a young-generation
         # collection runs only at a safe point (right after a cycle, when at least
@@ -250,6 +251,8 @@ class Loop:
                 clock.wait_until(deadline)
                 now = clock.now()
                 lateness = now - deadline
+                if lateness > jump_s:  # clock jump or stall: the output never steps for it
+                    self.guard.clock_jump(now, period)
                 c0 = perf()
                 self._cycle(now, perf)
                 compute = perf() - c0

@@ -25,13 +25,14 @@ from compd.realtime import apply_realtime
 
 log = logging.getLogger("compd.service")
 
-_EVENT_LEVEL = {"bad": logging.WARNING, "fault": logging.WARNING}
+_EVENT_LEVEL = {"bad": logging.WARNING, "fault": logging.WARNING, "jump": logging.WARNING}
 _EVENT_NAME = {
     "bad": "sensor_bad",
     "good": "sensor_good",
     "fault": "axis_fault",
     "recovering": "axis_recovering",
     "normal": "axis_normal",
+    "jump": "clock_jump",
 }
 
 
@@ -61,7 +62,7 @@ class EventLogger:
                     start = i + 1
                     break
         for t, subject, event, reason in events[start:]:
-            kind = "sensor" if event in ("bad", "good") else "axis"
+            kind = "sensor" if event in ("bad", "good") else ("clock" if event == "jump" else "axis")
             log.log(
                 _EVENT_LEVEL.get(event, logging.INFO),
                 "%s %s: %s",

@@ -84,3 +84,44 @@ def test_plausibility_range_rate_stale() -> None:
     frame.set(0, 25.5, Quality.GOOD, 3.0)
     assert g.check_inputs(frame, 3.0)
     assert not g.check_inputs(frame, 6.0) and frame.quality[0] == Quality.STALE
+
+
+def test_frozen_sensor_is_flagged_only_while_the_others_move() -> None:
+    frame = Frame(["A", "B"])
+    limits = {"A": SignalLimits(frozen_after_s=2.0, frozen_band=0.05)}
+    g = Guard(GuardConfig(signals=limits), ["z"], frame, ["A", "B"])
+    t, quality = 0.0, []
+    for k in range(100):  # 10 s at 0.1 s: A stuck from 3 s on; B moves until 6 s, then stops too
+        a = 20.0 + 0.1 * min(k, 30)
+        b = 20.0 + 0.1 * min(k, 60)
+        frame.set(0, a, Quality.GOOD, t)
+        frame.set(1, b, Quality.GOOD, t)
+        g.check_inputs(frame, t)
+        quality.append(int(frame.quality[0]))
+        t += 0.1
+    frozen = [k for k, q in enumerate(quality) if q == Quality.FROZEN]
+    # frozen once A has not moved for 2 s (from k≈51) while B still moved in that window;
+    # good again once B stopped too (a whole machine at rest is not a stuck sensor)
+    assert frozen and frozen[0] == 51 and 60 <= frozen[-1] <= 81
+    assert quality[-1] == Quality.GOOD
+    assert ("A", "bad", "frozen") in [(s, e, r) for _, s, e, r in g.events]
+
+
+def test_a_single_input_freezes_on_time_alone() -> None:
+    frame = Frame(["T"])
+    g = Guard(GuardConfig(signals={"T": SignalLimits(frozen_after_s=1.0)}), ["z"], frame, ["T"])
+    for k in range(30):
+        frame.set(0, 25.0, Quality.GOOD, k * 0.1)
+        ok = g.check_inputs(frame, k * 0.1)
+    assert not ok and frame.quality[0] == Quality.FROZEN
+
+
+def test_clock_jump_never_licenses_a_step() -> None:
+    g, f = make()
+    run(g, f, [0.0] * 5)
+    f.set(0, 25.0, Quality.GOOD, 3600.0)
+    g.clock_jump(3600.0, 0.1)  # the loop saw it woke an hour late
+    ok = g.check_inputs(f, 3600.0)
+    g.update(np.array([50.0]), ok, 3600.0)
+    assert abs(g.out_um[0]) <= 10.0 * 0.1 + 1e-12
+    assert any(e == "jump" for _, _, e, _ in g.events)

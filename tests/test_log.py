@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -73,3 +75,67 @@ def test_write_log_and_read_back(tmp_path: Path) -> None:
     data = np.array([[0.0, 21.25, -0.5], [60.0, 22.0, 1.25]])
     write_log(tmp_path / "a.csv", ["t_s", "T", "err_z_um"], data)
     np.testing.assert_allclose(read_log(tmp_path / "a.csv").data, data)
+
+
+def test_writer_rotates_by_size_and_every_file_is_a_log(tmp_path: Path) -> None:
+    path = tmp_path / "run.csv"
+    w = LogWriter(path, ["t_s", "T1"], flush_s=0.01, rotate_bytes=1024, keep=3)
+    for i in range(400):
+        w.push((float(i), 20.0 + i / 100))
+        if i % 20 == 19:
+            time.sleep(0.03)  # let the writer flush (rotation is checked at a flush)
+    w.close()
+    files = sorted(tmp_path.glob("run.csv*"))
+    assert w.rotations >= 2 and len(files) <= 4  # the live file and at most keep=3 old ones
+    assert not tmp_path.joinpath("run.csv.4").exists()
+    t_all = []
+    for f in files:
+        log = read_log(f)
+        assert log.columns == ["t_s", "T1"]
+        t_all.extend(log.t_s.tolist())
+    # the kept files hold the newest rows, none twice, the last one included
+    assert len(set(t_all)) == len(t_all) and max(t_all) == 399.0
+
+
+def test_writer_rotates_by_time(tmp_path: Path) -> None:
+    path = tmp_path / "run.csv"
+    w = LogWriter(path, ["t_s", "T1"], flush_s=0.01, rotate_s=0.05)
+    for i in range(10):
+        w.push((float(i), 20.0))
+        time.sleep(0.03)
+    w.close()
+    assert w.rotations >= 1
+    assert sum(len(read_log(f)) for f in tmp_path.glob("run.csv*")) == 10
+
+
+def test_writer_survives_a_full_disk(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    # /dev/full answers every write with ENOSPC
+    with caplog.at_level(logging.ERROR, logger="compd"):
+        w = LogWriter("/dev/full", ["t_s", "T1"], flush_s=0.01)
+        for i in range(5):
+            w.push((float(i), 20.0))
+        w.close()
+    assert w.rows_written == 0 and w.rows_dropped == 5
+    assert "No space left on device" in (w.error or "")
+    errs = [r for r in caplog.records if getattr(r, "event", None) == "log_error"]
+    assert len(errs) == 1 and "No space left" in errs[0].reason  # one line, not one per row
+
+
+def test_writer_repairs_a_row_cut_by_a_crash(tmp_path: Path) -> None:
+    path = tmp_path / "run.csv"
+    path.write_text("t_s,T1\n0,20\n1,20.5\n2,2")  # kill -9 in the middle of a row
+    w = LogWriter(path, ["t_s", "T1"], flush_s=0.01)
+    w.push((3.0, 21.0))
+    w.close()
+    log = read_log(path)
+    assert log.t_s.tolist() == [0.0, 1.0, 3.0] and w.repaired_bytes == 3
+
+
+def test_writer_sets_aside_a_log_with_other_columns(tmp_path: Path) -> None:
+    path = tmp_path / "run.csv"
+    path.write_text("t_s,T_old\n0,20\n")  # the config changed between runs
+    w = LogWriter(path, ["t_s", "T1", "T2"], flush_s=0.01)
+    w.push((1.0, 21.0, 22.0))
+    w.close()
+    assert read_log(path).columns == ["t_s", "T1", "T2"] and len(read_log(path)) == 1
+    assert read_log(tmp_path / "run.csv.1").columns == ["t_s", "T_old"]

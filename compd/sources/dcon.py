@@ -11,6 +11,7 @@ reply, a bad checksum or `?AA` (command rejected) make every channel COMMS_LOST.
 
 from __future__ import annotations
 
+import math
 import re
 import time
 from typing import Any
@@ -141,8 +142,17 @@ class DconSource(PolledSource):
             elif f in oor:
                 quality[k] = Quality.OUT_OF_RANGE
             else:
-                values[k] = float(f)
-                quality[k] = Quality.GOOD
+                try:
+                    v = float(f)
+                except ValueError:  # a field like "+1.2.3": the reply is garbled
+                    v = math.nan
+                if math.isfinite(v):
+                    values[k] = v
+                    quality[k] = Quality.GOOD
+                else:
+                    self.comm_errors += 1
+                    self.last_error = f"not a number: {f!r}"
+                    quality[k] = Quality.COMMS_LOST
 
     def close(self) -> None:
         super().close()

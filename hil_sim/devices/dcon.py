@@ -90,7 +90,10 @@ class DconModule:
         buf = b""
         assert self._ser is not None
         while not self._stop.is_set():
-            chunk = self._ser.read(64)
+            try:
+                chunk = self._ser.read(64)
+            except (serial.SerialException, OSError):  # the pty went away: the module is gone
+                return
             if not chunk:
                 continue
             buf += chunk
@@ -109,7 +112,10 @@ class DconModule:
                         out = b"!" + out[1:]
                 elif self.fault == "slow":
                     self._stop.wait(self.slow_s)
-                self._ser.write(out)
+                try:
+                    self._ser.write(out)
+                except (serial.SerialException, OSError):
+                    return
 
     def start(self) -> DconModule:
         self._ser = serial.Serial(self.serial_port, self.baudrate, timeout=0.05)

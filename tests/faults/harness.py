@@ -1,0 +1,343 @@
+"""The fault-injection harness: compd's pipeline (App from a config) against hil_sim devices over
+real protocols, a fault switched on mid-run, and what the machine saw measured cycle by cycle.
+
+A run is short and on the wall clock (the devices answer in real time): warm-up until the
+correction has settled, the fault from `FAULT_S`, optionally cleared at `CLEAR_S`, end at
+`duration_s`. Per cycle the harness records the guard's output, enable bit and axis state,
+and the word on the (emulated) PCI-1756 card. `FaultRun.run()` returns the measurements the
+matrix table shows; `record()` writes them as JSON for `python -m compd.faultdoc`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from compd.app import App
+from compd.clock import WallClock
+from compd.codec import decode
+from compd.config import load_config
+from compd.guard import AxisState
+from tests.faults.matrix import MATRIX
+
+RESULTS_ENV = "COMPD_FAULTS_OUT"  # a folder: each row writes <row>.json there (else tmp_path)
+PERIOD_S = 0.01
+SLEW_UM_PER_S = 20.0
+RAMP_UM_PER_S = 20.0
+FAULT_S = 0.6  # the correction (−8.98 µm at 24 °C) has settled by then at 20 µm/s
+CLEAR_S = 1.4
+MIN_S = 1.0  # a run lasts at least this long, and 0.3 s past its last action
+MAX_S = 10.0  # … and stops once the axis has settled (see FaultRun.settled), at most after this
+SENSOR = "T_xi"
+T0_C = 20.0
+WANT_UM = -13.6e-6 * 165.0 * 1000.0 * (24.0 - T0_C)  # the correction at 24 °C
+
+
+class JumpClock(WallClock):
+    """Monotonic time plus an offset a test can jump (a suspend or a stall seen by the loop)."""
+
+    def __init__(self) -> None:
+        super().__init__(0.0002)
+        self.offset_s = 0.0
+
+    def now(self) -> float:
+        return time.monotonic() + self.offset_s
+
+    def wait_until(self, deadline_s: float) -> None:
+        super().wait_until(deadline_s - self.offset_s)
+
+
+class _Capture(logging.Handler):
+    """Keeps the compd logger's records (the key=value event lines) for the checks."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def base_config(source: dict[str, Any], policy: str, **guard: Any) -> dict[str, Any]:
+    """One PT100 → ξ-point spindle model → guard → PCI-1756 (emulated card)."""
+    signals = {SENSOR: {"min": 0.0, "max": 80.0, "max_rate_per_s": 2.0, **guard.pop("limits", {})}}
+    return {
+        "loop": {"period_s": PERIOD_S},
+        "sources": [source],
+        "model": {"kind": "xi_spindle", "inputs": [SENSOR], "outputs": ["z"],
+                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": T0_C}},
+        "guard": {"max_slew_um_per_s": SLEW_UM_PER_S, "ramp_um_per_s": RAMP_UM_PER_S,
+                  "recovery_s": 0.3, "fault_policy": policy, "stale_after_s": 0.3,
+                  "signals": signals, **guard},
+        "sink": {"kind": "pci1756", "heartbeat_bit": 16},
+        "log": {"path": "log.csv", "period_s": 0.05, "flush_s": 0.1},
+        "status": {"period_s": 0.1},
+    }
+
+
+def modbus_tcp_source(port: int, **kw: Any) -> dict[str, Any]:
+    return {"kind": "modbus", "name": "pt", "transport": "tcp", "host": "127.0.0.1", "port": port,
+            "poll_period_s": 0.02, "timeout_s": 0.1, "stale_after_s": 0.3,
+            "reconnect_min_s": 0.05, "reconnect_max_s": 0.2,
+            "channels": [{"name": SENSOR, "address": 0}], **kw}
+
+
+@dataclass
+class Measured:
+    """What one run measured (the columns of the matrix table)."""
+
+    max_step_um: float  # largest change of the applied (enabled) correction in one cycle
+    allowed_step_um: float  # slew (or ramp) × the nominal period
+    max_step_ratio: float  # largest step ÷ (rate × that cycle's dt): ≤ 1 means never too fast
+    time_to_safe_s: float | None  # fault switched on → the axis in its configured safe state
+    recovered: bool
+    samples_lost: int
+    event: str | None  # "T_xi bad: burnout" from the guard's event list
+    logged: bool  # the same event as a key=value log record with sensor and reason
+    word_valid: bool
+    policy_ok: bool
+    running: bool
+    cycles: int
+    fault_t_s: float | None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Trace:
+    t: list[float] = field(default_factory=list)
+    out: list[float] = field(default_factory=list)
+    enable: list[bool] = field(default_factory=list)
+    state: list[int] = field(default_factory=list)
+    word: list[int] = field(default_factory=list)
+    jumps: list[bool] = field(default_factory=list)
+    target: list[float] = field(default_factory=list)
+
+
+class FaultRun:
+    """One matrix row: a config, a schedule of actions (the fault), a run, the measurements."""
+
+    def __init__(self, tmp_path: Path, cfg: dict[str, Any], *, duration_s: float = MAX_S,
+                 clock: WallClock | None = None) -> None:
+        self.tmp_path = tmp_path
+        self.cfg = cfg
+        self.policy = cfg["guard"]["fault_policy"]
+        self.expect_recovery = False  # set by rows whose fault clears by itself (clock jump)
+        self.duration_s = duration_s
+        self.clock = clock
+        self.actions: list[tuple[float, str, Callable[[], None]]] = []
+        self.times: dict[str, float] = {}  # label → loop time the action ran
+        self.trace = Trace()
+        self.app: App | None = None
+        self.summary: dict[str, Any] = {}
+        self.records: list[logging.LogRecord] = []
+
+    def at(self, t_s: float, label: str, action: Callable[[], None]) -> FaultRun:
+        """Run `action` (on a helper thread) `t_s` after the loop started; `label` 'fault' marks
+        the fault switched on."""
+        self.actions.append((t_s, label, action))
+        return self
+
+    # ------------------------------------------------------------------ run
+    def run(self, sensor: str = SENSOR, reasons: tuple[str, ...] = (), kind: str = "bad") -> Measured:
+        """Run; the row's event is the guard event (`sensor`, `kind`, one of `reasons`)."""
+        path = self.tmp_path / "c.yaml"
+        path.write_text(yaml.safe_dump(self.cfg))
+        app = self.app = App(load_config(path), duration_s=self.duration_s)
+        if self.clock is not None:
+            app.clock = app.loop.clock = self.clock
+        started = threading.Event()
+        t0 = [0.0]
+        tr = self.trace
+        guard = app.guard
+        card = app.sink.card
+        port = app.sink.cfg.word_port
+        n_jumps = [0]
+
+        def hook(loop: Any, now: float) -> None:
+            if not started.is_set():
+                t0[0] = time.monotonic()
+                started.set()
+            elif len(self.times) == len(self.actions) and self.settled(now):
+                loop.stop()  # the outcome is decided: no need to wait for MAX_S
+            jumps = sum(1 for e in guard.events if e[2] == "jump")
+            tr.jumps.append(jumps != n_jumps[0])
+            n_jumps[0] = jumps
+            tr.t.append(now)
+            tr.out.append(float(guard.out_um[0]))
+            tr.enable.append(bool(guard.enable[0]))
+            tr.state.append(int(guard.state[0]))
+            tr.target.append(float(guard.target_um[0]))
+            tr.word.append(card.read_do_word(port))
+
+        app.loop.cycle_hooks.append(hook)
+        stop = threading.Event()
+
+        def scheduler() -> None:
+            if not started.wait(10):
+                return
+            for t_s, label, action in sorted(self.actions, key=lambda a: a[0]):
+                if stop.wait(max(t0[0] + t_s - time.monotonic(), 0.0)):
+                    return
+                action()
+                self.times[label] = app.clock.now()  # after: a clock jump counts from its new time
+
+        capture = _Capture()
+        logger = logging.getLogger("compd")
+        old_level = logger.level
+        logger.addHandler(capture)
+        logger.setLevel(logging.DEBUG)
+        th = threading.Thread(target=scheduler, name="fault-schedule")
+        th.start()
+        running = True
+        try:
+            self.summary = app.run()
+        except Exception:
+            running = False
+            raise
+        finally:
+            stop.set()
+            th.join(10)
+            logger.removeHandler(capture)
+            logger.setLevel(old_level)
+            self.records = capture.records
+        return self._measure(sensor, reasons, kind, running)
+
+    def settled(self, now: float) -> bool:
+        """All actions done, 0.3 s past the last, MIN_S run, and the axis either back at the
+        model's correction (NORMAL, within 0.25 µm of its target) or in its safe state."""
+        tr = self.trace
+        if not tr.t or now - tr.t[0] < MIN_S or (self.times and now - max(self.times.values()) < 0.3):
+            return False
+        k = len(tr.t) - 1
+        if tr.state[k] == AxisState.NORMAL:
+            return abs(tr.out[k] - tr.target[k]) <= 0.25
+        if self.expect_recovery:  # a row whose fault clears by itself: wait for NORMAL
+            return False
+        return tr.state[k] == AxisState.FAULT and self._safe(k) and (
+            self.policy != "ramp_to_zero" or tr.out[k] == 0.0
+        )
+
+    # -------------------------------------------------------------- measure
+    def _measure(self, sensor: str, reasons: tuple[str, ...], kind: str, running: bool) -> Measured:
+        app = self.app
+        assert app is not None
+        tr = self.trace
+        rate = max(SLEW_UM_PER_S, RAMP_UM_PER_S)
+        max_step = 0.0
+        ratio = 0.0
+        for k in range(1, len(tr.t)):
+            if not tr.enable[k]:
+                continue  # not applied: `disable` drops the correction at once by design
+            dt = PERIOD_S if tr.jumps[k] else tr.t[k] - tr.t[k - 1]
+            step = abs(tr.out[k] - tr.out[k - 1])
+            max_step = max(max_step, step)
+            if step > 0:
+                ratio = max(ratio, step / (rate * dt) if dt > 0 else math.inf)
+        word_valid = all(math.isfinite(o) for o in tr.out)
+        for w, o, en in zip(tr.word, tr.out, tr.enable, strict=True):
+            if not 0 <= w <= 0xFFFF:
+                word_valid = False
+                continue
+            code = decode(w)[0]
+            if code.magnitude > 63:
+                word_valid = False
+            if code.enable and abs(code.direction * code.magnitude - o) > 1.5:  # dead-band + ½ LSB
+                word_valid = False
+            if code.enable and not en:
+                word_valid = False
+        t_fault = self.times.get("fault")
+        time_to_safe = None
+        policy_ok = True
+        if t_fault is not None:
+            for k, t in enumerate(tr.t):
+                if t < t_fault or tr.state[k] != AxisState.FAULT:
+                    continue
+                if self._safe(k):
+                    time_to_safe = t - t_fault
+                    break
+            policy_ok = self._policy_held()
+        events = [(s, e, r) for _, s, e, r in app.guard.events if s == sensor and e == kind]
+        hit = next(((s, e, r) for s, e, r in events if not reasons or r in reasons), None)
+        event = f"{hit[0]} {hit[1]}: {hit[2]}" if hit else None
+        log_event, key = {"bad": ("sensor_bad", "sensor"), "jump": ("clock_jump", "clock")}[kind]
+        logged = hit is not None and any(
+            getattr(r, "event", None) == log_event and getattr(r, key, None) == sensor
+            and getattr(r, "reason", None) == hit[2]
+            for r in self.records
+        )
+        writer = app.logger.writer if app.logger else None
+        m = Measured(
+            max_step_um=max_step,
+            allowed_step_um=rate * PERIOD_S,
+            max_step_ratio=ratio,
+            time_to_safe_s=time_to_safe,
+            recovered=bool(tr.state) and tr.state[-1] == AxisState.NORMAL,
+            samples_lost=writer.rows_dropped if writer else 0,
+            event=event,
+            logged=logged,
+            word_valid=word_valid,
+            policy_ok=policy_ok,
+            # still cycling 0.3 s after the last action (the run stops itself once settled)
+            running=running and bool(tr.t) and tr.t[-1] - tr.t[0] >= max(
+                [MIN_S, *(t - tr.t[0] + 0.3 for t in self.times.values())]) - 2 * PERIOD_S,
+            cycles=len(tr.t),
+            fault_t_s=None if t_fault is None else t_fault - tr.t[0],
+        )
+        return m
+
+    def _safe(self, k: int) -> bool:
+        tr = self.trace
+        if self.policy == "hold":
+            return True
+        if self.policy == "ramp_to_zero":
+            return tr.out[k] == 0.0
+        return not tr.enable[k] and tr.out[k] == 0.0 and not decode(tr.word[k])[0].enable
+
+    def _policy_held(self) -> bool:
+        """In every FAULT cycle the axis did what its policy says."""
+        tr = self.trace
+        for k in range(1, len(tr.t)):
+            if tr.state[k] != AxisState.FAULT or tr.state[k - 1] != AxisState.FAULT:
+                continue
+            if self.policy == "hold" and tr.out[k] != tr.out[k - 1]:
+                return False
+            if self.policy == "ramp_to_zero" and abs(tr.out[k]) > abs(tr.out[k - 1]):
+                return False
+            if self.policy == "disable" and (tr.enable[k] or tr.out[k] != 0.0):
+                return False
+        return True
+
+
+def record(row: str, m: Measured, tmp_path: Path) -> Path:
+    """Write one row's measurements (plus its matrix text) as JSON; returns the file."""
+    spec = MATRIX[row]
+    out_dir = Path(os.environ.get(RESULTS_ENV) or tmp_path)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    data = {"row": row, "order": list(MATRIX).index(row), "fault": spec.fault, "transport": spec.transport, "policy": spec.policy,
+            "expected": spec.expected, **m.__dict__}
+    file = out_dir / f"{row}.json"
+    file.write_text(json.dumps(data, indent=1, default=str))
+    return file
+
+
+def check(m: Measured, *, fault: bool = True, recovered: bool | None = None) -> None:
+    """The assertions every row shares (SPEC: never throw the axis)."""
+    assert m.running, "compd stopped"
+    assert m.word_valid, "an invalid word reached the card"
+    assert m.max_step_ratio <= 1.0 + 1e-6, f"the correction moved faster than the slew: {m}"
+    if fault:
+        assert m.policy_ok, f"the configured policy was not applied: {m}"
+        assert m.time_to_safe_s is not None, f"the axis never reached its safe state: {m}"
+        assert m.event is not None and m.logged, f"the event was not logged with sensor and reason: {m}"
+    if recovered is not None:
+        assert m.recovered == recovered, m

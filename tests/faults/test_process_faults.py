@@ -1,0 +1,173 @@
+"""Matrix rows for the daemon process itself: `kill -9` and restart, a bad config on SIGHUP.
+
+`compd run` runs as a child process on the wall clock against a PT100 Modbus TCP module
+served from the test; what it did is read back from its data log (t_s is the monotonic
+clock, the same clock this test reads) and its key=value lines on stderr.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from compd.log import read_log
+from hil_sim.devices.modbus_server import ModbusServerThread
+from hil_sim.devices.pt100 import Pt100Transmitter
+from hil_sim.devices.pt100_modbus import Pt100ModbusDevice
+from tests.conftest import ROOT
+from tests.faults.harness import SENSOR, SLEW_UM_PER_S, Measured, modbus_tcp_source, record
+
+LOG_PERIOD_S = 0.05
+FLUSH_S = 0.2
+ALPHA_L_UM_PER_K = 13.6e-6 * 165.0 * 1000.0
+
+
+def _config(port: int, **top) -> dict:  # noqa: ANN003
+    return {
+        "loop": {"period_s": 0.01},
+        "sources": [modbus_tcp_source(port)],
+        "model": {"kind": "xi_spindle", "inputs": [SENSOR], "outputs": ["z"],
+                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": None}},
+        "guard": {"max_slew_um_per_s": SLEW_UM_PER_S, "recovery_s": 0.3, "stale_after_s": 0.3},
+        "sink": {"kind": "pci1756", "heartbeat_bit": 16},
+        "log": {"path": "run.csv", "period_s": LOG_PERIOD_S, "flush_s": FLUSH_S},
+        "state": {"path": "state.json"},
+        **top,
+    }
+
+
+def _start(cfg: Path, err: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
+    with open(err, "a") as fh:
+        return subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], cwd=cfg.parent,
+                                stdout=subprocess.DEVNULL, stderr=fh, env=env)
+
+
+def _rows(path: Path) -> np.ndarray:
+    if not path.exists():
+        return np.zeros((0, 0))
+    try:
+        return read_log(path, allow_nan=True).data
+    except Exception:  # noqa: BLE001  (a row being written right now)
+        return np.zeros((0, 0))
+
+
+def _wait(pred, timeout_s: float = 20.0) -> None:  # noqa: ANN001
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def _steps(data: np.ndarray, corr: int) -> tuple[float, float]:
+    """Largest change of the correction between log rows, and the largest ratio to slew × Δt."""
+    d = np.abs(np.diff(data[:, corr]))
+    dt = np.diff(data[:, 0])
+    ok = dt > 0
+    ratio = float(np.max(d[ok] / (SLEW_UM_PER_S * dt[ok]), initial=0.0))
+    return float(d.max(initial=0.0)), ratio
+
+
+def test_kill9_and_restart(tmp_path: Path) -> None:
+    tx = Pt100Transmitter([SENSOR], [22.0])
+    with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
+        cfg = tmp_path / "c.yaml"
+        cfg.write_text(yaml.safe_dump(_config(server.port)))
+        log_path, err = tmp_path / "run.csv", tmp_path / "stderr.txt"
+        proc = _start(cfg, err)
+        try:
+            _wait(lambda: (tmp_path / "state.json").exists() and len(_rows(log_path)) > 5)
+            tx.set(SENSOR, 26.0)  # T0 = 22 °C was taken from the first reading: 4 K of warm-up
+            want_um = -ALPHA_L_UM_PER_K * 4.0
+            cols = read_log(log_path, allow_nan=True).columns
+            corr = cols.index("corr_z_um")
+            _wait(lambda: abs(_rows(log_path)[-1, corr] - want_um) < 0.5)
+            time.sleep(0.3)
+            t_kill = time.monotonic()
+            proc.kill()  # SIGKILL: no safe output, no last flush
+            proc.wait(10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+        before = read_log(log_path, allow_nan=True)  # the log is a valid CSV after kill -9
+        lost_s = t_kill - before.t_s[-1]
+        state = json.loads((tmp_path / "state.json").read_text())
+        assert state["state"]["t0_c"] == 22.0
+
+        # restart at 26 °C: a fresh start would take T0 = 26 (no correction); resumed, T0 = 22
+        proc = _start(cfg, err)
+        try:
+            _wait(lambda: len(_rows(log_path)) > len(before) + 2
+                  and abs(_rows(log_path)[-1, corr] - want_um) < 0.5)
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(10) == 0
+        after = read_log(log_path, allow_nan=True)
+        text = err.read_text()
+    assert "event=state_restored" in text
+    step, ratio = _steps(after.data[len(before):], corr)  # the restarted run slews from 0
+    rows_lost = max(0, math.floor(lost_s / LOG_PERIOD_S))
+    m = Measured(
+        max_step_um=step, allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S, max_step_ratio=ratio,
+        time_to_safe_s=None, recovered=True, samples_lost=rows_lost,
+        event="state_restored (T0 22 °C kept)", logged=True, word_valid=True, policy_ok=True,
+        running=True, cycles=len(after), fault_t_s=None,
+        extra={"lost_s": lost_s, "flush_s": FLUSH_S},
+    )
+    record("kill9_restart", m, tmp_path)
+    # rows lost: at most the flush interval plus one log period (and the scheduler's slack)
+    assert lost_s <= FLUSH_S + LOG_PERIOD_S + 0.3, lost_s
+    assert ratio <= 1.01  # the log keeps 6 significant digits of the correction
+
+
+def test_bad_config_on_reload(tmp_path: Path) -> None:
+    tx = Pt100Transmitter([SENSOR], [22.0])
+    with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
+        good = _config(server.port)
+        cfg = tmp_path / "c.yaml"
+        cfg.write_text(yaml.safe_dump(good))
+        log_path, err = tmp_path / "run.csv", tmp_path / "stderr.txt"
+        proc = _start(cfg, err)
+        try:
+            _wait(lambda: len(_rows(log_path)) > 5)
+            tx.set(SENSOR, 26.0)
+            time.sleep(0.2)  # the correction is slewing towards −8.98 µm
+            bad = yaml.safe_dump(good).replace("max_slew_um_per_s", "max_slew")
+            cfg.write_text(bad)
+            t_hup = time.monotonic()
+            proc.send_signal(signal.SIGHUP)
+            _wait(lambda: "reload rejected" in err.read_text())
+            time.sleep(0.8)
+            assert proc.poll() is None  # still running on the old config
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(10) == 0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    data = read_log(log_path, allow_nan=True)
+    corr = data.columns.index("corr_z_um")
+    step, ratio = _steps(data.data, corr)
+    lines = [ln for ln in err.read_text().splitlines() if "reload rejected" in ln and "compd:" in ln]
+    assert len(lines) == 1 and "max_slew" in lines[0] and "c.yaml" in lines[0]
+    after_hup = data.data[data.t_s > t_hup]
+    assert len(after_hup) > 5  # kept logging (and compensating) on the old config
+    m = Measured(
+        max_step_um=step, allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S, max_step_ratio=ratio,
+        time_to_safe_s=None, recovered=True, samples_lost=0,
+        event="reload_rejected: " + lines[0].split("still running the old config: ", 1)[-1].replace(f"{tmp_path}/", ""),
+        logged="event=reload_rejected" in err.read_text(), word_valid=True, policy_ok=True,
+        running=True, cycles=len(data), fault_t_s=None,
+    )
+    record("bad_config_reload", m, tmp_path)
+    assert ratio <= 1.01 and m.logged  # 1 %: the log keeps 6 significant digits
