@@ -93,6 +93,8 @@ class CompensationSummary:
         if not self.pairs:
             return
         applied = loop.applied()
+        if not np.all(np.isfinite(applied)):
+            return  # the sink does not know yet what the machine applies (remote status not read)
         self.n += 1
         for a, i in self.pairs:
             e = loop.frame.values[i]
