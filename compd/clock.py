@@ -67,7 +67,9 @@ class PlantClock:
     slew and staleness, the sinks' update intervals, the sources' time stamps — runs
     in plant seconds. `wait_until` sleeps until the plant reaches the deadline; if the
     plant time stops advancing for `stall_s` of wall time it returns anyway, so the
-    loop can still see a stop request.
+    loop can still see a stop request; if the plant has not answered for `lost_s` it
+    raises RuntimeError (the run ends with the safe output: a simulation without its
+    plant has nothing left to follow).
     """
 
     simulated = False
@@ -82,11 +84,14 @@ class PlantClock:
         poll_period_s: float = 0.001,
         stall_s: float = 0.5,
         timeout_s: float = 0.5,
+        lost_s: float = 5.0,
     ) -> None:
         self.host, self.port, self.device_id, self.address = host, port, device_id, address
         self.poll_period_s = poll_period_s
         self.stall_s = stall_s
         self.timeout_s = timeout_s
+        self.lost_s = lost_s
+        self._ok_wall = time.monotonic()
         self.t_s = 0.0
         self.reads = 0
         self.errors = 0
@@ -127,7 +132,7 @@ class PlantClock:
             self._client.close()  # type: ignore[attr-defined]
             raise RuntimeError(f"plant clock: no answer from {self.host}:{self.port}")
         self.t_s = t
-        self._changed_wall = time.monotonic()
+        self._changed_wall = self._ok_wall = time.monotonic()
         self._stop = False
         th = threading.Thread(target=self._run, name="plant-clock", daemon=True)
         self._thread = th
@@ -140,6 +145,7 @@ class PlantClock:
                 self.errors += 1
             else:
                 self.reads += 1
+                self._ok_wall = time.monotonic()
                 if t > self.t_s:
                     self.t_s = t
                     self._changed_wall = time.monotonic()
@@ -160,6 +166,9 @@ class PlantClock:
 
     def wait_until(self, deadline_s: float) -> None:
         while self.t_s < deadline_s:
-            if time.monotonic() - self._changed_wall > self.stall_s:
+            now = time.monotonic()
+            if now - self._ok_wall > self.lost_s:
+                raise RuntimeError(f"plant clock: no answer from {self.host}:{self.port} for {self.lost_s:g} s")
+            if now - self._changed_wall > self.stall_s:
                 return
             time.sleep(self.poll_period_s * 0.5)
