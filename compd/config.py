@@ -192,7 +192,7 @@ class PlantClockConfig(Strict):
 
     host: str = Field("127.0.0.1", description="the plant's Modbus TCP address")
     port: int = Field(ge=1, le=65535, description="the plant's Modbus TCP port")
-    device_id: int = Field(1, ge=0, le=247)
+    device_id: int = Field(1, ge=0, le=247, description="unit id of the plant's register map")
     address: int = Field(0, ge=0, le=65534, description="plant time, ms, uint32 in two registers (high first)")
     poll_period_s: float = Field(0.001, gt=0, le=1, description="wall time between clock reads")
     stall_s: float = Field(0.5, gt=0, description="wall time without plant progress before a wait gives up")
