@@ -154,7 +154,8 @@ def compd_config(
         {"name": n, "address": SIGNAL_BASE + 2 * names.index(n)} for n in extras + [f"err_{a}_um" for a in axes]
     ]
     cfg: dict[str, Any] = {
-        "loop": {"period_s": 2.0, "clock": "plant",
+        # one cycle per ~0.5 ms of wall time at most: 2 plant s at 1200x, 4 s at 7200x
+        "loop": {"period_s": max(2.0, speedup / 1800.0), "clock": "plant",
                  "plant_clock": {"port": ports[machine], "poll_period_s": 0.001}},
         "sources": [
             {"kind": "modbus", "name": "temps", "port": ports["temps"], "poll_period_s": poll,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from hil_sim import closedloop as cl
 
-HOURS, SPEEDUP = 5.0, 3600.0
+HOURS, SPEEDUP = 5.0, 7200.0
 
 
 def test_feed_axis_position_dependent_siemens_loop(tmp_path):

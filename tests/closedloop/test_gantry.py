@@ -6,8 +6,8 @@ from __future__ import annotations
 from hil_sim import closedloop as cl
 
 # The unseen day's first 5 plant-hours: 2 m/min over 100-700 mm with pauses (errors
-# up to ~16 um on X2). 3600 plant s per wall s: ~5 s of closed loop per model.
-HOURS, SPEEDUP = 5.0, 3600.0
+# up to ~16 um on X2). 7200 plant s per wall s: ~2.5 s of closed loop per model.
+HOURS, SPEEDUP = 5.0, 7200.0
 
 
 def test_gantry_lvr_through_pci1756_and_pmc_cuts_both_axes(tmp_path):

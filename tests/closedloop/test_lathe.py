@@ -5,8 +5,8 @@ from __future__ import annotations
 from hil_sim import closedloop as cl
 
 # The unseen day's first 5 plant-hours: 1 h stopped, then 1500 rpm jobs with pauses
-# (the error reaches ~15 um). 3600 plant s per wall s: ~5 s of closed loop.
-HOURS, SPEEDUP = 5.0, 3600.0
+# (the error reaches ~15 um). 7200 plant s per wall s: ~2.5 s of closed loop.
+HOURS, SPEEDUP = 5.0, 7200.0
 
 
 def test_lathe_ar1_closed_loop_cuts_the_error(tmp_path):
@@ -14,7 +14,7 @@ def test_lathe_ar1_closed_loop_cuts_the_error(tmp_path):
     r = cl.closed_loop("lathe", model, tmp_path, speedup=SPEEDUP, duration_s=HOURS * 3600)
     z = r["axes"]["z"]
     assert z["rms_before_um"] > 5.0  # the day heats the machine
-    # measured ~82 % on this stretch (75 % over the whole day, where the 1000 rpm
+    # measured 77-83 % on this stretch (75.5 % over the whole day, where the 1000 rpm
     # jobs and the warmer shop come in: see the issue note); 70 % leaves room for
     # run-to-run timing
     assert z["reduction_pct"] > 70.0, z

@@ -6,8 +6,8 @@ from __future__ import annotations
 from hil_sim import closedloop as cl
 
 # The unseen day's first 5 plant-hours: 9000 rpm jobs with pauses, coolant on (axial
-# error up to ~15 um). 3600 plant s per wall s: ~5 s of closed loop per model.
-HOURS, SPEEDUP = 5.0, 3600.0
+# error up to ~15 um). 7200 plant s per wall s: ~2.5 s of closed loop per model.
+HOURS, SPEEDUP = 5.0, 7200.0
 
 
 def test_spindle_xi_model_through_the_pmc_cuts_the_axial_error(tmp_path):
