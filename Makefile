@@ -37,8 +37,9 @@ test: $(TEST_STAMP) sysdeps
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -m "not accept and not bench"
 
+# closed loop on every machine's unseen day (issue 5): hil_sim serve + compd run over Modbus TCP
 accept: $(TEST_STAMP) sysdeps
-	$(PY) -m pytest -q -m accept
+	$(PY) scripts/accept.py --json build/accept/results.json
 
 bench: $(TEST_STAMP) sysdeps
 	$(PY) -m pytest -q -s -m bench tests/bench

@@ -10,7 +10,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from compd.clock import SimClock, WallClock
+from compd.clock import PlantClock, SimClock, WallClock
 from compd.codec import Encoder
 from compd.config import Config
 from compd.errors import BadInput
@@ -103,6 +103,8 @@ class CompensationSummary:
         if not self.pairs:
             return
         applied = loop.applied()
+        if not np.all(np.isfinite(applied)):
+            return  # the sink does not know yet what the machine applies (remote status not read)
         self.n += 1
         for a, i in self.pairs:
             e = loop.frame.values[i]
@@ -217,6 +219,12 @@ class App:
         if lp.clock == "sim":
             start = min((getattr(s, "start_s", 0.0) for s in self.sources), default=0.0)
             self.clock: Any = SimClock(start, lp.speedup)
+        elif lp.clock == "plant" and lp.plant_clock is not None:
+            pc = lp.plant_clock
+            self.clock = PlantClock(
+                pc.host, pc.port, device_id=pc.device_id, address=pc.address,
+                poll_period_s=pc.poll_period_s, stall_s=pc.stall_s,
+            )
         else:
             self.clock = WallClock(lp.spin_margin_s)
         self.loop = Loop(
@@ -296,6 +304,9 @@ class App:
     def open(self) -> None:
         """Start I/O: real-time options, state, log, and the sources and sink not adopted."""
         top = self.cfg.top
+        start_clock = getattr(self.clock, "start", None)
+        if start_clock is not None:  # the plant clock: connect before anything is stamped
+            start_clock()
         self.restore_state()
         if top.log.path:
             self.logger = LogObserver(
@@ -322,6 +333,9 @@ class App:
                     self.state_writer.submit(self.model.get_state())
                 self.state_writer.close()
             self.service.stop()
+            stop_clock = getattr(self.clock, "stop", None)
+            if stop_clock is not None:
+                stop_clock()
 
     def summary_dict(self) -> dict[str, Any]:
         return {

@@ -1,8 +1,9 @@
-"""Clocks injected into the loop: wall time (sleep then spin) or simulated time."""
+"""Clocks injected into the loop: wall time (sleep then spin), simulated time, or a plant's clock over Modbus."""
 
 from __future__ import annotations
 
 import time
+from typing import Any
 
 
 class WallClock:
@@ -55,3 +56,119 @@ class SimClock:
     def set(self, t_s: float) -> None:
         """Jump (replay: to the next row's time)."""
         self.t_s = t_s
+
+
+class PlantClock:
+    """The plant's own clock, read over Modbus TCP (a simulator running faster than wall time).
+
+    A thread polls two holding registers (plant time in ms, uint32, high word first,
+    hil_sim's `plant` device map) every `poll_period_s` of wall time; `now()` is the
+    last plant time read, so everything on the loop clock — AR(1)'s Δτ, the guard's
+    slew and staleness, the sinks' update intervals, the sources' time stamps — runs
+    in plant seconds. `wait_until` sleeps until the plant reaches the deadline; if the
+    plant time stops advancing for `stall_s` of wall time it returns anyway, so the
+    loop can still see a stop request; if the plant has not answered for `lost_s` it
+    raises RuntimeError (the run ends with the safe output: a simulation without its
+    plant has nothing left to follow).
+    """
+
+    simulated = False
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        device_id: int = 1,
+        address: int = 0,
+        poll_period_s: float = 0.001,
+        stall_s: float = 0.5,
+        timeout_s: float = 0.5,
+        lost_s: float = 5.0,
+    ) -> None:
+        self.host, self.port, self.device_id, self.address = host, port, device_id, address
+        self.poll_period_s = poll_period_s
+        self.stall_s = stall_s
+        self.timeout_s = timeout_s
+        self.lost_s = lost_s
+        self._ok_wall = time.monotonic()
+        self.t_s = 0.0
+        self.reads = 0
+        self.errors = 0
+        self._changed_wall = time.monotonic()
+        self._client: object | None = None
+        self._thread: object | None = None
+        self._stop = False
+
+    def _read(self) -> float | None:
+        client: Any = self._client
+        try:
+            if not client.connected and not client.connect():
+                return None
+            rr = client.read_holding_registers(self.address, count=2, device_id=self.device_id)
+        except Exception:
+            client.close()
+            return None
+        if rr.isError():
+            return None
+        hi, lo = rr.registers
+        return ((hi << 16) | lo) / 1000.0
+
+    def start(self) -> None:
+        """Connect and read the plant time once (RuntimeError if the plant does not answer)."""
+        import logging
+        import threading
+
+        from pymodbus.client import ModbusTcpClient
+
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+        self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
+        deadline = time.monotonic() + 5.0
+        t = self._read()
+        while t is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+            t = self._read()
+        if t is None:
+            self._client.close()  # type: ignore[attr-defined]
+            raise RuntimeError(f"plant clock: no answer from {self.host}:{self.port}")
+        self.t_s = t
+        self._changed_wall = self._ok_wall = time.monotonic()
+        self._stop = False
+        th = threading.Thread(target=self._run, name="plant-clock", daemon=True)
+        self._thread = th
+        th.start()
+
+    def _run(self) -> None:
+        while not self._stop:
+            t = self._read()
+            if t is None:
+                self.errors += 1
+            else:
+                self.reads += 1
+                self._ok_wall = time.monotonic()
+                if t > self.t_s:
+                    self.t_s = t
+                    self._changed_wall = time.monotonic()
+            time.sleep(self.poll_period_s)
+
+    def stop(self) -> None:
+        self._stop = True
+        th: Any = self._thread
+        if th is not None:
+            th.join(2.0)
+            self._thread = None
+        if self._client is not None:
+            self._client.close()  # type: ignore[attr-defined]
+            self._client = None
+
+    def now(self) -> float:
+        return self.t_s
+
+    def wait_until(self, deadline_s: float) -> None:
+        while self.t_s < deadline_s:
+            now = time.monotonic()
+            if now - self._ok_wall > self.lost_s:
+                raise RuntimeError(f"plant clock: no answer from {self.host}:{self.port} for {self.lost_s:g} s")
+            if now - self._changed_wall > self.stall_s:
+                return
+            time.sleep(self.poll_period_s * 0.5)

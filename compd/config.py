@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from compd.errors import BadInput, ConfigError, format_path
 
@@ -191,11 +191,27 @@ class RealtimeConfig(Strict):
     lock_memory: bool = Field(False, description="lock all memory (mlockall) against paging")
 
 
+class PlantClockConfig(Strict):
+    """Where a simulated plant publishes its clock (hil_sim `plant` device, Modbus TCP)."""
+
+    host: str = Field("127.0.0.1", description="the plant's Modbus TCP address")
+    port: int = Field(ge=1, le=65535, description="the plant's Modbus TCP port")
+    device_id: int = Field(1, ge=0, le=247, description="unit id of the plant's register map")
+    address: int = Field(0, ge=0, le=65534, description="plant time, ms, uint32 in two registers (high first)")
+    poll_period_s: float = Field(0.001, gt=0, le=1, description="wall time between clock reads")
+    stall_s: float = Field(0.5, gt=0, description="wall time without plant progress before a wait gives up")
+
+
 class LoopConfig(Strict):
     """The fixed-period cycle."""
 
     period_s: float = Field(0.002, gt=0, le=60, description="cycle period")
-    clock: Literal["wall", "sim"] = Field("wall", description="wall time or simulated time")
+    clock: Literal["wall", "sim", "plant"] = Field(
+        "wall",
+        description="wall time, simulated time, or a plant's clock (plant_clock): then every"
+        " time in the config (period, Δτ, slew, staleness, --duration) is plant time",
+    )
+    plant_clock: PlantClockConfig | None = Field(None, description="clock: plant — where to read it")
     speedup: float = Field(
         0.0, ge=0, description="sim clock only: simulated seconds per wall second, 0 = flat out"
     )
@@ -208,6 +224,12 @@ class LoopConfig(Strict):
         description="wall clock: how soon a thread holding the GIL must hand it to the waking cycle",
     )
     realtime: RealtimeConfig = Field(RealtimeConfig(), description="real-time options")
+
+    @model_validator(mode="after")
+    def _plant_clock(self) -> LoopConfig:
+        if self.clock == "plant" and self.plant_clock is None:
+            raise ValueError("clock: plant needs a plant_clock section")
+        return self
 
 
 class SignalLimits(Strict):

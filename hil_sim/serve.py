@@ -12,6 +12,16 @@ The file is a list of devices (like pyvisa-sim's device files), each a mapping w
   `step_limit_um`, `device_id`).
 * `siemens_nc` — the NC's temperature-compensation data on Modbus TCP (`axes`, `ipo_s`,
   `max_velo_mm_min`, `velo_factor`).
+* `plant` — a live plant for the closed loop (hil_sim.devices.plant): `scenario` (file),
+  `speedup` (plant s per wall s), `start` (immediate / on_clock_read), `log_path` and
+  `log_period_s` (the residual log), `duration_s`, `seed`, `cnc` (name of the PMC or NC
+  device whose applied correction reaches the plant) and `cnc_axes` (plant axis → CNC
+  axis); its clock and signals on Modbus TCP (`host`, `port`, `device_id`).
+
+A transmitter (`pt100_modbus`, `dcon`, `can_pt100`) with `plant: NAME` reads its channels
+(by name) from that plant. A `fanuc_pmc` or `siemens_nc` with `clock: plant` scans on
+the plant's time (the plant that names it as `cnc` advances it) instead of wall time.
+Plants are started after every other device.
 
 Ports 0 pick a free port; every device prints where it listens.
 """
@@ -27,7 +37,8 @@ from typing import Any, TextIO
 
 import yaml
 
-KINDS = ("pt100_modbus", "dcon", "can_pt100", "fanuc_pmc", "siemens_nc")
+KINDS = ("pt100_modbus", "dcon", "can_pt100", "fanuc_pmc", "siemens_nc", "plant")
+CLOCKS = ("wall", "plant")
 
 
 class Running:
@@ -39,6 +50,8 @@ class Running:
         self.parts: list[Any] = []
         self.where: Callable[[], str] = lambda: ""
         self.device: Any = None
+        self.feed_plant: str | None = None  # transmitters fed by a plant
+        self.clock = "wall"  # CNCs: wall or plant
 
     def start(self, part: Any) -> Any:
         part.start()
@@ -67,7 +80,15 @@ def start_device(cfg: dict[str, Any]) -> Running:
     if kind not in KINDS:
         raise ValueError(f"device {name!r}: unknown kind {kind!r} (known: {', '.join(KINDS)})")
     run = Running(name, kind)
+    if kind in ("pt100_modbus", "dcon", "can_pt100"):
+        run.feed_plant = cfg.pop("plant", None)
+    if kind in ("fanuc_pmc", "siemens_nc"):
+        run.clock = cfg.pop("clock", "wall")
+        if run.clock not in CLOCKS:
+            raise ValueError(f"device {name!r}: clock must be wall or plant, got {run.clock!r}")
     try:
+        if kind == "plant":
+            raise ValueError(f"device {name!r}: a plant is started by serve() after the other devices")
         if kind == "pt100_modbus":
             from hil_sim.devices import pt100_modbus
 
@@ -100,7 +121,8 @@ def start_device(cfg: dict[str, Any]) -> Running:
             host, port, dev_id = cfg.pop("host", "127.0.0.1"), int(cfg.pop("port", 0)), int(cfg.pop("device_id", 1))
             pmc = FanucPmc(**cfg)
             run.device = pmc
-            run.start(PmcScanThread(pmc))
+            if run.clock == "wall":
+                run.start(PmcScanThread(pmc))
             srv = run.start(ModbusServerThread(pmc, host=host, port=port, device_id=dev_id))
             run.where = lambda: srv.where() + f" scan {pmc.scan_s * 1000:g} ms"
         else:  # siemens_nc
@@ -110,7 +132,8 @@ def start_device(cfg: dict[str, Any]) -> Running:
             host, port, dev_id = cfg.pop("host", "127.0.0.1"), int(cfg.pop("port", 0)), int(cfg.pop("device_id", 1))
             nc = SiemensNc(**cfg)
             run.device = nc
-            run.start(_NcClock(nc))
+            if run.clock == "wall":
+                run.start(_NcClock(nc))
             srv = run.start(ModbusServerThread(nc, host=host, port=port, device_id=dev_id))
             run.where = lambda: srv.where() + f" IPO {nc.ipo_s * 1000:g} ms"
     except BaseException:
@@ -146,6 +169,42 @@ class _NcClock:
             self._thread.join(5)
 
 
+def start_plant(cfg: dict[str, Any], others: dict[str, Running], base_dir: Path) -> Running:
+    """Build and start a `plant` device; wire its CNC and the transmitters that name it."""
+    from hil_sim.devices.modbus_server import ModbusServerThread
+    from hil_sim.devices.plant import PlantDevice
+    from hil_sim.logcmd import load_plant
+
+    cfg = dict(cfg)
+    cfg.pop("kind")
+    name = str(cfg.pop("name", "plant"))
+    scenario = Path(cfg.pop("scenario"))
+    if not scenario.is_absolute():
+        scenario = base_dir / scenario
+    plant = load_plant(str(scenario), cfg.pop("seed", None))
+    host, port, dev_id = cfg.pop("host", "127.0.0.1"), int(cfg.pop("port", 0)), int(cfg.pop("device_id", 1))
+    cnc_name, cnc_axes = cfg.pop("cnc", None), cfg.pop("cnc_axes", None)
+    dev = PlantDevice(plant, **cfg)
+    if cnc_name is not None:
+        cnc = others.get(cnc_name)
+        if cnc is None or cnc.kind not in ("fanuc_pmc", "siemens_nc"):
+            raise ValueError(f"plant {name!r}: cnc {cnc_name!r} is not a fanuc_pmc or siemens_nc device")
+        dev.attach_cnc(cnc.device, cnc.kind, cnc_axes, cnc.clock == "plant")
+    for other in others.values():
+        if other.feed_plant == name:
+            other.device.feed = dev.feed_for(other.device.names)
+    run = Running(name, "plant")
+    run.device = dev
+    try:
+        run.start(dev)
+        srv = run.start(ModbusServerThread(dev, host=host, port=port, device_id=dev_id))
+    except BaseException:
+        run.stop()
+        raise
+    run.where = lambda: srv.where() + f" {dev.where()}"
+    return run
+
+
 def load(path: str | Path) -> list[dict[str, Any]]:
     data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
     devices = data.get("devices") if isinstance(data, dict) else None
@@ -159,10 +218,19 @@ def serve(path: str | Path, out: TextIO = sys.stdout, stop: threading.Event | No
     stop = stop or threading.Event()
     running: list[Running] = []
     try:
-        for cfg in load(path):
+        cfgs = load(path)
+        for cfg in [c for c in cfgs if c.get("kind") != "plant"]:
             run = start_device(cfg)
             running.append(run)
             print(f"{run.name}: {run.kind} on {run.where()}", file=out, flush=True)
+        others = {r.name: r for r in running}
+        for cfg in [c for c in cfgs if c.get("kind") == "plant"]:
+            run = start_plant(cfg, others, Path(path).parent)
+            running.append(run)
+            print(f"{run.name}: {run.kind} on {run.where()}", file=out, flush=True)
+        for r in running:
+            if r.feed_plant is not None and r.device.feed is None:
+                raise ValueError(f"device {r.name!r}: plant {r.feed_plant!r} is not in the file")
         print("hil_sim: ready (Ctrl-C stops)", file=out, flush=True)
         while not stop.wait(0.2):
             pass

@@ -57,6 +57,12 @@ class FeedAxisParams(Strict):
     input_roles: list[Role] = Field(
         default_factory=lambda: ["position"], description="what each input is, in input order"
     )
+    linear_p0_mm: float | None = Field(
+        None,
+        description="run time: output the least-squares line K0 + tanβ (y − P0) of E over the stroke"
+        " at P0 = this (for a CNC whose compensation is linear in position: Siemens, SPEC §4.3);"
+        " none = E at the current position",
+    )
 
     @model_validator(mode="after")
     def _power(self) -> FeedAxisParams:
@@ -179,6 +185,7 @@ class FeedAxisFitOptions(Strict):
     xi: float = Field(1.0, gt=0, description="ξ, held fixed (not identifiable apart from U1, U2, η)")
     chi_per_m: float | None = Field(None, gt=0, description="fix χ; none = fit it")
     fit_diffusivity: bool = Field(False, description="also fit a")
+    linear_p0_mm: float | None = Field(None, description="kept in the model: see the params' linear_p0_mm")
 
 
 class FeedAxis(Model):
@@ -209,6 +216,12 @@ class FeedAxis(Model):
         self._t_prev = 0.0
         self._p_prev = 0.0
         self._restore: tuple[float, float] | None = None
+        # linear reduction E ≈ K0 + tanβ (y − P0), least squares over the segment midpoints
+        self._lin: np.ndarray | None = None
+        self.slope_um_per_mm = 0.0
+        if p.linear_p0_mm is not None:
+            y_mm = p.stroke_start_mm + y * 1000.0
+            self._lin = np.linalg.pinv(np.c_[np.ones_like(y_mm), y_mm - p.linear_p0_mm])
 
     @classmethod
     def check_wiring(cls, params, inputs, outputs) -> None:
@@ -260,6 +273,11 @@ class FeedAxis(Model):
         cum *= buf
         cum += self._hds
         np.cumsum(cum, out=cum)
+        if self._lin is not None:  # the line at P0; the CNC adds tanβ (P − P0)
+            k0, slope = self._lin @ cum
+            self.slope_um_per_mm = float(self._scale * slope)
+            out[0] = self._scale * float(k0)
+            return
         u = (x[self._i_pos] - self.params.stroke_start_mm) / self._seg_mm - 0.5
         m = self.params.segments
         if u <= -1.0:
@@ -273,8 +291,14 @@ class FeedAxis(Model):
             f = u - j
             out[0] = self._scale * (cum[j] + f * (cum[j + 1] - cum[j]))
 
+    def linear_terms(self) -> list[tuple[float, float]] | None:
+        """[(tanβ µm/mm, P0 mm)] of the last evaluation when `linear_p0_mm` is set (Siemens sink)."""
+        if self._lin is None:
+            return None
+        return [(self.slope_um_per_mm, float(self.params.linear_p0_mm or 0.0))]
+
     def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-        """Vectorised over rows: heat by the trapezoid rule, then eq. 21 at each row."""
+        """Vectorised over rows (E at each row's position, also with linear_p0_mm): heat by the trapezoid rule, then eq. 21 at each row."""
         n = X.shape[0]
         if n == 0:
             return np.zeros((0, 1))
@@ -343,6 +367,7 @@ class FeedAxis(Model):
             diffusivity_m2_s=opt.diffusivity_m2_s, xi=opt.xi, zeta_per_k=opt.zeta_per_k,
             power_w=opt.power_w if cur_col is None else None,
             r_cu_ohm=opt.r_cu_ohm if cur_col is not None else None, input_roles=roles,
+            linear_p0_mm=opt.linear_p0_mm,
         )
         probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
         tmp = cls(probe, names, [axis])

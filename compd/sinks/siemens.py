@@ -98,7 +98,8 @@ class SiemensSink(Sink):
                 self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, BLOCK * n), name="siemens"
             )
             self.link.start()
-        linear = self.model is not None and hasattr(self.model, "linear_terms")
+        terms = getattr(self.model, "linear_terms", None)
+        linear = terms is not None and terms() is not None  # a model may offer them only in some modes
         for ax in self.nc_axis:
             if ax >= 0:
                 self._write(BLOCK * ax + TYPE, [3 if linear else 1])

@@ -1,0 +1,314 @@
+"""Closed-loop experiment: `python -m hil_sim serve` runs a plant on an unseen day, `compd run` compensates it.
+
+For one machine and one fitted model this writes a bench file (the live plant, a PT100
+Modbus module fed by it, the machine's CNC on plant time) and a compd config (the
+PT100 module and the plant's machine signals over Modbus TCP, the model file, the
+machine's sink, `loop.clock: plant`), starts both as separate processes talking Modbus
+TCP on 127.0.0.1, and scores the plant's own residual log: RMS and max |error| with
+and without the correction the CNC applied.
+
+Wiring per machine (as in the papers): lathe → Siemens NC (paper 001), motorized
+spindle → FANUC PMC external shift (paper 003), gantry → PCI-1756 DO word into the
+PMC's X inputs (paper 002), feed axis → Siemens NC with the position-dependent
+K0 + tanβ·(P − P0) (paper 000 §4.3).
+
+Every time in the compd config is plant time: the loop period, AR(1)'s Δτ, the
+guard's slew and staleness, the sinks' update intervals, `--duration`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from hil_sim.devices.plant import SIGNAL_BASE, residual_report
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENARIOS = ROOT / "hil_sim" / "scenarios"
+
+
+@dataclass(frozen=True)
+class Machine:
+    """How one machine is fitted and wired."""
+
+    name: str
+    cnc: str  # fanuc_pmc or siemens_nc
+    sink: str  # siemens, fanuc_pmc or pci1756
+    paper_kind: str
+    paper_args: tuple[str, ...] = ()  # extra `compd fit` arguments of the paper model
+    mlr_args: tuple[str, ...] = ()
+    axes: tuple[str, ...] = ()  # axes compensated (and scored)
+    rate_s: float = 60.0  # training log period (AR(1): its Δτ)
+
+
+MACHINES: dict[str, Machine] = {
+    "lathe": Machine("lathe", "siemens_nc", "siemens", "ar1", ("--inputs", "T3"), (), ("z",)),
+    "spindle": Machine(
+        "spindle", "fanuc_pmc", "fanuc_pmc", "xi_spindle",
+        ("--inputs", "T_xi", "--target", "err_z_um"), ("--target", "err_z_um"), ("z",),
+    ),
+    "gantry": Machine("gantry", "fanuc_pmc", "pci1756", "lvr", (), (), ("x1", "x2")),
+    # the axis reciprocates with a 12 s period: a 60 s log would see it at one phase
+    # only, so 10 s; the stroke is 600 mm (the model's L)
+    "feed_axis": Machine(
+        "feed_axis", "siemens_nc", "siemens", "feed_axis",
+        ("--option", "linear_p0_mm=300", "--option", "length_mm=600"), (), ("y",), 10.0,
+    ),
+}
+
+
+def python() -> str:
+    return sys.executable
+
+
+def env() -> dict[str, str]:
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(ROOT) + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+    return e
+
+
+def run_cli(args: list[str], timeout_s: float = 600.0) -> str:
+    """Run `python -m ...` and return stdout; a failure raises RuntimeError with stderr."""
+    p = subprocess.run([python(), *args], capture_output=True, text=True, env=env(), timeout=timeout_s, cwd=ROOT)
+    if p.returncode != 0:
+        raise RuntimeError(f"{' '.join(args[:3])} failed ({p.returncode}): {p.stderr.strip()[-2000:]}")
+    return p.stdout
+
+
+def log_day(machine: str, day: str, out: Path, rate_s: float = 10.0, duration_s: float | None = None) -> str:
+    """`python -m hil_sim log` of the machine's `day` (train or unseen) scenario."""
+    args = ["-m", "hil_sim", "log", "--scenario", str(SCENARIOS / f"{machine}_{day}.yaml"),
+            "--out", str(out), "--rate-s", str(rate_s)]
+    if duration_s is not None:
+        args += ["--duration-s", str(duration_s)]
+    return run_cli(args)
+
+
+def fit(machine: str, kind: str, log: Path, out: Path) -> str:
+    """`compd fit` of the paper model (its arguments from MACHINES) or of `mlr`."""
+    m = MACHINES[machine]
+    extra = list(m.paper_args if kind == m.paper_kind else m.mlr_args)
+    return run_cli(["-m", "compd", "fit", "--kind", kind, "--log", str(log), "--out", str(out), *extra])
+
+
+def plant_signals(machine: str) -> tuple[list[str], list[str], list[str]]:
+    """(sensor names, extra names, axes) of the machine's plant."""
+    from hil_sim.logcmd import load_plant
+
+    p = load_plant(str(SCENARIOS / f"{machine}_unseen.yaml"))
+    return list(p.sensor_names), list(p.extra_names), list(p.axes)
+
+
+def bench(machine: str, scenario: Path, speedup: float, duration_s: float, residual_log: Path) -> dict[str, Any]:
+    """The `hil_sim serve` file: PT100 module fed by the plant, the CNC on plant time, the plant."""
+    m = MACHINES[machine]
+    sensors, _, axes = plant_signals(machine)
+    cnc: dict[str, Any] = {"kind": m.cnc, "name": "cnc", "port": 0, "clock": "plant"}
+    if m.cnc == "siemens_nc":
+        cnc["axes"] = len(axes)
+        cnc_axes = {a: i for i, a in enumerate(axes)}
+    else:
+        cnc_axes = {a: i for i, a in enumerate(m.axes)}  # word: first axis high byte = PMC axis 1
+    return {"devices": [
+        {"kind": "pt100_modbus", "name": "temps", "port": 0, "plant": machine,
+         "channels": [{"name": s} for s in sensors]},
+        cnc,
+        {"kind": "plant", "name": machine, "scenario": str(scenario), "port": 0, "speedup": speedup,
+         "start": "on_clock_read", "duration_s": duration_s, "log_path": str(residual_log),
+         "log_period_s": 10.0, "cnc": "cnc", "cnc_axes": cnc_axes},
+    ]}
+
+
+def sink_section(machine: str, port: int, speedup: float) -> dict[str, Any]:
+    m = MACHINES[machine]
+    if m.sink == "siemens":
+        return {"kind": "siemens", "host": "127.0.0.1", "port": port,
+                "axes": {a: i for i, a in enumerate(m.axes)}, "min_change_um": 0.2, "min_update_s": 5.0}
+    if m.sink == "fanuc_pmc":
+        return {"kind": "fanuc_pmc", "mode": "word", "host": "127.0.0.1", "port": port,
+                "max_step_um": 5.0, "min_update_s": 1.0}
+    # the PCI-1756 card's DO bytes 0-3 wired to the PMC's X0-X3: word on X0/X1, strobe X2.0
+    return {"kind": "pci1756", "device": "modbus", "host": "127.0.0.1", "port": port,
+            "x_register": 0, "strobe_bit": 16, "heartbeat_bit": 24}
+
+
+def compd_config(
+    machine: str, model_file: Path, ports: dict[str, int], speedup: float, log_path: Path | None = None
+) -> dict[str, Any]:
+    """compd's config: two Modbus TCP sources, the model, the machine's sink, the plant clock."""
+    sensors, extras, axes = plant_signals(machine)
+    names = sensors + extras + [f"err_{a}_um" for a in axes]
+    m = MACHINES[machine]
+    poll = 0.005  # wall s: a few plant seconds at the speedups used
+    machine_channels = [
+        {"name": n, "address": SIGNAL_BASE + 2 * names.index(n)} for n in extras + [f"err_{a}_um" for a in axes]
+    ]
+    cfg: dict[str, Any] = {
+        # one cycle per ~0.5 ms of wall time at most: 2 plant s at 1200x, 4 s at 7200x
+        "loop": {"period_s": max(2.0, speedup / 1800.0), "clock": "plant",
+                 "plant_clock": {"port": ports[machine], "poll_period_s": 0.001}},
+        "sources": [
+            {"kind": "modbus", "name": "temps", "port": ports["temps"], "poll_period_s": poll,
+             "channels": [{"name": s, "address": i} for i, s in enumerate(sensors)]},
+            {"kind": "modbus", "name": "machine", "port": ports[machine], "poll_period_s": poll,
+             "data_type": "float32", "scale": 1.0, "burnout_codes": [], "out_of_range_codes": [],
+             "channels": machine_channels},
+        ],
+        "model": {"kind": yaml.safe_load(model_file.read_text())["kind"], "file": str(model_file)},
+        # plant seconds: thermal errors move by < 0.05 um/s, so 0.2 um/s never limits a
+        # model that tracks them, and keeps word changes within the PMC's step limit
+        "guard": {"max_slew_um_per_s": 0.2, "stale_after_s": max(600.0, 1.0 * speedup)},
+        "codec": {"axes": list(m.axes)},
+        "sink": sink_section(machine, ports["cnc"], speedup),
+        "console": {"period_s": 0, "summary": False},
+    }
+    if log_path is not None:
+        cfg["log"] = {"path": str(log_path), "period_s": 60.0}
+    return cfg
+
+
+_WHERE = re.compile(r"^(\S+): \S+ on tcp:[\d.]+:(\d+)")
+
+
+def start_serve(bench_file: Path, timeout_s: float = 60.0) -> tuple[subprocess.Popen[str], dict[str, int]]:
+    """Start `python -m hil_sim serve`; wait for "ready"; return the process and each device's port."""
+    proc = subprocess.Popen(
+        [python(), "-m", "hil_sim", "serve", "--config", str(bench_file)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env(), cwd=ROOT,
+    )
+    ports: dict[str, int] = {}
+    deadline = time.monotonic() + timeout_s
+    assert proc.stdout is not None
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        mt = _WHERE.match(line)
+        if mt:
+            ports[mt.group(1)] = int(mt.group(2))
+        if line.startswith("hil_sim: ready"):
+            return proc, ports
+    stop_serve(proc)
+    raise RuntimeError(f"hil_sim serve did not start: {proc.stderr.read() if proc.stderr else ''}")
+
+
+def stop_serve(proc: subprocess.Popen[str]) -> str:
+    """SIGINT, then wait (the plant writes its residual log on the way out)."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        out, err = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+    return err or ""
+
+
+def closed_loop(
+    machine: str,
+    model_file: Path,
+    workdir: Path,
+    *,
+    speedup: float = 1200.0,
+    duration_s: float | None = None,
+    scenario: Path | None = None,
+    tag: str = "",
+) -> dict[str, Any]:
+    """One closed-loop run on the unseen day; returns the plant's residual report and compd's summary."""
+    from hil_sim.scenario import Scenario
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    scenario = scenario or SCENARIOS / f"{machine}_unseen.yaml"
+    dur = duration_s if duration_s is not None else Scenario.load(scenario).duration_s
+    tag = tag or model_file.stem
+    residual_log = workdir / f"residual_{machine}_{tag}.csv"
+    bench_file = workdir / f"bench_{machine}_{tag}.yaml"
+    bench_file.write_text(yaml.safe_dump(bench(machine, scenario, speedup, dur, residual_log), sort_keys=False))
+    t0 = time.monotonic()
+    proc, ports = start_serve(bench_file)
+    try:
+        cfg_file = workdir / f"compd_{machine}_{tag}.yaml"
+        cfg_file.write_text(yaml.safe_dump(compd_config(machine, model_file, ports, speedup), sort_keys=False))
+        summary_file = workdir / f"summary_{machine}_{tag}.json"
+        run_cli(["-m", "compd", "run", str(cfg_file), "--duration", str(dur), "--json", str(summary_file)],
+                timeout_s=dur / speedup * 4 + 120)
+    finally:
+        serve_err = stop_serve(proc)
+    wall_s = time.monotonic() - t0
+    summary = json.loads(summary_file.read_text())
+    report = residual_report(residual_log, 0.0, dur)
+    return {
+        "machine": machine,
+        "model": tag,
+        "axes": {a: report[a] for a in MACHINES[machine].axes},
+        "compd": summary["compensation"],
+        "faults": summary["faults"],
+        "sink": summary["sink"],
+        "wall_s": wall_s,
+        "plant_s": dur,
+        "serve_stderr": serve_err[-2000:],
+    }
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """machine, model, axis, RMS/max without and with compensation, reduction."""
+    head = (f"{'machine':<10} {'model':<11} {'axis':<5} {'rms_without':>11} {'rms_with':>9} "
+            f"{'max_without':>11} {'max_with':>9} {'reduction_%':>11}")
+    lines = [head]
+    for r in rows:
+        for a, s in r["axes"].items():
+            lines.append(
+                f"{r['machine']:<10} {r['model']:<11} {a:<5} {s['rms_before_um']:>11.2f} {s['rms_after_um']:>9.2f} "
+                f"{s['max_abs_before_um']:>11.2f} {s['max_abs_after_um']:>9.2f} {s['reduction_pct']:>11.1f}"
+            )
+    return "\n".join(lines)
+
+
+def fit_args_options(args: tuple[str, ...]) -> tuple[list[str] | None, list[str] | None, dict[str, Any]]:
+    """(inputs, targets, options) from `compd fit` arguments (the few MACHINES uses)."""
+    from compd.fitting import parse_options
+
+    inputs: list[str] | None = None
+    targets: list[str] | None = None
+    opts: list[str] = []
+    key = ""
+    for a in args:
+        if a.startswith("--"):
+            key = a
+            continue
+        if key == "--inputs":
+            inputs = [*(inputs or []), a]
+        elif key == "--target":
+            targets = [*(targets or []), a]
+        elif key == "--option":
+            opts.append(a)
+        elif key == "--ambient":
+            opts.append(f"ambient={a}")
+    return inputs, targets, parse_options(opts)
+
+
+def prepare_model(machine: str, kind: str, workdir: Path, rate_s: float | None = None) -> Path:
+    """In process (what `hil_sim log` and `compd fit` do): log the training day, fit `kind`, write it."""
+    from compd import fitting
+    from hil_sim.logcmd import load_plant, run_log
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    train = workdir / f"{machine}_train.csv"
+    if not train.exists():
+        run_log(load_plant(str(SCENARIOS / f"{machine}_train.yaml")), train, rate_s or MACHINES[machine].rate_s)
+    m = MACHINES[machine]
+    inputs, targets, options = fit_args_options(m.paper_args if kind == m.paper_kind else m.mlr_args)
+    oc = fitting.fit_model(kind, fitting.read_fit_log(train), inputs, targets, options, baseline=False)
+    out = workdir / f"{machine}_{kind}.yaml"
+    fitting.write_model(oc.model, out)
+    return out

@@ -1,0 +1,261 @@
+"""A live plant for the closed loop: steps a scenario at a speedup, feeds its PT100 transmitters,
+publishes its clock over Modbus and applies to its true error the correction the emulated CNC applied.
+
+The plant runs on its own thread: plant time = wall time since start × `speedup`
+(whole steps of the plant's `dt_s`). Before every step it reads what the CNC
+applies now — the FANUC PMC's external machine coordinate shift (µm) or the
+Siemens NC's ΔK (mm) per axis — and sets it as the plant's `correction_um`, so
+`residual_um()` = true error + applied correction is what a laser interferometer
+reads. For a Siemens NC it also writes the axis position (`pos_<axis>_mm`) that the
+NC's position-dependent term uses. A CNC whose `clock` is `plant` is advanced on
+plant time (its scans and IPO cycles run as fast as the machine), otherwise on its
+own wall-time thread. Every `log_period_s` of plant time a row goes to the residual
+log: `t_s`, then per axis `err_<a>_um` (true error), `applied_<a>_um`, `residual_<a>_um`.
+
+Register map (holding registers, read-only, unit id 1):
+
+| register | data |
+|---|---|
+| 0, 1 | plant time, ms, uint32 (high word first) |
+| 2 | state: 0 waiting for the first clock read (`start: on_clock_read`), 1 running, 2 finished |
+| 3 | speedup (plant seconds per wall second), uint16 |
+| 16 + 2·i | signal i of the plant (`signal_names`: PT100 readings, extras such as `speed_rpm` and `pos_<axis>_mm`, true errors `err_<axis>_um`), float32 high word first |
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SIGNAL_BASE = 16
+
+
+def f32_words(v: float) -> list[int]:
+    b = struct.pack(">f", v)
+    return [int.from_bytes(b[0:2], "big"), int.from_bytes(b[2:4], "big")]
+
+
+class PlantDevice:
+    """The plant, its stepping thread and its register map."""
+
+    def __init__(
+        self,
+        plant: Any,
+        *,
+        speedup: float = 600.0,
+        start: str = "immediate",
+        log_path: str | Path | None = None,
+        log_period_s: float = 60.0,
+        duration_s: float | None = None,
+        wall_step_s: float = 0.002,
+    ) -> None:
+        if not speedup > 0:
+            raise ValueError("plant: speedup must be > 0")
+        if start not in ("immediate", "on_clock_read"):
+            raise ValueError("plant: start must be immediate or on_clock_read")
+        self.plant = plant
+        self.speedup = float(speedup)
+        self.start_mode = start
+        self.log_path = Path(log_path) if log_path else None
+        self.log_period_s = float(log_period_s)
+        self.duration_s = float(duration_s) if duration_s is not None else plant.scenario.duration_s
+        self.wall_step_s = wall_step_s
+        self.names = list(plant.signal_names)
+        self.register_count = SIGNAL_BASE + 2 * len(self.names)
+        self._regs = [0] * self.register_count
+        self._regs[3] = min(int(round(self.speedup)), 0xFFFF)
+        self._values = np.zeros(len(self.names))
+        self._lock = threading.Lock()
+        self._go = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.state = 0
+        self.cnc: Any = None
+        self.cnc_kind = ""
+        self.cnc_axes: list[int] = []
+        self.cnc_on_plant_clock = False
+        self._pos_idx: list[int] = []
+        self.rows: list[list[float]] = []
+        self.steps = 0
+        self._publish()
+
+    # ------------------------------------------------------------------ wiring
+    def attach_cnc(self, cnc: Any, kind: str, axes: dict[str, int] | None, on_plant_clock: bool) -> None:
+        """The CNC whose applied correction reaches the plant; `axes` maps plant axis → CNC axis."""
+        axes = axes or {a: i for i, a in enumerate(self.plant.axes)}
+        unknown = set(axes) - set(self.plant.axes)
+        if unknown:
+            raise ValueError(f"plant: cnc_axes names {sorted(unknown)[0]!r}, not an axis of the plant {self.plant.axes}")
+        self.cnc, self.cnc_kind, self.cnc_on_plant_clock = cnc, kind, on_plant_clock
+        self.cnc_axes = [axes.get(a, -1) for a in self.plant.axes]
+        extras = list(self.plant.extra_names)
+        self._pos_idx = [extras.index(f"pos_{a}_mm") if f"pos_{a}_mm" in extras else -1 for a in self.plant.axes]
+        if on_plant_clock:
+            cnc.t_s = self.plant.t_s
+            if kind == "fanuc_pmc":
+                cnc.next_scan_s = self.plant.t_s
+            else:
+                cnc.next_ipo_s = self.plant.t_s
+
+    def feed_for(self, channels: Sequence[str]) -> Callable[[], list[float]]:
+        """A transmitter feed: the plant's latest readings of `channels` (°C)."""
+        missing = [c for c in channels if c not in self.names]
+        if missing:
+            raise ValueError(f"plant: no signal {missing[0]!r} (signals: {', '.join(self.names)})")
+        idx = [self.names.index(c) for c in channels]
+
+        def feed() -> list[float]:
+            with self._lock:
+                return [float(self._values[i]) for i in idx]
+
+        return feed
+
+    # ------------------------------------------------------------ Modbus map
+    def read_registers(self, address: int, count: int) -> list[int] | None:
+        if address < 0 or address + count > self.register_count:
+            return None
+        if address <= 1 and self.start_mode == "on_clock_read":
+            self._go.set()
+        with self._lock:
+            return self._regs[address : address + count]
+
+    def write_registers(self, address: int, values: list[int]) -> bool:
+        return False
+
+    # ------------------------------------------------------------- stepping
+    def _applied_um(self) -> np.ndarray:
+        out = np.zeros(len(self.plant.axes))
+        cnc = self.cnc
+        if cnc is None:
+            return out
+        if self.cnc_kind == "fanuc_pmc":
+            vals = cnc.applied_um()
+            scale = 1.0
+        else:
+            vals = cnc.applied_mm()
+            scale = 1000.0
+        for a, k in enumerate(self.cnc_axes):
+            if 0 <= k < len(vals):
+                out[a] = scale * vals[k]
+        return out
+
+    def _publish(self) -> None:
+        p = self.plant
+        meas = p.sensors.read(p.true_temperatures_c(), p.t_s)
+        vals = np.concatenate([meas, p.extras(), p.true_error_um()])
+        ms = int(round(p.t_s * 1000.0)) & 0xFFFFFFFF
+        regs = [(ms >> 16) & 0xFFFF, ms & 0xFFFF]
+        sig = []
+        for v in vals:
+            sig += f32_words(float(v))
+        with self._lock:
+            self._values[:] = vals
+            self._regs[0:2] = regs
+            self._regs[2] = self.state
+            self._regs[SIGNAL_BASE:] = sig
+
+    def _log_row(self) -> None:
+        p = self.plant
+        err = p.true_error_um()
+        app = p.correction_um
+        self.rows.append([p.t_s, *err, *app, *(err + app)])
+
+    def _step(self) -> None:
+        p, cnc = self.plant, self.cnc
+        if cnc is not None:
+            if self.cnc_on_plant_clock:
+                cnc.advance_to(p.t_s)
+            if self.cnc_kind == "siemens_nc" and max(self._pos_idx, default=-1) >= 0:
+                ex = p.extras()
+                for a, k in enumerate(self.cnc_axes):
+                    if k >= 0 and self._pos_idx[a] >= 0:
+                        cnc.set_position(k, float(ex[self._pos_idx[a]]))
+            p.correction_um[:] = self._applied_um()
+        if p.t_s + 1e-9 >= self._next_log_s:
+            self._log_row()
+            self._next_log_s += self.log_period_s
+        p.advance_to(p.t_s + p.dt_s)
+        self.steps += 1
+
+    def _run(self) -> None:
+        p = self.plant
+        self._go.wait()
+        if self._stop.is_set():
+            return
+        self.state = 1
+        wall0, t0 = time.monotonic(), p.t_s
+        self._next_log_s = t0
+        while not self._stop.is_set():
+            target = min(t0 + (time.monotonic() - wall0) * self.speedup, self.duration_s)
+            while p.t_s + p.dt_s <= target + 1e-9 and not self._stop.is_set():
+                self._step()
+            if p.t_s + p.dt_s > self.duration_s + 1e-9:
+                self.state = 2
+            self._publish()
+            if self.state == 2:
+                self._stop.wait(0.05)
+            else:
+                self._stop.wait(self.wall_step_s)
+
+    def start(self) -> PlantDevice:
+        if self.start_mode == "immediate":
+            self._go.set()
+        self._thread = threading.Thread(target=self._run, name=f"plant-{self.plant.name}", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._go.set()
+        if self._thread is not None:
+            self._thread.join(5)
+            self._thread = None
+        self.write_log()
+
+    def write_log(self) -> None:
+        """The residual log (CSV) of what ran so far."""
+        if self.log_path is None:
+            return
+        axes = self.plant.axes
+        cols = ["t_s"] + [f"err_{a}_um" for a in axes] + [f"applied_{a}_um" for a in axes]
+        cols += [f"residual_{a}_um" for a in axes]
+        data = np.array(self.rows) if self.rows else np.zeros((0, len(cols)))
+        with open(self.log_path, "w", encoding="utf-8", newline="") as fh:
+            np.savetxt(fh, data, fmt="%.6g", delimiter=",", header=",".join(cols), comments="")
+
+    def where(self) -> str:
+        return f"{self.plant.name} at {self.speedup:g}x, {self.duration_s / 3600:.2f} h"
+
+
+def residual_report(path: str | Path, t_from_s: float = 0.0, t_to_s: float | None = None) -> dict[str, dict[str, float]]:
+    """RMS and max |error| without (true error) and with compensation (residual) per axis, from a
+    residual log; rows with `t_from_s` ≤ t ≤ `t_to_s`."""
+    with open(path, encoding="utf-8") as fh:
+        cols = fh.readline().strip().split(",")
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    t = data[:, 0]
+    sel = (t >= t_from_s) & (t <= (np.inf if t_to_s is None else t_to_s))
+    out = {}
+    for c in cols:
+        if not c.startswith("err_"):
+            continue
+        a = c[4:-3]
+        e = data[sel, cols.index(c)]
+        r = data[sel, cols.index(f"residual_{a}_um")]
+        before = float(np.sqrt(np.mean(e * e))) if e.size else 0.0
+        after = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
+        out[a] = {
+            "rows": int(e.size),
+            "rms_before_um": before,
+            "rms_after_um": after,
+            "max_abs_before_um": float(np.max(np.abs(e))) if e.size else 0.0,
+            "max_abs_after_um": float(np.max(np.abs(r))) if r.size else 0.0,
+            "reduction_pct": 100.0 * (1.0 - after / before) if before > 0 else 0.0,
+        }
+    return out

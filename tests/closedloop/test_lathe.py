@@ -1,0 +1,24 @@
+"""Closed loop, lathe (paper 001): AR(1) through the Siemens NC over Modbus TCP, a shortened unseen day."""
+
+from __future__ import annotations
+
+from hil_sim import closedloop as cl
+
+# The unseen day's first 5 plant-hours: 1 h stopped, then 1500 rpm jobs with pauses
+# (the error reaches ~15 um). 7200 plant s per wall s: ~2.5 s of closed loop.
+HOURS, SPEEDUP = 5.0, 7200.0
+
+
+def test_lathe_ar1_closed_loop_cuts_the_error(tmp_path):
+    model = cl.prepare_model("lathe", "ar1", tmp_path)
+    r = cl.closed_loop("lathe", model, tmp_path, speedup=SPEEDUP, duration_s=HOURS * 3600)
+    z = r["axes"]["z"]
+    assert z["rms_before_um"] > 5.0  # the day heats the machine
+    # measured 77-83 % on this stretch (75.5 % over the whole day, where the 1000 rpm
+    # jobs and the warmer shop come in: see the issue note); 70 % leaves room for
+    # run-to-run timing
+    assert z["reduction_pct"] > 70.0, z
+    assert z["max_abs_after_um"] < z["max_abs_before_um"]
+    print(cl.table([r]))
+    assert not r["faults"], r["faults"]
+    assert r["sink"]["updates"] > 10  # corrections really went to the NC

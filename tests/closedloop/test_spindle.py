@@ -1,0 +1,27 @@
+"""Closed loop, motorized spindle (paper 003): ξ-point model through the FANUC PMC's external
+shift over Modbus TCP, a shortened unseen day, against MLR on the same wiring."""
+
+from __future__ import annotations
+
+from hil_sim import closedloop as cl
+
+# The unseen day's first 5 plant-hours: 9000 rpm jobs with pauses, coolant on (axial
+# error up to ~15 um). 7200 plant s per wall s: ~2.5 s of closed loop per model.
+HOURS, SPEEDUP = 5.0, 7200.0
+
+
+def test_spindle_xi_model_through_the_pmc_cuts_the_axial_error(tmp_path):
+    rows = {}
+    for kind in ("xi_spindle", "mlr"):
+        model = cl.prepare_model("spindle", kind, tmp_path)
+        rows[kind] = cl.closed_loop("spindle", model, tmp_path, speedup=SPEEDUP, duration_s=HOURS * 3600, tag=kind)
+    print(cl.table(list(rows.values())))
+    xi, mlr = rows["xi_spindle"]["axes"]["z"], rows["mlr"]["axes"]["z"]
+    assert xi["rms_before_um"] > 5.0
+    # measured ~94 % on this stretch; one sensor at ξ tracks the rotor's mean
+    # temperature, so only the PMC's 1 um shift resolution and the slew remain
+    assert xi["reduction_pct"] > 85.0, xi
+    assert mlr["reduction_pct"] > 75.0, mlr
+    for r in rows.values():
+        assert not any(k.startswith("fault") for k in r["faults"]), r["faults"]
+        assert r["sink"]["updates"] > 5  # shift updates really went to the PMC
