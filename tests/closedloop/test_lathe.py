@@ -20,5 +20,7 @@ def test_lathe_ar1_closed_loop_cuts_the_error(tmp_path):
     assert z["reduction_pct"] > 70.0, z
     assert z["max_abs_after_um"] < z["max_abs_before_um"]
     print(cl.table([r]))
-    assert not r["faults"], r["faults"]
+    # no axis went to its fault policy; clock-jump events (a wall stall × the plant's
+    # speed-up) and start-up no_data are logged and allowed
+    assert not any(k.startswith("fault") for k in r["faults"]), r["faults"]
     assert r["sink"]["updates"] > 10  # corrections really went to the NC
