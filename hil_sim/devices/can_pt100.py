@@ -17,7 +17,7 @@ from typing import Any
 
 import can
 
-from hil_sim.devices.pt100 import Pt100Transmitter
+from hil_sim.devices.pt100 import Pt100Transmitter, transmitter_from_config
 
 WIRE_FAULTS = ("none", "no_answer", "garbage", "crc_error", "slow")
 
@@ -129,13 +129,7 @@ class CanPt100:
 def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, CanPt100]:
     """Transmitter and (unstarted) broadcaster from a hil_sim device section."""
     cfg = dict(cfg)
-    chans = cfg.pop("channels")
-    tx = Pt100Transmitter(
-        [c["name"] for c in chans],
-        [float(c.get("value_c", 20.0)) for c in chans],
-        range_min_c=float(cfg.pop("range_min_c", -50.0)),
-        range_max_c=float(cfg.pop("range_max_c", 250.0)),
-    )
+    tx, chans = transmitter_from_config(cfg)
     layout = [
         CanChannel(**{k: v for k, v in c.items() if k not in ("value_c", "fault")}) for c in chans
     ]

@@ -19,7 +19,7 @@ from typing import Any
 
 import serial
 
-from hil_sim.devices.pt100 import Pt100Transmitter
+from hil_sim.devices.pt100 import Pt100Transmitter, transmitter_from_config
 
 WIRE_FAULTS = ("none", "no_answer", "garbage", "crc_error", "slow", "invalid")
 
@@ -145,13 +145,7 @@ class DconModule:
 def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, DconModule]:
     """Transmitter and (unstarted) module from a hil_sim device section."""
     cfg = dict(cfg)
-    channels = cfg.pop("channels")
-    tx = Pt100Transmitter(
-        [c["name"] for c in channels],
-        [float(c.get("value_c", 20.0)) for c in channels],
-        range_min_c=float(cfg.pop("range_min_c", -50.0)),
-        range_max_c=float(cfg.pop("range_max_c", 250.0)),
-    )
+    tx, channels = transmitter_from_config(cfg)
     fault = cfg.pop("wire_fault", "none")
     mod = DconModule(tx, cfg.pop("serial_port"), **cfg)
     mod.set_fault(fault)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
+from typing import Any
 
 SENSOR_FAULTS = ("none", "burnout", "over", "under")
 
@@ -73,3 +74,16 @@ class Pt100Transmitter:
                 else:
                     out.append(("ok", v))
         return out
+
+
+def transmitter_from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, list[dict[str, Any]]]:
+    """Pop `channels` and the range keys from a device section; returns the transmitter
+    and the channel entries (for device-specific keys such as CAN ids)."""
+    channels = cfg.pop("channels")
+    tx = Pt100Transmitter(
+        [c["name"] for c in channels],
+        [float(c.get("value_c", 20.0)) for c in channels],
+        range_min_c=float(cfg.pop("range_min_c", -50.0)),
+        range_max_c=float(cfg.pop("range_max_c", 250.0)),
+    )
+    return tx, channels

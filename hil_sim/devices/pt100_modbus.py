@@ -15,7 +15,7 @@ import struct
 from typing import Any
 
 from hil_sim.devices.modbus_server import ModbusServerThread, WireFaults
-from hil_sim.devices.pt100 import Pt100Transmitter
+from hil_sim.devices.pt100 import Pt100Transmitter, transmitter_from_config
 
 FORMATS = {"int16": "h", "uint16": "H", "int32": "i", "uint32": "I", "float32": "f"}
 STATUS_BITS = {"ok": 0, "burnout": 1, "over": 2, "under": 4}
@@ -104,13 +104,7 @@ class Pt100ModbusDevice:
 def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, Pt100ModbusDevice, ModbusServerThread]:
     """Build transmitter, register map and (unstarted) server from a hil_sim device section."""
     cfg = dict(cfg)
-    channels = cfg.pop("channels")
-    tx = Pt100Transmitter(
-        [c["name"] for c in channels],
-        [float(c.get("value_c", 20.0)) for c in channels],
-        range_min_c=float(cfg.pop("range_min_c", -50.0)),
-        range_max_c=float(cfg.pop("range_max_c", 250.0)),
-    )
+    tx, channels = transmitter_from_config(cfg)
     for c in channels:
         if c.get("fault"):
             tx.set_fault(c["name"], c["fault"])
