@@ -11,13 +11,13 @@ every `slow_s` instead of `period_s`).
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from typing import Any
 
 import can
 
 from hil_sim.devices.pt100 import Pt100Transmitter, transmitter_from_config
+from hil_sim.devices.worker import DeviceThread
 
 WIRE_FAULTS = ("none", "no_answer", "garbage", "crc_error", "slow")
 
@@ -33,7 +33,7 @@ class CanChannel:
     scale: float = 0.1
 
 
-class CanPt100:
+class CanPt100(DeviceThread):
     """Broadcasts a transmitter's readings on a CAN bus from its own thread."""
 
     def __init__(
@@ -49,6 +49,7 @@ class CanPt100:
         under_code: int = 0x8001,
         extended_id: bool = False,
     ) -> None:
+        super().__init__()
         self.tx = transmitter
         self.channels = channels
         self.interface, self.channel = interface, channel
@@ -59,8 +60,6 @@ class CanPt100:
         self.slow_s = 1.0
         self.frames_sent = 0
         self._bus: can.BusABC | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     def set_fault(self, fault: str, slow_s: float | None = None) -> None:
         if fault not in WIRE_FAULTS:
@@ -101,29 +100,18 @@ class CanPt100:
                 self.frames_sent += 1
             self._stop.wait(self.slow_s if f == "slow" else self.period_s)
 
-    def start(self) -> CanPt100:
-        self._bus = can.Bus(interface=self.interface, channel=self.channel)
-        self._thread = threading.Thread(target=self._run, name="can-pt100", daemon=True)
-        self._thread.start()
-        return self
+    thread_name = "can-pt100"
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
-            self._thread = None
+    def _open(self) -> None:
+        self._bus = can.Bus(interface=self.interface, channel=self.channel)
+
+    def _close(self) -> None:
         if self._bus is not None:
             self._bus.shutdown()
             self._bus = None
 
     def where(self) -> str:
         return f"can:{self.interface}:{self.channel} ids {sorted({c.can_id for c in self.channels})}"
-
-    def __enter__(self) -> CanPt100:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
 
 def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, CanPt100]:

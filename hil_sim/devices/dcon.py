@@ -14,12 +14,12 @@ invalid (`?AA` to everything).
 from __future__ import annotations
 
 import os
-import threading
 from typing import Any
 
 import serial
 
 from hil_sim.devices.pt100 import Pt100Transmitter, transmitter_from_config
+from hil_sim.devices.worker import DeviceThread
 
 WIRE_FAULTS = ("none", "no_answer", "garbage", "crc_error", "slow", "invalid")
 
@@ -29,7 +29,7 @@ def checksum(text: bytes) -> bytes:
     return f"{sum(text) & 0xFF:02X}".encode()
 
 
-class DconModule:
+class DconModule(DeviceThread):
     """Answers DCON commands for one address on a serial port, on its own thread."""
 
     def __init__(
@@ -44,6 +44,7 @@ class DconModule:
         under_text: str = "-0000",
         burnout_text: str = "-9999.9",
     ) -> None:
+        super().__init__()
         self.tx = transmitter
         self.serial_port = serial_port
         self.address = address
@@ -54,8 +55,6 @@ class DconModule:
         self.slow_s = 0.5
         self.requests = 0
         self._ser: serial.Serial | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     def set_fault(self, fault: str, slow_s: float | None = None) -> None:
         if fault not in WIRE_FAULTS:
@@ -117,29 +116,18 @@ class DconModule:
                 except (serial.SerialException, OSError):
                     return
 
-    def start(self) -> DconModule:
-        self._ser = serial.Serial(self.serial_port, self.baudrate, timeout=0.05)
-        self._thread = threading.Thread(target=self._run, name="dcon-module", daemon=True)
-        self._thread.start()
-        return self
+    thread_name = "dcon-module"
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
-            self._thread = None
+    def _open(self) -> None:
+        self._ser = serial.Serial(self.serial_port, self.baudrate, timeout=0.05)
+
+    def _close(self) -> None:
         if self._ser is not None:
             self._ser.close()
             self._ser = None
 
     def where(self) -> str:
         return f"dcon:{self.serial_port}@{self.baudrate} address {self.address:02X}"
-
-    def __enter__(self) -> DconModule:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
 
 def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, DconModule]:
