@@ -27,6 +27,9 @@ from compd.errors import BadInput
 
 N_SENSORS = 19
 MODULE_CHANNELS = 8
+DAY_S = 86400.0
+RSS_EVERY = 10_000  # cycles between resident-size samples
+SCENARIOS = Path(__file__).resolve().parent.parent / "hil_sim" / "scenarios"
 
 
 def rss_kb() -> int:
@@ -45,7 +48,7 @@ def _fit_gantry_model(work: Path) -> tuple[Path, list[str]]:
     from hil_sim.plants import PLANTS
     from hil_sim.scenario import Scenario
 
-    scen = Scenario.load(Path(__file__).resolve().parent.parent / "hil_sim" / "scenarios" / "gantry_train.yaml")
+    scen = Scenario.load(SCENARIOS / "gantry_train.yaml")
     plant = PLANTS.get("gantry")(scen, scen.params)
     rows = []
     for t in range(0, 6 * 3600 + 1, 30):
@@ -61,11 +64,21 @@ def _fit_gantry_model(work: Path) -> tuple[Path, list[str]]:
     return path, temps
 
 
-def _device_file(work: Path, sensors: list[str]) -> Path:
+def plant_speedup(cycles: int, period_s: float) -> float:
+    """Plant seconds per wall second so the run covers a working day (capped at 1200x)."""
+    return min(max(DAY_S / (cycles * period_s), 1.0), 1200.0)
+
+
+def _device_file(work: Path, sensors: list[str], speedup: float) -> Path:
+    """Three PT100 modules fed by a live gantry plant on its unseen day, and the PMC.
+
+    The temperatures move as the machine warms and cools, so the model's output and
+    the word sent to the PMC change during the run (the output path is exercised).
+    """
     modules = []
     for m in range(0, len(sensors), MODULE_CHANNELS):
         names = sensors[m : m + MODULE_CHANNELS]
-        names += [f"spare{m + i}" for i in range(MODULE_CHANNELS - len(names))]
+        channels: list[dict[str, Any]] = [{"name": n} for n in names]
         modules.append(
             {
                 "kind": "pt100_modbus",
@@ -73,13 +86,29 @@ def _device_file(work: Path, sensors: list[str]) -> Path:
                 "transport": "tcp",
                 "host": "127.0.0.1",
                 "port": 0,
-                "channels": [{"name": n, "value_c": 21.0 + 0.1 * i} for i, n in enumerate(names)],
+                "plant": "gantry",
+                "channels": channels,
             }
         )
-    devices = {"devices": [*modules, {"kind": "fanuc_pmc", "name": "pmc", "host": "127.0.0.1", "port": 0}]}
+    plant = {
+        "kind": "plant",
+        "name": "gantry",
+        "scenario": str(SCENARIOS / "gantry_unseen.yaml"),
+        "port": 0,
+        "speedup": speedup,
+        "wall_step_s": 0.02,
+    }
+    devices = {"devices": [*modules, {"kind": "fanuc_pmc", "name": "pmc", "host": "127.0.0.1", "port": 0}, plant]}
     path = work / "bench_devices.yaml"
     path.write_text(yaml.safe_dump(devices, sort_keys=False))
     return path
+
+
+DEVICE_NICE = 10
+
+
+def _lower_priority() -> None:
+    os.nice(DEVICE_NICE)
 
 
 class Devices:
@@ -92,6 +121,9 @@ class Devices:
             stderr=subprocess.STDOUT,
             text=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            # The devices stand in for hardware that does not share compd's CPU: they
+            # run at a lower priority so the simulation competes as little as it can.
+            preexec_fn=_lower_priority,
         )
         self.ports: dict[str, int] = {}
         assert self.proc.stdout is not None
@@ -153,6 +185,21 @@ def _compd_config(work: Path, model_path: Path, sensors: list[str], ports: dict[
     return path
 
 
+def io_stats(app: Any) -> dict[str, dict[str, float]]:
+    """Modbus TCP round trips of compd's I/O threads: every poll of the PT100 modules
+    (8 registers in one request), every write to the PMC, and the output latency from
+    the cycle queueing a word to the PMC acknowledging it."""
+    from compd.histogram import DurationHist
+
+    polls = [s.poll_hist for s in app.sources if hasattr(s, "poll_hist")]
+    link = getattr(app.sink, "link", None)
+    out = {"read": DurationHist.merged(polls).summary() if polls else {}}
+    if link is not None:
+        out["write"] = link.write_hist.summary()
+        out["output_latency"] = link.latency_hist.summary()
+    return out
+
+
 def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     """compd's loop for `cycles` cycles; timing stats and resident size."""
     from compd.app import App
@@ -161,10 +208,16 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     app = App(load_config(config))
     rss: dict[str, int] = {}
     warm = min(max(cycles // 10, 1000), cycles)
+    trace = [0] * (cycles // RSS_EVERY + 2)  # preallocated: the hook appends nothing
+    n_trace = [0]
 
     def sample_rss(loop: Any, now: float) -> None:
-        if loop.stats.cycles == warm:
+        c = loop.stats.cycles
+        if c == warm:
             rss["after_warmup_kb"] = rss_kb()
+        if c % RSS_EVERY == 0 and c > warm:
+            trace[n_trace[0]] = rss_kb()
+            n_trace[0] += 1
 
     app.loop.cycle_hooks.append(sample_rss)
     app.open()
@@ -174,13 +227,20 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
         while any(getattr(s, "polls", 1) == 0 for s in app.sources) and time.monotonic() < deadline:
             time.sleep(0.01)
         app.loop.run(max_cycles=cycles)
+        io = io_stats(app)  # before close: closing the sink drops its link
     finally:
         app.close()
     rss["end_kb"] = rss_kb()
-    rss["growth_kb"] = rss["end_kb"] - rss.get("after_warmup_kb", rss["end_kb"])
+    base = rss.get("after_warmup_kb", rss["end_kb"])
+    rss["growth_kb"] = rss["end_kb"] - base
+    samples = trace[: n_trace[0]]
+    rss["max_after_warmup_kb"] = max([base, *samples])
+    rss["max_growth_kb"] = rss["max_after_warmup_kb"] - base
+    rss["samples"] = len(samples)
     stats = app.loop.stats
     out = stats.as_dict()
     out["rss"] = rss
+    out["io_us"] = io
     out["realtime"] = [what for _, what in app.service.realtime_result]
     out["words_sent"] = app.encoder.words_emitted
     return out
@@ -206,11 +266,13 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     out = np.zeros(2)
     lateness = np.zeros(cycles)
     compute = np.zeros(cycles)
+    starts = np.zeros(cycles)
     started = False
     t0 = time.monotonic()
     try:
         for k in range(cycles):
             start = time.monotonic()
+            starts[k] = start
             lateness[k] = start - (t0 + k * period_s)
             for j, _ in enumerate(sensors):
                 client = clients[f"pt100_{j // MODULE_CHANNELS + 1}"]
@@ -231,7 +293,14 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
             c.close()
         pmc.close()
     lat_us = lateness * 1e6
+    intervals_us = np.diff(starts) * 1e6 if cycles > 1 else np.zeros(1)
     return {
+        # what the hand-written loop achieves: start-to-start interval (it drifts off any schedule)
+        "period_us": {
+            "p50": float(np.percentile(intervals_us, 50)),
+            "p99": float(np.percentile(intervals_us, 99)),
+            "max": float(intervals_us.max()),
+        },
         "cycles": cycles,
         "misses": int(np.count_nonzero((lateness > period_s / 2) | (compute > period_s))),
         "lateness_us": {
@@ -266,7 +335,8 @@ def run_bench(
     with tempfile.TemporaryDirectory(prefix="compd-bench-") as tmp:
         work = Path(tmp)
         model_path, sensors = _fit_gantry_model(work)
-        devices = Devices(_device_file(work, sensors))
+        speedup = plant_speedup(cycles, period_s)
+        devices = Devices(_device_file(work, sensors, speedup))
         try:
             cfg = _compd_config(work, model_path, sensors, devices.ports, scheduler, period_s)
             compd = run_compd_loop(cfg, cycles)
@@ -290,6 +360,8 @@ def run_bench(
         "stages": compd["stages"],
         "rss_kb": compd["rss"],
         "words_sent": compd["words_sent"],
+        "io_us": compd["io_us"],
+        "plant_speedup": speedup,
         "naive": naive,
     }
     miss_rate = compd["misses"] / max(compd["cycles"], 1)
@@ -321,9 +393,22 @@ def format_table(r: dict[str, Any]) -> str:
     rss = r["rss_kb"]
     lines.append(
         f"memory: {rss.get('after_warmup_kb', 0)} kB after warm-up, {rss['end_kb']} kB at the end"
-        f" (growth {rss['growth_kb']} kB)"
+        f" (growth {rss['growth_kb']} kB, largest {rss['max_growth_kb']} kB over {rss['samples']} samples)"
     )
+    io = r["io_us"]
+    for key, what in (("read", "poll (8 regs)"), ("write", "PMC write"), ("output_latency", "queued->acked")):
+        if io.get(key):
+            h = io[key]
+            lines.append(
+                f"I/O thread {what}: {h['count']} round trips, p50 {h['p50']:.0f} us, p99 {h['p99']:.0f} us,"
+                f" max {h['max']:.0f} us"
+            )
+    lines.append(f"words sent to the PMC: {r['words_sent']} (plant at {r['plant_speedup']:.0f}x)")
     lines.append("model evaluate, median us: " + ", ".join(f"{k} {v:.2f}" for k, v in r["model_eval_us"].items()))
+    lines.append(
+        f"naive loop: start-to-start interval p50 {n['period_us']['p50']:.0f} us, p99 {n['period_us']['p99']:.0f} us"
+        f" (asked for {1000 * r['period_ms']:.0f}); its lateness is against the same absolute schedule as compd's"
+    )
     ratio = r["ratio_naive_to_compd"]
     mr = "n/a (compd missed none)" if ratio["miss_rate"] is None else f"{ratio['miss_rate']:.0f}x"
     lines.append(f"naive / compd: miss rate {mr}, p99 lateness {ratio['p99_lateness']:.0f}x")

@@ -222,12 +222,6 @@ class Loop:
             # first device writes, lazy imports) happens here, not in cycle 1.
             self._cycle(clock.now(), perf)
             self.primed = True
-        t0 = clock.now()
-        self.t_start_s = t0
-        end = t0 + duration_s if duration_s is not None else math.inf
-        k = 0
-        half = period * 0.5
-        jump_s = max(20.0 * period, 0.5)
         # Garbage collection: everything allocated at start-up is frozen out of the
         # collector's view; automatic collection is off, and a young-generation
         # collection runs only at a safe point (right after a cycle, when at least
@@ -242,6 +236,14 @@ class Loop:
         switch_was = sys.getswitchinterval()
         if not getattr(clock, "simulated", False):
             sys.setswitchinterval(self.gil_switch_interval_s)
+        # The schedule starts only now: a full collection above can take tens of ms,
+        # and taken before it, t0 would make cycle 1 late by exactly that.
+        t0 = clock.now()
+        self.t_start_s = t0
+        end = t0 + duration_s if duration_s is not None else math.inf
+        k = 0
+        half = period * 0.5
+        jump_s = max(20.0 * period, 0.5)
         next_gc = t0 + self.gc_period_s
         try:
             while not self._stop:

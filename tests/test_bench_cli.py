@@ -27,6 +27,12 @@ def test_bench_writes_contract_json(tmp_path: Path) -> None:
     # the naive loop sleeps a whole period after its work, so it can only fall behind
     assert b["naive"]["lateness_us"]["max"] > b["naive"]["lateness_us"]["p50"] >= 0
     assert b["rss_kb"]["end_kb"] > 0
+    # compd's I/O threads are timed: every poll of the three modules and every PMC write
+    io = b["io_us"]
+    assert io["read"]["count"] >= 3 and 0 < io["read"]["p50"] <= io["read"]["p99"] <= io["read"]["max"] + 1
+    assert io["write"]["count"] >= 1 and io["output_latency"]["count"] >= 1
+    # the naive loop's own start-to-start interval is at least the period it sleeps
+    assert b["naive"]["period_us"]["p50"] >= 2000
 
 
 def test_bench_rejects_zero_cycles() -> None:

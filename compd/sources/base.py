@@ -10,6 +10,7 @@ import numpy as np
 
 from compd.config import SourceConfig
 from compd.frame import Frame, Quality
+from compd.histogram import DurationHist
 
 
 class Source(ABC):
@@ -78,6 +79,7 @@ class PolledSource(Source):
         self._clock: Any = None
         self.polls = 0
         self.poll_errors = 0
+        self.poll_hist = DurationHist()  # round trip of each poll (request to reply), µs
 
     @abstractmethod
     def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
@@ -91,14 +93,17 @@ class PolledSource(Source):
     def _run(self) -> None:
         import time
 
+        perf = time.perf_counter_ns
         while not self._stop.is_set():
             t0 = time.monotonic()
             stamp = self._clock.now()
+            p0 = perf()
             try:
                 self.poll(self._buf_values, self._buf_quality)
             except Exception:  # a driver bug must not kill the daemon: report as comms lost
                 self._buf_quality[:] = Quality.COMMS_LOST
                 self.poll_errors += 1
+            self.poll_hist.add_ns(perf() - p0)
             with self._lock:
                 self._values[:] = self._buf_values
                 self._quality[:] = self._buf_quality
