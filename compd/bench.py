@@ -16,6 +16,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -107,8 +108,43 @@ def _device_file(work: Path, sensors: list[str], speedup: float) -> Path:
 DEVICE_NICE = 10
 
 
+def cycle_cpu() -> int | None:
+    """The CPU the cycle thread is pinned to with `scheduler: fifo` (the last one); None on one CPU."""
+    cpus = sorted(os.sched_getaffinity(0))
+    return cpus[-1] if len(cpus) > 1 else None
+
+
 def _lower_priority() -> None:
     os.nice(DEVICE_NICE)
+    # the devices stand in for hardware: keep them off the cycle thread's CPU
+    cpu = cycle_cpu()
+    if cpu is not None:
+        os.sched_setaffinity(0, set(os.sched_getaffinity(0)) - {cpu})
+
+
+def host_steal_ms() -> float:
+    """CPU time the hypervisor took from this machine's CPUs so far (/proc/stat steal), ms."""
+    try:
+        with open("/proc/stat") as fh:
+            fields = fh.readline().split()
+        return int(fields[8]) * 1000.0 / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def thread_switches(tid: int) -> tuple[int, int]:
+    """(voluntary, involuntary) context switches of thread `tid` of this process."""
+    vol = invol = 0
+    try:
+        with open(f"/proc/self/task/{tid}/status") as fh:
+            for line in fh:
+                if line.startswith("voluntary_ctxt_switches:"):
+                    vol = int(line.split()[1])
+                elif line.startswith("nonvoluntary_ctxt_switches:"):
+                    invol = int(line.split()[1])
+    except OSError:
+        pass
+    return vol, invol
 
 
 class Devices:
@@ -155,6 +191,13 @@ class Devices:
 
 
 def _compd_config(work: Path, model_path: Path, sensors: list[str], ports: dict[str, int], scheduler: str, period_s: float) -> Path:
+    realtime: dict[str, Any] = {"scheduler": scheduler, "priority": 50}
+    if scheduler == "fifo":
+        # what a real-time deployment sets (docs/commissioning.md): memory locked, and the
+        # cycle thread on a CPU of its own (the simulated devices are kept off it)
+        realtime["lock_memory"] = True
+        if cycle_cpu() is not None:
+            realtime["cpu_affinity"] = [cycle_cpu()]
     sources = []
     for m in range(0, len(sensors), MODULE_CHANNELS):
         names = sensors[m : m + MODULE_CHANNELS]
@@ -173,7 +216,7 @@ def _compd_config(work: Path, model_path: Path, sensors: list[str], ports: dict[
             }
         )
     cfg = {
-        "loop": {"period_s": period_s, "realtime": {"scheduler": scheduler, "priority": 50}},
+        "loop": {"period_s": period_s, "realtime": realtime},
         "sources": sources,
         "model": {"kind": "lvr", "file": str(model_path)},
         "guard": {"max_slew_um_per_s": 20.0, "stale_after_s": 1.0},
@@ -211,8 +254,20 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     trace = [0] * (cycles // RSS_EVERY + 2)  # preallocated: the hook appends nothing
     n_trace = [0]
 
+    # misses against the hypervisor: /proc/stat's steal counter read about once a second;
+    # a miss in a second in which steal grew is counted as coinciding with host steal
+    steal = {"last": host_steal_ms(), "misses": 0, "with_steal": 0}
+
     def sample_rss(loop: Any, now: float) -> None:
         c = loop.stats.cycles
+        m = loop.stats.misses
+        if m != steal["misses"]:
+            st = host_steal_ms()
+            if st > steal["last"]:
+                steal["with_steal"] += m - steal["misses"]
+            steal["misses"] = m
+        if c % 500 == 0:
+            steal["last"] = host_steal_ms()
         if c == warm:
             rss["after_warmup_kb"] = rss_kb()
         if c % RSS_EVERY == 0 and c > warm:
@@ -226,7 +281,10 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
         deadline = time.monotonic() + 5
         while any(getattr(s, "polls", 1) == 0 for s in app.sources) and time.monotonic() < deadline:
             time.sleep(0.01)
+        tid = threading.get_native_id()
+        steal0, sw0 = host_steal_ms(), thread_switches(tid)
         app.loop.run(max_cycles=cycles)
+        steal1, sw1 = host_steal_ms(), thread_switches(tid)
         io = io_stats(app)  # before close: closing the sink drops its link
     finally:
         app.close()
@@ -241,6 +299,13 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     out = stats.as_dict()
     out["rss"] = rss
     out["io_us"] = io
+    # what the OS and the hypervisor did to the cycle thread during the run
+    out["host"] = {
+        "steal_ms": round(steal1 - steal0, 1),
+        "cycle_thread_voluntary_switches": sw1[0] - sw0[0],
+        "cycle_thread_involuntary_switches": sw1[1] - sw0[1],
+        "misses_with_steal": steal["with_steal"],
+    }
     out["realtime"] = [what for _, what in app.service.realtime_result]
     out["words_sent"] = app.encoder.words_emitted
     return out
@@ -361,6 +426,7 @@ def run_bench(
         "rss_kb": compd["rss"],
         "words_sent": compd["words_sent"],
         "io_us": compd["io_us"],
+        "host": compd["host"],
         "plant_speedup": speedup,
         "naive": naive,
     }
@@ -404,6 +470,12 @@ def format_table(r: dict[str, Any]) -> str:
                 f" max {h['max']:.0f} us"
             )
     lines.append(f"words sent to the PMC: {r['words_sent']} (plant at {r['plant_speedup']:.0f}x)")
+    h = r["host"]
+    lines.append(
+        f"host: {h['steal_ms']:.0f} ms stolen by the hypervisor during the run; cycle thread preempted"
+        f" {h['cycle_thread_involuntary_switches']} times; {h['misses_with_steal']} of the"
+        f" {r['misses']} misses in a second in which the hypervisor stole time"
+    )
     lines.append("model evaluate, median us: " + ", ".join(f"{k} {v:.2f}" for k, v in r["model_eval_us"].items()))
     lines.append(
         f"naive loop: start-to-start interval p50 {n['period_us']['p50']:.0f} us, p99 {n['period_us']['p99']:.0f} us"
