@@ -12,6 +12,15 @@ The motor loss is the copper loss P_cu = 3 i² R_cu [1 + ζ (T_m − T_fo)] (eq.
 motor current, or a configured constant power. Between segment midpoints E is linear
 in y, and E(t, 0) = 0.
 
+Duty-cycle form (compd's, like the ambient term of the AR(1) model): the paper's
+model describes a heating run from rest — Q only grows and the steady profile T_hds
+is the one of the loss it was fitted at. A machine that stops and starts all day
+needs the slide to cool. With `cooling_time_s` τ set, the heat in the slide leaks
+to the air, Q(t) = ∫ P(s) e^(−(t−s)/τ) ds, and the steady profile scales with the
+mean loss Q/τ relative to `ref_power_w`: T_hds(t, y) = Q/(τ P_ref) (U2 e^(χ y) + U1 e^(−χ y)).
+Without the loss (τ → ∞) Q is the paper's ∫ P dt; with a constant loss the steady
+profile reaches the paper's U1, U2 after a few τ. The fit finds τ with χ.
+
 Identifiability: E is proportional to ξ times a function linear in (U1, U2, η), so ξ
 cannot be told apart from a common scale of (U1, U2, η). The fit therefore holds ξ at
 a given value (default 1) and identifies η, U1, U2 together with the field's shape χ
@@ -57,6 +66,15 @@ class FeedAxisParams(Strict):
     input_roles: list[Role] = Field(
         default_factory=lambda: ["position"], description="what each input is, in input order"
     )
+    cooling_time_s: float | None = Field(
+        None,
+        gt=0,
+        description="duty-cycle form: τ of the slide's heat balance (Q leaks as e^(−t/τ), the steady profile"
+        " scales with Q/(τ ref_power_w)); none = the paper's heating run from rest",
+    )
+    ref_power_w: float | None = Field(
+        None, gt=0, description="duty-cycle form: the motor loss at which U1, U2 give the steady profile"
+    )
     linear_p0_mm: float | None = Field(
         None,
         description="run time: output the least-squares line K0 + tanβ (y − P0) of E over the stroke"
@@ -74,6 +92,8 @@ class FeedAxisParams(Strict):
                 raise ValueError("a 'current' input needs r_cu_ohm")
         elif self.power_w is None:
             raise ValueError("give power_w or a 'current' input (with r_cu_ohm)")
+        if self.cooling_time_s is not None and self.ref_power_w is None:
+            raise ValueError("cooling_time_s needs ref_power_w")
         return self
 
 
@@ -96,6 +116,34 @@ def heat_j(t_s: np.ndarray, power_w: np.ndarray) -> np.ndarray:
     return q
 
 
+def leaky_heat_j(t_s: np.ndarray, power_w: np.ndarray, tau_s: float | None) -> np.ndarray:
+    """Q(t) = ∫ P(s) e^(−(t−s)/τ) ds from the first sample (J); τ None = no loss (`heat_j`).
+
+    Each step holds the mean of its two end losses: Q ← e^(−Δt/τ) Q + τ (1 − e^(−Δt/τ)) P̄.
+    """
+    if tau_s is None:
+        return heat_j(t_s, power_w)
+    t = np.asarray(t_s, dtype=float)
+    p = np.broadcast_to(np.asarray(power_w, dtype=float), t.shape)
+    q = np.zeros_like(t)
+    if t.size > 1:
+        dt = np.diff(t)
+        decay = np.exp(-dt / tau_s)
+        gain = tau_s * (1.0 - decay) * 0.5 * (p[1:] + p[:-1])
+        acc = 0.0
+        for k in range(dt.size):
+            acc = decay[k] * acc + gain[k]
+            q[k + 1] = acc
+    return q
+
+
+def _steady_scale(q_j: np.ndarray, tau_s: float | None, ref_power_w: float | None) -> np.ndarray | float:
+    """Q/(τ P_ref): the steady profile's share in the duty-cycle form (1 in the paper's)."""
+    if tau_s is None or ref_power_w is None:
+        return 1.0
+    return np.asarray(q_j, float) / (tau_s * ref_power_w)
+
+
 def _midpoints_m(p: FeedAxisParams) -> np.ndarray:
     seg_m = p.length_mm / 1000.0 / p.segments
     return (np.arange(p.segments) + 0.5) * seg_m
@@ -109,11 +157,16 @@ def _erf_weights(t_s: np.ndarray, y_m: np.ndarray, a: float) -> np.ndarray:
     return special.erf(y_m[None, :] * s)
 
 
-def _basis(t_s, q_j, pos_mm, p: FeedAxisParams, chi: float, a: float) -> np.ndarray:
-    """E = ξ α ΔL [U1 f1 + U2 f2 + η f3] at each row's position: returns (f1, f2, f3) as n × 3 (µm/K·…)."""
+def _basis(t_s, q_j, pos_mm, p: FeedAxisParams, chi: float, a: float, tau_s: float | None = None) -> np.ndarray:
+    """E = ξ α ΔL [U1 f1 + U2 f2 + η f3] at each row's position: returns (f1, f2, f3) as n × 3 (µm/K·…).
+
+    `tau_s` (duty-cycle form) scales the steady profile by Q/(τ P_ref); default: the params' τ."""
+    if tau_s is None:
+        tau_s = p.cooling_time_s
     y = _midpoints_m(p)
     g = _erf_weights(t_s, y, a)
-    h = 1.0 - g
+    sc = _steady_scale(q_j, tau_s, p.ref_power_w)
+    h = (1.0 - g) * (sc[:, None] if isinstance(sc, np.ndarray) else sc)
     parts = np.stack(
         [h * np.exp(-chi * y), h * np.exp(chi * y), g * (np.asarray(q_j, float)[:, None] / p.rho_c_j_m3k)],
         axis=2,
@@ -185,6 +238,10 @@ class FeedAxisFitOptions(Strict):
     xi: float = Field(1.0, gt=0, description="ξ, held fixed (not identifiable apart from U1, U2, η)")
     chi_per_m: float | None = Field(None, gt=0, description="fix χ; none = fit it")
     fit_diffusivity: bool = Field(False, description="also fit a")
+    duty_cycle: bool = Field(
+        False, description="fit the duty-cycle form (the slide cools with τ; see the model's cooling_time_s)"
+    )
+    cooling_time_s: float | None = Field(None, gt=0, description="with duty_cycle: fix τ; none = fit it")
     linear_p0_mm: float | None = Field(None, description="kept in the model: see the params' linear_p0_mm")
 
 
@@ -211,6 +268,9 @@ class FeedAxis(Model):
         self._seg_mm = p.length_mm / p.segments
         self._scale = p.xi * p.alpha_per_k * self._seg_mm * 1000.0
         self._inv_rho_c = p.eta / p.rho_c_j_m3k
+        self._tau = p.cooling_time_s
+        self._steady_per_j = 1.0 / (p.cooling_time_s * p.ref_power_w) if p.cooling_time_s else 0.0
+        self._hds_now = self._hds.copy()
         self.t_start_s: float | None = None
         self.heat_j = 0.0
         self._t_prev = 0.0
@@ -257,7 +317,12 @@ class FeedAxis(Model):
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
         """E(t, y) at the current position (eq. 21); heat integrated by the trapezoid rule."""
         pw = self._power(x)
-        self.heat_j += 0.5 * (pw + self._p_prev) * (t_s - self._t_prev)
+        dt = t_s - self._t_prev
+        if self._tau is None:
+            self.heat_j += 0.5 * (pw + self._p_prev) * dt
+        else:
+            decay = math.exp(-dt / self._tau)
+            self.heat_j = decay * self.heat_j + self._tau * (1.0 - decay) * 0.5 * (pw + self._p_prev)
         self._p_prev = pw
         self._t_prev = t_s
         t = t_s - self.t_start_s
@@ -268,10 +333,14 @@ class FeedAxis(Model):
         np.multiply(self._y_m, 0.5 / math.sqrt(self.params.diffusivity_m2_s * t), out=buf)
         special.erf(buf, out=buf)
         hps = self._inv_rho_c * self.heat_j
+        hds = self._hds
+        if self._tau is not None:  # duty-cycle form: the steady profile follows the mean loss
+            hds = self._hds_now
+            np.multiply(self._hds, self._steady_per_j * self.heat_j, out=hds)
         # T − T_fo = hds + erf (hps − hds) = hds (1 − erf) + erf hps
-        np.subtract(hps, self._hds, out=cum)
+        np.subtract(hps, hds, out=cum)
         cum *= buf
-        cum += self._hds
+        cum += hds
         np.cumsum(cum, out=cum)
         if self._lin is not None:  # the line at P0; the CNC adds tanβ (P − P0)
             k0, slope = self._lin @ cum
@@ -305,7 +374,9 @@ class FeedAxis(Model):
         t = np.asarray(t_s, dtype=float)
         self.start(X[0], float(t[0]))
         pw = np.array([self._power(row) for row in X])
-        q = self.heat_j + heat_j(t, pw)
+        q = leaky_heat_j(t, pw, self._tau)
+        if self.heat_j:  # heat from before this block, leaking on
+            q = q + self.heat_j * (np.exp(-(t - t[0]) / self._tau) if self._tau else 1.0)
         out = error_um(t - self.t_start_s, q, X[:, self._i_pos], self.params)[:, None]
         self.heat_j = float(q[-1])
         self._t_prev, self._p_prev = float(t[-1]), float(pw[-1])
@@ -315,16 +386,21 @@ class FeedAxis(Model):
         """(heating time s, heat J) at each row of a log, from its first row (for reports)."""
         t = np.asarray(t_s, dtype=float)
         pw = np.array([self._power(row) for row in X])
-        return t - t[0], heat_j(t, pw)
+        return t - t[0], leaky_heat_j(t, pw, self._tau)
 
     def get_state(self) -> dict[str, Any]:
         heating = None if self.t_start_s is None else self._t_prev - self.t_start_s
         return {"heating_s": heating, "heat_j": self.heat_j}
 
     def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0) -> None:
-        """Resume the heating run: the outage counts as heating time without heat input."""
+        """Resume the heating run: the outage counts as heating time without heat input
+        (in the duty-cycle form the slide also cools by e^(−outage/τ))."""
         if state.get("heating_s") is not None:
-            self._restore = (float(state["heating_s"]) + max(elapsed_s, 0.0), float(state.get("heat_j", 0.0)))
+            gap = max(elapsed_s, 0.0)
+            q = float(state.get("heat_j", 0.0))
+            if self._tau is not None:
+                q *= math.exp(-gap / self._tau)
+            self._restore = (float(state["heating_s"]) + gap, q)
 
     @classmethod
     def fit(cls, log: Log, inputs=None, targets=None, **options: Any) -> FitResult:
@@ -372,10 +448,24 @@ class FeedAxis(Model):
         probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
         tmp = cls(probe, names, [axis])
         pw = np.array([tmp._power(row) for row in X])
-        q = heat_j(t, pw)
+        if opt.duty_cycle:
+            if not np.any(pw > 0):
+                raise BadInput("duty_cycle: the motor loss is zero throughout the log", file=log.file)
+            # the loss while the axis works: U1, U2 give the steady profile at this loss
+            base["ref_power_w"] = float(np.mean(pw[pw > 0.1 * np.max(pw)]))
+            probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
+        heat_cache: dict[float, np.ndarray] = {}
 
-        def linear(chi: float, a: float) -> tuple[float, np.ndarray]:
-            F = opt.xi * _basis(t, q, pos, probe, chi, a)
+        def heat(tau: float | None) -> np.ndarray:
+            key = -1.0 if tau is None else tau
+            if key not in heat_cache:
+                if len(heat_cache) > 64:
+                    heat_cache.clear()
+                heat_cache[key] = leaky_heat_j(t, pw, tau)
+            return heat_cache[key]
+
+        def linear(chi: float, a: float, tau: float | None) -> tuple[float, np.ndarray]:
+            F = opt.xi * _basis(t, heat(tau), pos, probe, chi, a, tau)
             coef, *_ = np.linalg.lstsq(F, E, rcond=None)
             return float(np.sum((F @ coef - E) ** 2)), coef
 
@@ -384,33 +474,49 @@ class FeedAxis(Model):
             chi_grid = np.array([opt.chi_per_m])
         else:
             chi_grid = np.geomspace(0.05, 30.0, 40) / (length / 1000.0)
-        costs = [linear(c, a0)[0] for c in progress(chi_grid, desc="feed_axis χ start")]
-        chi0 = float(chi_grid[int(np.argmin(costs))])
-        _, (u1, u2, eta) = linear(chi0, a0)
+        free_tau = opt.duty_cycle and opt.cooling_time_s is None
+        if not opt.duty_cycle:
+            tau_grid: list[float | None] = [None]
+        elif free_tau:
+            tau_grid = [float(v) for v in np.geomspace(600.0, 86400.0, 12)]
+        else:
+            tau_grid = [opt.cooling_time_s]
+        starts = [(c, tau) for tau in tau_grid for c in chi_grid]
+        costs = [linear(c, a0, tau)[0] for c, tau in progress(starts, desc="feed_axis start")]
+        chi0, tau0 = starts[int(np.argmin(costs))]
+        chi0 = float(chi0)
+        _, (u1, u2, eta) = linear(chi0, a0, tau0)
         free_chi = opt.chi_per_m is None
         x0 = [eta, u1, u2] + ([math.log(chi0)] if free_chi else []) + (
             [math.log(a0)] if opt.fit_diffusivity else []
-        )
+        ) + ([math.log(tau0)] if free_tau else [])
 
         def unpack(v):
             k = 3
             chi = math.exp(v[k]) if free_chi else chi0
             k += free_chi
             a = math.exp(v[k]) if opt.fit_diffusivity else a0
-            return v[0], v[1], v[2], chi, a
+            k += opt.fit_diffusivity
+            tau = math.exp(v[k]) if free_tau else tau0
+            return v[0], v[1], v[2], chi, a, tau
 
         def resid(v):
-            eta_, u1_, u2_, chi, a = unpack(v)
-            F = opt.xi * _basis(t, q, pos, probe, chi, a)
+            eta_, u1_, u2_, chi, a, tau = unpack(v)
+            F = opt.xi * _basis(t, heat(tau), pos, probe, chi, a, tau)
             return F @ np.array([u1_, u2_, eta_]) - E
 
         lo = [0.0, -1e3, -1e3] + ([math.log(1e-3)] if free_chi else []) + ([math.log(1e-8)] if opt.fit_diffusivity else [])
         hi = [np.inf, 1e3, 1e3] + ([math.log(1e3)] if free_chi else []) + ([math.log(1e-3)] if opt.fit_diffusivity else [])
+        if free_tau:
+            lo.append(math.log(60.0))
+            hi.append(math.log(30 * 86400.0))
         x0 = np.clip(x0, np.array(lo) + 1e-12, np.array(hi) - 1e-12)
         res = optimize.least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", max_nfev=2000)
-        eta, u1, u2, chi, a = unpack(res.x)
+        eta, u1, u2, chi, a, tau = unpack(res.x)
+        q = heat(tau)
         params = FeedAxisParams(
-            **{**base, "diffusivity_m2_s": a}, chi_per_m=chi, eta=float(eta), u1_k=float(u1), u2_k=float(u2)
+            **{**base, "diffusivity_m2_s": a}, chi_per_m=chi, eta=float(eta), u1_k=float(u1), u2_k=float(u2),
+            cooling_time_s=tau,
         )
         model = cls(params, names, [axis])
         times = sorted({float(v) for v in np.quantile(t, [0.25, 0.5, 0.75, 1.0])})
