@@ -94,6 +94,7 @@ class CompensationSummary:
                 self.pairs.append((a, loop.frame.index[name]))
         n = len(loop.model.outputs)
         self.n = 0
+        self.count = np.zeros(n, dtype=np.int64)  # per axis: cycles with a known true error
         self.sum_before = np.zeros(n)
         self.sum_after = np.zeros(n)
         self.max_before = np.zeros(n)
@@ -108,6 +109,9 @@ class CompensationSummary:
         self.n += 1
         for a, i in self.pairs:
             e = loop.frame.values[i]
+            if not math.isfinite(e):  # no sample of the true error yet (or it was lost)
+                continue
+            self.count[a] += 1
             r = e + applied[a]
             self.sum_before[a] += e * e
             self.sum_after[a] += r * r
@@ -119,8 +123,8 @@ class CompensationSummary:
     def result(self, axes: list[str]) -> dict[str, dict[str, float]]:
         out = {}
         for a, _ in self.pairs:
-            before = math.sqrt(self.sum_before[a] / max(self.n, 1))
-            after = math.sqrt(self.sum_after[a] / max(self.n, 1))
+            before = math.sqrt(self.sum_before[a] / max(int(self.count[a]), 1))
+            after = math.sqrt(self.sum_after[a] / max(int(self.count[a]), 1))
             out[axes[a]] = {
                 "rms_before_um": before,
                 "rms_after_um": after,

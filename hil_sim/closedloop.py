@@ -49,6 +49,8 @@ class Machine:
     mlr_args: tuple[str, ...] = ()
     axes: tuple[str, ...] = ()  # axes compensated (and scored)
     rate_s: float = 60.0  # training log period (AR(1): its Δτ)
+    # further fits of the paper's kind in compd's extended forms: (tag, extra `compd fit` arguments)
+    variants: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
 
 MACHINES: dict[str, Machine] = {
@@ -63,6 +65,7 @@ MACHINES: dict[str, Machine] = {
     "feed_axis": Machine(
         "feed_axis", "siemens_nc", "siemens", "feed_axis",
         ("--option", "linear_p0_mm=300", "--option", "length_mm=600"), (), ("y",), 10.0,
+        variants=(("feed_axis_duty", ("--option", "duty_cycle=true")),),
     ),
 }
 
@@ -94,10 +97,10 @@ def log_day(machine: str, day: str, out: Path, rate_s: float = 10.0, duration_s:
     return run_cli(args)
 
 
-def fit(machine: str, kind: str, log: Path, out: Path) -> str:
-    """`compd fit` of the paper model (its arguments from MACHINES) or of `mlr`."""
+def fit(machine: str, kind: str, log: Path, out: Path, more: tuple[str, ...] = ()) -> str:
+    """`compd fit` of the paper model (its arguments from MACHINES) or of `mlr`; `more`: further arguments."""
     m = MACHINES[machine]
-    extra = list(m.paper_args if kind == m.paper_kind else m.mlr_args)
+    extra = list(m.paper_args if kind == m.paper_kind else m.mlr_args) + list(more)
     return run_cli(["-m", "compd", "fit", "--kind", kind, "--log", str(log), "--out", str(out), *extra])
 
 

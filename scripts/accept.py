@@ -41,11 +41,13 @@ def main(argv: list[str] | None = None) -> int:
         m = cl.MACHINES[name]
         train = work / f"{name}_train.csv"
         print(cl.log_day(name, "train", train, args.rate_s or m.rate_s).strip(), flush=True)
-        for kind in (m.paper_kind, "mlr"):
-            model = work / f"{name}_{kind}.yaml"
-            print(cl.fit(name, kind, train, model).strip(), flush=True)
-            r = cl.closed_loop(name, model, work, speedup=args.speedup, duration_s=args.duration_s, tag=kind)
-            r["paper_model"] = kind == m.paper_kind
+        fits = [(m.paper_kind, m.paper_kind, ()), ("mlr", "mlr", ())]
+        fits += [(tag, m.paper_kind, more) for tag, more in m.variants]
+        for tag, kind, more in fits:
+            model = work / f"{name}_{tag}.yaml"
+            print(cl.fit(name, kind, train, model, more).strip(), flush=True)
+            r = cl.closed_loop(name, model, work, speedup=args.speedup, duration_s=args.duration_s, tag=tag)
+            r["paper_model"] = tag == m.paper_kind
             rows.append(r)
             print(cl.table([r]).splitlines()[1:][0] if r["axes"] else r, flush=True)
             print(f"  ({r['plant_s'] / 3600:.1f} plant h in {r['wall_s']:.0f} s wall; compd faults {r['faults']};"
