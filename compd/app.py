@@ -93,7 +93,6 @@ class CompensationSummary:
             if name in loop.frame.index:
                 self.pairs.append((a, loop.frame.index[name]))
         n = len(loop.model.outputs)
-        self.n = 0
         self.count = np.zeros(n, dtype=np.int64)  # per axis: cycles with a known true error
         self.sum_before = np.zeros(n)
         self.sum_after = np.zeros(n)
@@ -106,7 +105,6 @@ class CompensationSummary:
         applied = loop.applied()
         if not np.all(np.isfinite(applied)):
             return  # the sink does not know yet what the machine applies (remote status not read)
-        self.n += 1
         for a, i in self.pairs:
             e = loop.frame.values[i]
             if not math.isfinite(e):  # no sample of the true error yet (or it was lost)

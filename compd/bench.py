@@ -196,8 +196,9 @@ def _compd_config(work: Path, model_path: Path, sensors: list[str], ports: dict[
         # what a real-time deployment sets (docs/commissioning.md): memory locked, and the
         # cycle thread on a CPU of its own (the simulated devices are kept off it)
         realtime["lock_memory"] = True
-        if cycle_cpu() is not None:
-            realtime["cpu_affinity"] = [cycle_cpu()]
+        cpu = cycle_cpu()
+        if cpu is not None:
+            realtime["cpu_affinity"] = [cpu]
     sources = []
     for m in range(0, len(sensors), MODULE_CHANNELS):
         names = sensors[m : m + MODULE_CHANNELS]
@@ -316,7 +317,6 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     from pymodbus.client import ModbusTcpClient
 
     from compd.codec import encode
-    from compd.config import load_model_file, resolve_model  # noqa: F401
     from compd.fitting import load_model
 
     model = load_model(str(model_path))

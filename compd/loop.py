@@ -24,6 +24,7 @@ import numpy as np
 from compd.codec import Encoder
 from compd.frame import Frame
 from compd.guard import Guard
+from compd.histogram import bin_percentiles
 from compd.models.base import Model
 from compd.sinks.base import Sink
 from compd.sources.base import Source
@@ -71,35 +72,13 @@ class TimingStats:
         if d_ns > self.stage_max_ns[i]:
             self.stage_max_ns[i] = d_ns
 
-    @staticmethod
-    def _percentile(hist: array, q: float) -> float:
-        total = sum(hist)
-        if total == 0:
-            return 0.0
-        want = q * total
-        acc = 0
-        for i, c in enumerate(hist):
-            acc += c
-            if acc >= want:
-                return float(i)
-        return float(len(hist) - 1)
-
     def lateness_us(self) -> dict[str, float]:
-        p = self._percentile
-        return {
-            "p50": p(self.hist, 0.5),
-            "p99": p(self.hist, 0.99),
-            "p999": p(self.hist, 0.999),
-            "max": round(self.late_max_s * 1e6, 1),
-        }
+        p50, p99, p999 = bin_percentiles(self.hist, (0.5, 0.99, 0.999))
+        return {"p50": p50, "p99": p99, "p999": p999, "max": round(self.late_max_s * 1e6, 1)}
 
     def compute_us(self) -> dict[str, float]:
-        p = self._percentile
-        return {
-            "p50": p(self.compute_hist, 0.5),
-            "p99": p(self.compute_hist, 0.99),
-            "max": round(self.compute_max_ns / 1000, 1),
-        }
+        p50, p99 = bin_percentiles(self.compute_hist, (0.5, 0.99))
+        return {"p50": p50, "p99": p99, "max": round(self.compute_max_ns / 1000, 1)}
 
     def stages(self) -> dict[str, dict[str, float]]:
         n = max(self.cycles, 1)

@@ -19,25 +19,16 @@ from typing import Any
 import numpy as np
 
 from compd.errors import BadInput
+from compd.histogram import bin_percentiles
 
 SCHEMA = 1
 DEFAULT_PATH = "/run/compd/status.json"
 
 
-def _percentiles(hist: Any, qs: tuple[float, ...]) -> list[float]:
-    """Bin index (µs) at which the cumulative count first reaches q·total, as TimingStats does."""
-    counts = np.frombuffer(hist, dtype=np.int64) if not isinstance(hist, np.ndarray) else hist
-    cum = np.cumsum(counts)
-    total = cum[-1] if cum.size else 0
-    if total == 0:
-        return [0.0 for _ in qs]
-    return [float(np.searchsorted(cum, q * total, side="left")) for q in qs]
-
-
 def timing(stats: Any) -> dict[str, Any]:
     """The loop's timing figures (CONTRACT bench names), with numpy percentiles (≈ 50 µs)."""
-    p50, p99, p999 = _percentiles(stats.hist, (0.5, 0.99, 0.999))
-    c50, c99 = _percentiles(stats.compute_hist, (0.5, 0.99))
+    p50, p99, p999 = bin_percentiles(stats.hist, (0.5, 0.99, 0.999))
+    c50, c99 = bin_percentiles(stats.compute_hist, (0.5, 0.99))
     return {
         "period_ms": stats.period_s * 1000.0,
         "cycles": int(stats.cycles),

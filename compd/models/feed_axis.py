@@ -30,6 +30,7 @@ the exact linear solution on a grid of χ.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Literal
 
@@ -137,13 +138,6 @@ def leaky_heat_j(t_s: np.ndarray, power_w: np.ndarray, tau_s: float | None) -> n
     return q
 
 
-def _steady_scale(q_j: np.ndarray, tau_s: float | None, ref_power_w: float | None) -> np.ndarray | float:
-    """Q/(τ P_ref): the steady profile's share in the duty-cycle form (1 in the paper's)."""
-    if tau_s is None or ref_power_w is None:
-        return 1.0
-    return np.asarray(q_j, float) / (tau_s * ref_power_w)
-
-
 def _midpoints_m(p: FeedAxisParams) -> np.ndarray:
     seg_m = p.length_mm / 1000.0 / p.segments
     return (np.arange(p.segments) + 0.5) * seg_m
@@ -165,8 +159,9 @@ def _basis(t_s, q_j, pos_mm, p: FeedAxisParams, chi: float, a: float, tau_s: flo
         tau_s = p.cooling_time_s
     y = _midpoints_m(p)
     g = _erf_weights(t_s, y, a)
-    sc = _steady_scale(q_j, tau_s, p.ref_power_w)
-    h = (1.0 - g) * (sc[:, None] if isinstance(sc, np.ndarray) else sc)
+    h = 1.0 - g
+    if tau_s is not None and p.ref_power_w is not None:  # the steady profile's share Q/(τ P_ref)
+        h *= (np.asarray(q_j, float) / (tau_s * p.ref_power_w))[:, None]
     parts = np.stack(
         [h * np.exp(-chi * y), h * np.exp(chi * y), g * (np.asarray(q_j, float)[:, None] / p.rho_c_j_m3k)],
         axis=2,
@@ -454,15 +449,9 @@ class FeedAxis(Model):
             # the loss while the axis works: U1, U2 give the steady profile at this loss
             base["ref_power_w"] = float(np.mean(pw[pw > 0.1 * np.max(pw)]))
             probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
-        heat_cache: dict[float, np.ndarray] = {}
-
+        @functools.lru_cache(maxsize=64)
         def heat(tau: float | None) -> np.ndarray:
-            key = -1.0 if tau is None else tau
-            if key not in heat_cache:
-                if len(heat_cache) > 64:
-                    heat_cache.clear()
-                heat_cache[key] = leaky_heat_j(t, pw, tau)
-            return heat_cache[key]
+            return leaky_heat_j(t, pw, tau)
 
         def linear(chi: float, a: float, tau: float | None) -> tuple[float, np.ndarray]:
             F = opt.xi * _basis(t, heat(tau), pos, probe, chi, a, tau)

@@ -45,8 +45,7 @@ class ModbusLink:
         self.name = name
         self.write_hist = DurationHist()  # request to reply of each write, µs
         self.latency_hist = DurationHist()  # queued by the cycle to acknowledged by the device, µs
-        self._pending: dict[int, list[int]] = {}
-        self._queued_ns: dict[int, int] = {}
+        self._pending: dict[int, tuple[list[int], int]] = {}  # address -> (values, queued at, ns)
         self._cv = threading.Condition()
         self._io = threading.Lock()
         self._stop = False
@@ -64,8 +63,7 @@ class ModbusLink:
     def submit(self, address: int, values: list[int]) -> None:
         """Queue a write; a newer write to the same address replaces an unsent one."""
         with self._cv:
-            self._pending[address] = [v & 0xFFFF for v in values]
-            self._queued_ns[address] = time.perf_counter_ns()
+            self._pending[address] = ([v & 0xFFFF for v in values], time.perf_counter_ns())
             self._cv.notify()
 
     def pending(self) -> bool:
@@ -115,11 +113,10 @@ class ModbusLink:
                 if self._stop and not self._pending:
                     break
                 item = None
-                queued_ns = 0
                 if self._pending:
                     address = next(iter(self._pending))
-                    item = (address, self._pending.pop(address))
-                    queued_ns = self._queued_ns.pop(address, 0)
+                    values, queued_ns = self._pending.pop(address)
+                    item = (address, values)
             with self._io:  # network I/O without holding the cycle's lock
                 try:
                     ok = self._client.connected or bool(self._client.connect())
@@ -132,8 +129,7 @@ class ModbusLink:
                         rr = self._client.write_registers(item[0], item[1], device_id=self.device_id)
                         w1 = time.perf_counter_ns()
                         self.write_hist.add_ns(w1 - w0)
-                        if queued_ns:
-                            self.latency_hist.add_ns(w1 - queued_ns)
+                        self.latency_hist.add_ns(w1 - queued_ns)
                         if rr.isError():
                             self.errors += 1
                             self.last_error = f"write exception reply {getattr(rr, 'exception_code', '?')}"
@@ -154,8 +150,7 @@ class ModbusLink:
                 self.errors += 1
                 with self._cv:
                     if item is not None:
-                        self._pending.setdefault(item[0], item[1])  # unless superseded meanwhile
-                        self._queued_ns.setdefault(item[0], queued_ns)
+                        self._pending.setdefault(item[0], (item[1], queued_ns))  # unless superseded meanwhile
                     if self._stop:
                         break
                     self._cv.wait(backoff)
