@@ -31,11 +31,14 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
 import yaml
+
+from hil_sim.devices.worker import DeviceThread
 
 KINDS = ("pt100_modbus", "dcon", "can_pt100", "fanuc_pmc", "siemens_nc", "plant")
 CLOCKS = ("wall", "plant")
@@ -114,59 +117,46 @@ def start_device(cfg: dict[str, Any]) -> Running:
             run.device = tx
             run.start(dev)
             run.where = dev.where
-        elif kind == "fanuc_pmc":
+        else:  # a CNC: fanuc_pmc or siemens_nc, a Modbus server and (on wall time) its scan thread
             from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
-            from hil_sim.devices.modbus_server import ModbusServerThread
-
-            host, port, dev_id = cfg.pop("host", "127.0.0.1"), int(cfg.pop("port", 0)), int(cfg.pop("device_id", 1))
-            pmc = FanucPmc(**cfg)
-            run.device = pmc
-            if run.clock == "wall":
-                run.start(PmcScanThread(pmc))
-            srv = run.start(ModbusServerThread(pmc, host=host, port=port, device_id=dev_id))
-            run.where = lambda: srv.where() + f" scan {pmc.scan_s * 1000:g} ms"
-        else:  # siemens_nc
             from hil_sim.devices.modbus_server import ModbusServerThread
             from hil_sim.devices.siemens_nc import SiemensNc
 
             host, port, dev_id = cfg.pop("host", "127.0.0.1"), int(cfg.pop("port", 0)), int(cfg.pop("device_id", 1))
-            nc = SiemensNc(**cfg)
-            run.device = nc
+            if kind == "fanuc_pmc":
+                cnc: Any = FanucPmc(**cfg)
+                scan, label = PmcScanThread(cnc), f" scan {cnc.scan_s * 1000:g} ms"
+            else:
+                cnc = SiemensNc(**cfg)
+                scan, label = _NcClock(cnc), f" IPO {cnc.ipo_s * 1000:g} ms"
+            run.device = cnc
             if run.clock == "wall":
-                run.start(_NcClock(nc))
-            srv = run.start(ModbusServerThread(nc, host=host, port=port, device_id=dev_id))
-            run.where = lambda: srv.where() + f" IPO {nc.ipo_s * 1000:g} ms"
+                run.start(scan)
+            srv = run.start(ModbusServerThread(cnc, host=host, port=port, device_id=dev_id))
+            run.where = lambda: srv.where() + label
     except BaseException:
         run.stop()
         raise
     return run
 
 
-class _NcClock:
+class _NcClock(DeviceThread):
     """Runs the NC's IPO cycles on wall time."""
 
+    thread_name = "nc-ipo"
+
     def __init__(self, nc: Any) -> None:
+        super().__init__()
         self.nc = nc
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._t0 = 0.0
 
-    def start(self) -> None:
-        import time
-
-        t0 = time.monotonic()
+    def _open(self) -> None:
+        self._t0 = time.monotonic()
         self.nc.next_ipo_s = self.nc.t_s = 0.0
 
-        def run() -> None:
-            while not self._stop.wait(self.nc.ipo_s):
-                self.nc.advance_to(time.monotonic() - t0)
-
-        self._thread = threading.Thread(target=run, name="nc-ipo", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
+    def _run(self) -> None:
+        while not self._stop.wait(self.nc.ipo_s):
+            self.nc.advance_to(time.monotonic() - self._t0)
 
 
 def start_plant(cfg: dict[str, Any], others: dict[str, Running], base_dir: Path) -> Running:

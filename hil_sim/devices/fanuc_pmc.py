@@ -34,6 +34,8 @@ import threading
 import time
 from typing import Any
 
+from hil_sim.devices.worker import DeviceThread
+
 X_BASE, Y_BASE, R_BASE, D_BASE, S_BASE = 0, 100, 200, 300, 400
 N_X, N_Y, N_R, N_D, N_S = 16, 16, 16, 16, 16
 REGISTER_COUNT = S_BASE + N_S
@@ -174,18 +176,14 @@ class FanucPmc:
         self.write_registers(RESET, [1])
 
 
-class PmcScanThread:
+class PmcScanThread(DeviceThread):
     """Runs a PMC's scans on wall time, on an absolute schedule (start + k·scan_s)."""
 
-    def __init__(self, pmc: FanucPmc) -> None:
-        self.pmc = pmc
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+    thread_name = "pmc-scan"
 
-    def start(self) -> PmcScanThread:
-        self._thread = threading.Thread(target=self._run, name="pmc-scan", daemon=True)
-        self._thread.start()
-        return self
+    def __init__(self, pmc: FanucPmc) -> None:
+        super().__init__()
+        self.pmc = pmc
 
     def _run(self) -> None:
         t0 = time.monotonic()
@@ -198,9 +196,3 @@ class PmcScanThread:
                 self._stop.wait(rest)
             elif rest < -self.pmc.scan_s:  # overran: skip what is past
                 k += int(-rest / self.pmc.scan_s)
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
-            self._thread = None

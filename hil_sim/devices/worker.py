@@ -7,10 +7,11 @@ from typing import Any
 
 
 class DeviceThread:
-    """Base of devices that serve from a thread of their own (DCON module, CAN broadcaster).
+    """Base of devices that run on a thread of their own (DCON module, CAN broadcaster, CNC scans).
 
-    Subclasses implement `_open()` (the serial port, the bus), `_run()` (loop until
-    `self._stop` is set) and `_close()`; `start`/`stop` and the context manager are here.
+    Subclasses implement `_run()` (loop until `self._stop` is set) and, when they hold
+    a line (the serial port, the bus), `_open()` and `_close()`; `start`/`stop` and the
+    context manager are here.
     """
 
     thread_name = "device"
@@ -20,13 +21,13 @@ class DeviceThread:
         self._thread: threading.Thread | None = None
 
     def _open(self) -> None:
-        raise NotImplementedError
+        """Before the thread starts (nothing by default)."""
 
     def _run(self) -> None:
         raise NotImplementedError
 
     def _close(self) -> None:
-        raise NotImplementedError
+        """After the thread has stopped (nothing by default)."""
 
     def start(self) -> Any:
         self._open()
