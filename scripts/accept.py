@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
             r = cl.closed_loop(name, model, work, speedup=args.speedup, duration_s=args.duration_s, tag=tag)
             r["paper_model"] = tag == m.paper_kind
             rows.append(r)
-            print(cl.table([r]).splitlines()[1:][0] if r["axes"] else r, flush=True)
+            print("\n".join(cl.table([r]).splitlines()[1:]) if r["axes"] else r, flush=True)
             print(f"  ({r['plant_s'] / 3600:.1f} plant h in {r['wall_s']:.0f} s wall; compd faults {r['faults']};"
                   f" compd's own count: " + ", ".join(
                       f"{a} {v['rms_before_um']:.2f} -> {v['rms_after_um']:.2f} um" for a, v in r["compd"].items())

@@ -117,7 +117,10 @@ class RadialParams(Strict):
     contact_deg: float = Field(18.0, gt=0, lt=90, description="initial contact angle")
     preload_share: float = Field(0.8, ge=0, le=1, description="share of ΔL between the bearings")
     clearance: bool = Field(True, description="add the preload-loss clearance term c")
-    inner_sensors: int = Field(1, ge=1, le=2, description="1: uniform ring; 2: T at bore and raceway")
+    inner_sensors: int = Field(
+        1, ge=0, le=2,
+        description="0: uniform ring at the ξ sensor's (rotor) temperature; 1: uniform ring; 2: T at bore and raceway",
+    )
     outer_sensors: int = Field(1, ge=1, le=2, description="1: uniform ring; 2: T at raceway and OD")
     k_um_per_rpm2: float | None = Field(
         None, description="centrifugal lift k·n²; set it to take a speed input (last)"
@@ -153,6 +156,12 @@ class XiFitOptions(Strict):
 
     alpha_per_k: float = Field(13.6e-6, gt=0, lt=1e-3, description="α; the fit reports L = gain/α")
     xi_mm: float | None = Field(None, ge=0, description="where the sensor sits (kept in the file)")
+    inner_sensors: int = Field(
+        0, ge=0, le=2, description="radial fit: inner-ring sensors after the ξ sensor (0: ring at T_xi)"
+    )
+    outer_sensors: int = Field(1, ge=1, le=2, description="radial fit: outer-ring sensors")
+    ring_alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3, description="radial fit: bearing steel α")
+    clearance: bool = Field(True, description="radial fit: add the preload-loss clearance c(ΔL)")
 
 
 class XiSpindle(Model):
@@ -199,8 +208,11 @@ class XiSpindle(Model):
             return
         ref = self.ref_c
         k = 1
-        ti = x[k] - ref[k]
-        to = x[k + 1] - ref[k + 1] if rad.inner_sensors == 2 else ti
+        if rad.inner_sensors == 0:  # paper 003: the inner ring is at the rotor journal's temperature
+            ti = to = x[0] - ref[0]
+        else:
+            ti = x[k] - ref[k]
+            to = x[k + 1] - ref[k + 1] if rad.inner_sensors == 2 else ti
         k += rad.inner_sensors
         oi = x[k] - ref[k]
         oo = x[k + 1] - ref[k + 1] if rad.outer_sensors == 2 else oi
@@ -227,23 +239,43 @@ class XiSpindle(Model):
 
     @classmethod
     def fit(cls, log: Log, inputs=None, targets=None, **options: Any) -> FitResult:
-        """Axial gain α L by least squares through the origin on the ξ sensor's rise."""
+        """Axial gain α L by least squares through the origin on the ξ sensor's rise.
+
+        With two targets (axial, radial) the radial output is added: the rings' geometry
+        is the paper's (7010 CETA), the ring temperatures come from the inputs after the
+        ξ sensor ([inner ring sensors], outer ring sensors, [speed]), and only the
+        centrifugal lift k (µm/rpm²) is fitted, by least squares on what u + c leaves,
+        when the last input is the spindle speed.
+        """
         opt = cls.fit_options(options)
         targets = default_targets(log, targets)
-        if len(targets) != 1:
-            raise BadInput(f"xi_spindle fits one axis; targets: {', '.join(targets)}", path="--target")
+        if len(targets) not in (1, 2):
+            raise BadInput(
+                f"xi_spindle fits the axial axis, or axial and radial; targets: {', '.join(targets)}",
+                path="--target",
+            )
+        radial = len(targets) == 2
+        rings = opt.inner_sensors + opt.outer_sensors
         if not inputs:
             temps = log.temperature_columns()
-            if len(temps) != 1:
+            if radial or len(temps) != 1:
                 raise BadInput(
-                    "name the ξ sensor with --inputs (the log has "
-                    f"{len(temps)} temperature columns)", file=log.file, path="--inputs",
+                    "name the ξ sensor" + (" and the ring sensors" if radial else "")
+                    + f" with --inputs (the log has {len(temps)} temperature columns)",
+                    file=log.file, path="--inputs",
                 )
             inputs = temps
-        if len(inputs) != 1:
+        if not radial and len(inputs) != 1:
             raise BadInput(f"xi_spindle takes one input (the ξ sensor), got {len(inputs)}", path="--inputs")
-        x = columns(log, inputs)[:, 0]
-        e = columns(log, targets)[:, 0]
+        if radial and len(inputs) not in (1 + rings, 2 + rings):
+            raise BadInput(
+                f"a radial fit takes the ξ sensor, {opt.inner_sensors} inner-ring and {opt.outer_sensors} "
+                f"outer-ring sensor(s), then optionally the speed: {1 + rings} or {2 + rings} inputs, "
+                f"got {len(inputs)}", path="--inputs",
+            )
+        X = columns(log, inputs)
+        E = columns(log, targets)
+        x, e = X[:, 0], E[:, 0]
         require_rows(log, x.size, 3, "xi_spindle")
         rise = x - x[0]
         ss = float(rise @ rise)
@@ -256,6 +288,36 @@ class XiSpindle(Model):
                 file=log.file, path=inputs[0],
             )
         length = gain / (opt.alpha_per_k * 1000.0)
-        params = XiSpindleParams(alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm)
+        report: dict[str, Any] = {"gain_um_per_k": gain, "length_mm": length}
+        rad = None
+        if radial:
+            rad = RadialParams(
+                alpha_per_k=opt.ring_alpha_per_k, inner_sensors=opt.inner_sensors,
+                outer_sensors=opt.outer_sensors, clearance=opt.clearance,
+            )
+            if len(inputs) == 2 + rings:
+                probe = cls(
+                    XiSpindleParams(
+                        alpha_per_k=opt.alpha_per_k, length_mm=length,
+                        radial=rad.model_copy(update={"k_um_per_rpm2": 0.0}),
+                    ),
+                    list(inputs), axis_names(targets),
+                )
+                left = E[:, 1] - probe.predict(X, np.zeros(x.size))[:, 1]
+                rad = rad.model_copy(update={"k_um_per_rpm2": _fit_lift(left, X[:, -1], log, inputs[-1])})
+                report["k_um_per_rpm2"] = rad.k_um_per_rpm2
+        params = XiSpindleParams(
+            alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, radial=rad
+        )
         model = cls(params, list(inputs), axis_names(targets))
-        return FitResult(model, {"gain_um_per_k": gain, "length_mm": length})
+        return FitResult(model, report)
+
+
+
+def _fit_lift(left_um: np.ndarray, speed_rpm: np.ndarray, log: Log, name: str) -> float:
+    """Centrifugal lift k (µm/rpm², ≥ 0): least squares of k n² on the radial error u + c leaves."""
+    n2 = speed_rpm**2
+    n4 = float(n2 @ n2)
+    if n4 == 0.0:
+        raise BadInput("the speed input is 0 throughout: the lift k cannot be fitted", file=log.file, path=name)
+    return max(0.0, float(left_um @ n2) / n4)

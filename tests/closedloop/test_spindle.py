@@ -1,5 +1,5 @@
-"""Closed loop, motorized spindle (paper 003): ξ-point model through the FANUC PMC's external
-shift over Modbus TCP, a shortened unseen day, against MLR on the same wiring."""
+"""Closed loop, motorized spindle (paper 003): ξ-point axial and bearing-ring radial model through
+the FANUC PMC's external shift over Modbus TCP, a shortened unseen day, against MLR on the same wiring."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hil_sim import closedloop as cl
 HOURS, SPEEDUP = 5.0, 7200.0
 
 
-def test_spindle_xi_model_through_the_pmc_cuts_the_axial_error(tmp_path):
+def test_spindle_xi_model_through_the_pmc_cuts_the_axial_and_radial_error(tmp_path):
     rows = {}
     for kind in ("xi_spindle", "mlr"):
         model = cl.prepare_model("spindle", kind, tmp_path)

@@ -143,3 +143,72 @@ def test_find_xi_exponential_profile() -> None:
 def test_find_xi_rejects_constant_profile() -> None:
     with pytest.raises(BadInput, match="constant"):
         find_xi(np.array([0.0, 1.0, 2.0]), np.array([20.0, 20.0, 20.0]))
+
+
+def _radial_log(k_um_per_rpm2: float) -> tuple[Log, XiSpindle]:
+    """A synthetic spindle day whose radial error is exactly the model's, with lift k."""
+    t = np.arange(0.0, 4 * 3600.0, 60.0)
+    speed = np.where((t // 1800) % 2 == 0, 9000.0, 3000.0)
+    t_xi = 20.0 + 9.0 * (1 - np.exp(-t / 2400.0))
+    t_out = 20.0 + 4.0 * (1 - np.exp(-t / 3000.0))
+    truth = XiSpindle(
+        XiSpindleParams(
+            alpha_per_k=13.6e-6, length_mm=160.0,
+            radial=RadialParams(inner_sensors=0, k_um_per_rpm2=k_um_per_rpm2),
+        ),
+        ["T_xi", "T_brg_front", "speed_rpm"], ["z", "radial"],
+    )
+    X = np.column_stack([t_xi, t_out, speed])
+    E = truth.predict(X, t)
+    cols = ["t_s", "T_xi", "T_brg_front", "speed_rpm", "err_z_um", "err_radial_um"]
+    return Log("spindle.csv", cols, np.column_stack([t, X, E])), truth
+
+
+def test_inner_ring_at_the_xi_sensor() -> None:
+    """inner_sensors = 0: the inner ring takes the ξ sensor's rise (paper 003: ≈ the rotor journal)."""
+    rad0 = RadialParams(inner_sensors=0, clearance=False)
+    rad1 = RadialParams(inner_sensors=1, clearance=False)
+    m0 = XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad0), ["T_xi", "T_o"], ["z", "r"])
+    m1 = XiSpindle(
+        XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad1), ["T_xi", "T_i", "T_o"], ["z", "r"]
+    )
+    out0, out1 = np.zeros(2), np.zeros(2)
+    m0.start(np.array([20.0, 20.0]), 0.0)
+    m1.start(np.array([20.0, 20.0, 20.0]), 0.0)
+    m0.evaluate(np.array([26.0, 23.0]), 1.0, out0)
+    m1.evaluate(np.array([26.0, 26.0, 23.0]), 1.0, out1)
+    assert out0[1] == pytest.approx(out1[1])
+    # a warmer inner ring closes the gap: the radial error falls below the outer ring's growth
+    assert out0[1] < outer_ring_um(3.0, 3.0, rad0.r_c_mm, rad0.r_d_mm, rad0.alpha_per_k)
+
+
+def test_fit_radial_recovers_the_lift() -> None:
+    log, truth = _radial_log(8e-9)
+    fit = XiSpindle.fit(
+        log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"]
+    )
+    m = fit.model
+    assert m.outputs == ["z", "radial"]
+    assert m.params.length_mm == pytest.approx(160.0)
+    assert m.params.radial.inner_sensors == 0
+    assert fit.report["k_um_per_rpm2"] == pytest.approx(8e-9, rel=1e-6)
+    t = log.t_s
+    X = np.column_stack([log.data[:, 1], log.data[:, 2], log.data[:, 3]])
+    np.testing.assert_allclose(m.predict(X, t), truth.predict(X, t), atol=1e-9)
+
+
+def test_fit_radial_without_speed_has_no_lift() -> None:
+    log, _ = _radial_log(0.0)
+    m = XiSpindle.fit(log, ["T_xi", "T_brg_front"], ["err_z_um", "err_radial_um"]).model
+    assert m.params.radial.k_um_per_rpm2 is None
+    assert m.inputs == ["T_xi", "T_brg_front"]
+
+
+def test_fit_radial_checks_its_inputs() -> None:
+    log, _ = _radial_log(8e-9)
+    with pytest.raises(BadInput, match="a radial fit takes"):
+        XiSpindle.fit(log, ["T_xi"], ["err_z_um", "err_radial_um"])
+    with pytest.raises(BadInput, match="ring sensors"):
+        XiSpindle.fit(log, None, ["err_z_um", "err_radial_um"])
+    with pytest.raises(BadInput, match="axial and radial"):
+        XiSpindle.fit(log, ["T_xi"], ["err_z_um", "err_radial_um", "err_z_um"])
