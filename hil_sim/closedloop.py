@@ -54,7 +54,11 @@ class Machine:
 
 
 MACHINES: dict[str, Machine] = {
-    "lathe": Machine("lathe", "siemens_nc", "siemens", "ar1", ("--inputs", "T3"), (), ("z",)),
+    # compd's form of AR(1) with C1 fitted at standstill and at speed (b = 2h/(ρcR), h grows with n)
+    "lathe": Machine(
+        "lathe", "siemens_nc", "siemens", "ar1", ("--inputs", "T3"), (), ("z",),
+        variants=(("ar1_c1_by_speed", ("--option", "c1_by_speed=true")),),
+    ),
     # axial from the ξ sensor; radial from the front bearing's outer ring (the inner ring
     # at the rotor's ξ temperature, paper 003) plus the clearance and the lift k n²;
     # the PMC word carries Z (high byte) and the radial shift (low byte)
@@ -304,8 +308,13 @@ def fit_args_options(args: tuple[str, ...]) -> tuple[list[str] | None, list[str]
     return inputs, targets, parse_options(opts)
 
 
-def prepare_model(machine: str, kind: str, workdir: Path, rate_s: float | None = None) -> Path:
-    """In process (what `hil_sim log` and `compd fit` do): log the training day, fit `kind`, write it."""
+def prepare_model(
+    machine: str, kind: str, workdir: Path, rate_s: float | None = None, more: tuple[str, ...] = (), tag: str = ""
+) -> Path:
+    """In process (what `hil_sim log` and `compd fit` do): log the training day, fit `kind`, write it.
+
+    `more`: further `compd fit` arguments (a variant's); the file is `<machine>_<tag or kind>.yaml`.
+    """
     from compd import fitting
     from hil_sim.logcmd import load_plant, run_log
 
@@ -314,8 +323,9 @@ def prepare_model(machine: str, kind: str, workdir: Path, rate_s: float | None =
     if not train.exists():
         run_log(load_plant(str(SCENARIOS / f"{machine}_train.yaml")), train, rate_s or MACHINES[machine].rate_s)
     m = MACHINES[machine]
-    inputs, targets, options = fit_args_options(m.paper_args if kind == m.paper_kind else m.mlr_args)
+    args = (m.paper_args if kind == m.paper_kind else m.mlr_args) + tuple(more)
+    inputs, targets, options = fit_args_options(args)
     oc = fitting.fit_model(kind, fitting.read_fit_log(train), inputs, targets, options, baseline=False)
-    out = workdir / f"{machine}_{kind}.yaml"
+    out = workdir / f"{machine}_{tag or kind}.yaml"
     fitting.write_model(oc.model, out)
     return out

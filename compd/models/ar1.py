@@ -6,6 +6,11 @@ E(k) = Σ_j g_j ΔT_j(k) + s·S(k): for the paper's lathe Z axis the bed sensors
 with g = α_bed L_bed and the spindle with s = −1 (error = bed growth − spindle growth).
 C2(n) is piecewise linear in the spindle speed n through (0, 0) and the fitted levels,
 held at the last level above it. The state S is the model's memory.
+
+compd's speed-dependent form (`c1_table`): C1 = e^(−b Δτ) with b = 2h/(ρcR), and a turning
+spindle's convection h grows with its speed, so b is fitted at standstill and at each
+logged speed and interpolated linearly in n between them (held past the last);
+an empty table is the paper's single C1.
 """
 
 from __future__ import annotations
@@ -80,12 +85,17 @@ class AR1Params(Strict):
     """AR(1) model params. Inputs: [speed, *bed sensors, ambient (when c3_um_per_k is set)]."""
 
     dt_s: float = Field(gt=0, description="Δτ, the model step (paper: 30–60 s)")
-    c1: float = Field(gt=0, lt=1, description="C1 = e^(−b Δτ)")
+    c1: float = Field(gt=0, lt=1, description="C1 = e^(−b Δτ) (at standstill when c1_table is set)")
     c2_table: list[tuple[float, float]] = Field(
         default_factory=list, description="(speed rpm, C2 µm) nodes; C2(0) = 0 is implied"
     )
     c3_um_per_k: float | None = Field(
         None, description="ambient gain C3 (µm per K of ambient rise per step); none = paper form"
+    )
+    c1_table: list[tuple[float, float]] = Field(
+        default_factory=list,
+        description="(speed rpm, C1) nodes above standstill, b = −ln C1 linear in speed between them and "
+        "`c1` (standstill); empty = one C1 (the paper)",
     )
     bed_gain_um_per_k: list[float] = Field(
         default_factory=list, description="one gain per bed sensor (α_bed L_bed, µm/K)"
@@ -100,18 +110,36 @@ class AR1Params(Strict):
             raise ValueError("c2_table speeds must be positive and strictly increasing")
         if any(c < 0 for _, c in self.c2_table):
             raise ValueError("c2_table values must be ≥ 0")
+        rpm1 = [n for n, _ in self.c1_table]
+        if any(n <= 0 for n in rpm1) or any(b <= a for a, b in zip(rpm1, rpm1[1:], strict=False)):
+            raise ValueError("c1_table speeds must be positive and strictly increasing")
+        if any(not 0 < c < 1 for _, c in self.c1_table):
+            raise ValueError("c1_table values must be in (0, 1)")
         return self
 
 
-def c2_of_speed(speed_rpm: float, rpm: list[float], c2: list[float]) -> float:
-    """C2(n): linear through (0, 0) and the table nodes, constant past the last node."""
+def c2_of_speed(speed_rpm: float, rpm: list[float], c2: list[float], at_zero: float = 0.0) -> float:
+    """C2(n): linear through (0, at_zero) and the table nodes, constant past the last node."""
     n = abs(speed_rpm)
-    lo_n, lo_c = 0.0, 0.0
+    lo_n, lo_c = 0.0, at_zero
     for hi_n, hi_c in zip(rpm, c2, strict=True):
         if n <= hi_n:
             return lo_c + (hi_c - lo_c) * (n - lo_n) / (hi_n - lo_n)
         lo_n, lo_c = hi_n, hi_c
     return lo_c
+
+
+def ar_filter(c1: float | np.ndarray, u: np.ndarray, s0: float = 0.0) -> np.ndarray:
+    """s(k) = C1(k) s(k−1) + u(k) from s(−1) = s0, column-wise for a 2-D u; C1 a scalar or one per row."""
+    if np.isscalar(c1):
+        zi = np.full((1,) + u.shape[1:], c1 * s0)
+        return signal.lfilter([1.0], [1.0, -float(c1)], u, axis=0, zi=zi)[0]
+    s = np.empty_like(u, dtype=float)
+    prev = np.full(u.shape[1:], s0, dtype=float)
+    for k in range(u.shape[0]):
+        prev = c1[k] * prev + u[k]
+        s[k] = prev
+    return s
 
 
 class AR1FitOptions(Strict):
@@ -123,6 +151,9 @@ class AR1FitOptions(Strict):
     speed_round_rpm: float = Field(50.0, gt=0, description="speeds this close form one level")
     stopped_below_rpm: float = Field(1.0, ge=0, description="slower than this counts as stopped")
     spindle_sign: Literal[1, -1] | None = Field(None, description="none: −1 with bed inputs, else +1")
+    c1_by_speed: bool = Field(
+        False, description="fit C1 at standstill and at each logged speed (compd's form; needs stops in the log)"
+    )
     c2_rise: dict[str, Any] | None = Field(
         None,
         description="{ref_rpm, ref_rise_c, rises_c: {rpm: rise}}: add C2 at unlogged speeds (paper §4)",
@@ -144,6 +175,9 @@ class AR1(Model):
         self._nb = len(params.bed_gain_um_per_k)
         self._gain = np.asarray(params.bed_gain_um_per_k, dtype=float)
         self._c3 = params.c3_um_per_k
+        self._rpm1 = [float(n) for n, _ in params.c1_table]
+        self._b1 = [-math.log(c) for _, c in params.c1_table]  # b Δτ at each node
+        self._b0 = -math.log(params.c1)
         self._amb = 1 + self._nb if self._c3 is not None else -1
         self._sign = float(params.spindle_sign)
         self.x0 = np.asarray(params.t0_c, dtype=float) if params.t0_c is not None else None
@@ -173,12 +207,18 @@ class AR1(Model):
         u = c2_of_speed(x[0], self._rpm, self._c2)
         if self._amb > 0:
             u += self._c3 * (x[self._amb] - self.x0[self._amb - 1])
-        self.s_um = self.params.c1 * self.s_um + u
+        self.s_um = self.c1_at(x[0]) * self.s_um + u
         e = self._sign * self.s_um
         if self._nb:
             np.subtract(x[1 : 1 + self._nb], self.x0[: self._nb], out=self._rise)
             e += float(self._rise @ self._gain)
         out[0] = e
+
+    def c1_at(self, speed_rpm: float) -> float:
+        """C1 at this speed: `c1`, or e^(−b Δτ) with b interpolated in speed (`c1_table`)."""
+        if not self._rpm1:
+            return self.params.c1
+        return math.exp(-c2_of_speed(speed_rpm, self._rpm1, self._b1, self._b0))
 
     def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         """Vectorised batch prediction, stepping every Δτ and holding between steps."""
@@ -188,17 +228,22 @@ class AR1(Model):
             return out
         self.start(X[0], float(t_s[0]))
         rows = step_rows(np.asarray(t_s, dtype=float), self.params.dt_s)
-        e = self._response(X[rows], self.params.c1, s0=self.s_um)
+        e = self._response(X[rows], self._c1_rows(X[rows, 0]), s0=self.s_um)
         self.s_um = float(self._last_s)
         idx = np.searchsorted(rows, np.arange(n), side="right") - 1
         out[:, 0] = e[idx]
         return out
 
-    def _response(self, Xs: np.ndarray, c1: float, s0: float = 0.0) -> np.ndarray:
+    def _c1_rows(self, speed_rpm: np.ndarray) -> float | np.ndarray:
+        if not self._rpm1:
+            return self.params.c1
+        return np.array([self.c1_at(v) for v in speed_rpm])
+
+    def _response(self, Xs: np.ndarray, c1: float | np.ndarray, s0: float = 0.0) -> np.ndarray:
         u = np.array([c2_of_speed(v, self._rpm, self._c2) for v in Xs[:, 0]])
         if self._amb > 0:
             u += self._c3 * (Xs[:, self._amb] - self.x0[self._amb - 1])
-        s, _ = signal.lfilter([1.0], [1.0, -c1], u, zi=[c1 * s0])
+        s = ar_filter(c1, u, s0)
         self._last_s = s[-1]
         e = self._sign * s
         if self._nb:
@@ -214,6 +259,7 @@ class AR1(Model):
     def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0) -> None:
         """Restore S saved `elapsed_s` ago, cooled by its own time constant: S·C1^(elapsed/Δτ)."""
         s = float(state.get("s_um", 0.0))
+        # while compd was down the speed is unknown: the standstill C1 (`c1`) decays S slowest
         self.s_um = s * self.params.c1 ** (max(elapsed_s, 0.0) / self.params.dt_s)
         if self.params.t0_c is None and state.get("t0_c") is not None:
             x0 = np.asarray(state["t0_c"], dtype=float)
@@ -275,13 +321,14 @@ class AR1(Model):
         lb = np.r_[np.zeros(L), np.full(nb + na, -np.inf)]
         ub = np.full(L + nb + na, np.inf)
 
-        def design(c1: float) -> np.ndarray:
-            filt = signal.lfilter([1.0], [1.0, -c1], np.hstack([Wt @ cum, amb_rise]), axis=0)
+        def design(c1: float | np.ndarray) -> np.ndarray:
+            filt = ar_filter(c1, np.hstack([Wt @ cum, amb_rise]))
             return np.hstack([sign * filt[:, :L], bed_rise, sign * filt[:, L:]])
 
-        def solve(c1: float) -> tuple[float, np.ndarray]:
-            r = optimize.lsq_linear(design(c1), Es, bounds=(lb, ub), method="bvls")
-            return float(np.sum((design(c1) @ r.x - Es) ** 2)), r.x
+        def solve(c1: float | np.ndarray) -> tuple[float, np.ndarray]:
+            A = design(c1)
+            r = optimize.lsq_linear(A, Es, bounds=(lb, ub), method="bvls")
+            return float(np.sum((A @ r.x - Es) ** 2)), r.x
 
         # log(1 − C1) spans time constants from a few Δτ to 10⁵ Δτ.
         grid = np.linspace(np.log(0.5), np.log(1e-5), 40)
@@ -294,9 +341,6 @@ class AR1(Model):
         )
         z = res.x if res.fun <= costs[i] else grid[i]
         c1 = float(1.0 - np.exp(z))
-        cost, theta = solve(c1)
-        c2 = np.cumsum(theta[:L])
-        table = [(r_, float(c)) for r_, c in zip(rpm, c2, strict=True)]
         report: dict[str, Any] = {
             "dt_s": dt,
             "step_rows": int(rows.size),
@@ -304,6 +348,38 @@ class AR1(Model):
             "converged": bool(res.success),
             "c1_at_grid_edge": i in (0, grid.size - 1),
         }
+        c1_rows: float | np.ndarray = c1
+        c1_table: list[tuple[float, float]] = []
+        if opt.c1_by_speed:
+            if moving.all():
+                raise BadInput(
+                    "c1_by_speed needs the spindle to stand still in the log (C1 at standstill)",
+                    file=log.file, path="--option c1_by_speed",
+                )
+            # b Δτ = −ln C1 at standstill and at each level, linear in speed between them
+            w0 = 1.0 - Wt.sum(axis=1)
+            z_min, z_max = float(grid.min()), float(grid.max())
+
+            def rows_c1(zs: np.ndarray) -> np.ndarray:
+                b = -np.log1p(-np.exp(np.clip(zs, z_min, z_max)))
+                return np.exp(-(w0 * b[0] + Wt @ b[1:]))
+
+            res_n = optimize.minimize(
+                lambda zs: solve(rows_c1(zs))[0], np.full(L + 1, z), method="Nelder-Mead",
+                options={"xatol": 1e-5, "fatol": 1e-9 * max(res.fun, 1e-12), "maxiter": 400 * (L + 1)},
+            )
+            zs = np.clip(res_n.x, z_min, z_max)
+            c1 = float(1.0 - np.exp(zs[0]))
+            c1_table = [(r_, float(1.0 - np.exp(v))) for r_, v in zip(rpm, zs[1:], strict=True)]
+            c1_rows = rows_c1(zs)
+            report["c1_by_speed"] = {
+                "converged": bool(res_n.success), "single_c1": float(1.0 - np.exp(z)),
+                "time_constant_s": {"0": -dt / math.log(c1), **{f"{r_:g}": -dt / math.log(c)
+                                                               for r_, c in c1_table}},
+            }
+        cost, theta = solve(c1_rows)
+        c2 = np.cumsum(theta[:L])
+        table = [(r_, float(c)) for r_, c in zip(rpm, c2, strict=True)]
         if opt.c2_rise:
             table, report["c2_rise"] = _scaled_table(table, opt.c2_rise)
         params = AR1Params(
@@ -311,13 +387,14 @@ class AR1(Model):
             c1=c1,
             c2_table=table,
             c3_um_per_k=float(theta[L + nb]) if na else None,
+            c1_table=c1_table,
             bed_gain_um_per_k=[float(v) for v in theta[L : L + nb]],
             spindle_sign=sign,
             t0_c=None,
         )
         model = cls(params, names, axis_names(targets))
         model.start(Xs[0], float(t[rows[0]]))
-        resid = Es - model._response(Xs, c1)
+        resid = Es - model._response(Xs, model._c1_rows(Xs[:, 0]))
         lags = max(1, min(10, rows.size // 5))
         qstat, pval = ljung_box(resid, lags)
         report["ljung_box"] = {"lags": lags, "q": qstat, "p_value": pval, "white_at_5pct": pval > 0.05}

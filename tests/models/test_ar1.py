@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from statsmodels.stats.diagnostic import acorr_ljungbox
 
+from compd.errors import BadInput
 from compd.fitting import predict_log
 from compd.log import Log
 from compd.models.ar1 import (
@@ -142,3 +143,65 @@ def test_evaluate_matches_predict_and_state_cools():
     m2.set_state(state, elapsed_s=600.0)
     assert m2.s_um == pytest.approx(state["s_um"] * 0.99**10)
     np.testing.assert_allclose(m2.x0, m.x0)
+
+
+def _speed_dependent_lathe(noise_um=0.1, seed=1):
+    """A spindle whose convection grows with speed: τ 3 h at rest, 2 h at 2000 rpm (b linear in n)."""
+    rng = np.random.default_rng(seed)
+    dt, K = 60.0, 1440
+    t = np.arange(K) * dt
+    speed = np.where(t < 12 * 3600, 2000.0, 0.0)
+    bed = 20 + 2 * (1 - np.exp(-t / 20000))
+    b0, b1 = dt / (3 * 3600), dt / (2 * 3600)
+    s, E = 0.0, np.zeros(K)
+    for k in range(K):
+        f = speed[k] / 2000.0
+        s = np.exp(-(b0 + f * (b1 - b0))) * s + 0.25 * f
+        E[k] = 8.0 * (bed[k] - bed[0]) - s
+    E += rng.normal(0, noise_um, K)
+    return Log("lathe.csv", ["t_s", "speed_rpm", "T3", "err_z_um"], np.column_stack([t, speed, bed, E]))
+
+
+def test_c1_by_speed_recovers_both_time_constants():
+    log = _speed_dependent_lathe()
+    one = AR1.fit(log, ["T3"], None)
+    res = AR1.fit(log, ["T3"], None, c1_by_speed=True)
+    p = res.model.params
+    assert -60.0 / np.log(p.c1) == pytest.approx(3 * 3600, rel=0.03)
+    (rpm, c1_run), = p.c1_table
+    assert rpm == 2000.0 and -60.0 / np.log(c1_run) == pytest.approx(2 * 3600, rel=0.03)
+    assert dict(p.c2_table)[2000.0] == pytest.approx(0.25, rel=0.03)
+    assert p.bed_gain_um_per_k[0] == pytest.approx(8.0, rel=0.03)
+    assert res.report["step_rmse_um"] < 0.12 < one.report["step_rmse_um"]
+    tc = res.report["c1_by_speed"]["time_constant_s"]
+    assert tc["0"] > tc["2000"]
+
+
+def test_c1_by_speed_interpolates_b_and_evaluate_matches_predict():
+    params = AR1Params(dt_s=60, c1=0.995, c1_table=[(2000.0, 0.985)], c2_table=[(2000.0, 0.3)])
+    m = AR1(params, ["n"], ["z"])
+    b0, b1 = -np.log(0.995), -np.log(0.985)
+    assert m.c1_at(0.0) == pytest.approx(0.995)
+    assert m.c1_at(1000.0) == pytest.approx(np.exp(-(b0 + b1) / 2))
+    assert m.c1_at(-3000.0) == pytest.approx(0.985)  # held past the last node, either direction
+    t = np.arange(0, 6 * 3600, 60.0)
+    X = np.column_stack([np.where((t // 3600) % 2 == 0, 1500.0, 0.0)])
+    P = AR1(params, m.inputs, m.outputs).predict(X, t)
+    m.start(X[0], t[0])
+    out = np.zeros(1)
+    stepped = []
+    for i in range(t.size):
+        m.evaluate(X[i], t[i], out)
+        stepped.append(out[0])
+    np.testing.assert_allclose(stepped, P[:, 0], atol=1e-12)
+
+
+def test_c1_by_speed_checks():
+    log = _speed_dependent_lathe()
+    running = Log("run.csv", log.columns, log.data[:600])  # the first 10 h: never stops
+    with pytest.raises(BadInput, match="stand still"):
+        AR1.fit(running, ["T3"], None, c1_by_speed=True)
+    with pytest.raises(ValueError, match="c1_table values"):
+        AR1Params(dt_s=60, c1=0.99, c1_table=[(1000.0, 1.0)])
+    with pytest.raises(ValueError, match="c1_table speeds"):
+        AR1Params(dt_s=60, c1=0.99, c1_table=[(0.0, 0.99)])
