@@ -313,7 +313,6 @@ class XiSpindle(Model):
         return FitResult(model, report)
 
 
-
 def _fit_lift(left_um: np.ndarray, speed_rpm: np.ndarray, log: Log, name: str) -> float:
     """Centrifugal lift k (µm/rpm², ≥ 0): least squares of k n² on the radial error u + c leaves."""
     n2 = speed_rpm**2
