@@ -76,18 +76,22 @@ def _dominant_left_vector(M: np.ndarray) -> np.ndarray:
     return w / np.linalg.norm(w)
 
 
+def _as_xy(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+    """X (n × p) and Y as float arrays, Y as n × q; returns X, Y, n, p, q."""
+    X = np.asarray(X, dtype=float)
+    Y = np.asarray(Y, dtype=float)
+    if Y.ndim == 1:
+        Y = Y[:, None]
+    return X, Y, X.shape[0], X.shape[1], Y.shape[1]
+
+
 def fit_pls(X: np.ndarray, Y: np.ndarray, n_components: int) -> PLSModel:
     """PLS regression by the paper's algorithm (paper 002, eqs. 3–8), `n_components` components.
 
     X: n × p, Y: n × q (or n). Returns coefficients in original units, equal to
     scikit-learn's PLSRegression(scale=True) when its power iteration has converged.
     """
-    X = np.asarray(X, dtype=float)
-    Y = np.asarray(Y, dtype=float)
-    if Y.ndim == 1:
-        Y = Y[:, None]
-    n, p = X.shape
-    q = Y.shape[1]
+    X, Y, n, p, q = _as_xy(X, Y)
     if Y.shape[0] != n:
         raise ValueError(f"X has {n} rows, Y has {Y.shape[0]}")
     if not 1 <= n_components <= min(n - 1, p):
@@ -126,12 +130,7 @@ def loo_press(X: np.ndarray, Y: np.ndarray, max_components: int, chunk_elems: in
     See the module docstring for the downdate; samples are processed in chunks of
     about `chunk_elems` / p² at a time to bound memory.
     """
-    X = np.asarray(X, dtype=float)
-    Y = np.asarray(Y, dtype=float)
-    if Y.ndim == 1:
-        Y = Y[:, None]
-    n, p = X.shape
-    q = Y.shape[1]
+    X, Y, n, p, q = _as_xy(X, Y)
     A = max_components
     m = n - 1
     if m < 2:

@@ -160,7 +160,9 @@ class XiFitOptions(Strict):
         0, ge=0, le=2, description="radial fit: inner-ring sensors after the ξ sensor (0: ring at T_xi)"
     )
     outer_sensors: int = Field(1, ge=1, le=2, description="radial fit: outer-ring sensors")
-    ring_alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3, description="radial fit: bearing steel α")
+    ring_alpha_per_k: float | None = Field(
+        None, gt=0, lt=1e-3, description="radial fit: bearing steel α; none = the radial params' default"
+    )
     clearance: bool = Field(True, description="radial fit: add the preload-loss clearance c(ΔL)")
 
 
@@ -291,9 +293,9 @@ class XiSpindle(Model):
         report: dict[str, Any] = {"gain_um_per_k": gain, "length_mm": length}
         rad = None
         if radial:
+            given = {"alpha_per_k": opt.ring_alpha_per_k} if opt.ring_alpha_per_k is not None else {}
             rad = RadialParams(
-                alpha_per_k=opt.ring_alpha_per_k, inner_sensors=opt.inner_sensors,
-                outer_sensors=opt.outer_sensors, clearance=opt.clearance,
+                inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance, **given
             )
             if len(inputs) == 2 + rings:
                 probe = cls(

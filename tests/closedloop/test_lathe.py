@@ -30,8 +30,9 @@ def test_lathe_ar1_closed_loop_cuts_the_error(tmp_path):
 
 def test_lathe_ar1_with_c1_by_speed_closed_loop(tmp_path):
     """compd's AR(1) form with C1 at standstill and at speed, on the same stretch and wiring."""
-    tag = "ar1_c1_by_speed"
-    model = cl.prepare_model("lathe", "ar1", tmp_path, more=("--option", "c1_by_speed=true"), tag=tag)
+    ((tag, more),) = cl.MACHINES["lathe"].variants
+    assert tag == "ar1_c1_by_speed"
+    model = cl.prepare_model("lathe", "ar1", tmp_path, more=more, tag=tag)
     r = cl.closed_loop("lathe", model, tmp_path, speedup=SPEEDUP, duration_s=HOURS * 3600, tag=tag)
     print(cl.table([r]))
     z = r["axes"]["z"]
