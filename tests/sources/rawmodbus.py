@@ -196,3 +196,67 @@ class RawModbusServer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def crc16(data: bytes) -> bytes:
+    """Modbus RTU CRC (poly 0xA001, init 0xFFFF), low byte first."""
+    crc = 0xFFFF
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc.to_bytes(2, "little")
+
+
+class RawRtuPeer(RawModbusServer):
+    """The same table and misbehaviours as Modbus RTU on a serial port (a socat pty end):
+    reads 8-byte requests, answers unit + PDU + CRC (a truncated reply has no CRC)."""
+
+    def __init__(self, registers: dict[int, int] | list[int], serial_port: str, *, unit_id: int = 1,
+                 baudrate: int = 115200) -> None:
+        super().__init__(registers, unit_id=unit_id)
+        self.serial_port = serial_port
+        self.baudrate = baudrate
+        self._stop = threading.Event()
+        self._ser: Any = None
+
+    def _serve(self) -> None:
+        buf = b""
+        while not self._stop.is_set():
+            try:
+                buf += self._ser.read(8 - len(buf))
+            except OSError:
+                return
+            if len(buf) < 8:
+                continue
+            req, buf = buf, b""
+            if crc16(req[:6]) != req[6:]:
+                self._ser.reset_input_buffer()  # out of step: start again on a clean line
+                continue
+            frame = self.answer(0, req[0], req[1:6])
+            if not frame:
+                continue
+            mode = (self.faults.get(int.from_bytes(req[2:4], "big")) or self.faults.get(None) or ("none",))[0]
+            out = frame[6:] if mode == "truncated" else frame[6:] + crc16(frame[6:])
+            try:
+                self._ser.write(out)
+            except OSError:
+                return
+
+    def start(self) -> RawRtuPeer:
+        import serial
+
+        self._stop.clear()
+        self._ser = serial.Serial(self.serial_port, self.baudrate, timeout=0.05)
+        self._thread = threading.Thread(target=self._serve, name="raw-rtu-peer", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+            self._thread = None
+        if self._ser is not None:
+            self._ser.close()
+            self._ser = None

@@ -123,3 +123,22 @@ def test_exception_reply_counts_as_exception() -> None:
         assert h.source.exception_replies > 0 and h.source.malformed_replies == 0
         srv.set("none")
         _all_good(h)
+
+
+@pytest.mark.parametrize(("mode", "opts"), [("extra", {"extra": 10}), ("wrong_function", {}), ("fewer", {})],
+                         ids=["extra", "wrong_function", "fewer"])
+def test_rtu_wrong_shape_is_comms_lost_for_its_request(tmp_path, mode: str, opts: dict) -> None:  # noqa: ANN001
+    """The same over Modbus RTU: a raw peer on a socat pty answers with the wrong shape."""
+    from hil_sim.devices.ptypair import PtyPair
+    from tests.sources.rawmodbus import RawRtuPeer
+
+    a, b = tmp_path / "ttyPeer", tmp_path / "ttyCompd"
+    with PtyPair(a, b), RawRtuPeer(TABLE, str(a)) as peer:
+        cfg = _cfg(0 + 1, transport="rtu", serial_port=str(b), baudrate=115200, timeout_s=0.2)
+        with Harness(ModbusSource(cfg)) as h:
+            _all_good(h)
+            peer.set(mode, address=0, **opts)
+            _bad_request(h, "A")
+            assert h.source.malformed_replies > 0
+            peer.set("none")
+            _all_good(h)
