@@ -5,6 +5,8 @@ from __future__ import annotations
 import time
 from typing import Any
 
+from compd.modbus_reply import HOLDING, shape_error
+
 
 class WallClock:
     """Monotonic wall time. `wait_until` sleeps until `spin_margin_s` before the
@@ -109,7 +111,7 @@ class PlantClock:
         except Exception:
             client.close()
             return None
-        if rr.isError():
+        if rr.isError() or shape_error(rr, HOLDING, 2, self.device_id) is not None:
             return None
         hi, lo = rr.registers
         return ((hi << 16) | lo) / 1000.0

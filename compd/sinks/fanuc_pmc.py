@@ -235,6 +235,8 @@ class FanucPmcSink(Sink):
             "sent_um": [c * self.lsb_um for c in self.sent_lsb],
             "target_um": [c * self.lsb_um for c in self.target_lsb],
         }
+        if self.link is not None:
+            st["link"] = self.link.get_status()
         if regs is not None:
             st["alarm"] = regs[2]
             st["scans"] = regs[0] | (regs[1] << 16)

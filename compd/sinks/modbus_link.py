@@ -4,6 +4,9 @@ The cycle never waits on the network: `submit` stores the newest values per
 register range, the link's thread writes them (in order of first submission) and
 reads a status block every `status_period_s`. A lost connection is retried with
 exponential back-off; what the sink knows of the device is the last status read.
+Every read-back is shape-checked (`compd.modbus_reply`: function code, register count,
+frame length, unit): a reply of the wrong shape is a link error (`errors`, `bad_replies`,
+`last_error`), never taken as the device's status or applied value.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import time
 from typing import Any
 
 from compd.histogram import DurationHist
+from compd.modbus_reply import HOLDING, FrameTap, shape_error
 
 
 class ModbusLink:
@@ -41,8 +45,10 @@ class ModbusLink:
         self.status_stamp = -1.0
         self.writes = 0
         self.errors = 0
+        self.bad_replies = 0
         self.last_error: str | None = None
         self.name = name
+        self._tap = FrameTap()
         self.write_hist = DurationHist()  # request to reply of each write, µs
         self.latency_hist = DurationHist()  # queued by the cycle to acknowledged by the device, µs
         self._pending: dict[int, tuple[list[int], int]] = {}  # address -> (values, queued at, ns)
@@ -56,7 +62,9 @@ class ModbusLink:
         from pymodbus.client import ModbusTcpClient
 
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-        self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
+        self._client = ModbusTcpClient(
+            self.host, port=self.port, timeout=self.timeout_s, retries=0, trace_packet=self._tap
+        )
         self._thread = threading.Thread(target=self._run, name=f"modbus-link-{self.name}", daemon=True)
         self._thread.start()
 
@@ -95,6 +103,14 @@ class ModbusLink:
         if rr.isError():
             self.errors += 1
             self.last_error = f"exception reply {getattr(rr, 'exception_code', '?')}"
+            return None
+        problem = shape_error(rr, HOLDING, count, self.device_id) or self._tap.tcp_error(
+            getattr(rr, "transaction_id", 0), count
+        )
+        if problem is not None:
+            self.errors += 1
+            self.bad_replies += 1
+            self.last_error = f"malformed reply to registers {address}+{count}: {problem}"
             return None
         return list(rr.registers)
 
@@ -157,6 +173,10 @@ class ModbusLink:
                 backoff = min(backoff * 2, self.reconnect_max_s)
             else:
                 backoff = self.reconnect_min_s
+
+    def get_status(self) -> dict[str, Any]:
+        return {"writes": self.writes, "errors": self.errors, "bad_replies": self.bad_replies,
+                "last_error": self.last_error}
 
     def stop(self, timeout_s: float = 2.0) -> None:
         """Send what is queued (up to `timeout_s`), then close."""

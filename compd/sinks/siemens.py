@@ -163,4 +163,7 @@ class SiemensSink(Sink):
             self.link = None
 
     def get_status(self) -> dict[str, Any]:
-        return {**super().get_status(), "updates": self.updates, "k0_um": self.sent_k0_um.tolist()}
+        st = {**super().get_status(), "updates": self.updates, "k0_um": self.sent_k0_um.tolist()}
+        if self.link is not None:
+            st["link"] = self.link.get_status()
+        return st

@@ -3,10 +3,13 @@
 Each signal is an integer of `size` bytes at `offset` in the frame with id `id`,
 value_c = raw · scale + offset_c. A receive thread decodes frames as they come and
 stamps each signal with the loop clock; `read` copies the newest values. Raw codes
-mean burn-out or out of range; a frame too short for its signals makes them
-COMMS_LOST at once; no frame for `timeout_s` (silence, or only error frames, which
-is what a bad CRC produces on a real bus) makes them COMMS_LOST; a sample older
-than `stale_after_s` reads STALE.
+mean burn-out or out of range. A frame's data is its first DLC bytes (never padding
+beyond the DLC); a frame whose DLC does not cover offset + size of every signal
+configured on its id is not the layout configured: all of that id's signals go
+COMMS_LOST at once and `bad_frames` counts it. Remote (RTR) frames carry no data
+and are ignored. No frame for `timeout_s` (silence, or only error frames, which is
+what a bad CRC produces on a real bus) makes them COMMS_LOST; a sample older than
+`stale_after_s` reads STALE.
 """
 
 from __future__ import annotations
@@ -73,6 +76,7 @@ class CanSource(Source):
         self._by_id: dict[int, list[tuple[int, CanSignal]]] = {}
         for i, s in enumerate(cfg.signals):
             self._by_id.setdefault(s.id, []).append((i, s))
+        self._need = {fid: max(s.offset + s.size for _, s in sigs) for fid, sigs in self._by_id.items()}
         self._values = np.full(n, np.nan)
         self._quality = np.full(n, Quality.NO_DATA, dtype=np.uint8)
         self._stamp = np.full(n, -np.inf)
@@ -85,6 +89,7 @@ class CanSource(Source):
         self.frames = 0
         self.error_frames = 0
         self.bad_frames = 0
+        self.last_error: str | None = None
 
     def signal_names(self) -> list[str]:
         return [s.name for s in self.cfg.signals]
@@ -122,16 +127,20 @@ class CanSource(Source):
                 self.error_frames += 1
                 continue
             sigs = self._by_id.get(msg.arbitration_id)
-            if not sigs:
+            if not sigs or msg.is_remote_frame:
                 continue
             self.frames += 1
             now = self._clock.now()
+            data = bytes(msg.data[: msg.dlc])  # bytes past the DLC are not data
+            short = len(data) < self._need[msg.arbitration_id]
+            if short:
+                self.bad_frames += 1
+                self.last_error = (f"frame 0x{msg.arbitration_id:X}: {len(data)} data bytes (DLC {msg.dlc}), "
+                                   f"the signals need {self._need[msg.arbitration_id]}")
             with self._lock:
                 for i, sig in sigs:
-                    v, q = self.decode(msg.data, sig)
-                    if q == Quality.COMMS_LOST:
-                        self.bad_frames += 1
-                    elif q == Quality.GOOD:
+                    v, q = (np.nan, Quality.COMMS_LOST) if short else self.decode(data, sig)
+                    if q == Quality.GOOD:
                         self._values[i] = v
                     self._quality[i] = q
                     self._stamp[i] = now
@@ -165,4 +174,5 @@ class CanSource(Source):
             "frames": self.frames,
             "error_frames": self.error_frames,
             "bad_frames": self.bad_frames,
+            "last_error": self.last_error,
         }

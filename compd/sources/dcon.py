@@ -5,8 +5,12 @@ engineering units (°C). With `checksum: true` both carry the sum of their bytes
 256 as two hex digits before the CR. The module signals out of range and burn-out
 with fixed texts in place of a value (`out_of_range_codes`, `burnout_codes`: the
 defaults are the ADAM-4000 engineering-unit codes +9999 / -0000 and -9999.9; set
-them to your module's manual). No reply within `timeout_s`, a garbled or wrong-length
-reply, a bad checksum or `?AA` (command rejected) make every channel COMMS_LOST.
+them to your module's manual). The reply must have exactly one field per entry of
+`channels` (list every channel of the module, null for those not used): a reply with more
+or fewer values is not this module's answer to `#AA`. No reply within `timeout_s`, a
+garbled or wrong-length reply, a bad checksum, a reply that does not start with `>`, or
+`?AA`/`!AA` (command rejected, or an answer to another command; AA must be our address)
+make every channel of the module COMMS_LOST, counted in `comm_errors` with `last_error`.
 """
 
 from __future__ import annotations
@@ -31,8 +35,9 @@ def dcon_checksum(data: bytes) -> bytes:
     return f"{sum(data) & 0xFF:02X}".encode()
 
 
-def parse_reply(reply: bytes, address: int, use_checksum: bool) -> list[bytes]:
-    """The value fields of a `>…` reply; ValueError names what is wrong with it."""
+def parse_reply(reply: bytes, address: int, use_checksum: bool, fields: int | None = None) -> list[bytes]:
+    """The value fields of a `>…` reply to `#AA` (exactly `fields` of them, if given);
+    ValueError names what is wrong with it."""
     if not reply.endswith(b"\r"):
         raise ValueError("no reply (timeout)" if not reply else "reply not terminated by CR")
     body = reply[:-1]
@@ -40,14 +45,19 @@ def parse_reply(reply: bytes, address: int, use_checksum: bool) -> list[bytes]:
         if len(body) < 3 or dcon_checksum(body[:-2]) != body[-2:].upper():
             raise ValueError("checksum error")
         body = body[:-2]
-    if body.startswith(b"?"):
-        raise ValueError(f"command rejected ({body.decode('ascii', 'replace')})")
+    if body[:1] in (b"?", b"!"):  # `?AA` rejected, `!AA…` answers another command
+        text = body.decode("ascii", "replace")
+        if body[1:3].upper() != f"{address:02X}".encode():
+            raise ValueError(f"reply from another address ({text}), asked {address:02X}")
+        raise ValueError(f"command rejected ({text})" if body[:1] == b"?" else f"reply to another command ({text})")
     if not body.startswith(b">"):
         raise ValueError("reply does not start with '>'")
-    fields = _FIELD.findall(body[1:])
-    if b"".join(fields) != body[1:]:
+    found = _FIELD.findall(body[1:])
+    if b"".join(found) != body[1:]:
         raise ValueError("garbled reply")
-    return fields
+    if fields is not None and len(found) != fields:
+        raise ValueError(f"{len(found)} values, {fields} channels configured")
+    return found
 
 
 class DconConfig(SourceConfig):
@@ -57,7 +67,9 @@ class DconConfig(SourceConfig):
     baudrate: int = Field(9600, gt=0)
     address: int = Field(1, ge=0, le=255, description="module address (AA, hex on the wire)")
     checksum: bool = False
-    channels: list[str | None] = Field(min_length=1, description="signal per channel; null skips one")
+    channels: list[str | None] = Field(
+        min_length=1, description="one entry per channel of the module, in reply order: its signal, or null"
+    )
     out_of_range_codes: list[str] = Field(default_factory=lambda: ["+9999", "-0000"])
     burnout_codes: list[str] = Field(default_factory=lambda: ["-9999.9"])
     poll_period_s: float = Field(0.2, gt=0, le=60)
@@ -125,9 +137,7 @@ class DconSource(PolledSource):
             quality[:] = Quality.COMMS_LOST
             return
         try:
-            fields = parse_reply(reply, self.cfg.address, self.cfg.checksum)
-            if len(fields) < len(self.cfg.channels):
-                raise ValueError(f"{len(fields)} values, {len(self.cfg.channels)} channels configured")
+            fields = parse_reply(reply, self.cfg.address, self.cfg.checksum, len(self.cfg.channels))
         except ValueError as e:
             self.comm_errors += 1
             self.last_error = str(e)

@@ -4,9 +4,12 @@ Each channel is a register (or a register pair) holding a scaled temperature:
 value_c = raw · scale + offset_c, with the data type, byte order and word order of
 the module. Raw codes that mean burn-out or out of range, and optional per-channel
 status registers, become signal quality. Channels whose registers lie next to each
-other are read in one request. A timeout, a garbled reply, a Modbus exception reply
-or a lost connection makes the affected channels COMMS_LOST; the connection is
-re-established with exponential back-off and the daemon never sees an exception.
+other are read in one request. A timeout, a garbled reply, a Modbus exception reply,
+a reply of the wrong shape (another function code, more or fewer registers than asked,
+a frame longer than its byte count: `compd.modbus_reply`) or a lost connection makes the
+channels of that request COMMS_LOST; a reply fills only the registers its own request
+asked for. The connection is re-established with exponential back-off and the daemon
+never sees an exception.
 """
 
 from __future__ import annotations
@@ -23,7 +26,10 @@ from pydantic import Field, model_validator
 
 from compd.config import SourceConfig, Strict
 from compd.frame import Quality
+from compd.modbus_reply import HOLDING, INPUT, FrameTap, shape_error
 from compd.sources.base import PolledSource
+
+log = logging.getLogger("compd.sources.modbus")
 
 DataTypeT = Literal["int16", "uint16", "int32", "uint32", "float32"]
 OrderT = Literal["big", "little"]
@@ -187,7 +193,10 @@ class ModbusSource(PolledSource):
         self.connects = 0
         self.exception_replies = 0
         self.comm_errors = 0
+        self.malformed_replies = 0
         self.last_error: str | None = None
+        self._tap = FrameTap()
+        self._bad_request: dict[tuple[int, int], str] = {}  # request → why its last reply was refused
 
     def signal_names(self) -> list[str]:
         return [c.name for c in self._channels]
@@ -199,7 +208,7 @@ class ModbusSource(PolledSource):
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # faults are reported as quality
         cfg = self.cfg
         if cfg.transport == "tcp":
-            return ModbusTcpClient(cfg.host, port=cfg.port, timeout=cfg.timeout_s, retries=0)
+            return ModbusTcpClient(cfg.host, port=cfg.port, timeout=cfg.timeout_s, retries=0, trace_packet=self._tap)
         return ModbusSerialClient(
             cfg.serial_port,
             baudrate=cfg.baudrate,
@@ -256,11 +265,9 @@ class ModbusSource(PolledSource):
         from pymodbus.exceptions import ModbusException
 
         cfg = self.cfg
-        read = (
-            self._client.read_holding_registers
-            if cfg.function == "holding"
-            else self._client.read_input_registers
-        )
+        holding = cfg.function == "holding"
+        read = self._client.read_holding_registers if holding else self._client.read_input_registers
+        function_code = HOLDING if holding else INPUT
         regs: dict[int, int] = {}
         for start, count in self.requests:
             try:
@@ -274,8 +281,18 @@ class ModbusSource(PolledSource):
                 self.exception_replies += 1
                 self.last_error = f"exception reply, code {getattr(rr, 'exception_code', '?')}"
                 continue
-            for k, v in enumerate(rr.registers):
-                regs[start + k] = v
+            problem = shape_error(rr, function_code, count, cfg.device_id)
+            if problem is None and cfg.transport == "tcp":
+                problem = self._tap.tcp_error(getattr(rr, "transaction_id", 0), count)
+            if problem is not None:
+                self._malformed((start, count), problem)
+                continue
+            if self._bad_request.pop((start, count), None) is not None:
+                log.info(
+                    "%s: replies to registers %d+%d are well-formed again", self.name, start, count,
+                    extra={"event": "modbus_reply_ok", "source": self.name, "request": f"{start}+{count}"},
+                )
+            regs.update(zip(range(start, start + count), rr.registers, strict=True))
         for i, ch in enumerate(self._channels):
             words = [regs.get(ch.address + k) for k in range(ch.width)]
             status = regs.get(ch.status_address) if ch.status_address is not None else 0
@@ -294,6 +311,22 @@ class ModbusSource(PolledSource):
                 values[i] = number * ch.scale + ch.offset_c
             quality[i] = q
 
+    def _malformed(self, request: tuple[int, int], problem: str) -> None:
+        """A reply of the wrong shape: counted, logged once per request and reason, and on
+        RTU the input buffer flushed (the frame may not have ended where pymodbus thought)."""
+        self.malformed_replies += 1
+        start, count = request
+        self.last_error = f"malformed reply to registers {start}+{count}: {problem}"
+        if self._bad_request.get(request) != problem:
+            self._bad_request[request] = problem
+            log.warning(
+                "%s: %s", self.name, self.last_error,
+                extra={"event": "modbus_bad_reply", "source": self.name, "request": f"{start}+{count}",
+                       "reason": problem},
+            )
+        if self.cfg.transport == "rtu":
+            self._drop()
+
     def close(self) -> None:
         super().close()
         if self._client is not None:
@@ -309,5 +342,6 @@ class ModbusSource(PolledSource):
             "connects": self.connects,
             "exception_replies": self.exception_replies,
             "comm_errors": self.comm_errors,
+            "malformed_replies": self.malformed_replies,
             "last_error": self.last_error,
         }

@@ -86,4 +86,9 @@ MATRIX: dict[str, Row] = {
         "bad config on SIGHUP reload", "Modbus TCP (separate process)", "hold",
         "reload rejected with one line naming the key; old config keeps running without a step",
     ),
+    "modbus_malformed_reply": Row(
+        "reply with extra registers / wrong function code from a non-pymodbus peer",
+        "Modbus TCP (raw peer)", "hold",
+        "input bad (comms_lost); axis holds; no register of another request is filled",
+    ),
 }

@@ -105,9 +105,10 @@ def test_cli_exit_2_with_one_line(tmp_path: Path) -> None:
 
 
 class _Reply:
-    def __init__(self, registers: list[int] | None) -> None:
+    def __init__(self, registers: list[int] | None, function_code: int = 3) -> None:
         self.registers = registers or []
         self.exception_code = 4
+        self.function_code = function_code
         self._error = registers is None
 
     def isError(self) -> bool:  # noqa: N802  (pymodbus's name)
@@ -121,15 +122,19 @@ class _FakeModbusClient:
 
     def __init__(self, replies: list[Any]) -> None:
         self.replies = list(replies)
+        self.asked: list[tuple[int, int, Any]] = []
 
     def _read(self, address: int, count: int, device_id: int) -> _Reply:
         from pymodbus.exceptions import ModbusIOException
 
         r = self.replies.pop(0) if self.replies else None
+        self.asked.append((address, count, r))
         if r == "io":
             raise ModbusIOException("timeout")
         if r == "os":
             raise OSError("connection reset")
+        if isinstance(r, tuple):  # (registers, function code): a reply of another function
+            return _Reply(r[0], r[1])
         return _Reply(r)
 
     def read_holding_registers(self, address: int, count: int = 1, device_id: int = 1) -> _Reply:
@@ -161,15 +166,21 @@ def _check_frame(values: np.ndarray, quality: np.ndarray) -> None:
 
 
 @FUZZ
-@given(st.lists(st.one_of(register_list, st.none(), st.sampled_from(["io", "os"])), max_size=4))
+@given(st.lists(st.one_of(register_list, st.none(), st.sampled_from(["io", "os"]),
+                          st.tuples(register_list, st.sampled_from([4, 6, 16, 23]))), max_size=4))
 def test_modbus_poll_never_raises(replies: list[Any]) -> None:
     src = ModbusSource(MODBUS)
-    src._client = _FakeModbusClient(replies)
+    client = src._client = _FakeModbusClient(replies)
     src._drop = lambda: None  # the fake has no socket to reset
     values = np.full(4, np.nan)
     quality = np.full(4, Quality.NO_DATA, dtype=np.uint8)
     src.poll(values, quality)
     _check_frame(values, quality)
+    # a signal is GOOD only if the reply to its own request had exactly the registers asked
+    shaped = {(a, c) for a, c, r in client.asked if isinstance(r, list) and len(r) == c}
+    for i, ch in enumerate(src._channels):
+        if quality[i] == Quality.GOOD:
+            assert any(a <= ch.address and ch.address + ch.width <= a + c for a, c in shaped), (ch.name, replies)
 
 
 class _FakeSerial:

@@ -171,3 +171,33 @@ def test_disk_full(tmp_path: Path) -> None:
     assert m.samples_lost > 0  # the rows that could not be written are counted
     assert abs(run.trace.out[-1] - WANT_UM) <= 0.5  # compensation went on
     assert run.summary["log_error"] and "No space left" in run.summary["log_error"]
+
+
+def test_modbus_malformed_reply(tmp_path: Path) -> None:
+    """A raw-socket peer (not pymodbus): the sensor's request (register 0) is answered with
+    ten extra registers reaching into the status request's (register 10), while that one
+    gets exception replies, then with the wrong function code; cleared at CLEAR_S."""
+    from tests.sources.rawmodbus import RawModbusServer
+
+    mid = (FAULT_S + CLEAR_S) / 2
+    with RawModbusServer({0: 240, 10: 0}) as peer:
+        src = modbus_tcp_source(peer.port, channels=[{"name": SENSOR, "address": 0, "status_address": 10}])
+        run = FaultRun(tmp_path, base_config(src, "hold"))
+
+        def fault() -> None:
+            peer.set("extra", address=0, extra=12)  # registers 1..12: 0x1234… in the status slot
+            peer.set("exception", address=10)
+
+        def refunction() -> None:
+            peer.set("none")
+            peer.set("wrong_function", address=0)
+
+        run.at(FAULT_S, "fault", fault)
+        run.at(mid, "wrong_function", refunction)
+        run.at(CLEAR_S, "clear", lambda: peer.set("none"))
+        m = run.run(reasons=("comms_lost",))
+        source = run.app.sources[0]
+        m.extra["malformed_replies"] = source.malformed_replies
+    record("modbus_malformed_reply", m, tmp_path)
+    check(m, recovered=True)
+    assert source.malformed_replies > 0

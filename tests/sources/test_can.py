@@ -64,3 +64,51 @@ def test_values_and_faults_on_virtual_bus():
 def test_signal_must_fit_in_frame():
     with pytest.raises(ValueError, match="8 data bytes"):
         CanConfig.model_validate({"kind": "can", "name": "c", "signals": [{"name": "a", "id": 1, "offset": 7, "size": 2}]})
+
+
+def _wait(h: Harness, pred, timeout_s: float = 10.0) -> dict[str, tuple[float, str]]:  # noqa: ANN001
+    deadline = time.monotonic() + timeout_s
+    while True:
+        s = h.sample()
+        if pred(s) or time.monotonic() > deadline:
+            return s
+        time.sleep(0.01)
+
+
+def test_short_dlc_is_comms_lost_for_the_ids_signals():
+    """A frame whose DLC does not cover every signal on its id is not data, even when the
+    bytes past the DLC are there (padding); the other id's signal stays good."""
+    import can
+
+    sigs = [
+        {"name": "A1", "id": 0x181, "offset": 0},
+        {"name": "A2", "id": 0x181, "offset": 2},
+        {"name": "B1", "id": 0x182, "offset": 0},
+    ]
+    chan = f"t-can-dlc-{time.monotonic_ns()}"
+    cfg = CanConfig.model_validate({"kind": "can", "name": "can", "interface": "virtual", "channel": chan,
+                                    "timeout_s": 5.0, "signals": sigs})
+    good_a = bytes([253, 0, 249, 0])
+    with can.Bus(interface="virtual", channel=chan) as bus, Harness(CanSource(cfg)) as h:
+        def send(fid: int, data: bytes, dlc: int | None = None) -> None:
+            bus.send(can.Message(arbitration_id=fid, data=data, dlc=len(data) if dlc is None else dlc,
+                                 is_extended_id=False, check=False))
+
+        send(0x181, good_a)
+        send(0x182, bytes([100, 0]))
+        want = {"A1": (pytest.approx(25.3), "GOOD"), "A2": (pytest.approx(24.9), "GOOD"), "B1": (pytest.approx(10.0), "GOOD")}
+        assert _wait(h, lambda s: s == want) == want
+        for what, data, dlc in [("3 bytes", good_a[:3], None), ("DLC 2, 8 bytes of padding", good_a + bytes(4), 2),
+                                ("empty", b"", None)]:
+            bad = h.source.bad_frames
+            send(0x181, data, dlc)
+            s = _wait(h, lambda s: s["A1"][1] != "GOOD")
+            assert (s["A1"][1], s["A2"][1]) == ("COMMS_LOST", "COMMS_LOST"), what
+            assert s["B1"] == (pytest.approx(10.0), "GOOD"), what
+            assert h.source.bad_frames == bad + 1 and "0x181" in h.source.get_status()["last_error"]
+            send(0x181, good_a)
+            assert _wait(h, lambda s: s == want) == want, what
+        bus.send(can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=4, is_extended_id=False))
+        send(0x182, bytes([101, 0]))  # after the RTR frame: once seen, the RTR frame was too
+        s = _wait(h, lambda s: s["B1"][0] == pytest.approx(10.1))
+        assert s["A1"] == (pytest.approx(25.3), "GOOD")  # a remote request is not a frame of data
