@@ -296,6 +296,7 @@ class App:
         if previous.sink.cfg == self.sink.cfg:
             self.sink = self.loop.sink = previous.sink
             self._adopted.add(id(self.sink))
+            self.encoder.adopt(previous.encoder)  # the word goes on from what the machine has
             for a, axis in enumerate(m.outputs):
                 if axis in pm.outputs:
                     b = pm.outputs.index(axis)

@@ -88,63 +88,139 @@ def word_to_um(word: int, lsb_um: float = 1.0) -> tuple[float, float]:
 
 
 class Encoder:
-    """Stateful encoder with the no-chatter rule of SPEC §2.
+    """Stateful encoder: the word walks to the correction one LSB at a time (SPEC §2).
 
-    A new word is produced only when some axis's correction has moved by at least
-    the dead-band from the value last emitted for it; otherwise the last word
-    stands, so rounding boundaries do not chatter.
+    Per axis the encoder holds a signed code q (LSB; 0 is the disabled byte 0x00).
+    The code starts to move when the guarded correction c is at least the band
+    T = max(dead-band, LSB) away from q·LSB (the no-chatter rule: a correction
+    hovering at a rounding boundary does not toggle the word), and then walks to
+    its goal: round(c/LSB) clamped to ±63, or 0 when |c| ≤ dead-band (paper 002: a
+    code is sent only when the error exceeds the dead-band).
+
+    The walk spends a budget that refills at slew/LSB per second and holds at most
+    one LSB plus one cycle's refill, so the word moves one LSB at a time (several
+    only when a cycle is longer than LSB/slew, as in a replay at one row per
+    second) and, over any stretch of time τ, by at most slew·τ + one LSB + one
+    cycle's slew. Since the guard slews the correction at the same rate, the word
+    stays within T of it (plus what c moves in two cycles). A dead-band
+    below one LSB acts as one LSB: the word cannot hold the correction closer
+    without chattering between two codes.
+
+    A disabled axis (enable off, or a correction that is not finite) sends 0x00 at
+    once: that is what the `disable` fault policy asks for. It walks up from 0.
     """
 
-    def __init__(self, lsb_um: float = 1.0, deadband_um: float = 1.0) -> None:
-        if not lsb_um > 0:
-            raise ValueError(f"lsb_um must be > 0, got {lsb_um}")
-        if not deadband_um >= 0:
-            raise ValueError(f"deadband_um must be >= 0, got {deadband_um}")
+    def __init__(self, lsb_um: float = 1.0, deadband_um: float = 1.0, max_slew_um_per_s: float = math.inf) -> None:
+        if not (lsb_um > 0 and math.isfinite(lsb_um)):
+            raise ValueError(f"lsb_um must be finite and > 0, got {lsb_um}")
+        if not (deadband_um >= 0 and math.isfinite(deadband_um)):
+            raise ValueError(f"deadband_um must be finite and >= 0, got {deadband_um}")
         self.lsb_um = lsb_um
         self.deadband_um = deadband_um
+        self.band_um = max(deadband_um, lsb_um)
+        self._rate_lsb_per_s = [0.0, 0.0]
+        self.set_slew([max_slew_um_per_s, max_slew_um_per_s])
         self.word = 0
+        self.codes = [0, 0]  # held signed magnitude per axis, LSB
         self.saturated = [False, False]
-        self.saturations = 0
+        self.saturations = 0  # words emitted while some axis was clamped at 63 LSB
         self.words_emitted = 0
-        self._last1 = 0.0
-        self._last2 = 0.0
-        self._enabled = [True, True]
+        self._moving = [False, False]
+        self._budget = [0.0, 0.0]
+
+    def set_slew(self, max_slew_um_per_s: list[float]) -> None:
+        """The slew limit of the high byte's and the low byte's axis, µm/s (one value: both)."""
+        slew = list(max_slew_um_per_s) * (2 if len(max_slew_um_per_s) == 1 else 1)
+        if len(slew) != 2 or not all(s > 0 for s in slew):
+            raise ValueError(f"max_slew_um_per_s must be one or two values > 0, got {max_slew_um_per_s}")
+        self._rate_lsb_per_s[0] = slew[0] / self.lsb_um
+        self._rate_lsb_per_s[1] = slew[1] / self.lsb_um
 
     def reset(self) -> None:
-        """Forget what was emitted (the next update always emits)."""
+        """Forget the held codes (the word walks up again from 0x0000)."""
         self.word = 0
-        self._last1 = 0.0
-        self._last2 = 0.0
+        self.codes[0] = self.codes[1] = 0
+        self._moving[0] = self._moving[1] = False
+        self._budget[0] = self._budget[1] = 0.0
         self.saturated[0] = self.saturated[1] = False
 
-    def update(self, c1_um: float, c2_um: float, en1: bool = True, en2: bool = True) -> bool:
-        """Offer new corrections; returns True when a new word was emitted.
+    def adopt(self, previous: Encoder) -> None:
+        """Config reload: hold what the previous encoder sent (converted to this LSB)."""
+        for i in range(2):
+            q = previous.codes[i] * previous.lsb_um / self.lsb_um
+            q = math.floor(abs(q) + 0.5) * (1 if q >= 0 else -1)
+            self.codes[i] = max(-MAX_MAG, min(MAX_MAG, q))
+        self.word = (_code_byte(self.codes[0]) << 8) | _code_byte(self.codes[1])
+        self.words_emitted = previous.words_emitted
 
-        `en1`/`en2` False force that axis's byte to 0x00 (disabled) regardless of
-        its value; a change of enable always emits.
+    def _axis(self, i: int, c_um: float, enabled: bool, dt_s: float) -> None:
+        if not enabled or not math.isfinite(c_um):
+            self.codes[i] = 0
+            self._moving[i] = False
+            self._budget[i] = 0.0
+            self.saturated[i] = False
+            return
+        lsb = self.lsb_um
+        q = self.codes[i]
+        if abs(c_um) <= self.deadband_um:
+            goal = 0
+            self.saturated[i] = False
+        else:
+            r = abs(c_um) / lsb
+            m = math.floor(r + 0.5) if r < MAX_MAG + 1 else MAX_MAG + 1
+            self.saturated[i] = m > MAX_MAG
+            goal = min(m, MAX_MAG) * (1 if c_um > 0 else -1)
+        # the budget refills at slew/LSB per second and holds at most one LSB plus this
+        # cycle's refill (what is left after a step carries over, so the word keeps the
+        # slew's pace exactly and never more than one LSB ahead of it)
+        gain = self._rate_lsb_per_s[i] * dt_s if dt_s > 0 else 0.0
+        gain = gain if gain < 2 * MAX_MAG else 2.0 * MAX_MAG
+        b = self._budget[i] + gain
+        cap = 1.0 + gain
+        b = cap if b > cap else b
+        if not self._moving[i] and goal != q and abs(c_um - q * lsb) >= self.band_um:
+            self._moving[i] = True
+        if self._moving[i]:
+            steps = int(b + 1e-9)
+            if steps > 1 and gain < 1.0:  # one LSB a cycle, unless a cycle is longer than LSB/slew
+                steps = 1
+            d = 1 if goal > q else -1
+            # walk toward the goal while a step does not take the word further from c (the
+            # goal jumps to 0 when c enters the dead-band: never walk away from c for that)
+            while q != goal and abs(c_um - (q + d) * lsb) <= abs(c_um - q * lsb) + 1e-9:
+                if not steps:
+                    break
+                q += d
+                steps -= 1
+                b = b - 1.0 if b > 1.0 else 0.0
+            else:
+                self._moving[i] = False
+            self.codes[i] = q
+        self._budget[i] = b
+
+    def update(
+        self, c1_um: float, c2_um: float, en1: bool = True, en2: bool = True, dt_s: float = math.inf
+    ) -> bool:
+        """Offer the guarded corrections of one cycle; returns True when the word changed.
+
+        `dt_s` is the time this cycle licenses (the guard's: one period after a clock
+        jump, 0 when time went backwards); inf lets the word reach its goal at once.
+        `en1`/`en2` False force that axis's byte to 0x00 (disabled).
         """
-        if not math.isfinite(c1_um):
-            c1_um, en1 = 0.0, False
-        if not math.isfinite(c2_um):
-            c2_um, en2 = 0.0, False
-        db = self.deadband_um
-        if (
-            self.words_emitted
-            and en1 == self._enabled[0]
-            and en2 == self._enabled[1]
-            and abs(c1_um - self._last1) < db
-            and abs(c2_um - self._last2) < db
-        ):
-            return False
-        b1, s1 = encode_byte(c1_um, self.lsb_um, db) if en1 else (0, False)
-        b2, s2 = encode_byte(c2_um, self.lsb_um, db) if en2 else (0, False)
-        self._last1, self._last2 = c1_um, c2_um
-        self._enabled[0], self._enabled[1] = en1, en2
-        self.saturated[0], self.saturated[1] = s1, s2
-        if s1 or s2:
-            self.saturations += 1
-        word = (b1 << 8) | b2
+        self._axis(0, c1_um, en1, dt_s)
+        self._axis(1, c2_um, en2, dt_s)
+        word = (_code_byte(self.codes[0]) << 8) | _code_byte(self.codes[1])
         changed = word != self.word or not self.words_emitted
-        self.word = word
-        self.words_emitted += 1
+        if changed:
+            self.word = word
+            self.words_emitted += 1
+            if self.saturated[0] or self.saturated[1]:
+                self.saturations += 1
         return changed
+
+
+def _code_byte(q: int) -> int:
+    """The byte of a signed code in LSB (0 → 0x00, disabled)."""
+    if q == 0:
+        return 0
+    return ENABLE_BIT | min(abs(q), MAX_MAG) | (DIR_BIT if q > 0 else 0)

@@ -25,6 +25,7 @@ COLUMNS = (
     "time to safe state s",
     "samples lost",
     "event logged",
+    "word: step LSB, pace, off by µm (band)",
     "word valid",
 )
 
@@ -42,7 +43,13 @@ def render_matrix(results: Sequence[dict[str, Any]]) -> str:
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for r in sorted(results, key=lambda r: (r.get("order", 1000), r["row"])):
         safe = r.get("time_to_safe_s")
-        ok = r.get("word_valid") and r.get("max_step_ratio", 0.0) <= 1.01
+        ok = (
+            r.get("word_valid")
+            and r.get("max_step_ratio", 0.0) <= 1.01
+            and r.get("word_max_step_lsb", 0) <= 1
+            and r.get("word_pace_ratio", 0.0) <= 1.0 + 1e-6
+            and r.get("word_max_error_um", 0.0) <= r.get("word_band_um", 0.0) + 1e-9
+        )
         cells = [
             f"`{r['row']}`",
             r["fault"],
@@ -53,6 +60,8 @@ def render_matrix(results: Sequence[dict[str, Any]]) -> str:
             "n/a" if safe is None else f"{safe:.3f}",
             str(r["samples_lost"]),
             (r.get("event") or "—") + ("" if r.get("logged") else " (not in the log)"),
+            f"{r.get('word_max_step_lsb', 0)}, {r.get('word_pace_ratio', 0.0):.2f},"
+            f" {r.get('word_max_error_um', 0.0):.2f} ({r.get('word_band_um', 0.0):.2f})",
             "yes" if ok else "NO",
         ]
         lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")

@@ -67,6 +67,7 @@ class Guard:
         self.state = np.full(n, STARTING, dtype=np.uint8)
         self._good_since = np.full(n, math.nan)
         self._last_t = math.nan
+        self.dt_s = 0.0  # the time the last update licensed (what the codec may spend too)
         # plausibility of the model inputs
         self.input_idx = frame.indices(inputs)
         lim = [cfg.signals.get(name) for name in inputs]
@@ -227,6 +228,7 @@ class Guard:
         elif dt > self.max_dt_s:
             dt = self.max_dt_s
         self._last_t = now_s
+        self.dt_s = dt
         recovery_s = self._recovery_s
         for a in range(self._n_axes):
             p = float(pred_um[a])

@@ -133,6 +133,8 @@ class Loop:
         self.encoder = encoder
         self.sink = sink
         self.word_axes = word_axes  # indices into model outputs for the high and low byte
+        # the word walks no faster than its axes' slew limits
+        encoder.set_slew([float(guard.slew_um_per_s[a]) for a in word_axes])
         self.observers = observers or []
         self.cycle_hooks = cycle_hooks or []
         n_out = len(model.outputs)
@@ -307,9 +309,11 @@ class Loop:
         g = self.guard
         wa = self.word_axes
         if len(wa) == 2:
-            changed = self.encoder.update(g.out_um[wa[0]], g.out_um[wa[1]], g.enable[wa[0]], g.enable[wa[1]])
+            changed = self.encoder.update(
+                g.out_um[wa[0]], g.out_um[wa[1]], g.enable[wa[0]], g.enable[wa[1]], g.dt_s
+            )
         else:
-            changed = self.encoder.update(g.out_um[wa[0]], 0.0, g.enable[wa[0]], False)
+            changed = self.encoder.update(g.out_um[wa[0]], 0.0, g.enable[wa[0]], False, g.dt_s)
         self.word = self.encoder.word
         t4 = perf()
         self.sink.write(self.word, g.out_um, g.enable, changed, now)

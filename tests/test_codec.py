@@ -7,7 +7,7 @@ import subprocess
 import sys
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from compd import codec
@@ -84,6 +84,96 @@ def test_no_chatter_at_rounding_boundary() -> None:
         assert enc.word == first
     assert enc.update(6.0, 0.0)  # moved by a full dead-band from 5.0
     assert codec.decode(enc.word)[0].magnitude == 6
+
+
+def _slewed(targets: list[float], slew_um_per_s: float, period_s: float) -> list[float]:
+    """What the guard offers the codec: each target approached at the slew limit."""
+    out, c = [], 0.0
+    for target in targets:
+        step = slew_um_per_s * period_s
+        c += max(-step, min(step, target - c))
+        out.append(c)
+    return out
+
+
+def _walk(enc: codec.Encoder, cs: list[float], period_s: float) -> list[int]:
+    """The high byte's signed code after each cycle."""
+    codes = []
+    for c in cs:
+        enc.update(c, 0.0, dt_s=period_s)
+        x1 = codec.decode(enc.word)[0]
+        codes.append(x1.direction * x1.magnitude if x1.enable else 0)
+    return codes
+
+
+def _assert_paced(codes: list[int], period_s: float, lsb_um: float, slew_um_per_s: float) -> None:
+    """One LSB at a time, and m steps take at least m·lsb/slew less one cycle."""
+    steps = [k for k in range(1, len(codes)) if codes[k] != codes[k - 1]]
+    for k in steps:
+        assert abs(codes[k] - codes[k - 1]) == 1, (k, codes[k - 1], codes[k])
+    for a, ka in enumerate(steps):
+        for m, kb in enumerate(steps[a + 1:], start=1):
+            assert (kb - ka + 1) * period_s >= m * lsb_um / slew_um_per_s - 1e-9, (ka, kb, m)
+
+
+def test_word_never_steps_faster_than_the_slew() -> None:
+    """The audit: slew 2 µm/s, 10 ms cycles, dead-band 3 µm — the old encoder jumped 3 → 6 LSB."""
+    period_s, slew = 0.01, 2.0
+    enc = codec.Encoder(1.0, 3.0, slew)
+    cs = _slewed([20.0] * 1500 + [-5.0] * 2000, slew, period_s)
+    codes = _walk(enc, cs, period_s)
+    _assert_paced(codes, period_s, 1.0, slew)
+    assert codes[1499] >= 17 and codes[-1] == -5
+
+
+def test_held_word_stays_within_the_deadband() -> None:
+    """The audit: −11.22 µm was sent as −10 µm for a whole run. Now the word settles at −11."""
+    period_s, slew = 0.01, 5.0
+    enc = codec.Encoder(1.0, 1.0, slew)
+    cs = _slewed([-11.22] * 1000, slew, period_s)
+    codes = _walk(enc, cs, period_s)
+    for c, q in zip(cs, codes, strict=True):
+        assert abs(q - c) <= 1.0 + 2 * slew * period_s
+    assert codes[-1] == -11
+
+
+@settings(max_examples=500, deadline=None)
+@given(
+    targets=st.lists(st.floats(-80, 80), min_size=1, max_size=8),
+    hold_cycles=st.integers(1, 400),
+    slew=st.floats(0.1, 200.0),
+    lsb=st.sampled_from([0.1, 0.5, 1.0, 2.0]),
+    deadband=st.floats(0.0, 5.0),
+    period_s=st.sampled_from([0.001, 0.002, 0.01]),
+)
+def test_word_walks_within_band_at_slew_pace(
+    targets: list[float], hold_cycles: int, slew: float, lsb: float, deadband: float, period_s: float
+) -> None:
+    enc = codec.Encoder(lsb, deadband, slew)
+    cs = _slewed([t for t in targets for _ in range(hold_cycles)], slew, period_s)
+    codes = _walk(enc, cs, period_s)
+    if slew * period_s < lsb:  # the live loop: every cycle is shorter than one LSB at the slew
+        _assert_paced(codes, period_s, lsb, slew)
+    band = max(deadband, lsb)
+    for c, q in zip(cs, codes, strict=True):
+        if abs(c) < 63 * lsb:  # not saturated
+            assert abs(q * lsb - c) <= band + 2 * slew * period_s + 1e-9
+
+
+def test_replay_rows_longer_than_one_lsb_at_the_slew() -> None:
+    """At one row per second the word may move slew·dt per row, not one LSB per row."""
+    enc = codec.Encoder(1.0, 1.0, 5.0)
+    codes = _walk(enc, [5.0, 10.0, 15.0], 1.0)
+    assert codes == [5, 10, 15]
+
+
+def test_reload_keeps_the_held_word() -> None:
+    old = codec.Encoder(1.0, 1.0, 2.0)
+    _walk(old, _slewed([-9.0] * 2000, 2.0, 0.01), 0.01)
+    new = codec.Encoder(1.0, 1.0, 2.0)
+    new.adopt(old)
+    assert new.word == old.word
+    assert not new.update(-9.0, 0.0, dt_s=0.01)
 
 
 def test_encoder_enable_change_always_emits() -> None:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from compd.app import App
+from compd.codec import decode
 from compd.config import load_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -153,3 +154,30 @@ def test_model_update_period_holds_output(tmp_path: Path) -> None:
     app.run()
     changes = np.count_nonzero(np.diff(preds))
     assert 5 <= changes <= 10
+
+
+def test_word_walks_one_lsb_at_the_slew_pace(tmp_path: Path) -> None:
+    """The audit's case through the whole loop: 10 ms cycles, slew 2 µm/s, dead-band 3 µm.
+    The word on the card changes by one LSB at a time, no faster than lsb/slew, and stays
+    within the dead-band of the guarded correction (it used to jump 3 → 6 LSB and hold −10
+    for −11.22 µm)."""
+    p = tmp_path / "c.yaml"
+    p.write_text(CONFIG.format(clock="sim", period=0.01, slew=2.0) + "codec: {deadband_um: 3.0}\n")
+    app = App(load_config(p))
+    trace: list[tuple[float, int, float]] = []
+
+    def watch(loop, now):  # noqa: ANN001
+        x1 = decode(loop.sink.card.read_do_word(0))[0]  # what the card carries
+        trace.append((now, x1.direction * x1.magnitude if x1.enable else 0, float(loop.guard.out_um[0])))
+
+    app.loop.observers.append(watch)
+    app.duration_s = 900.0
+    app.run()
+    steps = [(t, q - q0) for (t, q, _), (_, q0, _) in zip(trace[1:], trace, strict=False) if q != q0]
+    assert len(steps) >= 5  # the spindle grew: the word did walk
+    assert all(abs(d) == 1 for _, d in steps)
+    for (t0, _), (t1, _) in zip(steps, steps[1:], strict=False):
+        assert t1 - t0 >= 1.0 / 2.0 - 0.01 - 1e-9  # lsb/slew, less one cycle's carry
+    assert max(abs(q - c) for _, q, c in trace) <= 3.0 + 2 * 2.0 * 0.01 + 1e-9
+    word = app.sink.card.read_do_word(0)
+    assert word == 0  # safe output after the run

@@ -109,6 +109,13 @@ class Measured:
     running: bool
     cycles: int
     fault_t_s: float | None
+    # the word itself: its largest step between two enabled cycles (LSB); its pace (m steps
+    # ÷ (m·lsb/slew) of licensed time, ≤ 1); the largest |word − guarded correction| while
+    # enabled, against the codec's band (+ what the correction moves in two cycles)
+    word_max_step_lsb: int = 0
+    word_pace_ratio: float = 0.0
+    word_max_error_um: float = 0.0
+    word_band_um: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -255,6 +262,7 @@ class FaultRun:
                 word_valid = False
             if code.enable and not en:
                 word_valid = False
+        word = self._measure_word()
         t_fault = self.times.get("fault")
         time_to_safe = None
         policy_ok = True
@@ -292,8 +300,49 @@ class FaultRun:
                 [MIN_S, *(t - tr.t[0] + 0.3 for t in self.times.values())]) - 2 * PERIOD_S,
             cycles=len(tr.t),
             fault_t_s=None if t_fault is None else t_fault - tr.t[0],
+            **word,
         )
         return m
+
+    def _measure_word(self) -> dict[str, Any]:
+        """The word on the card, cycle by cycle, against the codec's promises: one LSB at a
+        time; m steps take at least m·lsb/slew less one cycle of licensed time; never further
+        from the guarded correction than the band (+ what the correction moves in two cycles)."""
+        app = self.app
+        assert app is not None
+        tr = self.trace
+        lsb = app.encoder.lsb_um
+        max_step = 0
+        pace = 0.0
+        max_error = 0.0
+        licensed = 0.0  # licensed time since the start (a clock jump licenses one period)
+        # (licensed time, that cycle's dt) of each step since the axis was last enabled: what
+        # a step leaves of the budget carries over, at most that cycle's refill
+        steps: list[tuple[float, float]] = []
+        prev = None
+        for k in range(len(tr.t)):
+            code = decode(tr.word[k])[0]
+            v = code.direction * code.magnitude if code.enable else 0
+            dt = 0.0
+            if k and tr.enable[k]:  # the codec's budget refills in every enabled cycle
+                dt = PERIOD_S if tr.jumps[k] else tr.t[k] - tr.t[k - 1]
+                licensed += dt
+            if k and tr.enable[k] and tr.enable[k - 1]:
+                if v != prev:
+                    max_step = max(max_step, abs(v - prev))
+                    for m, (t_a, carry_s) in enumerate(reversed(steps), start=1):
+                        pace = max(pace, m * lsb / SLEW_UM_PER_S / (licensed - t_a + carry_s))
+                    steps.append((licensed, dt))
+                max_error = max(max_error, abs(v * lsb - tr.out[k]))
+            elif not tr.enable[k]:
+                steps.clear()
+            prev = v
+        return {
+            "word_max_step_lsb": max_step,
+            "word_pace_ratio": pace,
+            "word_max_error_um": max_error,
+            "word_band_um": app.encoder.band_um + 2 * SLEW_UM_PER_S * PERIOD_S,
+        }
 
     def _safe(self, k: int) -> bool:
         tr = self.trace
@@ -335,6 +384,11 @@ def check(m: Measured, *, fault: bool = True, recovered: bool | None = None) -> 
     assert m.running, "compd stopped"
     assert m.word_valid, "an invalid word reached the card"
     assert m.max_step_ratio <= 1.0 + 1e-6, f"the correction moved faster than the slew: {m}"
+    assert m.word_max_step_lsb <= 1, f"the word stepped by more than one LSB: {m}"
+    assert m.word_pace_ratio <= 1.0 + 1e-6, f"the word stepped faster than the slew allows: {m}"
+    assert m.word_max_error_um <= m.word_band_um + 1e-9, (
+        f"the word stayed further than the dead-band from the correction: {m}"
+    )
     if fault:
         assert m.policy_ok, f"the configured policy was not applied: {m}"
         assert m.time_to_safe_s is not None, f"the axis never reached its safe state: {m}"
