@@ -408,7 +408,9 @@ def repair_log(path: str | Path) -> Repair:
       rewritten (temp file, fsync, rename) with the good rows in their order.
     * No readable header (entirely NULs, a cut header, not a log): the whole file is
       renamed to the side file; the caller starts a new log.
-    The log is read in 64 KiB chunks: memory does not grow with the file or the damage.
+    The log is read in 64 KiB chunks: memory does not grow with the file or the damage
+    (the NUL check reads the whole file once, at C speed; the rest reads only the tail).
+    A failure on the way (disk full writing the side file) leaves the log untouched.
     """
     path = Path(path)
     with open(path, "rb") as fh:
@@ -424,11 +426,11 @@ def repair_log(path: str | Path) -> Repair:
         good_end = _last_good_end(fh, start, size, ncol)
         body_damaged = _has_nul(fh, start, good_end)
         if good_end == size and not body_damaged:
-            return Repair(str(path), "none", _count_lines(fh, start, size), header=header)
+            return Repair(str(path), "none", header=header)
         fd, side = _side_file(path, "damaged")
-        with os.fdopen(fd, "wb") as bad:
+        tmp = path.with_name(f".{path.name}.repair.tmp")
+        with os.fdopen(fd, "wb") as bad, _removed_on_error(tmp):
             if body_damaged:
-                tmp = path.with_name(f".{path.name}.repair.tmp")
                 with open(tmp, "wb") as good:
                     good.write(header)
                     kept, set_aside = _split_body(fh, start, good_end, ncol, good, bad)
@@ -444,7 +446,8 @@ def repair_log(path: str | Path) -> Repair:
                     break
                 bad.write(buf)
                 tail += len(buf)
-            set_aside += _count_lines(fh, good_end, size) + (0 if size == good_end or _ends_with_newline(fh, size) else 1)
+            if size > good_end:  # the tail's lines; a last one without its newline counts too
+                set_aside += _count_lines(fh, good_end, size) + (0 if _ends_with_newline(fh, size) else 1)
             bad.flush()
             os.fsync(bad.fileno())
             bytes_aside = bad.tell()
@@ -458,6 +461,17 @@ def repair_log(path: str | Path) -> Repair:
             fh.truncate(good_end)
             os.fsync(fh.fileno())
     return Repair(str(path), "body" if body_damaged else "tail", kept, set_aside, bytes_aside, str(side), header)
+
+
+@contextlib.contextmanager
+def _removed_on_error(tmp: Path) -> Iterator[None]:
+    """A half-written temp file goes if the repair fails (the log itself is untouched then)."""
+    try:
+        yield
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 def _ends_with_newline(fh: BinaryIO, size: int) -> bool:

@@ -279,3 +279,44 @@ def test_reader_cuts_a_long_garbage_cell(tmp_path: Path) -> None:
     with pytest.raises(BadInput) as ei:
         read_log(path)
     assert ei.value.path == "err_z_um" and len(str(ei.value)) < 300
+
+
+def test_repair_reads_a_long_nul_tail_in_bounded_memory(tmp_path: Path) -> None:
+    import tracemalloc
+
+    from compd.log import repair_log
+
+    path = tmp_path / "run.csv"
+    with open(path, "wb") as fh:
+        fh.write(HEADER + _rows(50))
+        for _ in range(32):
+            fh.write(b"\0" * (1 << 20))  # 32 MiB, not a newline in it
+    tracemalloc.start()
+    try:
+        r = repair_log(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert r.action == "tail" and r.rows_kept == 50 and r.bytes_set_aside == 32 << 20
+    assert peak < 2 << 20  # chunks, not the file
+    assert len(read_log(path)) == 50
+
+
+def test_a_repair_that_fails_leaves_the_log_alone_and_drops_rows(tmp_path, caplog, monkeypatch) -> None:  # noqa: ANN001
+    import errno
+
+    import compd.log
+
+    def no_space(path: Path, what: str) -> tuple[int, Path]:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(compd.log, "_side_file", no_space)
+    path = tmp_path / "run.csv"
+    damaged = HEADER + _rows(5) + b"\0" * 100
+    path.write_bytes(damaged)
+    with caplog.at_level(logging.ERROR, logger="compd"):
+        w = LogWriter(path, COLUMNS, flush_s=0.01)
+        w.push((9.0, 1.0, 2.0))
+        w.close()
+    assert path.read_bytes() == damaged  # nothing appended after the NULs, nothing cut
+    assert w.rows_dropped == 1 and "No space left" in (w.error or "")
