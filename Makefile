@@ -5,8 +5,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 BASE_STAMP := $(VENV)/.base-installed
 TEST_STAMP := $(VENV)/.test-installed
-# Debian packages the protocol tests need (serial ptys, an independent Modbus client).
-APT_PACKAGES := socat mbpoll
+# Debian packages the tests need (serial ptys, an independent Modbus client, the systemd units'
+# verify and security checks); COMMAND:PACKAGE where the command is not named like its package.
+APT_PACKAGES := socat mbpoll systemd-analyze:systemd
 
 .PHONY: venv demo test accept bench lint sysdeps clean install docs reliability
 
@@ -26,7 +27,7 @@ demo: $(BASE_STAMP)
 	$(VENV)/bin/compd run configs/demo.yaml
 
 sysdeps:
-	@missing=""; for p in $(APT_PACKAGES); do command -v $$p >/dev/null || missing="$$missing $$p"; done; \
+	@missing=""; for p in $(APT_PACKAGES); do command -v $${p%%:*} >/dev/null || missing="$$missing $${p##*:}"; done; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing Debian packages:$$missing"; \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \

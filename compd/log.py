@@ -9,9 +9,10 @@ import math
 import os
 import queue
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -120,6 +121,13 @@ def read_log(file: str | Path, *, allow_nan: bool = False) -> Log:
             for lineno, row in enumerate(reader, start=2):
                 if not row or (len(row) == 1 and not row[0].strip()):
                     continue
+                nul = next((i for i, cell in enumerate(row) if "\0" in cell), None)
+                if nul is not None:
+                    raise BadInput(
+                        "NUL bytes in the row (a power cut during a write?); compd run repairs"
+                        " its own log when it opens it again",
+                        file=file, line=lineno, path=header[nul] if nul < ncol else None,
+                    )
                 if len(row) != ncol:
                     raise BadInput(
                         f"row has {len(row)} cells, the header has {ncol}", file=file, line=lineno
@@ -134,7 +142,7 @@ def read_log(file: str | Path, *, allow_nan: bool = False) -> Log:
                         v = float(cell)
                     except ValueError:
                         raise BadInput(
-                            f"not a number: {cell!r}", file=file, line=lineno, path=name
+                            f"not a number: {_short(cell)}", file=file, line=lineno, path=name
                         ) from None
                     if not math.isfinite(v) and not allow_nan:
                         raise BadInput(f"not a finite number: {cell!r}", file=file, line=lineno, path=name)
@@ -156,6 +164,11 @@ def read_log(file: str | Path, *, allow_nan: bool = False) -> Log:
     return Log(file, header, data)
 
 
+def _short(cell: str, limit: int = 40) -> str:
+    """repr of a cell, cut to `limit` characters (a garbage cell can be megabytes)."""
+    return repr(cell) if len(cell) <= limit else repr(cell[:limit]) + f"… ({len(cell)} characters)"
+
+
 def write_log(file: str | Path, columns: Sequence[str], data: np.ndarray) -> None:
     """Write a whole log (fit tools, simulator)."""
     with open(file, "w", newline="", encoding="utf-8") as fh:
@@ -175,6 +188,297 @@ def _fmt_t(t_s: float) -> str:
     return f"{t_s:.4f}" if t_s == t_s else ""
 
 
+# ------------------------------------------------------------------ repair
+# What a crash or a power cut leaves at the end of a log that was being appended to:
+# a row cut in the middle (kill -9 mid-write), and after a power cut with delayed
+# allocation a run of NUL bytes (the file's size was committed, its data was not),
+# possibly hundreds of KiB long and with no newline in it. Repair keeps every
+# complete, parseable row and moves everything else, byte for byte, to a side file.
+
+_CHUNK = 65536
+
+
+def _row_ok(line: bytes, ncol: int) -> bool:
+    """True if `line` (with its newline) is a whole row read_log(allow_nan=True) accepts."""
+    if not line.endswith(b"\n") or b"\0" in line:
+        return False
+    try:
+        cells = line.decode("utf-8").rstrip("\r\n").split(",")
+    except UnicodeDecodeError:
+        return False
+    if len(cells) != ncol:
+        return False
+    try:
+        values = [float(c) if c.strip() else math.nan for c in cells]
+    except ValueError:
+        return False
+    return math.isfinite(values[0])
+
+
+def _max_row_bytes(ncol: int) -> int:
+    """A longer line is damage whatever it holds (bounds the memory a repair uses)."""
+    return max(_CHUNK, 64 * ncol)
+
+
+def _newlines_backward(fh: BinaryIO, start: int, end: int) -> Iterator[int]:
+    """Offsets of the newline bytes in [start, end), last first, reading one chunk at a time."""
+    pos = end
+    while pos > start:
+        lo = max(start, pos - _CHUNK)
+        fh.seek(lo)
+        buf = fh.read(pos - lo)
+        i = len(buf)
+        while (i := buf.rfind(b"\n", 0, i)) >= 0:
+            yield lo + i
+        pos = lo
+
+
+def _last_good_end(fh: BinaryIO, start: int, end: int, ncol: int) -> int:
+    """Offset just past the last complete, parseable row in [start, end) (`start` if none)."""
+
+    def ok(a: int, b: int) -> bool:
+        if b - a > _max_row_bytes(ncol):
+            return False
+        fh.seek(a)
+        return _row_ok(fh.read(b - a), ncol)
+
+    line_end: int | None = None
+    for nl in _newlines_backward(fh, start, end):
+        if line_end is not None and ok(nl + 1, line_end):
+            return line_end
+        line_end = nl + 1
+    if line_end is not None and ok(start, line_end):
+        return line_end
+    return start
+
+
+def _has_nul(fh: BinaryIO, start: int, end: int) -> bool:
+    fh.seek(start)
+    pos = start
+    while pos < end:
+        buf = fh.read(min(_CHUNK, end - pos))
+        if not buf:
+            break
+        if b"\0" in buf:
+            return True
+        pos += len(buf)
+    return False
+
+
+def _count_lines(fh: BinaryIO, start: int, end: int) -> int:
+    fh.seek(start)
+    n, pos = 0, start
+    while pos < end:
+        buf = fh.read(min(_CHUNK, end - pos))
+        if not buf:
+            break
+        n += buf.count(b"\n")
+        pos += len(buf)
+    return n
+
+
+def _split_body(fh: BinaryIO, start: int, end: int, ncol: int, good: BinaryIO, bad: BinaryIO) -> tuple[int, int]:
+    """Copy the lines of [start, end) to `good` (parseable rows) or `bad` (the rest).
+
+    [start, end) ends on a newline. A line longer than a row can be streams to `bad`
+    without being held in memory. Returns (rows kept, lines set aside).
+    """
+    limit = _max_row_bytes(ncol)
+    kept = set_aside = 0
+    cur = bytearray()
+    overflow = False  # the current line is too long to be a row: it streams to `bad`
+    fh.seek(start)
+    pos = start
+    while pos < end:
+        chunk = fh.read(min(_CHUNK, end - pos))
+        if not chunk:
+            break
+        pos += len(chunk)
+        i = 0
+        while i < len(chunk):
+            j = chunk.find(b"\n", i)
+            piece = chunk[i:] if j < 0 else chunk[i : j + 1]
+            i += len(piece)
+            if overflow:
+                bad.write(piece)
+            else:
+                cur += piece
+                if len(cur) > limit:
+                    bad.write(cur)
+                    cur.clear()
+                    overflow = True
+            if j < 0:
+                continue
+            if overflow:
+                set_aside += 1
+                overflow = False
+            elif _row_ok(bytes(cur), ncol):
+                good.write(cur)
+                kept += 1
+            else:
+                bad.write(cur)
+                set_aside += 1
+            cur.clear()
+    if cur or overflow:  # cannot happen when `end` is a line end; never lose it anyway
+        bad.write(cur)
+        set_aside += 1
+    return kept, set_aside
+
+
+def _fsync_dir(folder: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _side_file(path: Path, what: str) -> tuple[int, Path]:
+    """Create `<log>.<what>-<UTC time>[-N]` exclusively (never over an earlier one)."""
+    import time
+
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    for n in range(1, 10_000):
+        side = path.with_name(f"{path.name}.{what}-{stamp}" + (f"-{n}" if n > 1 else ""))
+        try:
+            return os.open(side, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644), side
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free side-file name for {path}")
+
+
+def _set_aside_whole(path: Path, what: str) -> Path:
+    """Rename the whole file to a new side file (atomic: nothing is copied, nothing lost)."""
+    fd, side = _side_file(path, what)
+    os.close(fd)
+    os.replace(path, side)
+    _fsync_dir(path.parent)
+    return side
+
+
+@dataclass
+class Repair:
+    """What `repair_log` did: rows kept, what was moved aside and where."""
+
+    path: str
+    action: str  # "none", "tail" (damage cut off the end), "body" (damage removed inside), "whole"
+    rows_kept: int = 0
+    lines_set_aside: int = 0
+    bytes_set_aside: int = 0
+    side_file: str | None = None
+    header: bytes | None = None  # the file's header line, when it has a readable one
+
+    def log_event(self) -> None:
+        log.warning(
+            "data log repaired: %s kept %d rows; %d bytes (%d lines) of damage moved to %s",
+            self.path, self.rows_kept, self.bytes_set_aside, self.lines_set_aside, self.side_file,
+            extra={
+                "event": "log_repaired", "path": self.path, "action": self.action,
+                "rows_kept": self.rows_kept, "lines_set_aside": self.lines_set_aside,
+                "bytes_set_aside": self.bytes_set_aside, "side_file": self.side_file,
+            },
+        )
+
+
+def _header_of(fh: BinaryIO) -> bytes | None:
+    """The first line if it is a readable log header (t_s first, names, newline), else None."""
+    fh.seek(0)
+    line = fh.readline(_CHUNK)
+    if not line.endswith(b"\n") or b"\0" in line:
+        return None
+    try:
+        names = [n.strip() for n in line.decode("utf-8").rstrip("\r\n").split(",")]
+    except UnicodeDecodeError:
+        return None
+    if names[0] != "t_s" or any(not n for n in names) or len(set(names)) != len(names):
+        return None
+    return line
+
+
+def repair_log(path: str | Path) -> Repair:
+    """Make the log at `path` a valid CSV again after a crash, losing nothing.
+
+    * The damaged tail (a cut row, NUL bytes, garbage, rows with the wrong number of
+      cells or a non-number) after the last complete, parseable row, however far back
+      that is, is copied to `<log>.damaged-<UTC time>` and fsynced, and only then is
+      the log truncated to that row.
+    * NUL bytes before that row (a power cut with delayed allocation, then more rows):
+      every line that is not a parseable row goes to the side file too, and the log is
+      rewritten (temp file, fsync, rename) with the good rows in their order.
+    * No readable header (entirely NULs, a cut header, not a log): the whole file is
+      renamed to the side file; the caller starts a new log.
+    The log is read in 64 KiB chunks: memory does not grow with the file or the damage
+    (the NUL check reads the whole file once, at C speed; the rest reads only the tail).
+    A failure on the way (disk full writing the side file) leaves the log untouched.
+    """
+    path = Path(path)
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size == 0:
+            return Repair(str(path), "none")
+        header = _header_of(fh)
+        if header is None:
+            side = _set_aside_whole(path, "damaged")
+            return Repair(str(path), "whole", 0, 1, size, str(side))
+        ncol = header.count(b",") + 1
+        start = len(header)
+        good_end = _last_good_end(fh, start, size, ncol)
+        body_damaged = _has_nul(fh, start, good_end)
+        if good_end == size and not body_damaged:
+            return Repair(str(path), "none", header=header)
+        fd, side = _side_file(path, "damaged")
+        tmp = path.with_name(f".{path.name}.repair.tmp")
+        with os.fdopen(fd, "wb") as bad, _removed_on_error(tmp):
+            if body_damaged:
+                with open(tmp, "wb") as good:
+                    good.write(header)
+                    kept, set_aside = _split_body(fh, start, good_end, ncol, good, bad)
+                    good.flush()
+                    os.fsync(good.fileno())
+            else:
+                kept, set_aside = _count_lines(fh, start, good_end), 0
+            fh.seek(good_end)
+            tail = good_end
+            while tail < size:
+                buf = fh.read(min(_CHUNK, size - tail))
+                if not buf:
+                    break
+                bad.write(buf)
+                tail += len(buf)
+            if size > good_end:  # the tail's lines; a last one without its newline counts too
+                set_aside += _count_lines(fh, good_end, size) + (0 if _ends_with_newline(fh, size) else 1)
+            bad.flush()
+            os.fsync(bad.fileno())
+            bytes_aside = bad.tell()
+        _fsync_dir(path.parent)
+    # the damage is safe in the side file: now the log may lose it
+    if body_damaged:
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    else:
+        with open(path, "r+b") as fh:
+            fh.truncate(good_end)
+            os.fsync(fh.fileno())
+    return Repair(str(path), "body" if body_damaged else "tail", kept, set_aside, bytes_aside, str(side), header)
+
+
+@contextlib.contextmanager
+def _removed_on_error(tmp: Path) -> Iterator[None]:
+    """A half-written temp file goes if the repair fails (the log itself is untouched then)."""
+    try:
+        yield
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def _ends_with_newline(fh: BinaryIO, size: int) -> bool:
+    fh.seek(size - 1)
+    return fh.read(1) == b"\n"
+
+
 class LogWriter:
     """Writes log rows from a background thread so the cycle never waits on the disk.
 
@@ -192,8 +496,9 @@ class LogWriter:
     write are dropped and counted (`rows_dropped`), a partial row is cut off again
     (the file stays a valid CSV), `error` says why, one `event=log_error` line is
     logged when writing starts failing and one `event=log_ok` when it works again.
-    A file whose last row was cut by a crash is repaired (truncated to its last
-    whole row) when it is opened again.
+    A file that a crash or a power cut damaged is repaired when it is opened again
+    (`repair_log`: the damage goes to a `<name>.damaged-<time>` side file, the
+    complete rows stay); one written with other columns is set aside whole.
     """
 
     max_pending_rows = 100_000  # while the disk is full, older unwritten rows are dropped
@@ -217,7 +522,8 @@ class LogWriter:
         self.rows_written = 0
         self.rows_dropped = 0
         self.rotations = 0
-        self.repaired_bytes = 0
+        self.repaired_bytes = 0  # bytes of crash damage moved to side files (repair_log)
+        self.repairs: list[Repair] = []
         self.error: str | None = None
         self._header = (",".join(self.columns) + "\n").encode()
         self._q: queue.SimpleQueue[tuple[float, ...] | None] = queue.SimpleQueue()
@@ -233,27 +539,22 @@ class LogWriter:
         self._q.put(row)
 
     # ------------------------------------------------------------------ file
-    def _open(self, set_aside: bool = True) -> bool:
-        """Open (or create) the file for appending; repair a cut last row; queue the header."""
+    def _open(self) -> bool:
+        """Open (or create) the file for appending, after repairing what a crash left; queue the header."""
         import time
 
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self.path.exists():
+                self._recover()
             fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
         except OSError as e:
+            # never append to a file that could not be repaired: rows are dropped, counted, retried
             self._fail(f"cannot open log: {e.strerror or e}", 0)
             return False
         self._fd = fd
         try:
             self._size = os.fstat(fd).st_size
-            if self._size > 0:
-                self._repair()
-            if set_aside and self._size > 0 and not self._same_header():
-                # written with other columns (the config changed): set it aside, start anew
-                os.close(fd)
-                self._fd = None
-                self._shift()
-                return self._open(set_aside=False)
         except OSError:
             self._size = 0
         if self._size == 0:
@@ -261,23 +562,21 @@ class LogWriter:
         self._opened_s = time.monotonic()
         return True
 
-    def _repair(self) -> None:
-        """Cut a partial last row (a crash mid-write) so appended rows start on a new line."""
-        assert self._fd is not None
-        with open(self.path, "rb") as fh:
-            fh.seek(max(self._size - 65536, 0))
-            tail = fh.read()
-        if tail.endswith(b"\n"):
-            return
-        cut = tail.rfind(b"\n")
-        keep = self._size - len(tail) + cut + 1 if cut >= 0 else 0
-        os.ftruncate(self._fd, keep)
-        self.repaired_bytes += self._size - keep
-        self._size = keep
-
-    def _same_header(self) -> bool:
-        with open(self.path, "rb") as fh:
-            return fh.readline() == self._header
+    def _recover(self) -> None:
+        """Repair a crash's damage (`repair_log`); set aside a file written with other columns."""
+        r = repair_log(self.path)
+        if r.action != "none":
+            self.repaired_bytes += r.bytes_set_aside
+            self.repairs.append(r)
+            r.log_event()
+        if r.header is not None and r.header != self._header:
+            # written with other columns (the config changed): set it aside whole, start anew
+            if self.keep > 0:
+                self._shift()
+            else:  # no rotated files are kept, but this one is not rotation's to delete
+                _set_aside_whole(self.path, "columns")
+            if self.path.exists():
+                raise OSError(f"cannot set aside {self.path.name} (written with other columns)")
 
     def _shift(self) -> None:
         """`<name>` → `<name>.1` → `<name>.2` … (at most `keep`; with keep 0 it is deleted)."""

@@ -43,14 +43,16 @@ mkdir -p "$(dirname "$venv")"
 # shellcheck disable=SC2086
 "$PYTHON" -m pip --python "$venv/bin/python" install -q --upgrade $PIP_ARGS "$wheel${EXTRAS:+[$EXTRAS]}"
 
-say "docs, units and the real-time drop-in example"
+say "docs, units and the drop-in examples (real-time, network)"
 install -d "$DESTDIR$PREFIX/docs" "$DESTDIR$PREFIX/systemd" "$DESTDIR$UNITDIR" "$DESTDIR$SYSUSERSDIR"
 install -m 0644 "$SRC"/docs/*.md "$DESTDIR$PREFIX/docs/"
 for unit in compd.service compd@.service; do
     sed "s#/opt/compd#$PREFIX#g; s#/etc/compd#$SYSCONFDIR/compd#g" "$SRC/systemd/$unit" >"$work/$unit"
     install -m 0644 "$work/$unit" "$DESTDIR$UNITDIR/$unit"
 done
-install -m 0644 "$SRC/systemd/realtime.conf.example" "$DESTDIR$PREFIX/systemd/"
+for dropin in realtime.conf.example network.conf.example; do
+    install -m 0644 "$SRC/systemd/$dropin" "$DESTDIR$PREFIX/systemd/"
+done
 install -m 0644 "$SRC/systemd/compd.sysusers" "$DESTDIR$SYSUSERSDIR/compd.conf"
 
 install -d -m 0755 "$DESTDIR$SYSCONFDIR/compd"

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import ipaddress
+import json
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -41,6 +44,82 @@ def unit_values(path: Path) -> dict[str, str]:
     return {k: v for _, k, v in unit_entries(path)}
 
 
+def systemd_analyze() -> str:
+    """The systemd-analyze binary; its absence fails the test (make sysdeps installs it), never skips it."""
+    exe = shutil.which("systemd-analyze")
+    if exe is None:
+        pytest.fail("systemd-analyze is not installed (Debian package systemd; `make sysdeps`)")
+    return exe
+
+
+def composed(tmp_path: Path, name: str, *drop_ins: str) -> Path:
+    """The unit with drop-ins appended, as one file (systemd merges repeated [Service] sections)."""
+    text = "".join((ROOT / "systemd" / f).read_text(encoding="utf-8") + "\n" for f in (name, *drop_ins))
+    out = tmp_path / name.replace("@", "-at-")
+    out.write_text(text, encoding="utf-8")
+    return out
+
+
+def exposure(unit: Path) -> float:
+    r = subprocess.run(
+        [systemd_analyze(), "security", "--offline=true", "--no-pager", str(unit)],
+        capture_output=True, text=True, timeout=120,
+    )
+    m = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", r.stdout + r.stderr)
+    assert m, r.stdout + r.stderr
+    return float(m.group(1))
+
+
+_GROUPS: dict[str, set[str]] = {}
+
+
+def syscalls(name: str) -> set[str]:
+    """A system call, or the calls of a `@group` (nested groups expanded) per systemd-analyze."""
+    if not name.startswith("@"):
+        return {name}
+    if name not in _GROUPS:
+        r = subprocess.run(
+            [systemd_analyze(), "syscall-filter", "--no-pager", name], capture_output=True, text=True, timeout=60
+        )
+        assert r.returncode == 0, r.stderr
+        out: set[str] = set()
+        for line in r.stdout.splitlines()[1:]:
+            word = line.strip()
+            if word and not word.startswith("#"):
+                out |= syscalls(word)
+        _GROUPS[name] = out
+    return _GROUPS[name]
+
+
+def allowed_syscalls(entries: list[tuple[str, str, str]]) -> set[str]:
+    """The allow list that the unit's SystemCallFilter= lines make, in systemd.exec(5)'s order:
+    the first line (not `~`) starts an allow list with @default, later lines add to it,
+    `~` lines take away, an empty assignment starts over."""
+    allowed: set[str] | None = None
+    for _, key, value in entries:
+        if key != "SystemCallFilter":
+            continue
+        if not value:
+            allowed = None
+            continue
+        deny = value.startswith("~")
+        names = set().union(*(syscalls(w) for w in value.lstrip("~").split()))
+        if allowed is None:
+            assert not deny, "compd's units use an allow list"
+            allowed = syscalls("@default")
+        allowed = allowed - names if deny else allowed | names
+    assert allowed is not None, "no SystemCallFilter"
+    return allowed
+
+
+def capability_set(entries: list[tuple[str, str, str]], key: str) -> set[str]:
+    caps: set[str] = set()
+    for _, k, value in entries:
+        if k == key:
+            caps = caps | set(value.split()) if value else set()
+    return caps
+
+
 @pytest.mark.parametrize("name", UNITS)
 def test_unit_has_the_service_settings(name):
     v = unit_values(ROOT / "systemd" / name)
@@ -53,9 +132,14 @@ def test_unit_has_the_service_settings(name):
     for key in ("ProtectHome", "PrivateTmp", "NoNewPrivileges"):
         assert v[key] == "yes", key
     assert v["ProtectSystem"] == "strict"
-    assert set(v["CapabilityBoundingSet"].split()) == {"CAP_SYS_NICE", "CAP_IPC_LOCK"}
-    assert v["AmbientCapabilities"] == ""
+    assert v["CapabilityBoundingSet"] == "" and v["AmbientCapabilities"] == ""  # realtime.conf adds two
     assert set(v["RestrictAddressFamilies"].split()) == {"AF_UNIX", "AF_INET", "AF_INET6", "AF_CAN"}
+    assert v["UMask"] == "0077" and v["MemoryDenyWriteExecute"] == "yes"
+    assert v["IPAddressDeny"] == "any" and v["IPAddressAllow"] == "localhost"
+    assert v["DevicePolicy"] == "closed" and v["SystemCallErrorNumber"] == "EPERM"
+    devices = {val.split()[0] for _, k, val in unit_entries(ROOT / "systemd" / name) if k == "DeviceAllow"}
+    assert devices == {"char-ttyS", "char-ttyUSB", "char-ttyACM"}  # serial ports; CAN is a netdev
+    assert shlex.split(v["ExecReload"]) == ["/bin/kill", "-HUP", "$MAINPID"]  # `systemctl reload compd`
     exe, cmd, cfg = shlex.split(v["ExecStart"])
     assert (exe, cmd) == (COMPD, "run") and cfg.startswith("/etc/compd/")
     assert shlex.split(v["ExecStartPre"])[:2] == [COMPD, "check-config"]
@@ -69,7 +153,47 @@ def test_realtime_drop_in_is_opt_in():
     assert unit_values(ROOT / "systemd" / "compd.service")["RestrictRealtime"] == "yes"
 
 
-@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
+@pytest.mark.parametrize("name", UNITS)
+def test_security_exposure_is_at_most_1_5(name):
+    """systemd-analyze security: 2.5 before the sandbox was tightened (DeviceAllow, ProtectProc,
+    no capabilities, ~@privileged ~@resources, IPAddressDeny, MemoryDenyWriteExecute, UMask)."""
+    assert exposure(ROOT / "systemd" / name) <= 1.5
+
+
+@pytest.mark.parametrize("name", UNITS)
+def test_realtime_drop_in_still_grants_what_realtime_py_needs(tmp_path, name):
+    base = unit_entries(ROOT / "systemd" / name)
+    unit = composed(tmp_path, name, "realtime.conf.example")
+    entries = unit_entries(unit)
+    need = {"sched_setscheduler", "sched_setaffinity", "mlockall"}  # compd/realtime.py
+    assert need <= allowed_syscalls(entries)
+    assert not {"sched_setscheduler", "sched_setaffinity"} & allowed_syscalls(base)  # opt-in only
+    for key in ("CapabilityBoundingSet", "AmbientCapabilities"):
+        assert capability_set(entries, key) == {"CAP_SYS_NICE", "CAP_IPC_LOCK"}, key
+        assert capability_set(base, key) == set(), key
+    v = unit_values(unit)
+    assert v["RestrictRealtime"] == "no" and int(v["LimitRTPRIO"]) >= 50 and v["LimitMEMLOCK"] == "infinity"
+    # systemd reads the composition the same way: the drop-in opens exactly these checks
+    r = subprocess.run(
+        [systemd_analyze(), "security", "--offline=true", "--json=short", str(unit)],
+        capture_output=True, text=True, timeout=120,
+    )
+    failed = {t["name"] for t in json.loads(r.stdout) if t["set"] is False}
+    assert {"SystemCallFilter=~@resources", "CapabilityBoundingSet=~CAP_SYS_(NICE|RESOURCE)",
+            "CapabilityBoundingSet=~CAP_IPC_LOCK", "RestrictRealtime="} <= failed
+
+
+def test_network_drop_in_names_only_documentation_addresses():
+    """The example must not point compd at anyone's real network: RFC 5737 / RFC 3849 prefixes."""
+    docs = [ipaddress.ip_network(n) for n in ("192.0.2.0/24", "198.51.100.0/24", "203.0.113.0/24", "2001:db8::/32")]
+    lines = (ROOT / "systemd" / "network.conf.example").read_text(encoding="utf-8").splitlines()
+    allowed = [ln.lstrip("#").partition("=")[2].split() for ln in lines if ln.lstrip("#").startswith("IPAddressAllow=")]
+    nets = [ipaddress.ip_network(a, strict=False) for words in allowed for a in words]
+    assert nets and all(any(n.version == d.version and n.subnet_of(d) for d in docs) for n in nets)
+    v = unit_values(ROOT / "systemd" / "network.conf.example")
+    assert "IPAddressDeny" not in v  # it only adds to the unit's allow list
+
+
 def test_systemd_analyze_verify(tmp_path):
     """Offline verify; ExecStart must name an existing file, so the venv's path is swapped in."""
     exe = shutil.which("compd") or sys.executable
@@ -77,12 +201,14 @@ def test_systemd_analyze_verify(tmp_path):
         text = (ROOT / "systemd" / name).read_text(encoding="utf-8").replace(COMPD, exe)
         (tmp_path / name).write_text(text, encoding="utf-8")
     shutil.copy(tmp_path / "compd@.service", tmp_path / "compd@lathe1.service")
-    (tmp_path / "compd.service.d").mkdir()
-    shutil.copy(ROOT / "systemd" / "realtime.conf.example", tmp_path / "compd.service.d" / "realtime.conf")
+    for d in ("compd.service.d", "compd@.service.d"):
+        (tmp_path / d).mkdir()
+        for drop_in in ("realtime", "network"):
+            shutil.copy(ROOT / "systemd" / f"{drop_in}.conf.example", tmp_path / d / f"{drop_in}.conf")
     env = {**os.environ, "SYSTEMD_UNIT_PATH": f"{tmp_path}:"}
     for unit in ("compd.service", "compd@lathe1.service"):
         r = subprocess.run(
-            ["systemd-analyze", "verify", str(tmp_path / unit)],
+            [systemd_analyze(), "verify", str(tmp_path / unit)],
             env=env, capture_output=True, text=True, timeout=60,
         )
         assert r.returncode == 0, r.stderr
@@ -149,7 +275,8 @@ def test_install_script_stages_everything(tmp_path):
     assert v["ExecStart"] == "/opt/compd-test/venv/bin/compd run /etc/compd/compd.yaml"
     assert (stage / "etc/systemd/system/compd@.service").is_file()
     assert (stage / "usr/lib/sysusers.d/compd.conf").read_text().count("compd") >= 2
-    assert (stage / "opt/compd-test/systemd/realtime.conf.example").is_file()
+    for drop_in in ("realtime.conf.example", "network.conf.example"):
+        assert (stage / "opt/compd-test/systemd" / drop_in).is_file()
     for doc in ("configuration.md", "commissioning.md", "troubleshooting.md"):
         assert (stage / "opt/compd-test/docs" / doc).is_file()
     config = stage / "etc/compd/compd.yaml"
