@@ -269,7 +269,8 @@ class App:
         if loaded is not None:
             state, elapsed_s = loaded
             m.set_state(state, elapsed_s)
-            log.info("event=state_restored path=%s elapsed_s=%.0f", spath, elapsed_s)
+            log.info("model state restored from %s (saved %.0f s ago)", spath, elapsed_s,
+                     extra={"event": "state_restored", "path": str(spath), "elapsed_s": round(elapsed_s)})
         self.state_writer = StateWriter(spath, m.kind, m.inputs, m.outputs)
         self.loop.on_model_state = self.state_writer.submit
 
