@@ -210,9 +210,7 @@ class App:
         sink_cls, sink_cfg, _ = cfg.sink
         self.sink = _built(cfg, cfg.sink[2], sink_cls, sink_cfg, base)
         self.sink.bind(word_axes_names, top.codec.lsb_um)
-        bind_model = getattr(self.sink, "bind_model", None)
-        if bind_model is not None:  # sinks that speak per-axis values (siemens)
-            bind_model(self.model)
+        self.sink.bind_model(self.model)  # sinks that speak per-axis values (siemens) keep it
         self.observe = top.observe if observe is None else observe
         if self.observe:  # commissioning: the full loop, the output held disabled
             from compd.sinks.observe import ObserveSink

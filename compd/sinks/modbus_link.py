@@ -4,6 +4,8 @@ The cycle never waits on the network: `submit` stores the newest values per
 register range, the link's thread writes them (in order of first submission) and
 reads a status block every `status_period_s`. A lost connection is retried with
 exponential back-off; what the sink knows of the device is the last status read.
+`state` is the link as the thread last found it: connecting (started, no answer
+yet), up, down (connect or I/O failed), closed.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ class ModbusLink:
         self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
         self.status: list[int] | None = None
         self.status_stamp = -1.0
+        self.state = "closed"
         self.writes = 0
         self.errors = 0
         self.last_error: str | None = None
@@ -57,6 +60,8 @@ class ModbusLink:
 
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
         self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
+        self._stop = False
+        self.state = "connecting"
         self._thread = threading.Thread(target=self._run, name=f"modbus-link-{self.name}", daemon=True)
         self._thread.start()
 
@@ -99,6 +104,7 @@ class ModbusLink:
         return list(rr.registers)
 
     def _fail(self, e: Exception) -> None:
+        self.state = "down"
         self.errors += 1
         self.last_error = f"{type(e).__name__}: {e}"
         self._client.close()
@@ -146,7 +152,10 @@ class ModbusLink:
                         self.status = regs
                         self.status_stamp = now
                     next_status = now + self.status_period_s
+                if ok and self._client.connected:
+                    self.state = "up"
             if not ok:
+                self.state = "down"
                 self.errors += 1
                 with self._cv:
                     if item is not None:
@@ -170,3 +179,4 @@ class ModbusLink:
             self._thread = None
         if self._client is not None:
             self._client.close()
+        self.state = "closed"
