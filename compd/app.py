@@ -44,9 +44,21 @@ def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, bas
 class LogObserver:
     """Pushes a log row every `period_s` of loop time and on every change of the word."""
 
-    def __init__(self, loop: Loop, path: Path, period_s: float, flush_s: float, **rotation: Any) -> None:
+    def __init__(
+        self, loop: Loop, path: Path, period_s: float, flush_s: float, *, writer: LogWriter | None = None,
+        **rotation: Any,
+    ) -> None:
+        self.columns = self.columns_of(loop)
+        # a reload whose log is the same file with the same columns writes on through the same writer
+        self.writer = writer if writer is not None else LogWriter(path, self.columns, flush_s, **rotation)
+        self.period_s = period_s
+        self._next_s = -math.inf
+        self._last_word = -1
+
+    @staticmethod
+    def columns_of(loop: Loop) -> list[str]:
         outs = loop.model.outputs
-        self.columns = (
+        return (
             ["t_s"]
             + list(loop.frame.names)
             + [f"pred_{a}_um" for a in outs]
@@ -54,10 +66,6 @@ class LogObserver:
             + [f"applied_{a}_um" for a in outs]
             + ["word"]
         )
-        self.writer = LogWriter(path, self.columns, flush_s, **rotation)
-        self.period_s = period_s
-        self._next_s = -math.inf
-        self._last_word = -1
 
     def __call__(self, loop: Loop, now: float) -> None:
         if now < self._next_s and loop.word == self._last_word:
@@ -210,9 +218,7 @@ class App:
         sink_cls, sink_cfg, _ = cfg.sink
         self.sink = _built(cfg, cfg.sink[2], sink_cls, sink_cfg, base)
         self.sink.bind(word_axes_names, top.codec.lsb_um)
-        bind_model = getattr(self.sink, "bind_model", None)
-        if bind_model is not None:  # sinks that speak per-axis values (siemens)
-            bind_model(self.model)
+        self.sink.bind_model(self.model)  # sinks that speak per-axis values (siemens) keep it
         self.observe = top.observe if observe is None else observe
         if self.observe:  # commissioning: the full loop, the output held disabled
             from compd.sinks.observe import ObserveSink
@@ -245,7 +251,12 @@ class App:
         self.loop.observers.append(self.summary)
         self.logger: LogObserver | None = None
         self.state_writer: StateWriter | None = None
-        self._adopted: set[int] = set()
+        self._adopted: set[int] = set()  # sources and sink taken over from the App before a reload
+        self._released: set[int] = set()  # the previous App's sink, released for ours (same device)
+        self._previous: App | None = None
+        self._clock_adopted = False
+        self._state_adopted = False
+        self._model_carried = False  # a reload carried the running model's memory over
         if top.console.period_s > 0:
             self.loop.observers.append(Console(self.loop, top.console.period_s, out))
         self.duration_s = duration_s if duration_s is not None else lp.duration_s
@@ -265,11 +276,16 @@ class App:
             return
         spath = self.cfg.resolve_path(path)
         m = self.model
-        loaded = load_state(spath, m.kind, m.inputs, m.outputs)
+        if self._state_adopted:  # a reload: the running model's state was carried over
+            assert self.state_writer is not None
+            self.loop.on_model_state = self.state_writer.submit
+            return
+        loaded = None if self._model_carried else load_state(spath, m.kind, m.inputs, m.outputs)
         if loaded is not None:
             state, elapsed_s = loaded
             m.set_state(state, elapsed_s)
-            log.info("event=state_restored path=%s elapsed_s=%.0f", spath, elapsed_s)
+            log.info("model state restored from %s (saved %.0f s ago)", spath, elapsed_s,
+                     extra={"event": "state_restored", "path": str(spath), "elapsed_s": round(elapsed_s)})
         self.state_writer = StateWriter(spath, m.kind, m.inputs, m.outputs)
         self.loop.on_model_state = self.state_writer.submit
 
@@ -277,23 +293,36 @@ class App:
         """Config reload: take over what did not change from the running App (no I/O).
 
         Sources and the sink whose config is unchanged are taken over still open;
-        the model's memory is carried over when the model is the same; and the
-        guard starts from the correction the machine has now, so a reload never
-        steps the output.
+        so are the plant clock, the metrics endpoint, the state file's writer and the
+        data log when their settings are unchanged. The model's memory is carried over
+        when the model is the same; and the guard starts from the correction the
+        machine has now, so a reload never steps the output. `open` then opens the
+        rest; if it fails, `previous` is left as it was and can go on running.
         """
+        self._previous = previous
         if self.clock.simulated and previous.clock.simulated:  # time goes on where it was
             self.clock = self.loop.clock = SimClock(previous.clock.now(), self.cfg.loop.speedup)
+        elif isinstance(previous.clock, PlantClock) and isinstance(self.clock, PlantClock) and (
+            self.cfg.loop.plant_clock == previous.cfg.loop.plant_clock
+        ):
+            self.clock = self.loop.clock = previous.clock
+            self._clock_adopted = True
         for i, (old, new) in enumerate(zip(previous.sources, self.sources, strict=False)):
             if old.cfg == new.cfg and old.signal_names() == new.signal_names():
                 self.sources[i] = old
-                old.bind(self.frame)
                 self._adopted.add(id(old))
         self.loop.sources = self.sources
         pm, m = previous.model, self.model
         same_model = (pm.kind, pm.inputs, pm.outputs) == (m.kind, m.inputs, m.outputs)
         if same_model and previous.loop.model_started:
             m.set_state(pm.get_state(), 0.0)
-        if previous.sink.cfg == self.sink.cfg:
+            self._model_carried = True
+        if same_model and previous.state_writer is not None and self.cfg.top.state.path and (
+            self.cfg.resolve_path(self.cfg.top.state.path) == previous.state_writer.path
+        ):
+            self.state_writer = previous.state_writer
+            self._state_adopted = True
+        if previous.sink.cfg == self.sink.cfg and previous.observe == self.observe:
             self.sink = self.loop.sink = previous.sink
             self._adopted.add(id(self.sink))
             self.encoder.adopt(previous.encoder)  # the word goes on from what the machine has
@@ -303,41 +332,121 @@ class App:
                     self.guard.out_um[a] = previous.guard.out_um[b]
                     self.guard.enable[a] = previous.guard.enable[b]
                     self.guard.state[a] = previous.guard.state[b]
+        self.service.adopt(previous.service)
+
+    def _take_over(self) -> None:
+        """Point what was taken over at this pipeline (the previous one is stopped)."""
+        for s in self.sources:
+            if id(s) in self._adopted:
+                s.bind(self.frame)
+        if id(self.sink) in self._adopted:
+            self.sink.bind_model(self.model)
+
+    def _give_back(self) -> None:
+        """A reload failed: point what was taken over at the previous pipeline again and
+        reopen the sink released for ours, so the previous App can resume as it was."""
+        prev = self._previous
+        assert prev is not None
+        for s in prev.sources:
+            s.bind(prev.frame)
+        prev.sink.bind_model(prev.model)
+        if id(prev.sink) in self._released:
+            prev.sink.open(prev.clock.now())
+            self._released.clear()
+
+    def _open_log(self) -> None:
+        top = self.cfg.top
+        if not top.log.path:
+            return
+        path = self.cfg.resolve_path(top.log.path)
+        rotation = {"rotate_bytes": top.log.rotate_bytes, "rotate_s": top.log.rotate_s, "keep": top.log.keep}
+        prev = self._previous.logger if self._previous is not None else None
+        writer = None
+        if prev is not None:
+            w = prev.writer
+            same = (w.path, w.flush_s, w.rotate_bytes, w.rotate_s, w.keep) == (
+                path, top.log.flush_s, rotation["rotate_bytes"], rotation["rotate_s"], rotation["keep"]
+            )
+            if same and prev.columns == LogObserver.columns_of(self.loop):
+                writer = w
+        self.logger = LogObserver(self.loop, path, top.log.period_s, top.log.flush_s, writer=writer, **rotation)
+        self.loop.observers.append(self.logger)
+
+    def _release_clashing_sink(self) -> None:
+        """The new sink talks to the device the previous one holds: release the old one
+        first (safe output, close) rather than open a second connection beside it."""
+        prev = self._previous
+        if prev is None or id(self.sink) in self._adopted:
+            return
+        key = self.sink.device_key()
+        if key is not None and key == prev.sink.device_key():
+            try:
+                prev.guard.safe()
+                prev.sink.safe()
+            finally:
+                prev.sink.close()
+                self._released.add(id(prev.sink))
 
     def open(self) -> None:
-        """Start I/O: real-time options, state, log, and the sources and sink not adopted."""
-        top = self.cfg.top
-        start_clock = getattr(self.clock, "start", None)
-        if start_clock is not None:  # the plant clock: connect before anything is stamped
-            start_clock()
-        self.restore_state()
-        if top.log.path:
-            self.logger = LogObserver(
-                self.loop, self.cfg.resolve_path(top.log.path), top.log.period_s, top.log.flush_s,
-                rotate_bytes=top.log.rotate_bytes, rotate_s=top.log.rotate_s, keep=top.log.keep,
-            )
-            self.loop.observers.append(self.logger)
-        self.loop.open(self._adopted)
-        self.service.start()  # status, metrics, notify; then the real-time options
+        """Start I/O: plant clock, metrics, state, log, the sources and sink not adopted,
+        then the status thread and real-time options.
+
+        On a reload (after `adopt`), every step that can fail runs before the previous
+        App is touched; if one fails, what this App opened is closed again, what it took
+        over is given back, and the exception propagates: the previous App resumes."""
+        undo: list[Any] = []
+        try:
+            start_clock = getattr(self.clock, "start", None)
+            if start_clock is not None and not self._clock_adopted:  # connect before anything is stamped
+                start_clock()
+                undo.append(self.clock.stop)
+            self.service.open_metrics()
+            undo.append(self.service.close_metrics)
+            state_was = self.state_writer
+            self.restore_state()
+            if self.state_writer is not None and self.state_writer is not state_was:
+                undo.append(self.state_writer.close)
+            self._open_log()
+            if self.logger is not None and (
+                self._previous is None or self._previous.logger is None
+                or self.logger.writer is not self._previous.logger.writer
+            ):
+                undo.append(self.logger.close)
+            self._release_clashing_sink()
+            undo.append(lambda: self.loop.close(self._adopted))
+            self.loop.open(self._adopted)
+            self._take_over()
+            self.service.start()
+        except BaseException:
+            for step in reversed(undo):
+                try:
+                    step()
+                except Exception:
+                    log.exception("while undoing a failed open", extra={"event": "undo_error"})
+            if self._previous is not None:
+                self._give_back()
+            raise
+        self._previous = None
 
     def close(self, *, handing_over_to: App | None = None) -> None:
         """Stop I/O. Normally: safe output first, then release everything. When handing
         over to a reloaded App, what it took over stays open and untouched."""
-        keep = handing_over_to._adopted if handing_over_to is not None else set()
-        if handing_over_to is None:
+        new = handing_over_to
+        keep = (new._adopted | new._released) if new is not None else set()
+        if new is None:
             self.service.stopping()
         try:
             self.loop.close(keep)
         finally:
-            if self.logger:
+            if self.logger and not (new is not None and new.logger is not None and new.logger.writer is self.logger.writer):
                 self.logger.close()
-            if self.state_writer is not None:
+            if self.state_writer is not None and not (new is not None and new.state_writer is self.state_writer):
                 if self.loop.model_started:
                     self.state_writer.submit(self.model.get_state())
                 self.state_writer.close()
-            self.service.stop()
+            self.service.stop(handing_over_to=new.service if new is not None else None)
             stop_clock = getattr(self.clock, "stop", None)
-            if stop_clock is not None:
+            if stop_clock is not None and not (new is not None and new.clock is self.clock):
                 stop_clock()
 
     def summary_dict(self) -> dict[str, Any]:

@@ -78,7 +78,9 @@ class SnapshotCollector:
         yield word
         corr = GaugeMetricFamily("compd_correction_micrometres", "Guarded correction per axis", labels=["axis"])
         pred = GaugeMetricFamily("compd_prediction_micrometres", "Predicted thermal error per axis", labels=["axis"])
-        en = GaugeMetricFamily("compd_axis_enabled", "1 when the axis's enable bit is on", labels=["axis"])
+        en = GaugeMetricFamily(
+            "compd_axis_enabled", "1 when the axis's enable bit is on and the sink reaches the machine", labels=["axis"]
+        )
         sat = GaugeMetricFamily("compd_axis_saturated", "1 when the axis's word byte is clamped at 63 LSB", labels=["axis"])
         st = GaugeMetricFamily("compd_axis_state", "1 for the axis's current guard state", labels=["axis", "state"])
         for axis, a in snap["axes"].items():
@@ -89,6 +91,15 @@ class SnapshotCollector:
             for state in ("starting", "normal", "fault", "recovering"):
                 st.add_metric([axis, state], 1.0 if a["state"] == state else 0.0)
         yield from (corr, pred, en, sat, st)
+        from compd.sinks.base import LINK_STATES
+
+        link = snap["sink"].get("link")
+        link_up = GaugeMetricFamily("compd_sink_link_up", "1 when the sink reaches the machine (link up)")
+        link_up.add_metric([], 1.0 if link == "up" else 0.0)
+        ls = GaugeMetricFamily("compd_sink_link", "1 for the sink's current link state", labels=["state"])
+        for state in LINK_STATES:
+            ls.add_metric([state], 1.0 if link == state else 0.0)
+        yield from (link_up, ls)
         yield CounterMetricFamily("compd_saturations", "Words with a clamped axis byte", value=snap["saturations"])
         val = GaugeMetricFamily("compd_signal_value", "Last value of a signal", labels=["signal"])
         good = GaugeMetricFamily("compd_signal_good", "1 when the signal's quality is good", labels=["signal"])
@@ -110,12 +121,69 @@ def _f(value: Any) -> float:
     return float("nan") if value is None else float(value)
 
 
-class MetricsServer:
-    """The HTTP endpoint: `start` binds (BadInput if it cannot), `stop` shuts it down."""
+def _make_server(bind: str, port: int, registry: Any, idle_timeout_s: float, max_connections: int) -> Any:
+    """prometheus-client's WSGI app on the standard library's threading WSGI server, with
+    what its own `start_http_server` lacks: a connection that sends nothing for
+    `idle_timeout_s` is closed (its thread ends), and at most `max_connections` are
+    served at once (more are closed at once), so idle or stuck clients can neither
+    block a scrape nor pile up threads."""
+    import socket
+    from wsgiref.simple_server import WSGIRequestHandler, make_server
 
-    def __init__(self, bind: str = "127.0.0.1", port: int = 9105) -> None:
+    from prometheus_client.exposition import ThreadingWSGIServer, make_wsgi_app
+
+    slots = threading.BoundedSemaphore(max_connections)
+
+    class Handler(WSGIRequestHandler):
+        timeout = idle_timeout_s  # StreamRequestHandler: a socket timeout on every read
+
+        def log_message(self, format: str, *args: Any) -> None:  # noqa: A002
+            pass  # no line per scrape
+
+        def handle(self) -> None:
+            try:
+                super().handle()
+            except (TimeoutError, OSError):
+                self.close_connection = True
+
+    class Server(ThreadingWSGIServer):
+        address_family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+        request_queue_size = 128  # the listen backlog (socketserver's default is 5)
+
+        def process_request(self, request: Any, client_address: Any) -> None:
+            if not slots.acquire(blocking=False):
+                self.shutdown_request(request)
+                return
+            try:
+                super().process_request(request, client_address)
+            except BaseException:
+                slots.release()
+                raise
+
+        def process_request_thread(self, request: Any, client_address: Any) -> None:
+            try:
+                super().process_request_thread(request, client_address)
+            finally:
+                slots.release()
+
+    return make_server(bind, port, make_wsgi_app(registry), Server, handler_class=Handler)
+
+
+class MetricsServer:
+    """The HTTP endpoint: `start` binds (BadInput if it cannot), `stop` shuts it down.
+
+    Connections are served concurrently, one thread each; an idle one is closed after
+    `idle_timeout_s`, and beyond `max_connections` new ones are closed at once.
+    """
+
+    def __init__(
+        self, bind: str = "127.0.0.1", port: int = 9105, *, idle_timeout_s: float = 10.0,
+        max_connections: int = 256,
+    ) -> None:
         self.bind = bind
         self.port = port
+        self.idle_timeout_s = idle_timeout_s
+        self.max_connections = max_connections
         self.collector = SnapshotCollector()
         self._httpd: Any = None
         self._thread: threading.Thread | None = None
@@ -123,7 +191,7 @@ class MetricsServer:
     def start(self) -> str:
         """Serve /metrics; returns its URL."""
         try:
-            from prometheus_client import CollectorRegistry, start_http_server
+            from prometheus_client import CollectorRegistry
         except ImportError:
             raise BadInput(
                 "metrics.enabled needs prometheus-client: pip install 'compd[metrics]'", path="metrics.enabled"
@@ -131,11 +199,15 @@ class MetricsServer:
         registry = CollectorRegistry(auto_describe=False)
         registry.register(self.collector)
         try:
-            self._httpd, self._thread = start_http_server(self.port, self.bind, registry)
+            self._httpd = _make_server(self.bind, self.port, registry, self.idle_timeout_s, self.max_connections)
         except OSError as e:
             raise BadInput(
                 f"cannot serve metrics on {self.bind}:{self.port}: {e.strerror or e}", path="metrics"
             ) from None
+        self._thread = threading.Thread(
+            target=self._httpd.serve_forever, kwargs={"poll_interval": 0.1}, name="compd-metrics", daemon=True
+        )
+        self._thread.start()
         self.port = self._httpd.server_address[1]
         host = f"[{self.bind}]" if ":" in self.bind else self.bind
         return f"http://{host}:{self.port}/metrics"

@@ -90,6 +90,8 @@ class Service:
         self.path = status_path(app.cfg)
         self.metrics = MetricsServer(top.metrics.bind, top.metrics.port) if top.metrics.enabled else None
         self.metrics_url: str | None = None
+        self._metrics_cfg = (top.metrics.bind, top.metrics.port) if top.metrics.enabled else None
+        self._metrics_adopted = False
         self.realtime = top.loop.realtime
         self.events = EventLogger(self.loop.guard)
         self.notifier: Notifier | None = None
@@ -103,8 +105,27 @@ class Service:
         self.realtime_result: list[tuple[bool, str]] = []
 
     # ------------------------------------------------------------------ life
+    def adopt(self, previous: Service) -> None:
+        """Config reload: keep the running metrics endpoint when its bind and port are unchanged."""
+        if self._metrics_cfg is not None and self._metrics_cfg == previous._metrics_cfg and previous.metrics_url:
+            self.metrics = previous.metrics
+            self.metrics_url = previous.metrics_url
+            self._metrics_adopted = True
+
+    def open_metrics(self) -> None:
+        """Bind the metrics endpoint (BadInput if it cannot); a kept one is already bound."""
+        if self.metrics is None or self._metrics_adopted:
+            return
+        self.metrics_url = self.metrics.start()
+        log.info("metrics on %s", self.metrics_url, extra={"event": "metrics", "url": self.metrics_url})
+
+    def close_metrics(self) -> None:
+        """Undo `open_metrics` (a reload that failed later): a kept endpoint stays."""
+        if self.metrics is not None and not self._metrics_adopted:
+            self.metrics.stop()
+
     def start(self) -> None:
-        """Bind metrics, start the status thread, hook the watchdog; then real-time options."""
+        """Start the status thread, hook the watchdog; then real-time options (after `open_metrics`)."""
         app = self.app
         log.info(
             "compd starting: %s, model %s, sink %s%s",
@@ -115,9 +136,8 @@ class Service:
             extra={"event": "start", "config": app.cfg.file, "period_s": self.loop.period_s,
                    "observe": self.observe, "pid": os.getpid()},
         )
-        if self.metrics is not None:
-            self.metrics_url = self.metrics.start()
-            log.info("metrics on %s", self.metrics_url, extra={"event": "metrics", "url": self.metrics_url})
+        if self.metrics is not None and self.metrics_url is None:
+            self.open_metrics()
         self.notifier = Notifier.from_env()
         if self.notifier is not None:
             wd = watchdog_interval_s()
@@ -138,20 +158,29 @@ class Service:
         if self.notifier is not None:
             self.notifier.send(STOPPING=1, STATUS="stopping: emitting the safe output")
 
-    def stop(self) -> None:
-        """After the safe output: last snapshot, close everything, log the summary line."""
+    def stop(self, handing_over_to: Service | None = None) -> None:
+        """After the safe output: last snapshot, close everything, log the summary line.
+
+        Handing over to a reloaded pipeline's Service: no last snapshot (the status file
+        is the new pipeline's, never a "stopped" between the two) and a metrics endpoint
+        it kept stays up."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=10)
             self._thread = None
-        self.state = "stopped"
         try:
-            self._tick()
+            if handing_over_to is None:
+                self.state = "stopped"
+                self._tick()
+            else:
+                self.events.flush()
         finally:
-            if self.metrics is not None:
+            if self.metrics is not None and (handing_over_to is None or handing_over_to.metrics is not self.metrics):
                 self.metrics.stop()
             if self.notifier is not None:
                 self.notifier.close()
+        if handing_over_to is not None:
+            return
         st = self.loop.stats
         log.info(
             "compd stopped after %d cycles, %d missed",
@@ -208,6 +237,8 @@ class Service:
         if self.notifier is not None and self.state == "running" and self.watchdog and self.watchdog.ready:
             states = " ".join(f"{a}={s['state']}" for a, s in snap["axes"].items())
             mode = "observe" if self.observe else "compensating"
+            if snap["sink"]["link"] != "up":
+                mode += f" (sink link {snap['sink']['link']}: output not reaching the machine)"
             self.notifier.send(
                 STATUS=f"{mode}: word {snap['word']}, {states}, {snap['loop']['misses']} missed"
             )

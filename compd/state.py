@@ -47,7 +47,9 @@ def load_state(path: Path, model_kind: str, inputs: list[str], outputs: list[str
     except FileNotFoundError:
         return None
     except (OSError, ValueError) as e:
-        log.warning("event=state_ignored path=%s reason=%r", path, f"unreadable: {e}")
+        reason = f"unreadable: {e}"
+        log.warning("state ignored: %s: %s", path, reason,
+                    extra={"event": "state_ignored", "path": str(path), "reason": reason})
         return None
     try:
         if raw.get("format") != FORMAT:
@@ -62,7 +64,8 @@ def load_state(path: Path, model_kind: str, inputs: list[str], outputs: list[str
             raise ValueError(f"saved {-elapsed:.0f} s in the future (clock jumped?)")
         return dict(raw["state"]), max(elapsed, 0.0)
     except (KeyError, TypeError, ValueError) as e:
-        log.warning("event=state_ignored path=%s reason=%r", path, str(e))
+        log.warning("state ignored: %s: %s", path, e,
+                    extra={"event": "state_ignored", "path": str(path), "reason": str(e)})
         return None
 
 
@@ -99,7 +102,8 @@ class StateWriter:
             self.error = None
         except OSError as e:
             self.error = f"state write failed: {e.strerror or e}"
-            log.error("event=state_write_failed path=%s reason=%r", self.path, self.error)
+            log.error("%s: %s", self.error, self.path,
+                      extra={"event": "state_write_failed", "path": str(self.path), "reason": self.error})
 
     def _run(self) -> None:
         while True:

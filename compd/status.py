@@ -65,6 +65,8 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
     now = loop.now_s
     guard = loop.guard
     axes = guard.get_status()
+    sink = loop.sink.get_status()
+    reaches = sink["link"] == "up"  # else nothing the loop computes reaches the machine
     enc = loop.encoder
     slot_of = {axis: slot for slot, axis in enumerate(loop.word_axes)}
     for i, name in enumerate(loop.model.outputs):
@@ -74,6 +76,9 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
         a["word_byte"] = ("high", "low")[slot] if slot is not None else None
         a["byte"] = f"0x{(loop.word >> 8 if slot == 0 else loop.word) & 0xFF:02X}" if slot is not None else None
         a["saturated"] = bool(enc.saturated[slot]) if slot is not None else False
+        # `enable`: on at the machine (the guard's bit, and a sink that reaches it)
+        a["guard_enable"] = a["enable"]
+        a["enable"] = bool(a["enable"] and reaches)
     events = [
         {"t_s": float(t), "subject": subj, "event": ev, "reason": why}
         for t, subj, ev, why in list(guard.events)[-20:]
@@ -91,7 +96,7 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
         "signals": loop.frame.snapshot(now),
         "loop": timing(loop.stats),
         "model": loop.model.get_status(),
-        "sink": loop.sink.get_status(),
+        "sink": sink,
         "sources": [s.get_status() for s in loop.sources],
         "faults": dict(guard.faults),
         "saturations": int(enc.saturations),
@@ -208,7 +213,13 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
     word = f"word: {data.get('word')}"
     if sink_word is not None and sink_word != data.get("word"):
         word += f" (on the output: {sink_word})"
-    lines.append(f"{word}; sink {sink.get('kind')}, {sink.get('writes', 0)} writes")
+    link = sink.get("link")
+    lines.append(
+        f"{word}; sink {sink.get('kind')}, link {link if link in (None, 'up') else str(link).upper()},"
+        f" {sink.get('writes', 0)} writes"
+    )
+    if link not in (None, "up"):
+        lines.append(f"OUTPUT NOT REACHING THE MACHINE: the sink's link is {link} (axes shown disabled)")
     lines.append(
         f"{'axis':<8} {'predicted':>10} {'correction':>11} {'target':>9} {'byte':>5} {'enabled':>8}"
         f" {'state':<11} {'policy':<13} sat"

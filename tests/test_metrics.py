@@ -81,3 +81,66 @@ def test_port_in_use_is_bad_input():
             MetricsServer("127.0.0.1", first.port).start()
     finally:
         first.stop()
+
+
+def test_idle_connections_do_not_block_a_scrape():
+    """100 idle TCP connections held open: a scrape is still answered within seconds."""
+    import socket
+    import time
+
+    server = MetricsServer("127.0.0.1", 0)
+    url = server.start()
+    socks = []
+    try:
+        for _ in range(100):
+            socks.append(socket.create_connection(("127.0.0.1", server.port), timeout=5))
+        t0 = time.monotonic()
+        assert _scrape(url) == {}  # answered (nothing to show before the first snapshot)
+        assert time.monotonic() - t0 < 10.0
+    finally:
+        for s in socks:
+            s.close()
+        server.stop()
+
+
+def test_an_idle_connection_is_closed_after_the_idle_timeout():
+    """A client that connects and sends nothing does not hold a thread for ever."""
+    import socket
+
+    server = MetricsServer("127.0.0.1", 0)
+    server.idle_timeout_s = 0.5
+    server.start()
+    try:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=15) as s:
+            assert s.recv(1) == b""  # the server closed it (a timeout here raises instead)
+    finally:
+        server.stop()
+
+
+def test_connections_beyond_the_cap_are_closed_not_queued():
+    import socket
+    import time
+
+    server = MetricsServer("127.0.0.1", 0)
+    server.max_connections = 2
+    url = server.start()
+    socks = []
+    try:
+        socks = [socket.create_connection(("127.0.0.1", server.port), timeout=15) for _ in range(2)]
+        extra = socket.create_connection(("127.0.0.1", server.port), timeout=15)
+        with extra:
+            assert extra.recv(1) == b""  # turned away at once
+        for s in socks:
+            s.close()
+        socks = []
+        deadline = time.monotonic() + 20
+        while True:  # the two slots come free once their threads see the close
+            try:
+                _scrape(url)
+                break
+            except OSError:
+                assert time.monotonic() < deadline
+    finally:
+        for s in socks:
+            s.close()
+        server.stop()

@@ -138,3 +138,54 @@ def test_cli_status_finds_the_file_from_the_config(tmp_path, ran_app, capsys):
     write_atomic(tmp_path / "here.json", {**snapshot(ran_app.loop, state="running", observe=False)})
     assert main(["status", "--config", str(cfg), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["state"] == "running"
+
+
+def test_a_sink_that_cannot_reach_the_machine_is_shown_down_and_not_enabled(tmp_path):
+    """A fanuc_pmc sink pointed at a port nothing listens on: the guard enables the axis,
+    but status, render and metrics say the link is down and the axis is not enabled."""
+    import socket
+
+    from compd.metrics import SnapshotCollector
+
+    with socket.socket() as s:  # a free port, closed again: connections are refused
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = sim_config(tmp_path, duration_s=600)
+    cfg.write_text(cfg.read_text().replace(
+        "sink: {kind: pci1756}", f"sink: {{kind: fanuc_pmc, host: 127.0.0.1, port: {port}, timeout_s: 0.1}}"
+    ))
+    app = App(load_config(cfg))
+    app.open()
+    try:
+        deadline = time.monotonic() + 30
+        while app.sink.link_state() != "down":
+            assert time.monotonic() < deadline, app.sink.link_state()
+            app.loop.run(max_cycles=50)
+            time.sleep(0.05)
+        app.loop.run(max_cycles=500)
+        snap = snapshot(app.loop, state="running", observe=False)
+        guard_enable = bool(app.guard.enable[0])
+    finally:
+        app.close()
+    assert guard_enable  # the guard did enable the axis …
+    assert snap["sink"]["link"] == "down"
+    z = snap["axes"]["z"]
+    assert z["enable"] is False and z["guard_enable"] is True  # … but it does not reach the machine
+    text = render(snap, True, "running")
+    assert "link DOWN" in text and "NOT REACHING THE MACHINE" in text
+    line = next(ln for ln in text.splitlines() if ln.startswith("z "))
+    assert " no " in line
+    col = SnapshotCollector()
+    col.update(snap, [], 0, 0.0)
+    fams = {f.name: f for f in col.collect()}
+    assert fams["compd_sink_link_up"].samples[0].value == 0.0
+    assert fams["compd_axis_enabled"].samples[0].value == 0.0
+    down = [s for s in fams["compd_sink_link"].samples if s.labels["state"] == "down"]
+    assert down[0].value == 1.0
+
+
+def test_an_in_process_sink_is_up():
+    from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
+
+    sink = Pci1756Sink(Pci1756Config(kind="pci1756"))
+    assert sink.link_state() == "up" and sink.get_status()["link"] == "up"

@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from collections.abc import Hashable
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
 from compd.config import SinkConfig
+
+# What a sink knows of its connection to the machine (`Sink.link_state`):
+#   up          the device answers (or it is in process: nothing can be lost on the way)
+#   connecting  opened, no answer yet
+#   down        the device does not answer: nothing the loop computes reaches the machine
+#   closed      not open
+LinkState = Literal["up", "connecting", "down", "closed"]
+LINK_STATES: tuple[LinkState, ...] = ("up", "connecting", "down", "closed")
 
 
 class Sink(ABC):
@@ -18,7 +27,8 @@ class Sink(ABC):
     device I/O only when it must (a changed value, a heartbeat). `safe` puts the
     output in its safe state (every enable bit off) and must work at any time,
     including from a signal handler's exit path. `applied_um` reports what the
-    machine actually applies, as far as the sink can know it.
+    machine actually applies, as far as the sink can know it. `link_state` says
+    whether what it writes reaches the machine at all.
     """
 
     Config: ClassVar[type[SinkConfig]] = SinkConfig
@@ -35,8 +45,21 @@ class Sink(ABC):
         self.axes = list(axes)
         self.lsb_um = lsb_um
 
+    def bind_model(self, model: Any) -> None:
+        """The model whose outputs the sink is handed (sinks that speak per-axis values)."""
+
     def open(self, now_s: float) -> None:
         """Connect to the device; called once before the first cycle."""
+
+    def device_key(self) -> Hashable | None:
+        """What outside device this sink holds (e.g. a Modbus host and port), or None when
+        it holds none (an in-process device). A config reload never opens a second sink on
+        a device the running one holds: the old sink is released first."""
+        return None
+
+    @abstractmethod
+    def link_state(self) -> LinkState:
+        """Whether what `write` sends reaches the machine (see LINK_STATES)."""
 
     @abstractmethod
     def write(
@@ -56,4 +79,4 @@ class Sink(ABC):
         """Release the device (after `safe`)."""
 
     def get_status(self) -> dict[str, Any]:
-        return {"kind": self.cfg.kind, "writes": self.writes}
+        return {"kind": self.cfg.kind, "writes": self.writes, "link": self.link_state()}

@@ -24,7 +24,7 @@ from pydantic import Field, model_validator
 
 from compd.codec import MAX_MAG, word_to_um
 from compd.config import SinkConfig
-from compd.sinks.base import Sink
+from compd.sinks.base import LinkState, Sink
 
 
 def step_toward(sent: list[int], target: list[int], max_step: int) -> list[int]:
@@ -123,6 +123,14 @@ class FanucPmcSink(Sink):
         if cfg.reset_alarm_on_start:
             self._write(cfg.status_address + 3, [1])
         self._deliver(now_s)
+
+    def device_key(self) -> Any:
+        return None if self.cfg.host is None else ("modbus", self.cfg.host, self.cfg.port)
+
+    def link_state(self) -> LinkState:
+        if self.pmc is not None:
+            return "up"
+        return "closed" if self.link is None else self.link.state
 
     def _write(self, address: int, values: list[int]) -> None:
         if self.pmc is not None:

@@ -7,6 +7,8 @@ exponential back-off; what the sink knows of the device is the last status read.
 Every read-back is shape-checked (`compd.modbus_reply`: function code, register count,
 frame length, unit): a reply of the wrong shape is a link error (`errors`, `bad_replies`,
 `last_error`), never taken as the device's status or applied value.
+`state` is the link as the thread last found it: connecting (started, no answer
+yet), up, down (connect or I/O failed), closed.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ class ModbusLink:
         self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
         self.status: list[int] | None = None
         self.status_stamp = -1.0
+        self.state = "closed"
         self.writes = 0
         self.errors = 0
         self.bad_replies = 0
@@ -65,6 +68,8 @@ class ModbusLink:
         self._client = ModbusTcpClient(
             self.host, port=self.port, timeout=self.timeout_s, retries=0, trace_packet=self._tap
         )
+        self._stop = False
+        self.state = "connecting"
         self._thread = threading.Thread(target=self._run, name=f"modbus-link-{self.name}", daemon=True)
         self._thread.start()
 
@@ -115,6 +120,7 @@ class ModbusLink:
         return list(rr.registers)
 
     def _fail(self, e: Exception) -> None:
+        self.state = "down"
         self.errors += 1
         self.last_error = f"{type(e).__name__}: {e}"
         self._client.close()
@@ -162,7 +168,10 @@ class ModbusLink:
                         self.status = regs
                         self.status_stamp = now
                     next_status = now + self.status_period_s
+                if ok and self._client.connected:
+                    self.state = "up"
             if not ok:
+                self.state = "down"
                 self.errors += 1
                 with self._cv:
                     if item is not None:
@@ -175,7 +184,7 @@ class ModbusLink:
                 backoff = self.reconnect_min_s
 
     def get_status(self) -> dict[str, Any]:
-        return {"writes": self.writes, "errors": self.errors, "bad_replies": self.bad_replies,
+        return {"state": self.state, "writes": self.writes, "errors": self.errors, "bad_replies": self.bad_replies,
                 "last_error": self.last_error}
 
     def stop(self, timeout_s: float = 2.0) -> None:
@@ -190,3 +199,4 @@ class ModbusLink:
             self._thread = None
         if self._client is not None:
             self._client.close()
+        self.state = "closed"

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.sinks.base import Sink
+from compd.sinks.base import LinkState, Sink
 
 
 class ObserveSink(Sink):
@@ -31,8 +31,17 @@ class ObserveSink(Sink):
         super().bind(axes, lsb_um)
         self.inner.bind(axes, lsb_um)
 
+    def bind_model(self, model: Any) -> None:
+        self.inner.bind_model(model)
+
     def open(self, now_s: float) -> None:
         self.inner.open(now_s)
+
+    def device_key(self) -> Any:
+        return self.inner.device_key()
+
+    def link_state(self) -> LinkState:
+        return self.inner.link_state()
 
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float

@@ -9,7 +9,7 @@ from pydantic import Field, model_validator
 
 from compd.codec import word_to_um
 from compd.config import SinkConfig
-from compd.sinks.base import Sink
+from compd.sinks.base import LinkState, Sink
 
 
 class DoCard(Protocol):
@@ -105,6 +105,15 @@ class Pci1756Sink(Sink):
         self._heartbeat = False
         self._strobe = False
         self.word = 0
+
+    def device_key(self) -> Any:
+        return ("modbus", self.cfg.host, self.cfg.port) if self.cfg.device == "modbus" else None
+
+    def link_state(self) -> LinkState:
+        """The card over Modbus: its link; a card in this process (emulated, a driver): up."""
+        if isinstance(self.card, ModbusDoCard):
+            return self.card.link.state  # type: ignore[return-value]
+        return "up"
 
     def open(self, now_s: float) -> None:
         start = getattr(self.card, "start", None)

@@ -19,7 +19,7 @@ import numpy as np
 from pydantic import Field
 
 from compd.config import SinkConfig
-from compd.sinks.base import Sink
+from compd.sinks.base import LinkState, Sink
 
 BLOCK, K0, TYPE, APPLIED = 16, 0, 6, 11
 
@@ -80,6 +80,14 @@ class SiemensSink(Sink):
         m = self.cfg.axes or {a: i for i, a in enumerate(self.outputs)}
         self.nc_axis = [m.get(a, -1) for a in self.outputs]
         self.sent_k0_um = np.full(len(self.outputs), np.nan)
+
+    def device_key(self) -> Any:
+        return None if self.cfg.host is None else ("modbus", self.cfg.host, self.cfg.port)
+
+    def link_state(self) -> LinkState:
+        if self.nc is not None:
+            return "up"
+        return "closed" if self.link is None else self.link.state
 
     def _write(self, address: int, values: list[int]) -> None:
         if self.nc is not None:

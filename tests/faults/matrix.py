@@ -91,4 +91,14 @@ MATRIX: dict[str, Row] = {
         "Modbus TCP (raw peer)", "hold",
         "input bad (comms_lost); axis holds; no register of another request is filled",
     ),
+    "reload_unopenable": Row(
+        "SIGHUP reload to a config that validates but cannot open (metrics port taken)",
+        "Modbus TCP (separate process)", "hold",
+        "reload_failed naming why; the old pipeline keeps compensating without a step; no exit",
+    ),
+    "reload_unreachable_sink": Row(
+        "SIGHUP reload to a sink that cannot be reached (FANUC PMC, nothing listening)",
+        "Modbus TCP (separate process)", "hold",
+        "status and metrics show the sink's link down and the axis not enabled; compd keeps running",
+    ),
 }

@@ -171,3 +171,113 @@ def test_bad_config_on_reload(tmp_path: Path) -> None:
     )
     record("bad_config_reload", m, tmp_path)
     assert ratio <= 1.01 and m.logged  # 1 %: the log keeps 6 significant digits
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_reload_to_an_unopenable_config(tmp_path: Path) -> None:
+    """The new config validates but its metrics port is taken: the old pipeline runs on."""
+    import socket
+
+    tx = Pt100Transmitter([SENSOR], [22.0])
+    with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server, socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        good = _config(server.port)
+        cfg = tmp_path / "c.yaml"
+        cfg.write_text(yaml.safe_dump(good))
+        log_path, err = tmp_path / "run.csv", tmp_path / "stderr.txt"
+        proc = _start(cfg, err)
+        try:
+            _wait(lambda: len(_rows(log_path)) > 5)
+            tx.set(SENSOR, 26.0)
+            time.sleep(0.2)  # the correction is slewing towards −8.98 µm
+            cfg.write_text(yaml.safe_dump({**good, "metrics": {"enabled": True, "port": taken.getsockname()[1]}}))
+            t_hup = time.monotonic()
+            proc.send_signal(signal.SIGHUP)
+            _wait(lambda: "reload failed" in err.read_text() or proc.poll() is not None)
+            time.sleep(0.8)
+            assert proc.poll() is None, err.read_text()  # still running on the old pipeline
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(10) == 0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    data = read_log(log_path, allow_nan=True)
+    corr = data.columns.index("corr_z_um")
+    step, ratio = _steps(data.data, corr)
+    text = err.read_text()
+    lines = [ln for ln in text.splitlines() if "event=reload_failed" in ln]
+    after_hup = data.data[data.t_s > t_hup]
+    m = Measured(
+        max_step_um=step, allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S, max_step_ratio=ratio,
+        time_to_safe_s=None, recovered=True, samples_lost=0,
+        event="reload_failed: " + (lines[0].split('reason="', 1)[-1].rstrip('"') if lines else "none"),
+        logged=len(lines) == 1, word_valid=True, policy_ok=True,
+        running=len(after_hup) > 5, cycles=len(data), fault_t_s=None,
+        extra={"rows_after_hup": len(after_hup)},
+    )
+    record("reload_unopenable", m, tmp_path)
+    assert m.logged and "cannot serve metrics" in lines[0], text
+    assert m.running  # kept logging (and compensating) on the old config
+    assert ratio <= 1.01  # 1 %: the log keeps 6 significant digits
+    assert abs(after_hup[-1, corr] + ALPHA_L_UM_PER_K * 4.0) < 0.5  # it reached the correction
+
+
+def test_reload_to_an_unreachable_sink(tmp_path: Path) -> None:
+    """A reload to a FANUC PMC nothing answers for: status says link down, axis not enabled."""
+    from compd.status import read_status, render
+
+    tx = Pt100Transmitter([SENSOR], [22.0])
+    with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
+        good = {**_config(server.port), "status": {"path": "status.json", "period_s": 0.1},
+                "metrics": {"enabled": True, "port": _free_port()}}
+        cfg = tmp_path / "c.yaml"
+        cfg.write_text(yaml.safe_dump(good))
+        log_path, err, status = tmp_path / "run.csv", tmp_path / "stderr.txt", tmp_path / "status.json"
+        proc = _start(cfg, err)
+        try:
+            _wait(lambda: len(_rows(log_path)) > 5 and status.exists())
+            tx.set(SENSOR, 26.0)
+            _wait(lambda: read_status(status)["axes"]["z"]["enable"] and read_status(status)["sink"]["link"] == "up")
+            before = read_status(status)
+            sink = {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": _free_port(), "timeout_s": 0.1}
+            cfg.write_text(yaml.safe_dump({**good, "sink": sink}))
+            t_hup = time.monotonic()
+            proc.send_signal(signal.SIGHUP)
+            _wait(lambda: "compd: reloaded" in err.read_text())
+            _wait(lambda: read_status(status)["sink"]["link"] == "down", timeout_s=30)
+            snap = read_status(status)
+            t_down = time.monotonic() - t_hup
+            import urllib.request
+
+            with urllib.request.urlopen(snap["metrics_url"], timeout=10) as r:
+                metrics = r.read().decode()
+            assert proc.poll() is None
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(60) == 0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    z = snap["axes"]["z"]
+    m = Measured(
+        max_step_um=0.0, allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S, max_step_ratio=0.0,
+        time_to_safe_s=None, recovered=False, samples_lost=0,
+        event=f"status: state {snap['state']}, sink link {snap['sink']['link']}, z enable {z['enable']}",
+        logged="compd_sink_link_up 0.0" in metrics, word_valid=True, policy_ok=True,
+        running=True, cycles=snap["loop"]["cycles"], fault_t_s=None,
+        extra={"link_down_after_s": round(t_down, 2), "enable_before": before["axes"]["z"]["enable"]},
+    )
+    record("reload_unreachable_sink", m, tmp_path)
+    assert before["axes"]["z"]["enable"] is True and before["sink"]["link"] == "up"
+    assert snap["sink"]["link"] == "down" and z["enable"] is False
+    assert 'compd_axis_enabled{axis="z"} 0.0' in metrics and m.logged
+    assert "NOT REACHING THE MACHINE" in render(snap, True, "running")
