@@ -244,7 +244,7 @@ class FanucPmcSink(Sink):
             "target_um": [c * self.lsb_um for c in self.target_lsb],
         }
         if self.link is not None:
-            st["link"] = self.link.get_status()
+            st["link_stats"] = self.link.get_status()  # writes, errors, bad replies
         if regs is not None:
             st["alarm"] = regs[2]
             st["scans"] = regs[0] | (regs[1] << 16)

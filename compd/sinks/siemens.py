@@ -173,5 +173,5 @@ class SiemensSink(Sink):
     def get_status(self) -> dict[str, Any]:
         st = {**super().get_status(), "updates": self.updates, "k0_um": self.sent_k0_um.tolist()}
         if self.link is not None:
-            st["link"] = self.link.get_status()
+            st["link_stats"] = self.link.get_status()  # writes, errors, bad replies
         return st
