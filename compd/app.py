@@ -34,11 +34,13 @@ def build_model(spec: Any) -> Any:
 def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
     """A source or sink from its section; its own BadInput names the config file and key."""
     try:
-        return cls(section, base_dir=base)
+        built = cls(section, base_dir=base)
     except BadInput as e:
         if e.file:
             raise
         raise cfg.doc.error(e.message, path) from None
+    built.config_path = path
+    return built
 
 
 class LogObserver:
@@ -316,8 +318,27 @@ class App:
                 rotate_bytes=top.log.rotate_bytes, rotate_s=top.log.rotate_s, keep=top.log.keep,
             )
             self.loop.observers.append(self.logger)
-        self.loop.open(self._adopted)
+        try:
+            self.loop.open(self._adopted)
+        except BaseException as e:  # a device that cannot be opened: release what is open, then say so
+            self._unopen()
+            if isinstance(e, BadInput) and not e.file:
+                raise self.cfg.doc.error(e.message, e.keys) from None
+            raise
         self.service.start()  # status, metrics, notify; then the real-time options
+
+    def _unopen(self) -> None:
+        """Undo `open` up to the loop's devices (which Loop.open closed itself)."""
+        if self.logger:
+            self.logger.close()
+            self.loop.observers.remove(self.logger)
+            self.logger = None
+        if self.state_writer is not None:
+            self.state_writer.close()
+            self.state_writer = None
+        stop_clock = getattr(self.clock, "stop", None)
+        if stop_clock is not None:
+            stop_clock()
 
     def close(self, *, handing_over_to: App | None = None) -> None:
         """Stop I/O. Normally: safe output first, then release everything. When handing

@@ -23,7 +23,7 @@ from pydantic import Field, model_validator
 
 from compd.config import SourceConfig, Strict
 from compd.frame import Quality
-from compd.sources.base import PolledSource
+from compd.sources.base import PolledSource, check_serial_port
 
 DataTypeT = Literal["int16", "uint16", "int32", "uint32", "float32"]
 OrderT = Literal["big", "little"]
@@ -193,6 +193,10 @@ class ModbusSource(PolledSource):
         return [c.name for c in self._channels]
 
     # ------------------------------------------------------------- connection
+    def open(self, now_s: float) -> None:
+        if self.cfg.transport == "rtu" and self.cfg.serial_port:
+            check_serial_port(self.cfg.serial_port, self.config_path)
+
     def _make_client(self) -> Any:
         from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
