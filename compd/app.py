@@ -34,11 +34,13 @@ def build_model(spec: Any) -> Any:
 def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
     """A source or sink from its section; its own BadInput names the config file and key."""
     try:
-        return cls(section, base_dir=base)
+        built = cls(section, base_dir=base)
     except BadInput as e:
         if e.file:
             raise
         raise cfg.doc.error(e.message, path) from None
+    built.config_path = path
+    return built
 
 
 class LogObserver:
@@ -417,7 +419,7 @@ class App:
             self.loop.open(self._adopted)
             self._take_over()
             self.service.start()
-        except BaseException:
+        except BaseException as e:
             for step in reversed(undo):
                 try:
                     step()
@@ -425,6 +427,8 @@ class App:
                     log.exception("while undoing a failed open", extra={"event": "undo_error"})
             if self._previous is not None:
                 self._give_back()
+            if isinstance(e, BadInput) and not e.file:  # a device that cannot be opened: name its key
+                raise self.cfg.doc.error(e.message, e.keys) from None
             raise
         self._previous = None
 

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import math
+import os
 import signal
 import sys
-from collections.abc import Callable, Sequence
+import typing
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 from compd.errors import BadInput
@@ -23,6 +28,93 @@ def command(name: str) -> Callable[[Callable[[argparse.Namespace], int]], Callab
         return fn
 
     return deco
+
+
+# ------------------------------------------------------------- argument checks
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def finite(text: str) -> float:
+    """argparse type: a finite number (NaN and infinities are malformed here)."""
+    return _number(text)
+
+
+def positive(text: str) -> float:
+    """argparse type: a finite number > 0 (a duration, a period, an LSB)."""
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def non_negative(text: str) -> float:
+    """argparse type: a finite number ≥ 0."""
+    value = _number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {text!r}")
+    return value
+
+
+def check_output(path: str | None, flag: str, *, folder: bool = False) -> None:
+    """BadInput unless `path` can be written — checked before the work starts, so a long
+    fit or run does not end in an error. A file that did not exist is not left behind."""
+    if path is None:
+        return
+    p = Path(path)
+    if folder:
+        if p.exists() and not p.is_dir():
+            raise BadInput("exists and is not a folder", file=path, path=flag)
+        try:
+            p.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise BadInput(f"cannot create the folder: {e.strerror or e}", file=path, path=flag) from None
+        return
+    if p.is_dir():
+        raise BadInput("is a folder, not a file", file=path, path=flag)
+    existed = p.exists()
+    try:
+        with open(p, "a", encoding="utf-8"):
+            pass
+        if not existed:
+            p.unlink()
+    except OSError as e:
+        raise BadInput(f"cannot write: {e.strerror or e}", file=path, path=flag) from None
+
+
+def check_plot(path: str | None, flag: str = "--plot") -> None:
+    """check_output, and a file type matplotlib can write (a figure is drawn after the work)."""
+    if path is None:
+        return
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix:
+        try:
+            from matplotlib.backend_bases import FigureCanvasBase
+        except ImportError:
+            raise BadInput("--plot needs matplotlib: pip install 'compd[plot]'", path=flag) from None
+        known = FigureCanvasBase.get_supported_filetypes()
+        if suffix not in known:
+            raise BadInput(
+                f"cannot plot to a .{suffix} file (known: {', '.join(sorted(known))})", file=path, path=flag
+            )
+    check_output(path, flag)
+
+
+@contextlib.contextmanager
+def writing(path: str | os.PathLike[str], flag: str) -> Iterator[None]:
+    """An OSError while writing `path` (disk full, the folder gone since the check) is bad input."""
+    try:
+        yield
+    except OSError as e:
+        raise BadInput(f"cannot write: {e.strerror or e}", file=str(path), path=flag) from None
 
 
 def _parse_word(text: str) -> int:
@@ -190,6 +282,7 @@ def run_with_reload(
 
 @command("run")
 def cmd_run(args: argparse.Namespace) -> int:
+    check_output(args.json, "--json")
     result = run_with_reload(args.config, args.duration, args.observe, args.log_level)
     comp = result["compensation"]
     loop = result["loop"]
@@ -209,44 +302,51 @@ def cmd_run(args: argparse.Namespace) -> int:
         if result[key]:
             print(f"compd: {result[key]}", file=sys.stderr)
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
+        with writing(args.json, "--json"), open(args.json, "w", encoding="utf-8") as fh:
             json.dump(result, fh, indent=2)
     return 0
 
 
 @command("fit")
 def cmd_fit(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from compd import fitting, report
 
     options = fitting.parse_options(args.option)
     if args.ambient:
         options["ambient"] = args.ambient
+    check_output(args.out, "--out", folder=args.kind == "all")
+    check_output(args.report, "--report")
+    check_plot(args.plot)
     log = fitting.read_fit_log(args.log)
     if args.kind == "all":
         rows = fitting.fit_all(log, args.inputs, args.target, options)
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
         for _, label, oc, _ in rows:
             if oc is not None:
-                fitting.write_model(oc.model, out / f"{label}.yaml")
+                with writing(out / f"{label}.yaml", "--out"):
+                    fitting.write_model(oc.model, out / f"{label}.yaml")
                 if args.plot:
                     p = Path(args.plot)
-                    report.plot_fit(oc, log, p.with_name(f"{p.stem}_{label}{p.suffix or '.png'}"))
+                    p = p.with_name(f"{p.stem}_{label}{p.suffix or '.png'}")
+                    with writing(p, "--plot"):
+                        report.plot_fit(oc, log, p)
                 fitting.warn(oc.warnings)
         print(fitting.comparison_table(rows))
         if args.report:
-            report.write_json(args.report, {
-                label: oc.report if oc else {"skipped": why} for _, label, oc, why in rows
-            })
+            with writing(args.report, "--report"):
+                report.write_json(args.report, {
+                    label: oc.report if oc else {"skipped": why} for _, label, oc, why in rows
+                })
         return 0
     oc = fitting.fit_model(args.kind, log, args.inputs, args.target, options)
-    fitting.write_model(oc.model, args.out)
+    with writing(args.out, "--out"):
+        fitting.write_model(oc.model, args.out)
     if args.report:
-        report.write_json(args.report, oc.report)
+        with writing(args.report, "--report"):
+            report.write_json(args.report, oc.report)
     if args.plot:
-        report.plot_fit(oc, log, args.plot)
+        with writing(args.plot, "--plot"):
+            report.plot_fit(oc, log, args.plot)
     for axis, s in oc.report["axes"].items():
         print(f"{args.kind} axis {axis}: RMSE {s['rmse_um']:.3f} um, max {s['max_abs_err_um']:.3f} um,"
               f" {oc.report['rows']} rows, {oc.report['fit_time_s']:.2f} s -> {args.out}")
@@ -258,10 +358,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def cmd_predict(args: argparse.Namespace) -> int:
     from compd import fitting
 
+    check_output(args.out, "--out")
     model = fitting.load_model(args.model)
     log = fitting.read_fit_log(args.log)
     pred = fitting.predict_log(model, log)
-    fitting.write_prediction(args.out, log.t_s, model.outputs, pred)
+    with writing(args.out, "--out"):
+        fitting.write_prediction(args.out, log.t_s, model.outputs, pred)
     print(f"{model.kind}: {len(log)} rows -> {args.out}")
     return 0
 
@@ -288,6 +390,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     if (args.config is None) == (args.model is None):
         raise BadInput("give a CONFIG or --model MODEL.yaml (one of them)", path="CONFIG")
+    check_output(args.report, "--report")
+    check_plot(args.plot)
     t0 = time.perf_counter()
     if args.model is not None:
         result = replay_model(args.model, args.log)
@@ -302,10 +406,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
             f" max |residual| {r['max_abs_after_um']:.2f} um, reduction {r['reduction_pct']:.1f} %"
         )
     if args.report:
-        with open(args.report, "w", encoding="utf-8") as fh:
+        with writing(args.report, "--report"), open(args.report, "w", encoding="utf-8") as fh:
             json.dump(rep, fh, indent=2)
     if args.plot:
-        write_plot(result, args.plot)
+        with writing(args.plot, "--plot"):
+            write_plot(result, args.plot)
     return 0
 
 
@@ -328,11 +433,12 @@ def cmd_status(args: argparse.Namespace) -> int:
     else:
         path = DEFAULT_PATH
     data = read_status(path)
-    alive, why = liveness(data)
-    if args.json:
-        print(json.dumps({**data, "alive": alive, "liveness": why}, indent=1))
-    else:
-        print(render(data, alive, why))
+    try:
+        alive, why = liveness(data)
+        text = json.dumps({**data, "alive": alive, "liveness": why}, indent=1) if args.json else render(data, alive, why)
+    except (TypeError, ValueError, AttributeError, KeyError) as e:  # a field deeper down of the wrong type
+        raise BadInput(f"not a compd status file: {type(e).__name__}: {e}", file=path) from None
+    print(text)
     if not alive:
         print(f"compd: {path}: {why}", file=sys.stderr)
     return 0 if alive else 1
@@ -351,6 +457,8 @@ def cmd_docs(args: argparse.Namespace) -> int:
                 same = fh.read() == text
         except OSError as e:
             raise BadInput(f"cannot read: {e.strerror}", file=args.out) from None
+        except UnicodeDecodeError:
+            same = False  # not even text: out of date
         if not same:
             print(f"compd: {args.out} is out of date: run compd docs --out {args.out}", file=sys.stderr)
             return 1
@@ -358,7 +466,8 @@ def cmd_docs(args: argparse.Namespace) -> int:
     if args.out is None:
         sys.stdout.write(text)
     else:
-        with open(args.out, "w", encoding="utf-8") as fh:
+        check_output(args.out, "--out")
+        with writing(args.out, "--out"), open(args.out, "w", encoding="utf-8") as fh:
             fh.write(text)
     return 0
 
@@ -367,24 +476,34 @@ def cmd_docs(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from compd.bench import format_table, run_bench, write_json
 
+    check_output(args.json, "--json")
     result = run_bench(
         args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles
     )
     print(format_table(result))
     if args.json:
-        write_json(args.json, result)
+        with writing(args.json, "--json"):
+            write_json(args.json, result)
     return 0
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with CONTRACT's error form: one line on stderr, exit 2 (`--help` shows the usage)."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        one_line = " ".join(message.split())
+        self.exit(2, f"{self.prog}: {one_line}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="compd", description="Real-time thermal-error compensation for CNC machine tools."
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("run", help="run the compensation loop")
     s.add_argument("config")
-    s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    s.add_argument("--duration", type=positive, default=None, metavar="S", help="stop after S seconds (> 0)")
     s.add_argument("--json", default=None, metavar="FILE", help="write the run summary as JSON")
     s.add_argument(
         "--observe", action="store_true", help="observe mode: full loop, output held disabled"
@@ -414,14 +533,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--plot", default=None, metavar="FILE.png")
 
     s = sub.add_parser("encode", help="the 16-bit word for two corrections (µm)")
-    s.add_argument("c1_um", type=float, metavar="C1_UM")
-    s.add_argument("c2_um", type=float, metavar="C2_UM")
-    s.add_argument("--lsb-um", type=float, default=1.0, dest="lsb_um")
-    s.add_argument("--deadband-um", type=float, default=1.0, dest="deadband_um")
+    s.add_argument("c1_um", type=finite, metavar="C1_UM")
+    s.add_argument("c2_um", type=finite, metavar="C2_UM")
+    s.add_argument("--lsb-um", type=positive, default=1.0, dest="lsb_um")
+    s.add_argument("--deadband-um", type=non_negative, default=1.0, dest="deadband_um")
 
     s = sub.add_parser("decode", help="direction, enable and magnitude of both axes of a word")
     s.add_argument("word", metavar="WORD")
-    s.add_argument("--lsb-um", type=float, default=1.0, dest="lsb_um")
+    s.add_argument("--lsb-um", type=positive, default=1.0, dest="lsb_um")
     s = sub.add_parser("fit", help="identify a model's coefficients from a log")
     s.add_argument("--kind", required=True, choices=["feed_axis", "lvr", "xi_spindle", "ar1", "mlr", "all"])
     s.add_argument("--log", required=True, metavar="LOG.csv")
@@ -445,7 +564,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--cycles", type=int, default=100_000, metavar="N", help="cycles of compd's loop")
     s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON (CONTRACT)")
     s.add_argument("--scheduler", choices=("other", "fifo"), default="other", help="loop.realtime.scheduler")
-    s.add_argument("--period-ms", type=float, default=2.0, dest="period_ms")
+    s.add_argument("--period-ms", type=positive, default=2.0, dest="period_ms")
     s.add_argument(
         "--naive-cycles", type=int, default=None, dest="naive_cycles",
         help="cycles of the hand-written loop (default min(N, 5000))",

@@ -170,7 +170,9 @@ def validate(
             msg = "required key is missing"
         else:
             msg = err["msg"]
-            if "input" in err and err["type"] not in ("model_type", "dict_type"):
+            if "input" in err and err["type"] not in ("model_type", "dict_type") and not isinstance(
+                err["input"], dict
+            ):  # a whole section is no help in a one-line message
                 msg += f" (got {err['input']!r})"
         raise doc.error(msg, path) from None
 
@@ -511,13 +513,26 @@ def resolve_model(section: Any, doc: Document, path: PathT, base_dir: Path) -> M
             raise doc.error("inline models need 'inputs' and 'outputs'", path)
         inputs, outputs = sec.inputs, sec.outputs
     params = validate(cls.Params, raw_params, pdoc, ppath, what="params")
+    base = ppath[:-1]  # where the model section sits in pdoc (the file's top, or `path`)
+
+    def where(key: str) -> tuple[Document, PathT]:
+        """The file and key path of the model's `inputs` or `outputs` (the config may override them)."""
+        if pdoc is doc or getattr(sec, key) is not None:
+            return doc, (*path, key)
+        return pdoc, (key,)
+
     for what, names in (("inputs", inputs), ("outputs", outputs)):
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-            raise doc.error(f"{what} must be a list of names", (*path, what))
+            wdoc, wpath = where(what)
+            raise wdoc.error(f"{what} must be a list of names", wpath)
     try:
         cls.check_wiring(params, list(inputs), list(outputs))
     except BadInput as e:
-        raise pdoc.error(e.message, ppath) from None
+        keys = e.keys
+        if keys and keys[0] in ("inputs", "outputs"):
+            wdoc, wpath = where(str(keys[0]))
+            raise wdoc.error(e.message, (*wpath, *keys[1:])) from None
+        raise pdoc.error(e.message, (*base, *keys) if keys else ppath) from None
     return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path)
 
 

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from pydantic import ValidationError
 
 from compd.errors import BadInput
 from compd.log import Log, read_log
@@ -94,7 +95,15 @@ def fit_model(
     """Fit `kind`, score it on the log, compare with MLR on the same targets."""
     cls = MODELS.get(kind, path="--kind")
     t0 = time.perf_counter()
-    result = cls.fit(log, inputs, targets, **options)
+    try:
+        result = cls.fit(log, inputs, targets, **options)
+    except ValidationError as e:  # the data drove a coefficient out of its physical range
+        err = e.errors()[0]
+        key = ".".join(str(p) for p in err["loc"])
+        raise BadInput(
+            f"the {kind} fit gives params.{key} out of range: {err['msg']} (got {err.get('input')!r})",
+            file=log.file,
+        ) from None
     fit_s = time.perf_counter() - t0
     model = result.model
     tcols = _targets_for(model, log, targets)

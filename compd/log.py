@@ -18,6 +18,9 @@ import numpy as np
 
 from compd.errors import BadInput
 
+# |t_s| and the span of a log stay below this (≈ 317 years; Unix time is 1.8e9 s): float
+# time keeps 2 µs resolution there, so every cycle and PLC scan still advances the clock.
+MAX_T_S = 1e10
 RESERVED_PREFIXES = ("err_", "pos_", "current_")
 RESERVED_NAMES = ("t_s", "speed_rpm")
 # Columns the loop itself writes into its log (compd.app.LogObserver): never inputs.
@@ -150,6 +153,16 @@ def read_log(file: str | Path, *, allow_nan: bool = False) -> Log:
                 t = values[0]
                 if not math.isfinite(t):
                     raise BadInput("t_s must be a finite number", file=file, line=lineno, path="t_s")
+                if abs(t) > MAX_T_S:
+                    raise BadInput(
+                        f"t_s {cell_t(row)} is beyond ±{MAX_T_S:.0e} s (three centuries): not a time",
+                        file=file, line=lineno, path="t_s",
+                    )
+                if rows and t - rows[0][0] > MAX_T_S:
+                    raise BadInput(
+                        f"t_s {cell_t(row)} is {t - rows[0][0]:.3g} s after the first row: the log spans"
+                        f" more than {MAX_T_S:.0e} s", file=file, line=lineno, path="t_s",
+                    )
                 if t < prev_t:
                     raise BadInput(
                         f"time goes backwards ({t} after {prev_t})", file=file, line=lineno, path="t_s"
@@ -167,6 +180,10 @@ def read_log(file: str | Path, *, allow_nan: bool = False) -> Log:
 def _short(cell: str, limit: int = 40) -> str:
     """repr of a cell, cut to `limit` characters (a garbage cell can be megabytes)."""
     return repr(cell) if len(cell) <= limit else repr(cell[:limit]) + f"… ({len(cell)} characters)"
+
+
+def cell_t(row: list[str]) -> str:
+    return row[0].strip()
 
 
 def write_log(file: str | Path, columns: Sequence[str], data: np.ndarray) -> None:

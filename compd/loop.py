@@ -11,6 +11,7 @@ instead of bursting to catch up.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import math
 import sys
@@ -163,15 +164,24 @@ class Loop:
     def open(self, adopted: frozenset[int] | set[int] = frozenset()) -> None:
         """Open the sources and the sink (those whose id() is in `adopted` are open already)."""
         now = self.clock.now()
-        for s in self.sources:
-            if id(s) in adopted:
-                continue
-            s.open(now)
-            start_polling = getattr(s, "start_polling", None)
-            if start_polling is not None:  # PolledSource: its own thread, on the loop clock
-                start_polling(self.clock)
-        if id(self.sink) not in adopted:
-            self.sink.open(now)
+        opened: list[Any] = []
+        try:
+            for s in self.sources:
+                if id(s) in adopted:
+                    continue
+                opened.append(s)
+                s.open(now)
+                start_polling = getattr(s, "start_polling", None)
+                if start_polling is not None:  # PolledSource: its own thread, on the loop clock
+                    start_polling(self.clock)
+            if id(self.sink) not in adopted:
+                opened.append(self.sink)
+                self.sink.open(now)
+        except BaseException:  # one device failed: close the ones opened (and it), leave no thread
+            for stage in reversed(opened):
+                with contextlib.suppress(Exception):
+                    stage.close()
+            raise
 
     def close(self, keep: frozenset[int] | set[int] = frozenset()) -> None:
         """Safe output first, then release everything — except what a reloaded

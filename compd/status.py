@@ -145,9 +145,50 @@ def read_status(path: str | Path) -> dict[str, Any]:
         raise BadInput(f"cannot read status: {e.strerror or e}", file=path) from None
     except json.JSONDecodeError as e:
         raise BadInput(f"not a status file: {e.msg}", file=path, line=e.lineno) from None
+    except (UnicodeDecodeError, ValueError):  # binary, or numbers JSON cannot hold
+        raise BadInput("not a status file: not UTF-8 JSON text", file=path) from None
     if not isinstance(data, dict) or data.get("schema") != SCHEMA:
         raise BadInput("not a compd status file (schema)", file=path)
+    _check_shape(data, path)
     return data
+
+
+# What `liveness` and `render` read, and the JSON type each must have (None is allowed too).
+_NUMBER = (int, float)
+_SHAPE: dict[str, tuple[type, ...]] = {
+    "pid": (int,), "state": (str,), "observe": (bool,), "written_unix_s": _NUMBER,
+    "status_period_s": _NUMBER, "uptime_s": _NUMBER, "loop_time_s": _NUMBER, "word": (str,),
+    "config": (str,), "metrics_url": (str,), "axes": (dict,), "signals": (dict,), "loop": (dict,),
+    "model": (dict,), "sink": (dict,), "faults": (dict,), "events": (list,),
+}
+
+
+_NAMES = {int: "an integer", str: "a string", bool: "true or false", dict: "an object", list: "a list"}
+
+
+def _check_shape(data: dict[str, Any], path: str) -> None:
+    """BadInput naming the key whose JSON type is not what a status snapshot holds."""
+    for key, types in _SHAPE.items():
+        v = data.get(key)
+        if v is not None and (not isinstance(v, types) or (types is _NUMBER and isinstance(v, bool))):
+            want = "a number" if types is _NUMBER else _NAMES[types[0]]
+            raise BadInput(f"not a compd status file: expected {want}", file=path, path=key)
+    for key in ("axes", "signals"):
+        for name, v in (data.get(key) or {}).items():
+            if not isinstance(v, dict):
+                raise BadInput("not a compd status file: expected an object", file=path, path=(key, name))
+    for i, e in enumerate(data.get("events") or []):
+        if not isinstance(e, dict):
+            raise BadInput("not a compd status file: expected an object", file=path, path=("events", i))
+    for key in ("lateness_us",):
+        v = (data.get("loop") or {}).get(key)
+        if v is not None and not isinstance(v, dict):
+            raise BadInput("not a compd status file: expected an object", file=path, path=("loop", key))
+    model = data.get("model") or {}
+    for key in ("inputs", "outputs"):
+        v = model.get(key)
+        if v is not None and not (isinstance(v, list) and all(isinstance(n, str) for n in v)):
+            raise BadInput("not a compd status file: expected a list of names", file=path, path=("model", key))
 
 
 def _pid_alive(pid: int) -> bool:

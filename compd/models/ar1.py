@@ -16,7 +16,7 @@ an empty table is the paper's single C1.
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -25,7 +25,17 @@ from scipy import optimize, signal, stats
 from compd.config import Strict
 from compd.errors import BadInput
 from compd.log import Log
-from compd.models.base import FitResult, Model
+from compd.models.base import (
+    MAX_ERROR_UM,
+    MAX_GAIN_UM_PER_K,
+    MAX_SPEED_RPM,
+    TEMP_MAX_C,
+    TEMP_MIN_C,
+    FitResult,
+    Model,
+    ModelParams,
+    check_length,
+)
 from compd.models.fitdata import (
     axis_names,
     columns,
@@ -81,40 +91,41 @@ def ljung_box(resid: np.ndarray, lags: int) -> tuple[float, float]:
     return qstat, float(stats.chi2.sf(qstat, lags))
 
 
-class AR1Params(Strict):
+SpeedRpm = Annotated[float, Field(gt=0, le=MAX_SPEED_RPM)]
+
+
+class AR1Params(ModelParams):
     """AR(1) model params. Inputs: [speed, *bed sensors, ambient (when c3_um_per_k is set)]."""
 
-    dt_s: float = Field(gt=0, description="Δτ, the model step (paper: 30–60 s)")
+    dt_s: float = Field(gt=0, le=86400, description="Δτ, the model step (paper: 30–60 s), at most a day")
     c1: float = Field(gt=0, lt=1, description="C1 = e^(−b Δτ) (at standstill when c1_table is set)")
-    c2_table: list[tuple[float, float]] = Field(
-        default_factory=list, description="(speed rpm, C2 µm) nodes; C2(0) = 0 is implied"
+    c2_table: list[tuple[SpeedRpm, Annotated[float, Field(ge=0, le=MAX_ERROR_UM)]]] = Field(
+        default_factory=list, description="(speed rpm, C2 µm ≥ 0) nodes; C2(0) = 0 is implied"
     )
     c3_um_per_k: float | None = Field(
-        None, description="ambient gain C3 (µm per K of ambient rise per step); none = paper form"
+        None, ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K,
+        description="ambient gain C3 (µm per K of ambient rise per step); none = paper form",
     )
-    c1_table: list[tuple[float, float]] = Field(
+    c1_table: list[tuple[SpeedRpm, Annotated[float, Field(gt=0, lt=1)]]] = Field(
         default_factory=list,
         description="(speed rpm, C1) nodes above standstill, b = −ln C1 linear in speed between them and "
         "`c1` (standstill); empty = one C1 (the paper)",
     )
-    bed_gain_um_per_k: list[float] = Field(
+    bed_gain_um_per_k: list[Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]] = Field(
         default_factory=list, description="one gain per bed sensor (α_bed L_bed, µm/K)"
     )
     spindle_sign: Literal[1, -1] = Field(1, description="+1: error = spindle growth; −1: bed − spindle")
-    t0_c: list[float] | None = Field(None, description="reference readings of bed and ambient inputs")
+    t0_c: list[Annotated[float, Field(ge=TEMP_MIN_C, le=TEMP_MAX_C)]] | None = Field(
+        None, description="reference readings of bed and ambient inputs (−40..150 °C)"
+    )
 
     @model_validator(mode="after")
     def _table(self) -> AR1Params:
-        rpm = [n for n, _ in self.c2_table]
-        if any(n <= 0 for n in rpm) or any(b <= a for a, b in zip(rpm, rpm[1:], strict=False)):
-            raise ValueError("c2_table speeds must be positive and strictly increasing")
-        if any(c < 0 for _, c in self.c2_table):
-            raise ValueError("c2_table values must be ≥ 0")
-        rpm1 = [n for n, _ in self.c1_table]
-        if any(n <= 0 for n in rpm1) or any(b <= a for a, b in zip(rpm1, rpm1[1:], strict=False)):
-            raise ValueError("c1_table speeds must be positive and strictly increasing")
-        if any(not 0 < c < 1 for _, c in self.c1_table):
-            raise ValueError("c1_table values must be in (0, 1)")
+        # speeds > 0, C2 ≥ 0 and C1 in (0, 1) are the fields' own bounds
+        for key, table in (("c2_table", self.c2_table), ("c1_table", self.c1_table)):
+            rpm = [n for n, _ in table]
+            if any(b <= a for a, b in zip(rpm, rpm[1:], strict=False)):
+                raise ValueError(f"{key} speeds must be positive and strictly increasing")
         return self
 
 
@@ -191,12 +202,13 @@ class AR1(Model):
         if len(inputs) != need:
             raise BadInput(
                 f"ar1 takes {need} inputs (speed, {len(params.bed_gain_um_per_k)} bed sensors"
-                f"{', ambient' if params.c3_um_per_k is not None else ''}), got {len(inputs)}"
+                f"{', ambient' if params.c3_um_per_k is not None else ''}), got {len(inputs)}",
+                path=("inputs",),
             )
         if len(outputs) != 1:
-            raise BadInput(f"ar1 has one output axis, got {len(outputs)}")
-        if params.t0_c is not None and len(params.t0_c) != len(inputs) - 1:
-            raise BadInput(f"t0_c needs one value per temperature input ({len(inputs) - 1})")
+            raise BadInput(f"ar1 has one output axis, got {len(outputs)}", path=("outputs",))
+        if params.t0_c is not None:
+            check_length(params.t0_c, len(inputs) - 1, "t0_c", "temperature input")
 
     def start(self, x: np.ndarray, t_s: float) -> None:
         if self.x0 is None:

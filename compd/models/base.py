@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-from pydantic import ValidationError
+from pydantic import ConfigDict, ValidationError
 
 from compd.config import Strict
 from compd.errors import BadInput
@@ -22,6 +22,42 @@ class FitResult:
 
     model: Model
     report: dict[str, Any] = field(default_factory=dict)
+
+
+class ModelParams(Strict):
+    """Base of every model's params: every number finite (a NaN or infinite coefficient
+    would make every prediction NaN), each inside the range its docstring states."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+# Physical bounds shared by the kinds (units in the names; SPEC.md, the models' docstrings).
+TEMP_MIN_C, TEMP_MAX_C = -40.0, 150.0  # a reading on a machine tool (the guard's default limits)
+MAX_RISE_K = 200.0  # a temperature rise from the reference
+MAX_GAIN_UM_PER_K = 1e4  # α ≤ 1e-3 /K times a structure ≤ 10 m: µm of error per K
+MAX_ERROR_UM = 1e4  # 10 mm: no thermal error of a machine tool comes near
+MAX_LENGTH_MM = 1e5  # 100 m: longer than any machine axis or spindle
+MAX_SPEED_RPM = 2e5  # faster than any machine spindle
+
+
+def check_length(values: list[Any], n: int, key: str, what: str) -> None:
+    """BadInput at params.<key> unless `values` has `n` entries (one per `what`)."""
+    if len(values) != n:
+        raise BadInput(f"has {len(values)} values, expected {n} (one per {what})", path=("params", key))
+
+
+def check_matrix(rows: list[list[Any]], n_rows: int, n_cols: int, key: str, row_what: str, col_what: str) -> None:
+    """BadInput at params.<key>[i] unless `rows` is n_rows × n_cols."""
+    if len(rows) != n_rows:
+        raise BadInput(
+            f"has {len(rows)} rows, expected {n_rows} (one per {row_what})", path=("params", key)
+        )
+    for i, row in enumerate(rows):
+        if len(row) != n_cols:
+            raise BadInput(
+                f"row {i} has {len(row)} values, expected {n_cols} (one per {col_what})",
+                path=("params", key, i),
+            )
 
 
 class NoFitOptions(Strict):
@@ -58,11 +94,17 @@ class Model(ABC):
 
     @classmethod
     def check_wiring(cls, params: Strict, inputs: list[str], outputs: list[str]) -> None:
-        """Raise BadInput if the number of inputs or outputs does not suit the params."""
+        """Raise BadInput if the number of inputs or outputs does not suit the params.
+
+        The BadInput's key path is relative to the model section: ("params", key, ...),
+        ("inputs",) or ("outputs",), so the config loader can name the line.
+        """
         if not outputs:
-            raise BadInput("a model needs at least one output axis")
+            raise BadInput("a model needs at least one output axis", path=("outputs",))
         if len(set(inputs)) != len(inputs):
-            raise BadInput("the model's inputs name a signal twice")
+            raise BadInput("the model's inputs name a signal twice", path=("inputs",))
+        if len(set(outputs)) != len(outputs):
+            raise BadInput("the model's outputs name an axis twice", path=("outputs",))
 
     def start(self, x: np.ndarray, t_s: float) -> None:
         """Called once with the first good input vector (capture references such as T0)."""

@@ -35,49 +35,61 @@ import math
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 from scipy import optimize, special
 
 from compd.config import Strict
 from compd.errors import BadInput
 from compd.log import Log
-from compd.models.base import FitResult, Model
+from compd.models.base import MAX_LENGTH_MM, FitResult, Model, ModelParams
 from compd.models.fitdata import axis_names, columns, default_targets, progress, require_rows
 
 Role = Literal["position", "current", "motor_temp", "ambient"]
 
 
-class FeedAxisParams(Strict):
-    """Fixed physics and fitted coefficients of the feed-axis model (paper 000)."""
+class FeedAxisParams(ModelParams):
+    """Fixed physics and fitted coefficients of the feed-axis model (paper 000).
 
-    length_mm: float = Field(gt=0, description="slide length L (the stroke)")
+    Ranges: lengths in (0, 100 m]; α in (0, 1e-3) /K; ρc of a solid in [1e5, 1e8] J/(m³ K)
+    (steel 3.6e6); a in (0, 1e-3] m²/s (metals ≤ 1.2e-4); χ L ≤ 700 so e^(χ y) stays finite;
+    η and ξ ≥ 0 (heat flows into the slide); |U1|, |U2| ≤ 1000 K (the fit's bounds).
+    """
+
+    length_mm: float = Field(gt=0, le=MAX_LENGTH_MM, description="slide length L (the stroke)")
     segments: int = Field(30, ge=1, le=1000, description="m, segments of ΔL = L/m")
-    stroke_start_mm: float = Field(0.0, description="axis position at y = 0")
+    stroke_start_mm: float = Field(
+        0.0, ge=-MAX_LENGTH_MM, le=MAX_LENGTH_MM, description="axis position at y = 0"
+    )
     alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3, description="α_l, 1/K")
-    rho_c_j_m3k: float = Field(3.61e6, gt=0, description="ρ c, J/(m³ K)")
-    diffusivity_m2_s: float = Field(1.25e-5, gt=0, description="a = λ/(ρ c), m²/s")
-    chi_per_m: float = Field(gt=0, description="χ = √(h A/(ρ c a)), 1/m")
-    eta: float = Field(description="η, share of the motor loss that heats the slide")
-    u1_k: float = Field(description="U1, K")
-    u2_k: float = Field(description="U2, K")
-    xi: float = Field(1.0, description="ξ, correction factor of the expansion")
-    power_w: float | None = Field(None, ge=0, description="constant motor loss; none = from current")
-    r_cu_ohm: float | None = Field(None, gt=0, description="copper resistance per phase")
-    zeta_per_k: float = Field(0.00393, description="ζ, copper resistance temperature coefficient")
+    rho_c_j_m3k: float = Field(3.61e6, ge=1e5, le=1e8, description="ρ c, J/(m³ K)")
+    diffusivity_m2_s: float = Field(1.25e-5, gt=0, le=1e-3, description="a = λ/(ρ c), m²/s")
+    chi_per_m: float = Field(gt=0, le=1e5, description="χ = √(h A/(ρ c a)), 1/m")
+    eta: float = Field(ge=0, le=1e3, description="η, share of the motor loss that heats the slide (×ξ scale)")
+    u1_k: float = Field(ge=-1e3, le=1e3, description="U1, K")
+    u2_k: float = Field(ge=-1e3, le=1e3, description="U2, K")
+    xi: float = Field(1.0, gt=0, le=1e3, description="ξ, correction factor of the expansion")
+    power_w: float | None = Field(None, ge=0, le=1e6, description="constant motor loss; none = from current")
+    r_cu_ohm: float | None = Field(None, gt=0, le=1e3, description="copper resistance per phase")
+    zeta_per_k: float = Field(
+        0.00393, ge=0, le=0.1, description="ζ, copper resistance temperature coefficient (copper 0.00393)"
+    )
     input_roles: list[Role] = Field(
         default_factory=lambda: ["position"], description="what each input is, in input order"
     )
     cooling_time_s: float | None = Field(
         None,
         gt=0,
+        le=1e8,
         description="duty-cycle form: τ of the slide's heat balance (Q leaks as e^(−t/τ), the steady profile"
         " scales with Q/(τ ref_power_w)); none = the paper's heating run from rest",
     )
     ref_power_w: float | None = Field(
-        None, gt=0, description="duty-cycle form: the motor loss at which U1, U2 give the steady profile"
+        None, gt=0, le=1e6, description="duty-cycle form: the motor loss at which U1, U2 give the steady profile"
     )
     linear_p0_mm: float | None = Field(
         None,
+        ge=-MAX_LENGTH_MM,
+        le=MAX_LENGTH_MM,
         description="run time: output the least-squares line K0 + tanβ (y − P0) of E over the stroke"
         " at P0 = this (for a CNC whose compensation is linear in position: Siemens, SPEC §4.3);"
         " none = E at the current position",
@@ -96,6 +108,14 @@ class FeedAxisParams(Strict):
         if self.cooling_time_s is not None and self.ref_power_w is None:
             raise ValueError("cooling_time_s needs ref_power_w")
         return self
+
+    @field_validator("chi_per_m")
+    @classmethod
+    def _chi_finite_exp(cls, chi: float, info: ValidationInfo) -> float:
+        length_m = info.data.get("length_mm", 0.0) / 1000.0
+        if chi * length_m > 700.0:
+            raise ValueError(f"χ L = {chi * length_m:.3g}: e^(χ L) overflows above 700 (χ ≤ {700.0 / length_m:.4g} 1/m)")
+        return chi
 
 
 def copper_loss_w(current_a, r_cu_ohm: float, zeta_per_k: float, motor_c=None, ambient_c=None):
@@ -283,11 +303,12 @@ class FeedAxis(Model):
         super().check_wiring(params, inputs, outputs)
         if len(inputs) != len(params.input_roles):
             raise BadInput(
-                f"feed_axis has {len(params.input_roles)} input roles ({', '.join(params.input_roles)})"
-                f" but {len(inputs)} inputs"
+                f"has {len(params.input_roles)} roles ({', '.join(params.input_roles)})"
+                f" but the model has {len(inputs)} inputs (one role per input)",
+                path=("params", "input_roles"),
             )
         if len(outputs) != 1:
-            raise BadInput(f"feed_axis has one output axis, got {len(outputs)}")
+            raise BadInput(f"feed_axis has one output axis, got {len(outputs)}", path=("outputs",))
 
     def _power(self, x: np.ndarray) -> float:
         p = self.params
@@ -494,8 +515,9 @@ class FeedAxis(Model):
             F = opt.xi * _basis(t, heat(tau), pos, probe, chi, a, tau)
             return F @ np.array([u1_, u2_, eta_]) - E
 
+        chi_max = min(1e3, 700.0 / (length / 1000.0))  # the params' bound: e^(χ L) stays finite
         lo = [0.0, -1e3, -1e3] + ([math.log(1e-3)] if free_chi else []) + ([math.log(1e-8)] if opt.fit_diffusivity else [])
-        hi = [np.inf, 1e3, 1e3] + ([math.log(1e3)] if free_chi else []) + ([math.log(1e-3)] if opt.fit_diffusivity else [])
+        hi = [1e3, 1e3, 1e3] + ([math.log(chi_max)] if free_chi else []) + ([math.log(1e-3)] if opt.fit_diffusivity else [])
         if free_tau:
             lo.append(math.log(60.0))
             hi.append(math.log(30 * 86400.0))

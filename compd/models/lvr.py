@@ -230,7 +230,7 @@ def sample_library(
 class LVRParams(RiseLinearParams):
     """LVR run-time params: the linear form plus how many components it was built from."""
 
-    n_components: int = Field(ge=1, description="PLS components the coefficients come from")
+    n_components: int = Field(ge=1, description="PLS components the coefficients come from (≤ inputs)")
 
 
 class LVRFitOptions(Strict):
@@ -249,6 +249,15 @@ class LVR(RiseLinear):
     kind = "lvr"
     Params = LVRParams
     FitOptions = LVRFitOptions
+
+    @classmethod
+    def check_wiring(cls, params, inputs, outputs) -> None:
+        super().check_wiring(params, inputs, outputs)
+        if params.n_components > len(inputs):
+            raise BadInput(
+                f"{params.n_components} components from {len(inputs)} inputs: at most one per input",
+                path=("params", "n_components"),
+            )
 
     @classmethod
     def fit(cls, log: Log, inputs=None, targets=None, **options: Any) -> FitResult:

@@ -6,15 +6,25 @@ ordinary least squares. `RiseLinear` is the shared run-time form of both.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from compd.config import Strict
-from compd.errors import BadInput
 from compd.log import Log
-from compd.models.base import FitResult, Model
+from compd.models.base import (
+    MAX_ERROR_UM,
+    MAX_GAIN_UM_PER_K,
+    MAX_RISE_K,
+    TEMP_MAX_C,
+    TEMP_MIN_C,
+    FitResult,
+    Model,
+    ModelParams,
+    check_length,
+    check_matrix,
+)
 from compd.models.fitdata import (
     axis_names,
     check_not_constant,
@@ -24,24 +34,40 @@ from compd.models.fitdata import (
     require_rows,
 )
 
+GainUmPerK = Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]
+ReadingC = Annotated[float, Field(ge=TEMP_MIN_C, le=TEMP_MAX_C)]
+RiseK = Annotated[float, Field(ge=-MAX_RISE_K, le=MAX_RISE_K)]
+RiseK2 = Annotated[float, Field(ge=-MAX_RISE_K**2, le=MAX_RISE_K**2)]
 
-class RiseLinearParams(Strict):
+
+class RiseLinearParams(ModelParams):
     """A linear model on temperature rises: coefficients per input (rows) and axis (columns)."""
 
-    coef_um_per_k: list[list[float]] = Field(description="p × q: µm of error per K of rise")
-    intercept_um: list[float] = Field(description="q: error at zero rise, µm")
-    t0_c: list[float] | None = Field(
-        None, description="reference readings T_j0; none = the readings at start"
+    coef_um_per_k: list[list[GainUmPerK]] = Field(
+        description=f"p × q: µm of error per K of rise (|b| ≤ {MAX_GAIN_UM_PER_K:g}: α ≤ 1e-3/K over ≤ 10 m)"
     )
-    rise_mean_k: list[float] | None = Field(
-        None, description="mean rise of each input over the fit data (degraded mode)"
+    intercept_um: list[Annotated[float, Field(ge=-MAX_ERROR_UM, le=MAX_ERROR_UM)]] = Field(
+        description="q: error at zero rise, µm"
     )
-    rise_cov_k2: list[list[float]] | None = Field(
-        None, description="p × p covariance of the rises over the fit data (degraded mode)"
+    t0_c: list[ReadingC] | None = Field(
+        None, description="reference readings T_j0 (−40..150 °C); none = the readings at start"
+    )
+    rise_mean_k: list[RiseK] | None = Field(
+        None, description="mean rise of each input over the fit data (degraded mode), |·| ≤ 200 K"
+    )
+    rise_cov_k2: list[list[RiseK2]] | None = Field(
+        None, description="p × p covariance of the rises over the fit data (degraded mode), variances ≥ 0"
     )
     degraded_max_sigma_um: float = Field(
-        2.0, gt=0, description="largest added prediction σ an axis accepts when inputs are bad"
+        2.0, gt=0, le=MAX_ERROR_UM, description="largest added prediction σ an axis accepts when inputs are bad"
     )
+
+    @model_validator(mode="after")
+    def _variances(self) -> RiseLinearParams:
+        for i, row in enumerate(self.rise_cov_k2 or []):
+            if i < len(row) and row[i] < 0:
+                raise ValueError(f"rise_cov_k2[{i}][{i}] is a variance: it must be ≥ 0, got {row[i]}")
+        return self
 
 
 class RiseLinear(Model):
@@ -61,15 +87,15 @@ class RiseLinear(Model):
     @classmethod
     def check_wiring(cls, params, inputs, outputs) -> None:
         super().check_wiring(params, inputs, outputs)
-        B = params.coef_um_per_k
-        if len(B) != len(inputs) or any(len(row) != len(outputs) for row in B):
-            raise BadInput(
-                f"coef_um_per_k must be {len(inputs)} rows (inputs) × {len(outputs)} columns (outputs)"
-            )
-        if len(params.intercept_um) != len(outputs):
-            raise BadInput(f"intercept_um needs one value per output ({len(outputs)})")
-        if params.t0_c is not None and len(params.t0_c) != len(inputs):
-            raise BadInput(f"t0_c needs one value per input ({len(inputs)})")
+        p, q = len(inputs), len(outputs)
+        check_matrix(params.coef_um_per_k, p, q, "coef_um_per_k", "input", "output")
+        check_length(params.intercept_um, q, "intercept_um", "output")
+        if params.t0_c is not None:
+            check_length(params.t0_c, p, "t0_c", "input")
+        if params.rise_mean_k is not None:
+            check_length(params.rise_mean_k, p, "rise_mean_k", "input")
+        if params.rise_cov_k2 is not None:
+            check_matrix(params.rise_cov_k2, p, p, "rise_cov_k2", "input", "input")
 
     @property
     def supports_degraded(self) -> bool:

@@ -11,7 +11,7 @@ from pydantic import Field, model_validator
 from compd.config import Strict
 from compd.errors import BadInput
 from compd.log import Log
-from compd.models.base import FitResult, Model
+from compd.models.base import MAX_LENGTH_MM, TEMP_MAX_C, TEMP_MIN_C, FitResult, Model, ModelParams
 from compd.models.fitdata import axis_names, columns, default_targets, require_rows
 
 
@@ -103,16 +103,20 @@ def clearance_um(dl_um: float, d_w_mm: float, f: float, contact_deg: float = 18.
     return share * dl_um * math.tan(math.radians(theta))
 
 
-class RadialParams(Strict):
-    """Radial model of one angular-contact bearing (paper 003; defaults: 7010 CETA)."""
+class RadialParams(ModelParams):
+    """Radial model of one angular-contact bearing (paper 003; defaults: 7010 CETA).
 
-    r_a_mm: float = Field(25.0, gt=0, description="inner ring bore radius")
-    r_b_mm: float = Field(27.34, gt=0, description="inner ring outer (raceway) radius")
-    r_c_mm: float = Field(37.66, gt=0, description="outer ring inner (raceway) radius")
-    r_d_mm: float = Field(40.0, gt=0, description="outer ring outer radius")
+    Ranges: radii and ball in (0, 1000] mm (a bearing, not a machine); α in (0, 1e-3) /K;
+    Poisson's μ in (0, 0.5); the lift k in [0, 1e-3] µm/rpm² (≥ 0: centrifugal force lifts).
+    """
+
+    r_a_mm: float = Field(25.0, gt=0, le=1000, description="inner ring bore radius")
+    r_b_mm: float = Field(27.34, gt=0, le=1000, description="inner ring outer (raceway) radius")
+    r_c_mm: float = Field(37.66, gt=0, le=1000, description="outer ring inner (raceway) radius")
+    r_d_mm: float = Field(40.0, gt=0, le=1000, description="outer ring outer radius")
     alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3, description="bearing steel α")
     mu: float = Field(0.26, gt=0, lt=0.5, description="Poisson's ratio")
-    d_w_mm: float = Field(10.319, gt=0, description="ball diameter D_w")
+    d_w_mm: float = Field(10.319, gt=0, le=1000, description="ball diameter D_w")
     f: float = Field(0.53, gt=0.5, lt=1, description="raceway groove radius ratio")
     contact_deg: float = Field(18.0, gt=0, lt=90, description="initial contact angle")
     preload_share: float = Field(0.8, ge=0, le=1, description="share of ΔL between the bearings")
@@ -123,7 +127,7 @@ class RadialParams(Strict):
     )
     outer_sensors: int = Field(1, ge=1, le=2, description="1: uniform ring; 2: T at raceway and OD")
     k_um_per_rpm2: float | None = Field(
-        None, description="centrifugal lift k·n²; set it to take a speed input (last)"
+        None, ge=0, le=1e-3, description="centrifugal lift k·n² (µm/rpm²); set it to take a speed input (last)"
     )
 
     @model_validator(mode="after")
@@ -137,15 +141,17 @@ class RadialParams(Strict):
         return self.inner_sensors + self.outer_sensors + (self.k_um_per_rpm2 is not None)
 
 
-class XiSpindleParams(Strict):
-    """Parameters of the axial ξ-point model."""
+class XiSpindleParams(ModelParams):
+    """Parameters of the axial ξ-point model (α in (0, 1e-3) /K, lengths in (0, 100 m])."""
 
     alpha_per_k: float = Field(gt=0, lt=1e-3, description="linear expansion coefficient, 1/K")
-    length_mm: float = Field(gt=0, description="spindle length L over which ξ averages")
+    length_mm: float = Field(gt=0, le=MAX_LENGTH_MM, description="spindle length L over which ξ averages")
     t0_c: float | None = Field(
-        None, ge=-40, le=150, description="reference temperature; none = first reading at start"
+        None, ge=TEMP_MIN_C, le=TEMP_MAX_C, description="reference temperature; none = first reading at start"
     )
-    xi_mm: float | None = Field(None, ge=0, description="where the sensor sits (documentation)")
+    xi_mm: float | None = Field(
+        None, ge=0, le=MAX_LENGTH_MM, description="where the sensor sits (documentation)"
+    )
     radial: RadialParams | None = Field(
         None, description="add a radial output: inputs [T_xi, inner ring, outer ring, (speed)]"
     )
@@ -191,9 +197,12 @@ class XiSpindle(Model):
         need_out = 2 if rad else 1
         if len(inputs) != need_in:
             what = "the ξ sensor" + (", ring sensors" if rad else "")
-            raise BadInput(f"xi_spindle takes {need_in} inputs ({what}), got {len(inputs)}")
+            raise BadInput(f"xi_spindle takes {need_in} inputs ({what}), got {len(inputs)}", path=("inputs",))
         if len(outputs) != need_out:
-            raise BadInput(f"xi_spindle has {need_out} output axes (axial{', radial' if rad else ''}), got {len(outputs)}")
+            raise BadInput(
+                f"xi_spindle has {need_out} output axes (axial{', radial' if rad else ''}), got {len(outputs)}",
+                path=("outputs",),
+            )
 
     def start(self, x: np.ndarray, t_s: float) -> None:
         if self.t0_c is None:
@@ -290,6 +299,11 @@ class XiSpindle(Model):
                 file=log.file, path=inputs[0],
             )
         length = gain / (opt.alpha_per_k * 1000.0)
+        if length > MAX_LENGTH_MM:
+            raise BadInput(
+                f"the gain {gain:.3g} µm/K means a spindle {length / 1000:.3g} m long at α = {opt.alpha_per_k:g}:"
+                " not a ξ sensor", file=log.file, path=inputs[0],
+            )
         report: dict[str, Any] = {"gain_um_per_k": gain, "length_mm": length}
         rad = None
         if radial:

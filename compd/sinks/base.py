@@ -36,6 +36,8 @@ class Sink(ABC):
     def __init__(self, cfg: SinkConfig, base_dir: str = ".") -> None:
         self.cfg = cfg
         self.base_dir = base_dir
+        # where this section sits in the config (set by the app): `open` names its keys under it
+        self.config_path: tuple[str | int, ...] = ()
         self.axes: list[str] = []
         self.lsb_um = 1.0
         self.writes = 0

@@ -9,8 +9,19 @@ from typing import Any, ClassVar
 import numpy as np
 
 from compd.config import SourceConfig
+from compd.errors import BadInput
 from compd.frame import Frame, Quality
 from compd.histogram import DurationHist
+
+
+def check_serial_port(port: str, config_path: tuple[str | int, ...], key: str = "serial_port") -> None:
+    """BadInput naming the key when a serial device path does not exist (a typo, an adapter
+    not plugged in at start-up). pyserial URLs (`socket://`, `rfc2217://`, `loop://`) pass:
+    their far end is checked when polled. A port that goes away later is a comms fault."""
+    import os
+
+    if "://" not in port and not os.path.exists(port):
+        raise BadInput(f"no serial device {port!r}", path=(*config_path, key))
 
 
 class Source(ABC):
@@ -27,6 +38,8 @@ class Source(ABC):
         self.cfg = cfg
         self.name = cfg.name
         self.base_dir = base_dir
+        # where this section sits in the config (set by the app): `open` names its keys under it
+        self.config_path: tuple[str | int, ...] = ()
         self._idx = np.zeros(0, dtype=np.intp)
 
     @abstractmethod

@@ -18,9 +18,10 @@ import threading
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from compd.config import SourceConfig, Strict
+from compd.errors import BadInput
 from compd.frame import Frame, Quality
 from compd.sources.base import Source
 
@@ -55,6 +56,15 @@ class CanConfig(SourceConfig):
     timeout_s: float = Field(1.0, gt=0, description="no frame this long: COMMS_LOST")
     stale_after_s: float | None = Field(None, gt=0)
     signals: list[CanSignal] = Field(min_length=1)
+
+    @field_validator("interface")
+    @classmethod
+    def _known_interface(cls, name: str) -> str:
+        from can.interfaces import VALID_INTERFACES
+
+        if name not in VALID_INTERFACES:
+            raise ValueError(f"python-can has no interface {name!r} (known: {', '.join(sorted(VALID_INTERFACES))})")
+        return name
 
     @model_validator(mode="after")
     def _unique(self) -> CanConfig:
@@ -107,14 +117,37 @@ class CanSource(Source):
         v = int.from_bytes(b, sig.byte_order, signed=sig.signed)
         return v * sig.scale + sig.offset_c, Quality.GOOD
 
-    def start_polling(self, clock: Any) -> None:
+    def open(self, now_s: float) -> None:
+        """Open the bus; an interface python-can does not know or a channel that does not
+        exist is bad input naming the key (`interface`, `channel`): fail loudly at start-up."""
+        import errno
+
         import can
 
-        self._clock = clock
         kw: dict[str, Any] = {"interface": self.cfg.interface, "channel": self.cfg.channel}
         if self.cfg.bitrate:
             kw["bitrate"] = self.cfg.bitrate
-        self._bus = can.Bus(**kw)
+        try:
+            self._bus = can.Bus(**kw)
+        except can.CanInterfaceNotImplementedError as e:
+            known = ", ".join(sorted(can.interfaces.VALID_INTERFACES))
+            raise BadInput(f"cannot open CAN interface {self.cfg.interface!r}: {e} (known: {known})",
+                           path=(*self.config_path, "interface")) from None
+        except OSError as e:
+            if e.errno in (errno.EAFNOSUPPORT, errno.EPROTONOSUPPORT):  # no SocketCAN in this kernel
+                raise BadInput(f"cannot open CAN interface {self.cfg.interface!r}: {e.strerror or e}",
+                               path=(*self.config_path, "interface")) from None
+            raise BadInput(f"cannot open CAN channel {self.cfg.channel!r}: {e.strerror or e}",
+                           path=(*self.config_path, "channel")) from None
+        except ImportError as e:  # the interface's driver library is not installed
+            raise BadInput(f"cannot open CAN interface {self.cfg.interface!r}: {e}",
+                           path=(*self.config_path, "interface")) from None
+        except (can.CanError, ValueError) as e:  # slcan/serial: no such device; a bad bitrate
+            raise BadInput(f"cannot open CAN channel {self.cfg.channel!r} ({self.cfg.interface}): {e}",
+                           path=(*self.config_path, "channel")) from None
+
+    def start_polling(self, clock: Any) -> None:
+        self._clock = clock
         self._thread = threading.Thread(target=self._run, name=f"can-{self.name}", daemon=True)
         self._thread.start()
 

@@ -25,7 +25,7 @@ from pydantic import Field, model_validator
 
 from compd.config import SourceConfig
 from compd.frame import Quality
-from compd.sources.base import PolledSource
+from compd.sources.base import PolledSource, check_serial_port
 
 _FIELD = re.compile(rb"[+-][0-9.]+")
 
@@ -106,6 +106,9 @@ class DconSource(PolledSource):
 
     def signal_names(self) -> list[str]:
         return [n for _, n in self._slots]
+
+    def open(self, now_s: float) -> None:
+        check_serial_port(self.cfg.serial_port, self.config_path)
 
     def _open(self) -> bool:
         if self._ser is not None:

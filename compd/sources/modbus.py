@@ -27,7 +27,7 @@ from pydantic import Field, model_validator
 from compd.config import SourceConfig, Strict
 from compd.frame import Quality
 from compd.modbus_reply import HOLDING, INPUT, FrameTap, shape_error
-from compd.sources.base import PolledSource
+from compd.sources.base import PolledSource, check_serial_port
 
 log = logging.getLogger("compd.sources.modbus")
 
@@ -202,6 +202,10 @@ class ModbusSource(PolledSource):
         return [c.name for c in self._channels]
 
     # ------------------------------------------------------------- connection
+    def open(self, now_s: float) -> None:
+        if self.cfg.transport == "rtu" and self.cfg.serial_port:
+            check_serial_port(self.cfg.serial_port, self.config_path)
+
     def _make_client(self) -> Any:
         from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 

@@ -201,7 +201,9 @@ def test_c1_by_speed_checks():
     running = Log("run.csv", log.columns, log.data[:600])  # the first 10 h: never stops
     with pytest.raises(BadInput, match="stand still"):
         AR1.fit(running, ["T3"], None, c1_by_speed=True)
-    with pytest.raises(ValueError, match="c1_table values"):
+    with pytest.raises(ValueError, match=r"c1_table\.0\.1\n.*less than 1"):
         AR1Params(dt_s=60, c1=0.99, c1_table=[(1000.0, 1.0)])
-    with pytest.raises(ValueError, match="c1_table speeds"):
+    with pytest.raises(ValueError, match=r"c1_table\.0\.0\n.*greater than 0"):
         AR1Params(dt_s=60, c1=0.99, c1_table=[(0.0, 0.99)])
+    with pytest.raises(ValueError, match="c1_table speeds"):
+        AR1Params(dt_s=60, c1=0.99, c1_table=[(2000.0, 0.99), (1000.0, 0.98)])
