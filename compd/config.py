@@ -9,6 +9,8 @@ registries, so each driver owns its options (STYLE: one config section, one modu
 from __future__ import annotations
 
 import difflib
+import os
+import stat
 import types
 import typing
 from dataclasses import dataclass, field
@@ -56,21 +58,160 @@ class Document:
         return ConfigError(message, file=self.file, line=self.line_of(path), path=path)
 
 
-def load_yaml(file: str | Path, text: str | None = None) -> Document:
-    """Parse a YAML file keeping each key's line; syntax errors are ConfigError."""
+# Limits of the YAML reader: a config or model file is refused (exit 2, one line) rather
+# than read without bound. The example configs are under 2 KB; a fitted lvr model of 19
+# sensors is 11 KB and grows with sensors² (its covariance), so 4 MiB holds ~400 sensors.
+CONFIG_MAX_BYTES = 1 << 20  # 1 MiB
+MODEL_MAX_BYTES = 4 << 20  # 4 MiB
+MAX_DEPTH = 64  # nesting of mappings and lists (the examples nest 5 deep)
+MAX_ALIAS_VALUES = 10_000  # values reached through aliases (*name, <<: *name), after expansion
+CONFIG_MAX_VALUES = 100_000  # scalars, lists and mappings in a config (the examples: < 200)
+MODEL_MAX_VALUES = 1_000_000  # in a model file (the 19-sensor lvr: ~1 000)
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+class _Limit(Exception):
+    """A YAML limit was hit at `line` (1-based, or None)."""
+
+    def __init__(self, message: str, line: int | None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.line = line
+
+
+def read_bounded(file: str, max_bytes: int) -> str:
+    """A regular file's text, refused when it is larger than `max_bytes`.
+
+    Opened non-blocking, so a FIFO without a writer does not hang the open; a
+    directory, FIFO, socket or device (/dev/zero) is refused after `fstat`.
+    """
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(file, flags)
+    except OSError as e:
+        raise ConfigError(f"cannot read: {e.strerror or e}", file=file) from None
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise ConfigError("cannot read: is a directory", file=file)
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError("cannot read: not a regular file (a device, FIFO or socket)", file=file)
+        if st.st_size > max_bytes:
+            raise ConfigError(f"file is {st.st_size} bytes, larger than the limit of {max_bytes}", file=file)
+        chunks, size = [], 0
+        while size <= max_bytes:
+            chunk = os.read(fd, max_bytes + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        if size > max_bytes:  # it grew after fstat
+            raise ConfigError(f"file is larger than the limit of {max_bytes} bytes", file=file)
+    except OSError as e:
+        raise ConfigError(f"cannot read: {e.strerror or e}", file=file) from None
+    finally:
+        os.close(fd)
+    try:
+        return b"".join(chunks).decode("utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError("not a UTF-8 text file", file=file) from None
+
+
+_Loader: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml when built with it: 6× faster
+
+
+def _compose(loader: Any, max_values: int) -> yaml.Node | None:
+    """The single document's node tree, composed from parser events without recursion.
+
+    PyYAML's own composer recurses once per level (RecursionError at ~300 levels, and
+    libyaml's composer segfaults on 200 000 nested `[`); this one stops at MAX_DEPTH.
+    """
+    loader.get_event()  # stream start
+    if loader.check_event(yaml.StreamEndEvent):
+        loader.get_event()
+        return None
+    loader.get_event()  # document start
+    anchors: dict[str, yaml.Node] = {}
+    stack: list[list[Any]] = []  # [collection node, pending key node or None]
+    root: yaml.Node | None = None
+    count = 0
+    while root is None or stack:
+        ev = loader.get_event()
+        count += 1
+        if count > max_values:
+            raise _Limit(f"more than {max_values} values", ev.start_mark.line + 1)
+        node: yaml.Node
+        if isinstance(ev, yaml.AliasEvent):
+            if ev.anchor not in anchors:
+                raise yaml.composer.ComposerError(
+                    None, None, f"found undefined alias {ev.anchor!r}", ev.start_mark
+                )
+            node = anchors[ev.anchor]
+        elif isinstance(ev, yaml.ScalarEvent):
+            tag = ev.tag
+            if tag is None or tag == "!":
+                tag = loader.resolve(yaml.ScalarNode, ev.value, ev.implicit)
+            node = yaml.ScalarNode(tag, ev.value, ev.start_mark, ev.end_mark, style=ev.style)
+        elif isinstance(ev, yaml.SequenceStartEvent | yaml.MappingStartEvent):
+            if len(stack) >= MAX_DEPTH:
+                raise _Limit(f"nested deeper than {MAX_DEPTH} levels", ev.start_mark.line + 1)
+            kind = yaml.SequenceNode if isinstance(ev, yaml.SequenceStartEvent) else yaml.MappingNode
+            tag = ev.tag
+            if tag is None or tag == "!":
+                tag = loader.resolve(kind, None, ev.implicit)
+            node = kind(tag, [], ev.start_mark, None, flow_style=ev.flow_style)
+        elif isinstance(ev, yaml.SequenceEndEvent | yaml.MappingEndEvent):
+            stack.pop()[0].end_mark = ev.end_mark
+            continue
+        else:  # the parser only emits these in order; anything else is a bug of ours
+            raise yaml.composer.ComposerError(None, None, f"unexpected {type(ev).__name__}", ev.start_mark)
+        anchor = getattr(ev, "anchor", None)
+        if anchor is not None and not isinstance(ev, yaml.AliasEvent):
+            anchors[anchor] = node
+        if not stack:
+            root = node
+        elif isinstance(stack[-1][0], yaml.SequenceNode):
+            stack[-1][0].value.append(node)
+        elif stack[-1][1] is None:
+            stack[-1][1] = node
+        else:
+            stack[-1][0].value.append((stack[-1][1], node))
+            stack[-1][1] = None
+        if isinstance(node, yaml.SequenceNode | yaml.MappingNode) and not isinstance(ev, yaml.AliasEvent):
+            stack.append([node, None])
+    loader.get_event()  # document end
+    if not loader.check_event(yaml.StreamEndEvent):
+        raise _Limit("one YAML document per file; found a second", loader.peek_event().start_mark.line + 1)
+    loader.get_event()
+    return root
+
+
+def load_yaml(
+    file: str | Path,
+    text: str | None = None,
+    max_bytes: int = CONFIG_MAX_BYTES,
+    max_values: int = CONFIG_MAX_VALUES,
+) -> Document:
+    """Parse a YAML file keeping each key's line; syntax errors are ConfigError.
+
+    Bounded: at most `max_bytes` (regular files only) holding `max_values` values,
+    MAX_DEPTH levels of nesting and MAX_ALIAS_VALUES values reached through aliases,
+    so no input hangs or overflows the stack.
+    """
     file = str(file)
     if text is None:
-        try:
-            text = Path(file).read_text(encoding="utf-8")
-        except OSError as e:
-            raise ConfigError(f"cannot read: {e.strerror or e}", file=file) from None
-        except UnicodeDecodeError:
-            raise ConfigError("not a UTF-8 text file", file=file) from None
-    loader = yaml.SafeLoader(text)
+        text = read_bounded(file, max_bytes)
+    elif len(text) > max_bytes:
+        raise ConfigError(f"text is {len(text)} characters, larger than the limit of {max_bytes}", file=file)
+    loader = _Loader(text)
+    doc = Document(None, file)
     try:
-        node = loader.get_single_node()
-        doc = Document(None, file)
-        doc.data = _construct(loader, node, (), doc) if node is not None else None
+        node = _compose(loader, max_values)
+        if node is not None:
+            doc.data = _Builder(loader, doc).build(node, ())
+    except _Limit as e:
+        raise ConfigError(e.message, file=file, line=e.line) from None
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or e.context_mark
         line = mark.line + 1 if mark is not None else None
@@ -82,32 +223,59 @@ def load_yaml(file: str | Path, text: str | None = None) -> Document:
     return doc
 
 
-def _construct(loader: yaml.SafeLoader, node: yaml.Node, path: PathT, doc: Document) -> Any:
-    doc.lines.setdefault(path, node.start_mark.line + 1)
-    if isinstance(node, yaml.MappingNode):
-        loader.flatten_mapping(node)
-        out: dict[Any, Any] = {}
+class _Builder:
+    """Composed nodes → plain data with each key's line, within the limits."""
+
+    def __init__(self, loader: Any, doc: Document) -> None:
+        self.loader = loader
+        self.doc = doc
+        self.seen: set[int] = set()
+        self.via_alias = 0
+
+    def build(self, node: yaml.Node, path: PathT) -> Any:
+        line = node.start_mark.line + 1
+        if len(path) > MAX_DEPTH:  # an alias placed deep, or an alias inside its own anchor
+            raise _Limit(f"nested deeper than {MAX_DEPTH} levels (aliases expanded)", line)
+        if id(node) in self.seen:
+            self.via_alias += 1
+            if self.via_alias > MAX_ALIAS_VALUES:
+                raise _Limit(f"aliases expand to more than {MAX_ALIAS_VALUES} values", line)
+        else:
+            self.seen.add(id(node))
+        self.doc.lines.setdefault(path, line)
+        if isinstance(node, yaml.MappingNode):
+            return self._mapping(node, path)
+        if isinstance(node, yaml.SequenceNode):
+            return [self.build(item, (*path, i)) for i, item in enumerate(node.value)]
+        try:
+            return self.loader.construct_object(node, deep=True)
+        except (ValueError, OverflowError) as e:  # e.g. an integer of more than 4300 digits
+            raise _Limit(f"bad value: {e}", line) from None
+
+    def _mapping(self, node: yaml.MappingNode, path: PathT) -> dict[str, Any]:
+        merged: dict[str, Any] = {}
+        out: dict[str, Any] = {}
         for key_node, value_node in node.value:
-            key = loader.construct_object(key_node, deep=True)
+            kline = key_node.start_mark.line + 1
+            if key_node.tag == _MERGE_TAG:  # `<<: *base` or `<<: [*a, *b]`; explicit keys win
+                subs = value_node.value if isinstance(value_node, yaml.SequenceNode) else [value_node]
+                for sub in reversed(subs):  # the first mapping listed wins
+                    if not isinstance(sub, yaml.MappingNode):
+                        raise _Limit("'<<' merges mappings only", kline)
+                    merged.update(self.build(sub, path))
+                continue
+            if not isinstance(key_node, yaml.ScalarNode):
+                raise ConfigError("keys must be plain names", file=self.doc.file, line=kline, path=path)
+            key = self.build(key_node, path)
             if not isinstance(key, str | int | float | bool) or key is None:
-                raise ConfigError(
-                    "keys must be plain names",
-                    file=doc.file,
-                    line=key_node.start_mark.line + 1,
-                    path=path,
-                )
+                raise ConfigError("keys must be plain names", file=self.doc.file, line=kline, path=path)
             key = str(key)
-            sub = (*path, key)
+            sub_path = (*path, key)
             if key in out:
-                raise ConfigError(
-                    "duplicate key", file=doc.file, line=key_node.start_mark.line + 1, path=sub
-                )
-            doc.lines[sub] = key_node.start_mark.line + 1
-            out[key] = _construct(loader, value_node, sub, doc)
-        return out
-    if isinstance(node, yaml.SequenceNode):
-        return [_construct(loader, item, (*path, i), doc) for i, item in enumerate(node.value)]
-    return loader.construct_object(node, deep=True)
+                raise ConfigError("duplicate key", file=self.doc.file, line=kline, path=sub_path)
+            self.doc.lines[sub_path] = kline
+            out[key] = self.build(value_node, sub_path)
+        return {**merged, **out} if merged else out
 
 
 # ---------------------------------------------------------------- pydantic errors
@@ -458,8 +626,8 @@ def _plugin(registry: Any, data: Any, doc: Document, path: PathT) -> tuple[type,
 
 
 def load_model_file(file: str | Path) -> tuple[Document, dict[str, Any]]:
-    """Read a model YAML (CONTRACT: kind, inputs, outputs, params, fit)."""
-    doc = load_yaml(file)
+    """Read a model YAML (CONTRACT: kind, inputs, outputs, params, fit); at most MODEL_MAX_BYTES."""
+    doc = load_yaml(file, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
     data = doc.data
     if not isinstance(data, dict):
         raise doc.error("a model file is a mapping with kind, inputs, outputs, params", ())
