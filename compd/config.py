@@ -26,12 +26,19 @@ PathT = tuple[str | int, ...]
 
 
 class Strict(BaseModel):
-    """Base of every config model: unknown keys are errors, values are immutable."""
+    """Base of every config model: unknown keys are errors, values are immutable, and every
+    number is finite (`.inf`/`.nan` would switch a limit off)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 PositiveS = Annotated[float, Field(gt=0)]
+
+# Physical bounds shared by several sections (see docs/configuration.md).
+SIGNAL_ABS_MAX = 1e6  # any signal: °C, rpm (≤ 10⁵), mm, A — a limit beyond ±10⁶ is a typo
+MAX_CORRECTION_UM = 10_000.0  # 10 mm: thermal errors are tens to hundreds of µm
+MIN_SLEW_UM_PER_S = 1e-4  # 0.36 µm/h: slower never follows a thermal drift
+MAX_SLEW_UM_PER_S = 1000.0  # 1 mm/s: a faster "slew limit" limits nothing
 
 
 # --------------------------------------------------------------------------- YAML
@@ -353,7 +360,7 @@ class RealtimeConfig(Strict):
         "other", description="scheduling policy of the cycle thread (fifo needs realtime.conf)"
     )
     priority: int = Field(50, ge=1, le=99, description="SCHED_FIFO priority of the cycle thread")
-    cpu_affinity: list[Annotated[int, Field(ge=0)]] | None = Field(
+    cpu_affinity: list[Annotated[int, Field(ge=0, le=1023)]] | None = Field(
         None, description="CPUs the cycle thread may run on; none = any"
     )
     lock_memory: bool = Field(False, description="lock all memory (mlockall) against paging")
@@ -366,14 +373,20 @@ class PlantClockConfig(Strict):
     port: int = Field(ge=1, le=65535, description="the plant's Modbus TCP port")
     device_id: int = Field(1, ge=0, le=247, description="unit id of the plant's register map")
     address: int = Field(0, ge=0, le=65534, description="plant time, ms, uint32 in two registers (high first)")
-    poll_period_s: float = Field(0.001, gt=0, le=1, description="wall time between clock reads")
-    stall_s: float = Field(0.5, gt=0, description="wall time without plant progress before a wait gives up")
+    poll_period_s: float = Field(0.001, ge=0.0001, le=1, description="wall time between clock reads")
+    stall_s: float = Field(
+        0.5, ge=0.01, le=3600, description="wall time without plant progress before a wait gives up"
+    )
 
 
 class LoopConfig(Strict):
     """The fixed-period cycle."""
 
-    period_s: float = Field(0.002, gt=0, le=60, description="cycle period")
+    period_s: float = Field(
+        0.002, ge=0.0005, le=60,
+        description="cycle period (0.5 ms: below that Python cannot keep a schedule; 60 s: thermal"
+        " time constants are tens of minutes, a slower cycle no longer follows them)",
+    )
     clock: Literal["wall", "sim", "plant"] = Field(
         "wall",
         description="wall time, simulated time, or a plant's clock (plant_clock): then every"
@@ -381,12 +394,14 @@ class LoopConfig(Strict):
     )
     plant_clock: PlantClockConfig | None = Field(None, description="clock: plant — where to read it")
     speedup: float = Field(
-        0.0, ge=0, description="sim clock only: simulated seconds per wall second, 0 = flat out"
+        0.0, ge=0, le=1e6, description="sim clock only: simulated seconds per wall second, 0 = flat out"
     )
     spin_margin_s: float = Field(
         0.0002, ge=0, le=0.01, description="sleep until this long before a deadline, then spin"
     )
-    duration_s: float | None = Field(None, gt=0, description="stop after this long (loop time)")
+    duration_s: float | None = Field(
+        None, gt=0, le=1e9, description="stop after this long (loop time; 1e9 s is 31 years)"
+    )
     gil_switch_interval_s: float = Field(
         0.0001, gt=0, le=0.005,
         description="wall clock: how soon a thread holding the GIL must hand it to the waking cycle",
@@ -403,20 +418,40 @@ class LoopConfig(Strict):
 class SignalLimits(Strict):
     """Plausibility limits of one signal."""
 
-    min: float = Field(-40.0, description="lowest plausible value (°C for temperatures)")
-    max: float = Field(150.0, description="highest plausible value")
-    max_rate_per_s: float | None = Field(None, gt=0, description="largest plausible change per s")
-    rate_allowance: float = Field(
-        0.3, ge=0, description="added to max_rate_per_s × dt: room for noise and quantization"
+    min: float = Field(
+        -40.0, ge=-SIGNAL_ABS_MAX, le=SIGNAL_ABS_MAX,
+        description="lowest plausible value (°C for temperatures; any signal's unit: rpm, mm, A)",
     )
-    stale_after_s: float | None = Field(None, gt=0, description="older than this is stale")
+    max: float = Field(
+        150.0, ge=-SIGNAL_ABS_MAX, le=SIGNAL_ABS_MAX, description="highest plausible value; above min"
+    )
+    max_rate_per_s: float | None = Field(
+        None, gt=0, le=SIGNAL_ABS_MAX, description="largest plausible change per s"
+    )
+    rate_allowance: float = Field(
+        0.3, ge=0, le=SIGNAL_ABS_MAX,
+        description="added to max_rate_per_s × dt: room for noise and quantization",
+    )
+    stale_after_s: float | None = Field(
+        None, gt=0, le=3600, description="older than this is stale; longer than loop.period_s"
+    )
     frozen_after_s: float | None = Field(
         None,
         gt=0,
+        le=7 * 86400,
         description="a value that has not changed by more than frozen_band for this long, while"
-        " another model input changed, is frozen (a stuck transmitter); none = not checked",
+        " another model input changed, is frozen (a stuck transmitter); none = not checked;"
+        " longer than loop.period_s",
     )
-    frozen_band: float = Field(0.0, ge=0, description="a change of at most this much is no change")
+    frozen_band: float = Field(
+        0.0, ge=0, le=SIGNAL_ABS_MAX, description="a change of at most this much is no change"
+    )
+
+    @model_validator(mode="after")
+    def _order(self) -> SignalLimits:
+        if not self.min < self.max:
+            raise ValueError(f"min ({self.min:g}) must be below max ({self.max:g})")
+        return self
 
 
 class AxisGuardConfig(Strict):
@@ -425,23 +460,36 @@ class AxisGuardConfig(Strict):
     fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = Field(
         None, description="this axis's fault policy; none = guard.fault_policy"
     )
-    max_abs_um: float | None = Field(None, gt=0, description="this axis's clamp; none = guard.max_abs_um")
+    max_abs_um: float | None = Field(
+        None, gt=0, le=MAX_CORRECTION_UM, description="this axis's clamp; none = guard.max_abs_um"
+    )
     max_slew_um_per_s: float | None = Field(
-        None, gt=0, description="this axis's slew limit; none = guard.max_slew_um_per_s"
+        None, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
+        description="this axis's slew limit; none = guard.max_slew_um_per_s",
     )
 
 
 class GuardConfig(Strict):
     """What reaches the machine: plausibility, clamp, slew, fault policy."""
 
-    max_abs_um: float = Field(63.0, gt=0, description="magnitude clamp on the correction")
-    max_slew_um_per_s: float = Field(5.0, gt=0, description="largest rate of change")
+    max_abs_um: float = Field(
+        63.0, gt=0, le=MAX_CORRECTION_UM,
+        description="magnitude clamp on the correction (thermal errors are tens to hundreds of µm)",
+    )
+    max_slew_um_per_s: float = Field(
+        5.0, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
+        description="largest rate of change (thermal errors drift by µm per minute)",
+    )
     fault_policy: Literal["hold", "ramp_to_zero", "disable"] = Field(
         "hold", description="what an axis does when an input it needs goes bad"
     )
-    ramp_um_per_s: float = Field(1.0, gt=0, description="ramp_to_zero rate")
-    recovery_s: float = Field(5.0, ge=0, description="inputs good this long before recovery")
-    stale_after_s: float = Field(5.0, gt=0, description="default staleness limit of a signal")
+    ramp_um_per_s: float = Field(
+        1.0, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S, description="ramp_to_zero rate"
+    )
+    recovery_s: float = Field(5.0, ge=0, le=3600, description="inputs good this long before recovery")
+    stale_after_s: float = Field(
+        5.0, gt=0, le=3600, description="default staleness limit of a signal; longer than loop.period_s"
+    )
     signals: dict[str, SignalLimits] = Field(
         default_factory=dict, description="plausibility limits by signal name"
     )
@@ -453,24 +501,43 @@ class GuardConfig(Strict):
 class CodecConfig(Strict):
     """The 16-bit word of SPEC §2."""
 
-    lsb_um: float = Field(1.0, gt=0, description="µm per magnitude LSB")
-    deadband_um: float = Field(1.0, ge=0, description="|c| at or below this is sent as disabled")
+    lsb_um: float = Field(
+        1.0, ge=0.01, le=100,
+        description="µm per magnitude LSB (63 LSB of 0.01 µm to 100 µm: 0.63 µm to 6.3 mm full scale)",
+    )
+    deadband_um: float = Field(
+        1.0, ge=0, le=100,
+        description="|c| at or below this is sent as disabled; below full scale (63 × lsb_um)",
+    )
     axes: list[str] | None = Field(
         None, max_length=2, description="model outputs on the high and low byte (default: in order)"
     )
+
+    @model_validator(mode="after")
+    def _deadband_below_full_scale(self) -> CodecConfig:
+        from compd.codec import MAX_MAG
+
+        if not self.deadband_um < MAX_MAG * self.lsb_um:
+            raise ValueError(
+                f"deadband_um {self.deadband_um:g} is not below the word's full scale"
+                f" ({MAX_MAG} × lsb_um = {MAX_MAG * self.lsb_um:g} µm): every correction would be sent disabled"
+            )
+        return self
 
 
 class LogConfig(Strict):
     """The CSV data log."""
 
     path: str | None = Field(None, description="log file; none = no log")
-    period_s: float = Field(1.0, gt=0, description="one row per this period, plus every word change")
-    flush_s: float = Field(1.0, gt=0, description="flush to disk at least this often")
+    period_s: float = Field(
+        1.0, ge=0.0005, le=86400, description="one row per this period, plus every word change"
+    )
+    flush_s: float = Field(1.0, ge=0.01, le=3600, description="flush to disk at least this often")
     rotate_bytes: int | None = Field(
-        None, ge=1024, description="start a new file when the log reaches this size; none = never"
+        None, ge=1024, le=1 << 40, description="start a new file when the log reaches this size; none = never"
     )
     rotate_s: float | None = Field(
-        None, gt=0, description="start a new file after this long (wall time); none = never"
+        None, ge=1, le=366 * 86400, description="start a new file after this long (wall time); none = never"
     )
     keep: int = Field(5, ge=0, le=1000, description="rotated files kept (<name>.1 newest)")
 
@@ -478,7 +545,7 @@ class LogConfig(Strict):
 class ConsoleConfig(Strict):
     """A live table on stdout (demo, commissioning)."""
 
-    period_s: float = Field(0.0, ge=0, description="one row per this much loop time; 0 = off")
+    period_s: float = Field(0.0, ge=0, le=86400, description="one row per this much loop time; 0 = off")
     summary: bool = Field(True, description="print RMS without/with compensation at exit")
 
 
@@ -565,7 +632,9 @@ class ModelSection(Strict):
     params: dict[str, Any] | None = Field(
         None, description="inline parameters (see the kind's params); or give 'file'"
     )
-    update_period_s: float | None = Field(None, ge=0, description="model step; 0 = every cycle")
+    update_period_s: float | None = Field(
+        None, ge=0, le=86400, description="model step; 0 = every cycle"
+    )
 
 
 @dataclass
@@ -689,6 +758,19 @@ def resolve_model(section: Any, doc: Document, path: PathT, base_dir: Path) -> M
     return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path)
 
 
+def _check_timings(top: ConfigModel, doc: Document) -> None:
+    """Limits measured in time must exceed one cycle: the loop looks once per period, so a
+    sample it reads is up to a period old and a shorter limit would fault every input."""
+    period = top.loop.period_s
+    limits: list[tuple[float | None, PathT]] = [(top.guard.stale_after_s, ("guard", "stale_after_s"))]
+    for name, lim in top.guard.signals.items():
+        limits.append((lim.stale_after_s, ("guard", "signals", name, "stale_after_s")))
+        limits.append((lim.frozen_after_s, ("guard", "signals", name, "frozen_after_s")))
+    for value, path in limits:
+        if value is not None and not value > period:
+            raise doc.error(f"{value:g} s is not longer than one cycle (loop.period_s = {period:g} s)", path)
+
+
 def load_config(file: str | Path, text: str | None = None) -> Config:
     """Load and validate a config file; raises ConfigError (exit 2) on any problem."""
     from compd.sinks import SINKS
@@ -698,6 +780,7 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
     if doc.data is None:
         raise ConfigError("the config is empty", file=doc.file)
     top = validate(ConfigModel, doc.data, doc, (), what="config")
+    _check_timings(top, doc)
     sources = []
     names: set[str] = set()
     for i, sec in enumerate(top.sources):
