@@ -230,7 +230,7 @@ def accepted_config(draw: st.DrawFn) -> dict[str, Any]:
     return data
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+@settings(max_examples=int(__import__("os").environ.get("COMPD_RANGE_EXAMPLES", "40")), deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                   HealthCheck.function_scoped_fixture])
 @given(accepted_config())
 def test_accepted_configs_run(tmp_path_factory: pytest.TempPathFactory, data: dict[str, Any]) -> None:
