@@ -433,7 +433,7 @@ class SignalLimits(Strict):
         description="added to max_rate_per_s × dt: room for noise and quantization",
     )
     stale_after_s: float | None = Field(
-        None, gt=0, le=3600, description="older than this is stale; longer than loop.period_s"
+        None, gt=0, le=86400, description="older than this is stale; longer than loop.period_s"
     )
     frozen_after_s: float | None = Field(
         None,
@@ -488,7 +488,7 @@ class GuardConfig(Strict):
     )
     recovery_s: float = Field(5.0, ge=0, le=3600, description="inputs good this long before recovery")
     stale_after_s: float = Field(
-        5.0, gt=0, le=3600, description="default staleness limit of a signal; longer than loop.period_s"
+        5.0, gt=0, le=86400, description="default staleness limit of a signal; longer than loop.period_s"
     )
     signals: dict[str, SignalLimits] = Field(
         default_factory=dict, description="plausibility limits by signal name"

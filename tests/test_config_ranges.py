@@ -188,13 +188,13 @@ def accepted_config(draw: st.DrawFn) -> dict[str, Any]:
     lsb = draw(_between(0.01, 100.0))
     lo = draw(_between(-1e6, 1e6 - 1))
     hi = draw(_between(lo, 1e6).filter(lambda x: x > lo))
-    stale = draw(_between(min(period * 1.001, 3600.0), 3600.0))
+    stale = draw(_between(period * 1.001, 86400.0))
     signal: dict[str, Any] = {"min": lo, "max": hi}
     if draw(st.booleans()):
         signal["max_rate_per_s"] = draw(_between(1e-9, 1e6))
         signal["rate_allowance"] = draw(_between(0.0, 1e6))
     if draw(st.booleans()):
-        signal["stale_after_s"] = draw(_between(min(period * 1.001, 3600.0), 3600.0))
+        signal["stale_after_s"] = draw(_between(period * 1.001, 86400.0))
     if draw(st.booleans()):
         signal["frozen_after_s"] = draw(_between(period * 1.001, 7 * 86400.0))
         signal["frozen_band"] = draw(_between(0.0, 1e6))

@@ -56,7 +56,7 @@ class CanConfig(SourceConfig):
         default_factory=lambda: [0x7FFF, 0x8001]
     )
     timeout_s: float = Field(1.0, ge=0.001, le=3600, description="no frame this long: COMMS_LOST")
-    stale_after_s: float | None = Field(None, ge=0.001, le=3600)
+    stale_after_s: float | None = Field(None, ge=0.001, le=86400)
     signals: list[CanSignal] = Field(min_length=1)
 
     @model_validator(mode="after")

@@ -62,7 +62,7 @@ class DconConfig(SourceConfig):
     burnout_codes: list[str] = Field(default_factory=lambda: ["-9999.9"])
     poll_period_s: float = Field(0.2, ge=0.001, le=60)
     timeout_s: float = Field(0.3, ge=0.001, le=30)
-    stale_after_s: float | None = Field(None, gt=0, le=3600, description="longer than poll_period_s")
+    stale_after_s: float | None = Field(None, gt=0, le=86400, description="longer than poll_period_s")
 
     @model_validator(mode="after")
     def _check(self) -> DconConfig:

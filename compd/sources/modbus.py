@@ -117,7 +117,7 @@ class ModbusConfig(SourceConfig):
     poll_period_s: float = Field(0.1, ge=0.001, le=60)
     timeout_s: float = Field(0.25, ge=0.001, le=30)
     stale_after_s: float | None = Field(
-        None, gt=0, le=3600, description="older samples read as STALE; longer than poll_period_s"
+        None, gt=0, le=86400, description="older samples read as STALE; longer than poll_period_s"
     )
     reconnect_min_s: float = Field(0.1, ge=0.01, le=60)
     reconnect_max_s: float = Field(10.0, ge=0.01, le=3600, description="at least reconnect_min_s")
