@@ -114,3 +114,15 @@ def test_limits_leave_room_for_real_files() -> None:
         assert path.stat().st_size < CONFIG_MAX_BYTES // 100
         load_config(path)
     assert MAX_DEPTH >= 32 and MAX_ALIAS_VALUES >= 1000
+
+
+def test_replay_source_on_a_device_is_refused(tmp_path: Path) -> None:
+    """check-config builds the sources: a replay log that is /dev/zero must not hang it."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        "loop: {clock: sim, period_s: 0.1}\n"
+        "sources: [{kind: replay, name: r, path: /dev/zero}]\n"
+        "model: {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 1.0e-5, length_mm: 100}}\n"
+        "sink: {kind: pci1756}\n"
+    )
+    assert_refused(check_config(cfg), "/dev/zero", "not a regular file")
