@@ -32,7 +32,8 @@ def encode_byte(c_um: float, lsb_um: float = 1.0, deadband_um: float = 1.0) -> t
     """
     if not math.isfinite(c_um) or abs(c_um) <= deadband_um:
         return 0, False
-    mag = math.floor(abs(c_um) / lsb_um + 0.5)
+    q = abs(c_um) / lsb_um + 0.5  # inf for a denormal LSB: clamp before floor() overflows
+    mag = math.floor(q) if q < MAX_MAG + 1 else MAX_MAG + 1
     saturated = mag > MAX_MAG
     if saturated:
         mag = MAX_MAG

@@ -9,6 +9,8 @@ registries, so each driver owns its options (STYLE: one config section, one modu
 from __future__ import annotations
 
 import difflib
+import os
+import stat
 import types
 import typing
 from dataclasses import dataclass, field
@@ -24,12 +26,19 @@ PathT = tuple[str | int, ...]
 
 
 class Strict(BaseModel):
-    """Base of every config model: unknown keys are errors, values are immutable."""
+    """Base of every config model: unknown keys are errors, values are immutable, and every
+    number is finite (`.inf`/`.nan` would switch a limit off)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 PositiveS = Annotated[float, Field(gt=0)]
+
+# Physical bounds shared by several sections (see docs/configuration.md).
+SIGNAL_ABS_MAX = 1e6  # any signal: °C, rpm (≤ 10⁵), mm, A — a limit beyond ±10⁶ is a typo
+MAX_CORRECTION_UM = 10_000.0  # 10 mm: thermal errors are tens to hundreds of µm
+MIN_SLEW_UM_PER_S = 1e-4  # 0.36 µm/h: slower never follows a thermal drift
+MAX_SLEW_UM_PER_S = 1000.0  # 1 mm/s: a faster "slew limit" limits nothing
 
 
 # --------------------------------------------------------------------------- YAML
@@ -56,21 +65,160 @@ class Document:
         return ConfigError(message, file=self.file, line=self.line_of(path), path=path)
 
 
-def load_yaml(file: str | Path, text: str | None = None) -> Document:
-    """Parse a YAML file keeping each key's line; syntax errors are ConfigError."""
+# Limits of the YAML reader: a config or model file is refused (exit 2, one line) rather
+# than read without bound. The example configs are under 2 KB; a fitted lvr model of 19
+# sensors is 11 KB and grows with sensors² (its covariance), so 4 MiB holds ~400 sensors.
+CONFIG_MAX_BYTES = 1 << 20  # 1 MiB
+MODEL_MAX_BYTES = 4 << 20  # 4 MiB
+MAX_DEPTH = 64  # nesting of mappings and lists (the examples nest 5 deep)
+MAX_ALIAS_VALUES = 10_000  # values reached through aliases (*name, <<: *name), after expansion
+CONFIG_MAX_VALUES = 100_000  # scalars, lists and mappings in a config (the examples: < 200)
+MODEL_MAX_VALUES = 1_000_000  # in a model file (the 19-sensor lvr: ~1 000)
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+class _Limit(Exception):
+    """A YAML limit was hit at `line` (1-based, or None)."""
+
+    def __init__(self, message: str, line: int | None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.line = line
+
+
+def read_bounded(file: str, max_bytes: int) -> str:
+    """A regular file's text, refused when it is larger than `max_bytes`.
+
+    Opened non-blocking, so a FIFO without a writer does not hang the open; a
+    directory, FIFO, socket or device (/dev/zero) is refused after `fstat`.
+    """
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(file, flags)
+    except OSError as e:
+        raise ConfigError(f"cannot read: {e.strerror or e}", file=file) from None
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise ConfigError("cannot read: is a directory", file=file)
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError("cannot read: not a regular file (a device, FIFO or socket)", file=file)
+        if st.st_size > max_bytes:
+            raise ConfigError(f"file is {st.st_size} bytes, larger than the limit of {max_bytes}", file=file)
+        chunks, size = [], 0
+        while size <= max_bytes:
+            chunk = os.read(fd, max_bytes + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        if size > max_bytes:  # it grew after fstat
+            raise ConfigError(f"file is larger than the limit of {max_bytes} bytes", file=file)
+    except OSError as e:
+        raise ConfigError(f"cannot read: {e.strerror or e}", file=file) from None
+    finally:
+        os.close(fd)
+    try:
+        return b"".join(chunks).decode("utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError("not a UTF-8 text file", file=file) from None
+
+
+_Loader: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml when built with it: 6× faster
+
+
+def _compose(loader: Any, max_values: int) -> yaml.Node | None:
+    """The single document's node tree, composed from parser events without recursion.
+
+    PyYAML's own composer recurses once per level (RecursionError at ~300 levels, and
+    libyaml's composer segfaults on 200 000 nested `[`); this one stops at MAX_DEPTH.
+    """
+    loader.get_event()  # stream start
+    if loader.check_event(yaml.StreamEndEvent):
+        loader.get_event()
+        return None
+    loader.get_event()  # document start
+    anchors: dict[str, yaml.Node] = {}
+    stack: list[list[Any]] = []  # [collection node, pending key node or None]
+    root: yaml.Node | None = None
+    count = 0
+    while root is None or stack:
+        ev = loader.get_event()
+        count += 1
+        if count > max_values:
+            raise _Limit(f"more than {max_values} values", ev.start_mark.line + 1)
+        node: yaml.Node
+        if isinstance(ev, yaml.AliasEvent):
+            if ev.anchor not in anchors:
+                raise yaml.composer.ComposerError(
+                    None, None, f"found undefined alias {ev.anchor!r}", ev.start_mark
+                )
+            node = anchors[ev.anchor]
+        elif isinstance(ev, yaml.ScalarEvent):
+            tag = ev.tag
+            if tag is None or tag == "!":
+                tag = loader.resolve(yaml.ScalarNode, ev.value, ev.implicit)
+            node = yaml.ScalarNode(tag, ev.value, ev.start_mark, ev.end_mark, style=ev.style)
+        elif isinstance(ev, yaml.SequenceStartEvent | yaml.MappingStartEvent):
+            if len(stack) >= MAX_DEPTH:
+                raise _Limit(f"nested deeper than {MAX_DEPTH} levels", ev.start_mark.line + 1)
+            kind = yaml.SequenceNode if isinstance(ev, yaml.SequenceStartEvent) else yaml.MappingNode
+            tag = ev.tag
+            if tag is None or tag == "!":
+                tag = loader.resolve(kind, None, ev.implicit)
+            node = kind(tag, [], ev.start_mark, None, flow_style=ev.flow_style)
+        elif isinstance(ev, yaml.SequenceEndEvent | yaml.MappingEndEvent):
+            stack.pop()[0].end_mark = ev.end_mark
+            continue
+        else:  # the parser only emits these in order; anything else is a bug of ours
+            raise yaml.composer.ComposerError(None, None, f"unexpected {type(ev).__name__}", ev.start_mark)
+        anchor = getattr(ev, "anchor", None)
+        if anchor is not None and not isinstance(ev, yaml.AliasEvent):
+            anchors[anchor] = node
+        if not stack:
+            root = node
+        elif isinstance(stack[-1][0], yaml.SequenceNode):
+            stack[-1][0].value.append(node)
+        elif stack[-1][1] is None:
+            stack[-1][1] = node
+        else:
+            stack[-1][0].value.append((stack[-1][1], node))
+            stack[-1][1] = None
+        if isinstance(node, yaml.SequenceNode | yaml.MappingNode) and not isinstance(ev, yaml.AliasEvent):
+            stack.append([node, None])
+    loader.get_event()  # document end
+    if not loader.check_event(yaml.StreamEndEvent):
+        raise _Limit("one YAML document per file; found a second", loader.peek_event().start_mark.line + 1)
+    loader.get_event()
+    return root
+
+
+def load_yaml(
+    file: str | Path,
+    text: str | None = None,
+    max_bytes: int = CONFIG_MAX_BYTES,
+    max_values: int = CONFIG_MAX_VALUES,
+) -> Document:
+    """Parse a YAML file keeping each key's line; syntax errors are ConfigError.
+
+    Bounded: at most `max_bytes` (regular files only) holding `max_values` values,
+    MAX_DEPTH levels of nesting and MAX_ALIAS_VALUES values reached through aliases,
+    so no input hangs or overflows the stack.
+    """
     file = str(file)
     if text is None:
-        try:
-            text = Path(file).read_text(encoding="utf-8")
-        except OSError as e:
-            raise ConfigError(f"cannot read: {e.strerror or e}", file=file) from None
-        except UnicodeDecodeError:
-            raise ConfigError("not a UTF-8 text file", file=file) from None
-    loader = yaml.SafeLoader(text)
+        text = read_bounded(file, max_bytes)
+    elif len(text) > max_bytes:
+        raise ConfigError(f"text is {len(text)} characters, larger than the limit of {max_bytes}", file=file)
+    loader = _Loader(text)
+    doc = Document(None, file)
     try:
-        node = loader.get_single_node()
-        doc = Document(None, file)
-        doc.data = _construct(loader, node, (), doc) if node is not None else None
+        node = _compose(loader, max_values)
+        if node is not None:
+            doc.data = _Builder(loader, doc).build(node, ())
+    except _Limit as e:
+        raise ConfigError(e.message, file=file, line=e.line) from None
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or e.context_mark
         line = mark.line + 1 if mark is not None else None
@@ -82,32 +230,59 @@ def load_yaml(file: str | Path, text: str | None = None) -> Document:
     return doc
 
 
-def _construct(loader: yaml.SafeLoader, node: yaml.Node, path: PathT, doc: Document) -> Any:
-    doc.lines.setdefault(path, node.start_mark.line + 1)
-    if isinstance(node, yaml.MappingNode):
-        loader.flatten_mapping(node)
-        out: dict[Any, Any] = {}
+class _Builder:
+    """Composed nodes → plain data with each key's line, within the limits."""
+
+    def __init__(self, loader: Any, doc: Document) -> None:
+        self.loader = loader
+        self.doc = doc
+        self.seen: set[int] = set()
+        self.via_alias = 0
+
+    def build(self, node: yaml.Node, path: PathT) -> Any:
+        line = node.start_mark.line + 1
+        if len(path) > MAX_DEPTH:  # an alias placed deep, or an alias inside its own anchor
+            raise _Limit(f"nested deeper than {MAX_DEPTH} levels (aliases expanded)", line)
+        if id(node) in self.seen:
+            self.via_alias += 1
+            if self.via_alias > MAX_ALIAS_VALUES:
+                raise _Limit(f"aliases expand to more than {MAX_ALIAS_VALUES} values", line)
+        else:
+            self.seen.add(id(node))
+        self.doc.lines.setdefault(path, line)
+        if isinstance(node, yaml.MappingNode):
+            return self._mapping(node, path)
+        if isinstance(node, yaml.SequenceNode):
+            return [self.build(item, (*path, i)) for i, item in enumerate(node.value)]
+        try:
+            return self.loader.construct_object(node, deep=True)
+        except (ValueError, OverflowError) as e:  # e.g. an integer of more than 4300 digits
+            raise _Limit(f"bad value: {e}", line) from None
+
+    def _mapping(self, node: yaml.MappingNode, path: PathT) -> dict[str, Any]:
+        merged: dict[str, Any] = {}
+        out: dict[str, Any] = {}
         for key_node, value_node in node.value:
-            key = loader.construct_object(key_node, deep=True)
+            kline = key_node.start_mark.line + 1
+            if key_node.tag == _MERGE_TAG:  # `<<: *base` or `<<: [*a, *b]`; explicit keys win
+                subs = value_node.value if isinstance(value_node, yaml.SequenceNode) else [value_node]
+                for sub in reversed(subs):  # the first mapping listed wins
+                    if not isinstance(sub, yaml.MappingNode):
+                        raise _Limit("'<<' merges mappings only", kline)
+                    merged.update(self.build(sub, path))
+                continue
+            if not isinstance(key_node, yaml.ScalarNode):
+                raise ConfigError("keys must be plain names", file=self.doc.file, line=kline, path=path)
+            key = self.build(key_node, path)
             if not isinstance(key, str | int | float | bool) or key is None:
-                raise ConfigError(
-                    "keys must be plain names",
-                    file=doc.file,
-                    line=key_node.start_mark.line + 1,
-                    path=path,
-                )
+                raise ConfigError("keys must be plain names", file=self.doc.file, line=kline, path=path)
             key = str(key)
-            sub = (*path, key)
+            sub_path = (*path, key)
             if key in out:
-                raise ConfigError(
-                    "duplicate key", file=doc.file, line=key_node.start_mark.line + 1, path=sub
-                )
-            doc.lines[sub] = key_node.start_mark.line + 1
-            out[key] = _construct(loader, value_node, sub, doc)
-        return out
-    if isinstance(node, yaml.SequenceNode):
-        return [_construct(loader, item, (*path, i), doc) for i, item in enumerate(node.value)]
-    return loader.construct_object(node, deep=True)
+                raise ConfigError("duplicate key", file=self.doc.file, line=kline, path=sub_path)
+            self.doc.lines[sub_path] = kline
+            out[key] = self.build(value_node, sub_path)
+        return {**merged, **out} if merged else out
 
 
 # ---------------------------------------------------------------- pydantic errors
@@ -187,7 +362,7 @@ class RealtimeConfig(Strict):
         "other", description="scheduling policy of the cycle thread (fifo needs realtime.conf)"
     )
     priority: int = Field(50, ge=1, le=99, description="SCHED_FIFO priority of the cycle thread")
-    cpu_affinity: list[Annotated[int, Field(ge=0)]] | None = Field(
+    cpu_affinity: list[Annotated[int, Field(ge=0, le=1023)]] | None = Field(
         None, description="CPUs the cycle thread may run on; none = any"
     )
     lock_memory: bool = Field(False, description="lock all memory (mlockall) against paging")
@@ -200,14 +375,20 @@ class PlantClockConfig(Strict):
     port: int = Field(ge=1, le=65535, description="the plant's Modbus TCP port")
     device_id: int = Field(1, ge=0, le=247, description="unit id of the plant's register map")
     address: int = Field(0, ge=0, le=65534, description="plant time, ms, uint32 in two registers (high first)")
-    poll_period_s: float = Field(0.001, gt=0, le=1, description="wall time between clock reads")
-    stall_s: float = Field(0.5, gt=0, description="wall time without plant progress before a wait gives up")
+    poll_period_s: float = Field(0.001, ge=0.0001, le=1, description="wall time between clock reads")
+    stall_s: float = Field(
+        0.5, ge=0.01, le=3600, description="wall time without plant progress before a wait gives up"
+    )
 
 
 class LoopConfig(Strict):
     """The fixed-period cycle."""
 
-    period_s: float = Field(0.002, gt=0, le=60, description="cycle period")
+    period_s: float = Field(
+        0.002, ge=0.0005, le=60,
+        description="cycle period (0.5 ms: below that Python cannot keep a schedule; 60 s: thermal"
+        " time constants are tens of minutes, a slower cycle no longer follows them)",
+    )
     clock: Literal["wall", "sim", "plant"] = Field(
         "wall",
         description="wall time, simulated time, or a plant's clock (plant_clock): then every"
@@ -215,12 +396,14 @@ class LoopConfig(Strict):
     )
     plant_clock: PlantClockConfig | None = Field(None, description="clock: plant — where to read it")
     speedup: float = Field(
-        0.0, ge=0, description="sim clock only: simulated seconds per wall second, 0 = flat out"
+        0.0, ge=0, le=1e6, description="sim clock only: simulated seconds per wall second, 0 = flat out"
     )
     spin_margin_s: float = Field(
         0.0002, ge=0, le=0.01, description="sleep until this long before a deadline, then spin"
     )
-    duration_s: float | None = Field(None, gt=0, description="stop after this long (loop time)")
+    duration_s: float | None = Field(
+        None, gt=0, le=1e9, description="stop after this long (loop time; 1e9 s is 31 years)"
+    )
     gil_switch_interval_s: float = Field(
         0.0001, gt=0, le=0.005,
         description="wall clock: how soon a thread holding the GIL must hand it to the waking cycle",
@@ -237,20 +420,40 @@ class LoopConfig(Strict):
 class SignalLimits(Strict):
     """Plausibility limits of one signal."""
 
-    min: float = Field(-40.0, description="lowest plausible value (°C for temperatures)")
-    max: float = Field(150.0, description="highest plausible value")
-    max_rate_per_s: float | None = Field(None, gt=0, description="largest plausible change per s")
-    rate_allowance: float = Field(
-        0.3, ge=0, description="added to max_rate_per_s × dt: room for noise and quantization"
+    min: float = Field(
+        -40.0, ge=-SIGNAL_ABS_MAX, le=SIGNAL_ABS_MAX,
+        description="lowest plausible value (°C for temperatures; any signal's unit: rpm, mm, A)",
     )
-    stale_after_s: float | None = Field(None, gt=0, description="older than this is stale")
+    max: float = Field(
+        150.0, ge=-SIGNAL_ABS_MAX, le=SIGNAL_ABS_MAX, description="highest plausible value; above min"
+    )
+    max_rate_per_s: float | None = Field(
+        None, gt=0, le=SIGNAL_ABS_MAX, description="largest plausible change per s"
+    )
+    rate_allowance: float = Field(
+        0.3, ge=0, le=SIGNAL_ABS_MAX,
+        description="added to max_rate_per_s × dt: room for noise and quantization",
+    )
+    stale_after_s: float | None = Field(
+        None, gt=0, le=86400, description="older than this is stale; longer than loop.period_s"
+    )
     frozen_after_s: float | None = Field(
         None,
         gt=0,
+        le=7 * 86400,
         description="a value that has not changed by more than frozen_band for this long, while"
-        " another model input changed, is frozen (a stuck transmitter); none = not checked",
+        " another model input changed, is frozen (a stuck transmitter); none = not checked;"
+        " longer than loop.period_s",
     )
-    frozen_band: float = Field(0.0, ge=0, description="a change of at most this much is no change")
+    frozen_band: float = Field(
+        0.0, ge=0, le=SIGNAL_ABS_MAX, description="a change of at most this much is no change"
+    )
+
+    @model_validator(mode="after")
+    def _order(self) -> SignalLimits:
+        if not self.min < self.max:
+            raise ValueError(f"min ({self.min:g}) must be below max ({self.max:g})")
+        return self
 
 
 class AxisGuardConfig(Strict):
@@ -259,23 +462,36 @@ class AxisGuardConfig(Strict):
     fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = Field(
         None, description="this axis's fault policy; none = guard.fault_policy"
     )
-    max_abs_um: float | None = Field(None, gt=0, description="this axis's clamp; none = guard.max_abs_um")
+    max_abs_um: float | None = Field(
+        None, gt=0, le=MAX_CORRECTION_UM, description="this axis's clamp; none = guard.max_abs_um"
+    )
     max_slew_um_per_s: float | None = Field(
-        None, gt=0, description="this axis's slew limit; none = guard.max_slew_um_per_s"
+        None, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
+        description="this axis's slew limit; none = guard.max_slew_um_per_s",
     )
 
 
 class GuardConfig(Strict):
     """What reaches the machine: plausibility, clamp, slew, fault policy."""
 
-    max_abs_um: float = Field(63.0, gt=0, description="magnitude clamp on the correction")
-    max_slew_um_per_s: float = Field(5.0, gt=0, description="largest rate of change")
+    max_abs_um: float = Field(
+        63.0, gt=0, le=MAX_CORRECTION_UM,
+        description="magnitude clamp on the correction (thermal errors are tens to hundreds of µm)",
+    )
+    max_slew_um_per_s: float = Field(
+        5.0, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
+        description="largest rate of change (thermal errors drift by µm per minute)",
+    )
     fault_policy: Literal["hold", "ramp_to_zero", "disable"] = Field(
         "hold", description="what an axis does when an input it needs goes bad"
     )
-    ramp_um_per_s: float = Field(1.0, gt=0, description="ramp_to_zero rate")
-    recovery_s: float = Field(5.0, ge=0, description="inputs good this long before recovery")
-    stale_after_s: float = Field(5.0, gt=0, description="default staleness limit of a signal")
+    ramp_um_per_s: float = Field(
+        1.0, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S, description="ramp_to_zero rate"
+    )
+    recovery_s: float = Field(5.0, ge=0, le=3600, description="inputs good this long before recovery")
+    stale_after_s: float = Field(
+        5.0, gt=0, le=86400, description="default staleness limit of a signal; longer than loop.period_s"
+    )
     signals: dict[str, SignalLimits] = Field(
         default_factory=dict, description="plausibility limits by signal name"
     )
@@ -287,24 +503,43 @@ class GuardConfig(Strict):
 class CodecConfig(Strict):
     """The 16-bit word of SPEC §2."""
 
-    lsb_um: float = Field(1.0, gt=0, description="µm per magnitude LSB")
-    deadband_um: float = Field(1.0, ge=0, description="|c| at or below this is sent as disabled")
+    lsb_um: float = Field(
+        1.0, ge=0.01, le=100,
+        description="µm per magnitude LSB (63 LSB of 0.01 µm to 100 µm: 0.63 µm to 6.3 mm full scale)",
+    )
+    deadband_um: float = Field(
+        1.0, ge=0, le=100,
+        description="|c| at or below this is sent as disabled; below full scale (63 × lsb_um)",
+    )
     axes: list[str] | None = Field(
         None, max_length=2, description="model outputs on the high and low byte (default: in order)"
     )
+
+    @model_validator(mode="after")
+    def _deadband_below_full_scale(self) -> CodecConfig:
+        from compd.codec import MAX_MAG
+
+        if not self.deadband_um < MAX_MAG * self.lsb_um:
+            raise ValueError(
+                f"deadband_um {self.deadband_um:g} is not below the word's full scale"
+                f" ({MAX_MAG} × lsb_um = {MAX_MAG * self.lsb_um:g} µm): every correction would be sent disabled"
+            )
+        return self
 
 
 class LogConfig(Strict):
     """The CSV data log."""
 
     path: str | None = Field(None, description="log file; none = no log")
-    period_s: float = Field(1.0, gt=0, description="one row per this period, plus every word change")
-    flush_s: float = Field(1.0, gt=0, description="flush to disk at least this often")
+    period_s: float = Field(
+        1.0, ge=0.0005, le=86400, description="one row per this period, plus every word change"
+    )
+    flush_s: float = Field(1.0, ge=0.01, le=3600, description="flush to disk at least this often")
     rotate_bytes: int | None = Field(
-        None, ge=1024, description="start a new file when the log reaches this size; none = never"
+        None, ge=1024, le=1 << 40, description="start a new file when the log reaches this size; none = never"
     )
     rotate_s: float | None = Field(
-        None, gt=0, description="start a new file after this long (wall time); none = never"
+        None, ge=1, le=366 * 86400, description="start a new file after this long (wall time); none = never"
     )
     keep: int = Field(5, ge=0, le=1000, description="rotated files kept (<name>.1 newest)")
 
@@ -312,7 +547,7 @@ class LogConfig(Strict):
 class ConsoleConfig(Strict):
     """A live table on stdout (demo, commissioning)."""
 
-    period_s: float = Field(0.0, ge=0, description="one row per this much loop time; 0 = off")
+    period_s: float = Field(0.0, ge=0, le=86400, description="one row per this much loop time; 0 = off")
     summary: bool = Field(True, description="print RMS without/with compensation at exit")
 
 
@@ -399,7 +634,9 @@ class ModelSection(Strict):
     params: dict[str, Any] | None = Field(
         None, description="inline parameters (see the kind's params); or give 'file'"
     )
-    update_period_s: float | None = Field(None, ge=0, description="model step; 0 = every cycle")
+    update_period_s: float | None = Field(
+        None, ge=0, le=86400, description="model step; 0 = every cycle"
+    )
 
 
 @dataclass
@@ -460,8 +697,8 @@ def _plugin(registry: Any, data: Any, doc: Document, path: PathT) -> tuple[type,
 
 
 def load_model_file(file: str | Path) -> tuple[Document, dict[str, Any]]:
-    """Read a model YAML (CONTRACT: kind, inputs, outputs, params, fit)."""
-    doc = load_yaml(file)
+    """Read a model YAML (CONTRACT: kind, inputs, outputs, params, fit); at most MODEL_MAX_BYTES."""
+    doc = load_yaml(file, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
     data = doc.data
     if not isinstance(data, dict):
         raise doc.error("a model file is a mapping with kind, inputs, outputs, params", ())
@@ -536,6 +773,19 @@ def resolve_model(section: Any, doc: Document, path: PathT, base_dir: Path) -> M
     return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path)
 
 
+def _check_timings(top: ConfigModel, doc: Document) -> None:
+    """Limits measured in time must exceed one cycle: the loop looks once per period, so a
+    sample it reads is up to a period old and a shorter limit would fault every input."""
+    period = top.loop.period_s
+    limits: list[tuple[float | None, PathT]] = [(top.guard.stale_after_s, ("guard", "stale_after_s"))]
+    for name, lim in top.guard.signals.items():
+        limits.append((lim.stale_after_s, ("guard", "signals", name, "stale_after_s")))
+        limits.append((lim.frozen_after_s, ("guard", "signals", name, "frozen_after_s")))
+    for value, path in limits:
+        if value is not None and not value > period:
+            raise doc.error(f"{value:g} s is not longer than one cycle (loop.period_s = {period:g} s)", path)
+
+
 def load_config(file: str | Path, text: str | None = None) -> Config:
     """Load and validate a config file; raises ConfigError (exit 2) on any problem."""
     from compd.sinks import SINKS
@@ -545,6 +795,7 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
     if doc.data is None:
         raise ConfigError("the config is empty", file=doc.file)
     top = validate(ConfigModel, doc.data, doc, (), what="config")
+    _check_timings(top, doc)
     sources = []
     names: set[str] = set()
     for i, sec in enumerate(top.sources):

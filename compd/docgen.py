@@ -222,6 +222,18 @@ def generate() -> str:
         "`_s` seconds, `_um` µm, `_mm` mm, `_c` °C, `_per_k` 1/K, `_um_per_s` µm/s, `_rpm` rpm.",
         "`compd check-config FILE` validates a config without running it.",
         "",
+        "Every number must be finite (`.inf` and `.nan` are refused) and inside the range its",
+        "key states below; where a key's limit depends on another key (a signal's `min` below its",
+        "`max`, `codec.deadband_um` below the word's full scale 63 × `lsb_um`, staleness and frozen",
+        "limits longer than `loop.period_s`), its description says so.",
+        "",
+        "Limits of the YAML reader (config and model files alike; exceeding one is a one-line error,",
+        f"exit 2): a config is a regular file of at most {c.CONFIG_MAX_BYTES} bytes holding at most",
+        f"{c.CONFIG_MAX_VALUES} values; a model file (`model.file`) at most {c.MODEL_MAX_BYTES} bytes",
+        f"and {c.MODEL_MAX_VALUES} values; mappings and lists nest at most {c.MAX_DEPTH} levels; aliases",
+        f"(`*name`, `<<: *name`) expand to at most {c.MAX_ALIAS_VALUES} values in all; one YAML document",
+        "per file. A merge (`<<`) is overridden by the mapping's own keys.",
+        "",
     ]
     sections = []
     for key, f in c.ConfigModel.model_fields.items():

@@ -171,10 +171,10 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
 def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
     """Replay with a model file, the default guard and codec and the PMC in process."""
     from compd.app import build_model
-    from compd.config import load_yaml, resolve_model
+    from compd.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml, resolve_model
 
     path = Path(model_file)
-    doc = load_yaml(path)
+    doc = load_yaml(path, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
     if not isinstance(doc.data, dict) or "kind" not in doc.data:
         raise BadInput("a model file is a mapping with kind, inputs, outputs, params", file=str(path))
     spec = resolve_model({"kind": doc.data["kind"], "file": path.name}, doc, (), path.parent)

@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 
 @dataclass
@@ -162,14 +161,16 @@ class Scenario:
     @classmethod
     def load(cls, file: str | Path) -> Scenario:
         """Read a scenario YAML; errors are ValueError starting with the file name."""
-        try:
-            data = yaml.safe_load(Path(file).read_text(encoding="utf-8"))
-        except OSError as e:
-            raise ValueError(f"{file}: cannot read: {e.strerror or e}") from None
-        except yaml.YAMLError as e:
-            mark = getattr(e, "problem_mark", None)
-            where = f":{mark.line + 1}" if mark is not None else ""
-            raise ValueError(f"{file}{where}: not valid YAML: {getattr(e, 'problem', e)}") from None
+        from compd.config import load_yaml
+        from compd.errors import BadInput
+
+        try:  # compd's reader: bounded size, nesting and alias expansion
+            data = load_yaml(file).data
+        except BadInput as e:
+            if not e.message.startswith("YAML"):
+                raise ValueError(str(e)) from None
+            where = f":{e.line}" if e.line is not None else ""
+            raise ValueError(f"{file}{where}: not valid YAML: {e.message.split(': ', 1)[-1]}") from None
         try:
             return cls.from_dict(data)
         except (ValueError, TypeError) as e:

@@ -207,3 +207,11 @@ def test_cli_decode(capsys: pytest.CaptureFixture[str]) -> None:
 def test_cli_decode_bad_word(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["decode", "0x1FFFF"]) == 2
     assert "16 bits" in capsys.readouterr().err
+
+
+def test_tiny_lsb_saturates_instead_of_overflowing():
+    """|c|/LSB overflows to inf for a denormal LSB: the byte saturates, nothing raises."""
+    from compd.codec import encode_ex
+
+    word, s1, s2 = encode_ex(5.0, -5.0, lsb_um=1e-320, deadband_um=0.0)
+    assert word == 0xFF7F and s1 and s2

@@ -74,7 +74,7 @@ def test_wrong_type(tmp_path: Path) -> None:
 
 def test_negative_period(tmp_path: Path) -> None:
     e = error_for(tmp_path, GOOD.replace("period_s: 0.1", "period_s: -0.002"))
-    assert e.path == "loop.period_s" and "greater than 0" in e.message
+    assert e.path == "loop.period_s" and "greater than or equal to 0.0005" in e.message
 
 
 def test_lsb_not_positive(tmp_path: Path) -> None:

@@ -19,8 +19,9 @@ def test_every_key_is_in_the_reference_with_its_default():
     text = generate()
     for key in c.LoopConfig.model_fields:
         assert f"| `{key}` |" in text
-    assert "| `period_s` | number | s | `0.002` | > 0, ≤ 60 | cycle period |" in text
-    assert "| `max_slew_um_per_s` | number | µm/s | `5` | > 0 |" in text
+    assert "| `period_s` | number | s | `0.002` | ≥ 0.0005, ≤ 60 | cycle period (0.5 ms:" in text
+    assert "| `max_slew_um_per_s` | number | µm/s | `5` | ≥ 0.0001, ≤ 1000 |" in text
+    assert "at most 1048576 bytes" in text and "64 levels" in text  # the reader's limits
     for heading in ("### sources: kind sim", "### model: kind xi_spindle, params", "### sink: kind pci1756"):
         assert heading in text
 

@@ -53,17 +53,25 @@ class FanucPmcConfig(SinkConfig):
     host: str | None = Field(None, description="PMC over Modbus TCP; none = hil_sim PMC in process")
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
-    timeout_s: float = Field(0.25, gt=0)
-    max_step_um: float = Field(5.0, gt=0, description="largest change of an axis per update")
-    min_update_s: float = Field(0.02, gt=0, description="time between updates (>= 2 PMC scans)")
-    x_word: int = Field(0, ge=0, description="register of the X byte holding the word's low byte")
-    x_strobe: int = Field(2, ge=0, description="register of the X byte holding the strobe")
+    timeout_s: float = Field(0.25, ge=0.001, le=30)
+    max_step_um: float = Field(
+        5.0, ge=0.01, le=1000, description="largest change of an axis per update"
+    )
+    min_update_s: float = Field(
+        0.02, ge=0.001, le=60, description="time between updates (>= 2 PMC scans)"
+    )
+    x_word: int = Field(0, ge=0, le=65534, description="register of the X byte holding the word's low byte")
+    x_strobe: int = Field(2, ge=0, le=65535, description="register of the X byte holding the strobe")
     strobe_bit: int = Field(0, ge=0, le=7)
-    r_command: int = Field(202, ge=0, description="register of axis 1's commanded shift (shift mode)")
-    status_address: int = Field(400, ge=0, description="scan counter lo, hi, alarm, reset, applied 1, 2")
+    r_command: int = Field(
+        202, ge=0, le=65534, description="register of axis 1's commanded shift (shift mode)"
+    )
+    status_address: int = Field(
+        400, ge=0, le=65530, description="scan counter lo, hi, alarm, reset, applied 1, 2"
+    )
     reset_alarm_on_start: bool = True
-    scan_s: float = Field(0.008, gt=0, description="in-process PMC: scan time")
-    step_limit_um: int = Field(10, ge=1, description="in-process PMC: its step limit (D0)")
+    scan_s: float = Field(0.008, ge=0.0005, le=1, description="in-process PMC: scan time")
+    step_limit_um: int = Field(10, ge=1, le=1000, description="in-process PMC: its step limit (D0)")
 
     @model_validator(mode="after")
     def _check(self) -> FanucPmcConfig:

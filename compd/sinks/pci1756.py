@@ -31,7 +31,9 @@ class Pci1756Config(SinkConfig):
     host: str = Field("127.0.0.1", description="modbus: the PMC's address")
     port: int = Field(502, ge=1, le=65535, description="modbus: the PMC's port")
     device_id: int = Field(1, ge=0, le=247)
-    x_register: int = Field(0, ge=0, description="modbus: register of the X byte wired to DO0")
+    x_register: int = Field(
+        0, ge=0, le=65532, description="modbus: register of the X byte wired to DO0 (4 DO bytes follow)"
+    )
     strobe_bit: int | None = Field(
         None, ge=0, le=31, description="DO bit toggled with every new word (the PMC latches on its edge)"
     )

@@ -13,7 +13,7 @@ emulator in process, on the loop clock.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import Field
@@ -44,11 +44,13 @@ class SiemensConfig(SinkConfig):
     host: str | None = Field(None, description="NC gateway over Modbus TCP; none = emulator in process")
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
-    axes: dict[str, int] | None = Field(None, description="model output → NC axis index (default: in order)")
-    min_change_um: float = Field(0.1, ge=0)
-    min_update_s: float = Field(0.05, gt=0)
-    ipo_s: float = Field(0.004, gt=0, description="in-process NC: IPO cycle")
-    velo_factor: float = Field(1e-5, gt=0, description="in-process NC: MD32760")
+    axes: dict[str, Annotated[int, Field(ge=0, le=63)]] | None = Field(
+        None, description="model output → NC axis index (default: in order)"
+    )
+    min_change_um: float = Field(0.1, ge=0, le=100, description="smaller changes are not sent")
+    min_update_s: float = Field(0.05, ge=0.001, le=60)
+    ipo_s: float = Field(0.004, ge=0.0005, le=0.1, description="in-process NC: IPO cycle")
+    velo_factor: float = Field(1e-5, gt=0, le=1, description="in-process NC: MD32760 (fraction)")
 
 
 class SiemensSink(Sink):

@@ -15,7 +15,7 @@ what a bad CRC produces on a real bus) makes them COMMS_LOST; a sample older tha
 from __future__ import annotations
 
 import threading
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -35,13 +35,15 @@ class CanSignal(Strict):
     size: Literal[1, 2, 4] = 2
     signed: bool = True
     byte_order: Literal["little", "big"] = "little"
-    scale: float = Field(0.1, description="°C per count")
-    offset_c: float = 0.0
+    scale: float = Field(0.1, ge=-1e6, le=1e6, description="°C per count; not 0")
+    offset_c: float = Field(0.0, ge=-1000, le=1000, description="added after scaling")
 
     @model_validator(mode="after")
     def _fits(self) -> CanSignal:
         if self.offset + self.size > 8:
             raise ValueError("offset + size exceeds the 8 data bytes of a CAN frame")
+        if self.scale == 0:
+            raise ValueError("scale 0 would read every temperature as offset_c")
         return self
 
 
@@ -50,11 +52,15 @@ class CanConfig(SourceConfig):
 
     interface: str = Field("socketcan", description="python-can interface (virtual in tests)")
     channel: str = Field("can0")
-    bitrate: int | None = Field(None, gt=0)
-    burnout_codes: list[int] = Field(default_factory=lambda: [0x8000], description="raw unsigned codes")
-    out_of_range_codes: list[int] = Field(default_factory=lambda: [0x7FFF, 0x8001])
-    timeout_s: float = Field(1.0, gt=0, description="no frame this long: COMMS_LOST")
-    stale_after_s: float | None = Field(None, gt=0)
+    bitrate: int | None = Field(None, ge=1000, le=1_000_000, description="bit/s (CAN: at most 1 Mbit/s)")
+    burnout_codes: list[Annotated[int, Field(ge=0, le=0xFFFFFFFF)]] = Field(
+        default_factory=lambda: [0x8000], description="raw unsigned codes"
+    )
+    out_of_range_codes: list[Annotated[int, Field(ge=0, le=0xFFFFFFFF)]] = Field(
+        default_factory=lambda: [0x7FFF, 0x8001]
+    )
+    timeout_s: float = Field(1.0, ge=0.001, le=3600, description="no frame this long: COMMS_LOST")
+    stale_after_s: float | None = Field(None, ge=0.001, le=86400)
     signals: list[CanSignal] = Field(min_length=1)
 
     @field_validator("interface")

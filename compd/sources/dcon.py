@@ -64,7 +64,7 @@ class DconConfig(SourceConfig):
     """One DCON module on a serial port; `channels` name its values in reply order."""
 
     serial_port: str = Field(description="serial device, e.g. /dev/ttyUSB0")
-    baudrate: int = Field(9600, gt=0)
+    baudrate: int = Field(9600, ge=300, le=4_000_000, description="bit/s")
     address: int = Field(1, ge=0, le=255, description="module address (AA, hex on the wire)")
     checksum: bool = False
     channels: list[str | None] = Field(
@@ -72,12 +72,14 @@ class DconConfig(SourceConfig):
     )
     out_of_range_codes: list[str] = Field(default_factory=lambda: ["+9999", "-0000"])
     burnout_codes: list[str] = Field(default_factory=lambda: ["-9999.9"])
-    poll_period_s: float = Field(0.2, gt=0, le=60)
-    timeout_s: float = Field(0.3, gt=0, le=30)
-    stale_after_s: float | None = Field(None, gt=0)
+    poll_period_s: float = Field(0.2, ge=0.001, le=60)
+    timeout_s: float = Field(0.3, ge=0.001, le=30)
+    stale_after_s: float | None = Field(None, gt=0, le=86400, description="longer than poll_period_s")
 
     @model_validator(mode="after")
     def _check(self) -> DconConfig:
+        if self.stale_after_s is not None and not self.stale_after_s > self.poll_period_s:
+            raise ValueError("stale_after_s must be longer than poll_period_s (else every sample is stale)")
         names = [c for c in self.channels if c]
         if not names:
             raise ValueError("name at least one channel")

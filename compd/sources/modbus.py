@@ -19,7 +19,7 @@ import math
 import struct
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -33,6 +33,7 @@ log = logging.getLogger("compd.sources.modbus")
 
 DataTypeT = Literal["int16", "uint16", "int32", "uint32", "float32"]
 OrderT = Literal["big", "little"]
+Code = Annotated[int, Field(ge=0, le=0xFFFFFFFF)]  # a raw register value (up to 32 bits)
 _FORMATS = {"int16": "h", "uint16": "H", "int32": "i", "uint32": "I", "float32": "f"}
 
 
@@ -88,12 +89,12 @@ class ModbusChannel(Strict):
     name: str = Field(min_length=1, description="signal name")
     address: int = Field(ge=0, le=65535, description="first register (0-based, as on the wire)")
     data_type: DataTypeT | None = None
-    scale: float | None = None
-    offset_c: float | None = None
+    scale: float | None = Field(None, ge=-1e6, le=1e6, description="°C per count; not 0")
+    offset_c: float | None = Field(None, ge=-1000, le=1000)
     byte_order: OrderT | None = None
     word_order: OrderT | None = None
-    burnout_codes: list[int] | None = None
-    out_of_range_codes: list[int] | None = None
+    burnout_codes: list[Code] | None = None
+    out_of_range_codes: list[Code] | None = None
     status_address: int | None = Field(None, ge=0, le=65535, description="status register")
 
 
@@ -104,32 +105,40 @@ class ModbusConfig(SourceConfig):
     host: str = "127.0.0.1"
     port: int = Field(502, ge=1, le=65535)
     serial_port: str | None = Field(None, description="RTU: the serial device, e.g. /dev/ttyUSB0")
-    baudrate: int = Field(9600, gt=0)
+    baudrate: int = Field(9600, ge=300, le=4_000_000, description="RTU: bit/s")
     parity: Literal["N", "E", "O"] = "N"
     stopbits: Literal[1, 2] = 1
     device_id: int = Field(1, ge=0, le=247, description="unit id / slave address")
     function: Literal["holding", "input"] = Field("holding", description="register table")
     data_type: DataTypeT = "int16"
-    scale: float = Field(0.1, description="°C per count (int16 × 0.1 °C: 0.1)")
-    offset_c: float = 0.0
+    scale: float = Field(0.1, ge=-1e6, le=1e6, description="°C per count (int16 × 0.1 °C: 0.1); not 0")
+    offset_c: float = Field(0.0, ge=-1000, le=1000, description="added after scaling")
     byte_order: OrderT = "big"
     word_order: OrderT = "big"
-    burnout_codes: list[int] = Field(default_factory=lambda: [0x8000])
-    out_of_range_codes: list[int] = Field(default_factory=lambda: [0x7FFF, 0x8001])
+    burnout_codes: list[Code] = Field(default_factory=lambda: [0x8000])
+    out_of_range_codes: list[Code] = Field(default_factory=lambda: [0x7FFF, 0x8001])
     status_burnout_mask: int = Field(0x0001, ge=0, le=0xFFFF)
     status_out_of_range_mask: int = Field(0x0006, ge=0, le=0xFFFF)
     max_gap: int = Field(0, ge=0, le=100, description="unused registers a merged read may span")
-    poll_period_s: float = Field(0.1, gt=0, le=60)
-    timeout_s: float = Field(0.25, gt=0, le=30)
-    stale_after_s: float | None = Field(None, gt=0, description="older samples read as STALE")
-    reconnect_min_s: float = Field(0.1, gt=0)
-    reconnect_max_s: float = Field(10.0, gt=0)
+    poll_period_s: float = Field(0.1, ge=0.001, le=60)
+    timeout_s: float = Field(0.25, ge=0.001, le=30)
+    stale_after_s: float | None = Field(
+        None, gt=0, le=86400, description="older samples read as STALE; longer than poll_period_s"
+    )
+    reconnect_min_s: float = Field(0.1, ge=0.01, le=60)
+    reconnect_max_s: float = Field(10.0, ge=0.01, le=3600, description="at least reconnect_min_s")
     channels: list[ModbusChannel] = Field(min_length=1)
 
     @model_validator(mode="after")
     def _check(self) -> ModbusConfig:
         if self.transport == "rtu" and not self.serial_port:
             raise ValueError("transport rtu needs serial_port")
+        if self.reconnect_max_s < self.reconnect_min_s:
+            raise ValueError("reconnect_max_s is below reconnect_min_s")
+        if self.stale_after_s is not None and not self.stale_after_s > self.poll_period_s:
+            raise ValueError("stale_after_s must be longer than poll_period_s (else every sample is stale)")
+        if 0 in {self.scale, *(c.scale for c in self.channels)}:
+            raise ValueError("scale 0 would read every temperature as offset_c")
         names = [c.name for c in self.channels]
         if len(set(names)) != len(names):
             raise ValueError("a channel name is used twice")

@@ -8,6 +8,7 @@ import numpy as np
 from pydantic import Field
 
 from compd.config import SourceConfig
+from compd.errors import BadInput
 from compd.frame import Frame, Quality
 from compd.log import Log, read_log
 from compd.sources.base import Source
@@ -33,6 +34,8 @@ class ReplaySource(Source):
             path = Path(cfg.path)
             if not path.is_absolute():
                 path = Path(base_dir) / path
+            if path.exists() and not path.is_file():  # /dev/zero, a FIFO: reading would never end
+                raise BadInput("cannot read log: not a regular file", file=str(path))
             log = read_log(path, allow_nan=True)
         self.log = log
         self._names = cfg.columns or log.columns[1:]

@@ -21,7 +21,7 @@ class SimConfig(SourceConfig):
         description="scenario YAML file (relative to the config) or an inline scenario"
     )
     params: dict[str, Any] = Field(default_factory=dict, description="plant parameters")
-    sample_period_s: float = Field(0.0, ge=0, description="sensor update period; 0 = every cycle")
+    sample_period_s: float = Field(0.0, ge=0, le=3600, description="sensor update period; 0 = every cycle")
 
 
 class SimSource(Source):
