@@ -509,7 +509,11 @@ class CodecConfig(Strict):
     )
     deadband_um: float = Field(
         1.0, ge=0, le=100,
-        description="|c| at or below this is sent as disabled; below full scale (63 × lsb_um)",
+        description=(
+            "|c| at or below this is sent as disabled; the word moves once the correction is"
+            " max(deadband_um, lsb_um) from it, one LSB at a time at the slew limit, and settles"
+            " within that of it; below full scale (63 × lsb_um)"
+        ),
     )
     axes: list[str] | None = Field(
         None, max_length=2, description="model outputs on the high and low byte (default: in order)"

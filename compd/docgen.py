@@ -116,9 +116,16 @@ class _Doc:
             return " or ".join(parts) + none, bounds
         if origin is Literal:
             return "one of " + ", ".join(f"`{a}`" for a in args), []
+        if origin is tuple and args and args[-1] is not Ellipsis:  # a fixed pair, triple, …
+            parts, bounds = [], []
+            for i, a in enumerate(args, start=1):
+                t, b = self.type_of(a, f"{prefix}{key}[]", "")
+                parts.append(t)
+                bounds += [f"item {i} {x}" for x in b]
+            return "(" + ", ".join(parts) + ")", bounds
         if origin in (list, tuple):
             t, b = self.type_of(args[0], f"{prefix}{key}[]", "") if args else ("any", [])
-            return f"list of {t}", [f"each {x}" for x in b]
+            return f"list of {t}", [x if x.startswith("each ") else f"each {x}" for x in b]
         if origin is dict and args and args[1] is Any:
             return "mapping", []
         if origin is dict:
