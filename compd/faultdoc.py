@@ -60,8 +60,10 @@ def render_matrix(results: Sequence[dict[str, Any]]) -> str:
             "n/a" if safe is None else f"{safe:.3f}",
             str(r["samples_lost"]),
             (r.get("event") or "—") + ("" if r.get("logged") else " (not in the log)"),
-            f"{r.get('word_max_step_lsb', 0)}, {r.get('word_pace_ratio', 0.0):.2f},"
-            f" {r.get('word_max_error_um', 0.0):.2f} ({r.get('word_band_um', 0.0):.2f})",
+            "—" if not r.get("word_band_um") else (  # a row that does not see the word
+                f"{r['word_max_step_lsb']}, {r['word_pace_ratio']:.2f},"
+                f" {r['word_max_error_um']:.2f} ({r['word_band_um']:.2f})"
+            ),
             "yes" if ok else "NO",
         ]
         lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")

@@ -27,13 +27,14 @@ from tests.conftest import ROOT
 from tests.faults.harness import SENSOR, SLEW_UM_PER_S, Measured, modbus_tcp_source, record
 
 LOG_PERIOD_S = 0.05
+PERIOD_S = 0.01
 FLUSH_S = 0.2
 ALPHA_L_UM_PER_K = 13.6e-6 * 165.0 * 1000.0
 
 
 def _config(port: int, **top) -> dict:  # noqa: ANN003
     return {
-        "loop": {"period_s": 0.01},
+        "loop": {"period_s": PERIOD_S},
         "sources": [modbus_tcp_source(port)],
         "model": {"kind": "xi_spindle", "inputs": [SENSOR], "outputs": ["z"],
                   "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": None}},
@@ -75,6 +76,34 @@ def _steps(data: np.ndarray, corr: int) -> tuple[float, float]:
     ok = dt > 0
     ratio = float(np.max(d[ok] / (SLEW_UM_PER_S * dt[ok]), initial=0.0))
     return float(d.max(initial=0.0)), ratio
+
+
+def _word(data: np.ndarray, columns: list[str]) -> dict[str, float]:
+    """The word's promises read from the log (a row is written on every change of the word):
+    one LSB at a time, m steps in no less than m·lsb/slew less one cycle, and never further
+    from the guarded correction than the codec's band (lsb = dead-band = 1 µm here) plus two
+    cycles of slew. Keys as in `Measured`."""
+    word = data[:, columns.index("word")].astype(int)
+    corr = data[:, columns.index("corr_z_um")]
+    t = data[:, 0]
+    code = np.array([(1 if w & 0x8000 else -1) * ((w >> 8) & 0x3F) if w & 0x4000 else 0 for w in word])
+    moved = np.flatnonzero(np.diff(code)) + 1
+    pace = 0.0
+    for a in range(len(moved)):
+        for m in range(1, len(moved) - a):
+            span_s = t[moved[a + m]] - t[moved[a]] + PERIOD_S
+            pace = max(pace, m * 1.0 / SLEW_UM_PER_S / span_s)
+    return {
+        "word_max_step_lsb": int(np.abs(np.diff(code)).max(initial=0)),
+        "word_pace_ratio": pace,
+        "word_max_error_um": float(np.abs(code - corr).max(initial=0.0)),
+        "word_band_um": 1.0 + 2 * SLEW_UM_PER_S * PERIOD_S,
+    }
+
+
+def _check_word(m: Measured) -> None:
+    assert m.word_max_step_lsb <= 1 and m.word_pace_ratio <= 1.0 + 1e-6, m
+    assert m.word_max_error_um <= m.word_band_um + 1e-6, m
 
 
 def test_kill9_and_restart(tmp_path: Path) -> None:
@@ -123,8 +152,10 @@ def test_kill9_and_restart(tmp_path: Path) -> None:
         event="state_restored (T0 22 °C kept)", logged=True, word_valid=True, policy_ok=True,
         running=True, cycles=len(after), fault_t_s=None,
         extra={"lost_s": lost_s, "flush_s": FLUSH_S},
+        **_word(after.data[len(before):], after.columns),
     )
     record("kill9_restart", m, tmp_path)
+    _check_word(m)
     # rows lost: at most the flush interval plus one log period (and the scheduler's slack)
     assert lost_s <= FLUSH_S + LOG_PERIOD_S + 0.3, lost_s
     assert ratio <= 1.01  # the log keeps 6 significant digits of the correction
@@ -167,9 +198,10 @@ def test_bad_config_on_reload(tmp_path: Path) -> None:
         time_to_safe_s=None, recovered=True, samples_lost=0,
         event="reload_rejected: " + lines[0].split("still running the old config: ", 1)[-1].replace(f"{tmp_path}/", ""),
         logged="event=reload_rejected" in err.read_text(), word_valid=True, policy_ok=True,
-        running=True, cycles=len(data), fault_t_s=None,
+        running=True, cycles=len(data), fault_t_s=None, **_word(data.data, data.columns),
     )
     record("bad_config_reload", m, tmp_path)
+    _check_word(m)
     assert ratio <= 1.01 and m.logged  # 1 %: the log keeps 6 significant digits
 
 
@@ -222,9 +254,10 @@ def test_reload_to_an_unopenable_config(tmp_path: Path) -> None:
         event="reload_failed: " + (lines[0].split('reason="', 1)[-1].rstrip('"') if lines else "none"),
         logged=len(lines) == 1, word_valid=True, policy_ok=True,
         running=len(after_hup) > 5, cycles=len(data), fault_t_s=None,
-        extra={"rows_after_hup": len(after_hup)},
+        extra={"rows_after_hup": len(after_hup)}, **_word(data.data, data.columns),
     )
     record("reload_unopenable", m, tmp_path)
+    _check_word(m)
     assert m.logged and "cannot serve metrics" in lines[0], text
     assert m.running  # kept logging (and compensating) on the old config
     assert ratio <= 1.01  # 1 %: the log keeps 6 significant digits
