@@ -269,29 +269,24 @@ def _last_good_end(fh: BinaryIO, start: int, end: int, ncol: int) -> int:
     return start
 
 
-def _has_nul(fh: BinaryIO, start: int, end: int) -> bool:
+def _chunks(fh: BinaryIO, start: int, end: int) -> Iterator[bytes]:
+    """[start, end) of `fh` in reads of at most _CHUNK bytes (bounded memory)."""
     fh.seek(start)
     pos = start
     while pos < end:
         buf = fh.read(min(_CHUNK, end - pos))
         if not buf:
-            break
-        if b"\0" in buf:
-            return True
+            return
+        yield buf
         pos += len(buf)
-    return False
+
+
+def _has_nul(fh: BinaryIO, start: int, end: int) -> bool:
+    return any(b"\0" in buf for buf in _chunks(fh, start, end))
 
 
 def _count_lines(fh: BinaryIO, start: int, end: int) -> int:
-    fh.seek(start)
-    n, pos = 0, start
-    while pos < end:
-        buf = fh.read(min(_CHUNK, end - pos))
-        if not buf:
-            break
-        n += buf.count(b"\n")
-        pos += len(buf)
-    return n
+    return sum(buf.count(b"\n") for buf in _chunks(fh, start, end))
 
 
 def _split_body(fh: BinaryIO, start: int, end: int, ncol: int, good: BinaryIO, bad: BinaryIO) -> tuple[int, int]:
