@@ -100,10 +100,12 @@ class Encoder:
 
     The walk spends a budget that refills at slew/LSB per second and holds at most
     one LSB plus one cycle's refill, so the word moves one LSB at a time (several
-    only when a cycle is longer than LSB/slew, as in a replay at one row per
-    second) and, over any stretch of time τ, by at most slew·τ + one LSB + one
-    cycle's slew. Since the guard slews the correction at the same rate, the word
-    stays within T of it (plus what c moves in two cycles). A dead-band
+    only when the loop's period is longer than LSB/slew, as in a replay at one row
+    per second) and, over any stretch of time τ, by at most slew·τ + one LSB + one
+    cycle's slew. After a stall the word goes on at the slew's pace: the stall's time
+    is not spent in a burst (the word may trail the guard for a while). Otherwise,
+    since the guard slews the correction at the same rate, the word stays within T
+    of it (plus what c moves in two cycles). A dead-band
     below one LSB acts as one LSB: the word cannot hold the correction closer
     without chattering between two codes.
 
@@ -111,7 +113,13 @@ class Encoder:
     once: that is what the `disable` fault policy asks for. It walks up from 0.
     """
 
-    def __init__(self, lsb_um: float = 1.0, deadband_um: float = 1.0, max_slew_um_per_s: float = math.inf) -> None:
+    def __init__(
+        self,
+        lsb_um: float = 1.0,
+        deadband_um: float = 1.0,
+        max_slew_um_per_s: float = math.inf,
+        period_s: float = 0.0,
+    ) -> None:
         if not (lsb_um > 0 and math.isfinite(lsb_um)):
             raise ValueError(f"lsb_um must be finite and > 0, got {lsb_um}")
         if not (deadband_um >= 0 and math.isfinite(deadband_um)):
@@ -120,7 +128,8 @@ class Encoder:
         self.deadband_um = deadband_um
         self.band_um = max(deadband_um, lsb_um)
         self._rate_lsb_per_s = [0.0, 0.0]
-        self.set_slew([max_slew_um_per_s, max_slew_um_per_s])
+        self._one_a_cycle = [True, True]
+        self.set_slew([max_slew_um_per_s, max_slew_um_per_s], period_s)
         self.word = 0
         self.codes = [0, 0]  # held signed magnitude per axis, LSB
         self.saturated = [False, False]
@@ -129,13 +138,16 @@ class Encoder:
         self._moving = [False, False]
         self._budget = [0.0, 0.0]
 
-    def set_slew(self, max_slew_um_per_s: list[float]) -> None:
-        """The slew limit of the high byte's and the low byte's axis, µm/s (one value: both)."""
+    def set_slew(self, max_slew_um_per_s: list[float], period_s: float = 0.0) -> None:
+        """The slew limit of the high byte's and the low byte's axis, µm/s (one value: both),
+        and the loop's period: while a period is shorter than LSB/slew the word moves at
+        most one LSB a cycle (also in the cycles after a stall, which licensed more)."""
         slew = list(max_slew_um_per_s) * (2 if len(max_slew_um_per_s) == 1 else 1)
         if len(slew) != 2 or not all(s > 0 for s in slew):
             raise ValueError(f"max_slew_um_per_s must be one or two values > 0, got {max_slew_um_per_s}")
-        self._rate_lsb_per_s[0] = slew[0] / self.lsb_um
-        self._rate_lsb_per_s[1] = slew[1] / self.lsb_um
+        for i in range(2):
+            self._rate_lsb_per_s[i] = slew[i] / self.lsb_um
+            self._one_a_cycle[i] = self._rate_lsb_per_s[i] * period_s < 1.0
 
     def reset(self) -> None:
         """Forget the held codes (the word walks up again from 0x0000)."""
@@ -183,8 +195,8 @@ class Encoder:
             self._moving[i] = True
         if self._moving[i]:
             steps = int(b + 1e-9)
-            if steps > 1 and gain < 1.0:  # one LSB a cycle, unless a cycle is longer than LSB/slew
-                steps = 1
+            if steps > 1 and (gain < 1.0 or self._one_a_cycle[i]):  # one LSB a cycle, unless
+                steps = 1  # the loop's period is longer than LSB/slew (a replay's rows)
             d = 1 if goal > q else -1
             # walk toward the goal while a step does not take the word further from c (the
             # goal jumps to 0 when c enters the dead-band: never walk away from c for that)

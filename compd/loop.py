@@ -135,7 +135,7 @@ class Loop:
         self.sink = sink
         self.word_axes = word_axes  # indices into model outputs for the high and low byte
         # the word walks no faster than its axes' slew limits
-        encoder.set_slew([float(guard.slew_um_per_s[a]) for a in word_axes])
+        encoder.set_slew([float(guard.slew_um_per_s[a]) for a in word_axes], period_s)
         self.observers = observers or []
         self.cycle_hooks = cycle_hooks or []
         n_out = len(model.outputs)

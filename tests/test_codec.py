@@ -119,7 +119,7 @@ def _assert_paced(codes: list[int], period_s: float, lsb_um: float, slew_um_per_
 def test_word_never_steps_faster_than_the_slew() -> None:
     """The audit: slew 2 µm/s, 10 ms cycles, dead-band 3 µm — the old encoder jumped 3 → 6 LSB."""
     period_s, slew = 0.01, 2.0
-    enc = codec.Encoder(1.0, 3.0, slew)
+    enc = codec.Encoder(1.0, 3.0, slew, period_s)
     cs = _slewed([20.0] * 1500 + [-5.0] * 2000, slew, period_s)
     codes = _walk(enc, cs, period_s)
     _assert_paced(codes, period_s, 1.0, slew)
@@ -129,7 +129,7 @@ def test_word_never_steps_faster_than_the_slew() -> None:
 def test_held_word_stays_within_the_deadband() -> None:
     """The audit: −11.22 µm was sent as −10 µm for a whole run. Now the word settles at −11."""
     period_s, slew = 0.01, 5.0
-    enc = codec.Encoder(1.0, 1.0, slew)
+    enc = codec.Encoder(1.0, 1.0, slew, period_s)
     cs = _slewed([-11.22] * 1000, slew, period_s)
     codes = _walk(enc, cs, period_s)
     for c, q in zip(cs, codes, strict=True):
@@ -149,7 +149,7 @@ def test_held_word_stays_within_the_deadband() -> None:
 def test_word_walks_within_band_at_slew_pace(
     targets: list[float], hold_cycles: int, slew: float, lsb: float, deadband: float, period_s: float
 ) -> None:
-    enc = codec.Encoder(lsb, deadband, slew)
+    enc = codec.Encoder(lsb, deadband, slew, period_s)
     cs = _slewed([t for t in targets for _ in range(hold_cycles)], slew, period_s)
     codes = _walk(enc, cs, period_s)
     if slew * period_s < lsb:  # the live loop: every cycle is shorter than one LSB at the slew
@@ -162,9 +162,20 @@ def test_word_walks_within_band_at_slew_pace(
 
 def test_replay_rows_longer_than_one_lsb_at_the_slew() -> None:
     """At one row per second the word may move slew·dt per row, not one LSB per row."""
-    enc = codec.Encoder(1.0, 1.0, 5.0)
+    enc = codec.Encoder(1.0, 1.0, 5.0, period_s=1.0)
     codes = _walk(enc, [5.0, 10.0, 15.0], 1.0)
     assert codes == [5, 10, 15]
+
+
+def test_after_a_stall_the_word_goes_on_at_the_slew_pace() -> None:
+    """A cycle 0.2 s late licenses 4 LSB at 20 µm/s; the word takes one LSB of it (what a
+    cycle may bank) and then goes on at the slew's pace, never in a burst."""
+    enc = codec.Encoder(1.0, 1.0, 20.0, period_s=0.01)
+    _walk(enc, [0.0] * 10, 0.01)
+    codes = _walk(enc, [4.0], 0.2) + _walk(enc, [4.0] * 12, 0.01)
+    assert codes[:2] == [1, 2]  # the late cycle's step, then the one LSB banked
+    assert codes[2:5] == [2, 2, 2] and codes[5] == 3  # then at the pace of lsb/slew = 5 cycles
+    assert codes[-1] == 4
 
 
 def test_reload_keeps_the_held_word() -> None:

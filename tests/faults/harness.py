@@ -316,6 +316,8 @@ class FaultRun:
         pace = 0.0
         max_error = 0.0
         licensed = 0.0  # licensed time since the start (a clock jump licenses one period)
+        late_s = 0.0  # licensed time of cycles longer than lsb/slew beyond that: the word does
+        # not spend it in a burst, so it may trail the guard by slew × that until c settles
         # (licensed time, that cycle's dt) of each step since the axis was last enabled: what
         # a step leaves of the budget carries over, at most that cycle's refill
         steps: list[tuple[float, float]] = []
@@ -327,6 +329,7 @@ class FaultRun:
             if k and tr.enable[k]:  # the codec's budget refills in every enabled cycle
                 dt = PERIOD_S if tr.jumps[k] else tr.t[k] - tr.t[k - 1]
                 licensed += dt
+                late_s += max(0.0, dt - lsb / SLEW_UM_PER_S)
             if k and tr.enable[k] and tr.enable[k - 1]:
                 if v != prev:
                     max_step = max(max_step, abs(v - prev))
@@ -341,7 +344,7 @@ class FaultRun:
             "word_max_step_lsb": max_step,
             "word_pace_ratio": pace,
             "word_max_error_um": max_error,
-            "word_band_um": app.encoder.band_um + 2 * SLEW_UM_PER_S * PERIOD_S,
+            "word_band_um": app.encoder.band_um + SLEW_UM_PER_S * (2 * PERIOD_S + late_s),
         }
 
     def _safe(self, k: int) -> bool:
