@@ -98,14 +98,14 @@ class Encoder:
     its goal: round(c/LSB) clamped to ±63, or 0 when |c| ≤ dead-band (paper 002: a
     code is sent only when the error exceeds the dead-band).
 
-    The walk spends a budget that refills at slew/LSB per second and holds at most
-    one LSB plus one cycle's refill, so the word moves one LSB at a time (several
-    only when the loop's period is longer than LSB/slew, as in a replay at one row
-    per second) and, over any stretch of time τ, by at most slew·τ + one LSB + one
-    cycle's slew. After a stall the word goes on at the slew's pace: the stall's time
-    is not spent in a burst (the word may trail the guard for a while). Otherwise,
-    since the guard slews the correction at the same rate, the word stays within T
-    of it (plus what c moves in two cycles). A dead-band
+    The walk spends a budget that refills at slew/LSB per second (the time the guard
+    licensed, so never more than the guard itself moved) and moves the word one LSB a
+    cycle at most (several only when the loop's period is longer than LSB/slew, as in
+    a replay at one row per second). A settled word banks at most one LSB plus one
+    cycle's refill; after a stall, which licenses more than one LSB in one cycle, the
+    word catches up one LSB a cycle. Since the guard slews the correction at the same
+    rate, the word stays within T of it, plus what c moves in two cycles, plus what a
+    stall licensed beyond one LSB a cycle while the word catches up. A dead-band
     below one LSB acts as one LSB: the word cannot hold the correction closer
     without chattering between two codes.
 
@@ -183,14 +183,16 @@ class Encoder:
             m = math.floor(r + 0.5) if r < MAX_MAG + 1 else MAX_MAG + 1
             self.saturated[i] = m > MAX_MAG
             goal = min(m, MAX_MAG) * (1 if c_um > 0 else -1)
-        # the budget refills at slew/LSB per second and holds at most one LSB plus this
-        # cycle's refill (what is left after a step carries over, so the word keeps the
-        # slew's pace exactly and never more than one LSB ahead of it)
+        # the budget refills at slew/LSB per second; what a step leaves carries over, so
+        # the word keeps the slew's pace exactly. A settled word keeps at most one LSB plus
+        # this cycle's refill; a moving one keeps all (after a stall it catches up, one LSB
+        # a cycle, with the time the stall licensed)
         gain = self._rate_lsb_per_s[i] * dt_s if dt_s > 0 else 0.0
         gain = gain if gain < 2 * MAX_MAG else 2.0 * MAX_MAG
         b = self._budget[i] + gain
-        cap = 1.0 + gain
-        b = cap if b > cap else b
+        if not self._moving[i] and b > 1.0 + gain:  # settled: one LSB and this refill
+            b = 1.0 + gain
+        b = b if b < 4.0 * MAX_MAG else 4.0 * MAX_MAG
         if not self._moving[i] and goal != q and abs(c_um - q * lsb) >= self.band_um:
             self._moving[i] = True
         if self._moving[i]:

@@ -128,6 +128,7 @@ class Trace:
     word: list[int] = field(default_factory=list)
     jumps: list[bool] = field(default_factory=list)
     target: list[float] = field(default_factory=list)
+    dt: list[float] = field(default_factory=list)  # the time the guard licensed this cycle
 
 
 class FaultRun:
@@ -184,6 +185,7 @@ class FaultRun:
             tr.enable.append(bool(guard.enable[0]))
             tr.state.append(int(guard.state[0]))
             tr.target.append(float(guard.target_um[0]))
+            tr.dt.append(float(guard.dt_s))
             tr.word.append(card.read_do_word(port))
 
         app.loop.cycle_hooks.append(hook)
@@ -251,15 +253,15 @@ class FaultRun:
             if step > 0:
                 ratio = max(ratio, step / (rate * dt) if dt > 0 else math.inf)
         word_valid = all(math.isfinite(o) for o in tr.out)
-        for w, o, en in zip(tr.word, tr.out, tr.enable, strict=True):
+        for w, en in zip(tr.word, tr.enable, strict=True):
             if not 0 <= w <= 0xFFFF:
                 word_valid = False
                 continue
             code = decode(w)[0]
             if code.magnitude > 63:
                 word_valid = False
-            if code.enable and abs(code.direction * code.magnitude - o) > 1.5:  # dead-band + ½ LSB
-                word_valid = False
+            # (its distance from the correction is word_max_error_um, against the codec's band
+            # plus the trail a late cycle licenses: see _measure_word)
             if code.enable and not en:
                 word_valid = False
         word = self._measure_word()
@@ -305,46 +307,56 @@ class FaultRun:
         return m
 
     def _measure_word(self) -> dict[str, Any]:
-        """The word on the card, cycle by cycle, against the codec's promises: one LSB at a
-        time; m steps take at least m·lsb/slew less one cycle of licensed time; never further
-        from the guarded correction than the band (+ what the correction moves in two cycles)."""
+        """The word on the card, cycle by cycle, against the codec's promises.
+
+        * one LSB a cycle at most;
+        * pace: every LSB paid from the time the guard licensed (slew·dt/LSB a cycle), a
+          settled word (on the code nearest the correction) banking at most one LSB plus
+          that cycle's refill; the ratio LSB stepped ÷ budget there is ≤ 1;
+        * distance from the guarded correction ≤ the band (max(dead-band, LSB)), plus what
+          the correction moves in two cycles, plus what a stall licensed beyond one LSB a
+          cycle while the word catches up one LSB a cycle.
+        """
         app = self.app
         assert app is not None
         tr = self.trace
-        lsb = app.encoder.lsb_um
+        enc = app.encoder
+        lsb = enc.lsb_um
+        rate = SLEW_UM_PER_S / lsb  # LSB per second
         max_step = 0
         pace = 0.0
-        max_error = 0.0
-        licensed = 0.0  # licensed time since the start (a clock jump licenses one period)
-        late_s = 0.0  # licensed time of cycles longer than lsb/slew beyond that: the word does
-        # not spend it in a burst, so it may trail the guard by slew × that until c settles
-        # (licensed time, that cycle's dt) of each step since the axis was last enabled: what
-        # a step leaves of the budget carries over, at most that cycle's refill
-        steps: list[tuple[float, float]] = []
-        prev = None
+        over = -math.inf  # largest |word − correction| beyond what that cycle allowed
+        budget = 0.0
+        behind = 0.0  # LSB licensed beyond one a cycle, not yet caught up
+        allowed_um = enc.band_um + 2 * SLEW_UM_PER_S * PERIOD_S
         for k in range(len(tr.t)):
             code = decode(tr.word[k])[0]
             v = code.direction * code.magnitude if code.enable else 0
-            dt = 0.0
-            if k and tr.enable[k]:  # the codec's budget refills in every enabled cycle
-                dt = PERIOD_S if tr.jumps[k] else tr.t[k] - tr.t[k - 1]
-                licensed += dt
-                late_s += max(0.0, dt - lsb / SLEW_UM_PER_S)
-            if k and tr.enable[k] and tr.enable[k - 1]:
-                if v != prev:
-                    max_step = max(max_step, abs(v - prev))
-                    for m, (t_a, carry_s) in enumerate(reversed(steps), start=1):
-                        pace = max(pace, m * lsb / SLEW_UM_PER_S / (licensed - t_a + carry_s))
-                    steps.append((licensed, dt))
-                max_error = max(max_error, abs(v * lsb - tr.out[k]))
-            elif not tr.enable[k]:
-                steps.clear()
-            prev = v
+            if not tr.enable[k]:
+                budget = behind = 0.0
+                continue
+            gain = rate * tr.dt[k]
+            budget += gain
+            behind = max(0.0, behind + gain - 1.0)
+            if k and tr.enable[k - 1]:
+                prev = decode(tr.word[k - 1])[0]
+                step = abs(v - (prev.direction * prev.magnitude if prev.enable else 0))
+                if step:
+                    max_step = max(max_step, step)
+                    pace = max(pace, step / budget if budget > 0 else math.inf)
+                    budget = max(0.0, budget - step)
+            c = tr.out[k]
+            goal = 0 if abs(c) <= enc.deadband_um else max(-63, min(63, math.floor(abs(c) / lsb + 0.5))) * (1 if c > 0 else -1)
+            if v == goal:  # settled: the codec banks no more than this
+                budget = min(budget, 1.0 + gain)
+            over = max(over, abs(v * lsb - c) - (allowed_um + behind * lsb))
         return {
             "word_max_step_lsb": max_step,
             "word_pace_ratio": pace,
-            "word_max_error_um": max_error,
-            "word_band_um": app.encoder.band_um + SLEW_UM_PER_S * (2 * PERIOD_S + late_s),
+            # reported as the distance against the plain allowance (band + two cycles): a
+            # row with stalls shows max(distance − stall allowance) on top of it
+            "word_max_error_um": allowed_um + over if over > -math.inf else 0.0,
+            "word_band_um": allowed_um,
         }
 
     def _safe(self, k: int) -> bool:

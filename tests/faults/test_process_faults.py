@@ -79,33 +79,38 @@ def _steps(data: np.ndarray, corr: int) -> tuple[float, float]:
 
 
 def _word(data: np.ndarray, columns: list[str]) -> dict[str, float]:
-    """The word's promises read from the log (a row is written on every change of the word):
-    one LSB at a time, never more LSB than the codec's budget allowed, never further from the
-    guarded correction than the codec's band (LSB = dead-band = 1 µm here) plus two cycles
-    of slew (and what a pause of the loop licensed the guard). Keys as in `Measured`."""
+    """The word's promises read from the log (a row is written on every change of the word,
+    so consecutive changes are consecutive rows): one LSB at a time; every LSB paid from the
+    licensed time, a settled word banking at most one LSB plus a row's refill (the rows are
+    not every cycle, so this replay is the most the codec can have had); and never further
+    from the guarded correction than the band (LSB = dead-band = 1 µm here), two cycles of
+    slew, and what a stall (a reload's pause) licensed beyond one LSB a cycle while the word
+    catches up. Keys as in `Measured`."""
     word = data[:, columns.index("word")].astype(int)
     corr = data[:, columns.index("corr_z_um")]
     t = data[:, 0]
     code = np.array([(1 if w & 0x8000 else -1) * ((w >> 8) & 0x3F) if w & 0x4000 else 0 for w in word])
-    # the codec's budget, replayed from the log: between two rows it refills by at most
-    # slew·Δt and holds at most one LSB more than that (the rows are not every cycle, so
-    # this is the most the codec can have had); pace = LSB stepped ÷ budget, ≤ 1
-    pause_s = max(0.0, float(np.diff(t).max(initial=0.0)) - LOG_PERIOD_S - PERIOD_S)
-    budget, pace = 0.0, 0.0
+    allowed_um = 1.0 + 2 * SLEW_UM_PER_S * PERIOD_S
+    budget, behind, pace, over = 0.0, 0.0, 0.0, -math.inf
     for k in range(1, len(code)):
-        gain = (t[k] - t[k - 1]) * SLEW_UM_PER_S / 1.0  # LSB = 1 µm
-        budget = min(1.0 + gain, budget + gain)
+        gap_s = t[k] - t[k - 1]
+        gain = gap_s * SLEW_UM_PER_S / 1.0  # LSB = 1 µm
+        budget += gain
+        behind = max(0.0, behind + gain - 1.0)  # as if the gap were one (stalled) cycle
         step = abs(int(code[k]) - int(code[k - 1]))
         if step and not (code[k] == 0 and step > 1):  # not the safe output (0x0000 at once)
             pace = max(pace, step / budget if budget > 0 else math.inf)
             budget = max(0.0, budget - step)
+        c = corr[k]
+        goal = 0 if abs(c) <= 1.0 else int(math.floor(abs(c) + 0.5)) * (1 if c > 0 else -1)
+        if code[k] == goal:
+            budget = min(budget, 1.0 + gain)
+        over = max(over, abs(code[k] - c) - (allowed_um + behind))
     return {
         "word_max_step_lsb": int(np.abs(np.diff(code)).max(initial=0)),
         "word_pace_ratio": pace,
-        "word_max_error_um": float(np.abs(code - corr).max(initial=0.0)),
-        # the band, two cycles of slew, and what the guard licensed in a pause of the loop (a
-        # reload): the word does not spend a pause in a burst, so it trails by that much
-        "word_band_um": 1.0 + SLEW_UM_PER_S * (2 * PERIOD_S + pause_s),
+        "word_max_error_um": allowed_um + over if over > -math.inf else 0.0,
+        "word_band_um": allowed_um,
     }
 
 
