@@ -172,9 +172,6 @@ class FanucPmc:
         with self._lock:
             return self.mem[ALARM]
 
-    def reset_alarms(self) -> None:
-        self.write_registers(RESET, [1])
-
 
 class PmcScanThread(DeviceThread):
     """Runs a PMC's scans on wall time, on an absolute schedule (start + k·scan_s)."""
