@@ -1,6 +1,6 @@
 """The fixed-period cycle: absolute schedule, fixed stage order, timing statistics.
 
-Stages run in the order of SPEC §1: read → model → guard → codec → sink. Each
+Stages run in the pipeline's order: read → model → guard → codec → sink. Each
 cycle's deadline is start + k·period (never "sleep(period)"); the loop records its
 lateness (wake-up time − deadline) in a fixed histogram, every stage's time and
 worst time, and counts misses (a cycle that started more than half a period late
