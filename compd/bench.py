@@ -390,7 +390,7 @@ def run_bench(
     naive_cycles: int | None = None,
     model_evals: int = 2000,
 ) -> dict[str, Any]:
-    """The whole benchmark; returns the CONTRACT JSON (plus baseline, ratio, memory)."""
+    """The whole benchmark; returns the JSON of docs/formats.md (plus baseline, ratio, memory)."""
     from compd.models.bench import model_eval_us
 
     if cycles < 1:

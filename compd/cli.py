@@ -1,4 +1,4 @@
-"""The `compd` command line (CONTRACT.md): thin — parse, call, print."""
+"""The `compd` command line: thin — parse, call, print."""
 
 from __future__ import annotations
 
@@ -488,7 +488,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 class Parser(argparse.ArgumentParser):
-    """argparse with CONTRACT's error form: one line on stderr, exit 2 (`--help` shows the usage)."""
+    """argparse with compd's error form: one line on stderr, exit 2 (`--help` shows the usage)."""
 
     def error(self, message: str) -> typing.NoReturn:
         one_line = " ".join(message.split())
@@ -562,7 +562,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--profile", required=True, metavar="FILE.csv")
     s = sub.add_parser("bench", help="time the 2 ms cycle against real Modbus devices, beside a naive loop")
     s.add_argument("--cycles", type=int, default=100_000, metavar="N", help="cycles of compd's loop")
-    s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON (CONTRACT)")
+    s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON (keys: docs/formats.md)")
     s.add_argument("--scheduler", choices=("other", "fifo"), default="other", help="loop.realtime.scheduler")
     s.add_argument("--period-ms", type=positive, default=2.0, dest="period_ms")
     s.add_argument(
@@ -574,7 +574,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    # argparse exits 2 on bad arguments with a usage message, as CONTRACT wants.
+    # argparse exits 2 on bad arguments with a usage message: bad input is exit 2.
     args = parser.parse_args(argv)
     try:
         return COMMANDS[args.command](args)

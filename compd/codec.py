@@ -1,4 +1,4 @@
-"""The 16-bit direction/enable/value compensation word of paper 002 (SPEC §2).
+"""The 16-bit direction/enable/value compensation word of paper 002 (docs/formats.md).
 
 One word carries two axes: the high byte is the first axis (X1), the low byte the
 second (X2). In each byte bit 7 is the direction (1 = positive correction), bit 6
@@ -89,7 +89,7 @@ def word_to_um(word: int, lsb_um: float = 1.0) -> tuple[float, float]:
 
 
 class Encoder:
-    """Stateful encoder: the word walks to the correction one LSB at a time (SPEC §2).
+    """Stateful encoder: the word walks to the correction one LSB at a time (docs/formats.md).
 
     Per axis the encoder holds a signed code q (LSB; 0 is the disabled byte 0x00).
     The code starts to move when the guarded correction c is at least the band

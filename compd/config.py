@@ -501,7 +501,7 @@ class GuardConfig(Strict):
 
 
 class CodecConfig(Strict):
-    """The 16-bit word of SPEC §2."""
+    """The 16-bit word of paper 002 (docs/formats.md)."""
 
     lsb_um: float = Field(
         1.0, ge=0.01, le=100,
@@ -701,7 +701,7 @@ def _plugin(registry: Any, data: Any, doc: Document, path: PathT) -> tuple[type,
 
 
 def load_model_file(file: str | Path) -> tuple[Document, dict[str, Any]]:
-    """Read a model YAML (CONTRACT: kind, inputs, outputs, params, fit); at most MODEL_MAX_BYTES."""
+    """Read a model YAML (kind, inputs, outputs, params, fit: docs/formats.md); at most MODEL_MAX_BYTES."""
     doc = load_yaml(file, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
     data = doc.data
     if not isinstance(data, dict):

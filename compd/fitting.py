@@ -154,7 +154,7 @@ def fit_model(
 
 
 def write_model(model: Model, path: str | Path) -> None:
-    """The model YAML of CONTRACT.md (kind, inputs, outputs, params, fit)."""
+    """The model YAML (kind, inputs, outputs, params, fit; docs/formats.md)."""
     data = json.loads(json.dumps(model.to_dict()))
     Path(path).write_text(yaml.safe_dump(data, sort_keys=False, allow_unicode=True), encoding="utf-8")
 
@@ -170,7 +170,7 @@ def load_model(path: str | Path) -> Model:
 
 
 def write_prediction(path: str | Path, t_s: np.ndarray, axes: list[str], pred: np.ndarray) -> None:
-    """PRED.csv of CONTRACT: t_s and one pred_<axis>_um column per axis."""
+    """PRED.csv: t_s and one pred_<axis>_um column per axis."""
     from compd.log import write_log
 
     write_log(path, ["t_s"] + [f"pred_{a}_um" for a in axes], np.column_stack([t_s, pred]))

@@ -1,4 +1,4 @@
-"""What reaches the machine: plausibility, clamp, slew limit and the fault policy (SPEC §1).
+"""What reaches the machine: plausibility, clamp, slew limit and the fault policy.
 
 Per cycle the guard (1) marks implausible model inputs (range, rate of change,
 staleness) in the frame, (2) turns the predicted error into a target correction

@@ -1,4 +1,4 @@
-"""The log CSV of CONTRACT.md: read and validate it, and write it from a background thread."""
+"""The log CSV (docs/formats.md): read and validate it, and write it from a background thread."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ log = logging.getLogger("compd.log")
 
 
 def is_temperature_column(name: str) -> bool:
-    """CONTRACT: any column but t_s, err_*, pos_*, speed_rpm, current_* is a temperature.
+    """Any column but t_s, err_*, pos_*, speed_rpm, current_* is a temperature.
 
     compd's own output columns (pred_*, corr_*, applied_*, word) are excluded too, so
     a fit on a log that compd wrote does not take its own predictions as inputs.

@@ -1,6 +1,6 @@
 """The fixed-period cycle: absolute schedule, fixed stage order, timing statistics.
 
-Stages run in the order of SPEC §1: read → model → guard → codec → sink. Each
+Stages run in the pipeline's order: read → model → guard → codec → sink. Each
 cycle's deadline is start + k·period (never "sleep(period)"); the loop records its
 lateness (wake-up time − deadline) in a fixed histogram, every stage's time and
 worst time, and counts misses (a cycle that started more than half a period late
@@ -108,7 +108,7 @@ class TimingStats:
 
 
 class Loop:
-    """Runs the pipeline on a clock. Build it with `compd.app.build`."""
+    """Runs the pipeline on a clock. Built from a config by `compd.app.App`; `compd.replay` builds one directly."""
 
     def __init__(
         self,
@@ -344,17 +344,3 @@ class Loop:
             self.applied_um[axis] = self._word_applied[slot]
         return self.applied_um
 
-    def get_status(self) -> dict[str, Any]:
-        now = self.now_s
-        return {
-            "uptime_s": now - self.t_start_s,
-            "word": f"0x{self.word:04X}",
-            "axes": self.guard.get_status(),
-            "prediction_um": dict(zip(self.model.outputs, map(float, self.pred_um), strict=True)),
-            "signals": self.frame.snapshot(now),
-            "loop": self.stats.as_dict(),
-            "model": self.model.get_status(),
-            "sink": self.sink.get_status(),
-            "sources": [s.get_status() for s in self.sources],
-            "faults": dict(self.guard.faults),
-        }

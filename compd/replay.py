@@ -30,7 +30,7 @@ from compd.sources.replay import ReplayConfig, ReplaySource
 
 @dataclass
 class ReplayResult:
-    """The CONTRACT report plus the traces behind it (for plots and tests)."""
+    """The report (docs/formats.md) plus the traces behind it (for plots and tests)."""
 
     report: dict[str, Any]
     t_s: np.ndarray

@@ -26,7 +26,7 @@ DEFAULT_PATH = "/run/compd/status.json"
 
 
 def timing(stats: Any) -> dict[str, Any]:
-    """The loop's timing figures (CONTRACT bench names), with numpy percentiles (≈ 50 µs)."""
+    """The loop's timing figures (the names of the bench JSON), with numpy percentiles (≈ 50 µs)."""
     p50, p99, p999 = bin_percentiles(stats.hist, (0.5, 0.99, 0.999))
     c50, c99 = bin_percentiles(stats.compute_hist, (0.5, 0.99))
     return {

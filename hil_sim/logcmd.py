@@ -1,4 +1,4 @@
-"""`python -m hil_sim log`: run a scenario on its plant and write a CONTRACT log CSV with the true errors."""
+"""`python -m hil_sim log`: run a scenario on its plant and write a log CSV (docs/formats.md) with the true errors."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The 16-bit word of SPEC §2: examples, properties, no-chatter rule, CLI."""
+"""The 16-bit word of paper 002 (docs/formats.md): examples, properties, no-chatter rule, CLI."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Thermal-error models, one module each, found by YAML `kind` (SPEC §3)."""
+"""Thermal-error models, one module each, found by YAML `kind`."""
 
 from compd.registry import Registry
 

@@ -1,4 +1,4 @@
-"""AR(1) spindle elongation model with speed-dependent C2, bed term and ambient input (paper 001, SPEC §3.4).
+"""AR(1) spindle elongation model with speed-dependent C2, bed term and ambient input (paper 001).
 
 Every Δτ the spindle growth steps as S(k) = C1 S(k−1) + C2(n_k) + C3 ΔT_amb(k) (eq. 9 of
 paper 001 with the ambient as exogenous input; C3 = 0 is the paper), and the error is

@@ -31,7 +31,7 @@ class ModelParams(Strict):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-# Physical bounds shared by the kinds (units in the names; SPEC.md, the models' docstrings).
+# Physical bounds shared by the kinds (units in the names; the models' docstrings).
 TEMP_MIN_C, TEMP_MAX_C = -40.0, 150.0  # a reading on a machine tool (the guard's default limits)
 MAX_RISE_K = 200.0  # a temperature rise from the reference
 MAX_GAIN_UM_PER_K = 1e4  # α ≤ 1e-3 /K times a structure ≤ 10 m: µm of error per K
@@ -146,7 +146,7 @@ class Model(ABC):
     def fit(
         cls, log: Log, inputs: list[str] | None, targets: list[str] | None, **options: Any
     ) -> FitResult:
-        """Identify the model from a log (CONTRACT `compd fit`).
+        """Identify the model from a log (`compd fit`).
 
         `inputs`/`targets` None means the kind's defaults (every temperature column,
         every `err_*_um` column); `options` are validated against `FitOptions`. The
@@ -178,7 +178,7 @@ class Model(ABC):
         """Restore memory saved `elapsed_s` ago."""
 
     def to_dict(self) -> dict[str, Any]:
-        """The model file of CONTRACT.md: kind, inputs, outputs, params, fit."""
+        """The model file (docs/formats.md): kind, inputs, outputs, params, fit."""
         return {
             "kind": self.kind,
             "inputs": list(self.inputs),

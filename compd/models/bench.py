@@ -1,4 +1,4 @@
-"""Per-evaluation cost of every model kind, as the loop calls it (CONTRACT `model_eval_us`)."""
+"""Per-evaluation cost of every model kind, as the loop calls it (the bench JSON's `model_eval_us`)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Analytic feed-axis model of a linear-motor axis: erf temperature field, segment-sum error (paper 000, SPEC §3.1).
+"""Analytic feed-axis model of a linear-motor axis: erf temperature field, segment-sum error (paper 000).
 
 With heating time t [s], heat put in by the motor Q(t) = ∫ P_J dt [J] (= P_J t for a
 constant loss), and the slide cut into m segments of ΔL with midpoints y_j [m]:
@@ -91,7 +91,7 @@ class FeedAxisParams(ModelParams):
         ge=-MAX_LENGTH_MM,
         le=MAX_LENGTH_MM,
         description="run time: output the least-squares line K0 + tanβ (y − P0) of E over the stroke"
-        " at P0 = this (for a CNC whose compensation is linear in position: Siemens, SPEC §4.3);"
+        " at P0 = this (for a CNC whose compensation is linear in position: Siemens, paper 001);"
         " none = E at the current position",
     )
 
@@ -224,7 +224,7 @@ def linear_reduction(
 ) -> tuple[float, float, float]:
     """(K0 µm, tanβ µm/mm, P0 mm): E(t, y) ≈ K0 + tanβ (y − P0) over the stroke by least squares.
 
-    For CNCs whose compensation is linear in position (Siemens SD43900/43910/43920, SPEC §4.3).
+    For CNCs whose compensation is linear in position (Siemens SD43900/43910/43920, paper 001).
     P0 defaults to the stroke start.
     """
     y, e = error_profile_um(t_s, q_j, p)

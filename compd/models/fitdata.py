@@ -12,7 +12,7 @@ from compd.log import Log, error_axis
 
 
 def default_inputs(log: Log, inputs: Sequence[str] | None) -> list[str]:
-    """The named inputs, or every temperature column of the log (CONTRACT)."""
+    """The named inputs, or every temperature column of the log (compd.log.is_temperature_column)."""
     if inputs:
         return list(inputs)
     names = log.temperature_columns()
@@ -22,7 +22,7 @@ def default_inputs(log: Log, inputs: Sequence[str] | None) -> list[str]:
 
 
 def default_targets(log: Log, targets: Sequence[str] | None) -> list[str]:
-    """The named targets, or every `err_<axis>_um` column of the log (CONTRACT)."""
+    """The named targets, or every `err_<axis>_um` column of the log."""
     names = list(targets) if targets else log.error_columns()
     if not names:
         raise BadInput("the log has no err_<axis>_um column to fit to", file=log.file)

@@ -1,4 +1,4 @@
-"""Latent-variable regression (PLS) on temperature rises, with exact fast LOO Q² (paper 002, SPEC §3.2).
+"""Latent-variable regression (PLS) on temperature rises, with exact fast LOO Q² (paper 002).
 
 The fit standardises X (n × p rises) and Y (n × q errors) with the sample standard
 deviation, extracts components by the paper's algorithm (w_h the dominant eigenvector
@@ -196,7 +196,7 @@ def loo_press(X: np.ndarray, Y: np.ndarray, max_components: int, chunk_elems: in
 def select_components(
     X: np.ndarray, Y: np.ndarray, max_components: int, limit: float = Q2_LIMIT
 ) -> tuple[int, list[float], PLSModel]:
-    """Q² leave-one-out selection (SPEC §3.2): keep component h while Q²_h ≥ `limit`.
+    """Q² leave-one-out selection (paper 002): keep component h while Q²_h ≥ `limit`.
 
     Returns (chosen h ≥ 1, Q²_1..Q²_max, the full-data fit with max_components).
     """
@@ -244,7 +244,7 @@ class LVRFitOptions(Strict):
 
 
 class LVR(RiseLinear):
-    """PLS model on temperature rises (paper 002, SPEC §3.2)."""
+    """PLS model on temperature rises (paper 002)."""
 
     kind = "lvr"
     Params = LVRParams

@@ -1,4 +1,4 @@
-"""Multiple linear regression on temperature rises: the papers' baseline model (SPEC §3.5).
+"""Multiple linear regression on temperature rises: the papers' baseline model.
 
 E = b0 + Σ_j b_j (T_j − T_j0): the same linear form the LVR model evaluates, fitted by
 ordinary least squares. `RiseLinear` is the shared run-time form of both.
@@ -197,7 +197,7 @@ class MLRFitOptions(Strict):
 
 
 class MLR(RiseLinear):
-    """Multiple linear regression on temperature rises (SPEC §3.5)."""
+    """Multiple linear regression on temperature rises (the papers' comparison model)."""
 
     kind = "mlr"
     FitOptions = MLRFitOptions

@@ -1,4 +1,4 @@
-"""ξ-point spindle model, axial ΔL = α L [T(ξ) − T0] and radial bearing-ring model (paper 003, SPEC §3.3)."""
+"""ξ-point spindle model, axial ΔL = α L [T(ξ) − T0] and radial bearing-ring model (paper 003)."""
 
 from __future__ import annotations
 

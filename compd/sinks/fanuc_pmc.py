@@ -1,4 +1,4 @@
-"""FANUC PMC sink (paper 003, SPEC §4.2): the word on X addresses with a strobe, or the shift directly.
+"""FANUC PMC sink (paper 003): the word on X addresses with a strobe, or the shift directly.
 
 A FANUC external machine coordinate shift is absolute and a single change larger
 than the PMC's limit raises an alarm, so this sink never changes an axis by more

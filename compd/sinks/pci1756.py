@@ -1,4 +1,4 @@
-"""PCI-1756 digital-output sink (paper 002, SPEC §4.1): the word on two DO bytes, plus a heartbeat."""
+"""PCI-1756 digital-output sink (paper 002): the word on two DO bytes, plus a heartbeat."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Siemens temperature compensation sink (paper 001, SPEC §4.3): K0, tanβ, P0 per axis.
+"""Siemens temperature compensation sink (paper 001): K0, tanβ, P0 per axis.
 
 The NC applies ΔK = K0 + tanβ·(P − P0) and spreads every change over its IPO cycles
 (MD32760). This sink writes SD43900 K0 (mm) from the guarded correction of each

@@ -65,7 +65,7 @@ class Source(ABC):
 
 
 class PolledSource(Source):
-    """A source whose device is polled on its own thread (SPEC §1: slow I/O off the cycle).
+    """A source whose device is polled on its own thread (slow I/O stays off the cycle).
 
     Subclasses implement `poll(values, quality)` which performs one blocking
     request/response and fills the two arrays; it returns normally even on a

@@ -65,9 +65,5 @@ class SimSource(Source):
         frame.quality[self._idx] = Quality.GOOD
         frame.stamp_s[self._idx] = self._stamp
 
-    def apply_correction(self, correction_um: np.ndarray) -> None:
-        """Closed loop: the correction the CNC applied (residual = error + correction)."""
-        self.plant.correction_um[: len(correction_um)] = correction_um
-
     def get_status(self) -> dict[str, Any]:
         return {**super().get_status(), "plant": self.cfg.plant, "plant_t_s": self.plant.t_s}

@@ -1,4 +1,4 @@
-"""FANUC PMC software PLC (SPEC §4.2): fixed scan, X/Y/R/D memory, the external-shift ladder.
+"""FANUC PMC software PLC (paper 003): fixed scan, X/Y/R/D memory, the external-shift ladder.
 
 Memory map (Modbus holding registers, one register per PMC byte for X and Y, one
 16-bit word per register for R, D and status; signed values are two's complement):
@@ -171,9 +171,6 @@ class FanucPmc:
     def alarms(self) -> int:
         with self._lock:
             return self.mem[ALARM]
-
-    def reset_alarms(self) -> None:
-        self.write_registers(RESET, [1])
 
 
 class PmcScanThread(DeviceThread):

@@ -24,12 +24,6 @@ class Pci1756Card:
         self.do_writes = 0
         self.resets = 0
 
-    def write_do_byte(self, port: int, value: int) -> None:
-        self._check(port, 1)
-        with self._lock:
-            self._do[port] = value & 0xFF
-            self.do_writes += 1
-
     def write_do_word(self, port: int, value: int) -> None:
         self._check(port, 2)
         with self._lock:

@@ -1,4 +1,4 @@
-"""Siemens NC temperature compensation data (SPEC §4.3), reachable over Modbus TCP.
+"""Siemens NC temperature compensation data (paper 001), reachable over Modbus TCP.
 
 ΔK = K0 + tanβ·(P − P0), with K0 = SD43900 TEMP_COMP_ABS_VALUE (mm), tanβ = SD43910
 TEMP_COMP_SLOPE, P0 = SD43920 TEMP_COMP_REF_POSITION (mm). MD32750 TEMP_COMP_TYPE:

@@ -9,7 +9,7 @@ spindle (inner ring) and the headstock (outer ring); bearings link spindle and
 headstock; the headstock sits on the bed; the saddle sits on the bed and is warmed
 by its drives while cutting. Everything convects to the ambient.
 
-Z error (paper 001 eq. 15, SPEC §3.4): ΔL_bed − ΔL_sp, with the true integrals
+Z error (paper 001 eq. 15): ΔL_bed − ΔL_sp, with the true integrals
 ΔL_bed = α_bed ∫_0^{saddle} ΔT_bed dx (paper: ≈ α L ΔT3, L ≈ 1.2 m) and
 ΔL_sp = α_sp ∫_0^{L_sp} ΔT_sp ds (the 1-D rod of the paper).
 Sensors as in the paper's Fig. 4: T1 headstock front, T2 headstock rear, T3 bed middle,

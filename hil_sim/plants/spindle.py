@@ -2,7 +2,7 @@
 
 Axial error: the rotor's free growth α ∫ (T − T_init) dx (paper 003 eq. 1; the
 ξ-point model estimates it from one sensor). Radial error at the front bearing
-(paper 003 §2, SPEC §3.3): ring thermoelastic displacement u = u_C − u_B from the
+(paper 003 §2): ring thermoelastic displacement u = u_C − u_B from the
 rings' radial temperature profiles, plus the clearance c opened by the preload
 loss that the axial growth between the bearings causes, plus centrifugal lift k n².
 """
@@ -157,7 +157,7 @@ class SpindlePlant(Plant):
         return t_amb_c + self.p["coolant_offset_c"]
 
     def steady_state_xi_mm(self, speed_rpm: float = 10000.0) -> float:
-        """ξ of the rotor's steady-state profile at `speed_rpm`, coolant off (SPEC §3.3)."""
+        """ξ of the rotor's steady-state profile at `speed_rpm`, coolant off (paper 003)."""
         from compd.models.xi_spindle import find_xi
 
         t = self.net.steady_state(

@@ -395,7 +395,7 @@ def record(row: str, m: Measured, tmp_path: Path) -> Path:
 
 
 def check(m: Measured, *, fault: bool = True, recovered: bool | None = None) -> None:
-    """The assertions every row shares (SPEC: never throw the axis)."""
+    """The assertions every row shares (never throw the axis)."""
     assert m.running, "compd stopped"
     assert m.word_valid, "an invalid word reached the card"
     assert m.max_step_ratio <= 1.0 + 1e-6, f"the correction moved faster than the slew: {m}"

@@ -1,4 +1,4 @@
-"""`python -m hil_sim log`: CONTRACT log round trip, sweeps, and bad input (exit 2)."""
+"""`python -m hil_sim log`: log CSV round trip, sweeps, and bad input (exit 2)."""
 
 from __future__ import annotations
 

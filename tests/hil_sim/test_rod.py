@@ -76,7 +76,7 @@ def test_uniform_rod_cools_with_time_constant_one_over_b():
 
 
 def test_growth_follows_the_ar1_recursion_of_paper_001():
-    """ΔL(k) = C1 ΔL(k−1) + C2, C1 = e^(−bΔτ), C2 = q α a/(λ b)(1 − e^(−bΔτ)) (SPEC §3.4)."""
+    """ΔL(k) = C1 ΔL(k−1) + C2, C1 = e^(−bΔτ), C2 = q α a/(λ b)(1 − e^(−bΔτ)) (paper 001)."""
     alpha, q, tau = 12e-6, 2000.0, 30.0
     r = rod(n=40, dt_s=1.0)
     heat = np.zeros(r.n)

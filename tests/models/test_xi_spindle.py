@@ -24,7 +24,7 @@ from compd.models.xi_spindle import (
     "t_c, dl_um", [(23.2, 1.57), (26.8, 9.65), (28.5, 13.46), (29.9, 16.61), (30.7, 18.40), (31.5, 20.20)]
 )
 def test_table1_rows(t_c, dl_um):
-    # paper 003 Table 1 (its 30.7 °C row prints 18.50, a typo for 18.40; SPEC §3.3)
+    # paper 003 Table 1 (its 30.7 °C row prints 18.50, a typo for 18.40)
     assert round(float(axial_growth_um(t_c, 22.5, 13.6e-6, 165.0)), 2) == pytest.approx(dl_um, abs=0.006)
 
 
@@ -88,7 +88,7 @@ def test_fit_axial_length():
 
 
 # paper 003, Table 1: T(ξ) °C → modelled ΔL µm (α = 13.6e-6 /K, L = 165 mm, T0 = 22.5 °C).
-# The paper prints 18.50 for 30.7 °C; α L ΔT gives 18.40 (SPEC §3.3).
+# The paper prints 18.50 for 30.7 °C; α L ΔT gives 18.40.
 TABLE_1 = [
     (22.5, 0.0), (23.2, 1.57), (26.8, 9.65), (28.5, 13.46), (28.9, 14.36), (29.2, 15.03),
     (29.5, 15.71), (29.7, 16.16), (29.9, 16.61), (30.7, 18.40), (30.8, 18.63), (31.0, 19.07),
