@@ -91,7 +91,6 @@ class FanucPmcSink(Sink):
         super().__init__(cfg, base_dir)
         self.cfg: FanucPmcConfig = cfg
         self.pmc = pmc
-        self.link: Any = None
         if pmc is None and cfg.host is None:
             from hil_sim.devices.fanuc_pmc import FanucPmc
 
