@@ -316,7 +316,7 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     """The loop a user writes by hand: one request per register, predict, write, sleep(period)."""
     from pymodbus.client import ModbusTcpClient
 
-    from compd.codec import encode
+    from compd.codec import encode, word_bytes
     from compd.fitting import load_model
 
     model = load_model(str(model_path))
@@ -350,7 +350,8 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
                 started = True
             model.evaluate(x, 0.0, out)
             word = encode(-out[0], -out[1])
-            pmc.write_registers(0, [word & 0xFF, word >> 8], device_id=1)
+            high, low = word_bytes(word)
+            pmc.write_registers(0, [low, high], device_id=1)  # X0 holds the low byte
             compute[k] = time.monotonic() - start
             time.sleep(period_s)
     finally:
