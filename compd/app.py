@@ -10,7 +10,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from compd.clock import PlantClock, SimClock, WallClock
+from compd.clock import Clock, PlantClock, SimClock, WallClock
 from compd.codec import Encoder
 from compd.config import Config
 from compd.errors import BadInput
@@ -227,8 +227,8 @@ class App:
 
             self.sink = ObserveSink(self.sink)
         if lp.clock == "sim":
-            start = min((getattr(s, "start_s", 0.0) for s in self.sources), default=0.0)
-            self.clock: Any = SimClock(start, lp.speedup)
+            start = min((0.0 if s.start_s is None else s.start_s for s in self.sources), default=0.0)
+            self.clock: Clock = SimClock(start, lp.speedup)
         elif lp.clock == "plant" and lp.plant_clock is not None:
             pc = lp.plant_clock
             self.clock = PlantClock(
@@ -263,8 +263,7 @@ class App:
             self.loop.observers.append(Console(self.loop, top.console.period_s, out))
         self.duration_s = duration_s if duration_s is not None else lp.duration_s
         if self.duration_s is None and lp.clock == "sim":
-            ends = [getattr(s, "end_s", None) or getattr(getattr(s, "scenario", None), "duration_s", None) for s in self.sources]
-            ends = [e for e in ends if e]
+            ends = [e for e in (s.end_s for s in self.sources) if e]
             if ends:
                 self.duration_s = min(ends) - self.clock.now()
         from compd.service import Service
@@ -398,9 +397,8 @@ class App:
         over is given back, and the exception propagates: the previous App resumes."""
         undo: list[Any] = []
         try:
-            start_clock = getattr(self.clock, "start", None)
-            if start_clock is not None and not self._clock_adopted:  # connect before anything is stamped
-                start_clock()
+            if not self._clock_adopted:  # connect before anything is stamped
+                self.clock.start()
                 undo.append(self.clock.stop)
             self.service.open_metrics()
             undo.append(self.service.close_metrics)
@@ -449,9 +447,8 @@ class App:
                     self.state_writer.submit(self.model.get_state())
                 self.state_writer.close()
             self.service.stop(handing_over_to=new.service if new is not None else None)
-            stop_clock = getattr(self.clock, "stop", None)
-            if stop_clock is not None and not (new is not None and new.clock is self.clock):
-                stop_clock()
+            if not (new is not None and new.clock is self.clock):
+                self.clock.stop()
 
     def summary_dict(self) -> dict[str, Any]:
         return {

@@ -235,8 +235,8 @@ def io_stats(app: Any) -> dict[str, dict[str, float]]:
     the cycle queueing a word to the PMC acknowledging it."""
     from compd.histogram import DurationHist
 
-    polls = [s.poll_hist for s in app.sources if hasattr(s, "poll_hist")]
-    link = getattr(app.sink, "link", None)
+    polls = [s.poll_hist for s in app.sources if s.poll_hist is not None]
+    link = app.sink.link
     out = {"read": DurationHist.merged(polls).summary() if polls else {}}
     if link is not None:
         out["write"] = link.write_hist.summary()
@@ -280,7 +280,7 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     try:
         # wait for the pollers' first samples so the model starts on real readings
         deadline = time.monotonic() + 5
-        while any(getattr(s, "polls", 1) == 0 for s in app.sources) and time.monotonic() < deadline:
+        while not all(s.sampled() for s in app.sources) and time.monotonic() < deadline:
             time.sleep(0.01)
         tid = threading.get_native_id()
         steal0, sw0 = host_steal_ms(), thread_switches(tid)
@@ -316,7 +316,7 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     """The loop a user writes by hand: one request per register, predict, write, sleep(period)."""
     from pymodbus.client import ModbusTcpClient
 
-    from compd.codec import encode
+    from compd.codec import encode, word_bytes
     from compd.fitting import load_model
 
     model = load_model(str(model_path))
@@ -350,7 +350,8 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
                 started = True
             model.evaluate(x, 0.0, out)
             word = encode(-out[0], -out[1])
-            pmc.write_registers(0, [word & 0xFF, word >> 8], device_id=1)
+            high, low = word_bytes(word)
+            pmc.write_registers(0, [low, high], device_id=1)  # X0 holds the low byte
             compute[k] = time.monotonic() - start
             time.sleep(period_s)
     finally:

@@ -3,12 +3,38 @@
 from __future__ import annotations
 
 import time
+from abc import ABC, abstractmethod
 from typing import Any
 
 from compd.modbus_reply import HOLDING, shape_error
 
 
-class WallClock:
+class Clock(ABC):
+    """What the loop needs of a clock: the time now (s), a wait until a deadline, and
+    `start`/`stop` around a run (a clock read from elsewhere connects there).
+
+    `simulated` is True when the clock's time is not wall time (the loop then keeps
+    the interpreter's thread switch interval as it is, and no real-time option applies).
+    """
+
+    simulated: bool = False
+
+    @abstractmethod
+    def now(self) -> float:
+        """Loop time, s."""
+
+    @abstractmethod
+    def wait_until(self, deadline_s: float) -> None:
+        """Return at (or as soon as possible after) loop time `deadline_s`."""
+
+    def start(self) -> None:
+        """Called once before the loop opens anything (a clock read from elsewhere connects)."""
+
+    def stop(self) -> None:
+        """Release what `start` took; called after the loop closed."""
+
+
+class WallClock(Clock):
     """Monotonic wall time. `wait_until` sleeps until `spin_margin_s` before the
     deadline, then spins, which cuts lateness from ~0.1 ms to a few µs."""
 
@@ -28,7 +54,7 @@ class WallClock:
             pass
 
 
-class SimClock:
+class SimClock(Clock):
     """Simulated time: `wait_until` jumps to the deadline at once.
 
     With `speedup` > 0 the clock also paces itself against wall time, so that
@@ -60,7 +86,7 @@ class SimClock:
         self.t_s = t_s
 
 
-class PlantClock:
+class PlantClock(Clock):
     """The plant's own clock, read over Modbus TCP (a simulator running faster than wall time).
 
     A thread polls two holding registers (plant time in ms, uint32, high word first,

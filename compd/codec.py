@@ -24,6 +24,28 @@ class AxisCode(NamedTuple):
     magnitude: int
 
 
+def join_bytes(high: int, low: int) -> int:
+    """The word of two axis bytes: X1's byte high, X2's low."""
+    return (high << 8) | low
+
+
+def word_bytes(word: int) -> tuple[int, int]:
+    """The two axis bytes of a word: (X1's, the high byte; X2's, the low byte)."""
+    return word >> 8, word & 0xFF
+
+
+def code_byte(q: int) -> int:
+    """The byte of a signed code in LSB (0 → 0x00, disabled; |q| clamped to 63)."""
+    if q == 0:
+        return 0
+    return ENABLE_BIT | min(abs(q), MAX_MAG) | (DIR_BIT if q > 0 else 0)
+
+
+def word_from_codes(q1: int, q2: int) -> int:
+    """The word for two signed codes already in LSB (X1 high byte, X2 low byte)."""
+    return join_bytes(code_byte(q1), code_byte(q2))
+
+
 def encode_byte(c_um: float, lsb_um: float = 1.0, deadband_um: float = 1.0) -> tuple[int, bool]:
     """Encode one axis's correction into a byte; returns (byte, saturated).
 
@@ -55,7 +77,7 @@ def encode_ex(
         raise ValueError(f"deadband_um must be >= 0, got {deadband_um}")
     b1, s1 = encode_byte(c1_um, lsb_um, deadband_um)
     b2, s2 = encode_byte(c2_um, lsb_um, deadband_um)
-    return (b1 << 8) | b2, s1, s2
+    return join_bytes(b1, b2), s1, s2
 
 
 def encode(c1_um: float, c2_um: float, lsb_um: float = 1.0, deadband_um: float = 1.0) -> int:
@@ -72,7 +94,8 @@ def decode(word: int) -> tuple[AxisCode, AxisCode]:
     """Both axes of a word: ((dir, enable, mag) of X1, (dir, enable, mag) of X2)."""
     if not 0 <= word <= 0xFFFF:
         raise ValueError(f"word must be 0..0xFFFF, got {word}")
-    return decode_byte(word >> 8), decode_byte(word & 0xFF)
+    high, low = word_bytes(word)
+    return decode_byte(high), decode_byte(low)
 
 
 def byte_to_um(byte: int, lsb_um: float = 1.0) -> float:
@@ -85,7 +108,20 @@ def byte_to_um(byte: int, lsb_um: float = 1.0) -> float:
 
 def word_to_um(word: int, lsb_um: float = 1.0) -> tuple[float, float]:
     """The corrections (X1, X2) a word applies, in µm."""
-    return byte_to_um(word >> 8, lsb_um), byte_to_um(word & 0xFF, lsb_um)
+    high, low = word_bytes(word)
+    return byte_to_um(high, lsb_um), byte_to_um(low, lsb_um)
+
+
+def byte_code(byte: int) -> int:
+    """The signed code (LSB) a byte carries: ±magnitude, 0 when the enable bit is off."""
+    code = decode_byte(byte)
+    return code.direction * code.magnitude if code.enable else 0
+
+
+def codes_from_word(word: int) -> tuple[int, int]:
+    """The signed codes (LSB) of X1 and X2 a word carries (0 for a disabled axis)."""
+    high, low = word_bytes(word)
+    return byte_code(high), byte_code(low)
 
 
 class Encoder:
@@ -163,7 +199,7 @@ class Encoder:
             q = previous.codes[i] * previous.lsb_um / self.lsb_um
             q = math.floor(abs(q) + 0.5) * (1 if q >= 0 else -1)
             self.codes[i] = max(-MAX_MAG, min(MAX_MAG, q))
-        self.word = (_code_byte(self.codes[0]) << 8) | _code_byte(self.codes[1])
+        self.word = word_from_codes(self.codes[0], self.codes[1])
         self.words_emitted = previous.words_emitted
 
     def _axis(self, i: int, c_um: float, enabled: bool, dt_s: float) -> None:
@@ -224,7 +260,7 @@ class Encoder:
         """
         self._axis(0, c1_um, en1, dt_s)
         self._axis(1, c2_um, en2, dt_s)
-        word = (_code_byte(self.codes[0]) << 8) | _code_byte(self.codes[1])
+        word = word_from_codes(self.codes[0], self.codes[1])
         changed = word != self.word or not self.words_emitted
         if changed:
             self.word = word
@@ -232,10 +268,3 @@ class Encoder:
             if self.saturated[0] or self.saturated[1]:
                 self.saturations += 1
         return changed
-
-
-def _code_byte(q: int) -> int:
-    """The byte of a signed code in LSB (0 → 0x00, disabled)."""
-    if q == 0:
-        return 0
-    return ENABLE_BIT | min(abs(q), MAX_MAG) | (DIR_BIT if q > 0 else 0)

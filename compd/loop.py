@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from compd.clock import Clock
 from compd.codec import Encoder
 from compd.frame import Frame
 from compd.guard import Guard
@@ -114,7 +115,7 @@ class Loop:
         self,
         *,
         period_s: float,
-        clock: Any,
+        clock: Clock,
         frame: Frame,
         sources: list[Source],
         model: Model,
@@ -171,9 +172,7 @@ class Loop:
                     continue
                 opened.append(s)
                 s.open(now)
-                start_polling = getattr(s, "start_polling", None)
-                if start_polling is not None:  # PolledSource: its own thread, on the loop clock
-                    start_polling(self.clock)
+                s.start_polling(self.clock)  # a PolledSource's own thread, on the loop clock
             if id(self.sink) not in adopted:
                 opened.append(self.sink)
                 self.sink.open(now)
@@ -225,7 +224,7 @@ class Loop:
         # the switch interval (5 ms by default) after the cycle thread wakes. On wall
         # time the interval is cut so the cycle waits at most that long.
         switch_was = sys.getswitchinterval()
-        if not getattr(clock, "simulated", False):
+        if not clock.simulated:
             sys.setswitchinterval(self.gil_switch_interval_s)
         # The schedule starts only now: a full collection above can take tens of ms,
         # and taken before it, t0 would make cycle 1 late by exactly that.

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,6 +26,9 @@ from compd.loop import Loop
 from compd.models.base import Model
 from compd.sinks.base import Sink
 from compd.sources.replay import ReplayConfig, ReplaySource
+
+if TYPE_CHECKING:
+    from compd.sinks.fanuc_pmc import FanucPmcSink
 
 
 @dataclass
@@ -79,9 +82,7 @@ def replay_log(
     word_names = list(codec_cfg.axes or model.outputs[:2])
     word_axes = [model.outputs.index(a) for a in word_names]
     sink.bind(word_names, codec_cfg.lsb_um)
-    bind_model = getattr(sink, "bind_model", None)
-    if bind_model is not None:
-        bind_model(model)
+    sink.bind_model(model)
     clock = SimClock(float(log.t_s[0]))
     loop = Loop(
         period_s=1.0,
@@ -97,7 +98,6 @@ def replay_log(
     n, n_out = len(log), len(model.outputs)
     applied = np.zeros((n, n_out))
     words = np.zeros(n, dtype=np.int64)
-    settle = getattr(sink, "settle", None)
     t = log.t_s
     codes_sent = 0
     prev_word = 0
@@ -107,8 +107,7 @@ def replay_log(
             now = float(t[i])
             clock.set(now)
             loop.step(now)
-            if settle is not None:
-                settle(now)
+            sink.settle(now)
             applied[i] = loop.applied()
             w = loop.word
             words[i] = w
@@ -141,7 +140,7 @@ def replay_log(
     return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, applied, words)
 
 
-def _pmc_sink(host: str | None = None) -> Sink:
+def _pmc_sink(host: str | None = None) -> FanucPmcSink:
     from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink
 
     return FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", host=host))
@@ -159,11 +158,11 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     model = build_model(cfg.model)
     sink_cls, sink_cfg, _ = cfg.sink
     if sink_cls is FanucPmcSink:
-        sink: Sink = sink_cls(sink_cfg, base_dir=str(Path(cfg.file).parent))
+        sink = FanucPmcSink(sink_cfg, base_dir=str(Path(cfg.file).parent))
     else:
         sink = _pmc_sink()
     result = replay_log(log, model, sink, cfg.guard, cfg.codec)
-    host = getattr(sink.cfg, "host", None)
+    host = sink.cfg.host
     result.report["plc"] = f"{host}:{sink.cfg.port}" if host else "in_process"
     return result
 

@@ -131,7 +131,7 @@ class Service:
             "compd starting: %s, model %s, sink %s%s",
             app.cfg.file,
             self.loop.model.kind,
-            getattr(self.loop.sink.cfg, "kind", "?"),
+            self.loop.sink.cfg.kind,
             " (observe mode: output held disabled)" if self.observe else "",
             extra={"event": "start", "config": app.cfg.file, "period_s": self.loop.period_s,
                    "observe": self.observe, "pid": os.getpid()},

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from compd.codec import word_bytes
 from compd.errors import BadInput
 from compd.histogram import bin_percentiles
 
@@ -74,7 +75,7 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
         a["prediction_um"] = float(loop.pred_um[i])
         slot = slot_of.get(i)
         a["word_byte"] = ("high", "low")[slot] if slot is not None else None
-        a["byte"] = f"0x{(loop.word >> 8 if slot == 0 else loop.word) & 0xFF:02X}" if slot is not None else None
+        a["byte"] = f"0x{word_bytes(loop.word)[slot]:02X}" if slot is not None else None
         a["saturated"] = bool(enc.saturated[slot]) if slot is not None else False
         # `enable`: on at the machine (the guard's bit, and a sink that reaches it)
         a["guard_enable"] = a["enable"]

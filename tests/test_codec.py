@@ -65,6 +65,23 @@ def test_decode_encode_word(word: int) -> None:
             assert codec.encode_byte(code.direction * code.magnitude)[0] == byte
 
 
+def test_word_from_codes() -> None:
+    """The word of codes already in LSB: what the FANUC sink steps through."""
+    assert codec.word_from_codes(5, -3) == codec.encode(5, -3) == 0xC543
+    assert codec.word_from_codes(0, 70) == 0x00FF  # clamped to 63, disabled axis 0x00
+    assert codec.word_bytes(0xC543) == (0xC5, 0x43)
+    assert codec.join_bytes(0xC5, 0x43) == 0xC543
+
+
+@given(st.integers(min_value=-63, max_value=63), st.integers(min_value=-63, max_value=63))
+def test_codes_round_trip(q1: int, q2: int) -> None:
+    assert codec.codes_from_word(codec.word_from_codes(q1, q2)) == (q1, q2)
+
+
+def test_codes_of_a_disabled_byte_are_zero() -> None:
+    assert codec.codes_from_word(0x8543) == (0, -3)  # high byte: enable bit off
+
+
 def test_nan_and_inf_encode_disabled() -> None:
     assert codec.encode(math.nan, math.inf) == 0
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from compd.app import App
+from compd.clock import Clock
 from compd.codec import decode
 from compd.config import load_config
 
@@ -40,7 +41,7 @@ sink:
 """
 
 
-class ScriptedClock:
+class ScriptedClock(Clock):
     """Simulated clock whose wake-ups are late by a scripted amount."""
 
     simulated = True

@@ -122,6 +122,13 @@ class Model(ABC):
         """Predict from the inputs where `good` is True; NaN for axes it cannot serve."""
         out.fill(np.nan)
 
+    def linear_terms(self) -> list[tuple[float, float]] | None:
+        """Per output axis (error slope µm/mm, reference position P0 mm) of the last
+        evaluation, its output being the error at P0, for a sink that applies a
+        position-dependent correction (Siemens tanβ, P0); None when the model is not
+        linear in the position (the default), or not in its present mode."""
+        return None
+
     def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         """Batch prediction over a log: X (n × inputs) → (n × outputs), µm.
 

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Hashable
-from typing import Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
 
 from compd.config import SinkConfig
+
+if TYPE_CHECKING:
+    from compd.models.base import Model
+    from compd.sinks.modbus_link import ModbusLink
 
 # What a sink knows of its connection to the machine (`Sink.link_state`):
 #   up          the device answers (or it is in process: nothing can be lost on the way)
@@ -41,13 +45,16 @@ class Sink(ABC):
         self.axes: list[str] = []
         self.lsb_um = 1.0
         self.writes = 0
+        # the thread that writes to a device over the network (sinks that have one): its
+        # write round trips and output latency are the bench's I/O statistics
+        self.link: ModbusLink | None = None
 
     def bind(self, axes: list[str], lsb_um: float) -> None:
         """The word's axes (high byte first) and the codec's LSB."""
         self.axes = list(axes)
         self.lsb_um = lsb_um
 
-    def bind_model(self, model: Any) -> None:
+    def bind_model(self, model: Model) -> None:
         """The model whose outputs the sink is handed (sinks that speak per-axis values)."""
 
     def open(self, now_s: float) -> None:
@@ -68,6 +75,11 @@ class Sink(ABC):
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
     ) -> None:
         """Hand the CNC this cycle's output."""
+
+    def settle(self, now_s: float) -> None:
+        """Let the device act on what was written by loop time `now_s` before `applied_um`
+        is read (replay: the PLC scans, a write over the network is acknowledged). Sinks
+        whose device acts at once have nothing to wait for."""
 
     @abstractmethod
     def safe(self) -> None:

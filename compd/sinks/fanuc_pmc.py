@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.codec import MAX_MAG, word_to_um
+from compd.codec import codes_from_word, word_bytes, word_from_codes
 from compd.config import SinkConfig
 from compd.sinks.base import LinkState, Sink
 
@@ -34,16 +34,6 @@ def step_toward(sent: list[int], target: list[int], max_step: int) -> list[int]:
         d = t - s
         out.append(s + (max_step if d > max_step else (-max_step if d < -max_step else d)))
     return out
-
-
-def encode_lsb(c1: int, c2: int) -> int:
-    """The word for two corrections already in LSB (0 → byte 0x00, disabled)."""
-    word = 0
-    for c in (c1, c2):
-        mag = min(abs(c), MAX_MAG)
-        byte = 0 if mag == 0 else (0x40 | mag | (0x80 if c > 0 else 0))
-        word = (word << 8) | byte
-    return word
 
 
 class FanucPmcConfig(SinkConfig):
@@ -91,7 +81,6 @@ class FanucPmcSink(Sink):
         super().__init__(cfg, base_dir)
         self.cfg: FanucPmcConfig = cfg
         self.pmc = pmc
-        self.link: Any = None
         if pmc is None and cfg.host is None:
             from hil_sim.devices.fanuc_pmc import FanucPmc
 
@@ -150,9 +139,9 @@ class FanucPmcSink(Sink):
         cfg = self.cfg
         c1, c2 = self.sent_lsb
         if cfg.mode == "word":
-            word = encode_lsb(c1, c2)
+            high, low = word_bytes(word_from_codes(c1, c2))
             self._strobe ^= 1
-            regs = [word & 0xFF, (word >> 8) & 0xFF]
+            regs = [low, high]  # X(word) holds the low byte
             if cfg.x_strobe == cfg.x_word + 2:
                 self._write(cfg.x_word, regs + [self._strobe << cfg.strobe_bit])
             else:
@@ -171,8 +160,7 @@ class FanucPmcSink(Sink):
         if self.pmc is not None:
             self.pmc.advance_to(now_s)
         if changed or self.writes == 0:
-            t1, t2 = word_to_um(word, self.lsb_um)
-            self.target_lsb = [int(round(t1 / self.lsb_um)), int(round(t2 / self.lsb_um))]
+            self.target_lsb = list(codes_from_word(word))
         self.writes += 1
         if self.sent_lsb != self.target_lsb and now_s >= self._next_update_s:
             self.sent_lsb = step_toward(self.sent_lsb, self.target_lsb, self._max_step_lsb)

@@ -9,11 +9,14 @@ correction reaches the machine.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from compd.sinks.base import LinkState, Sink
+
+if TYPE_CHECKING:
+    from compd.models.base import Model
 
 
 class ObserveSink(Sink):
@@ -31,7 +34,7 @@ class ObserveSink(Sink):
         super().bind(axes, lsb_um)
         self.inner.bind(axes, lsb_um)
 
-    def bind_model(self, model: Any) -> None:
+    def bind_model(self, model: Model) -> None:
         self.inner.bind_model(model)
 
     def open(self, now_s: float) -> None:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal, Protocol
+from abc import ABC, abstractmethod
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -12,12 +13,24 @@ from compd.config import SinkConfig
 from compd.sinks.base import LinkState, Sink
 
 
-class DoCard(Protocol):
-    """What the sink needs of a PCI-1756 driver."""
+class DoCard(ABC):
+    """What the sink needs of a PCI-1756 driver (the emulator, the card over Modbus, a
+    real driver): 16-bit words on two DO bytes (low byte at `port`), single DO bits."""
 
+    def start(self) -> None:
+        """Connect (a card reached over a network); called when the sink opens."""
+
+    @abstractmethod
     def write_do_word(self, port: int, value: int) -> None: ...
+
+    @abstractmethod
     def write_do_bit(self, bit: int, on: bool) -> None: ...
+
+    @abstractmethod
     def read_do_word(self, port: int) -> int: ...
+
+    def close(self) -> None:
+        """Release the connection; called when the sink closes."""
 
 
 class Pci1756Config(SinkConfig):
@@ -54,7 +67,7 @@ class Pci1756Config(SinkConfig):
         return self
 
 
-class ModbusDoCard:
+class ModbusDoCard(DoCard):
     """The card's DO lines as seen by a PMC elsewhere: every write sends DO bytes 0–3 to
     four X registers over Modbus TCP (queued; the cycle never waits on the network)."""
 
@@ -118,9 +131,7 @@ class Pci1756Sink(Sink):
         return "up"
 
     def open(self, now_s: float) -> None:
-        start = getattr(self.card, "start", None)
-        if start is not None:
-            start()
+        self.card.start()
 
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
@@ -144,9 +155,7 @@ class Pci1756Sink(Sink):
             self.card.write_do_bit(self.cfg.strobe_bit, self._strobe)
 
     def close(self) -> None:
-        close = getattr(self.card, "close", None)
-        if close is not None:
-            close()
+        self.card.close()
 
     def applied_um(self, out: np.ndarray) -> None:
         c1, c2 = word_to_um(self.card.read_do_word(self.cfg.word_port), self.lsb_um)

@@ -2,7 +2,7 @@
 
 The NC applies ΔK = K0 + tanβ·(P − P0) and spreads every change over its IPO cycles
 (MD32760). This sink writes SD43900 K0 (mm) from the guarded correction of each
-axis; when the model also exposes `linear_terms()` — per output the error's slope
+axis; when the model's `linear_terms()` gives them — per output the error's slope
 (µm/mm) and reference position P0 (mm), its outputs being the error at P0 — it
 writes SD43910 tanβ = −slope/1000 and SD43920 P0 too, and sets MD32750 bit 1
 (position dependent) as well as bit 0. Writes go out when a value moved by
@@ -13,13 +13,16 @@ emulator in process, on the loop clock.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 from pydantic import Field
 
 from compd.config import SinkConfig
 from compd.sinks.base import LinkState, Sink
+
+if TYPE_CHECKING:
+    from compd.models.base import Model
 
 BLOCK, K0, TYPE, APPLIED = 16, 0, 6, 11
 
@@ -62,8 +65,7 @@ class SiemensSink(Sink):
         super().__init__(cfg, base_dir)
         self.cfg: SiemensConfig = cfg
         self.nc = nc
-        self.link: Any = None
-        self.model: Any = None
+        self.model: Model | None = None
         self.outputs: list[str] = []
         self.nc_axis: list[int] = []
         self.sent_k0_um: np.ndarray = np.zeros(0)
@@ -75,8 +77,8 @@ class SiemensSink(Sink):
             n = max(2, len(cfg.axes or {}), max((cfg.axes or {}).values(), default=0) + 1)
             self.nc = SiemensNc(n, ipo_s=cfg.ipo_s, velo_factor=cfg.velo_factor)
 
-    def bind_model(self, model: Any) -> None:
-        """The model (for its output names and, if it has them, its linear terms)."""
+    def bind_model(self, model: Model) -> None:
+        """The model (for its output names and its linear terms, where it has them)."""
         self.model = model
         self.outputs = list(model.outputs)
         m = self.cfg.axes or {a: i for i, a in enumerate(self.outputs)}
@@ -108,8 +110,8 @@ class SiemensSink(Sink):
                 self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, BLOCK * n), name="siemens"
             )
             self.link.start()
-        terms = getattr(self.model, "linear_terms", None)
-        linear = terms is not None and terms() is not None  # a model may offer them only in some modes
+        # a model may offer linear terms only in some modes; output-test binds no model
+        linear = self.model is not None and self.model.linear_terms() is not None
         for ax in self.nc_axis:
             if ax >= 0:
                 self._write(BLOCK * ax + TYPE, [3 if linear else 1])
@@ -122,7 +124,7 @@ class SiemensSink(Sink):
         self.writes += 1
         if now_s < self._next_s or not self.outputs:
             return
-        terms = self.model.linear_terms() if hasattr(self.model, "linear_terms") else None
+        terms = self.model.linear_terms()
         sent = False
         for i, ax in enumerate(self.nc_axis):
             if ax < 0:

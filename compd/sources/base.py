@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from compd.clock import Clock
 from compd.config import SourceConfig
 from compd.errors import BadInput
 from compd.frame import Frame, Quality
@@ -41,6 +42,8 @@ class Source(ABC):
         # where this section sits in the config (set by the app): `open` names its keys under it
         self.config_path: tuple[str | int, ...] = ()
         self._idx = np.zeros(0, dtype=np.intp)
+        # round trip of each poll (request to reply), µs: sources polled on their own thread
+        self.poll_hist: DurationHist | None = None
 
     @abstractmethod
     def signal_names(self) -> list[str]:
@@ -51,7 +54,27 @@ class Source(ABC):
         self._idx = frame.indices(self.signal_names(), what="signal")
 
     def open(self, now_s: float) -> None:
-        """Connect or start polling; called once before the first cycle."""
+        """Connect; called once before the first cycle."""
+
+    def start_polling(self, clock: Clock) -> None:
+        """Start polling the device on a thread of its own, stamping samples with `clock`
+        (the loop's); called right after `open`. Sources read in the cycle poll nothing."""
+
+    @property
+    def start_s(self) -> float | None:
+        """Loop time (s) at which this source's data begins when it plays a fixed span
+        (a log, a scenario); None for a live device. A sim clock starts there."""
+        return None
+
+    @property
+    def end_s(self) -> float | None:
+        """Loop time (s) at which this source's data ends when it plays a fixed span;
+        None for a live device. A run on the sim clock without a duration stops there."""
+        return None
+
+    def sampled(self) -> bool:
+        """Whether `read` has a sample from the device to copy (a poller's first poll done)."""
+        return True
 
     @abstractmethod
     def read(self, frame: Frame, now_s: float) -> None:
@@ -89,16 +112,16 @@ class PolledSource(Source):
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._clock: Any = None
+        self._clock: Clock | None = None
         self.polls = 0
         self.poll_errors = 0
-        self.poll_hist = DurationHist()  # round trip of each poll (request to reply), µs
+        self.poll_hist: DurationHist = DurationHist()
 
     @abstractmethod
     def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
         """One blocking read of the device into `values` and `quality`."""
 
-    def start_polling(self, clock: Any) -> None:
+    def start_polling(self, clock: Clock) -> None:
         self._clock = clock
         self._thread = threading.Thread(target=self._run, name=f"poll-{self.name}", daemon=True)
         self._thread.start()
@@ -107,9 +130,11 @@ class PolledSource(Source):
         import time
 
         perf = time.perf_counter_ns
+        clock = self._clock
+        assert clock is not None  # set by start_polling
         while not self._stop.is_set():
             t0 = time.monotonic()
-            stamp = self._clock.now()
+            stamp = clock.now()
             p0 = perf()
             try:
                 self.poll(self._buf_values, self._buf_quality)
@@ -125,6 +150,9 @@ class PolledSource(Source):
             rest = self.poll_period_s - (time.monotonic() - t0)
             if rest > 0:
                 self._stop.wait(rest)
+
+    def sampled(self) -> bool:
+        return self.polls > 0
 
     def read(self, frame: Frame, now_s: float) -> None:
         with self._lock:

@@ -20,6 +20,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from compd.clock import Clock
 from compd.config import SourceConfig, Strict
 from compd.errors import BadInput
 from compd.frame import Frame, Quality
@@ -152,7 +153,7 @@ class CanSource(Source):
             raise BadInput(f"cannot open CAN channel {self.cfg.channel!r} ({self.cfg.interface}): {e}",
                            path=(*self.config_path, "channel")) from None
 
-    def start_polling(self, clock: Any) -> None:
+    def start_polling(self, clock: Clock) -> None:
         self._clock = clock
         self._thread = threading.Thread(target=self._run, name=f"can-{self.name}", daemon=True)
         self._thread.start()

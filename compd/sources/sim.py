@@ -52,6 +52,16 @@ class SimSource(Source):
         self._last = np.full(len(self.plant.signal_names), np.nan)
         self._stamp = -np.inf
 
+    @property
+    def start_s(self) -> float:
+        """The scenario starts at loop time 0."""
+        return 0.0
+
+    @property
+    def end_s(self) -> float:
+        """The scenario's end (s): a run on the sim clock without a duration stops there."""
+        return self.scenario.duration_s
+
     def signal_names(self) -> list[str]:
         return list(self.plant.signal_names)
 

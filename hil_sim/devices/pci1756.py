@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import threading
 
+from compd.sinks.pci1756 import DoCard
 
-class Pci1756Card:
+
+class Pci1756Card(DoCard):
     """The card's register state.
 
     DO bytes 0–3 latch the last value written and keep it until written again or

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from compd.codec import encode
-from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink, encode_lsb, step_toward
+from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink, step_toward
 from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
 from hil_sim.devices.modbus_server import ModbusServerThread
 
@@ -16,11 +16,9 @@ Z = np.zeros(2)
 EN = np.ones(2, dtype=bool)
 
 
-def test_step_toward_and_encode():
+def test_step_toward():
     assert step_toward([0, 0], [12, -3], 5) == [5, -3]
     assert step_toward([5, -3], [12, -3], 5) == [10, -3]
-    assert encode_lsb(5, -3) == encode(5, -3) == 0xC543
-    assert encode_lsb(0, 70) == 0x00FF
 
 
 @pytest.mark.parametrize("mode", ["word", "shift"])

@@ -16,6 +16,9 @@ from hil_sim.devices.siemens_nc import SiemensNc
 class _Model:
     outputs = ["z"]
 
+    def linear_terms(self):
+        return None  # not position dependent (Model's default)
+
 
 class _LinearModel:
     outputs = ["z"]
