@@ -302,6 +302,20 @@ def closed_loop(
     }
 
 
+def closed_loops(runs: list[dict[str, Any]], jobs: int = 2) -> list[dict[str, Any]]:
+    """`closed_loop(**run)` for each of `runs`, up to `jobs` at once, results in the order given.
+
+    Only in lockstep: a lockstep run's result does not depend on what else the machine
+    does, so runs may share it; runs that follow the plant in real time go one by one.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    if any(not r.get("lockstep", True) for r in runs):
+        jobs = 1
+    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        return list(pool.map(lambda r: closed_loop(**r), runs))
+
+
 def table(rows: list[dict[str, Any]]) -> str:
     """machine, model, axis, RMS/max without and with compensation, reduction."""
     head = (f"{'machine':<10} {'model':<14} {'axis':<5} {'rms_without':>11} {'rms_with':>9} "
