@@ -188,9 +188,10 @@ class LockstepPlantClock(PlantClock):
 
     No thread follows the plant. `wait_until(deadline)` runs between two cycles: it waits
     until the sink's writes have been acknowledged by the device (`Sink.flush`), writes
-    the deadline to the plant's run-to registers (the plant steps its physics and its
-    CNC up to it before it acknowledges), reads the plant time, then polls every polled
-    source once on this thread, stamped with that time. So the cycle at plant time t
+    the deadline to the plant's run-to registers and reads the plant time back in the
+    same request (Modbus function 23: the plant steps its physics and its CNC up to the
+    deadline before it answers), then polls every polled source once on this thread,
+    stamped with that time (`PolledSource.poll_now`; their own threads are not started). So the cycle at plant time t
     sees the plant's signals at t, and the plant sees the output of every cycle before
     t. Every wait is for a reply, never for wall time: a request that fails is retried
     until `lost_s` (60 s) of wall time without an answer, and a source whose device did

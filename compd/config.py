@@ -383,7 +383,8 @@ class PlantClockConfig(Strict):
         False,
         description="test and acceptance runs: the plant holds its time until compd has finished its"
         " cycle (sink writes acknowledged by the CNC) and asks for the next; sources are read once per"
-        " cycle at the plant time, so a run gives the same result on a busy machine",
+        " cycle at the plant time, so a run gives the same result on a busy machine (poll_period_s and"
+        " stall_s are not used then)",
     )
 
 
