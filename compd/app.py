@@ -10,7 +10,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from compd.clock import Clock, PlantClock, SimClock, WallClock
+from compd.clock import Clock, LockstepPlantClock, PlantClock, SimClock, WallClock
 from compd.codec import Encoder
 from compd.config import Config
 from compd.errors import BadInput
@@ -229,6 +229,9 @@ class App:
         if lp.clock == "sim":
             start = min((0.0 if s.start_s is None else s.start_s for s in self.sources), default=0.0)
             self.clock: Clock = SimClock(start, lp.speedup)
+        elif lp.clock == "plant" and lp.plant_clock is not None and lp.plant_clock.lockstep:
+            pc = lp.plant_clock
+            self.clock = LockstepPlantClock(pc.host, pc.port, device_id=pc.device_id, address=pc.address)
         elif lp.clock == "plant" and lp.plant_clock is not None:
             pc = lp.plant_clock
             self.clock = PlantClock(
@@ -415,6 +418,8 @@ class App:
             self._release_clashing_sink()
             undo.append(lambda: self.loop.close(self._adopted))
             self.loop.open(self._adopted)
+            if isinstance(self.clock, LockstepPlantClock):  # the sink it flushes, the sources it polls
+                self.clock.bind(self.sink, self.sources)
             self._take_over()
             self.service.start()
         except BaseException as e:

@@ -1,4 +1,5 @@
-"""Clocks injected into the loop: wall time (sleep then spin), simulated time, or a plant's clock over Modbus."""
+"""Clocks injected into the loop: wall time (sleep then spin), simulated time, or a plant's clock over
+Modbus, followed in real time or in lockstep."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ from abc import ABC, abstractmethod
 from typing import Any
 
 from compd.modbus_reply import HOLDING, shape_error
+
+READ_WRITE = 0x17  # Modbus function 23, read/write multiple registers
 
 
 class Clock(ABC):
@@ -22,6 +25,12 @@ class Clock(ABC):
     @abstractmethod
     def now(self) -> float:
         """Loop time, s."""
+
+    def adopt_poller(self, source: Any) -> bool:
+        """A polled source asks whether the clock drives its polls (a lockstep plant clock
+        polls every source once per cycle at the plant time). False: it polls on its own
+        thread."""
+        return False
 
     @abstractmethod
     def wait_until(self, deadline_s: float) -> None:
@@ -200,3 +209,98 @@ class PlantClock(Clock):
             if now - self._changed_wall > self.stall_s:
                 return
             time.sleep(self.poll_period_s * 0.5)
+
+
+class LockstepPlantClock(PlantClock):
+    """A plant that waits for compd (hil_sim `plant` device with `lockstep`): test runs that
+    give the same result however busy the machine is.
+
+    No thread follows the plant. `wait_until(deadline)` runs between two cycles: it waits
+    until the sink's writes have been acknowledged by the device (`Sink.flush`), writes
+    the deadline to the plant's run-to registers and reads the plant time back in the
+    same request (Modbus function 23: the plant steps its physics and its CNC up to the
+    deadline before it answers), then polls every polled source once on this thread,
+    stamped with that time (`PolledSource.poll_now`; their own threads are not started). So the cycle at plant time t
+    sees the plant's signals at t, and the plant sees the output of every cycle before
+    t. Every wait is for a reply, never for wall time: a request that fails is retried
+    until `lost_s` (60 s) of wall time without an answer, and a source whose device did
+    not answer is polled again, so a stall changes how long a run takes, not its result.
+    """
+
+
+    def __init__(self, host: str, port: int, *, device_id: int = 1, address: int = 0, lost_s: float = 60.0) -> None:
+        super().__init__(host, port, device_id=device_id, address=address, timeout_s=lost_s, lost_s=lost_s)
+        self.sink: Any = None
+        self.sources: list[Any] = []
+        self.finished = False
+        self.releases = 0
+
+    def adopt_poller(self, source: Any) -> bool:
+        """A polled source this clock polls between cycles (instead of its own thread)."""
+        if not any(source is s for s in self.sources):
+            self.sources.append(source)
+        return True
+
+    def bind(self, sink: Any, sources: list[Any]) -> None:
+        """The sink whose writes a release waits for; the sources still polled (after a reload)."""
+        self.sink = sink
+        self.sources = [s for s in self.sources if any(s is x for x in sources)]
+
+    def start(self) -> None:
+        import logging
+
+        from pymodbus.client import ModbusTcpClient
+
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+        self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
+        self.t_s = self._answer(self._read, "no answer")
+
+    def stop(self) -> None:
+        self.sources = []
+        if self._client is not None:
+            self._client.close()  # type: ignore[attr-defined]
+            self._client = None
+
+    def _answer(self, request: Any, what: str) -> Any:
+        """`request()` until it answers (not None), or RuntimeError after `lost_s` of wall time."""
+        deadline = time.monotonic() + self.lost_s
+        while True:
+            r = request()
+            if r is not None:
+                self.reads += 1
+                return r
+            self.errors += 1
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"plant clock (lockstep): {what} from {self.host}:{self.port} for {self.lost_s:g} s")
+            time.sleep(0.01)
+
+    def _run_to(self, t_s: float) -> tuple[float, int] | None:
+        """One Modbus request (function 23, write then read): run to `t_s` — the plant steps
+        before it acknowledges — and read back (plant time, state); None on no answer."""
+        client: Any = self._client
+        ms = int(round(t_s * 1000.0)) & 0xFFFFFFFF
+        try:
+            if not client.connected and not client.connect():
+                return None
+            rr = client.readwrite_registers(
+                read_address=self.address, read_count=3, write_address=self.address + 4,
+                values=[(ms >> 16) & 0xFFFF, ms & 0xFFFF], device_id=self.device_id,
+            )
+        except Exception:
+            client.close()
+            return None
+        if rr.isError() or shape_error(rr, READ_WRITE, 3, self.device_id) is not None:
+            return None
+        hi, lo, state = rr.registers
+        return ((hi << 16) | lo) / 1000.0, state
+
+    def wait_until(self, deadline_s: float) -> None:
+        if self.sink is not None and not self.sink.flush(self.lost_s):
+            raise RuntimeError(f"lockstep: the sink's writes were not acknowledged within {self.lost_s:g} s")
+        t, state = self._answer(lambda: self._run_to(deadline_s), "no acknowledgement of the run-to time")
+        self.releases += 1
+        self.t_s = max(self.t_s, t)
+        self.finished = state == 2
+        for s in self.sources:
+            stamp = self.t_s
+            self._answer(lambda s=s, stamp=stamp: True if s.poll_now(stamp) else None, f"source {s.name}: no answer")

@@ -379,6 +379,13 @@ class PlantClockConfig(Strict):
     stall_s: float = Field(
         0.5, ge=0.01, le=3600, description="wall time without plant progress before a wait gives up"
     )
+    lockstep: bool = Field(
+        False,
+        description="test and acceptance runs: the plant holds its time until compd has finished its"
+        " cycle (sink writes acknowledged by the CNC) and asks for the next; sources are read once per"
+        " cycle at the plant time, so a run gives the same result on a busy machine (poll_period_s and"
+        " stall_s are not used then)",
+    )
 
 
 class LoopConfig(Strict):

@@ -14,6 +14,16 @@ K0 + tanβ·(P − P0) (paper 000 §4.3).
 
 Every time in the compd config is plant time: the loop period, AR(1)'s Δτ, the
 guard's slew and staleness, the sinks' update intervals, `--duration`.
+
+Two paces. `lockstep=True` (the tests and `make accept`): the plant holds its time until
+compd has finished the cycle for it (its sink writes acknowledged by the CNC) and asks
+for the next period; compd reads its sources once per cycle at that plant time. A run
+then depends only on the scenario, its seed and the configs: the same residual log,
+byte for byte, on an idle or a busy machine, and it takes as long as the work does.
+`lockstep=False`: the plant runs at `speedup` plant seconds per wall second and compd
+follows its clock (the timing bench: how compd keeps up with a machine in real time).
+In both, `speedup` also sets compd's loop period (`compd_config`), so the two paces run
+the same configuration.
 """
 
 from __future__ import annotations
@@ -120,7 +130,9 @@ def plant_signals(machine: str) -> tuple[list[str], list[str], list[str]]:
     return list(p.sensor_names), list(p.extra_names), list(p.axes)
 
 
-def bench(machine: str, scenario: Path, speedup: float, duration_s: float, residual_log: Path) -> dict[str, Any]:
+def bench(
+    machine: str, scenario: Path, speedup: float, duration_s: float, residual_log: Path, lockstep: bool = False
+) -> dict[str, Any]:
     """The `hil_sim serve` file: PT100 module fed by the plant, the CNC on plant time, the plant."""
     m = MACHINES[machine]
     sensors, _, axes = plant_signals(machine)
@@ -136,7 +148,7 @@ def bench(machine: str, scenario: Path, speedup: float, duration_s: float, resid
         cnc,
         {"kind": "plant", "name": machine, "scenario": str(scenario), "port": 0, "speedup": speedup,
          "start": "on_clock_read", "duration_s": duration_s, "log_path": str(residual_log),
-         "log_period_s": 10.0, "cnc": "cnc", "cnc_axes": cnc_axes},
+         "log_period_s": 10.0, "cnc": "cnc", "cnc_axes": cnc_axes, "lockstep": lockstep},
     ]}
 
 
@@ -154,9 +166,13 @@ def sink_section(machine: str, port: int, speedup: float) -> dict[str, Any]:
 
 
 def compd_config(
-    machine: str, model_file: Path, ports: dict[str, int], speedup: float, log_path: Path | None = None
+    machine: str, model_file: Path, ports: dict[str, int], speedup: float, log_path: Path | None = None,
+    lockstep: bool = False,
 ) -> dict[str, Any]:
-    """compd's config: two Modbus TCP sources, the model, the machine's sink, the plant clock."""
+    """compd's config: two Modbus TCP sources, the model, the machine's sink, the plant clock.
+
+    In lockstep the sources are polled by the clock once per cycle and wait long for a reply
+    (a stall must not turn into a lost sample), and the plant clock says `lockstep`."""
     sensors, extras, axes = plant_signals(machine)
     names = sensors + extras + [f"err_{a}_um" for a in axes]
     m = MACHINES[machine]
@@ -183,6 +199,10 @@ def compd_config(
         "sink": sink_section(machine, ports["cnc"], speedup),
         "console": {"period_s": 0, "summary": False},
     }
+    if lockstep:
+        cfg["loop"]["plant_clock"] = {"port": ports[machine], "lockstep": True}
+        for s in cfg["sources"]:
+            s["timeout_s"] = 30.0
     if log_path is not None:
         cfg["log"] = {"path": str(log_path), "period_s": 60.0}
     return cfg
@@ -234,8 +254,12 @@ def closed_loop(
     duration_s: float | None = None,
     scenario: Path | None = None,
     tag: str = "",
+    lockstep: bool = True,
 ) -> dict[str, Any]:
-    """One closed-loop run on the unseen day; returns the plant's residual report and compd's summary."""
+    """One closed-loop run on the unseen day; returns the plant's residual report and compd's summary.
+
+    `lockstep` (default): the plant waits for compd, the result does not depend on wall time;
+    otherwise the plant runs at `speedup` and compd follows it (see the module's doc)."""
     from hil_sim.scenario import Scenario
 
     workdir.mkdir(parents=True, exist_ok=True)
@@ -244,15 +268,20 @@ def closed_loop(
     tag = tag or model_file.stem
     residual_log = workdir / f"residual_{machine}_{tag}.csv"
     bench_file = workdir / f"bench_{machine}_{tag}.yaml"
-    bench_file.write_text(yaml.safe_dump(bench(machine, scenario, speedup, dur, residual_log), sort_keys=False))
+    bench_file.write_text(
+        yaml.safe_dump(bench(machine, scenario, speedup, dur, residual_log, lockstep), sort_keys=False)
+    )
     t0 = time.monotonic()
     proc, ports = start_serve(bench_file)
     try:
         cfg_file = workdir / f"compd_{machine}_{tag}.yaml"
-        cfg_file.write_text(yaml.safe_dump(compd_config(machine, model_file, ports, speedup), sort_keys=False))
+        cfg = compd_config(machine, model_file, ports, speedup, lockstep=lockstep)
+        cfg_file.write_text(yaml.safe_dump(cfg, sort_keys=False))
         summary_file = workdir / f"summary_{machine}_{tag}.json"
+        # lockstep: as long as the work takes (a stall only makes it longer); a day is ~1 min
+        timeout_s = 3600.0 if lockstep else dur / speedup * 4 + 120
         run_cli(["-m", "compd", "run", str(cfg_file), "--duration", str(dur), "--json", str(summary_file)],
-                timeout_s=dur / speedup * 4 + 120)
+                timeout_s=timeout_s)
     finally:
         serve_err = stop_serve(proc)
     wall_s = time.monotonic() - t0
@@ -267,8 +296,24 @@ def closed_loop(
         "sink": summary["sink"],
         "wall_s": wall_s,
         "plant_s": dur,
+        "lockstep": lockstep,
+        "residual_log": str(residual_log),
         "serve_stderr": serve_err[-2000:],
     }
+
+
+def closed_loops(runs: list[dict[str, Any]], jobs: int = 2) -> list[dict[str, Any]]:
+    """`closed_loop(**run)` for each of `runs`, up to `jobs` at once, results in the order given.
+
+    Only in lockstep: a lockstep run's result does not depend on what else the machine
+    does, so runs may share it; runs that follow the plant in real time go one by one.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    if any(not r.get("lockstep", True) for r in runs):
+        jobs = 1
+    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        return list(pool.map(lambda r: closed_loop(**r), runs))
 
 
 def table(rows: list[dict[str, Any]]) -> str:

@@ -2,8 +2,11 @@
 
 For each machine: `python -m hil_sim log` of the training day, `compd fit` of the
 paper's model and of MLR, then for each model `python -m hil_sim serve` runs the
-plant on the unseen day at `--speedup` plant seconds per wall second while
-`compd run` compensates it over Modbus TCP (the wiring of hil_sim.closedloop). The
+plant on the unseen day while `compd run` compensates it over Modbus TCP (the wiring
+of hil_sim.closedloop). In lockstep (the default) the plant waits for compd's every
+cycle, so the result does not depend on the machine's load and `--jobs` runs go side
+by side; `--realtime` runs the plant at `--speedup` plant seconds per wall second
+instead, one run at a time (`--speedup` also sets compd's period in both). The
 table gives, per machine, model and axis, the RMS and max |error| the plant's
 interferometer reads without and with the applied correction, and the reduction.
 Exit 1 if a paper model cuts the RMS error by less than `--min-reduction` percent.
@@ -13,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -26,7 +30,12 @@ from hil_sim import closedloop as cl  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--machines", nargs="+", default=list(cl.MACHINES), choices=list(cl.MACHINES))
-    ap.add_argument("--speedup", type=float, default=1200.0, help="plant seconds per wall second")
+    ap.add_argument("--speedup", type=float, default=1200.0,
+                    help="plant seconds per wall second with --realtime; sets compd's period (2 s at 1200)")
+    ap.add_argument("--realtime", action="store_true",
+                    help="the plant runs at --speedup and compd follows it (default: lockstep)")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                    help="lockstep runs side by side (default: one per CPU)")
     ap.add_argument("--duration-s", type=float, default=None, help="plant seconds of the unseen day (default all)")
     ap.add_argument("--rate-s", type=float, default=None, help="training log period (default: per machine)")
     ap.add_argument("--workdir", default="build/accept")
@@ -35,8 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     work = Path(args.workdir).resolve()
     work.mkdir(parents=True, exist_ok=True)
-    rows = []
     t_all = time.monotonic()
+    runs: list[dict] = []
+    paper: list[bool] = []
     for name in args.machines:
         m = cl.MACHINES[name]
         train = work / f"{name}_train.csv"
@@ -46,17 +56,21 @@ def main(argv: list[str] | None = None) -> int:
         for tag, kind, more in fits:
             model = work / f"{name}_{tag}.yaml"
             print(cl.fit(name, kind, train, model, more).strip(), flush=True)
-            r = cl.closed_loop(name, model, work, speedup=args.speedup, duration_s=args.duration_s, tag=tag)
-            r["paper_model"] = tag == m.paper_kind
-            rows.append(r)
-            print("\n".join(cl.table([r]).splitlines()[1:]) if r["axes"] else r, flush=True)
-            print(f"  ({r['plant_s'] / 3600:.1f} plant h in {r['wall_s']:.0f} s wall; compd faults {r['faults']};"
-                  f" compd's own count: " + ", ".join(
-                      f"{a} {v['rms_before_um']:.2f} -> {v['rms_after_um']:.2f} um" for a, v in r["compd"].items())
-                  + ")", flush=True)
+            runs.append(dict(machine=name, model_file=model, workdir=work, speedup=args.speedup,
+                             duration_s=args.duration_s, tag=tag, lockstep=not args.realtime))
+            paper.append(tag == m.paper_kind)
+    rows = cl.closed_loops(runs, 1 if args.realtime else args.jobs)
+    for r, is_paper in zip(rows, paper, strict=True):
+        r["paper_model"] = is_paper
+        print("\n".join(cl.table([r]).splitlines()[1:]) if r["axes"] else r, flush=True)
+        print(f"  ({r['plant_s'] / 3600:.1f} plant h in {r['wall_s']:.0f} s wall; compd faults {r['faults']};"
+              f" compd's own count: " + ", ".join(
+                  f"{a} {v['rms_before_um']:.2f} -> {v['rms_after_um']:.2f} um" for a, v in r["compd"].items())
+              + ")", flush=True)
     print()
     print(cl.table(rows))
-    print(f"\n{len(rows)} closed-loop runs in {time.monotonic() - t_all:.0f} s wall, speedup {args.speedup:g}")
+    pace = f"real time at {args.speedup:g}x" if args.realtime else f"lockstep, {args.jobs} at once"
+    print(f"\n{len(rows)} closed-loop runs in {time.monotonic() - t_all:.0f} s wall, {pace}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))
     short = [

@@ -89,6 +89,11 @@ class Sink(ABC):
     def applied_um(self, out: np.ndarray) -> None:
         """Write what the machine applies now, per axis (µm), into `out`."""
 
+    def flush(self, timeout_s: float) -> bool:
+        """Wait until every write so far has been acknowledged by the device (lockstep runs:
+        the plant steps only after that); False after `timeout_s`. In process: nothing to wait for."""
+        return True
+
     def close(self) -> None:
         """Release the device (after `safe`)."""
 

@@ -225,6 +225,9 @@ class FanucPmcSink(Sink):
             v = regs[4 + a]
             out[a] = float(v - 0x10000 if v & 0x8000 else v)
 
+    def flush(self, timeout_s: float) -> bool:
+        return self.link is None or self.link.drain(timeout_s)
+
     def close(self) -> None:
         if self.link is not None:
             self.link.stop()

@@ -55,6 +55,7 @@ class ModbusLink:
         self.write_hist = DurationHist()  # request to reply of each write, µs
         self.latency_hist = DurationHist()  # queued by the cycle to acknowledged by the device, µs
         self._pending: dict[int, tuple[list[int], int]] = {}  # address -> (values, queued at, ns)
+        self._inflight = False  # a write taken from _pending, not yet acknowledged (or put back)
         self._cv = threading.Condition()
         self._io = threading.Lock()
         self._stop = False
@@ -80,16 +81,20 @@ class ModbusLink:
             self._cv.notify()
 
     def pending(self) -> bool:
+        """Whether a write is queued or on its way (not yet acknowledged by the device)."""
         with self._cv:
-            return bool(self._pending)
+            return bool(self._pending) or self._inflight
 
     def flush(self, timeout_s: float = 2.0) -> bool:
-        """Wait until every queued write has gone out (or `timeout_s`)."""
+        """Wait until every queued write has been acknowledged by the device, or has failed
+        and is queued again (or `timeout_s`)."""
         deadline = time.monotonic() + timeout_s
-        while self.pending():
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(0.002)
+        with self._cv:
+            while self._pending or self._inflight:
+                rest = deadline - time.monotonic()
+                if rest <= 0:
+                    return False
+                self._cv.wait(rest)
         return True
 
     def read_now(self, address: int, count: int) -> list[int] | None:
@@ -119,6 +124,58 @@ class ModbusLink:
             return None
         return list(rr.registers)
 
+    def _send(self, item: tuple[int, list[int]], queued_ns: int) -> bool:
+        """One write (holding `_io`); False when the connection failed (the write is lost)."""
+        try:
+            w0 = time.perf_counter_ns()
+            rr = self._client.write_registers(item[0], item[1], device_id=self.device_id)
+            w1 = time.perf_counter_ns()
+        except Exception as e:
+            self._fail(e)
+            return False
+        self.write_hist.add_ns(w1 - w0)
+        self.latency_hist.add_ns(w1 - queued_ns)
+        if rr.isError():
+            self.errors += 1
+            self.last_error = f"write exception reply {getattr(rr, 'exception_code', '?')}"
+        else:
+            self.writes += 1
+        return True
+
+    def drain(self, timeout_s: float) -> bool:
+        """Send what is queued on the caller's thread and wait for a write in flight: on
+        return every write so far has been acknowledged by the device (lockstep runs,
+        between two cycles). A failed write is queued again and retried until `timeout_s`."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self._cv:
+                while self._inflight:
+                    rest = deadline - time.monotonic()
+                    if rest <= 0:
+                        return False
+                    self._cv.wait(rest)
+                if not self._pending:
+                    return True
+                address = next(iter(self._pending))
+                values, queued_ns = self._pending.pop(address)
+                self._inflight = True
+            with self._io:
+                try:
+                    ok = self._client.connected or bool(self._client.connect())
+                except Exception as e:
+                    ok = False
+                    self.last_error = str(e)
+                ok = ok and self._send((address, values), queued_ns)
+            with self._cv:
+                if not ok:
+                    self._pending.setdefault(address, (values, queued_ns))
+                self._inflight = False
+                self._cv.notify_all()
+            if not ok:
+                if time.monotonic() > deadline:
+                    return False
+                time.sleep(0.01)
+
     def _fail(self, e: Exception) -> None:
         self.state = "down"
         self.errors += 1
@@ -130,15 +187,18 @@ class ModbusLink:
         next_status = 0.0
         while True:
             with self._cv:
-                if not self._pending and not self._stop:
+                if (not self._pending or self._inflight) and not self._stop:
                     self._cv.wait(max(0.0, min(self.status_period_s, next_status - time.monotonic())))
                 if self._stop and not self._pending:
                     break
                 item = None
-                if self._pending:
+                took = False
+                if self._pending and not self._inflight:  # not while drain() has one out
+                    took = True
                     address = next(iter(self._pending))
                     values, queued_ns = self._pending.pop(address)
                     item = (address, values)
+                    self._inflight = True
             with self._io:  # network I/O without holding the cycle's lock
                 try:
                     ok = self._client.connected or bool(self._client.connect())
@@ -146,21 +206,9 @@ class ModbusLink:
                     ok = False
                     self.last_error = str(e)
                 if ok and item is not None:
-                    try:
-                        w0 = time.perf_counter_ns()
-                        rr = self._client.write_registers(item[0], item[1], device_id=self.device_id)
-                        w1 = time.perf_counter_ns()
-                        self.write_hist.add_ns(w1 - w0)
-                        self.latency_hist.add_ns(w1 - queued_ns)
-                        if rr.isError():
-                            self.errors += 1
-                            self.last_error = f"write exception reply {getattr(rr, 'exception_code', '?')}"
-                        else:
-                            self.writes += 1
+                    ok = self._send(item, queued_ns)
+                    if ok:
                         item = None
-                    except Exception as e:
-                        self._fail(e)
-                        ok = False
                 now = time.monotonic()
                 if ok and self.status_range is not None and now >= next_status:
                     regs = self._read(*self.status_range)
@@ -170,12 +218,17 @@ class ModbusLink:
                     next_status = now + self.status_period_s
                 if ok and self._client.connected:
                     self.state = "up"
+            if took:
+                with self._cv:
+                    if item is not None:
+                        self._pending.setdefault(item[0], (item[1], queued_ns))  # unless superseded meanwhile
+                        item = None
+                    self._inflight = False
+                    self._cv.notify_all()
             if not ok:
                 self.state = "down"
                 self.errors += 1
                 with self._cv:
-                    if item is not None:
-                        self._pending.setdefault(item[0], (item[1], queued_ns))  # unless superseded meanwhile
                     if self._stop:
                         break
                     self._cv.wait(backoff)

@@ -56,6 +56,9 @@ class ObserveSink(Sink):
         self.inner.write(0, self._zeros, self._off, self.writes == 0, now_s)
         self.writes += 1
 
+    def flush(self, timeout_s: float) -> bool:
+        return self.inner.flush(timeout_s)
+
     def safe(self) -> None:
         self.inner.safe()
 

@@ -99,6 +99,9 @@ class ModbusDoCard(DoCard):
     def read_do_word(self, port: int) -> int:
         return self._do[port] | (self._do[port + 1] << 8)
 
+    def flush(self, timeout_s: float) -> bool:
+        return self.link.drain(timeout_s)
+
     def close(self) -> None:
         self.link.stop()
 
@@ -153,6 +156,9 @@ class Pci1756Sink(Sink):
         if self.cfg.strobe_bit is not None:
             self._strobe = not self._strobe
             self.card.write_do_bit(self.cfg.strobe_bit, self._strobe)
+
+    def flush(self, timeout_s: float) -> bool:
+        return self.card.flush(timeout_s) if isinstance(self.card, ModbusDoCard) else True
 
     def close(self) -> None:
         self.card.close()

@@ -169,6 +169,9 @@ class SiemensSink(Sink):
                 if ax >= 0 and BLOCK * ax + APPLIED + 1 < len(regs):
                     out[slot] = 1000.0 * regs_f32(regs[BLOCK * ax + APPLIED], regs[BLOCK * ax + APPLIED + 1])
 
+    def flush(self, timeout_s: float) -> bool:
+        return self.link is None or self.link.drain(timeout_s)
+
     def close(self) -> None:
         if self.link is not None:
             self.link.stop()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -122,31 +123,38 @@ class PolledSource(Source):
         """One blocking read of the device into `values` and `quality`."""
 
     def start_polling(self, clock: Clock) -> None:
+        """Poll on a thread of its own; or, when the clock drives the polls (a lockstep
+        plant clock), leave them to the clock, which calls `poll_now` between cycles."""
         self._clock = clock
+        if clock.adopt_poller(self):
+            return
         self._thread = threading.Thread(target=self._run, name=f"poll-{self.name}", daemon=True)
         self._thread.start()
 
-    def _run(self) -> None:
-        import time
-
+    def poll_now(self, stamp: float) -> bool:
+        """One poll on the caller's thread, stamped `stamp`; False when the device did not
+        answer (some channel COMMS_LOST)."""
         perf = time.perf_counter_ns
-        clock = self._clock
-        assert clock is not None  # set by start_polling
+        p0 = perf()
+        try:
+            self.poll(self._buf_values, self._buf_quality)
+        except Exception:  # a driver bug must not kill the daemon: report as comms lost
+            self._buf_quality[:] = Quality.COMMS_LOST
+            self.poll_errors += 1
+        self.poll_hist.add_ns(perf() - p0)
+        with self._lock:
+            self._values[:] = self._buf_values
+            self._quality[:] = self._buf_quality
+            self._stamp = stamp
+            self.polls += 1
+        return not bool(np.any(self._buf_quality == Quality.COMMS_LOST))
+
+    def _run(self) -> None:
         while not self._stop.is_set():
             t0 = time.monotonic()
-            stamp = clock.now()
-            p0 = perf()
-            try:
-                self.poll(self._buf_values, self._buf_quality)
-            except Exception:  # a driver bug must not kill the daemon: report as comms lost
-                self._buf_quality[:] = Quality.COMMS_LOST
-                self.poll_errors += 1
-            self.poll_hist.add_ns(perf() - p0)
-            with self._lock:
-                self._values[:] = self._buf_values
-                self._quality[:] = self._buf_quality
-                self._stamp = stamp
-                self.polls += 1
+            clock = self._clock
+            assert clock is not None  # set by start_polling
+            self.poll_now(clock.now())
             rest = self.poll_period_s - (time.monotonic() - t0)
             if rest > 0:
                 self._stop.wait(rest)

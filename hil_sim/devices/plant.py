@@ -12,13 +12,21 @@ plant time (its scans and IPO cycles run as fast as the machine), otherwise on i
 own wall-time thread. Every `log_period_s` of plant time a row goes to the residual
 log: `t_s`, then per axis `err_<a>_um` (true error), `applied_<a>_um`, `residual_<a>_um`.
 
+With `lockstep` the plant does not follow wall time at all: it holds its time until a
+client (compd's lockstep plant clock) writes registers 4–5, the plant time it may run
+to; that write steps the plant (and its CNC, on plant time) up to that time, publishes
+its signals once, and only then is acknowledged. compd writes it after a cycle's sink
+writes have been acknowledged by the CNC, so every run of the same scenario and seed
+sees the same inputs at the same plant times, however busy the machine is.
+
 Register map (holding registers, read-only, unit id 1):
 
 | register | data |
 |---|---|
 | 0, 1 | plant time, ms, uint32 (high word first) |
 | 2 | state: 0 waiting for the first clock read (`start: on_clock_read`), 1 running, 2 finished |
-| 3 | speedup (plant seconds per wall second), uint16 |
+| 3 | speedup (plant seconds per wall second), uint16; 0 in lockstep |
+| 4, 5 | lockstep only, writable: run to this plant time, ms, uint32 (high word first) |
 | 16 + 2·i | signal i of the plant (`signal_names`: PT100 readings, extras such as `speed_rpm` and `pos_<axis>_mm`, true errors `err_<axis>_um`), float32 high word first |
 """
 
@@ -54,6 +62,7 @@ class PlantDevice:
         log_period_s: float = 60.0,
         duration_s: float | None = None,
         wall_step_s: float = 0.002,
+        lockstep: bool = False,
     ) -> None:
         if not speedup > 0:
             raise ValueError("plant: speedup must be > 0")
@@ -69,7 +78,10 @@ class PlantDevice:
         self.names = list(plant.signal_names)
         self.register_count = SIGNAL_BASE + 2 * len(self.names)
         self._regs = [0] * self.register_count
-        self._regs[3] = min(int(round(self.speedup)), 0xFFFF)
+        self.lockstep = bool(lockstep)
+        self._regs[3] = 0 if self.lockstep else min(int(round(self.speedup)), 0xFFFF)
+        self._step_lock = threading.Lock()  # lockstep: one release at a time
+        self._next_log_s = plant.t_s
         self._values = np.zeros(len(self.names))
         self._lock = threading.Lock()
         self._go = threading.Event()
@@ -126,7 +138,25 @@ class PlantDevice:
             return self._regs[address : address + count]
 
     def write_registers(self, address: int, values: list[int]) -> bool:
-        return False
+        if not self.lockstep or address != 4 or len(values) != 2:
+            return False
+        self.run_to(((values[0] << 16) | values[1]) / 1000.0)
+        return True
+
+    def run_to(self, t_s: float) -> None:
+        """Lockstep: step up to plant time `t_s` (not past the duration), then publish once."""
+        p = self.plant
+        with self._step_lock:
+            with self._lock:
+                self._regs[4:6] = [(int(round(t_s * 1000.0)) >> 16) & 0xFFFF, int(round(t_s * 1000.0)) & 0xFFFF]
+            moved = False
+            while p.t_s < t_s - 1e-9 and p.t_s + p.dt_s <= self.duration_s + 1e-9 and not self._stop.is_set():
+                self._step()
+                moved = True
+            if p.t_s + p.dt_s > self.duration_s + 1e-9:
+                self.state = 2
+            if moved or self._regs[2] != self.state:
+                self._publish()
 
     # ------------------------------------------------------------- stepping
     def _applied_um(self) -> np.ndarray:
@@ -204,6 +234,10 @@ class PlantDevice:
                 self._stop.wait(self.wall_step_s)
 
     def start(self) -> PlantDevice:
+        if self.lockstep:  # no thread: writes of registers 4-5 step the plant
+            self.state = 1
+            self._publish()
+            return self
         if self.start_mode == "immediate":
             self._go.set()
         self._thread = threading.Thread(target=self._run, name=f"plant-{self.plant.name}", daemon=True)
@@ -230,7 +264,8 @@ class PlantDevice:
             np.savetxt(fh, data, fmt="%.6g", delimiter=",", header=",".join(cols), comments="")
 
     def where(self) -> str:
-        return f"{self.plant.name} at {self.speedup:g}x, {self.duration_s / 3600:.2f} h"
+        pace = "in lockstep" if self.lockstep else f"at {self.speedup:g}x"
+        return f"{self.plant.name} {pace}, {self.duration_s / 3600:.2f} h"
 
 
 def residual_report(path: str | Path, t_from_s: float = 0.0, t_to_s: float | None = None) -> dict[str, dict[str, float]]:

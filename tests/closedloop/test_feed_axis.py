@@ -15,12 +15,10 @@ HOURS, SPEEDUP = 5.0, 7200.0
 
 
 def test_feed_axis_position_dependent_siemens_loop(tmp_path):
-    rows = {}
-    for kind in ("feed_axis", "mlr"):
-        model = cl.prepare_model("feed_axis", kind, tmp_path)
-        rows[kind] = cl.closed_loop(
-            "feed_axis", model, tmp_path, speedup=SPEEDUP, duration_s=HOURS * 3600, tag=kind
-        )
+    kinds = ("feed_axis", "mlr")
+    runs = [dict(machine="feed_axis", model_file=cl.prepare_model("feed_axis", kind, tmp_path), workdir=tmp_path,
+                 speedup=SPEEDUP, duration_s=HOURS * 3600, tag=kind) for kind in kinds]
+    rows = dict(zip(kinds, cl.closed_loops(runs), strict=True))
     print(cl.table(list(rows.values())))
     paper, mlr = rows["feed_axis"], rows["mlr"]
     assert paper["sink"]["updates"] > 5
