@@ -418,8 +418,7 @@ class App:
             self._release_clashing_sink()
             undo.append(lambda: self.loop.close(self._adopted))
             self.loop.open(self._adopted)
-            if isinstance(self.clock, LockstepPlantClock):  # the sink it flushes, the sources it polls
-                self.clock.bind(self.sink, self.sources)
+            self.clock.bind(self.sink, self.sources)  # a lockstep clock flushes the one, polls the others
             self._take_over()
             self.service.start()
         except BaseException as e:

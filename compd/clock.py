@@ -26,6 +26,10 @@ class Clock(ABC):
     def now(self) -> float:
         """Loop time, s."""
 
+    def bind(self, sink: Any, sources: list[Any]) -> None:
+        """The pipeline's sink and sources, for a clock that drives their I/O between cycles
+        (a lockstep plant clock); others ignore them."""
+
     def adopt_poller(self, source: Any) -> bool:
         """A polled source asks whether the clock drives its polls (a lockstep plant clock
         polls every source once per cycle at the plant time). False: it polls on its own
