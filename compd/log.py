@@ -299,13 +299,7 @@ def _split_body(fh: BinaryIO, start: int, end: int, ncol: int, good: BinaryIO, b
     kept = set_aside = 0
     cur = bytearray()
     overflow = False  # the current line is too long to be a row: it streams to `bad`
-    fh.seek(start)
-    pos = start
-    while pos < end:
-        chunk = fh.read(min(_CHUNK, end - pos))
-        if not chunk:
-            break
-        pos += len(chunk)
+    for chunk in _chunks(fh, start, end):
         i = 0
         while i < len(chunk):
             j = chunk.find(b"\n", i)
