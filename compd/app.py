@@ -10,25 +10,16 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from compd.clock import Clock, LockstepPlantClock, PlantClock, SimClock, WallClock
-from compd.codec import Encoder
+from compd.clock import Clock, PlantClock, SimClock
 from compd.config import Config
 from compd.errors import BadInput
-from compd.frame import Frame
-from compd.guard import Guard
 from compd.log import LogWriter
 from compd.loop import Loop
+from compd.pipeline import build_clock, build_model, build_pipeline
+from compd.scoring import RunningScore
 from compd.state import StateWriter, load_state
 
 log = logging.getLogger("compd")
-
-
-def build_model(spec: Any) -> Any:
-    """Instantiate the model of a ModelSpec."""
-    model = spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
-    if spec.update_period_s is not None:
-        model.update_period_s = spec.update_period_s
-    return model
 
 
 def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
@@ -90,7 +81,7 @@ class LogObserver:
 
 
 class CompensationSummary:
-    """Accumulates RMS of the true error without and with the applied correction.
+    """The run's before/after score (compd.scoring), fed every cycle.
 
     Only where the sources publish the true error `err_<axis>_um` (simulator,
     replay of a measured log); residual = error + applied correction.
@@ -102,12 +93,7 @@ class CompensationSummary:
             name = f"err_{axis}_um"
             if name in loop.frame.index:
                 self.pairs.append((a, loop.frame.index[name]))
-        n = len(loop.model.outputs)
-        self.count = np.zeros(n, dtype=np.int64)  # per axis: cycles with a known true error
-        self.sum_before = np.zeros(n)
-        self.sum_after = np.zeros(n)
-        self.max_before = np.zeros(n)
-        self.max_after = np.zeros(n)
+        self.score = RunningScore(len(loop.model.outputs))
 
     def __call__(self, loop: Loop, now: float) -> None:
         if not self.pairs:
@@ -115,32 +101,12 @@ class CompensationSummary:
         applied = loop.applied()
         if not np.all(np.isfinite(applied)):
             return  # the sink does not know yet what the machine applies (remote status not read)
-        for a, i in self.pairs:
-            e = loop.frame.values[i]
-            if not math.isfinite(e):  # no sample of the true error yet (or it was lost)
-                continue
-            self.count[a] += 1
-            r = e + applied[a]
-            self.sum_before[a] += e * e
-            self.sum_after[a] += r * r
-            if abs(e) > self.max_before[a]:
-                self.max_before[a] = abs(e)
-            if abs(r) > self.max_after[a]:
-                self.max_after[a] = abs(r)
+        values = loop.frame.values
+        for a, i in self.pairs:  # a true error not sampled yet (or lost) is skipped
+            self.score.add(a, float(values[i]), float(applied[a]))
 
     def result(self, axes: list[str]) -> dict[str, dict[str, float]]:
-        out = {}
-        for a, _ in self.pairs:
-            before = math.sqrt(self.sum_before[a] / max(int(self.count[a]), 1))
-            after = math.sqrt(self.sum_after[a] / max(int(self.count[a]), 1))
-            out[axes[a]] = {
-                "rms_before_um": before,
-                "rms_after_um": after,
-                "max_abs_before_um": float(self.max_before[a]),
-                "max_abs_after_um": float(self.max_after[a]),
-                "reduction_pct": 100.0 * (1.0 - after / before) if before > 0 else 0.0,
-            }
-        return out
+        return {axes[a]: self.score.result(a) for a, _ in self.pairs}
 
 
 class Console:
@@ -198,59 +164,26 @@ class App:
         top = cfg.top
         lp = top.loop
         base = str(Path(cfg.file).parent)
-        self.sources = [_built(cfg, path, cls, scfg, base) for cls, scfg, path in cfg.sources]
-        names = [n for s in self.sources for n in s.signal_names()]
-        dup = {n for n in names if names.count(n) > 1}
-        if dup:
-            raise cfg.doc.error(f"signal {sorted(dup)[0]!r} is published by two sources", ("sources",))
-        self.frame = Frame(names)
-        for s in self.sources:
-            s.bind(self.frame)
-        self.model = build_model(cfg.model)
-        try:
-            self.guard = Guard(top.guard, self.model.outputs, self.frame, self.model.inputs)
-        except BadInput as e:
-            raise cfg.doc.error(e.message, ("model", "inputs")) from None
-        for name in top.guard.signals:
-            if name not in self.frame.index:
-                raise cfg.doc.error(f"{name!r} is not a signal of any source", ("guard", "signals", name))
-        word_axes_names = top.codec.axes or self.model.outputs[:2]
-        word_axes = [self.model.outputs.index(a) for a in word_axes_names]
-        self.encoder = Encoder(top.codec.lsb_um, top.codec.deadband_um)
-        sink_cls, sink_cfg, _ = cfg.sink
-        self.sink = _built(cfg, cfg.sink[2], sink_cls, sink_cfg, base)
-        self.sink.bind(word_axes_names, top.codec.lsb_um)
-        self.sink.bind_model(self.model)  # sinks that speak per-axis values (siemens) keep it
+        sources = [_built(cfg, path, cls, scfg, base) for cls, scfg, path in cfg.sources]
+        sink_cls, sink_cfg, sink_path = cfg.sink
+        sink = _built(cfg, sink_path, sink_cls, sink_cfg, base)
         self.observe = top.observe if observe is None else observe
-        if self.observe:  # commissioning: the full loop, the output held disabled
-            from compd.sinks.observe import ObserveSink
-
-            self.sink = ObserveSink(self.sink)
-        if lp.clock == "sim":
-            start = min((0.0 if s.start_s is None else s.start_s for s in self.sources), default=0.0)
-            self.clock: Clock = SimClock(start, lp.speedup)
-        elif lp.clock == "plant" and lp.plant_clock is not None and lp.plant_clock.lockstep:
-            pc = lp.plant_clock
-            self.clock = LockstepPlantClock(pc.host, pc.port, device_id=pc.device_id, address=pc.address)
-        elif lp.clock == "plant" and lp.plant_clock is not None:
-            pc = lp.plant_clock
-            self.clock = PlantClock(
-                pc.host, pc.port, device_id=pc.device_id, address=pc.address,
-                poll_period_s=pc.poll_period_s, stall_s=pc.stall_s,
+        self.clock: Clock = build_clock(lp, sources)
+        try:
+            p = build_pipeline(
+                sources=sources,
+                model=build_model(cfg.model),
+                sink=sink,
+                clock=self.clock,
+                period_s=lp.period_s,
+                guard_cfg=top.guard,
+                codec_cfg=top.codec,
+                observe=self.observe,
             )
-        else:
-            self.clock = WallClock(lp.spin_margin_s)
-        self.loop = Loop(
-            period_s=lp.period_s,
-            clock=self.clock,
-            frame=self.frame,
-            sources=self.sources,
-            model=self.model,
-            guard=self.guard,
-            encoder=self.encoder,
-            sink=self.sink,
-            word_axes=word_axes,
-        )
+        except BadInput as e:
+            raise cfg.doc.error(e.message, e.keys) from None
+        self.sources, self.frame, self.model, self.guard = p.sources, p.frame, p.model, p.guard
+        self.encoder, self.sink, self.loop = p.encoder, p.sink, p.loop
         self.loop.gil_switch_interval_s = lp.gil_switch_interval_s
         self.summary = CompensationSummary(self.loop)
         self.loop.observers.append(self.summary)

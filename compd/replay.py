@@ -16,14 +16,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from compd.clock import SimClock
-from compd.codec import Encoder
 from compd.config import CodecConfig, GuardConfig
 from compd.errors import BadInput
-from compd.frame import Frame
-from compd.guard import Guard
 from compd.log import Log, read_log
-from compd.loop import Loop
 from compd.models.base import Model
+from compd.pipeline import build_model, build_pipeline
+from compd.scoring import score_applied
 from compd.sinks.base import Sink
 from compd.sources.replay import ReplayConfig, ReplaySource
 
@@ -44,22 +42,6 @@ class ReplayResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def axis_report(err_um: np.ndarray, applied_um: np.ndarray) -> dict[str, float]:
-    """RMS before/after, worst residual and reduction for one axis (rows with an error only)."""
-    ok = np.isfinite(err_um) & np.isfinite(applied_um)
-    e = err_um[ok]
-    r = e + applied_um[ok]
-    before = float(np.sqrt(np.mean(e * e))) if e.size else 0.0
-    after = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
-    return {
-        "rms_before_um": before,
-        "rms_after_um": after,
-        "max_abs_before_um": float(np.max(np.abs(e))) if e.size else 0.0,
-        "max_abs_after_um": float(np.max(np.abs(r))) if r.size else 0.0,
-        "reduction_pct": 100.0 * (1.0 - after / before) if before > 0 else 0.0,
-    }
-
-
 def replay_log(
     log: Log,
     model: Model,
@@ -68,33 +50,17 @@ def replay_log(
     codec_cfg: CodecConfig | None = None,
 ) -> ReplayResult:
     """Run every row of `log` through model → guard → codec → sink (the PLC)."""
-    guard_cfg = guard_cfg or GuardConfig()
-    codec_cfg = codec_cfg or CodecConfig()
     if len(log) == 0:
         raise BadInput("the log has no rows", file=log.file)
     source = ReplaySource(ReplayConfig(kind="replay", name="log", path=log.file), log=log)
-    frame = Frame(source.signal_names())
-    source.bind(frame)
-    try:
-        guard = Guard(guard_cfg, model.outputs, frame, model.inputs)
-    except BadInput as e:
-        raise BadInput(f"model input: {e.message}", file=log.file) from None
-    word_names = list(codec_cfg.axes or model.outputs[:2])
-    word_axes = [model.outputs.index(a) for a in word_names]
-    sink.bind(word_names, codec_cfg.lsb_um)
-    sink.bind_model(model)
     clock = SimClock(float(log.t_s[0]))
-    loop = Loop(
-        period_s=1.0,
-        clock=clock,
-        frame=frame,
-        sources=[source],
-        model=model,
-        guard=guard,
-        encoder=Encoder(codec_cfg.lsb_um, codec_cfg.deadband_um),
-        sink=sink,
-        word_axes=word_axes,
-    )
+    try:
+        loop = build_pipeline(
+            sources=[source], model=model, sink=sink, clock=clock, period_s=1.0,
+            guard_cfg=guard_cfg, codec_cfg=codec_cfg,
+        ).loop
+    except BadInput as e:
+        raise BadInput(e.message, file=log.file, path=e.keys) from None
     n, n_out = len(log), len(model.outputs)
     applied = np.zeros((n, n_out))
     words = np.zeros(n, dtype=np.int64)
@@ -123,8 +89,8 @@ def replay_log(
         col = f"err_{axis}_um"
         if col in log.columns:
             err[:, a] = log.col(col)
-            axes_rep[axis] = axis_report(err[:, a], applied[:, a])
-    faults = dict(guard.faults)
+            axes_rep[axis] = score_applied(err[:, a], applied[:, a])
+    faults = dict(loop.guard.faults)
     alarms = sink_status.get("alarm_count")
     if alarms and sum(alarms):
         faults["plc_alarm"] = int(sum(alarms))
@@ -149,7 +115,6 @@ def _pmc_sink(host: str | None = None) -> FanucPmcSink:
 def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult:
     """Replay with a config's model, guard, codec and sink (the PMC in process unless the
     sink is a fanuc_pmc that names a host); the config's sources are replaced by the log."""
-    from compd.app import build_model
     from compd.config import load_config
     from compd.sinks.fanuc_pmc import FanucPmcSink
 
@@ -169,7 +134,6 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
 
 def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
     """Replay with a model file, the default guard and codec and the PMC in process."""
-    from compd.app import build_model
     from compd.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml, resolve_model
 
     path = Path(model_file)

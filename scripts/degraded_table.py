@@ -24,11 +24,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from compd.app import build_model  # noqa: E402
 from compd.cli import main as compd_main  # noqa: E402
 from compd.config import Document, resolve_model  # noqa: E402
 from compd.faultdoc import replace_block  # noqa: E402
 from compd.log import read_log  # noqa: E402
+from compd.pipeline import build_model  # noqa: E402
 from hil_sim.__main__ import main as hil_main  # noqa: E402
 
 SCENARIOS = ROOT / "hil_sim" / "scenarios"

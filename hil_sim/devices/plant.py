@@ -41,6 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from compd.scoring import score_residual
+
 SIGNAL_BASE = 16
 
 
@@ -278,19 +280,7 @@ def residual_report(path: str | Path, t_from_s: float = 0.0, t_to_s: float | Non
     sel = (t >= t_from_s) & (t <= (np.inf if t_to_s is None else t_to_s))
     out = {}
     for c in cols:
-        if not c.startswith("err_"):
-            continue
-        a = c[4:-3]
-        e = data[sel, cols.index(c)]
-        r = data[sel, cols.index(f"residual_{a}_um")]
-        before = float(np.sqrt(np.mean(e * e))) if e.size else 0.0
-        after = float(np.sqrt(np.mean(r * r))) if r.size else 0.0
-        out[a] = {
-            "rows": int(e.size),
-            "rms_before_um": before,
-            "rms_after_um": after,
-            "max_abs_before_um": float(np.max(np.abs(e))) if e.size else 0.0,
-            "max_abs_after_um": float(np.max(np.abs(r))) if r.size else 0.0,
-            "reduction_pct": 100.0 * (1.0 - after / before) if before > 0 else 0.0,
-        }
+        if c.startswith("err_"):
+            a = c[4:-3]
+            out[a] = score_residual(data[sel, cols.index(c)], data[sel, cols.index(f"residual_{a}_um")])
     return out

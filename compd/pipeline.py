@@ -1,0 +1,124 @@
+"""The one pipeline builder: sources → frame → model → guard → codec → sink on a loop.
+
+`compd run` (and its observe mode and reloads), `compd replay` and `compd bench` all
+wire their stages here, so the daemon a user runs and the replay a user trusts
+before it are the same pipeline. The caller supplies what differs: where the
+signals come from (configured sources, or one log), the clock, the sink.
+Wiring mistakes are `BadInput` with the config key they concern (`keys`), for the
+caller to place in its file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from compd.clock import Clock, LockstepPlantClock, PlantClock, SimClock, WallClock
+from compd.codec import Encoder
+from compd.config import CodecConfig, GuardConfig, LoopConfig
+from compd.errors import BadInput
+from compd.frame import Frame
+from compd.guard import Guard
+from compd.loop import Loop
+from compd.models.base import Model
+from compd.sinks.base import Sink
+from compd.sources.base import Source
+
+
+def build_model(spec: Any) -> Model:
+    """Instantiate the model of a resolved model section (a config's or a model file's)."""
+    model = spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
+    if spec.update_period_s is not None:
+        model.update_period_s = spec.update_period_s
+    return model
+
+
+def build_clock(lp: LoopConfig, sources: Sequence[Source]) -> Clock:
+    """The loop's clock from the `loop` section: simulated time from the sources' start,
+    a simulated plant's clock (followed, or in lockstep), or the wall clock."""
+    pc = lp.plant_clock
+    if lp.clock == "sim":
+        start_s = min((0.0 if s.start_s is None else s.start_s for s in sources), default=0.0)
+        return SimClock(start_s, lp.speedup)
+    if lp.clock == "plant" and pc is not None and pc.lockstep:
+        return LockstepPlantClock(pc.host, pc.port, device_id=pc.device_id, address=pc.address)
+    if lp.clock == "plant" and pc is not None:
+        return PlantClock(
+            pc.host, pc.port, device_id=pc.device_id, address=pc.address,
+            poll_period_s=pc.poll_period_s, stall_s=pc.stall_s,
+        )
+    return WallClock(lp.spin_margin_s)
+
+
+@dataclass
+class Pipeline:
+    """The wired stages and the loop that runs them."""
+
+    sources: list[Source]
+    frame: Frame
+    model: Model
+    guard: Guard
+    encoder: Encoder
+    sink: Sink
+    loop: Loop
+    word_axis_names: list[str]
+
+
+def build_pipeline(
+    *,
+    sources: Sequence[Source],
+    model: Model,
+    sink: Sink,
+    clock: Clock,
+    period_s: float,
+    guard_cfg: GuardConfig | None = None,
+    codec_cfg: CodecConfig | None = None,
+    observe: bool = False,
+) -> Pipeline:
+    """Wire the stages: one frame of every source's signals, the guard on the model's
+    inputs, the word's two axes (`codec.axes`, else the model's first two outputs),
+    the sink bound to them (held disabled when `observe`), and the loop."""
+    guard_cfg = guard_cfg or GuardConfig()
+    codec_cfg = codec_cfg or CodecConfig()
+    sources = list(sources)
+    names = [n for s in sources for n in s.signal_names()]
+    seen: set[str] = set()
+    for n in names:
+        if n in seen:
+            raise BadInput(f"signal {n!r} is published by two sources", path=("sources",))
+        seen.add(n)
+    frame = Frame(names)
+    for s in sources:
+        s.bind(frame)
+    try:
+        guard = Guard(guard_cfg, model.outputs, frame, model.inputs)
+    except BadInput as e:
+        raise BadInput(e.message, path=("model", "inputs")) from None
+    for name in guard_cfg.signals:
+        if name not in frame.index:
+            raise BadInput(f"{name!r} is not a signal of any source", path=("guard", "signals", name))
+    word_names = list(codec_cfg.axes or model.outputs[:2])
+    for name in word_names:
+        if name not in model.outputs:
+            raise BadInput(f"{name!r} is not an output of the model", path=("codec", "axes"))
+    word_axes = [model.outputs.index(a) for a in word_names]
+    encoder = Encoder(codec_cfg.lsb_um, codec_cfg.deadband_um)
+    sink.bind(word_names, codec_cfg.lsb_um)
+    sink.bind_model(model)  # sinks that speak per-axis values (siemens) keep it
+    if observe:  # commissioning: the full loop, the output held disabled
+        from compd.sinks.observe import ObserveSink
+
+        sink = ObserveSink(sink)
+    loop = Loop(
+        period_s=period_s,
+        clock=clock,
+        frame=frame,
+        sources=sources,
+        model=model,
+        guard=guard,
+        encoder=encoder,
+        sink=sink,
+        word_axes=word_axes,
+    )
+    return Pipeline(sources, frame, model, guard, encoder, sink, loop, word_names)
