@@ -474,17 +474,25 @@ def cmd_docs(args: argparse.Namespace) -> int:
 
 @command("bench")
 def cmd_bench(args: argparse.Namespace) -> int:
-    from compd.bench import format_table, run_bench, write_json
-
+    if args.cycles < 1:
+        raise BadInput("--cycles must be at least 1", path="--cycles")
     check_output(args.json, "--json")
-    result = run_bench(
-        args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles
-    )
-    print(format_table(result))
-    if args.json:
-        with writing(args.json, "--json"):
-            write_json(args.json, result)
-    return 0
+    return installed_command("bench", "runs against simulated devices served by the closed-loop test rig")(args)
+
+
+def installed_command(name: str, needs: str) -> Callable[[argparse.Namespace], int]:
+    """The command another installed package provides (entry point group `compd.commands`),
+    or BadInput (exit 2) naming what is missing."""
+    from compd.registry import entry_point
+
+    ep = entry_point("compd.commands", name)
+    if ep is None:
+        raise BadInput(f"`compd {name}` {needs}, which is not installed (no '{name}' in entry point group"
+                       " compd.commands): install compd from its source tree, with the rig, to run it")
+    try:
+        return ep.load()
+    except (ImportError, AttributeError) as e:
+        raise BadInput(f"`compd {name}` comes from {ep.value}, which cannot be loaded: {e}") from None
 
 
 class Parser(argparse.ArgumentParser):

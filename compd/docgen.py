@@ -258,8 +258,13 @@ def generate() -> str:
         "signals (the signal names are what `model.inputs` and `guard.signals` refer to).",
         "",
     ]
+    plugins = SOURCES.plugins()
     for kind, cls in _kinds(SOURCES):
-        d.section(f"sources: kind {kind}", cls.Config, 3, _first_paragraph(cls.Config) or _first_paragraph(cls))
+        intro = _first_paragraph(cls.Config) or _first_paragraph(cls)
+        if kind in plugins:  # not compd's own: say where it comes from
+            intro += (f"\n\nNot part of compd: added by an installed package through the entry point"
+                      f" `{kind} = {plugins[kind].value}` (group `{SOURCES.group}`).")
+        d.section(f"sources: kind {kind}", cls.Config, 3, intro)
     d.lines += ["## Models", ""]
     d.section("model", c.ModelSection, 3)
     for kind, cls in _kinds(MODELS):

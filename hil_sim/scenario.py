@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+SCENARIOS = Path(__file__).resolve().parent / "scenarios"  # the machines' days (package data)
+
 
 @dataclass
 class Segment:

@@ -8,10 +8,10 @@ The file is a list of devices (like pyvisa-sim's device files), each a mapping w
   `serial_port`, so compd opens `pty_link`. Options of `Pt100ModbusDevice`.
 * `dcon` — an ADAM-4015-style DCON module on `serial_port` (with `pty_link` likewise).
 * `can_pt100` — temperatures broadcast on a python-can bus (`interface`, `channel`).
-* `fanuc_pmc` — the PMC software PLC on Modbus TCP (`host`, `port`, `scan_s`,
-  `step_limit_um`, `device_id`).
-* `siemens_nc` — the NC's temperature-compensation data on Modbus TCP (`axes`, `ipo_s`,
-  `max_velo_mm_min`, `velo_factor`).
+* `fanuc_pmc` — compd's software PLC PMC (compd.plc) served on Modbus TCP (`host`, `port`,
+  `scan_s`, `step_limit_um`, `device_id`).
+* `siemens_nc` — compd's software PLC NC temperature-compensation data (compd.plc) served on
+  Modbus TCP (`axes`, `ipo_s`, `max_velo_mm_min`, `velo_factor`).
 * `plant` — a live plant for the closed loop (hil_sim.devices.plant): `scenario` (file),
   `speedup` (plant s per wall s), `start` (immediate / on_clock_read), `log_path` and
   `log_period_s` (the residual log), `duration_s`, `seed`, `cnc` (name of the PMC or NC
@@ -31,14 +31,11 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
 import yaml
-
-from hil_sim.devices.worker import DeviceThread
 
 KINDS = ("pt100_modbus", "dcon", "can_pt100", "fanuc_pmc", "siemens_nc", "plant")
 CLOCKS = ("wall", "plant")
@@ -118,9 +115,10 @@ def start_device(cfg: dict[str, Any]) -> Running:
             run.start(dev)
             run.where = dev.where
         else:  # a CNC: fanuc_pmc or siemens_nc, a Modbus server and (on wall time) its scan thread
-            from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
+            from compd.plc.fanuc_pmc import FanucPmc
+            from compd.plc.siemens_nc import SiemensNc
             from hil_sim.devices.modbus_server import ModbusServerThread
-            from hil_sim.devices.siemens_nc import SiemensNc
+            from hil_sim.devices.scan import NcIpoThread, PmcScanThread
 
             host, port, dev_id = cfg.pop("host", "127.0.0.1"), int(cfg.pop("port", 0)), int(cfg.pop("device_id", 1))
             if kind == "fanuc_pmc":
@@ -128,7 +126,7 @@ def start_device(cfg: dict[str, Any]) -> Running:
                 scan, label = PmcScanThread(cnc), f" scan {cnc.scan_s * 1000:g} ms"
             else:
                 cnc = SiemensNc(**cfg)
-                scan, label = _NcClock(cnc), f" IPO {cnc.ipo_s * 1000:g} ms"
+                scan, label = NcIpoThread(cnc), f" IPO {cnc.ipo_s * 1000:g} ms"
             run.device = cnc
             if run.clock == "wall":
                 run.start(scan)
@@ -138,25 +136,6 @@ def start_device(cfg: dict[str, Any]) -> Running:
         run.stop()
         raise
     return run
-
-
-class _NcClock(DeviceThread):
-    """Runs the NC's IPO cycles on wall time."""
-
-    thread_name = "nc-ipo"
-
-    def __init__(self, nc: Any) -> None:
-        super().__init__()
-        self.nc = nc
-        self._t0 = 0.0
-
-    def _open(self) -> None:
-        self._t0 = time.monotonic()
-        self.nc.next_ipo_s = self.nc.t_s = 0.0
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.nc.ipo_s):
-            self.nc.advance_to(time.monotonic() - self._t0)
 
 
 def start_plant(cfg: dict[str, Any], others: dict[str, Running], base_dir: Path) -> Running:

@@ -3,7 +3,7 @@
 For each machine: `python -m hil_sim log` of the training day, `compd fit` of the
 paper's model and of MLR, then for each model `python -m hil_sim serve` runs the
 plant on the unseen day while `compd run` compensates it over Modbus TCP (the wiring
-of hil_sim.closedloop). In lockstep (the default) the plant waits for compd's every
+of rig.closedloop). In lockstep (the default) the plant waits for compd's every
 cycle, so the result does not depend on the machine's load and `--jobs` runs go side
 by side; `--realtime` runs the plant at `--speedup` plant seconds per wall second
 instead, one run at a time (`--speedup` also sets compd's period in both). The
@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hil_sim import closedloop as cl  # noqa: E402
+from rig import closedloop as cl  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -30,8 +30,7 @@ from compd.faultdoc import replace_block  # noqa: E402
 from compd.log import read_log  # noqa: E402
 from compd.pipeline import build_model  # noqa: E402
 from hil_sim.__main__ import main as hil_main  # noqa: E402
-
-SCENARIOS = ROOT / "hil_sim" / "scenarios"
+from hil_sim.scenario import SCENARIOS  # noqa: E402
 
 
 def _quiet(fn, argv: list[str]) -> None:  # noqa: ANN001

@@ -8,10 +8,11 @@ import yaml
 
 from compd.app import App
 from compd.config import load_config
-from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
+from compd.plc.fanuc_pmc import FanucPmc
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.pt100 import Pt100Transmitter
 from hil_sim.devices.pt100_modbus import Pt100ModbusDevice
+from hil_sim.devices.scan import PmcScanThread
 
 # 4 K above T0: error α L ΔT = 13.6e-6 × 165 mm × 4 K = 8.98 µm; correction −8.98 µm
 WANT_UM = -13.6e-6 * 165.0 * 1000.0 * 4.0

@@ -138,9 +138,10 @@ def test_replay_missing_input_column_is_exit_2(tmp_path, log_and_model, capsys):
 def test_config_replay_against_pmc_over_modbus(tmp_path):
     """A config whose fanuc_pmc sink names an address: the replay drives a PMC scanning
     on its own over Modbus TCP, and agrees with the in-process PMC."""
+    from compd.plc.fanuc_pmc import FanucPmc
     from compd.replay import replay_config
-    from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
     from hil_sim.devices.modbus_server import ModbusServerThread
+    from hil_sim.devices.scan import PmcScanThread
 
     log = tmp_path / "short.csv"
     spindle_log(log, hours=0.75)

@@ -12,6 +12,7 @@ from compd.config import SinkConfig
 
 if TYPE_CHECKING:
     from compd.models.base import Model
+    from compd.plc.link import VirtualLink
     from compd.sinks.modbus_link import ModbusLink
 
 # What a sink knows of its connection to the machine (`Sink.link_state`):
@@ -45,9 +46,10 @@ class Sink(ABC):
         self.axes: list[str] = []
         self.lsb_um = 1.0
         self.writes = 0
-        # the thread that writes to a device over the network (sinks that have one): its
-        # write round trips and output latency are the bench's I/O statistics
-        self.link: ModbusLink | None = None
+        # the link to the device (sinks that write registers): a thread that writes over the
+        # network, whose write round trips and output latency are the bench's I/O statistics,
+        # or the same interface to a device of the software PLC in this process
+        self.link: ModbusLink | VirtualLink | None = None
 
     def bind(self, axes: list[str], lsb_um: float) -> None:
         """The word's axes (high byte first) and the codec's LSB."""

@@ -9,15 +9,17 @@ toward it in steps.
 
 `mode: word` writes X(word), X(word)+1 (low byte first) and toggles the strobe bit;
 `mode: shift` writes the commanded shift per axis (signed µm) into R registers.
-Without `host` the PMC is the hil_sim software PLC, run in process on the loop's
-clock (replay, demo); with `host` it is a PMC reached over Modbus TCP, written from
-a background thread so the cycle never waits on the network.
+With `host` the PMC is reached over Modbus TCP, written from a background thread so
+the cycle never waits on the network; without, it is the software PLC's PMC
+(compd.plc), run in process on the loop's clock (replay, demo). Both are reached
+through the same link interface, so the sink has one code path.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+import time
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -25,6 +27,14 @@ from pydantic import Field, model_validator
 from compd.codec import codes_from_word, word_bytes, word_from_codes
 from compd.config import SinkConfig
 from compd.sinks.base import LinkState, Sink
+from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
+
+if TYPE_CHECKING:
+    from compd.plc.fanuc_pmc import FanucPmc
+    from compd.plc.link import VirtualLink
+    from compd.sinks.modbus_link import ModbusLink
+
+POLL_S = 0.002  # between two reads of the scan counter while waiting for the PMC to scan
 
 
 def step_toward(sent: list[int], target: list[int], max_step: int) -> list[int]:
@@ -37,10 +47,10 @@ def step_toward(sent: list[int], target: list[int], max_step: int) -> list[int]:
 
 
 class FanucPmcConfig(SinkConfig):
-    """Where the PMC is and how its memory is laid out (defaults: hil_sim's PMC map)."""
+    """Where the PMC is and how its memory is laid out (defaults: the software PLC's PMC map)."""
 
     mode: Literal["word", "shift"] = Field("word", description="word + strobe on X, or R shift registers")
-    host: str | None = Field(None, description="PMC over Modbus TCP; none = hil_sim PMC in process")
+    host: str | None = Field(None, description="PMC over Modbus TCP; none = the software PLC's PMC in process")
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
     timeout_s: float = Field(0.25, ge=0.001, le=30)
@@ -77,14 +87,17 @@ class FanucPmcSink(Sink):
 
     Config = FanucPmcConfig
 
-    def __init__(self, cfg: FanucPmcConfig, base_dir: str = ".", pmc: Any = None) -> None:
+    def __init__(self, cfg: FanucPmcConfig, base_dir: str = ".", pmc: FanucPmc | None = None) -> None:
         super().__init__(cfg, base_dir)
         self.cfg: FanucPmcConfig = cfg
-        self.pmc = pmc
+        # the PMC in this process (given, or the software PLC's when no host is set) runs on
+        # the loop's time; one over Modbus on its own
         if pmc is None and cfg.host is None:
-            from hil_sim.devices.fanuc_pmc import FanucPmc
+            from compd.plc.fanuc_pmc import FanucPmc
 
-            self.pmc = FanucPmc(scan_s=cfg.scan_s, step_limit_um=cfg.step_limit_um)
+            pmc = FanucPmc(scan_s=cfg.scan_s, step_limit_um=cfg.step_limit_um)
+        self.pmc = pmc
+        self.time: DeviceTime = LoopTime() if pmc is not None else WallTime()
         self.sent_lsb = [0, 0]
         self.target_lsb = [0, 0]
         self._strobe = 0
@@ -96,60 +109,59 @@ class FanucPmcSink(Sink):
     def bind(self, axes: list[str], lsb_um: float) -> None:
         super().bind(axes, lsb_um)
         self._max_step_lsb = max(1, int(math.floor(self.cfg.max_step_um / lsb_um + 1e-9)))
-        if self.pmc is not None:
-            from hil_sim.devices.fanuc_pmc import LSB_NM
 
-            self.pmc.write_registers(LSB_NM, [int(round(lsb_um * 1000))])
+    def _connect(self) -> ModbusLink | VirtualLink:
+        """The link to the PMC: the one in this process (told the codec's LSB), or Modbus TCP."""
+        cfg = self.cfg
+        if self.pmc is not None:
+            from compd.plc.fanuc_pmc import LSB_NM
+            from compd.plc.link import VirtualLink
+
+            self.pmc.write_registers(LSB_NM, [int(round(self.lsb_um * 1000))])
+            return VirtualLink(self.pmc, self.time, status=(cfg.status_address, 8), name="fanuc_pmc")
+        from compd.sinks.modbus_link import ModbusLink
+
+        return ModbusLink(
+            cfg.host or "",
+            cfg.port,
+            device_id=cfg.device_id,
+            timeout_s=cfg.timeout_s,
+            status=(cfg.status_address, 8),
+            name="fanuc_pmc",
+        )
 
     def open(self, now_s: float) -> None:
         cfg = self.cfg
-        if self.pmc is not None:
-            self.pmc.next_scan_s = self.pmc.t_s = now_s
-        else:
-            from compd.sinks.modbus_link import ModbusLink
-
-            self.link = ModbusLink(
-                cfg.host or "",
-                cfg.port,
-                device_id=cfg.device_id,
-                timeout_s=cfg.timeout_s,
-                status=(cfg.status_address, 8),
-                name="fanuc_pmc",
-            )
-            self.link.start()
+        self.time.set(now_s)
+        self.link = self._connect()
+        self.link.start()
         if cfg.reset_alarm_on_start:
-            self._write(cfg.status_address + 3, [1])
+            self.link.submit(cfg.status_address + 3, [1])
         self._deliver(now_s)
 
     def device_key(self) -> Any:
         return None if self.cfg.host is None else ("modbus", self.cfg.host, self.cfg.port)
 
     def link_state(self) -> LinkState:
-        if self.pmc is not None:
-            return "up"
-        return "closed" if self.link is None else self.link.state
-
-    def _write(self, address: int, values: list[int]) -> None:
-        if self.pmc is not None:
-            self.pmc.write_registers(address, values)
-        else:
-            self.link.submit(address, values)
+        return "closed" if self.link is None else self.link.state  # type: ignore[return-value]
 
     def _deliver(self, now_s: float) -> None:
         cfg = self.cfg
+        link = self.link
+        assert link is not None
         c1, c2 = self.sent_lsb
         if cfg.mode == "word":
             high, low = word_bytes(word_from_codes(c1, c2))
             self._strobe ^= 1
             regs = [low, high]  # X(word) holds the low byte
             if cfg.x_strobe == cfg.x_word + 2:
-                self._write(cfg.x_word, regs + [self._strobe << cfg.strobe_bit])
+                link.submit(cfg.x_word, regs + [self._strobe << cfg.strobe_bit])
             else:
-                self._write(cfg.x_word, regs)
-                self._write(cfg.x_strobe, [self._strobe << cfg.strobe_bit])
+                link.submit(cfg.x_word, regs)
+                link.submit(cfg.x_strobe, [self._strobe << cfg.strobe_bit])
         else:
             lsb = self.lsb_um
-            self._write(cfg.r_command, [int(round(c1 * lsb)), int(round(c2 * lsb))])
+            link.submit(cfg.r_command, [int(round(c1 * lsb)), int(round(c2 * lsb))])
         self.updates += 1
         self._dirty = True
         self._next_update_s = now_s + cfg.min_update_s
@@ -157,8 +169,7 @@ class FanucPmcSink(Sink):
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
     ) -> None:
-        if self.pmc is not None:
-            self.pmc.advance_to(now_s)
+        self.time.set(now_s)
         if changed or self.writes == 0:
             self.target_lsb = list(codes_from_word(word))
         self.writes += 1
@@ -167,16 +178,12 @@ class FanucPmcSink(Sink):
             self._deliver(now_s)
 
     def settle(self, now_s: float) -> None:
-        """Let the PMC act on what was written (replay): in process, run two scans past
-        `now_s`; over Modbus, wait until the PMC has scanned twice since the write went
-        out and read back its status."""
-        if self.pmc is not None:
-            self.pmc.advance_to(now_s + 2 * self.pmc.scan_s)
-            return
+        """Let the PMC act on what was written (replay): once every write is acknowledged,
+        wait until the PMC has scanned twice and take its status from then (in process the
+        wait runs its scans on the loop's time; over Modbus it polls the scan counter)."""
+        self.time.set(now_s)
         if self.link is None or not self._dirty:
             return
-        import time
-
         self.link.flush()
         addr = self.cfg.status_address
         first = self.link.read_now(addr, 8)
@@ -186,34 +193,26 @@ class FanucPmcSink(Sink):
             if regs is not None and (regs[0] | regs[1] << 16) >= (first[0] | first[1] << 16) + 2:
                 self.link.status = regs
                 break
-            time.sleep(0.002)
+            self.time.wait(POLL_S)
         self._dirty = False
 
     def safe(self) -> None:
-        """Walk the shift back to zero in allowed steps (the PMC would alarm on one jump)."""
+        """Walk the shift back to zero in allowed steps (the PMC would alarm on one jump),
+        one step per `min_update_s` of the PMC's time."""
         self.target_lsb = [0, 0]
-        t = self.pmc.t_s if self.pmc is not None else 0.0
+        if self.link is None:
+            return
         for _ in range(10_000):
             if self.sent_lsb == [0, 0]:
                 break
             self.sent_lsb = step_toward(self.sent_lsb, [0, 0], self._max_step_lsb)
-            if self.pmc is not None:
-                self._deliver(t)
-                t += self.cfg.min_update_s
-                self.pmc.advance_to(t)
-            else:
-                import time
-
-                self._deliver(0.0)
-                self.link.flush()
-                time.sleep(self.cfg.min_update_s)
-        if self.pmc is not None:
-            self.pmc.advance_to(t + 2 * self.pmc.scan_s)
+            self._deliver(self.time.now_s)
+            self.link.flush()
+            self.time.wait(self.cfg.min_update_s)
+        self.time.wait(2 * self.cfg.scan_s)  # the last step's two scans
 
     def status_registers(self) -> list[int] | None:
         """scan lo, scan hi, alarm, reset, applied 1, applied 2, alarm count 1, 2."""
-        if self.pmc is not None:
-            return self.pmc.read_registers(self.cfg.status_address, 8)
         return self.link.status if self.link is not None else None
 
     def applied_um(self, out: np.ndarray) -> None:
@@ -229,9 +228,9 @@ class FanucPmcSink(Sink):
         return self.link is None or self.link.drain(timeout_s)
 
     def close(self) -> None:
+        """Stop the link; what it last knew of the PMC stays readable (the run's summary)."""
         if self.link is not None:
             self.link.stop()
-            self.link = None
 
     def get_status(self) -> dict[str, Any]:
         regs = self.status_registers()

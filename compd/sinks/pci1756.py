@@ -14,11 +14,19 @@ from compd.sinks.base import LinkState, Sink
 
 
 class DoCard(ABC):
-    """What the sink needs of a PCI-1756 driver (the emulator, the card over Modbus, a
-    real driver): 16-bit words on two DO bytes (low byte at `port`), single DO bits."""
+    """What the sink needs of a PCI-1756 driver (the software PLC's card, the card over
+    Modbus, a real driver): 16-bit words on two DO bytes (low byte at `port`), single DO bits."""
 
     def start(self) -> None:
         """Connect (a card reached over a network); called when the sink opens."""
+
+    def link_state(self) -> LinkState:
+        """Whether what is written reaches the lines: a card in this process always does."""
+        return "up"
+
+    def flush(self, timeout_s: float) -> bool:
+        """Wait until every write so far has reached the lines (in process: at once)."""
+        return True
 
     @abstractmethod
     def write_do_word(self, port: int, value: int) -> None: ...
@@ -38,7 +46,7 @@ class Pci1756Config(SinkConfig):
 
     device: Literal["emulated", "modbus"] = Field(
         "emulated",
-        description="driver: the in-process card emulator, or its DO bytes sent over Modbus TCP"
+        description="driver: the software PLC's card in process, or its DO bytes sent over Modbus TCP"
         " to the X inputs of a PMC in another process",
     )
     host: str = Field("127.0.0.1", description="modbus: the PMC's address")
@@ -99,6 +107,9 @@ class ModbusDoCard(DoCard):
     def read_do_word(self, port: int) -> int:
         return self._do[port] | (self._do[port + 1] << 8)
 
+    def link_state(self) -> LinkState:
+        return self.link.state  # type: ignore[return-value]
+
     def flush(self, timeout_s: float) -> bool:
         return self.link.drain(timeout_s)
 
@@ -116,7 +127,7 @@ class Pci1756Sink(Sink):
         if card is None and cfg.device == "modbus":
             card = ModbusDoCard(cfg.host, cfg.port, cfg.device_id, cfg.x_register)
         elif card is None:
-            from hil_sim.devices.pci1756 import Pci1756Card
+            from compd.plc.pci1756 import Pci1756Card
 
             card = Pci1756Card()
         self.card = card
@@ -129,9 +140,7 @@ class Pci1756Sink(Sink):
 
     def link_state(self) -> LinkState:
         """The card over Modbus: its link; a card in this process (emulated, a driver): up."""
-        if isinstance(self.card, ModbusDoCard):
-            return self.card.link.state  # type: ignore[return-value]
-        return "up"
+        return self.card.link_state()
 
     def open(self, now_s: float) -> None:
         self.card.start()
@@ -158,7 +167,7 @@ class Pci1756Sink(Sink):
             self.card.write_do_bit(self.cfg.strobe_bit, self._strobe)
 
     def flush(self, timeout_s: float) -> bool:
-        return self.card.flush(timeout_s) if isinstance(self.card, ModbusDoCard) else True
+        return self.card.flush(timeout_s)
 
     def close(self) -> None:
         self.card.close()

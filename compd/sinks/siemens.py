@@ -6,8 +6,9 @@ axis; when the model's `linear_terms()` gives them — per output the error's sl
 (µm/mm) and reference position P0 (mm), its outputs being the error at P0 — it
 writes SD43910 tanβ = −slope/1000 and SD43920 P0 too, and sets MD32750 bit 1
 (position dependent) as well as bit 0. Writes go out when a value moved by
-`min_change_um` and no faster than `min_update_s`. Without `host` the NC is hil_sim's
-emulator in process, on the loop clock.
+`min_change_um` and no faster than `min_update_s`. With `host` the NC's data is reached
+over Modbus TCP; without, it is the software PLC's NC (compd.plc), in process on the
+loop's clock. Both through the same link interface: the sink has one code path.
 """
 
 from __future__ import annotations
@@ -19,32 +20,21 @@ import numpy as np
 from pydantic import Field
 
 from compd.config import SinkConfig
+from compd.plc.siemens_nc import APPLIED, BLOCK, K0, TYPE, f32_regs, regs_f32
 from compd.sinks.base import LinkState, Sink
+from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
     from compd.models.base import Model
-
-BLOCK, K0, TYPE, APPLIED = 16, 0, 6, 11
-
-
-def f32_regs(v: float) -> list[int]:
-    """float32, high word first (IEEE 754 big-endian)."""
-    import struct
-
-    b = struct.pack(">f", v)
-    return [int.from_bytes(b[0:2], "big"), int.from_bytes(b[2:4], "big")]
-
-
-def regs_f32(hi: int, lo: int) -> float:
-    import struct
-
-    return struct.unpack(">f", hi.to_bytes(2, "big") + lo.to_bytes(2, "big"))[0]
+    from compd.plc.link import VirtualLink
+    from compd.plc.siemens_nc import SiemensNc
+    from compd.sinks.modbus_link import ModbusLink
 
 
 class SiemensConfig(SinkConfig):
-    """The NC's data over Modbus TCP (or the emulator in process)."""
+    """The NC's data over Modbus TCP (or the software PLC's NC in process)."""
 
-    host: str | None = Field(None, description="NC gateway over Modbus TCP; none = emulator in process")
+    host: str | None = Field(None, description="NC gateway over Modbus TCP; none = the software PLC's NC in process")
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
     axes: dict[str, Annotated[int, Field(ge=0, le=63)]] | None = Field(
@@ -61,21 +51,24 @@ class SiemensSink(Sink):
 
     Config = SiemensConfig
 
-    def __init__(self, cfg: SiemensConfig, base_dir: str = ".", nc: Any = None) -> None:
+    def __init__(self, cfg: SiemensConfig, base_dir: str = ".", nc: SiemensNc | None = None) -> None:
         super().__init__(cfg, base_dir)
         self.cfg: SiemensConfig = cfg
+        # the NC in this process (given, or the software PLC's when no host is set) runs on
+        # the loop's time; one over Modbus on its own
+        if nc is None and cfg.host is None:
+            from compd.plc.siemens_nc import SiemensNc
+
+            n = max(2, len(cfg.axes or {}), max((cfg.axes or {}).values(), default=0) + 1)
+            nc = SiemensNc(n, ipo_s=cfg.ipo_s, velo_factor=cfg.velo_factor)
         self.nc = nc
+        self.time: DeviceTime = LoopTime() if nc is not None else WallTime()
         self.model: Model | None = None
         self.outputs: list[str] = []
         self.nc_axis: list[int] = []
         self.sent_k0_um: np.ndarray = np.zeros(0)
         self._next_s = -math.inf
         self.updates = 0
-        if nc is None and cfg.host is None:
-            from hil_sim.devices.siemens_nc import SiemensNc
-
-            n = max(2, len(cfg.axes or {}), max((cfg.axes or {}).values(), default=0) + 1)
-            self.nc = SiemensNc(n, ipo_s=cfg.ipo_s, velo_factor=cfg.velo_factor)
 
     def bind_model(self, model: Model) -> None:
         """The model (for its output names and its linear terms, where it has them)."""
@@ -89,40 +82,36 @@ class SiemensSink(Sink):
         return None if self.cfg.host is None else ("modbus", self.cfg.host, self.cfg.port)
 
     def link_state(self) -> LinkState:
-        if self.nc is not None:
-            return "up"
-        return "closed" if self.link is None else self.link.state
+        return "closed" if self.link is None else self.link.state  # type: ignore[return-value]
 
-    def _write(self, address: int, values: list[int]) -> None:
+    def _connect(self) -> ModbusLink | VirtualLink:
+        """The link to the NC's data (the status block: every axis the sink writes)."""
+        count = BLOCK * (max(self.nc_axis, default=0) + 1)
         if self.nc is not None:
-            self.nc.write_registers(address, values)
-        else:
-            self.link.submit(address, values)
+            from compd.plc.link import VirtualLink
+
+            status = (0, min(count, self.nc.register_count))
+            return VirtualLink(self.nc, self.time, status=status, name="siemens")
+        from compd.sinks.modbus_link import ModbusLink
+
+        return ModbusLink(self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, count), name="siemens")
 
     def open(self, now_s: float) -> None:
-        if self.nc is not None:
-            self.nc.next_ipo_s = self.nc.t_s = now_s
-        else:
-            from compd.sinks.modbus_link import ModbusLink
-
-            n = max(self.nc_axis, default=0) + 1
-            self.link = ModbusLink(
-                self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, BLOCK * n), name="siemens"
-            )
-            self.link.start()
+        self.time.set(now_s)
+        self.link = self._connect()
+        self.link.start()
         # a model may offer linear terms only in some modes; output-test binds no model
         linear = self.model is not None and self.model.linear_terms() is not None
         for ax in self.nc_axis:
             if ax >= 0:
-                self._write(BLOCK * ax + TYPE, [3 if linear else 1])
+                self.link.submit(BLOCK * ax + TYPE, [3 if linear else 1])
 
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
     ) -> None:
-        if self.nc is not None:
-            self.nc.advance_to(now_s)
+        self.time.set(now_s)
         self.writes += 1
-        if now_s < self._next_s or not self.outputs:
+        if now_s < self._next_s or not self.outputs or self.link is None:
             return
         terms = self.model.linear_terms()
         sent = False
@@ -136,7 +125,7 @@ class SiemensSink(Sink):
             if terms is not None:
                 slope_um_per_mm, p0_mm = terms[i]
                 regs += f32_regs(-slope_um_per_mm / 1000.0) + f32_regs(p0_mm)
-            self._write(BLOCK * ax + K0, regs)
+            self.link.submit(BLOCK * ax + K0, regs)
             self.sent_k0_um[i] = k0
             sent = True
         if sent:
@@ -144,22 +133,24 @@ class SiemensSink(Sink):
             self._next_s = now_s + self.cfg.min_update_s
 
     def settle(self, now_s: float) -> None:
-        if self.nc is not None:
-            self.nc.advance_to(now_s)
-        elif self.link is not None:
+        """Every write acknowledged; the NC's IPO cycles up to `now_s` (in process) have run
+        when the status is next read."""
+        self.time.set(now_s)
+        if self.link is not None:
             self.link.flush()
 
     def safe(self) -> None:
         """K0 = 0 (and tanβ = 0): the NC ramps ΔK away at its own MD32760 rate."""
+        if self.link is None:
+            return
         for ax in self.nc_axis:
             if ax >= 0:
-                self._write(BLOCK * ax + K0, f32_regs(0.0) + f32_regs(0.0))
-        if self.link is not None:
-            self.link.flush()
+                self.link.submit(BLOCK * ax + K0, f32_regs(0.0) + f32_regs(0.0))
+        self.link.flush()
 
     def applied_um(self, out: np.ndarray) -> None:
         """ΔK the NC applies now, for the word's axes (high byte first), µm."""
-        regs = self.nc.mem if self.nc is not None else (self.link.status if self.link else None)
+        regs = self.link.status if self.link is not None else None
         out[:] = np.nan
         if regs is None:
             return
@@ -173,9 +164,9 @@ class SiemensSink(Sink):
         return self.link is None or self.link.drain(timeout_s)
 
     def close(self) -> None:
+        """Stop the link; what it last knew of the NC stays readable (the run's summary)."""
         if self.link is not None:
             self.link.stop()
-            self.link = None
 
     def get_status(self) -> dict[str, Any]:
         st = {**super().get_status(), "updates": self.updates, "k0_um": self.sent_k0_um.tolist()}

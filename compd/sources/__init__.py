@@ -1,14 +1,18 @@
-"""Signal sources, one module per transport, found by YAML `kind`."""
+"""Signal sources, one module per transport, found by YAML `kind`.
+
+Other packages add source kinds through the `compd.sources` entry-point group (the
+simulator's `sim` source is one).
+"""
 
 from compd.registry import Registry
 
 SOURCES = Registry(
     "source",
     {
-        "sim": ("compd.sources.sim", "SimSource"),
         "replay": ("compd.sources.replay", "ReplaySource"),
         "modbus": ("compd.sources.modbus", "ModbusSource"),
         "dcon": ("compd.sources.dcon", "DconSource"),
         "can": ("compd.sources.can", "CanSource"),
     },
+    group="compd.sources",
 )

@@ -1,1 +1,1 @@
-"""Emulated devices that compd talks to (cards, transmitters, CNC controllers)."""
+"""The devices compd talks to, served over their real protocols: transmitters, compd's software PLC CNCs, the live plant."""

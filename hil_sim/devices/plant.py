@@ -111,11 +111,7 @@ class PlantDevice:
         extras = list(self.plant.extra_names)
         self._pos_idx = [extras.index(f"pos_{a}_mm") if f"pos_{a}_mm" in extras else -1 for a in self.plant.axes]
         if on_plant_clock:
-            cnc.t_s = self.plant.t_s
-            if kind == "fanuc_pmc":
-                cnc.next_scan_s = self.plant.t_s
-            else:
-                cnc.next_ipo_s = self.plant.t_s
+            cnc.start_at(self.plant.t_s)
 
     def feed_for(self, channels: Sequence[str]) -> Callable[[], list[float]]:
         """A transmitter feed: the plant's latest readings of `channels` (°C)."""

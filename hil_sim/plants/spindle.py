@@ -1,7 +1,8 @@
 """Motorized spindle (paper 003): rotor and housing rods, bearings, stator, coolant jacket.
 
 Axial error: the rotor's free growth α ∫ (T − T_init) dx (paper 003 eq. 1; the
-ξ-point model estimates it from one sensor). Radial error at the front bearing
+ξ-point model estimates it from one sensor, which this plant places at the mean-value
+point of its own steady-state rotor field). Radial error at the front bearing
 (paper 003 §2): ring thermoelastic displacement u = u_C − u_B from the
 rings' radial temperature profiles, plus the clearance c opened by the preload
 loss that the axial growth between the bearings causes, plus centrifugal lift k n².
@@ -52,6 +53,24 @@ def preload_clearance_um(
     a1 = math.degrees(math.asin(max(-1.0, min(1.0, s))))
     theta = (180.0 - (contact_deg - a1)) / 2.0 - 72.0
     return float(dl_mm * math.tan(math.radians(theta)) * 1000.0)
+
+
+def mean_value_point_mm(x_mm: np.ndarray, t_c: np.ndarray) -> float:
+    """Where a rod of equal cells (centres `x_mm`, temperatures `t_c`) is at its mean temperature.
+
+    The rod grows by α ∫ ΔT dx = α L (T̄ − T0), T̄ the average of its cells, so a sensor
+    reading T̄ gives the growth exactly. A sensor on the rod reads it linearly between
+    cell centres (`Network.at`); ξ is the first point from the nose (x = 0) where that
+    reading crosses T̄.
+    """
+    x = np.asarray(x_mm, float)
+    d = np.asarray(t_c, float) - float(np.mean(t_c))
+    for i in range(x.size - 1):
+        if d[i] == 0.0:
+            return float(x[i])
+        if d[i] * d[i + 1] < 0.0:
+            return float(x[i] + d[i] / (d[i] - d[i + 1]) * (x[i + 1] - x[i]))
+    raise ValueError("the rod's temperature is uniform: every point reads its mean")
 
 
 class SpindlePlant(Plant):
@@ -157,13 +176,11 @@ class SpindlePlant(Plant):
         return t_amb_c + self.p["coolant_offset_c"]
 
     def steady_state_xi_mm(self, speed_rpm: float = 10000.0) -> float:
-        """ξ of the rotor's steady-state profile at `speed_rpm`, coolant off (paper 003)."""
-        from compd.models.xi_spindle import find_xi
-
+        """ξ of the rotor's steady-state field at `speed_rpm`, coolant off (paper 003 eq. 2)."""
         t = self.net.steady_state(
             self._g_res(speed_rpm, False), np.zeros(2), self._heat_for(speed_rpm)
         )
-        return find_xi(self.net.x_m["rotor"] * 1000.0, t[self.rotor])
+        return mean_value_point_mm(self.net.x_m["rotor"] * 1000.0, t[self.rotor])
 
     def _step(self, seg: Segment, t_amb_c: float) -> None:
         key = (seg.speed_rpm, seg.coolant)

@@ -9,7 +9,7 @@ what MLR achieves on the same wiring.
 
 from __future__ import annotations
 
-from hil_sim import closedloop as cl
+from rig import closedloop as cl
 
 HOURS, SPEEDUP = 5.0, 7200.0
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from hil_sim import closedloop as cl
+from rig import closedloop as cl
 
 # The unseen day's first 5 plant-hours: 1 h stopped, then 1500 rpm jobs with pauses
 # (the error reaches ~15 um). In lockstep; SPEEDUP only sets compd's period (4 s).

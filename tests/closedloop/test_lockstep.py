@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil_sim import closedloop as cl
+from rig import closedloop as cl
 
 # 2 plant-hours of the spindle's unseen day: 9000 rpm jobs, the PMC's shift moves
 # within the first hour (word mode: latch on the strobe, step limit, on plant time)

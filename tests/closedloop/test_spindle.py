@@ -3,7 +3,7 @@ the FANUC PMC's external shift over Modbus TCP, a shortened unseen day, against 
 
 from __future__ import annotations
 
-from hil_sim import closedloop as cl
+from rig import closedloop as cl
 
 # The unseen day's first 5 plant-hours: 9000 rpm jobs with pauses, coolant on (axial
 # error up to ~15 um). In lockstep; SPEEDUP only sets compd's period (4 s); the two

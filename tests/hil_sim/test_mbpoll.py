@@ -8,7 +8,7 @@ import subprocess
 
 import pytest
 
-from hil_sim.devices.fanuc_pmc import FanucPmc
+from compd.plc.fanuc_pmc import FanucPmc
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.pt100 import Pt100Transmitter
 from hil_sim.devices.pt100_modbus import Pt100ModbusDevice

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from compd.codec import encode
+from compd.plc.fanuc_pmc import FanucPmc
 from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink, step_toward
-from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
 from hil_sim.devices.modbus_server import ModbusServerThread
+from hil_sim.devices.scan import PmcScanThread
 
 Z = np.zeros(2)
 EN = np.ones(2, dtype=bool)

@@ -7,9 +7,10 @@ import time
 import numpy as np
 
 from compd.codec import encode
+from compd.plc.fanuc_pmc import FanucPmc
 from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
-from hil_sim.devices.fanuc_pmc import FanucPmc, PmcScanThread
 from hil_sim.devices.modbus_server import ModbusServerThread
+from hil_sim.devices.scan import PmcScanThread
 
 
 def test_do_bytes_drive_pmc_over_modbus_tcp():

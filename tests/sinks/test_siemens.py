@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from compd.plc.siemens_nc import SiemensNc
 from compd.sinks.siemens import SiemensConfig, SiemensSink, regs_f32
 from hil_sim.devices.modbus_server import ModbusServerThread
-from hil_sim.devices.siemens_nc import SiemensNc
 
 
 class _Model:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from hil_sim.devices.fanuc_pmc import (
+from compd.plc.fanuc_pmc import (
     ALARM,
     APPLIED,
     COMMAND,
@@ -11,7 +11,7 @@ from hil_sim.devices.fanuc_pmc import (
     FanucPmc,
     decode_byte_um,
 )
-from hil_sim.devices.pci1756 import Pci1756Card
+from compd.plc.pci1756 import Pci1756Card
 
 
 def _strobe_word(pmc: FanucPmc, word: int, strobe: int) -> None:

@@ -42,9 +42,9 @@ from typing import Any
 import yaml
 
 from hil_sim.devices.plant import SIGNAL_BASE, residual_report
+from hil_sim.scenario import SCENARIOS
 
 ROOT = Path(__file__).resolve().parent.parent
-SCENARIOS = ROOT / "hil_sim" / "scenarios"
 
 
 @dataclass(frozen=True)

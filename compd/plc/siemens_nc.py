@@ -1,4 +1,4 @@
-"""Siemens NC temperature compensation data (paper 001), reachable over Modbus TCP.
+"""Siemens NC temperature compensation data (paper 001): the register map and the NC's IPO-cycle ramp.
 
 ΔK = K0 + tanβ·(P − P0), with K0 = SD43900 TEMP_COMP_ABS_VALUE (mm), tanβ = SD43910
 TEMP_COMP_SLOPE, P0 = SD43920 TEMP_COMP_REF_POSITION (mm). MD32750 TEMP_COMP_TYPE:
@@ -11,6 +11,7 @@ high word first, IEEE 754 big-endian):
 +0 K0 mm, +2 tanβ, +4 P0 mm, +6 MD32750 (uint16), +7 MD32760 (fraction of the max
 velocity per IPO cycle), +9 axis position P mm (written by the plant or a test),
 +11 applied ΔK mm (read only), +13 target ΔK mm (read only), +15 IPO counter (mod 65536).
+The siemens sink writes this map, to the NC here in process or to an NC gateway over Modbus TCP.
 """
 
 from __future__ import annotations
@@ -18,21 +19,25 @@ from __future__ import annotations
 import struct
 import threading
 
+from compd.plc.link import VirtualDevice
+
 K0, SLOPE, P0, TYPE, VELO_FACTOR, POSITION, APPLIED, TARGET, IPO = 0, 2, 4, 6, 7, 9, 11, 13, 15
 BLOCK = 16
 READ_ONLY = (APPLIED, APPLIED + 1, TARGET, TARGET + 1, IPO)
 
 
-def f32_to_regs(v: float) -> list[int]:
+def f32_regs(v: float) -> list[int]:
+    """float32 as two registers, high word first (IEEE 754 big-endian)."""
     b = struct.pack(">f", v)
     return [int.from_bytes(b[0:2], "big"), int.from_bytes(b[2:4], "big")]
 
 
-def regs_to_f32(hi: int, lo: int) -> float:
+def regs_f32(hi: int, lo: int) -> float:
+    """The float32 two registers hold (high word first)."""
     return struct.unpack(">f", hi.to_bytes(2, "big") + lo.to_bytes(2, "big"))[0]
 
 
-class SiemensNc:
+class SiemensNc(VirtualDevice):
     """Per-axis setting data, machine data and the IPO-cycle rate limit."""
 
     def __init__(
@@ -58,10 +63,10 @@ class SiemensNc:
         self._lock = threading.Lock()
 
     def _get(self, a: int, off: int) -> float:
-        return regs_to_f32(self.mem[BLOCK * a + off], self.mem[BLOCK * a + off + 1])
+        return regs_f32(self.mem[BLOCK * a + off], self.mem[BLOCK * a + off + 1])
 
     def _set(self, a: int, off: int, v: float) -> None:
-        self.mem[BLOCK * a + off : BLOCK * a + off + 2] = f32_to_regs(v)
+        self.mem[BLOCK * a + off : BLOCK * a + off + 2] = f32_regs(v)
 
     def read_registers(self, address: int, count: int) -> list[int] | None:
         if address < 0 or address + count > self.register_count:
@@ -99,6 +104,9 @@ class SiemensNc:
                 self._set(a, TARGET, target)
                 self.mem[BLOCK * a + IPO] = (self.mem[BLOCK * a + IPO] + 1) & 0xFFFF
             self.cycles += 1
+
+    def start_at(self, t_s: float) -> None:
+        self.next_ipo_s = self.t_s = t_s
 
     def advance_to(self, t_s: float) -> None:
         """Run the IPO cycles due up to `t_s`; once every axis sits on its target the

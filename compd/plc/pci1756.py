@@ -1,4 +1,4 @@
-"""Advantech PCI-1756 emulator: 32 isolated DI and 32 isolated DO, latching outputs."""
+"""Advantech PCI-1756 as a virtual card: 32 isolated DI and 32 isolated DO, latching outputs."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ class Pci1756Card(DoCard):
     the card is reset (reset clears them to 0, as a power-up does). DI bytes 0–3
     are set by whatever is wired to the inputs (`set_di`). Byte access and 16-bit
     word access (little-endian: the low byte at the lower offset) as in the comedi
-    driver. Thread-safe: a PMC emulator may read the DO lines from another thread.
+    driver. Thread-safe: a PMC may read the DO lines from another thread (`FanucPmc(card=...)`).
     """
 
     PORTS = 4

@@ -20,7 +20,7 @@ Memory map (Modbus holding registers, one register per PMC byte for X and Y, one
 | 406, 407 | —       | alarm count, axis 1 and 2 |
 
 Ladder, every scan (default 8 ms): copy the wired card's DO bytes into X0–X3 (if a
-PCI-1756 emulator is wired); on any edge of the strobe bit latch X(word)..X(word)+1
+PCI-1756 card is wired); on any edge of the strobe bit latch X(word)..X(word)+1
 into R0 and decode it (bit 7 direction, 1 = positive; bit 6 enable; bits 5..0
 magnitude × LSB) into R2/R3; then per axis, if the command differs from the applied
 shift: apply it when the change is within the step limit, otherwise raise the
@@ -31,10 +31,9 @@ the difference, FANUC external machine coordinate shift).
 from __future__ import annotations
 
 import threading
-import time
 from typing import Any
 
-from hil_sim.devices.worker import DeviceThread
+from compd.plc.link import VirtualDevice
 
 X_BASE, Y_BASE, R_BASE, D_BASE, S_BASE = 0, 100, 200, 300, 400
 N_X, N_Y, N_R, N_D, N_S = 16, 16, 16, 16, 16
@@ -57,7 +56,7 @@ def decode_byte_um(byte: int, lsb_um: float) -> float:
     return mag if byte & 0x80 else -mag
 
 
-class FanucPmc:
+class FanucPmc(VirtualDevice):
     """The PLC's memory and ladder; `scan` runs one scan, `advance_to` all scans up to a time."""
 
     def __init__(
@@ -144,6 +143,9 @@ class FanucPmc:
             after = m[Y_BASE : Y_BASE + N_Y] + m[R_BASE : R_BASE + N_R] + m[S_BASE + 2 : S_BASE + N_S]
             return after != before
 
+    def start_at(self, t_s: float) -> None:
+        self.next_scan_s = self.t_s = t_s
+
     def advance_to(self, t_s: float) -> None:
         """Run every scan due up to `t_s` (simulated time).
 
@@ -172,24 +174,3 @@ class FanucPmc:
         with self._lock:
             return self.mem[ALARM]
 
-
-class PmcScanThread(DeviceThread):
-    """Runs a PMC's scans on wall time, on an absolute schedule (start + k·scan_s)."""
-
-    thread_name = "pmc-scan"
-
-    def __init__(self, pmc: FanucPmc) -> None:
-        super().__init__()
-        self.pmc = pmc
-
-    def _run(self) -> None:
-        t0 = time.monotonic()
-        k = 0
-        while not self._stop.is_set():
-            self.pmc.scan()
-            k += 1
-            rest = t0 + k * self.pmc.scan_s - time.monotonic()
-            if rest > 0:
-                self._stop.wait(rest)
-            elif rest < -self.pmc.scan_s:  # overran: skip what is past
-                k += int(-rest / self.pmc.scan_s)

@@ -1,7 +1,13 @@
-"""The built-in simulator as a source: a hil_sim plant stepped in process on the loop clock."""
+"""compd's `sim` source kind: a hil_sim plant stepped in process on the loop's clock.
+
+compd does not know this kind: it finds it through the `compd.sources` entry point
+that this package declares (pyproject.toml), so `kind: sim` works wherever hil_sim is
+installed beside compd (`make demo`, the tests) and is an unknown kind where it is not.
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -11,6 +17,8 @@ from compd.config import SourceConfig
 from compd.errors import BadInput
 from compd.frame import Frame, Quality
 from compd.sources.base import Source
+from hil_sim.plants import PLANTS
+from hil_sim.scenario import Scenario
 
 
 class SimConfig(SourceConfig):
@@ -30,11 +38,6 @@ class SimSource(Source):
     Config = SimConfig
 
     def __init__(self, cfg: SimConfig, base_dir: str = ".") -> None:
-        from pathlib import Path
-
-        from hil_sim.plants import PLANTS
-        from hil_sim.scenario import Scenario
-
         super().__init__(cfg, base_dir)
         try:
             if isinstance(cfg.scenario, str):

@@ -1,5 +1,8 @@
 """`compd bench`: the 2 ms cycle against real Modbus devices, beside the loop a user writes by hand.
 
+compd's CLI parses the command and reaches `main` here through the `compd.commands`
+entry point (pyproject.toml): the bench needs the simulator, which compd does not.
+
 The devices run in a separate process (`python -m hil_sim serve`): three 8-channel
 PT100 Modbus TCP modules carrying the gantry's 19 sensors (paper 002: 9 per axis plus
 ambient), and the FANUC PMC software PLC. compd's own loop runs the LVR model of the
@@ -25,12 +28,13 @@ import numpy as np
 import yaml
 
 from compd.errors import BadInput
+from hil_sim.plants import PLANTS
+from hil_sim.scenario import SCENARIOS, Scenario
 
 N_SENSORS = 19
 MODULE_CHANNELS = 8
 DAY_S = 86400.0
 RSS_EVERY = 10_000  # cycles between resident-size samples
-SCENARIOS = Path(__file__).resolve().parent.parent / "hil_sim" / "scenarios"
 
 
 def rss_kb() -> int:
@@ -46,8 +50,6 @@ def _fit_gantry_model(work: Path) -> tuple[Path, list[str]]:
     """A short simulated gantry warm-up, logged and fitted with LVR (the bench's model)."""
     from compd.log import read_log, write_log
     from compd.models.lvr import LVR
-    from hil_sim.plants import PLANTS
-    from hil_sim.scenario import Scenario
 
     scen = Scenario.load(SCENARIOS / "gantry_train.yaml")
     plant = PLANTS.get("gantry")(scen, scen.params)
@@ -491,3 +493,17 @@ def format_table(r: dict[str, Any]) -> str:
 def write_json(path: str, result: dict[str, Any]) -> None:
     with open(path, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=2)
+
+
+def main(args: Any) -> int:
+    """`compd bench` (its arguments parsed and checked by compd's CLI): run, print the table, write the JSON."""
+    from compd.cli import writing
+
+    result = run_bench(
+        args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles
+    )
+    print(format_table(result))
+    if args.json:
+        with writing(args.json, "--json"):
+            write_json(args.json, result)
+    return 0
