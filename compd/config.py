@@ -369,7 +369,7 @@ class RealtimeConfig(Strict):
 
 
 class PlantClockConfig(Strict):
-    """Where a simulated plant publishes its clock (hil_sim `plant` device, Modbus TCP)."""
+    """Where a simulated plant publishes its clock (its clock device's register map, over Modbus TCP)."""
 
     host: str = Field("127.0.0.1", description="the plant's Modbus TCP address")
     port: int = Field(ge=1, le=65535, description="the plant's Modbus TCP port")

@@ -15,7 +15,7 @@ from compd.sources.base import Source
 
 
 class ReplayConfig(SourceConfig):
-    """Replay of a log written by compd or hil_sim (the log CSV of docs/formats.md)."""
+    """Replay of a log written by compd or a simulator (the log CSV of docs/formats.md)."""
 
     path: str = Field(description="log CSV, relative to the config")
     columns: list[str] | None = Field(None, description="columns to publish; none = all but t_s")
