@@ -21,10 +21,11 @@ and `close`. The worker owns the rest:
   the work's `last_error` and counters (`get_status`), and `round_hist`, the duration
   of every round (µs).
 
-The interface between the cycle and its device is data only (the cycle issue will
-move every worker out of the cycle's interpreter; sources and sinks stay as they are):
+The interface between the cycle and its device is data only, so that the workers can
+later move out of the cycle's interpreter (another process: the mailboxes in shared
+memory, requests and counts over a pipe) while sources and sinks stay as they are:
 
-  cycle → worker   `WriteQueue.submit(address, values)` then `wake()`;
+  cycle → worker   `WriteQueue.submit(address, values)` (which calls `wake()`);
                    `request(arg)`: one round now with `arg` (a stamp, a target time,
                    a register range), and its reply — for everything that is not the
                    cycle itself (a lockstep clock between cycles, a settle, a test);
@@ -100,7 +101,7 @@ class DeviceWork(ABC):
 
 
 class IoWorker:
-    """Runs one `DeviceWork` on a thread of its own: see the module."""
+    """Runs one `DeviceWork` on a thread of its own, named `name`: see the module."""
 
     def __init__(
         self,
@@ -160,7 +161,7 @@ class IoWorker:
         self._open_error = None
         opened = threading.Event()
         self.state = "connecting"
-        th = threading.Thread(target=self._main, args=(opened,), name=f"io-{self.name}", daemon=True)
+        th = threading.Thread(target=self._main, args=(opened,), name=self.name, daemon=True)
         self._thread = th
         th.start()
         opened.wait()

@@ -87,7 +87,7 @@ def test_start_runs_rounds_on_its_own_thread_and_stop_joins_it() -> None:
         assert w.stop() is True
     assert not w.running and w.state == "closed"
     assert work.closes == 1
-    assert work.threads == {"io-t"}  # connect, rounds and close all ran on the worker's thread
+    assert work.threads == {"t"}  # connect, rounds and close all ran on the worker's thread
 
 
 def test_start_twice_is_refused() -> None:
