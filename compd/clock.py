@@ -33,8 +33,8 @@ class Clock(ABC):
 
     def adopt_poller(self, source: Any) -> bool:
         """A polled source asks whether the clock drives its polls (a lockstep plant clock
-        polls every source once per cycle at the plant time). False: it polls on its own
-        thread."""
+        polls every source once per cycle at the plant time). False: its I/O worker polls at
+        its own pace."""
         return False
 
     @abstractmethod

@@ -43,7 +43,7 @@ class Source(ABC):
         # where this section sits in the config (set by the app): `open` names its keys under it
         self.config_path: tuple[str | int, ...] = ()
         self._idx = np.zeros(0, dtype=np.intp)
-        # round trip of each poll (request to reply), µs: sources polled on their own thread
+        # round trip of each poll (request to reply), µs: sources polled by an I/O worker
         self.poll_hist: DurationHist | None = None
 
     @abstractmethod
@@ -58,7 +58,7 @@ class Source(ABC):
         """Connect; called once before the first cycle."""
 
     def start_polling(self, clock: Clock) -> None:
-        """Start polling the device on a thread of its own, stamping samples with `clock`
+        """Start the I/O worker that talks to the device, stamping samples with `clock`
         (the loop's); called right after `open`. Sources read in the cycle poll nothing."""
 
     @property
