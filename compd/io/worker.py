@@ -129,7 +129,8 @@ class IoWorker:
         self.retry_in_s = 0.0  # the wait before the connect after the latest failure
         self._paced = True
         self._stop = False
-        self._woken = False
+        self._wakes = 0  # counted by `wake`; the thread runs a round when it changed (no flag to lose)
+        self._wakes_seen = 0
         self._thread: threading.Thread | None = None
         self._open_error: BaseException | None = None
         self._done = threading.Condition()  # a round ended; a reply is there
@@ -156,7 +157,7 @@ class IoWorker:
             self.work.now = clock
         self._paced = paced and self.period_s is not None
         self._stop = False
-        self._woken = False
+        self._wakes_seen = self._wakes
         self._drain_wakes()
         self._open_error = None
         opened = threading.Event()
@@ -191,7 +192,7 @@ class IoWorker:
     # ------------------------------------------------------------ the cycle's side
     def wake(self) -> None:
         """Ask for a round soon (something was queued). Never waits."""
-        self._woken = True
+        self._wakes += 1
         self._signal()
 
     def request(self, arg: Any = None, timeout_s: float = 5.0) -> Any:
@@ -289,7 +290,9 @@ class IoWorker:
         up = False
         while not self._stop:
             req = self._next_request()
-            woken, self._woken = self._woken, False
+            wakes = self._wakes
+            woken = wakes != self._wakes_seen
+            self._wakes_seen = wakes
             now = time.monotonic()
             if not up and now >= next_connect:
                 try:
@@ -341,7 +344,7 @@ class IoWorker:
                 if req is not None and req[0] in self._waiting:
                     self._replies[req[0]] = reply
                 self._done.notify_all()
-            if self._stop or self._requests or self._woken:
+            if self._stop or self._requests or self._wakes != self._wakes_seen:
                 continue
             deadline = next_paced if self._paced else None
             if not up:
