@@ -57,23 +57,29 @@ class LinkWork(DeviceWork):
     def counters(self) -> dict[str, Any]:
         return {"writes": self.writes, "reply_errors": self.reply_errors, "bad_replies": self.bad_replies}
 
+    max_writes_per_round = 64  # a round ends, so requests and stop are seen, however busy the queue
+
     def round(self, request: Any) -> list[int] | None:
-        """Send every queued write; then the registers `request` asks for (address, count),
-        or the status block when it is due."""
+        """Send the queued writes, reading the status block whenever it is due; then the
+        registers `request` asks for (address, count)."""
         self._send_queued()
-        if request is not None:
-            return self._read(*request)
+        self._status_if_due()
+        return None if request is None else self._read(*request)
+
+    def _status_if_due(self) -> None:
         now = time.monotonic()
         if self.status_range is not None and now >= self._next_status_s:
             regs = self._read(*self.status_range)
             if regs is not None:
                 self.status_out.publish((regs, now))
             self._next_status_s = now + self.status_period_s
-        return None
 
     def _send_queued(self) -> None:
         perf = time.perf_counter_ns
-        while (w := self.queue.take()) is not None:
+        for _ in range(self.max_writes_per_round):
+            w = self.queue.take()
+            if w is None:
+                return
             address, values, queued_ns = w
             w0 = perf()
             r = self.client.write_registers(address, values)
@@ -88,6 +94,7 @@ class LinkWork(DeviceWork):
             else:
                 self._reply_error(r)
             self.queue.done(w, sent=True)
+            self._status_if_due()
 
     def _read(self, address: int, count: int) -> list[int] | None:
         r = self.client.read_registers(address, count)
