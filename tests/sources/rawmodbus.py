@@ -2,8 +2,8 @@
 writes it on FC 16 and FC 23 (write, then read), and misbehaves on request in ways a real stack
 would not (wrong shapes, wrong ids, silence).
 
-`RawModbusServer(registers)` listens on 127.0.0.1, port 0 (see `.port`), one thread per
-connection. `set(mode, address=None, **opts)` switches a misbehaviour on for every read, or
+`RawModbusServer(registers)` listens on 127.0.0.1, port 0 (see `.port`; or the `port` given),
+one thread per connection. `set(mode, address=None, **opts)` switches a misbehaviour on for every read, or
 only for reads whose start register is `address` (several addresses can misbehave at once;
 `set("none")` clears them all):
 
@@ -86,15 +86,15 @@ class _TcpServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
     allow_reuse_address = True
     block_on_close = True
 
-    def __init__(self, owner: RawModbusServer) -> None:
+    def __init__(self, owner: RawModbusServer, port: int = 0) -> None:
         self.owner = owner
-        super().__init__(("127.0.0.1", 0), _Handler)
+        super().__init__(("127.0.0.1", port), _Handler)
 
 
 class RawModbusServer:
     """Serves `registers` (address → value; missing addresses read 0) to FC 3 and FC 4."""
 
-    def __init__(self, registers: dict[int, int] | list[int], *, unit_id: int = 1) -> None:
+    def __init__(self, registers: dict[int, int] | list[int], *, unit_id: int = 1, port: int = 0) -> None:
         self.registers = dict(enumerate(registers)) if isinstance(registers, list) else dict(registers)
         self.unit_id = unit_id
         self.faults: dict[int | None, tuple[str, dict[str, Any]]] = {}  # start (None: any) → mode
@@ -105,7 +105,7 @@ class RawModbusServer:
         self._closing = False
         self._server: _TcpServer | None = None
         self._thread: threading.Thread | None = None
-        self.port = 0
+        self.port = port
 
     # ------------------------------------------------------------------ behaviour
     def set(self, mode: str, address: int | None = None, **opts: Any) -> None:
@@ -198,7 +198,7 @@ class RawModbusServer:
 
     def start(self) -> RawModbusServer:
         self._closing = False
-        self._server = _TcpServer(self)
+        self._server = _TcpServer(self, self.port)
         self.port = self._server.server_address[1]
         self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.05},
                                         name="raw-modbus-server", daemon=True)
