@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import Any
 
-from compd.modbus_reply import HOLDING, shape_error
-
-READ_WRITE = 0x17  # Modbus function 23, read/write multiple registers
+from compd.io.mailbox import Latest
+from compd.io.modbus_client import LinkFault, ModbusClient, ModbusFault
+from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
 
 class Clock(ABC):
@@ -32,8 +33,8 @@ class Clock(ABC):
 
     def adopt_poller(self, source: Any) -> bool:
         """A polled source asks whether the clock drives its polls (a lockstep plant clock
-        polls every source once per cycle at the plant time). False: it polls on its own
-        thread."""
+        polls every source once per cycle at the plant time). False: its I/O worker polls at
+        its own pace."""
         return False
 
     @abstractmethod
@@ -99,18 +100,85 @@ class SimClock(Clock):
         self.t_s = t_s
 
 
+class PlantTimeWork(DeviceWork):
+    """The device half of a plant clock (its I/O worker's thread): read the plant time
+    (ms, uint32, high word first, at `address`); in lockstep, run the plant to a time and
+    read it back in the same request."""
+
+    def __init__(self, client: ModbusClient, address: int, out: Latest[tuple[float, float, float]]) -> None:
+        super().__init__()
+        self.client = client
+        self.address = address
+        self.out = out  # (plant time s, wall time of the last answer, wall time the plant time last moved)
+        self.reads = 0
+        self.failed_reads = 0  # answers that were not a plant time (exception, wrong shape)
+
+    def connect(self) -> None:
+        if not self.client.connect():
+            raise LinkDown(self.client.last_error or "connect failed")
+
+    def disconnect(self) -> None:
+        self.client.close()
+
+    def counters(self) -> dict[str, Any]:
+        return {"reads": self.reads, "failed_reads": self.failed_reads}
+
+    def round(self, request: Any) -> Any:
+        """None: follow the plant (read its time, publish it). ("read",): the plant time (s).
+        ("run_to", t_s): run the plant to t_s, then (plant time s, state). None on no answer."""
+        if request is None:
+            t = self._read()
+            if t is not None:
+                wall = time.monotonic()
+                t_s, _, changed = self.out.value
+                self.out.publish((t, wall, wall) if t > t_s else (t_s, wall, changed))
+            return None
+        if request[0] == "read":
+            return self._read()
+        return self._run_to(request[1])
+
+    def _answer(self, r: list[int] | ModbusFault) -> list[int] | None:
+        if isinstance(r, LinkFault):
+            raise LinkDown(r.detail)
+        if isinstance(r, ModbusFault):
+            self.failed_reads += 1
+            self.last_error = r.detail
+            return None
+        self.reads += 1
+        return r
+
+    def _read(self) -> float | None:
+        regs = self._answer(self.client.read_registers(self.address, 2))
+        if regs is None:
+            return None
+        hi, lo = regs
+        return ((hi << 16) | lo) / 1000.0
+
+    def _run_to(self, t_s: float) -> tuple[float, int] | None:
+        """One Modbus request (function 23, write then read): run to `t_s` — the plant steps
+        before it acknowledges — and read back (plant time, state)."""
+        ms = int(round(t_s * 1000.0)) & 0xFFFFFFFF
+        regs = self._answer(self.client.read_write_registers(
+            self.address, 3, self.address + 4, [(ms >> 16) & 0xFFFF, ms & 0xFFFF]
+        ))
+        if regs is None:
+            return None
+        hi, lo, state = regs
+        return ((hi << 16) | lo) / 1000.0, state
+
+
 class PlantClock(Clock):
     """The plant's own clock, read over Modbus TCP (a simulator running faster than wall time).
 
-    A thread polls two holding registers (plant time in ms, uint32, high word first,
-    hil_sim's `plant` device map) every `poll_period_s` of wall time; `now()` is the
-    last plant time read, so everything on the loop clock — AR(1)'s Δτ, the guard's
-    slew and staleness, the sinks' update intervals, the sources' time stamps — runs
-    in plant seconds. `wait_until` sleeps until the plant reaches the deadline; if the
-    plant time stops advancing for `stall_s` of wall time it returns anyway, so the
-    loop can still see a stop request; if the plant has not answered for `lost_s` it
-    raises RuntimeError (the run ends with the safe output: a simulation without its
-    plant has nothing left to follow).
+    An I/O worker reads two holding registers (plant time in ms, uint32, high word first:
+    the register map of a simulated plant's clock device) every `poll_period_s` of wall
+    time; `now()` is the last plant time read, so everything on the loop clock — AR(1)'s
+    Δτ, the guard's slew and staleness, the sinks' update intervals, the sources' time
+    stamps — runs in plant seconds. `wait_until` sleeps until the plant reaches the
+    deadline; if the plant time stops advancing for `stall_s` of wall time it returns
+    anyway, so the loop can still see a stop request; if the plant has not answered for
+    `lost_s` it raises RuntimeError (the run ends with the safe output: a simulation
+    without its plant has nothing left to follow).
     """
 
     simulated = False
@@ -132,115 +200,86 @@ class PlantClock(Clock):
         self.stall_s = stall_s
         self.timeout_s = timeout_s
         self.lost_s = lost_s
-        self._ok_wall = time.monotonic()
-        self.t_s = 0.0
-        self.reads = 0
-        self.errors = 0
-        self._changed_wall = time.monotonic()
-        self._client: object | None = None
-        self._thread: object | None = None
-        self._stop = False
+        self._time: Latest[tuple[float, float, float]] = Latest((0.0, time.monotonic(), time.monotonic()))
+        self._work = PlantTimeWork(
+            ModbusClient.tcp(host, port, device_id=device_id, timeout_s=timeout_s), address, self._time
+        )
+        # a plant that does not answer is asked again every period (no back-off: it is the clock)
+        self._worker = IoWorker(self._work, name="plant-clock", period_s=poll_period_s,
+                                reconnect_min_s=poll_period_s, reconnect_max_s=poll_period_s)
 
-    def _read(self) -> float | None:
-        client: Any = self._client
-        try:
-            if not client.connected and not client.connect():
-                return None
-            rr = client.read_holding_registers(self.address, count=2, device_id=self.device_id)
-        except Exception:
-            client.close()
-            return None
-        if rr.isError() or shape_error(rr, HOLDING, 2, self.device_id) is not None:
-            return None
-        hi, lo = rr.registers
-        return ((hi << 16) | lo) / 1000.0
+    @property
+    def reads(self) -> int:
+        return self._work.reads
+
+    @property
+    def errors(self) -> int:
+        return self._worker.errors + self._work.failed_reads
 
     def start(self) -> None:
-        """Connect and read the plant time once (RuntimeError if the plant does not answer)."""
-        import logging
-        import threading
-
-        from pymodbus.client import ModbusTcpClient
-
-        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-        self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
-        deadline = time.monotonic() + 5.0
-        t = self._read()
-        while t is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-            t = self._read()
-        if t is None:
-            self._client.close()  # type: ignore[attr-defined]
+        """Start following the plant; RuntimeError if it does not answer within 5 s."""
+        self._worker.start()
+        if not self._worker.wait_for(lambda: self._time.count > 0, 5.0):
+            self._worker.stop()
             raise RuntimeError(f"plant clock: no answer from {self.host}:{self.port}")
-        self.t_s = t
-        self._changed_wall = self._ok_wall = time.monotonic()
-        self._stop = False
-        th = threading.Thread(target=self._run, name="plant-clock", daemon=True)
-        self._thread = th
-        th.start()
-
-    def _run(self) -> None:
-        while not self._stop:
-            t = self._read()
-            if t is None:
-                self.errors += 1
-            else:
-                self.reads += 1
-                self._ok_wall = time.monotonic()
-                if t > self.t_s:
-                    self.t_s = t
-                    self._changed_wall = time.monotonic()
-            time.sleep(self.poll_period_s)
 
     def stop(self) -> None:
-        self._stop = True
-        th: Any = self._thread
-        if th is not None:
-            th.join(2.0)
-            self._thread = None
-        if self._client is not None:
-            self._client.close()  # type: ignore[attr-defined]
-            self._client = None
+        self._worker.stop(2.0)
 
     def now(self) -> float:
-        return self.t_s
+        return self._time.value[0]
 
     def wait_until(self, deadline_s: float) -> None:
-        while self.t_s < deadline_s:
+        while True:
+            t_s, ok_wall, changed_wall = self._time.value
+            if t_s >= deadline_s:
+                return
             now = time.monotonic()
-            if now - self._ok_wall > self.lost_s:
+            if now - ok_wall > self.lost_s:
                 raise RuntimeError(f"plant clock: no answer from {self.host}:{self.port} for {self.lost_s:g} s")
-            if now - self._changed_wall > self.stall_s:
+            if now - changed_wall > self.stall_s:
                 return
             time.sleep(self.poll_period_s * 0.5)
 
 
 class LockstepPlantClock(PlantClock):
-    """A plant that waits for compd (hil_sim `plant` device with `lockstep`): test runs that
-    give the same result however busy the machine is.
+    """A plant that waits for compd (a simulated plant's clock device in lockstep): test
+    runs that give the same result however busy the machine is.
 
-    No thread follows the plant. `wait_until(deadline)` runs between two cycles: it waits
-    until the sink's writes have been acknowledged by the device (`Sink.flush`), writes
-    the deadline to the plant's run-to registers and reads the plant time back in the
-    same request (Modbus function 23: the plant steps its physics and its CNC up to the
-    deadline before it answers), then polls every polled source once on this thread,
-    stamped with that time (`PolledSource.poll_now`; their own threads are not started). So the cycle at plant time t
-    sees the plant's signals at t, and the plant sees the output of every cycle before
-    t. Every wait is for a reply, never for wall time: a request that fails is retried
-    until `lost_s` (60 s) of wall time without an answer, and a source whose device did
-    not answer is polled again, so a stall changes how long a run takes, not its result.
+    Nothing follows the plant. `wait_until(deadline)` runs between two cycles: it waits
+    until the sink's writes have been acknowledged by the device (`Sink.flush`), asks the
+    clock's I/O worker to write the deadline to the plant's run-to registers and read the
+    plant time back in the same request (Modbus function 23: the plant steps its physics
+    and its CNC up to the deadline before it answers), then polls every polled source once,
+    stamped with that time (`PolledSource.poll_now`: their workers poll only when asked).
+    So the cycle at plant time t sees the plant's signals at t, and the plant sees the
+    output of every cycle before t. Every wait is for a reply, never for wall time: a
+    request that fails is retried until `lost_s` (60 s) of wall time without an answer,
+    and a source whose device did not answer is polled again, so a stall changes how long
+    a run takes, not its result.
     """
-
 
     def __init__(self, host: str, port: int, *, device_id: int = 1, address: int = 0, lost_s: float = 60.0) -> None:
         super().__init__(host, port, device_id=device_id, address=address, timeout_s=lost_s, lost_s=lost_s)
+        self._worker.reconnect_min_s = self._worker.reconnect_max_s = 0.01
+        self.t_s = 0.0
         self.sink: Any = None
         self.sources: list[Any] = []
         self.finished = False
         self.releases = 0
+        self._reads = 0
+        self._errors = 0
+
+    @property
+    def reads(self) -> int:
+        return self._reads
+
+    @property
+    def errors(self) -> int:
+        return self._errors
 
     def adopt_poller(self, source: Any) -> bool:
-        """A polled source this clock polls between cycles (instead of its own thread)."""
+        """A polled source this clock polls between cycles (its worker polls only when asked)."""
         if not any(source is s for s in self.sources):
             self.sources.append(source)
         return True
@@ -251,57 +290,39 @@ class LockstepPlantClock(PlantClock):
         self.sources = [s for s in self.sources if any(s is x for x in sources)]
 
     def start(self) -> None:
-        import logging
-
-        from pymodbus.client import ModbusTcpClient
-
-        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-        self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
-        self.t_s = self._answer(self._read, "no answer")
+        self._worker.start(paced=False)
+        try:
+            self.t_s = self._answer(lambda: self._worker.request(("read",), self.lost_s), "no answer")
+        except BaseException:
+            self._worker.stop()
+            raise
 
     def stop(self) -> None:
         self.sources = []
-        if self._client is not None:
-            self._client.close()  # type: ignore[attr-defined]
-            self._client = None
+        self._worker.stop(2.0)
 
-    def _answer(self, request: Any, what: str) -> Any:
+    def now(self) -> float:
+        return self.t_s
+
+    def _answer(self, request: Callable[[], Any], what: str) -> Any:
         """`request()` until it answers (not None), or RuntimeError after `lost_s` of wall time."""
         deadline = time.monotonic() + self.lost_s
         while True:
             r = request()
             if r is not None:
-                self.reads += 1
+                self._reads += 1
                 return r
-            self.errors += 1
+            self._errors += 1
             if time.monotonic() > deadline:
                 raise RuntimeError(f"plant clock (lockstep): {what} from {self.host}:{self.port} for {self.lost_s:g} s")
             time.sleep(0.01)
 
-    def _run_to(self, t_s: float) -> tuple[float, int] | None:
-        """One Modbus request (function 23, write then read): run to `t_s` — the plant steps
-        before it acknowledges — and read back (plant time, state); None on no answer."""
-        client: Any = self._client
-        ms = int(round(t_s * 1000.0)) & 0xFFFFFFFF
-        try:
-            if not client.connected and not client.connect():
-                return None
-            rr = client.readwrite_registers(
-                read_address=self.address, read_count=3, write_address=self.address + 4,
-                values=[(ms >> 16) & 0xFFFF, ms & 0xFFFF], device_id=self.device_id,
-            )
-        except Exception:
-            client.close()
-            return None
-        if rr.isError() or shape_error(rr, READ_WRITE, 3, self.device_id) is not None:
-            return None
-        hi, lo, state = rr.registers
-        return ((hi << 16) | lo) / 1000.0, state
-
     def wait_until(self, deadline_s: float) -> None:
         if self.sink is not None and not self.sink.flush(self.lost_s):
             raise RuntimeError(f"lockstep: the sink's writes were not acknowledged within {self.lost_s:g} s")
-        t, state = self._answer(lambda: self._run_to(deadline_s), "no acknowledgement of the run-to time")
+        t, state = self._answer(
+            lambda: self._worker.request(("run_to", deadline_s), self.lost_s), "no acknowledgement of the run-to time"
+        )
         self.releases += 1
         self.t_s = max(self.t_s, t)
         self.finished = state == 2

@@ -21,10 +21,6 @@ import yaml
 ROOT = Path(__file__).resolve().parent.parent
 NOT_OURS = ("compd", "hil_sim", "rig", "__editable__")
 
-# compd/clock.py's two docstring mentions are reworded by the plant clocks' I/O rework,
-# merged on its own; until then they are the only ones let through (empty this set then)
-REWORDED_ELSEWHERE = {"compd/clock.py"}
-
 # 4 K above T0: error α L ΔT = 13.6e-6 × 165 mm × 4 K = 8.98 µm; correction −8.98 µm
 WANT_UM = -13.6e-6 * 165.0 * 1000.0 * 4.0
 
@@ -36,7 +32,7 @@ def test_compd_never_names_the_simulator():
         if not path.is_file() or "__pycache__" in path.parts:
             continue
         for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
-            if "hil_sim" in line and str(path.relative_to(ROOT)) not in REWORDED_ELSEWHERE:
+            if "hil_sim" in line:
                 found.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")
     assert found == []
 

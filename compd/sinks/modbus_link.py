@@ -1,29 +1,119 @@
-"""A Modbus TCP link for sinks: writes from the cycle are queued, a thread does the I/O.
+"""A Modbus TCP link for sinks: writes from the cycle are queued, an I/O worker does the I/O.
 
-The cycle never waits on the network: `submit` stores the newest values per
-register range, the link's thread writes them (in order of first submission) and
-reads a status block every `status_period_s`. A lost connection is retried with
-exponential back-off; what the sink knows of the device is the last status read.
-Every read-back is shape-checked (`compd.modbus_reply`: function code, register count,
-frame length, unit): a reply of the wrong shape is a link error (`errors`, `bad_replies`,
-`last_error`), never taken as the device's status or applied value.
-`state` is the link as the thread last found it: connecting (started, no answer
+The cycle never waits on the network: `submit` puts the newest values per register
+range in a `WriteQueue` and wakes the link's worker, which writes them (in order of
+first submission) and reads a status block every `status_period_s`. A lost connection
+is retried with exponential back-off (`compd.io.worker`); what the sink knows of the
+device is the last status read (`status`, published by the worker). Every reply is
+shape-checked by the Modbus client (`compd.io.modbus_client`: function code, register
+count, frame length, unit): a reply of the wrong shape is a link error (`errors`,
+`bad_replies`, `last_error`), never taken as the device's status or applied value.
+`state` is the link as the worker last found it: connecting (started, no answer
 yet), up, down (connect or I/O failed), closed.
 """
 
 from __future__ import annotations
 
-import logging
-import threading
 import time
 from typing import Any
 
 from compd.histogram import DurationHist
-from compd.modbus_reply import HOLDING, FrameTap, shape_error
+from compd.io.mailbox import Latest, WriteQueue
+from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault
+from compd.io.worker import DeviceWork, IoWorker, LinkDown
+
+
+class LinkWork(DeviceWork):
+    """The device half of a link (the worker's thread): send what is queued, read the status."""
+
+    def __init__(
+        self,
+        client: ModbusClient,
+        queue: WriteQueue,
+        status_out: Latest[tuple[list[int] | None, float]],
+        status_range: tuple[int, int] | None,
+        status_period_s: float,
+    ) -> None:
+        super().__init__()
+        self.client = client
+        self.queue = queue
+        self.status_out = status_out
+        self.status_range = status_range
+        self.status_period_s = status_period_s
+        self.writes = 0
+        self.reply_errors = 0  # exception replies and malformed replies
+        self.bad_replies = 0
+        self.write_hist = DurationHist()  # request to reply of each write, µs
+        self.latency_hist = DurationHist()  # queued by the cycle to acknowledged by the device, µs
+        self._next_status_s = 0.0
+
+    def connect(self) -> None:
+        if not self.client.connect():
+            raise LinkDown(self.client.last_error or "connect failed")
+
+    def disconnect(self) -> None:
+        self.client.close()
+
+    def counters(self) -> dict[str, Any]:
+        return {"writes": self.writes, "reply_errors": self.reply_errors, "bad_replies": self.bad_replies}
+
+    max_writes_per_round = 64  # a round ends, so requests and stop are seen, however busy the queue
+
+    def round(self, request: Any) -> list[int] | None:
+        """Send the queued writes, reading the status block whenever it is due; then the
+        registers `request` asks for (address, count)."""
+        self._send_queued()
+        self._status_if_due()
+        return None if request is None else self._read(*request)
+
+    def _status_if_due(self) -> None:
+        now = time.monotonic()
+        if self.status_range is not None and now >= self._next_status_s:
+            regs = self._read(*self.status_range)
+            if regs is not None:
+                self.status_out.publish((regs, now))
+            self._next_status_s = now + self.status_period_s
+
+    def _send_queued(self) -> None:
+        perf = time.perf_counter_ns
+        for _ in range(self.max_writes_per_round):
+            w = self.queue.take()
+            if w is None:
+                return
+            address, values, queued_ns = w
+            w0 = perf()
+            r = self.client.write_registers(address, values)
+            w1 = perf()
+            if isinstance(r, LinkFault):
+                self.queue.done(w, sent=False)  # sent again once the link is back
+                raise LinkDown(r.detail)
+            self.write_hist.add_ns(w1 - w0)
+            self.latency_hist.add_ns(w1 - queued_ns)
+            if r is None:
+                self.writes += 1
+            else:
+                self._reply_error(r)
+            self.queue.done(w, sent=True)
+            self._status_if_due()
+
+    def _read(self, address: int, count: int) -> list[int] | None:
+        r = self.client.read_registers(address, count)
+        if isinstance(r, LinkFault):
+            raise LinkDown(r.detail)
+        if isinstance(r, ModbusFault):
+            self._reply_error(r)
+            return None
+        return r
+
+    def _reply_error(self, fault: ModbusFault) -> None:
+        self.reply_errors += 1
+        if isinstance(fault, BadReply):
+            self.bad_replies += 1
+        self.last_error = fault.detail
 
 
 class ModbusLink:
-    """Holding-register writes and a status read on a background thread."""
+    """Holding-register writes and a status read, by an I/O worker (see the module)."""
 
     def __init__(
         self,
@@ -43,213 +133,94 @@ class ModbusLink:
         self.status_range = status
         self.status_period_s = status_period_s
         self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
-        self.status: list[int] | None = None
-        self.status_stamp = -1.0
-        self.state = "closed"
-        self.writes = 0
-        self.errors = 0
-        self.bad_replies = 0
-        self.last_error: str | None = None
         self.name = name
-        self._tap = FrameTap()
-        self.write_hist = DurationHist()  # request to reply of each write, µs
-        self.latency_hist = DurationHist()  # queued by the cycle to acknowledged by the device, µs
-        self._pending: dict[int, tuple[list[int], int]] = {}  # address -> (values, queued at, ns)
-        self._inflight = False  # a write taken from _pending, not yet acknowledged (or put back)
-        self._cv = threading.Condition()
-        self._io = threading.Lock()
-        self._stop = False
-        self._thread: threading.Thread | None = None
-        self._client: Any = None
+        self._status: Latest[tuple[list[int] | None, float]] = Latest((None, -1.0))
+        self._queue = WriteQueue()
+        self._work = LinkWork(
+            ModbusClient.tcp(host, port, device_id=device_id, timeout_s=timeout_s),
+            self._queue, self._status, status, status_period_s,
+        )
+        self._worker = IoWorker(
+            self._work, name=f"modbus-link-{name}", period_s=status_period_s,
+            reconnect_min_s=reconnect_min_s, reconnect_max_s=reconnect_max_s,
+        )
+        self._queue.wake = self._worker.wake
+        self.write_hist = self._work.write_hist
+        self.latency_hist = self._work.latency_hist
 
     def start(self) -> None:
-        from pymodbus.client import ModbusTcpClient
+        self._worker.start()
 
-        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-        self._client = ModbusTcpClient(
-            self.host, port=self.port, timeout=self.timeout_s, retries=0, trace_packet=self._tap
-        )
-        self._stop = False
-        self.state = "connecting"
-        self._thread = threading.Thread(target=self._run, name=f"modbus-link-{self.name}", daemon=True)
-        self._thread.start()
-
+    # ------------------------------------------------------------ the cycle's side
     def submit(self, address: int, values: list[int]) -> None:
-        """Queue a write; a newer write to the same address replaces an unsent one."""
-        with self._cv:
-            self._pending[address] = ([v & 0xFFFF for v in values], time.perf_counter_ns())
-            self._cv.notify()
+        """Queue a write; a newer write to the same address replaces an unsent one. Never waits."""
+        self._queue.submit(address, values)
 
     def pending(self) -> bool:
         """Whether a write is queued or on its way (not yet acknowledged by the device)."""
-        with self._cv:
-            return bool(self._pending) or self._inflight
+        return self._queue.pending()
 
-    def flush(self, timeout_s: float = 2.0) -> bool:
-        """Wait until every queued write has been acknowledged by the device, or has failed
-        and is queued again (or `timeout_s`)."""
-        deadline = time.monotonic() + timeout_s
-        with self._cv:
-            while self._pending or self._inflight:
-                rest = deadline - time.monotonic()
-                if rest <= 0:
-                    return False
-                self._cv.wait(rest)
-        return True
+    @property
+    def status(self) -> list[int] | None:
+        """The status registers as last read (None before the first good read)."""
+        return self._status.value[0]
 
-    def read_now(self, address: int, count: int) -> list[int] | None:
-        """A synchronous read from the caller's thread (tests, settle); None on error."""
-        with self._io:
-            return self._read(address, count)
+    @status.setter
+    def status(self, regs: list[int] | None) -> None:
+        """A status read elsewhere (a settle's `read_now`) is the newest one."""
+        self._status.publish((regs, time.monotonic()))
 
-    def _read(self, address: int, count: int) -> list[int] | None:
-        try:
-            if not self._client.connected and not self._client.connect():
-                return None
-            rr = self._client.read_holding_registers(address, count=count, device_id=self.device_id)
-        except Exception as e:
-            self._fail(e)
-            return None
-        if rr.isError():
-            self.errors += 1
-            self.last_error = f"exception reply {getattr(rr, 'exception_code', '?')}"
-            return None
-        problem = shape_error(rr, HOLDING, count, self.device_id) or self._tap.tcp_error(
-            getattr(rr, "transaction_id", 0), count
-        )
-        if problem is not None:
-            self.errors += 1
-            self.bad_replies += 1
-            self.last_error = f"malformed reply to registers {address}+{count}: {problem}"
-            return None
-        return list(rr.registers)
+    @property
+    def status_stamp(self) -> float:
+        """When (monotonic s) `status` was read; -1 before the first read."""
+        return self._status.value[1]
 
-    def _send(self, item: tuple[int, list[int]], queued_ns: int) -> bool:
-        """One write (holding `_io`); False when the connection failed (the write is lost)."""
-        try:
-            w0 = time.perf_counter_ns()
-            rr = self._client.write_registers(item[0], item[1], device_id=self.device_id)
-            w1 = time.perf_counter_ns()
-        except Exception as e:
-            self._fail(e)
-            return False
-        self.write_hist.add_ns(w1 - w0)
-        self.latency_hist.add_ns(w1 - queued_ns)
-        if rr.isError():
-            self.errors += 1
-            self.last_error = f"write exception reply {getattr(rr, 'exception_code', '?')}"
-        else:
-            self.writes += 1
-        return True
+    @property
+    def state(self) -> str:
+        return self._worker.state
 
-    def drain(self, timeout_s: float) -> bool:
-        """Send what is queued on the caller's thread and wait for a write in flight: on
-        return every write so far has been acknowledged by the device (lockstep runs,
-        between two cycles). A failed write is queued again and retried until `timeout_s`."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            with self._cv:
-                while self._inflight:
-                    rest = deadline - time.monotonic()
-                    if rest <= 0:
-                        return False
-                    self._cv.wait(rest)
-                if not self._pending:
-                    return True
-                address = next(iter(self._pending))
-                values, queued_ns = self._pending.pop(address)
-                self._inflight = True
-            with self._io:
-                try:
-                    ok = self._client.connected or bool(self._client.connect())
-                except Exception as e:
-                    ok = False
-                    self.last_error = str(e)
-                ok = ok and self._send((address, values), queued_ns)
-            with self._cv:
-                if not ok:
-                    self._pending.setdefault(address, (values, queued_ns))
-                self._inflight = False
-                self._cv.notify_all()
-            if not ok:
-                if time.monotonic() > deadline:
-                    return False
-                time.sleep(0.01)
+    @property
+    def writes(self) -> int:
+        return self._work.writes
 
-    def _fail(self, e: Exception) -> None:
-        self.state = "down"
-        self.errors += 1
-        self.last_error = f"{type(e).__name__}: {e}"
-        self._client.close()
+    @property
+    def errors(self) -> int:
+        """Failed connects and I/O, exception replies, malformed replies."""
+        return self._worker.errors + self._work.reply_errors
 
-    def _run(self) -> None:
-        backoff = self.reconnect_min_s
-        next_status = 0.0
-        while True:
-            with self._cv:
-                if (not self._pending or self._inflight) and not self._stop:
-                    self._cv.wait(max(0.0, min(self.status_period_s, next_status - time.monotonic())))
-                if self._stop and not self._pending:
-                    break
-                item = None
-                took = False
-                if self._pending and not self._inflight:  # not while drain() has one out
-                    took = True
-                    address = next(iter(self._pending))
-                    values, queued_ns = self._pending.pop(address)
-                    item = (address, values)
-                    self._inflight = True
-            with self._io:  # network I/O without holding the cycle's lock
-                try:
-                    ok = self._client.connected or bool(self._client.connect())
-                except Exception as e:
-                    ok = False
-                    self.last_error = str(e)
-                if ok and item is not None:
-                    ok = self._send(item, queued_ns)
-                    if ok:
-                        item = None
-                now = time.monotonic()
-                if ok and self.status_range is not None and now >= next_status:
-                    regs = self._read(*self.status_range)
-                    if regs is not None:
-                        self.status = regs
-                        self.status_stamp = now
-                    next_status = now + self.status_period_s
-                if ok and self._client.connected:
-                    self.state = "up"
-            if took:
-                with self._cv:
-                    if item is not None:
-                        self._pending.setdefault(item[0], (item[1], queued_ns))  # unless superseded meanwhile
-                        item = None
-                    self._inflight = False
-                    self._cv.notify_all()
-            if not ok:
-                self.state = "down"
-                self.errors += 1
-                with self._cv:
-                    if self._stop:
-                        break
-                    self._cv.wait(backoff)
-                backoff = min(backoff * 2, self.reconnect_max_s)
-            else:
-                backoff = self.reconnect_min_s
+    @property
+    def bad_replies(self) -> int:
+        return self._work.bad_replies
+
+    @property
+    def last_error(self) -> str | None:
+        return self._work.last_error
 
     def get_status(self) -> dict[str, Any]:
-        return {"state": self.state, "writes": self.writes, "errors": self.errors, "bad_replies": self.bad_replies,
-                "last_error": self.last_error}
+        io = self._worker.get_status()
+        return {"state": io["state"], "writes": io["writes"], "errors": io["errors"] + io["reply_errors"],
+                "bad_replies": io["bad_replies"], "last_error": io["last_error"]}
+
+    # ------------------------------------------------------------ between cycles
+    def flush(self, timeout_s: float = 2.0) -> bool:
+        """Wait until every queued write has been acknowledged by the device (or `timeout_s`);
+        a write that failed on the way is queued again and retried once the link is back."""
+        return self._queue.wait_empty(timeout_s)
+
+    def drain(self, timeout_s: float) -> bool:
+        """Every write so far acknowledged by the device before this returns (lockstep runs,
+        between two cycles); False after `timeout_s`."""
+        self._worker.wake()
+        return self._queue.wait_empty(timeout_s)
+
+    def read_now(self, address: int, count: int) -> list[int] | None:
+        """Registers read now (after what is queued is sent), waiting for them (tests, settle);
+        None on error or when the link is down."""
+        return self._worker.request((address, count), timeout_s=4 * self.timeout_s + 1.0)
 
     def stop(self, timeout_s: float = 2.0) -> None:
         """Send what is queued (up to `timeout_s`), then close."""
-        if self._thread is not None:
+        if self._worker.running:
             self.flush(timeout_s)
-            with self._cv:
-                self._stop = True
-                self._pending.clear()
-                self._cv.notify()
-            self._thread.join(5)
-            self._thread = None
-        if self._client is not None:
-            self._client.close()
-        self.state = "closed"
+        self._worker.stop()
+        self._queue.clear()

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import threading
-import time
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -14,6 +12,8 @@ from compd.config import SourceConfig
 from compd.errors import BadInput
 from compd.frame import Frame, Quality
 from compd.histogram import DurationHist
+from compd.io.mailbox import Snapshot
+from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
 
 def check_serial_port(port: str, config_path: tuple[str | int, ...], key: str = "serial_port") -> None:
@@ -30,8 +30,8 @@ class Source(ABC):
     """A source of signals. `read` is called every cycle and must never block.
 
     Fast, in-process sources fill the frame directly in `read`. Slow ones (serial,
-    network) subclass `PolledSource`, which polls on its own thread and lets `read`
-    copy the freshest sample with its time stamp.
+    network) subclass `PolledSource`, whose I/O worker polls beside the cycle and lets
+    `read` copy the freshest sample with its time stamp.
     """
 
     Config: ClassVar[type[SourceConfig]] = SourceConfig
@@ -43,7 +43,7 @@ class Source(ABC):
         # where this section sits in the config (set by the app): `open` names its keys under it
         self.config_path: tuple[str | int, ...] = ()
         self._idx = np.zeros(0, dtype=np.intp)
-        # round trip of each poll (request to reply), µs: sources polled on their own thread
+        # round trip of each poll (request to reply), µs: sources polled by an I/O worker
         self.poll_hist: DurationHist | None = None
 
     @abstractmethod
@@ -58,7 +58,7 @@ class Source(ABC):
         """Connect; called once before the first cycle."""
 
     def start_polling(self, clock: Clock) -> None:
-        """Start polling the device on a thread of its own, stamping samples with `clock`
+        """Start the I/O worker that talks to the device, stamping samples with `clock`
         (the loop's); called right after `open`. Sources read in the cycle poll nothing."""
 
     @property
@@ -88,92 +88,122 @@ class Source(ABC):
         return {"kind": self.cfg.kind, "name": self.name}
 
 
-class PolledSource(Source):
-    """A source whose device is polled on its own thread (slow I/O stays off the cycle).
+class Poller(DeviceWork):
+    """The device half of a polled source, run on its I/O worker's thread: `poll` reads the
+    device once into `values` and `quality`; the round around it stamps the sample with the
+    loop clock at the moment the request went out (the sample is at least that old) and
+    publishes it to the source's `Snapshot`."""
 
-    Subclasses implement `poll(values, quality)` which performs one blocking
-    request/response and fills the two arrays; it returns normally even on a
-    device fault (by setting quality). The thread stamps each poll with the loop
-    clock at the moment the request went out (the sample is at least that old), and
-    `read` copies the last completed sample under a lock. With `stale_after_s` set,
-    `read` marks a good sample older than that STALE.
+    def __init__(self, n_signals: int, snapshot: Snapshot) -> None:
+        super().__init__()
+        self.snapshot = snapshot
+        self._values = np.full(n_signals, np.nan)
+        self._quality = np.full(n_signals, Quality.NO_DATA, dtype=np.uint8)
+        self.poll_errors = 0
+
+    @abstractmethod
+    def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
+        """One blocking read of the device into `values` and `quality`; a device fault is a
+        quality, not an exception. When the link itself is gone, fill in what is known
+        (the channels not read: COMMS_LOST), then raise LinkDown: the worker reconnects."""
+
+    def round(self, request: Any) -> bool:
+        """One poll, stamped `request` (a lockstep clock's time) or the loop clock's now;
+        True when every channel answered (none COMMS_LOST)."""
+        stamp = self.now() if request is None else float(request)
+        lost: LinkDown | None = None
+        try:
+            self.poll(self._values, self._quality)
+        except LinkDown as e:
+            lost = e
+        except Exception as e:  # a driver bug must not kill the daemon: report as comms lost
+            self._quality[:] = Quality.COMMS_LOST
+            self.poll_errors += 1
+            self.last_error = f"poll: {type(e).__name__}: {e}"
+        self.snapshot.publish(self._values, self._quality, stamp)
+        if lost is not None:
+            raise lost
+        return not bool(np.any(self._quality == Quality.COMMS_LOST))
+
+    def offline(self, request: Any) -> bool:
+        """The link is down: every channel COMMS_LOST, stamped as a poll would be."""
+        stamp = self.now() if request is None else float(request)
+        self._quality[:] = Quality.COMMS_LOST
+        self.snapshot.publish(self._values, self._quality, stamp)
+        return False
+
+    def counters(self) -> dict[str, Any]:
+        return {"poll_errors": self.poll_errors}
+
+
+class PolledSource(Source):
+    """A source whose device is polled beside the cycle, by an I/O worker.
+
+    Subclasses say how to reach the device in `make_poller` (a `Poller`, the device half:
+    it runs only on the worker's thread); the worker polls every `poll_period_s` and
+    reconnects with back-off (`reconnect_min_s` … `reconnect_max_s`). The cycle side only
+    reads the worker's `Snapshot`: `read` copies the last completed sample and its stamp,
+    never waiting. With `stale_after_s` set, `read` marks a good sample older than that
+    STALE. A lockstep plant clock asks for each poll instead (`poll_now`).
     """
 
     poll_period_s: float = 0.1
     stale_after_s: float | None = None
+    reconnect_min_s: float = 0.1
+    reconnect_max_s: float = 10.0
+    poll_timeout_s: float = 60.0  # how long `poll_now` waits for its poll to end
 
     def __init__(self, cfg: SourceConfig, base_dir: str = ".") -> None:
         super().__init__(cfg, base_dir)
-        n = len(self.signal_names())
-        self._values = np.full(n, np.nan)
-        self._quality = np.full(n, Quality.NO_DATA, dtype=np.uint8)
-        self._stamp = -np.inf
-        self._buf_values = np.full(n, np.nan)
-        self._buf_quality = np.full(n, Quality.NO_DATA, dtype=np.uint8)
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._clock: Clock | None = None
-        self.polls = 0
-        self.poll_errors = 0
+        self._snapshot = Snapshot(len(self.signal_names()))
+        self._worker: IoWorker | None = None
         self.poll_hist: DurationHist = DurationHist()
 
     @abstractmethod
-    def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
-        """One blocking read of the device into `values` and `quality`."""
+    def make_poller(self, snapshot: Snapshot) -> Poller:
+        """The device half, built from the config, publishing to `snapshot`."""
+
+    @property
+    def worker(self) -> IoWorker:
+        """The I/O worker that polls the device (built on first use, started by `start_polling`)."""
+        if self._worker is None:
+            self._worker = IoWorker(
+                self.make_poller(self._snapshot), name=f"poll-{self.name}", period_s=self.poll_period_s,
+                reconnect_min_s=self.reconnect_min_s, reconnect_max_s=self.reconnect_max_s,
+                round_hist=self.poll_hist,
+            )
+        return self._worker
 
     def start_polling(self, clock: Clock) -> None:
-        """Poll on a thread of its own; or, when the clock drives the polls (a lockstep
-        plant clock), leave them to the clock, which calls `poll_now` between cycles."""
-        self._clock = clock
-        if clock.adopt_poller(self):
-            return
-        self._thread = threading.Thread(target=self._run, name=f"poll-{self.name}", daemon=True)
-        self._thread.start()
+        """Poll every `poll_period_s`; or, when the clock drives the polls (a lockstep plant
+        clock), only when it asks (`poll_now`, between cycles)."""
+        driven = clock.adopt_poller(self)
+        self.worker.start(paced=not driven, clock=clock.now)
 
     def poll_now(self, stamp: float) -> bool:
-        """One poll on the caller's thread, stamped `stamp`; False when the device did not
-        answer (some channel COMMS_LOST)."""
-        perf = time.perf_counter_ns
-        p0 = perf()
-        try:
-            self.poll(self._buf_values, self._buf_quality)
-        except Exception:  # a driver bug must not kill the daemon: report as comms lost
-            self._buf_quality[:] = Quality.COMMS_LOST
-            self.poll_errors += 1
-        self.poll_hist.add_ns(perf() - p0)
-        with self._lock:
-            self._values[:] = self._buf_values
-            self._quality[:] = self._buf_quality
-            self._stamp = stamp
-            self.polls += 1
-        return not bool(np.any(self._buf_quality == Quality.COMMS_LOST))
+        """One poll, stamped `stamp`, and wait for it; False when the device did not answer
+        (some channel COMMS_LOST). Not for the cycle: between cycles (lockstep)."""
+        return bool(self.worker.request(stamp, self.poll_timeout_s))
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            t0 = time.monotonic()
-            clock = self._clock
-            assert clock is not None  # set by start_polling
-            self.poll_now(clock.now())
-            rest = self.poll_period_s - (time.monotonic() - t0)
-            if rest > 0:
-                self._stop.wait(rest)
+    @property
+    def polls(self) -> int:
+        """Samples published (polls, and rounds while the link was down)."""
+        return self._snapshot.count
 
     def sampled(self) -> bool:
-        return self.polls > 0
+        return self._snapshot.count > 0
 
     def read(self, frame: Frame, now_s: float) -> None:
-        with self._lock:
-            frame.values[self._idx] = self._values
-            frame.quality[self._idx] = self._quality
-            frame.stamp_s[self._idx] = self._stamp
+        stamps = self._snapshot.copy_to(frame, self._idx)
         stale = self.stale_after_s
-        if stale is not None and now_s - self._stamp > stale:
+        if stale is not None and now_s - stamps[0] > stale:
             q = frame.quality[self._idx]
             frame.quality[self._idx] = np.where(q == Quality.GOOD, Quality.STALE, q)
 
+    def io_status(self) -> dict[str, Any]:
+        """The worker's and the poller's counts (state, connects, errors, last_error, …)."""
+        return self.worker.get_status()
+
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
+        if self._worker is not None:
+            self._worker.stop()

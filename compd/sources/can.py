@@ -1,8 +1,8 @@
 """Temperatures carried in CAN frames (python-can): socketcan in production, `virtual` in tests.
 
 Each signal is an integer of `size` bytes at `offset` in the frame with id `id`,
-value_c = raw · scale + offset_c. A receive thread decodes frames as they come and
-stamps each signal with the loop clock; `read` copies the newest values. Raw codes
+value_c = raw · scale + offset_c. A reader on an I/O worker decodes frames as they come
+and stamps each signal with the loop clock; `read` copies the newest values. Raw codes
 mean burn-out or out of range. A frame's data is its first DLC bytes (never padding
 beyond the DLC); a frame whose DLC does not cover offset + size of every signal
 configured on its id is not the layout configured: all of that id's signals go
@@ -14,7 +14,7 @@ what a bad CRC produces on a real bus) makes them COMMS_LOST; a sample older tha
 
 from __future__ import annotations
 
-import threading
+from collections.abc import Container
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -24,6 +24,8 @@ from compd.clock import Clock
 from compd.config import SourceConfig, Strict
 from compd.errors import BadInput
 from compd.frame import Frame, Quality
+from compd.io.mailbox import Snapshot
+from compd.io.worker import DeviceWork, IoWorker
 from compd.sources.base import Source
 
 
@@ -81,52 +83,108 @@ class CanConfig(SourceConfig):
         return self
 
 
+def decode_signal(data: bytes, sig: CanSignal, burnout: Container[int], out_of_range: Container[int]) -> tuple[float, int]:
+    """(value °C, quality) of one signal in a frame's data; raw unsigned codes in `burnout`
+    or `out_of_range` are those qualities."""
+    if len(data) < sig.offset + sig.size:
+        return np.nan, Quality.COMMS_LOST
+    b = bytes(data[sig.offset : sig.offset + sig.size])
+    raw = int.from_bytes(b, sig.byte_order, signed=False)
+    if raw in burnout:
+        return np.nan, Quality.BURNOUT
+    if raw in out_of_range:
+        return np.nan, Quality.OUT_OF_RANGE
+    v = int.from_bytes(b, sig.byte_order, signed=sig.signed)
+    return v * sig.scale + sig.offset_c, Quality.GOOD
+
+
 class CanSource(Source):
-    """Decodes frames on a receive thread; `read` never blocks."""
+    """Temperatures decoded by a CAN reader on an I/O worker; `read` never blocks."""
 
     Config = CanConfig
 
     def __init__(self, cfg: CanConfig, base_dir: str = ".") -> None:
         super().__init__(cfg, base_dir)
         self.cfg: CanConfig = cfg
-        n = len(cfg.signals)
-        self._by_id: dict[int, list[tuple[int, CanSignal]]] = {}
-        for i, s in enumerate(cfg.signals):
-            self._by_id.setdefault(s.id, []).append((i, s))
-        self._need = {fid: max(s.offset + s.size for _, s in sigs) for fid, sigs in self._by_id.items()}
-        self._values = np.full(n, np.nan)
-        self._quality = np.full(n, Quality.NO_DATA, dtype=np.uint8)
-        self._stamp = np.full(n, -np.inf)
-        self._rx = np.full(n, -np.inf)  # last frame (good or not) per signal
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._bus: Any = None
-        self._clock: Any = None
-        self.frames = 0
-        self.error_frames = 0
-        self.bad_frames = 0
-        self.last_error: str | None = None
+        self._snapshot = Snapshot(len(cfg.signals))
+        self._worker: IoWorker | None = None
 
     def signal_names(self) -> list[str]:
         return [s.name for s in self.cfg.signals]
 
     def decode(self, data: bytes, sig: CanSignal) -> tuple[float, int]:
         """(value °C, quality) of one signal in a frame's data."""
-        if len(data) < sig.offset + sig.size:
-            return np.nan, Quality.COMMS_LOST
-        b = bytes(data[sig.offset : sig.offset + sig.size])
-        raw = int.from_bytes(b, sig.byte_order, signed=False)
-        if raw in self.cfg.burnout_codes:
-            return np.nan, Quality.BURNOUT
-        if raw in self.cfg.out_of_range_codes:
-            return np.nan, Quality.OUT_OF_RANGE
-        v = int.from_bytes(b, sig.byte_order, signed=sig.signed)
-        return v * sig.scale + sig.offset_c, Quality.GOOD
+        return decode_signal(data, sig, self.cfg.burnout_codes, self.cfg.out_of_range_codes)
 
-    def open(self, now_s: float) -> None:
+    @property
+    def worker(self) -> IoWorker:
+        """The I/O worker that reads the bus (built on first use)."""
+        if self._worker is None:
+            reader = CanReader(self.cfg, self._snapshot, self.config_path)
+            self._worker = IoWorker(reader, name=f"can-{self.name}", period_s=0.0,
+                                    reconnect_min_s=0.1, reconnect_max_s=5.0)
+        return self._worker
+
+    def start_polling(self, clock: Clock) -> None:
+        """Open the bus on the reader's thread (an interface python-can does not know or a
+        channel that does not exist is bad input naming the key, raised here: start-up
+        fails loudly) and decode frames as they come, stamped with the loop clock."""
+        worker = self.worker
+        assert isinstance(worker.work, CanReader)
+        worker.work.config_path = self.config_path  # set by the app after construction
+        worker.start(clock=clock.now)
+
+    def read(self, frame: Frame, now_s: float) -> None:
+        idx = self._idx
+        self._snapshot.copy_to(frame, idx)
+        age = now_s - frame.stamp_s[idx]
+        q = frame.quality[idx]
+        q = np.where((age > self.cfg.timeout_s) & (q != Quality.NO_DATA), Quality.COMMS_LOST, q)
+        if self.cfg.stale_after_s is not None:
+            q = np.where((q == Quality.GOOD) & (age > self.cfg.stale_after_s), Quality.STALE, q)
+        frame.quality[idx] = q
+
+    def close(self) -> None:
+        if self._worker is not None:
+            self._worker.stop()
+
+    def get_status(self) -> dict[str, Any]:
+        io = self.worker.get_status()
+        return {
+            **super().get_status(),
+            "frames": io["frames"],
+            "error_frames": io["error_frames"],
+            "bad_frames": io["bad_frames"],
+            "last_error": io["last_error"],
+        }
+
+
+class CanReader(DeviceWork):
+    """The device half of a CAN source: the bus, one frame per round (the worker's thread)."""
+
+    def __init__(self, cfg: CanConfig, snapshot: Snapshot, config_path: tuple[str | int, ...] = ()) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.snapshot = snapshot
+        self.config_path = config_path
+        n = len(cfg.signals)
+        self._by_id: dict[int, list[tuple[int, CanSignal]]] = {}
+        for i, s in enumerate(cfg.signals):
+            self._by_id.setdefault(s.id, []).append((i, s))
+        self._need = {fid: max(s.offset + s.size for _, s in sigs) for fid, sigs in self._by_id.items()}
+        self._burnout = frozenset(cfg.burnout_codes)
+        self._out_of_range = frozenset(cfg.out_of_range_codes)
+        self._values = np.full(n, np.nan)
+        self._quality = np.full(n, Quality.NO_DATA, dtype=np.uint8)
+        self._stamp = np.full(n, -np.inf)
+        self._bus: Any = None
+        self.frames = 0
+        self.error_frames = 0
+        self.bad_frames = 0
+
+    def open(self) -> None:
         """Open the bus; an interface python-can does not know or a channel that does not
-        exist is bad input naming the key (`interface`, `channel`): fail loudly at start-up."""
+        exist is bad input naming the key (`interface`, `channel`)."""
         import errno
 
         import can
@@ -153,66 +211,37 @@ class CanSource(Source):
             raise BadInput(f"cannot open CAN channel {self.cfg.channel!r} ({self.cfg.interface}): {e}",
                            path=(*self.config_path, "channel")) from None
 
-    def start_polling(self, clock: Clock) -> None:
-        self._clock = clock
-        self._thread = threading.Thread(target=self._run, name=f"can-{self.name}", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            msg = self._bus.recv(timeout=0.05)
-            if msg is None:
-                continue
-            if msg.is_error_frame:
-                self.error_frames += 1
-                continue
-            sigs = self._by_id.get(msg.arbitration_id)
-            if not sigs or msg.is_remote_frame:
-                continue
-            self.frames += 1
-            now = self._clock.now()
-            data = bytes(msg.data[: msg.dlc])  # bytes past the DLC are not data
-            short = len(data) < self._need[msg.arbitration_id]
-            if short:
-                self.bad_frames += 1
-                self.last_error = (f"frame 0x{msg.arbitration_id:X}: {len(data)} data bytes (DLC {msg.dlc}), "
-                                   f"the signals need {self._need[msg.arbitration_id]}")
-            with self._lock:
-                for i, sig in sigs:
-                    v, q = (np.nan, Quality.COMMS_LOST) if short else self.decode(data, sig)
-                    if q == Quality.GOOD:
-                        self._values[i] = v
-                    self._quality[i] = q
-                    self._stamp[i] = now
-                    self._rx[i] = now
-
-    def read(self, frame: Frame, now_s: float) -> None:
-        idx = self._idx
-        with self._lock:
-            frame.values[idx] = self._values
-            frame.quality[idx] = self._quality
-            frame.stamp_s[idx] = self._stamp
-        age = now_s - frame.stamp_s[idx]
-        q = frame.quality[idx]
-        q = np.where((age > self.cfg.timeout_s) & (q != Quality.NO_DATA), Quality.COMMS_LOST, q)
-        if self.cfg.stale_after_s is not None:
-            q = np.where((q == Quality.GOOD) & (age > self.cfg.stale_after_s), Quality.STALE, q)
-        frame.quality[idx] = q
-
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
-            self._thread = None
         if self._bus is not None:
             self._bus.shutdown()
             self._bus = None
 
-    def get_status(self) -> dict[str, Any]:
-        return {
-            **super().get_status(),
-            "frames": self.frames,
-            "error_frames": self.error_frames,
-            "bad_frames": self.bad_frames,
-            "last_error": self.last_error,
-        }
+    def counters(self) -> dict[str, Any]:
+        return {"frames": self.frames, "error_frames": self.error_frames, "bad_frames": self.bad_frames}
+
+    def round(self, request: Any) -> None:
+        """Take one frame (waiting up to 50 ms) and publish what it carries."""
+        msg = self._bus.recv(timeout=0.05)
+        if msg is None:
+            return
+        if msg.is_error_frame:
+            self.error_frames += 1
+            return
+        sigs = self._by_id.get(msg.arbitration_id)
+        if not sigs or msg.is_remote_frame:
+            return
+        self.frames += 1
+        now = self.now()
+        data = bytes(msg.data[: msg.dlc])  # bytes past the DLC are not data
+        short = len(data) < self._need[msg.arbitration_id]
+        if short:
+            self.bad_frames += 1
+            self.last_error = (f"frame 0x{msg.arbitration_id:X}: {len(data)} data bytes (DLC {msg.dlc}), "
+                               f"the signals need {self._need[msg.arbitration_id]}")
+        for i, sig in sigs:
+            v, q = (np.nan, Quality.COMMS_LOST) if short else decode_signal(data, sig, self._burnout, self._out_of_range)
+            if q == Quality.GOOD:
+                self._values[i] = v
+            self._quality[i] = q
+            self._stamp[i] = now
+        self.snapshot.publish(self._values, self._quality, self._stamp)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 import re
-import time
 from typing import Any
 
 import numpy as np
@@ -25,7 +24,9 @@ from pydantic import Field, model_validator
 
 from compd.config import SourceConfig
 from compd.frame import Quality
-from compd.sources.base import PolledSource, check_serial_port
+from compd.io.mailbox import Snapshot
+from compd.io.worker import LinkDown
+from compd.sources.base import PolledSource, Poller, check_serial_port
 
 _FIELD = re.compile(rb"[+-][0-9.]+")
 
@@ -89,9 +90,12 @@ class DconConfig(SourceConfig):
 
 
 class DconSource(PolledSource):
-    """Polls `#AA` on its own thread; `read` never blocks."""
+    """A DCON module, polled (`#AA`) by its I/O worker; `read` never blocks."""
 
     Config = DconConfig
+    # a port that cannot be opened is tried again every second
+    reconnect_min_s = 1.0
+    reconnect_max_s = 1.0
 
     def __init__(self, cfg: DconConfig, base_dir: str = ".") -> None:
         self._slots = [(i, n) for i, n in enumerate(cfg.channels) if n]
@@ -99,12 +103,6 @@ class DconSource(PolledSource):
         self.cfg: DconConfig = cfg
         self.poll_period_s = cfg.poll_period_s
         self.stale_after_s = cfg.stale_after_s
-        cmd = f"#{cfg.address:02X}".encode()
-        self.command = cmd + (dcon_checksum(cmd) if cfg.checksum else b"") + b"\r"
-        self._ser: Any = None
-        self._next_open_s = 0.0
-        self.comm_errors = 0
-        self.last_error: str | None = None
 
     def signal_names(self) -> list[str]:
         return [n for _, n in self._slots]
@@ -112,35 +110,53 @@ class DconSource(PolledSource):
     def open(self, now_s: float) -> None:
         check_serial_port(self.cfg.serial_port, self.config_path)
 
-    def _open(self) -> bool:
-        if self._ser is not None:
-            return True
-        if time.monotonic() < self._next_open_s:
-            return False
+    def make_poller(self, snapshot: Snapshot) -> DconPoller:
+        return DconPoller(self.cfg, self._slots, snapshot)
+
+    def get_status(self) -> dict[str, Any]:
+        io = self.io_status()
+        return {**super().get_status(), "polls": self.polls, "comm_errors": io["comm_errors"],
+                "last_error": io["last_error"]}
+
+
+class DconPoller(Poller):
+    """The device half of a DCON source: `#AA` out, the reply parsed (the worker's thread)."""
+
+    def __init__(self, cfg: DconConfig, slots: list[tuple[int, str]], snapshot: Snapshot) -> None:
+        super().__init__(len(slots), snapshot)
+        self.cfg = cfg
+        self._slots = slots
+        cmd = f"#{cfg.address:02X}".encode()
+        self.command = cmd + (dcon_checksum(cmd) if cfg.checksum else b"") + b"\r"
+        self._burnout = {c.encode() for c in cfg.burnout_codes}
+        self._out_of_range = {c.encode() for c in cfg.out_of_range_codes}
+        self._ser: Any = None
+        self.comm_errors = 0
+
+    def connect(self) -> None:
         import serial
 
         try:
             self._ser = serial.Serial(self.cfg.serial_port, self.cfg.baudrate, timeout=self.cfg.timeout_s)
         except (serial.SerialException, OSError) as e:
-            self.last_error = f"open: {e}"
-            self._next_open_s = time.monotonic() + 1.0
-            return False
-        return True
+            raise LinkDown(f"open: {e}") from None
+
+    def disconnect(self) -> None:
+        if self._ser is not None:
+            self._ser.close()
+            self._ser = None
+
+    def counters(self) -> dict[str, Any]:
+        return {**super().counters(), "comm_errors": self.comm_errors}
 
     def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
-        if not self._open():
-            quality[:] = Quality.COMMS_LOST
-            return
         try:
             self._ser.reset_input_buffer()  # a late reply to an earlier request
             self._ser.write(self.command)
             reply = self._ser.read_until(b"\r")
-        except OSError as e:  # the port went away: reopen later
-            self.last_error = f"serial: {e}"
-            self._ser.close()
-            self._ser = None
+        except OSError as e:  # the port went away: the worker opens it again
             quality[:] = Quality.COMMS_LOST
-            return
+            raise LinkDown(f"serial: {e}") from None
         try:
             fields = parse_reply(reply, self.cfg.address, self.cfg.checksum, len(self.cfg.channels))
         except ValueError as e:
@@ -148,13 +164,11 @@ class DconSource(PolledSource):
             self.last_error = str(e)
             quality[:] = Quality.COMMS_LOST
             return
-        burnout = {c.encode() for c in self.cfg.burnout_codes}
-        oor = {c.encode() for c in self.cfg.out_of_range_codes}
         for k, (i, _) in enumerate(self._slots):
             f = fields[i]
-            if f in burnout:
+            if f in self._burnout:
                 quality[k] = Quality.BURNOUT
-            elif f in oor:
+            elif f in self._out_of_range:
                 quality[k] = Quality.OUT_OF_RANGE
             else:
                 try:
@@ -168,12 +182,3 @@ class DconSource(PolledSource):
                     self.comm_errors += 1
                     self.last_error = f"not a number: {f!r}"
                     quality[k] = Quality.COMMS_LOST
-
-    def close(self) -> None:
-        super().close()
-        if self._ser is not None:
-            self._ser.close()
-            self._ser = None
-
-    def get_status(self) -> dict[str, Any]:
-        return {**super().get_status(), "polls": self.polls, "comm_errors": self.comm_errors, "last_error": self.last_error}

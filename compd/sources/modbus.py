@@ -6,10 +6,10 @@ the module. Raw codes that mean burn-out or out of range, and optional per-chann
 status registers, become signal quality. Channels whose registers lie next to each
 other are read in one request. A timeout, a garbled reply, a Modbus exception reply,
 a reply of the wrong shape (another function code, more or fewer registers than asked,
-a frame longer than its byte count: `compd.modbus_reply`) or a lost connection makes the
-channels of that request COMMS_LOST; a reply fills only the registers its own request
-asked for. The connection is re-established with exponential back-off and the daemon
-never sees an exception.
+a frame longer than its byte count: `compd.io.modbus_client`) or a lost connection makes
+the channels of that request COMMS_LOST; a reply fills only the registers its own request
+asked for. The source's I/O worker re-establishes the connection with exponential
+back-off and the daemon never sees an exception.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 import math
 import struct
-import time
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
@@ -26,8 +25,17 @@ from pydantic import Field, model_validator
 
 from compd.config import SourceConfig, Strict
 from compd.frame import Quality
-from compd.modbus_reply import HOLDING, INPUT, FrameTap, shape_error
-from compd.sources.base import PolledSource, check_serial_port
+from compd.io.mailbox import Snapshot
+from compd.io.modbus_client import (
+    BadReply,
+    ExceptionReply,
+    LinkFault,
+    ModbusClient,
+    ModbusFault,
+    NoConnection,
+)
+from compd.io.worker import LinkDown
+from compd.sources.base import PolledSource, Poller, check_serial_port
 
 log = logging.getLogger("compd.sources.modbus")
 
@@ -183,7 +191,7 @@ def _resolve(cfg: ModbusConfig) -> list[_Channel]:
 
 
 class ModbusSource(PolledSource):
-    """Polls a Modbus PT100 module on its own thread; `read` never blocks."""
+    """A Modbus PT100 module, polled by its I/O worker; `read` never blocks."""
 
     Config = ModbusConfig
 
@@ -193,119 +201,98 @@ class ModbusSource(PolledSource):
         self.cfg: ModbusConfig = cfg
         self.poll_period_s = cfg.poll_period_s
         self.stale_after_s = cfg.stale_after_s
+        self.reconnect_min_s, self.reconnect_max_s = cfg.reconnect_min_s, cfg.reconnect_max_s
         spans = [(c.address, c.width) for c in self._channels]
         spans += [(c.status_address, 1) for c in self._channels if c.status_address is not None]
         self.requests = plan_reads(spans, cfg.max_gap)
-        self._client: Any = None
-        self._next_connect_s = 0.0
-        self._backoff_s = cfg.reconnect_min_s
-        self.connects = 0
-        self.exception_replies = 0
-        self.comm_errors = 0
-        self.malformed_replies = 0
-        self.last_error: str | None = None
-        self._tap = FrameTap()
-        self._bad_request: dict[tuple[int, int], str] = {}  # request → why its last reply was refused
 
     def signal_names(self) -> list[str]:
         return [c.name for c in self._channels]
 
-    # ------------------------------------------------------------- connection
     def open(self, now_s: float) -> None:
         if self.cfg.transport == "rtu" and self.cfg.serial_port:
             check_serial_port(self.cfg.serial_port, self.config_path)
 
-    def _make_client(self) -> Any:
-        from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+    def make_poller(self, snapshot: Snapshot) -> ModbusPoller:
+        return ModbusPoller(self.cfg, self._channels, self.requests, snapshot, self.name)
 
-        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # faults are reported as quality
-        cfg = self.cfg
-        if cfg.transport == "tcp":
-            return ModbusTcpClient(cfg.host, port=cfg.port, timeout=cfg.timeout_s, retries=0, trace_packet=self._tap)
-        return ModbusSerialClient(
-            cfg.serial_port,
-            baudrate=cfg.baudrate,
-            parity=cfg.parity,
-            stopbits=cfg.stopbits,
-            timeout=cfg.timeout_s,
-            retries=0,
+    def get_status(self) -> dict[str, Any]:
+        io = self.io_status()
+        return {
+            **super().get_status(),
+            "transport": self.cfg.transport,
+            "requests_per_poll": len(self.requests),
+            "polls": self.polls,
+            "connects": io["client_connects"],
+            "exception_replies": io["exception_replies"],
+            "comm_errors": io["comm_errors"],
+            "malformed_replies": io["malformed_replies"],
+            "last_error": io["last_error"],
+        }
+
+
+class ModbusPoller(Poller):
+    """The device half of a Modbus source: the planned requests, read through the Modbus
+    client, decoded into temperatures and qualities (runs on the worker's thread)."""
+
+    def __init__(
+        self, cfg: ModbusConfig, channels: list[_Channel], requests: list[tuple[int, int]], snapshot: Snapshot,
+        name: str,
+    ) -> None:
+        super().__init__(len(channels), snapshot)
+        self.cfg = cfg
+        self.name = name
+        self._channels = channels
+        self.requests = requests
+        self.client = ModbusClient(
+            transport=cfg.transport, host=cfg.host, port=cfg.port, serial_port=cfg.serial_port,
+            baudrate=cfg.baudrate, parity=cfg.parity, stopbits=cfg.stopbits, device_id=cfg.device_id,
+            timeout_s=cfg.timeout_s,
         )
+        self.exception_replies = 0
+        self.comm_errors = 0
+        self.malformed_replies = 0
+        self._bad_request: dict[tuple[int, int], str] = {}  # request → why its last reply was refused
 
-    def _connect(self) -> bool:
-        now = time.monotonic()
-        if self._client is not None and self._client.connected:
-            return True
-        if now < self._next_connect_s:
-            return False
-        if self._client is None:
-            self._client = self._make_client()
-        try:
-            ok = bool(self._client.connect())
-        except Exception as e:  # pyserial/OS errors while opening
-            ok = False
-            self.last_error = f"connect: {e}"
-        if ok:
-            self.connects += 1
-            self._backoff_s = self.cfg.reconnect_min_s
-            return True
-        self.last_error = self.last_error or "connect failed"
-        self._next_connect_s = now + self._backoff_s
-        self._backoff_s = min(self._backoff_s * 2.0, self.cfg.reconnect_max_s)
-        return False
+    def connect(self) -> None:
+        if not self.client.connect():
+            raise LinkDown(self.client.last_error or "connect failed")
 
-    def _drop(self) -> None:
-        """After a comms error: TCP reconnects (the stream may hold a late reply);
-        RTU discards whatever is in the input buffer."""
-        c = self._client
-        if c is None:
-            return
-        if self.cfg.transport == "tcp":
-            c.close()
-        else:
-            sock = getattr(c, "socket", None)
-            if sock is not None:
-                try:
-                    time.sleep(min(self.cfg.timeout_s, 0.05))
-                    sock.reset_input_buffer()
-                except Exception:
-                    c.close()
+    def disconnect(self) -> None:
+        self.client.close()
 
-    # ------------------------------------------------------------------- poll
+    def counters(self) -> dict[str, Any]:
+        return {**super().counters(), "exception_replies": self.exception_replies, "comm_errors": self.comm_errors,
+                "malformed_replies": self.malformed_replies, "client_connects": self.client.connects}
+
     def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
-        if not self._connect():
-            quality[:] = Quality.COMMS_LOST
-            return
-        from pymodbus.exceptions import ModbusException
-
         cfg = self.cfg
-        holding = cfg.function == "holding"
-        read = self._client.read_holding_registers if holding else self._client.read_input_registers
-        function_code = HOLDING if holding else INPUT
         regs: dict[int, int] = {}
+        unreachable: NoConnection | None = None
         for start, count in self.requests:
-            try:
-                rr = read(start, count=count, device_id=cfg.device_id)
-            except (ModbusException, OSError, ValueError) as e:
-                self.comm_errors += 1
-                self.last_error = f"{type(e).__name__}: {e}"
-                self._drop()
+            r = self.client.read_registers(start, count, table=cfg.function)
+            if isinstance(r, NoConnection):
+                self.last_error = r.detail
+                unreachable = r
                 break
-            if rr.isError():
+            if isinstance(r, LinkFault):  # TCP: closed, the next request reconnects; RTU: flushed
+                self.comm_errors += 1
+                self.last_error = r.detail
+                break
+            if isinstance(r, ExceptionReply):
                 self.exception_replies += 1
-                self.last_error = f"exception reply, code {getattr(rr, 'exception_code', '?')}"
+                self.last_error = r.detail
                 continue
-            problem = shape_error(rr, function_code, count, cfg.device_id)
-            if problem is None and cfg.transport == "tcp":
-                problem = self._tap.tcp_error(getattr(rr, "transaction_id", 0), count)
-            if problem is not None:
-                self._malformed((start, count), problem)
+            if isinstance(r, BadReply):
+                self._malformed((start, count), r)
                 continue
+            assert not isinstance(r, ModbusFault)
             if self._bad_request.pop((start, count), None) is not None:
                 log.info(
                     "%s: replies to registers %d+%d are well-formed again", self.name, start, count,
                     extra={"event": "modbus_reply_ok", "source": self.name, "request": f"{start}+{count}"},
                 )
-            regs.update(zip(range(start, start + count), rr.registers, strict=True))
+            regs.update(zip(range(start, start + count), r, strict=True))
         for i, ch in enumerate(self._channels):
             words = [regs.get(ch.address + k) for k in range(ch.width)]
             status = regs.get(ch.status_address) if ch.status_address is not None else 0
@@ -323,38 +310,19 @@ class ModbusSource(PolledSource):
             else:
                 values[i] = number * ch.scale + ch.offset_c
             quality[i] = q
+        if unreachable is not None:  # the worker reconnects with back-off
+            raise LinkDown(unreachable.detail)
 
-    def _malformed(self, request: tuple[int, int], problem: str) -> None:
-        """A reply of the wrong shape: counted, logged once per request and reason, and on
-        RTU the input buffer flushed (the frame may not have ended where pymodbus thought)."""
+    def _malformed(self, request: tuple[int, int], fault: BadReply) -> None:
+        """A reply of the wrong shape: counted, logged once per request and reason (the
+        client has flushed an RTU line already)."""
         self.malformed_replies += 1
         start, count = request
-        self.last_error = f"malformed reply to registers {start}+{count}: {problem}"
-        if self._bad_request.get(request) != problem:
-            self._bad_request[request] = problem
+        self.last_error = fault.detail
+        if self._bad_request.get(request) != fault.reason:
+            self._bad_request[request] = fault.reason
             log.warning(
                 "%s: %s", self.name, self.last_error,
                 extra={"event": "modbus_bad_reply", "source": self.name, "request": f"{start}+{count}",
-                       "reason": problem},
+                       "reason": fault.reason},
             )
-        if self.cfg.transport == "rtu":
-            self._drop()
-
-    def close(self) -> None:
-        super().close()
-        if self._client is not None:
-            self._client.close()
-            self._client = None
-
-    def get_status(self) -> dict[str, Any]:
-        return {
-            **super().get_status(),
-            "transport": self.cfg.transport,
-            "requests_per_poll": len(self.requests),
-            "polls": self.polls,
-            "connects": self.connects,
-            "exception_replies": self.exception_replies,
-            "comm_errors": self.comm_errors,
-            "malformed_replies": self.malformed_replies,
-            "last_error": self.last_error,
-        }

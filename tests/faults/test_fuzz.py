@@ -19,6 +19,7 @@ from compd.cli import main
 from compd.config import load_config
 from compd.errors import BadInput
 from compd.frame import Quality
+from compd.io.mailbox import Snapshot
 from compd.sources.can import CanConfig, CanSource
 from compd.sources.dcon import DconConfig, DconSource, parse_reply
 from compd.sources.modbus import ModbusConfig, ModbusSource
@@ -170,15 +171,15 @@ def _check_frame(values: np.ndarray, quality: np.ndarray) -> None:
                           st.tuples(register_list, st.sampled_from([4, 6, 16, 23]))), max_size=4))
 def test_modbus_poll_never_raises(replies: list[Any]) -> None:
     src = ModbusSource(MODBUS)
-    client = src._client = _FakeModbusClient(replies)
-    src._drop = lambda: None  # the fake has no socket to reset
+    poller = src.make_poller(Snapshot(4))
+    client = poller.client._client = _FakeModbusClient(replies)  # under compd's Modbus client
     values = np.full(4, np.nan)
     quality = np.full(4, Quality.NO_DATA, dtype=np.uint8)
-    src.poll(values, quality)
+    poller.poll(values, quality)
     _check_frame(values, quality)
     # a signal is GOOD only if the reply to its own request had exactly the registers asked
     shaped = {(a, c) for a, c, r in client.asked if isinstance(r, list) and len(r) == c}
-    for i, ch in enumerate(src._channels):
+    for i, ch in enumerate(poller._channels):
         if quality[i] == Quality.GOOD:
             assert any(a <= ch.address and ch.address + ch.width <= a + c for a, c in shaped), (ch.name, replies)
 
@@ -216,11 +217,11 @@ dcon_reply = st.one_of(
 @FUZZ
 @given(dcon_reply, st.booleans())
 def test_dcon_poll_never_raises(reply: bytes, checksum: bool) -> None:
-    src = DconSource(DCON.model_copy(update={"checksum": checksum}))
-    src._ser = _FakeSerial(reply)
+    poller = DconSource(DCON.model_copy(update={"checksum": checksum})).make_poller(Snapshot(2))
+    poller._ser = _FakeSerial(reply)
     values = np.full(2, np.nan)
     quality = np.full(2, Quality.NO_DATA, dtype=np.uint8)
-    src.poll(values, quality)
+    poller.poll(values, quality)
     _check_frame(values, quality)
     with contextlib.suppress(ValueError):  # the parser's only complaint is ValueError
         parse_reply(reply, 1, checksum)

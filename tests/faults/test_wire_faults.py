@@ -197,7 +197,7 @@ def test_modbus_malformed_reply(tmp_path: Path) -> None:
         run.at(CLEAR_S, "clear", lambda: peer.set("none"))
         m = run.run(reasons=("comms_lost",))
         source = run.app.sources[0]
-        m.extra["malformed_replies"] = source.malformed_replies
+        m.extra["malformed_replies"] = source.get_status()["malformed_replies"]
     record("modbus_malformed_reply", m, tmp_path)
     check(m, recovered=True)
-    assert source.malformed_replies > 0
+    assert source.get_status()["malformed_replies"] > 0

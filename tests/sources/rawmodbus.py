@@ -1,8 +1,9 @@
 """A raw-socket Modbus TCP peer for tests (no pymodbus): answers FC 3/4 from a register table,
-and misbehaves on request in ways a real stack would not (wrong shapes, wrong ids, silence).
+writes it on FC 16 and FC 23 (write, then read), and misbehaves on request in ways a real stack
+would not (wrong shapes, wrong ids, silence).
 
-`RawModbusServer(registers)` listens on 127.0.0.1, port 0 (see `.port`), one thread per
-connection. `set(mode, address=None, **opts)` switches a misbehaviour on for every read, or
+`RawModbusServer(registers)` listens on 127.0.0.1, port 0 (see `.port`; or the `port` given),
+one thread per connection. `set(mode, address=None, **opts)` switches a misbehaviour on for every read, or
 only for reads whose start register is `address` (several addresses can misbehave at once;
 `set("none")` clears them all):
 
@@ -18,6 +19,10 @@ only for reads whose start register is `address` (several addresses can misbehav
   truncated       the MBAP length promises the whole reply; only half of it is sent
   exception       exception reply (function | 0x80, code `exception_code`)
   silence         no reply at all
+  wrong_echo      FC 16: the acknowledgement names `extra` (2) more registers than written
+
+FC 16 (write) honours none, wrong_function (default 6), wrong_tid, wrong_unit, exception,
+silence and wrong_echo; FC 23 is answered like a read of its read range (after the write).
 
 Each request is counted in `requests` (by start address in `requests_at`).
 """
@@ -33,7 +38,7 @@ from typing import Any
 
 MODES = (
     "none", "extra", "fewer", "wrong_function", "wrong_tid", "wrong_unit",
-    "bad_byte_count", "trailing", "truncated", "exception", "silence",
+    "bad_byte_count", "trailing", "truncated", "exception", "silence", "wrong_echo",
 )
 
 
@@ -81,15 +86,15 @@ class _TcpServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
     allow_reuse_address = True
     block_on_close = True
 
-    def __init__(self, owner: RawModbusServer) -> None:
+    def __init__(self, owner: RawModbusServer, port: int = 0) -> None:
         self.owner = owner
-        super().__init__(("127.0.0.1", 0), _Handler)
+        super().__init__(("127.0.0.1", port), _Handler)
 
 
 class RawModbusServer:
     """Serves `registers` (address → value; missing addresses read 0) to FC 3 and FC 4."""
 
-    def __init__(self, registers: dict[int, int] | list[int], *, unit_id: int = 1) -> None:
+    def __init__(self, registers: dict[int, int] | list[int], *, unit_id: int = 1, port: int = 0) -> None:
         self.registers = dict(enumerate(registers)) if isinstance(registers, list) else dict(registers)
         self.unit_id = unit_id
         self.faults: dict[int | None, tuple[str, dict[str, Any]]] = {}  # start (None: any) → mode
@@ -100,7 +105,7 @@ class RawModbusServer:
         self._closing = False
         self._server: _TcpServer | None = None
         self._thread: threading.Thread | None = None
-        self.port = 0
+        self.port = port
 
     # ------------------------------------------------------------------ behaviour
     def set(self, mode: str, address: int | None = None, **opts: Any) -> None:
@@ -120,12 +125,23 @@ class RawModbusServer:
         if len(pdu) < 5:
             return b""
         fc, start, count = struct.unpack(">BHH", pdu[:5])
+        written: tuple[int, list[int]] | None = None
+        if fc == 16 and len(pdu) >= 6 + 2 * count:
+            written = (start, list(struct.unpack(f">{count}H", pdu[6 : 6 + 2 * count])))
+        elif fc == 23 and len(pdu) >= 10:
+            w_start, w_count = struct.unpack(">HH", pdu[5:9])
+            written = (w_start, list(struct.unpack(f">{w_count}H", pdu[10 : 10 + 2 * w_count])))
         with self._lock:
             self.requests += 1
             self.requests_at[start] = self.requests_at.get(start, 0) + 1
             mode, opts = self.faults.get(start) or self.faults.get(None) or ("none", {})
+            if written is not None and mode not in ("exception", "silence"):
+                for k, v in enumerate(written[1]):
+                    self.registers[written[0] + k] = v
             values = [self.registers.get(a, 0) & 0xFFFF for a in range(start, start + count)]
-        if fc not in (3, 4):
+        if fc == 16:
+            return self._answer_write(tid, unit, start, count, mode, opts)
+        if fc not in (3, 4, 23):
             return self._frame(tid, unit, bytes([fc | 0x80, 1]))
         if mode == "silence":
             return b""
@@ -153,6 +169,20 @@ class RawModbusServer:
             out = out[: 7 + (len(out) - 7) // 2]
         return out
 
+    def _answer_write(self, tid: int, unit: int, start: int, count: int, mode: str, opts: dict[str, Any]) -> bytes:
+        if mode == "silence":
+            return b""
+        if mode == "exception":
+            return self._frame(tid, unit, bytes([0x90, opts.get("exception_code", 4)]))
+        reply_fc = opts.get("function", 6) if mode == "wrong_function" else 16
+        if mode == "wrong_echo":
+            count += opts.get("extra", 2)
+        if mode == "wrong_tid":
+            tid = (tid + 1) & 0xFFFF
+        if mode == "wrong_unit":
+            unit = (unit + 1) & 0xFF
+        return self._frame(tid, unit, struct.pack(">BHH", reply_fc, start, count))
+
     @staticmethod
     def _frame(tid: int, unit: int, pdu: bytes) -> bytes:
         return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
@@ -168,7 +198,7 @@ class RawModbusServer:
 
     def start(self) -> RawModbusServer:
         self._closing = False
-        self._server = _TcpServer(self)
+        self._server = _TcpServer(self, self.port)
         self.port = self._server.server_address[1]
         self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.05},
                                         name="raw-modbus-server", daemon=True)

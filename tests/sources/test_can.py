@@ -51,7 +51,7 @@ def test_values_and_faults_on_virtual_bus():
             dev.set_fault("none")
             s = _sample(h, 0.1)
             assert [s[n] for n in NAMES] == [(pytest.approx(t), "GOOD") for t in TEMPS], fault
-        assert h.source.error_frames > 0 and h.source.bad_frames > 0
+        assert h.source.get_status()["error_frames"] > 0 and h.source.get_status()["bad_frames"] > 0
 
         dev.set_fault("slow", slow_s=0.12)  # frames come, but later than stale_after_s
         time.sleep(0.15)
@@ -100,12 +100,12 @@ def test_short_dlc_is_comms_lost_for_the_ids_signals():
         assert _wait(h, lambda s: s == want) == want
         for what, data, dlc in [("3 bytes", good_a[:3], None), ("DLC 2, 8 bytes of padding", good_a + bytes(4), 2),
                                 ("empty", b"", None)]:
-            bad = h.source.bad_frames
+            bad = h.source.get_status()["bad_frames"]
             send(0x181, data, dlc)
             s = _wait(h, lambda s: s["A1"][1] != "GOOD")
             assert (s["A1"][1], s["A2"][1]) == ("COMMS_LOST", "COMMS_LOST"), what
             assert s["B1"] == (pytest.approx(10.0), "GOOD"), what
-            assert h.source.bad_frames == bad + 1 and "0x181" in h.source.get_status()["last_error"]
+            assert h.source.get_status()["bad_frames"] == bad + 1 and "0x181" in h.source.get_status()["last_error"]
             send(0x181, good_a)
             assert _wait(h, lambda s: s == want) == want, what
         bus.send(can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=4, is_extended_id=False))

@@ -54,7 +54,7 @@ def test_values_and_faults_over_pty(tmp_path, use_checksum):
                 mod.set_fault("none")
                 s = h.sample(polls=3)
                 assert [s[n] for n in NAMES] == [(pytest.approx(t), "GOOD") for t in TEMPS], fault
-            assert h.source.comm_errors >= 5
+            assert h.source.get_status()["comm_errors"] >= 5
 
 
 def test_skipped_channel_and_stale(tmp_path):
@@ -118,10 +118,10 @@ def test_wrong_shape_reply_is_comms_lost(tmp_path, use_checksum):
             }
             for what, mangle in cases.items():
                 mod.mangle = mangle
-                before = h.source.comm_errors
+                before = h.source.get_status()["comm_errors"]
                 s = h.sample(polls=2)
                 assert {q for _, q in s.values()} == {"COMMS_LOST"}, what
-                assert h.source.comm_errors > before, what
+                assert h.source.get_status()["comm_errors"] > before, what
                 mod.mangle = None
                 s = h.sample(polls=3)
                 assert [s[n] for n in NAMES] == [(pytest.approx(t), "GOOD") for t in TEMPS], what

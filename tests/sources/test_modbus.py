@@ -104,8 +104,8 @@ def test_tcp_values_and_faults():
         Harness(ModbusSource(_cfg(transport="tcp", port=srv.port))) as h,
     ):
         _check_faults(h, tx, srv)
-        assert h.source.exception_replies >= 1
-        assert h.source.comm_errors >= 3
+        assert h.source.get_status()["exception_replies"] >= 1
+        assert h.source.get_status()["comm_errors"] >= 3
 
 
 def test_rtu_values_and_faults(tmp_path):
@@ -153,7 +153,7 @@ def test_reconnects_after_server_restart():
             assert h.sample(polls=3)["T1"][1] == "COMMS_LOST"
             srv = ModbusServerThread(dev, port=port).start()
             assert h.sample(polls=4)["T1"] == (pytest.approx(25.3), "GOOD")
-            assert h.source.connects >= 2
+            assert h.source.get_status()["connects"] >= 2
     finally:
         srv.stop()
 

@@ -73,15 +73,15 @@ def test_wrong_shape_is_comms_lost_for_its_request(mode: str, opts: dict, functi
         _all_good(h)
         for bad in ("A", "B"):
             srv.set(mode, address=REQUEST[bad], **opts)
-            before = h.source.malformed_replies
+            before = h.source.get_status()["malformed_replies"]
             _bad_request(h, bad)
-            assert h.source.malformed_replies > before
+            assert h.source.get_status()["malformed_replies"] > before
             st = h.source.get_status()
-            assert st["malformed_replies"] == h.source.malformed_replies
+            assert st["malformed_replies"] == h.source.get_status()["malformed_replies"]
             assert st["last_error"].startswith(f"malformed reply to registers {REQUEST[bad]}+2")
             srv.set("none")
             _all_good(h)  # reads recover when the peer behaves again
-        assert h.source.comm_errors == 0 and h.source.exception_replies == 0
+        assert h.source.get_status()["comm_errors"] == 0 and h.source.get_status()["exception_replies"] == 0
     lines = [r for r in caplog.records if getattr(r, "event", None) == "modbus_bad_reply"]
     assert {r.request for r in lines} == {"0+2", "10+2"}
     assert len(lines) == 2  # one line per request and reason, not one per poll
@@ -95,9 +95,9 @@ def test_unmatched_or_broken_reply_is_comms_lost(mode: str, opts: dict) -> None:
     with RawModbusServer(TABLE) as srv, Harness(ModbusSource(_cfg(srv.port))) as h:
         _all_good(h)
         srv.set(mode, address=REQUEST["B"], **opts)
-        before = h.source.comm_errors
+        before = h.source.get_status()["comm_errors"]
         _bad_request(h, "B")
-        assert h.source.comm_errors > before
+        assert h.source.get_status()["comm_errors"] > before
         srv.set("none")
         _all_good(h)
 
@@ -120,7 +120,7 @@ def test_exception_reply_counts_as_exception() -> None:
         _all_good(h)
         srv.set("exception", address=0)
         _bad_request(h, "A")
-        assert h.source.exception_replies > 0 and h.source.malformed_replies == 0
+        assert h.source.get_status()["exception_replies"] > 0 and h.source.get_status()["malformed_replies"] == 0
         srv.set("none")
         _all_good(h)
 
@@ -139,6 +139,6 @@ def test_rtu_wrong_shape_is_comms_lost_for_its_request(tmp_path, mode: str, opts
             _all_good(h)
             peer.set(mode, address=0, **opts)
             _bad_request(h, "A")
-            assert h.source.malformed_replies > 0
+            assert h.source.get_status()["malformed_replies"] > 0
             peer.set("none")
             _all_good(h)

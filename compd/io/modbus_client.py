@@ -1,0 +1,306 @@
+"""The one Modbus client (TCP or RTU, pymodbus): register reads and writes, every reply shape-checked.
+
+`ModbusClient` is the only place in compd that builds a pymodbus client. Each call
+sends one request, waits for its reply (up to `timeout_s`) and returns either the
+data or a `ModbusFault`, never raises:
+
+  LinkFault       no reply, a garbled or truncated frame, a lost connection. Afterwards a
+                  TCP client is closed (its stream may still hold a late reply: the next
+                  request reconnects); an RTU client has its input buffer flushed.
+  NoConnection    (a LinkFault) the request was not sent: the connection could not be
+                  opened — the device is unreachable, a worker backs off.
+  ExceptionReply  the device answered with a Modbus exception (`code`).
+  BadReply        a reply of the wrong shape (`reason`): see below. On RTU the input
+                  buffer is flushed (the frame may not have ended where pymodbus thought).
+
+Shape checks. pymodbus 3.16's sync client matches a reply to its request by
+transaction id and unit id (a mismatch is skipped, and the request times out), and
+rejects a byte count longer than the frame; but it hands back whatever function code
+and register count the peer sent: a 0x04 reply to a 0x03 request, six registers for
+four asked, or a byte count shorter than the frame all arrive as a normal response.
+So every reply is checked here before a register of it is used: its unit, its
+function code, its register count (a write's echoed address and quantity) and, on
+TCP, the frame itself (MBAP length and byte count, through pymodbus's `trace_packet`
+hook), since pymodbus reads as many registers as the byte count says and ignores the
+rest of the frame.
+
+A client is used from one thread at a time (its I/O worker's): every call blocks.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+HOLDING = 0x03
+INPUT = 0x04
+WRITE_MULTIPLE = 0x10
+READ_WRITE = 0x17  # function 23: write, then read, in one request
+
+TableT = Literal["holding", "input"]
+
+
+@dataclass(frozen=True)
+class ModbusFault:
+    """Why a request gave no data; `detail` is the message for `last_error`."""
+
+    detail: str
+
+
+@dataclass(frozen=True)
+class LinkFault(ModbusFault):
+    """No usable reply at all: timeout, garbled or truncated frame, lost connection."""
+
+
+@dataclass(frozen=True)
+class NoConnection(LinkFault):
+    """The request was not sent: no connection could be made (the device is unreachable)."""
+
+
+@dataclass(frozen=True)
+class ExceptionReply(ModbusFault):
+    """The device answered with a Modbus exception."""
+
+    code: int = 0
+
+
+@dataclass(frozen=True)
+class BadReply(ModbusFault):
+    """A reply that does not answer the request asked (`reason` says how)."""
+
+    reason: str = ""
+
+
+def shape_error(rr: Any, function_code: int, count: int, device_id: int | None = None) -> str | None:
+    """Why `rr` is not a reply to a read of `count` registers with `function_code` from
+    `device_id` (None: it is). Call it on non-exception replies."""
+    problem = _unit_and_function(rr, function_code, device_id)
+    if problem is not None:
+        return problem
+    regs = getattr(rr, "registers", None)
+    if regs is None or len(regs) != count:
+        return f"reply has {0 if regs is None else len(regs)} registers, asked {count}"
+    return None
+
+
+def write_shape_error(rr: Any, address: int, count: int, device_id: int | None = None) -> str | None:
+    """Why `rr` is not the acknowledgement of a write of `count` registers at `address`
+    (function 16 echoes both); None: it is."""
+    problem = _unit_and_function(rr, WRITE_MULTIPLE, device_id)
+    if problem is not None:
+        return problem
+    echo = (getattr(rr, "address", None), getattr(rr, "count", None))
+    if echo != (address, count):
+        return f"reply acknowledges registers {echo[0]}+{echo[1]}, wrote {address}+{count}"
+    return None
+
+
+def _unit_and_function(rr: Any, function_code: int, device_id: int | None) -> str | None:
+    dev = getattr(rr, "dev_id", None)
+    if device_id is not None and isinstance(dev, int) and dev != device_id:
+        return f"reply from unit {dev}, asked unit {device_id}"
+    fc = getattr(rr, "function_code", None)
+    if fc != function_code:
+        return f"reply function 0x{fc:02X}, asked 0x{function_code:02X}" if isinstance(fc, int) else "no function code"
+    return None
+
+
+class FrameTap:
+    """pymodbus's `trace_packet` hook: keeps the bytes last received, so the reply's MBAP
+    length and byte count can be checked. Modbus TCP only."""
+
+    def __init__(self) -> None:
+        self.last = b""
+
+    def __call__(self, sending: bool, data: bytes) -> bytes:
+        if not sending:
+            self.last = data
+        return data
+
+    def tcp_error(self, transaction_id: int, count: int | None) -> str | None:
+        """Why the received frame with `transaction_id` is not a reply carrying exactly
+        `count` registers, or (count None) a write's acknowledgement of 4 bytes; None: it
+        is, or it is not in the buffer."""
+        buf = self.last
+        while len(buf) >= 8:
+            length = int.from_bytes(buf[4:6], "big")
+            if int.from_bytes(buf[0:2], "big") == transaction_id:
+                if buf[7] & 0x80:
+                    return None  # an exception reply: the caller has it already
+                if count is None:
+                    return None if length == 6 else f"frame length {length} for a write acknowledgement"
+                if len(buf) < 9 or length != 3 + 2 * count or buf[8] != 2 * count:
+                    byte_count = buf[8] if len(buf) >= 9 else "none"
+                    return f"frame length {length}, byte count {byte_count} for {count} registers"
+                return None
+            buf = buf[6 + length :]
+        return None
+
+
+class ModbusClient:
+    """One Modbus connection, TCP (`host`, `port`) or RTU (`serial_port`): see the module."""
+
+    def __init__(
+        self,
+        *,
+        transport: Literal["tcp", "rtu"] = "tcp",
+        host: str = "127.0.0.1",
+        port: int = 502,
+        serial_port: str | None = None,
+        baudrate: int = 9600,
+        parity: str = "N",
+        stopbits: int = 1,
+        device_id: int = 1,
+        timeout_s: float = 0.25,
+    ) -> None:
+        if transport == "rtu" and not serial_port:
+            raise ValueError("an RTU client needs serial_port")
+        self.transport = transport
+        self.host, self.port, self.serial_port = host, port, serial_port
+        self.baudrate, self.parity, self.stopbits = baudrate, parity, stopbits
+        self.device_id = device_id
+        self.timeout_s = timeout_s
+        self.last_error: str | None = None
+        self.connects = 0  # connections opened
+        self._tap = FrameTap()
+        self._client: Any = None  # the pymodbus client, built on the first connect
+
+    @classmethod
+    def tcp(cls, host: str, port: int, *, device_id: int = 1, timeout_s: float = 0.25) -> ModbusClient:
+        """A Modbus TCP client."""
+        return cls(transport="tcp", host=host, port=port, device_id=device_id, timeout_s=timeout_s)
+
+    def where(self) -> str:
+        """host:port, or the serial device."""
+        return f"{self.host}:{self.port}" if self.transport == "tcp" else str(self.serial_port)
+
+    # ------------------------------------------------------------- connection
+    def _build(self) -> Any:
+        from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # faults are reported, not logged twice
+        if self.transport == "tcp":
+            return ModbusTcpClient(
+                self.host, port=self.port, timeout=self.timeout_s, retries=0, trace_packet=self._tap
+            )
+        return ModbusSerialClient(
+            self.serial_port or "",
+            baudrate=self.baudrate,
+            parity=self.parity,
+            stopbits=self.stopbits,
+            timeout=self.timeout_s,
+            retries=0,
+        )
+
+    @property
+    def connected(self) -> bool:
+        return self._client is not None and bool(self._client.connected)
+
+    def connect(self) -> bool:
+        """Open the connection (a no-op when open); False, with `last_error`, when it fails."""
+        if self._client is None:
+            self._client = self._build()
+        if self._client.connected:
+            return True
+        try:
+            ok = bool(self._client.connect())
+        except Exception as e:  # pyserial/OS errors while opening
+            self.last_error = f"connect: {e}"
+            return False
+        if ok:
+            self.connects += 1
+        else:
+            self.last_error = f"connect: no connection to {self.where()}"
+        return ok
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+
+    def _after_link_fault(self) -> None:
+        """TCP: close (the stream may hold a late reply); RTU: discard the input buffer."""
+        c = self._client
+        if c is None:
+            return
+        if self.transport == "tcp":
+            c.close()
+            return
+        sock = getattr(c, "socket", None)
+        if sock is None:
+            return
+        try:
+            time.sleep(min(self.timeout_s, 0.05))  # let the rest of a late frame arrive
+            sock.reset_input_buffer()
+        except Exception:
+            c.close()
+
+    def _call(self, request: Any) -> Any:
+        """Run `request(pymodbus_client)`; the reply, or a LinkFault."""
+        if not self.connected and not self.connect():
+            return NoConnection(self.last_error or "not connected")
+        try:
+            return request(self._client)
+        except Exception as e:  # ModbusException, OSError, pyserial's, a decoder's: no usable reply
+            self._after_link_fault()
+            return LinkFault(f"{type(e).__name__}: {e}")
+
+    def _checked(self, rr: Any, function_code: int, count: int, what: str) -> list[int] | ModbusFault:
+        """The registers of a read reply `rr`, or why not."""
+        if isinstance(rr, ModbusFault):
+            return rr
+        if rr.isError():
+            code = getattr(rr, "exception_code", 0)
+            return ExceptionReply(f"exception reply, code {code}", code if isinstance(code, int) else 0)
+        problem = shape_error(rr, function_code, count, self.device_id)
+        if problem is None and self.transport == "tcp":
+            problem = self._tap.tcp_error(getattr(rr, "transaction_id", 0), count)
+        if problem is not None:
+            return self._bad(f"malformed reply to {what}: {problem}", problem)
+        return list(rr.registers)
+
+    def _bad(self, detail: str, reason: str) -> BadReply:
+        if self.transport == "rtu":
+            self._after_link_fault()
+        return BadReply(detail, reason)
+
+    # ------------------------------------------------------------- requests
+    def read_registers(self, address: int, count: int, *, table: TableT = "holding") -> list[int] | ModbusFault:
+        """Read `count` holding (function 3) or input (function 4) registers from `address`."""
+        if table == "holding":
+            fc = HOLDING
+            rr = self._call(lambda c: c.read_holding_registers(address, count=count, device_id=self.device_id))
+        else:
+            fc = INPUT
+            rr = self._call(lambda c: c.read_input_registers(address, count=count, device_id=self.device_id))
+        return self._checked(rr, fc, count, f"registers {address}+{count}")
+
+    def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault:
+        """Write holding registers from `address` (function 16); None once acknowledged."""
+        words = [v & 0xFFFF for v in values]
+        rr = self._call(lambda c: c.write_registers(address, words, device_id=self.device_id))
+        if isinstance(rr, ModbusFault):
+            return rr
+        if rr.isError():
+            code = getattr(rr, "exception_code", 0)
+            return ExceptionReply(f"write exception reply, code {code}", code if isinstance(code, int) else 0)
+        problem = write_shape_error(rr, address, len(words), self.device_id)
+        if problem is None and self.transport == "tcp":
+            problem = self._tap.tcp_error(getattr(rr, "transaction_id", 0), None)
+        if problem is not None:
+            return self._bad(f"malformed reply to the write of registers {address}+{len(words)}: {problem}", problem)
+        return None
+
+    def read_write_registers(
+        self, read_address: int, read_count: int, write_address: int, values: Sequence[int]
+    ) -> list[int] | ModbusFault:
+        """Write `values` at `write_address`, then read `read_count` registers from
+        `read_address`, in one request (function 23)."""
+        words = [v & 0xFFFF for v in values]
+        rr = self._call(lambda c: c.readwrite_registers(
+            read_address=read_address, read_count=read_count, write_address=write_address,
+            values=words, device_id=self.device_id,
+        ))
+        return self._checked(rr, READ_WRITE, read_count, f"read/write of registers {read_address}+{read_count}")

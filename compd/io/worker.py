@@ -1,0 +1,352 @@
+"""The one I/O worker: a device thread's life cycle (start, pace, wake, reconnect with back-off, stop).
+
+Every device compd talks to beside the cycle — a polled source, the CAN reader, a
+sink's Modbus link, a plant's clock — runs on an `IoWorker`. The device supplies only
+its work, a `DeviceWork`: `open` (start-up checks that must pass), `connect`,
+`round` (one round of I/O: poll once, send what is queued and read the status, take
+one frame, step the plant), `offline` (a round while the link is down), `disconnect`
+and `close`. The worker owns the rest:
+
+* start and stop: `start` runs `open` on the worker's thread and re-raises its error
+  in the caller (a device that must exist at start-up fails loudly); `stop` ends the
+  thread and joins it within a timeout; a stopped worker can be started again.
+* pace: a round every `period_s` (paced), or only when woken or asked (`paced=False`:
+  a lockstep clock asks for every poll); `wake` asks for a round soon.
+* reconnect: a failed `connect`, or a round that raises `LinkDown` (any exception, in
+  fact), takes the link down; the next `connect` waits `reconnect_min_s`, doubling
+  after every further failure up to `reconnect_max_s`, and back to the minimum after
+  a round that went through. While the link is down, paced rounds and requests get
+  `offline` (a poller publishes that its signals are lost).
+* accounts: `state` (closed, connecting, up, down), `rounds`, `errors`, `connects`,
+  the work's `last_error` and counters (`get_status`), and `round_hist`, the duration
+  of every round (µs).
+
+The interface between the cycle and its device is data only, so that the workers can
+later move out of the cycle's interpreter (another process: the mailboxes in shared
+memory, requests and counts over a pipe) while sources and sinks stay as they are:
+
+  cycle → worker   `WriteQueue.submit(address, values)` (which calls `wake()`);
+                   `request(arg)`: one round now with `arg` (a stamp, a target time,
+                   a register range), and its reply — for everything that is not the
+                   cycle itself (a lockstep clock between cycles, a settle, a test);
+  worker → cycle   `Snapshot` (values, quality and stamp of each signal), `Latest`
+                   (status registers, a plant time), `get_status()` (a dict of counts).
+
+The cycle only ever appends to a queue, reads a published object or writes to an
+eventfd: it never takes a lock a worker could hold, never waits for a worker's
+Python, never blocks on a device. Times that stamp samples come from the `clock`
+given to `start` (the loop's), read on the worker's thread when a round starts.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import itertools
+import logging
+import os
+import select
+import threading
+import time
+import weakref
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import Any
+
+from compd.histogram import DurationHist
+
+log = logging.getLogger("compd.io")
+
+WORKER_STATES = ("closed", "connecting", "up", "down")
+
+
+class LinkDown(Exception):
+    """Raised by a round when the link to the device is gone (the worker reconnects)."""
+
+
+class DeviceWork(ABC):
+    """The device half of a source, sink link or clock: what its worker runs. Every method
+    runs on the worker's thread (but `counters`, which only reads numbers)."""
+
+    def __init__(self) -> None:
+        self.last_error: str | None = None
+        self.now: Callable[[], float] = time.monotonic  # the loop clock (set by IoWorker.start)
+
+    def open(self) -> None:
+        """Start-up: open or check what must be there (an error is raised to `start`'s caller)."""
+
+    def connect(self) -> None:
+        """Open the link to the device; raise LinkDown when it cannot be reached."""
+
+    def disconnect(self) -> None:
+        """Close the link (after it went down)."""
+
+    def close(self) -> None:
+        """Release the device for good (the worker stops)."""
+        self.disconnect()
+
+    @abstractmethod
+    def round(self, request: Any) -> Any:
+        """One round of device I/O with the link up: `request` is None for a round of the
+        worker's own (pace or wake), else what `IoWorker.request` was given; returns the
+        reply to a request. Raise LinkDown when the link broke."""
+
+    def offline(self, request: Any) -> Any:
+        """A round while the link is down (e.g. publish that the signals are lost)."""
+        return None
+
+    def counters(self) -> dict[str, Any]:
+        """The device's own counts, for status (plain data)."""
+        return {}
+
+
+class IoWorker:
+    """Runs one `DeviceWork` on a thread of its own, named `name`: see the module."""
+
+    def __init__(
+        self,
+        work: DeviceWork,
+        *,
+        name: str,
+        period_s: float | None = None,
+        reconnect_min_s: float = 0.1,
+        reconnect_max_s: float = 10.0,
+        join_timeout_s: float = 5.0,
+        round_hist: DurationHist | None = None,
+    ) -> None:
+        if reconnect_max_s < reconnect_min_s:
+            raise ValueError("reconnect_max_s is below reconnect_min_s")
+        self.work = work
+        self.name = name
+        self.period_s = period_s
+        self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
+        self.join_timeout_s = join_timeout_s
+        self.round_hist = round_hist if round_hist is not None else DurationHist()
+        self.state = "closed"
+        self.rounds = 0
+        self.errors = 0
+        self.connects = 0
+        self.retry_in_s = 0.0  # the wait before the connect after the latest failure
+        self._paced = True
+        self._stop = False
+        self._wakes = 0  # counted by `wake`; the thread runs a round when it changed (no flag to lose)
+        self._wakes_seen = 0
+        self._thread: threading.Thread | None = None
+        self._open_error: BaseException | None = None
+        self._done = threading.Condition()  # a round ended; a reply is there
+        self._requests: collections.deque[tuple[int, Any]] = collections.deque()
+        self._replies: dict[int, Any] = {}
+        self._waiting: set[int] = set()
+        self._seq = itertools.count(1)
+        # wakes the thread without a lock: the cycle writes, the thread selects on it
+        self._fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        weakref.finalize(self, os.close, self._fd)
+
+    # ------------------------------------------------------------ life cycle
+    @property
+    def running(self) -> bool:
+        th = self._thread
+        return th is not None and th.is_alive()
+
+    def start(self, *, paced: bool = True, clock: Callable[[], float] | None = None) -> None:
+        """Start the thread: `open` the work there (its error is raised here), then run
+        rounds every `period_s` (paced, and a period set) or only when woken or asked."""
+        if self.running:
+            raise RuntimeError(f"I/O worker {self.name} is running already")
+        if clock is not None:
+            self.work.now = clock
+        self._paced = paced and self.period_s is not None
+        self._stop = False
+        self._wakes_seen = self._wakes
+        self._drain_wakes()
+        self._open_error = None
+        opened = threading.Event()
+        self.state = "connecting"
+        th = threading.Thread(target=self._main, args=(opened,), name=self.name, daemon=True)
+        self._thread = th
+        th.start()
+        opened.wait()
+        if self._open_error is not None:
+            th.join(self.join_timeout_s)
+            self._thread = None
+            self.state = "closed"
+            err, self._open_error = self._open_error, None
+            raise err
+
+    def stop(self, timeout_s: float | None = None) -> bool:
+        """Stop the thread and join it (within `timeout_s`, default `join_timeout_s`); False
+        when it is still in a device call (it ends, and closes the device, by itself)."""
+        th = self._thread
+        if th is None:
+            return True
+        self._stop = True
+        self._signal()
+        th.join(self.join_timeout_s if timeout_s is None else timeout_s)
+        if th.is_alive():
+            log.warning("I/O worker %s did not stop in time", self.name,
+                        extra={"event": "io_worker_stuck", "worker": self.name})
+            return False
+        self._thread = None
+        return True
+
+    # ------------------------------------------------------------ the cycle's side
+    def wake(self) -> None:
+        """Ask for a round soon (something was queued). Never waits."""
+        self._wakes += 1
+        self._signal()
+
+    def request(self, arg: Any = None, timeout_s: float = 5.0) -> Any:
+        """One round now with `arg`, on the worker's thread; its reply, or None when the
+        worker is not running or the round did not end within `timeout_s`. Not for the
+        cycle: it waits."""
+        if not self.running:
+            return None
+        seq = next(self._seq)
+        with self._done:
+            self._waiting.add(seq)
+            self._requests.append((seq, arg))
+        self._signal()
+        deadline = time.monotonic() + timeout_s
+        with self._done:
+            try:
+                while seq not in self._replies:
+                    rest = deadline - time.monotonic()
+                    if rest <= 0 or not self.running:
+                        self._requests = collections.deque(r for r in self._requests if r[0] != seq)
+                        return None
+                    self._done.wait(min(rest, 0.5))
+                return self._replies.pop(seq)
+            finally:
+                self._waiting.discard(seq)
+
+    def wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        """Wait until `predicate()` holds (checked after every round), or `timeout_s`."""
+        deadline = time.monotonic() + timeout_s
+        with self._done:
+            while not predicate():
+                rest = deadline - time.monotonic()
+                if rest <= 0:
+                    return False
+                self._done.wait(min(rest, 0.05))
+        return True
+
+    def get_status(self) -> dict[str, Any]:
+        """state, rounds, errors, connects, last_error and the work's counters."""
+        return {"state": self.state, "rounds": self.rounds, "errors": self.errors, "connects": self.connects,
+                "last_error": self.work.last_error, **self.work.counters()}
+
+    # ------------------------------------------------------------ the thread
+    def _signal(self) -> None:
+        with contextlib.suppress(OSError):  # the counter is full: the thread has wakes to read
+            os.eventfd_write(self._fd, 1)
+
+    def _drain_wakes(self) -> None:
+        with contextlib.suppress(BlockingIOError):
+            os.eventfd_read(self._fd)
+
+    def _idle(self, deadline: float | None) -> None:
+        """Until `deadline` (monotonic; None: no limit), a wake, a request or stop."""
+        if deadline is None:
+            timeout = None
+        else:
+            timeout = deadline - time.monotonic()
+            if timeout <= 0:
+                return
+        ready, _, _ = select.select([self._fd], [], [], timeout)
+        if ready:
+            self._drain_wakes()
+
+    def _main(self, opened: threading.Event) -> None:
+        try:
+            self.work.open()
+        except BaseException as e:  # handed to start()'s caller
+            self._open_error = e
+            opened.set()
+            return
+        opened.set()
+        try:
+            self._run()
+        except Exception:
+            log.exception("I/O worker %s failed", self.name, extra={"event": "io_worker_failed", "worker": self.name})
+        finally:
+            try:
+                self.work.close()
+            except Exception as e:
+                self.work.last_error = f"close: {type(e).__name__}: {e}"
+            self.state = "closed"
+            with self._done:
+                self._done.notify_all()
+
+    def _next_request(self) -> tuple[int, Any] | None:
+        with self._done:
+            return self._requests.popleft() if self._requests else None
+
+    def _run(self) -> None:
+        work = self.work
+        perf = time.perf_counter_ns
+        backoff = self.reconnect_min_s
+        next_connect = 0.0
+        next_paced = 0.0
+        up = False
+        while not self._stop:
+            req = self._next_request()
+            wakes = self._wakes
+            woken = wakes != self._wakes_seen
+            self._wakes_seen = wakes
+            now = time.monotonic()
+            if not up and now >= next_connect:
+                try:
+                    work.connect()
+                    up = True
+                    self.connects += 1
+                except Exception as e:
+                    self.errors += 1
+                    work.last_error = str(e) if isinstance(e, LinkDown) else f"connect: {type(e).__name__}: {e}"
+                    self.state = "down"
+                    self.retry_in_s = backoff
+                    next_connect = now + backoff
+                    backoff = min(backoff * 2.0, self.reconnect_max_s)
+            paced_due = self._paced and now >= next_paced
+            reply = None
+            if up and (req is not None or paced_due or woken):
+                if self._paced:
+                    next_paced = now + (self.period_s or 0.0)
+                p0 = perf()
+                try:
+                    reply = work.round(None if req is None else req[1])
+                    ok = True
+                except Exception as e:
+                    ok = False
+                    reply = None
+                    work.last_error = str(e) if isinstance(e, LinkDown) else f"{type(e).__name__}: {e}"
+                self.round_hist.add_ns(perf() - p0)
+                if ok:
+                    self.rounds += 1
+                    self.state = "up"
+                    backoff = self.reconnect_min_s
+                else:
+                    self.errors += 1
+                    self.state = "down"
+                    up = False
+                    with contextlib.suppress(Exception):
+                        work.disconnect()
+                    self.retry_in_s = backoff
+                    next_connect = time.monotonic() + backoff
+                    backoff = min(backoff * 2.0, self.reconnect_max_s)
+            elif not up and (req is not None or paced_due):
+                if self._paced:  # no faster than reconnect_min_s (a reader with period 0)
+                    next_paced = now + (self.period_s or self.reconnect_min_s)
+                try:
+                    reply = work.offline(None if req is None else req[1])
+                except Exception as e:
+                    work.last_error = f"offline: {type(e).__name__}: {e}"
+            with self._done:
+                if req is not None and req[0] in self._waiting:
+                    self._replies[req[0]] = reply
+                self._done.notify_all()
+            if self._stop or self._requests or self._wakes != self._wakes_seen:
+                continue
+            deadline = next_paced if self._paced else None
+            if not up:
+                deadline = next_connect if deadline is None else min(deadline, next_connect)
+            self._idle(deadline)
