@@ -158,7 +158,7 @@ class SpindlePlant(Plant):
 
     def steady_state_xi_mm(self, speed_rpm: float = 10000.0) -> float:
         """ξ of the rotor's steady-state profile at `speed_rpm`, coolant off (paper 003)."""
-        from compd.models.xi_spindle import find_xi
+        from compd.identify.xi_spindle import find_xi
 
         t = self.net.steady_state(
             self._g_res(speed_rpm, False), np.zeros(2), self._heat_for(speed_rpm)
