@@ -1,4 +1,4 @@
-"""Latent-variable regression (PLS) model on temperature rises (paper 002): the run-time form.
+"""Latent-variable regression (PLS) on temperature rises (paper 002); the fit chooses components by exact fast LOO Q².
 
 The PLS fit and its leave-one-out Q² component selection are in compd.identify.lvr; the
 fitted model evaluates the same linear form as MLR (compd.models.mlr.RiseLinear).
