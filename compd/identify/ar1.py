@@ -97,71 +97,26 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     X = columns(log, names)
     E = columns(log, targets)[:, 0]
     t = log.t_s
-    dt = opt.dt_s
-    if dt is None:
-        dts = np.diff(t)
-        dts = dts[dts > 0]
-        if dts.size == 0:
-            raise BadInput("t_s never advances: cannot tell the step Δτ", file=log.file, path="t_s")
-        dt = float(np.median(dts))
+    dt = opt.dt_s if opt.dt_s is not None else _median_step_s(log)
     rows = step_rows(t, dt)
     nparam = 1 + len(bed) + (opt.ambient is not None) + 2
     require_rows(log, rows.size, nparam + 3, f"ar1 at Δτ = {dt:g} s")
     Xs, Es = X[rows], E[rows]
     speed = np.abs(Xs[:, 0])
     moving = speed >= max(opt.stopped_below_rpm, 1e-12)
-    levels: list[list[float]] = []
-    for v in np.sort(speed[moving]):
-        if not levels or v - levels[-1][-1] > opt.speed_round_rpm:
-            levels.append([v])
-        else:
-            levels[-1].append(v)
-    rpm = [float(np.mean(lv)) for lv in levels]
+    rpm = speed_levels_rpm(speed[moving], opt.speed_round_rpm)
     if not rpm:
         raise BadInput(f"the spindle never turns in {opt.speed_column!r}: C2 cannot be fitted", file=log.file)
     sign = opt.spindle_sign if opt.spindle_sign is not None else (-1 if bed else 1)
-    x0 = Xs[0, 1:]
-    # Interpolation weights of each step's speed on the level nodes (C2 linear in them).
-    L = len(rpm)
-    Wt = np.zeros((rows.size, L))
-    for k, v in enumerate(speed):
-        for j in range(L):
-            e_j = np.zeros(L)
-            e_j[j] = 1.0
-            Wt[k, j] = c2_of_speed(v, rpm, list(e_j))
-    cum = np.tril(np.ones((L, L)))  # C2 levels = cumulative sum of increments δ ≥ 0
-    bed_rise = Xs[:, 1 : 1 + len(bed)] - x0[: len(bed)]
-    amb_rise = (Xs[:, -1] - x0[-1])[:, None] if opt.ambient else np.zeros((rows.size, 0))
-    nb, na = bed_rise.shape[1], amb_rise.shape[1]
-    lb = np.r_[np.zeros(L), np.full(nb + na, -np.inf)]
-    ub = np.full(L + nb + na, np.inf)
-
-    def design(c1: float | np.ndarray) -> np.ndarray:
-        filt = ar_filter(c1, np.hstack([Wt @ cum, amb_rise]))
-        return np.hstack([sign * filt[:, :L], bed_rise, sign * filt[:, L:]])
-
-    def solve(c1: float | np.ndarray) -> tuple[float, np.ndarray]:
-        A = design(c1)
-        r = optimize.lsq_linear(A, Es, bounds=(lb, ub), method="bvls")
-        return float(np.sum((A @ r.x - Es) ** 2)), r.x
-
-    # log(1 − C1) spans time constants from a few Δτ to 10⁵ Δτ.
-    grid = np.linspace(np.log(0.5), np.log(1e-5), 40)
-    costs = [solve(1.0 - np.exp(z))[0] for z in progress(grid, desc="ar1 C1 search")]
-    i = int(np.argmin(costs))
-    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-    res = optimize.minimize_scalar(
-        lambda z: solve(1.0 - np.exp(z))[0], bounds=(min(lo, hi), max(lo, hi)), method="bounded",
-        options={"xatol": 1e-6},
-    )
-    z = res.x if res.fun <= costs[i] else grid[i]
+    problem = _Problem(Xs, Es, speed, rpm, len(bed), bool(opt.ambient), sign)
+    z, i, res = problem.search_c1()
     c1 = float(1.0 - np.exp(z))
     report: dict[str, Any] = {
         "dt_s": dt,
         "step_rows": int(rows.size),
         "speed_levels_rpm": rpm,
         "converged": bool(res.success),
-        "c1_at_grid_edge": i in (0, grid.size - 1),
+        "c1_at_grid_edge": i in (0, C1_GRID.size - 1),
     }
     c1_rows: float | np.ndarray = c1
     c1_table: list[tuple[float, float]] = []
@@ -171,28 +126,9 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
                 "c1_by_speed needs the spindle to stand still in the log (C1 at standstill)",
                 file=log.file, path="--option c1_by_speed",
             )
-        # b Δτ = −ln C1 at standstill and at each level, linear in speed between them
-        w0 = 1.0 - Wt.sum(axis=1)
-        z_min, z_max = float(grid.min()), float(grid.max())
-
-        def rows_c1(zs: np.ndarray) -> np.ndarray:
-            b = -np.log1p(-np.exp(np.clip(zs, z_min, z_max)))
-            return np.exp(-(w0 * b[0] + Wt @ b[1:]))
-
-        res_n = optimize.minimize(
-            lambda zs: solve(rows_c1(zs))[0], np.full(L + 1, z), method="Nelder-Mead",
-            options={"xatol": 1e-5, "fatol": 1e-9 * max(res.fun, 1e-12), "maxiter": 400 * (L + 1)},
-        )
-        zs = np.clip(res_n.x, z_min, z_max)
-        c1 = float(1.0 - np.exp(zs[0]))
-        c1_table = [(r_, float(1.0 - np.exp(v))) for r_, v in zip(rpm, zs[1:], strict=True)]
-        c1_rows = rows_c1(zs)
-        report["c1_by_speed"] = {
-            "converged": bool(res_n.success), "single_c1": float(1.0 - np.exp(z)),
-            "time_constant_s": {"0": -dt / math.log(c1), **{f"{r_:g}": -dt / math.log(c)
-                                                           for r_, c in c1_table}},
-        }
-    cost, theta = solve(c1_rows)
+        c1, c1_table, c1_rows, report["c1_by_speed"] = problem.c1_by_speed(z, float(res.fun), dt)
+    _, theta = problem.solve(c1_rows)
+    L, nb = len(rpm), len(bed)
     c2 = np.cumsum(theta[:L])
     table = [(r_, float(c)) for r_, c in zip(rpm, c2, strict=True)]
     if opt.c2_rise:
@@ -201,7 +137,7 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         dt_s=dt,
         c1=c1,
         c2_table=table,
-        c3_um_per_k=float(theta[L + nb]) if na else None,
+        c3_um_per_k=float(theta[L + nb]) if opt.ambient else None,
         c1_table=c1_table,
         bed_gain_um_per_k=[float(v) for v in theta[L : L + nb]],
         spindle_sign=sign,
@@ -216,6 +152,109 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     report["step_rmse_um"] = float(np.sqrt(np.mean(resid**2)))
     model.x0 = None  # the run-time reference is the reading at start
     return FitResult(model, report)
+
+
+def _median_step_s(log: Log) -> float:
+    """Δτ when none is given: the log's median sample period."""
+    dts = np.diff(log.t_s)
+    dts = dts[dts > 0]
+    if dts.size == 0:
+        raise BadInput("t_s never advances: cannot tell the step Δτ", file=log.file, path="t_s")
+    return float(np.median(dts))
+
+
+def speed_levels_rpm(moving_rpm: np.ndarray, round_rpm: float) -> list[float]:
+    """The logged speed levels: sorted speeds closer than `round_rpm` to the previous one join its level."""
+    levels: list[list[float]] = []
+    for v in np.sort(moving_rpm):
+        if not levels or v - levels[-1][-1] > round_rpm:
+            levels.append([v])
+        else:
+            levels[-1].append(v)
+    return [float(np.mean(lv)) for lv in levels]
+
+
+# log(1 − C1) spans time constants from a few Δτ to 10⁵ Δτ.
+C1_GRID = np.linspace(np.log(0.5), np.log(1e-5), 40)
+
+
+class _Problem:
+    """For a given C1 (one, or one per step), the bounded linear least squares of the rest:
+    C2 level increments δ ≥ 0 (C2 monotone in speed), bed gains, C3; on the simulated output."""
+
+    def __init__(
+        self, Xs: np.ndarray, Es: np.ndarray, speed: np.ndarray, rpm: list[float], n_bed: int, ambient: bool,
+        sign: int,
+    ) -> None:
+        L = len(rpm)
+        x0 = Xs[0, 1:]
+        # Interpolation weights of each step's speed on the level nodes (C2 linear in them).
+        Wt = np.zeros((Xs.shape[0], L))
+        for k, v in enumerate(speed):
+            for j in range(L):
+                e_j = np.zeros(L)
+                e_j[j] = 1.0
+                Wt[k, j] = c2_of_speed(v, rpm, list(e_j))
+        self.Wt, self.L, self.Es, self.sign = Wt, L, Es, sign
+        self.cum = np.tril(np.ones((L, L)))  # C2 levels = cumulative sum of increments δ ≥ 0
+        self.bed_rise = Xs[:, 1 : 1 + n_bed] - x0[:n_bed]
+        self.amb_rise = (Xs[:, -1] - x0[-1])[:, None] if ambient else np.zeros((Xs.shape[0], 0))
+        nb, na = self.bed_rise.shape[1], self.amb_rise.shape[1]
+        self.lb = np.r_[np.zeros(L), np.full(nb + na, -np.inf)]
+        self.ub = np.full(L + nb + na, np.inf)
+        self.rpm = rpm
+
+    def design(self, c1: float | np.ndarray) -> np.ndarray:
+        L, sign = self.L, self.sign
+        filt = ar_filter(c1, np.hstack([self.Wt @ self.cum, self.amb_rise]))
+        return np.hstack([sign * filt[:, :L], self.bed_rise, sign * filt[:, L:]])
+
+    def solve(self, c1: float | np.ndarray) -> tuple[float, np.ndarray]:
+        """(sum of squared errors, [δ, bed gains, C3]) at this C1."""
+        A = self.design(c1)
+        r = optimize.lsq_linear(A, self.Es, bounds=(self.lb, self.ub), method="bvls")
+        return float(np.sum((A @ r.x - self.Es) ** 2)), r.x
+
+    def search_c1(self) -> tuple[float, int, Any]:
+        """(z = log(1 − C1), grid index of the best start, the bounded search's result)."""
+        grid = C1_GRID
+        costs = [self.solve(1.0 - np.exp(z))[0] for z in progress(grid, desc="ar1 C1 search")]
+        i = int(np.argmin(costs))
+        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+        res = optimize.minimize_scalar(
+            lambda z: self.solve(1.0 - np.exp(z))[0], bounds=(min(lo, hi), max(lo, hi)), method="bounded",
+            options={"xatol": 1e-6},
+        )
+        z = res.x if res.fun <= costs[i] else grid[i]
+        return z, i, res
+
+    def c1_by_speed(
+        self, z: float, cost: float, dt: float
+    ) -> tuple[float, list[tuple[float, float]], np.ndarray, dict[str, Any]]:
+        """compd's form: b Δτ = −ln C1 at standstill and at each level, linear in speed between
+        them, by Nelder–Mead from the single C1 (z). Returns (C1 at standstill, c1_table, C1 per
+        step, report)."""
+        L, Wt = self.L, self.Wt
+        w0 = 1.0 - Wt.sum(axis=1)
+        z_min, z_max = float(C1_GRID.min()), float(C1_GRID.max())
+
+        def rows_c1(zs: np.ndarray) -> np.ndarray:
+            b = -np.log1p(-np.exp(np.clip(zs, z_min, z_max)))
+            return np.exp(-(w0 * b[0] + Wt @ b[1:]))
+
+        res_n = optimize.minimize(
+            lambda zs: self.solve(rows_c1(zs))[0], np.full(L + 1, z), method="Nelder-Mead",
+            options={"xatol": 1e-5, "fatol": 1e-9 * max(cost, 1e-12), "maxiter": 400 * (L + 1)},
+        )
+        zs = np.clip(res_n.x, z_min, z_max)
+        c1 = float(1.0 - np.exp(zs[0]))
+        c1_table = [(r_, float(1.0 - np.exp(v))) for r_, v in zip(self.rpm, zs[1:], strict=True)]
+        report = {
+            "converged": bool(res_n.success), "single_c1": float(1.0 - np.exp(z)),
+            "time_constant_s": {"0": -dt / math.log(c1), **{f"{r_:g}": -dt / math.log(c)
+                                                           for r_, c in c1_table}},
+        }
+        return c1, c1_table, rows_c1(zs), report
 
 
 def _scaled_table(

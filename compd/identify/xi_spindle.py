@@ -82,6 +82,38 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
             path="--target",
         )
     radial = len(targets) == 2
+    inputs = _inputs(log, opt, inputs, radial)
+    X = columns(log, inputs)
+    E = columns(log, targets)
+    gain, length = _axial_gain(log, opt, X[:, 0], E[:, 0], inputs[0])
+    report: dict[str, Any] = {"gain_um_per_k": gain, "length_mm": length}
+    rad = None
+    if radial:
+        given = {"alpha_per_k": opt.ring_alpha_per_k} if opt.ring_alpha_per_k is not None else {}
+        rad = RadialParams(
+            inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance, **given
+        )
+        if len(inputs) == 2 + opt.inner_sensors + opt.outer_sensors:
+            probe = XiSpindle(
+                XiSpindleParams(
+                    alpha_per_k=opt.alpha_per_k, length_mm=length,
+                    radial=rad.model_copy(update={"k_um_per_rpm2": 0.0}),
+                ),
+                list(inputs), axis_names(targets),
+            )
+            left = E[:, 1] - probe.predict(X, np.zeros(X.shape[0]))[:, 1]
+            rad = rad.model_copy(update={"k_um_per_rpm2": _fit_lift(left, X[:, -1], log, inputs[-1])})
+            report["k_um_per_rpm2"] = rad.k_um_per_rpm2
+    params = XiSpindleParams(
+        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, radial=rad
+    )
+    model = XiSpindle(params, list(inputs), axis_names(targets))
+    return FitResult(model, report)
+
+
+def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> list[str]:
+    """The ξ sensor (the log's one temperature column when none is named), then for a radial
+    fit the ring sensors and optionally the speed; BadInput for any other count."""
     rings = opt.inner_sensors + opt.outer_sensors
     if not inputs:
         temps = log.temperature_columns()
@@ -100,49 +132,28 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
             f"outer-ring sensor(s), then optionally the speed: {1 + rings} or {2 + rings} inputs, "
             f"got {len(inputs)}", path="--inputs",
         )
-    X = columns(log, inputs)
-    E = columns(log, targets)
-    x, e = X[:, 0], E[:, 0]
+    return inputs
+
+
+def _axial_gain(log: Log, opt: Options, x: np.ndarray, e: np.ndarray, name: str) -> tuple[float, float]:
+    """(gain α L µm/K, L mm): the gain by least squares through the origin of the error on the ξ sensor's rise."""
     require_rows(log, x.size, 3, "xi_spindle")
     rise = x - x[0]
     ss = float(rise @ rise)
     if ss == 0.0:
-        raise BadInput("the ξ sensor never changes", file=log.file, path=inputs[0])
+        raise BadInput("the ξ sensor never changes", file=log.file, path=name)
     gain = float(rise @ e) / ss
     if gain <= 0:
         raise BadInput(
-            f"the error falls as {inputs[0]} rises (gain {gain:.3g} µm/K): not a ξ sensor",
-            file=log.file, path=inputs[0],
+            f"the error falls as {name} rises (gain {gain:.3g} µm/K): not a ξ sensor", file=log.file, path=name,
         )
     length = gain / (opt.alpha_per_k * 1000.0)
     if length > MAX_LENGTH_MM:
         raise BadInput(
             f"the gain {gain:.3g} µm/K means a spindle {length / 1000:.3g} m long at α = {opt.alpha_per_k:g}:"
-            " not a ξ sensor", file=log.file, path=inputs[0],
+            " not a ξ sensor", file=log.file, path=name,
         )
-    report: dict[str, Any] = {"gain_um_per_k": gain, "length_mm": length}
-    rad = None
-    if radial:
-        given = {"alpha_per_k": opt.ring_alpha_per_k} if opt.ring_alpha_per_k is not None else {}
-        rad = RadialParams(
-            inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance, **given
-        )
-        if len(inputs) == 2 + rings:
-            probe = XiSpindle(
-                XiSpindleParams(
-                    alpha_per_k=opt.alpha_per_k, length_mm=length,
-                    radial=rad.model_copy(update={"k_um_per_rpm2": 0.0}),
-                ),
-                list(inputs), axis_names(targets),
-            )
-            left = E[:, 1] - probe.predict(X, np.zeros(x.size))[:, 1]
-            rad = rad.model_copy(update={"k_um_per_rpm2": _fit_lift(left, X[:, -1], log, inputs[-1])})
-            report["k_um_per_rpm2"] = rad.k_um_per_rpm2
-    params = XiSpindleParams(
-        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, radial=rad
-    )
-    model = XiSpindle(params, list(inputs), axis_names(targets))
-    return FitResult(model, report)
+    return gain, length
 
 
 def _fit_lift(left_um: np.ndarray, speed_rpm: np.ndarray, log: Log, name: str) -> float:
