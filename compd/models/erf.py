@@ -1,11 +1,16 @@
-"""The error function erf on numpy arrays, without scipy: the rational approximations scipy.special.erf uses.
+"""The error function erf on numpy arrays without scipy, with the numbers of scipy.special.erf.
 
-For |x| ≤ 1, erf(x) = x T(x²)/U(x²); above, erf(x) = 1 − e^(−x²) P(x)/Q(x) (|x| < 8) or
-1 − e^(−x²) R(x)/S(x), with the polynomials of the Cephes library (S. L. Moshier) that
-scipy evaluates. Evaluated in the same order, the numbers are scipy's (tests/models/test_erf.py).
+`erf` (arrays: batch prediction and fits): for |x| ≤ 1, erf(x) = x T(x²)/U(x²); above,
+erf(x) = 1 − e^(−x²) P(x)/Q(x) (|x| < 8) or 1 − e^(−x²) R(x)/S(x), with the polynomials of
+the Cephes library (S. L. Moshier) that scipy evaluates. Evaluated in the same order, the
+numbers are scipy's (tests/models/test_erf.py). `erf_inplace` (the 30-odd values of one
+loop cycle): the C library's erf value by value, within 3 ulp of scipy's and many times
+faster there than a numpy pass.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -90,3 +95,8 @@ def _columns(n: int, ndim: int) -> list[np.ndarray]:
 
 
 _COLS = {n: [_columns(n, d) for d in range(3)] for n in (4, 6)}
+
+
+def erf_inplace(buf: np.ndarray) -> None:
+    """erf of a short 1-D float array, in place, value by value with math.erf (the C library's)."""
+    buf[:] = list(map(math.erf, buf.tolist()))

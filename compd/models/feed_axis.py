@@ -35,7 +35,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from compd.errors import BadInput
 from compd.models.base import MAX_LENGTH_MM, Model, ModelParams
-from compd.models.erf import erf
+from compd.models.erf import erf, erf_inplace
 
 ErfFn = Callable[[np.ndarray], np.ndarray]
 
@@ -319,7 +319,7 @@ class FeedAxis(Model):
             return
         buf, cum = self._buf, self._cum
         np.multiply(self._y_m, 0.5 / math.sqrt(self.params.diffusivity_m2_s * t), out=buf)
-        erf(buf, out=buf)
+        erf_inplace(buf)
         hps = self._inv_rho_c * self.heat_j
         hds = self._hds
         if self._tau is not None:  # duty-cycle form: the steady profile follows the mean loss
