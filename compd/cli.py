@@ -373,7 +373,7 @@ def cmd_xi(args: argparse.Namespace) -> int:
     import numpy as np
 
     from compd import fitting
-    from compd.models.xi_spindle import find_xi
+    from compd.identify.xi_spindle import find_xi
 
     x, t = fitting.read_profile(args.profile)
     xi = find_xi(x, t)

@@ -1,4 +1,4 @@
-"""`compd fit` / `compd predict` / `compd xi`: fit a model from a log, score it against MLR, write files."""
+"""`compd fit` / `compd predict` / `compd xi`: fit a model from a log (compd.identify), score it against MLR, write files."""
 
 from __future__ import annotations
 
@@ -15,11 +15,10 @@ import yaml
 from pydantic import ValidationError
 
 from compd.errors import BadInput
+from compd.identify import FITS, KINDS, option_names
+from compd.identify.data import columns, default_targets, progress
 from compd.log import Log, read_log
-from compd.models import MODELS
 from compd.models.base import Model
-
-KINDS = ("feed_axis", "lvr", "xi_spindle", "ar1", "mlr")
 
 
 @dataclass
@@ -59,8 +58,6 @@ def clone(model: Model) -> Model:
 
 def predict_log(model: Model, log: Log) -> np.ndarray:
     """Batch prediction on a log from a fresh start: (n × outputs) µm."""
-    from compd.models.fitdata import columns
-
     X = columns(log, model.inputs)
     return clone(model).predict(X, log.t_s)
 
@@ -73,8 +70,6 @@ def _targets_for(model: Model, log: Log, targets: list[str] | None) -> list[str]
 
 def scores(model: Model, log: Log, targets: list[str], pred: np.ndarray) -> dict[str, dict[str, float]]:
     """RMSE and max |error| per output axis (µm) of prediction against the logged error."""
-    from compd.models.fitdata import columns
-
     Y = columns(log, targets)
     out = {}
     for k, axis in enumerate(model.outputs):
@@ -92,11 +87,11 @@ def fit_model(
     *,
     baseline: bool = True,
 ) -> FitOutcome:
-    """Fit `kind`, score it on the log, compare with MLR on the same targets."""
-    cls = MODELS.get(kind, path="--kind")
+    """Fit `kind` (compd.identify), score it on the log, compare with MLR on the same targets."""
+    fit = FITS.get(kind, path="--kind")
     t0 = time.perf_counter()
     try:
-        result = cls.fit(log, inputs, targets, **options)
+        result = fit(log, inputs, targets, **options)
     except ValidationError as e:  # the data drove a coefficient out of its physical range
         err = e.errors()[0]
         key = ".".join(str(p) for p in err["loc"])
@@ -126,9 +121,7 @@ def fit_model(
     }
     if baseline and kind != "mlr":
         try:
-            from compd.models.mlr import MLR
-
-            base = MLR.fit(log, None, tcols).model
+            base = FITS.get("mlr")(log, None, tcols).model
             base_axes = scores(base, log, tcols, predict_log(base, log))
             report["baseline_mlr"] = base_axes
             for axis, s in axes.items():
@@ -191,8 +184,6 @@ def fit_all(
     log: Log, inputs: list[str] | None, targets: list[str] | None, options: dict[str, Any]
 ) -> list[tuple[str, str, FitOutcome | None, str | None]]:
     """Every applicable kind on the same log: (kind, label, outcome or None, why skipped)."""
-    from compd.models.fitdata import default_targets, progress
-
     tcols = default_targets(log, targets)
     single_axis = {"feed_axis", "ar1", "xi_spindle"}
     jobs: list[tuple[str, list[str]]] = []
@@ -201,7 +192,7 @@ def fit_all(
             jobs += [(kind, [t]) for t in tcols]
         else:
             jobs.append((kind, tcols))
-    known = {k: set(MODELS.get(k).FitOptions.model_fields) for k in KINDS}
+    known = {k: option_names(k) for k in KINDS}
     unknown = set(options) - set().union(*known.values())
     if unknown:
         raise BadInput(f"no model takes fit option {sorted(unknown)[0]!r}", path="--option")

@@ -38,7 +38,7 @@ def _pyplot():
 
 def plot_fit(outcome: Any, log: Log, path: str | Path) -> None:
     """Measured vs predicted vs residual over time per axis, plus the kind's own panel."""
-    from compd.models.fitdata import columns
+    from compd.identify.data import columns
 
     plt = _pyplot()
     model = outcome.model

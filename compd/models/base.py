@@ -1,27 +1,19 @@
-"""The model interface: declared inputs and outputs, per-cycle evaluation, state, fitting."""
+"""The model interface: declared inputs and outputs, params, per-cycle evaluation, state (fits: compd.identify)."""
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-from pydantic import ConfigDict, ValidationError
+from pydantic import ConfigDict
 
 from compd.config import Strict
 from compd.errors import BadInput
 
 if TYPE_CHECKING:
+    from compd.identify.data import FitResult
     from compd.log import Log
-
-
-@dataclass
-class FitResult:
-    """What a fit returns: the model and a JSON-able report."""
-
-    model: Model
-    report: dict[str, Any] = field(default_factory=dict)
 
 
 class ModelParams(Strict):
@@ -60,8 +52,21 @@ def check_matrix(rows: list[list[Any]], n_rows: int, n_cols: int, key: str, row_
             )
 
 
-class NoFitOptions(Strict):
-    """A model kind that takes no fit options."""
+def step_rows(t_s: np.ndarray, period_s: float) -> np.ndarray:
+    """Indices of the rows at which the loop steps a model of update period `period_s`.
+
+    Same rule as Model.predict and the loop: step at the first row, then at the first
+    row at or after the previous step time plus the period.
+    """
+    if period_s <= 0:
+        return np.arange(t_s.size)
+    out = []
+    next_t = -np.inf
+    for i, t in enumerate(t_s):
+        if t >= next_t:
+            out.append(i)
+            next_t = t + period_s
+    return np.asarray(out, dtype=np.intp)
 
 
 class Model(ABC):
@@ -76,7 +81,6 @@ class Model(ABC):
 
     kind: ClassVar[str]
     Params: ClassVar[type[Strict]]
-    FitOptions: ClassVar[type[Strict]] = NoFitOptions
     update_period_s: float = 0.0
 
     def __init__(
@@ -151,31 +155,12 @@ class Model(ABC):
 
     @classmethod
     def fit(
-        cls, log: Log, inputs: list[str] | None, targets: list[str] | None, **options: Any
+        cls, log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any
     ) -> FitResult:
-        """Identify the model from a log (`compd fit`).
+        """Identify a model of this kind from a log: compd.identify.identify, imported only here."""
+        from compd.identify import identify
 
-        `inputs`/`targets` None means the kind's defaults (every temperature column,
-        every `err_*_um` column); `options` are validated against `FitOptions`. The
-        report holds what is specific to the kind (Q², Ljung–Box, convergence);
-        compd.fitting adds the common figures (rows, RMSE, max error, fit time).
-        """
-        raise BadInput(f"{cls.kind} models cannot be fitted from a log")
-
-    @classmethod
-    def fit_options(cls, options: dict[str, Any]) -> Any:
-        """`options` validated against `FitOptions`; a bad one is BadInput naming it."""
-        try:
-            return cls.FitOptions.model_validate(options)
-        except ValidationError as e:
-            err = e.errors()[0]
-            key = ".".join(str(p) for p in err["loc"]) or "option"
-            known = ", ".join(sorted(cls.FitOptions.model_fields)) or "none"
-            if err["type"] == "extra_forbidden":
-                msg = f"unknown fit option for {cls.kind} (known: {known})"
-            else:
-                msg = err["msg"] + (f" (got {err['input']!r})" if "input" in err else "")
-            raise BadInput(msg, path=f"--option {key}") from None
+        return identify(cls.kind, log, inputs, targets, **options)
 
     def get_state(self) -> dict[str, Any]:
         """The model's memory (for persistence); plain JSON types."""

@@ -21,28 +21,23 @@ mean loss Q/τ relative to `ref_power_w`: T_hds(t, y) = Q/(τ P_ref) (U2 e^(χ y
 Without the loss (τ → ∞) Q is the paper's ∫ P dt; with a constant loss the steady
 profile reaches the paper's U1, U2 after a few τ. The fit finds τ with χ.
 
-Identifiability: E is proportional to ξ times a function linear in (U1, U2, η), so ξ
-cannot be told apart from a common scale of (U1, U2, η). The fit therefore holds ξ at
-a given value (default 1) and identifies η, U1, U2 together with the field's shape χ
-(and, optionally, the diffusivity a) by bounded nonlinear least squares started from
-the exact linear solution on a grid of χ.
+The fit (η, U1, U2, χ and optionally a and τ from a log) is compd.identify.feed_axis.
 """
 
 from __future__ import annotations
 
-import functools
 import math
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
-from scipy import optimize, special
 
-from compd.config import Strict
 from compd.errors import BadInput
-from compd.log import Log
-from compd.models.base import MAX_LENGTH_MM, FitResult, Model, ModelParams
-from compd.models.fitdata import axis_names, columns, default_targets, progress, require_rows
+from compd.models.base import MAX_LENGTH_MM, Model, ModelParams
+from compd.models.erf import erf, erf_inplace
+
+ErfFn = Callable[[np.ndarray], np.ndarray]
 
 Role = Literal["position", "current", "motor_temp", "ambient"]
 
@@ -163,22 +158,26 @@ def _midpoints_m(p: FeedAxisParams) -> np.ndarray:
     return (np.arange(p.segments) + 0.5) * seg_m
 
 
-def _erf_weights(t_s: np.ndarray, y_m: np.ndarray, a: float) -> np.ndarray:
+def _erf_weights(t_s: np.ndarray, y_m: np.ndarray, a: float, erf_fn: ErfFn = erf) -> np.ndarray:
     """erf(y / (2 √(a t))) for each time (rows) and midpoint (columns); 1 at t ≤ 0."""
     t = np.asarray(t_s, dtype=float)[:, None]
     with np.errstate(divide="ignore"):
         s = np.where(t > 0, 0.5 / np.sqrt(a * np.maximum(t, 1e-300)), np.inf)
-    return special.erf(y_m[None, :] * s)
+    return erf_fn(y_m[None, :] * s)
 
 
-def _basis(t_s, q_j, pos_mm, p: FeedAxisParams, chi: float, a: float, tau_s: float | None = None) -> np.ndarray:
+def error_basis(
+    t_s, q_j, pos_mm, p: FeedAxisParams, chi: float, a: float, tau_s: float | None = None, erf_fn: ErfFn = erf
+) -> np.ndarray:
     """E = ξ α ΔL [U1 f1 + U2 f2 + η f3] at each row's position: returns (f1, f2, f3) as n × 3 (µm/K·…).
 
-    `tau_s` (duty-cycle form) scales the steady profile by Q/(τ P_ref); default: the params' τ."""
+    `tau_s` (duty-cycle form) scales the steady profile by Q/(τ P_ref); default: the params' τ.
+    `erf_fn`: the error function; compd.models.erf's by default, a fit passes scipy's (the
+    same numbers, faster on the large arrays a fit evaluates many times)."""
     if tau_s is None:
         tau_s = p.cooling_time_s
     y = _midpoints_m(p)
-    g = _erf_weights(t_s, y, a)
+    g = _erf_weights(t_s, y, a, erf_fn)
     h = 1.0 - g
     if tau_s is not None and p.ref_power_w is not None:  # the steady profile's share Q/(τ P_ref)
         h *= (np.asarray(q_j, float) / (tau_s * p.ref_power_w))[:, None]
@@ -206,7 +205,7 @@ def _at_position(cum: np.ndarray, y_mm: np.ndarray, p: FeedAxisParams) -> np.nda
 
 def error_um(t_s, q_j, pos_mm, p: FeedAxisParams) -> np.ndarray:
     """E(t, y) in µm for arrays of heating time, heat and position (paper 000, eq. 21)."""
-    f = _basis(np.atleast_1d(t_s), np.atleast_1d(q_j), np.atleast_1d(pos_mm), p, p.chi_per_m, p.diffusivity_m2_s)
+    f = error_basis(np.atleast_1d(t_s), np.atleast_1d(q_j), np.atleast_1d(pos_mm), p, p.chi_per_m, p.diffusivity_m2_s)
     return p.xi * (f @ np.array([p.u1_k, p.u2_k, p.eta]))
 
 
@@ -234,38 +233,11 @@ def linear_reduction(
     return float(k0), float(tan_b), float(p0)
 
 
-class FeedAxisFitOptions(Strict):
-    """`compd fit --kind feed_axis --option KEY=VALUE` (`--ambient COL` sets `ambient`)."""
-
-    position: str | None = Field(None, description="position column; none = pos_<axis>_mm")
-    current: str | None = Field(None, description="current column; none = current_<axis>_a if logged")
-    motor_temp: str | None = Field(None, description="motor surface temperature column (ζ correction)")
-    ambient: str | None = Field(None, description="ambient column T_fo (ζ correction)")
-    power_w: float | None = Field(None, ge=0, description="constant motor loss instead of a current")
-    r_cu_ohm: float = Field(1.0, gt=0, description="copper resistance per phase (with a current)")
-    zeta_per_k: float = 0.00393
-    length_mm: float | None = Field(None, gt=0, description="stroke; none = largest logged position")
-    segments: int = Field(30, ge=2, le=1000)
-    stroke_start_mm: float = 0.0
-    alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3)
-    rho_c_j_m3k: float = Field(3.61e6, gt=0)
-    diffusivity_m2_s: float = Field(1.25e-5, gt=0)
-    xi: float = Field(1.0, gt=0, description="ξ, held fixed (not identifiable apart from U1, U2, η)")
-    chi_per_m: float | None = Field(None, gt=0, description="fix χ; none = fit it")
-    fit_diffusivity: bool = Field(False, description="also fit a")
-    duty_cycle: bool = Field(
-        False, description="fit the duty-cycle form (the slide cools with τ; see the model's cooling_time_s)"
-    )
-    cooling_time_s: float | None = Field(None, gt=0, description="with duty_cycle: fix τ; none = fit it")
-    linear_p0_mm: float | None = Field(None, description="kept in the model: see the params' linear_p0_mm")
-
-
 class FeedAxis(Model):
     """Position-dependent feed-axis error E(t, y) of a linear-motor axis (paper 000)."""
 
     kind = "feed_axis"
     Params = FeedAxisParams
-    FitOptions = FeedAxisFitOptions
 
     def __init__(self, params: FeedAxisParams, inputs: list[str], outputs: list[str], fit=None):
         super().__init__(params, inputs, outputs, fit)
@@ -347,7 +319,7 @@ class FeedAxis(Model):
             return
         buf, cum = self._buf, self._cum
         np.multiply(self._y_m, 0.5 / math.sqrt(self.params.diffusivity_m2_s * t), out=buf)
-        special.erf(buf, out=buf)
+        erf_inplace(buf)
         hps = self._inv_rho_c * self.heat_j
         hds = self._hds
         if self._tau is not None:  # duty-cycle form: the steady profile follows the mean loss
@@ -417,130 +389,3 @@ class FeedAxis(Model):
             if self._tau is not None:
                 q *= math.exp(-gap / self._tau)
             self._restore = (float(state["heating_s"]) + gap, q)
-
-    @classmethod
-    def fit(cls, log: Log, inputs=None, targets=None, **options: Any) -> FitResult:
-        """Bounded nonlinear least squares of (η, U1, U2, χ[, a]) against the logged error."""
-        opt = cls.fit_options(options)
-        targets = default_targets(log, targets)
-        if len(targets) != 1:
-            raise BadInput(f"feed_axis fits one axis at a time; targets: {', '.join(targets)}", path="--target")
-        axis = axis_names(targets)[0]
-        pos_col = opt.position or f"pos_{axis}_mm"
-        names, roles = [pos_col], ["position"]
-        cur_col = opt.current
-        if cur_col is None and opt.power_w is None and f"current_{axis}_a" in log.columns:
-            cur_col = f"current_{axis}_a"
-        if cur_col is not None:
-            names.append(cur_col)
-            roles.append("current")
-            for col, role in ((opt.motor_temp, "motor_temp"), (opt.ambient, "ambient")):
-                if col is not None:
-                    names.append(col)
-                    roles.append(role)
-        elif opt.power_w is None:
-            raise BadInput(
-                f"feed_axis needs the motor loss: a current_{axis}_a column or --option power_w=W",
-                file=log.file,
-            )
-        X = columns(log, names)
-        E = columns(log, targets)[:, 0]
-        require_rows(log, X.shape[0], 8, "feed_axis (4 to 5 coefficients)")
-        t = log.t_s - log.t_s[0]
-        pos = X[:, 0]
-        if np.ptp(pos) <= 0:
-            raise BadInput("the axis never moves: E(t, y) needs several positions", file=log.file, path=pos_col)
-        length = opt.length_mm or float(np.max(pos) - opt.stroke_start_mm)
-        if length <= 0:
-            raise BadInput("the stroke length must be positive", path="--option length_mm")
-        base = dict(
-            length_mm=length, segments=opt.segments, stroke_start_mm=opt.stroke_start_mm,
-            alpha_per_k=opt.alpha_per_k, rho_c_j_m3k=opt.rho_c_j_m3k,
-            diffusivity_m2_s=opt.diffusivity_m2_s, xi=opt.xi, zeta_per_k=opt.zeta_per_k,
-            power_w=opt.power_w if cur_col is None else None,
-            r_cu_ohm=opt.r_cu_ohm if cur_col is not None else None, input_roles=roles,
-            linear_p0_mm=opt.linear_p0_mm,
-        )
-        probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
-        tmp = cls(probe, names, [axis])
-        pw = np.array([tmp._power(row) for row in X])
-        if opt.duty_cycle:
-            if not np.any(pw > 0):
-                raise BadInput("duty_cycle: the motor loss is zero throughout the log", file=log.file)
-            # the loss while the axis works: U1, U2 give the steady profile at this loss
-            base["ref_power_w"] = float(np.mean(pw[pw > 0.1 * np.max(pw)]))
-            probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
-        @functools.lru_cache(maxsize=64)
-        def heat(tau: float | None) -> np.ndarray:
-            return leaky_heat_j(t, pw, tau)
-
-        def linear(chi: float, a: float, tau: float | None) -> tuple[float, np.ndarray]:
-            F = opt.xi * _basis(t, heat(tau), pos, probe, chi, a, tau)
-            coef, *_ = np.linalg.lstsq(F, E, rcond=None)
-            return float(np.sum((F @ coef - E) ** 2)), coef
-
-        a0 = opt.diffusivity_m2_s
-        if opt.chi_per_m is not None:
-            chi_grid = np.array([opt.chi_per_m])
-        else:
-            chi_grid = np.geomspace(0.05, 30.0, 40) / (length / 1000.0)
-        free_tau = opt.duty_cycle and opt.cooling_time_s is None
-        if not opt.duty_cycle:
-            tau_grid: list[float | None] = [None]
-        elif free_tau:
-            tau_grid = [float(v) for v in np.geomspace(600.0, 86400.0, 12)]
-        else:
-            tau_grid = [opt.cooling_time_s]
-        starts = [(c, tau) for tau in tau_grid for c in chi_grid]
-        costs = [linear(c, a0, tau)[0] for c, tau in progress(starts, desc="feed_axis start")]
-        chi0, tau0 = starts[int(np.argmin(costs))]
-        chi0 = float(chi0)
-        _, (u1, u2, eta) = linear(chi0, a0, tau0)
-        free_chi = opt.chi_per_m is None
-        x0 = [eta, u1, u2] + ([math.log(chi0)] if free_chi else []) + (
-            [math.log(a0)] if opt.fit_diffusivity else []
-        ) + ([math.log(tau0)] if free_tau else [])
-
-        def unpack(v):
-            k = 3
-            chi = math.exp(v[k]) if free_chi else chi0
-            k += free_chi
-            a = math.exp(v[k]) if opt.fit_diffusivity else a0
-            k += opt.fit_diffusivity
-            tau = math.exp(v[k]) if free_tau else tau0
-            return v[0], v[1], v[2], chi, a, tau
-
-        def resid(v):
-            eta_, u1_, u2_, chi, a, tau = unpack(v)
-            F = opt.xi * _basis(t, heat(tau), pos, probe, chi, a, tau)
-            return F @ np.array([u1_, u2_, eta_]) - E
-
-        chi_max = min(1e3, 700.0 / (length / 1000.0))  # the params' bound: e^(χ L) stays finite
-        lo = [0.0, -1e3, -1e3] + ([math.log(1e-3)] if free_chi else []) + ([math.log(1e-8)] if opt.fit_diffusivity else [])
-        hi = [1e3, 1e3, 1e3] + ([math.log(chi_max)] if free_chi else []) + ([math.log(1e-3)] if opt.fit_diffusivity else [])
-        if free_tau:
-            lo.append(math.log(60.0))
-            hi.append(math.log(30 * 86400.0))
-        x0 = np.clip(x0, np.array(lo) + 1e-12, np.array(hi) - 1e-12)
-        res = optimize.least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", max_nfev=2000)
-        eta, u1, u2, chi, a, tau = unpack(res.x)
-        q = heat(tau)
-        params = FeedAxisParams(
-            **{**base, "diffusivity_m2_s": a}, chi_per_m=chi, eta=float(eta), u1_k=float(u1), u2_k=float(u2),
-            cooling_time_s=tau,
-        )
-        model = cls(params, names, [axis])
-        times = sorted({float(v) for v in np.quantile(t, [0.25, 0.5, 0.75, 1.0])})
-        reductions = {}
-        for tt in times:
-            k0, tb, p0 = linear_reduction(tt, float(np.interp(tt, t, q)), params)
-            reductions[f"{tt:g}"] = {"k0_um": k0, "tan_beta_um_per_mm": tb, "p0_mm": p0}
-        report = {
-            "converged": bool(res.success),
-            "optimizer": res.message,
-            "nfev": int(res.nfev),
-            "xi_fixed": opt.xi,
-            "note": "ξ is held fixed: E scales with ξ·(U1, U2, η), so ξ alone is not identifiable",
-            "linear_reduction": reductions,
-        }
-        return FitResult(model, report)

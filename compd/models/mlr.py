@@ -1,7 +1,7 @@
 """Multiple linear regression on temperature rises: the papers' baseline model.
 
 E = b0 + Σ_j b_j (T_j − T_j0): the same linear form the LVR model evaluates, fitted by
-ordinary least squares. `RiseLinear` is the shared run-time form of both.
+ordinary least squares (compd.identify.mlr). `RiseLinear` is the shared run-time form of both.
 """
 
 from __future__ import annotations
@@ -11,27 +11,16 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.config import Strict
-from compd.log import Log
 from compd.models.base import (
     MAX_ERROR_UM,
     MAX_GAIN_UM_PER_K,
     MAX_RISE_K,
     TEMP_MAX_C,
     TEMP_MIN_C,
-    FitResult,
     Model,
     ModelParams,
     check_length,
     check_matrix,
-)
-from compd.models.fitdata import (
-    axis_names,
-    check_not_constant,
-    columns,
-    default_inputs,
-    default_targets,
-    require_rows,
 )
 
 GainUmPerK = Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]
@@ -169,55 +158,7 @@ class RiseLinear(Model):
                 self.x0 = x0
 
 
-def rise_stats(R: np.ndarray) -> dict[str, Any]:
-    """Mean and covariance of the rises (what degraded mode needs), as params."""
-    cov = np.atleast_2d(np.cov(R, rowvar=False)) if R.shape[0] > 1 else np.zeros((R.shape[1],) * 2)
-    return {"rise_mean_k": R.mean(axis=0).tolist(), "rise_cov_k2": cov.tolist()}
-
-
-def rises(X: np.ndarray) -> np.ndarray:
-    """Temperature rises: each row minus the first row (the reading at start)."""
-    return X - X[0]
-
-
-def linear_data(
-    log: Log, inputs: list[str] | None, targets: list[str] | None
-) -> tuple[list[str], list[str], np.ndarray, np.ndarray]:
-    """Inputs, targets, X (raw readings) and Y for a rise model; NaN and constant inputs refused."""
-    inputs = default_inputs(log, inputs)
-    targets = default_targets(log, targets)
-    X = columns(log, inputs)
-    Y = columns(log, targets)
-    check_not_constant(log, X, inputs)
-    return inputs, targets, X, Y
-
-
-class MLRFitOptions(Strict):
-    """`compd fit --kind mlr` takes no options beyond inputs and targets."""
-
-
 class MLR(RiseLinear):
     """Multiple linear regression on temperature rises (the papers' comparison model)."""
 
     kind = "mlr"
-    FitOptions = MLRFitOptions
-
-    @classmethod
-    def fit(cls, log: Log, inputs=None, targets=None, **options: Any) -> FitResult:
-        """Ordinary least squares of E on [1, T − T(first row)]."""
-        cls.fit_options(options)
-        inputs, targets, X, Y = linear_data(log, inputs, targets)
-        require_rows(log, X.shape[0], len(inputs) + 2, f"mlr with {len(inputs)} inputs")
-        model = fit_mlr_model(inputs, axis_names(targets), X, Y)
-        return FitResult(model, {"rank": int(np.linalg.matrix_rank(rises(X)))})
-
-
-def fit_mlr_model(inputs: list[str], axes: list[str], X: np.ndarray, Y: np.ndarray) -> MLR:
-    """The MLR model of Y on the rises of X (used as the baseline by every report)."""
-    R = rises(X)
-    A = np.hstack([np.ones((R.shape[0], 1)), R])
-    sol, *_ = np.linalg.lstsq(A, Y, rcond=None)
-    params = RiseLinearParams(
-        coef_um_per_k=sol[1:].tolist(), intercept_um=sol[0].tolist(), t0_c=None, **rise_stats(R)
-    )
-    return MLR(params, inputs, axes)

@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
+from compd.identify.lvr import select_components
 from compd.models.bench import model_eval_us
-from compd.models.lvr import select_components
 
 pytestmark = pytest.mark.bench
 

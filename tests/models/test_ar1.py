@@ -8,14 +8,13 @@ from statsmodels.stats.diagnostic import acorr_ljungbox
 
 from compd.errors import BadInput
 from compd.fitting import predict_log
+from compd.identify.ar1 import ljung_box, scale_c2_by_rise
 from compd.log import Log
 from compd.models.ar1 import (
     AR1,
     AR1Params,
     c2_of_speed,
     coefficients_from_physics,
-    ljung_box,
-    scale_c2_by_rise,
 )
 from hil_sim.rod import Rod
 

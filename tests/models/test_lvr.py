@@ -7,8 +7,9 @@ import pytest
 from sklearn.cross_decomposition import PLSRegression
 
 from compd.errors import BadInput
+from compd.identify.lvr import Q2_LIMIT, loo_press, sample_library, select_components
 from compd.log import Log
-from compd.models.lvr import LVR, Q2_LIMIT, fit_pls, loo_press, sample_library, select_components
+from compd.models.lvr import LVR, fit_pls
 
 
 def _data(n=40, p=6, q=2, seed=1):

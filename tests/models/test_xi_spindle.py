@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from compd.errors import BadInput
+from compd.identify.xi_spindle import find_xi
 from compd.log import Log
 from compd.models.xi_spindle import (
     RadialParams,
@@ -13,7 +14,6 @@ from compd.models.xi_spindle import (
     XiSpindleParams,
     axial_growth_um,
     clearance_um,
-    find_xi,
     inner_ring_um,
     outer_ring_um,
     ring_displacement_um,

@@ -1,14 +1,48 @@
-"""Shared fit-time helpers: pick columns from a log and refuse data no fit can use."""
+"""Shared data preparation of every fit: pick columns from a log, refuse data no fit can use, validate options."""
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
+from pydantic import ValidationError
 
+from compd.config import Strict
 from compd.errors import BadInput
 from compd.log import Log, error_axis
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from compd.models.base import Model
+
+OptionsT = TypeVar("OptionsT", bound=Strict)
+
+
+@dataclass
+class FitResult:
+    """What a fit returns: the model and a JSON-able report."""
+
+    model: Model
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+def validate_options(kind: str, schema: type[OptionsT], options: dict[str, Any]) -> OptionsT:
+    """`options` validated against the kind's option schema; a bad one is BadInput naming it."""
+    try:
+        return schema.model_validate(options)
+    except ValidationError as e:
+        err = e.errors()[0]
+        key = ".".join(str(p) for p in err["loc"]) or "option"
+        known = ", ".join(sorted(schema.model_fields)) or "none"
+        if err["type"] == "extra_forbidden":
+            msg = f"unknown fit option for {kind} (known: {known})"
+        else:
+            msg = err["msg"] + (f" (got {err['input']!r})" if "input" in err else "")
+        raise BadInput(msg, path=f"--option {key}") from None
 
 
 def default_inputs(log: Log, inputs: Sequence[str] | None) -> list[str]:
@@ -65,24 +99,7 @@ def check_not_constant(log: Log, X: np.ndarray, names: Sequence[str]) -> None:
             raise BadInput("the column is constant: it cannot enter the fit", file=log.file, path=name)
 
 
-def step_rows(t_s: np.ndarray, period_s: float) -> np.ndarray:
-    """Indices of the rows at which the loop steps a model of update period `period_s`.
-
-    Same rule as Model.predict and the loop: step at the first row, then at the first
-    row at or after the previous step time plus the period.
-    """
-    if period_s <= 0:
-        return np.arange(t_s.size)
-    out = []
-    next_t = -np.inf
-    for i, t in enumerate(t_s):
-        if t >= next_t:
-            out.append(i)
-            next_t = t + period_s
-    return np.asarray(out, dtype=np.intp)
-
-
-def progress(iterable, desc: str, total: int | None = None):
+def progress(iterable: Iterable[Any], desc: str, total: int | None = None) -> Iterable[Any]:
     """A progress bar on stderr that appears only when the work takes over a second (tqdm)."""
     try:
         from tqdm import tqdm

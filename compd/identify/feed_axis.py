@@ -1,0 +1,227 @@
+"""Identification of the feed-axis model: bounded nonlinear least squares of (η, U1, U2, χ[, a, τ]) (paper 000).
+
+Identifiability: E is proportional to ξ times a function linear in (U1, U2, η), so ξ
+cannot be told apart from a common scale of (U1, U2, η). The fit therefore holds ξ at
+a given value (default 1) and identifies η, U1, U2 together with the field's shape χ
+(and, optionally, the diffusivity a and the duty-cycle form's τ) by bounded nonlinear
+least squares started from the exact linear solution on a grid of χ (and τ).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+from scipy import optimize, special
+
+from compd.config import Strict
+from compd.errors import BadInput
+from compd.identify.data import (
+    FitResult,
+    axis_names,
+    columns,
+    default_targets,
+    progress,
+    require_rows,
+    validate_options,
+)
+from compd.log import Log
+from compd.models.feed_axis import (
+    FeedAxis,
+    FeedAxisParams,
+    error_basis,
+    leaky_heat_j,
+    linear_reduction,
+)
+
+
+class Options(Strict):
+    """`compd fit --kind feed_axis --option KEY=VALUE` (`--ambient COL` sets `ambient`)."""
+
+    position: str | None = Field(None, description="position column; none = pos_<axis>_mm")
+    current: str | None = Field(None, description="current column; none = current_<axis>_a if logged")
+    motor_temp: str | None = Field(None, description="motor surface temperature column (ζ correction)")
+    ambient: str | None = Field(None, description="ambient column T_fo (ζ correction)")
+    power_w: float | None = Field(None, ge=0, description="constant motor loss instead of a current")
+    r_cu_ohm: float = Field(1.0, gt=0, description="copper resistance per phase (with a current)")
+    zeta_per_k: float = 0.00393
+    length_mm: float | None = Field(None, gt=0, description="stroke; none = largest logged position")
+    segments: int = Field(30, ge=2, le=1000)
+    stroke_start_mm: float = 0.0
+    alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3)
+    rho_c_j_m3k: float = Field(3.61e6, gt=0)
+    diffusivity_m2_s: float = Field(1.25e-5, gt=0)
+    xi: float = Field(1.0, gt=0, description="ξ, held fixed (not identifiable apart from U1, U2, η)")
+    chi_per_m: float | None = Field(None, gt=0, description="fix χ; none = fit it")
+    fit_diffusivity: bool = Field(False, description="also fit a")
+    duty_cycle: bool = Field(
+        False, description="fit the duty-cycle form (the slide cools with τ; see the model's cooling_time_s)"
+    )
+    cooling_time_s: float | None = Field(None, gt=0, description="with duty_cycle: fix τ; none = fit it")
+    linear_p0_mm: float | None = Field(None, description="kept in the model: see the params' linear_p0_mm")
+
+
+def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any) -> FitResult:
+    """Bounded nonlinear least squares of (η, U1, U2, χ[, a, τ]) against the logged error."""
+    opt = validate_options("feed_axis", Options, options)
+    targets = default_targets(log, targets)
+    if len(targets) != 1:
+        raise BadInput(f"feed_axis fits one axis at a time; targets: {', '.join(targets)}", path="--target")
+    axis = axis_names(targets)[0]
+    names, roles, cur_col = _inputs_and_roles(log, opt, axis)
+    X = columns(log, names)
+    E = columns(log, targets)[:, 0]
+    require_rows(log, X.shape[0], 8, "feed_axis (4 to 5 coefficients)")
+    t = log.t_s - log.t_s[0]
+    pos = X[:, 0]
+    if np.ptp(pos) <= 0:
+        raise BadInput("the axis never moves: E(t, y) needs several positions", file=log.file, path=names[0])
+    length = opt.length_mm or float(np.max(pos) - opt.stroke_start_mm)
+    if length <= 0:
+        raise BadInput("the stroke length must be positive", path="--option length_mm")
+    base = dict(
+        length_mm=length, segments=opt.segments, stroke_start_mm=opt.stroke_start_mm,
+        alpha_per_k=opt.alpha_per_k, rho_c_j_m3k=opt.rho_c_j_m3k,
+        diffusivity_m2_s=opt.diffusivity_m2_s, xi=opt.xi, zeta_per_k=opt.zeta_per_k,
+        power_w=opt.power_w if cur_col is None else None,
+        r_cu_ohm=opt.r_cu_ohm if cur_col is not None else None, input_roles=roles,
+        linear_p0_mm=opt.linear_p0_mm,
+    )
+    probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
+    tmp = FeedAxis(probe, names, [axis])
+    pw = np.array([tmp._power(row) for row in X])
+    if opt.duty_cycle:
+        if not np.any(pw > 0):
+            raise BadInput("duty_cycle: the motor loss is zero throughout the log", file=log.file)
+        # the loss while the axis works: U1, U2 give the steady profile at this loss
+        base["ref_power_w"] = float(np.mean(pw[pw > 0.1 * np.max(pw)]))
+        probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
+    shape = _Shape(opt, t, pw, pos, E, probe, length)
+    res, (eta, u1, u2, chi, a, tau) = shape.refine(*shape.start())
+    params = FeedAxisParams(
+        **{**base, "diffusivity_m2_s": a}, chi_per_m=chi, eta=float(eta), u1_k=float(u1), u2_k=float(u2),
+        cooling_time_s=tau,
+    )
+    model = FeedAxis(params, names, [axis])
+    report = {
+        "converged": bool(res.success),
+        "optimizer": res.message,
+        "nfev": int(res.nfev),
+        "xi_fixed": opt.xi,
+        "note": "ξ is held fixed: E scales with ξ·(U1, U2, η), so ξ alone is not identifiable",
+        "linear_reduction": _reductions(t, shape.heat(tau), params),
+    }
+    return FitResult(model, report)
+
+
+def _inputs_and_roles(log: Log, opt: Options, axis: str) -> tuple[list[str], list[str], str | None]:
+    """(input columns, their roles, the current column or None) of the fit from its options and the log."""
+    names, roles = [opt.position or f"pos_{axis}_mm"], ["position"]
+    cur_col = opt.current
+    if cur_col is None and opt.power_w is None and f"current_{axis}_a" in log.columns:
+        cur_col = f"current_{axis}_a"
+    if cur_col is not None:
+        names.append(cur_col)
+        roles.append("current")
+        for col, role in ((opt.motor_temp, "motor_temp"), (opt.ambient, "ambient")):
+            if col is not None:
+                names.append(col)
+                roles.append(role)
+    elif opt.power_w is None:
+        raise BadInput(
+            f"feed_axis needs the motor loss: a current_{axis}_a column or --option power_w=W",
+            file=log.file,
+        )
+    return names, roles, cur_col
+
+
+class _Shape:
+    """The field's shape χ (and a, τ) with the coefficients (η, U1, U2) that are linear given it."""
+
+    def __init__(
+        self, opt: Options, t: np.ndarray, pw: np.ndarray, pos: np.ndarray, E: np.ndarray,
+        probe: FeedAxisParams, length_mm: float,
+    ) -> None:
+        self.opt, self.t, self.pw, self.pos, self.E, self.probe, self.length_mm = opt, t, pw, pos, E, probe, length_mm
+        self.heat = functools.lru_cache(maxsize=64)(self._heat)
+        self.a0 = opt.diffusivity_m2_s
+        self.free_chi = opt.chi_per_m is None
+        self.free_tau = opt.duty_cycle and opt.cooling_time_s is None
+
+    def _heat(self, tau: float | None) -> np.ndarray:
+        return leaky_heat_j(self.t, self.pw, tau)
+
+    def basis(self, chi: float, a: float, tau: float | None) -> np.ndarray:
+        return self.opt.xi * error_basis(self.t, self.heat(tau), self.pos, self.probe, chi, a, tau, special.erf)
+
+    def linear(self, chi: float, a: float, tau: float | None) -> tuple[float, np.ndarray]:
+        """(sum of squared errors, (U1, U2, η)) by linear least squares at this shape."""
+        F = self.basis(chi, a, tau)
+        coef, *_ = np.linalg.lstsq(F, self.E, rcond=None)
+        return float(np.sum((F @ coef - self.E) ** 2)), coef
+
+    def start(self) -> tuple[float, float | None, np.ndarray]:
+        """(χ0, τ0, (U1, U2, η)): the best of a grid of χ (and τ), each solved linearly."""
+        opt = self.opt
+        if opt.chi_per_m is not None:
+            chi_grid = np.array([opt.chi_per_m])
+        else:
+            chi_grid = np.geomspace(0.05, 30.0, 40) / (self.length_mm / 1000.0)
+        if not opt.duty_cycle:
+            tau_grid: list[float | None] = [None]
+        elif self.free_tau:
+            tau_grid = [float(v) for v in np.geomspace(600.0, 86400.0, 12)]
+        else:
+            tau_grid = [opt.cooling_time_s]
+        starts = [(c, tau) for tau in tau_grid for c in chi_grid]
+        costs = [self.linear(c, self.a0, tau)[0] for c, tau in progress(starts, desc="feed_axis start")]
+        chi0, tau0 = starts[int(np.argmin(costs))]
+        chi0 = float(chi0)
+        return chi0, tau0, self.linear(chi0, self.a0, tau0)[1]
+
+    def refine(self, chi0: float, tau0: float | None, coef: np.ndarray) -> tuple[Any, tuple]:
+        """Bounded nonlinear least squares from the start: (result, (η, U1, U2, χ, a, τ))."""
+        opt, a0, free_chi, free_tau = self.opt, self.a0, self.free_chi, self.free_tau
+        u1, u2, eta = coef
+        x0 = [eta, u1, u2] + ([math.log(chi0)] if free_chi else []) + (
+            [math.log(a0)] if opt.fit_diffusivity else []
+        ) + ([math.log(tau0)] if free_tau else [])
+
+        def unpack(v):
+            k = 3
+            chi = math.exp(v[k]) if free_chi else chi0
+            k += free_chi
+            a = math.exp(v[k]) if opt.fit_diffusivity else a0
+            k += opt.fit_diffusivity
+            tau = math.exp(v[k]) if free_tau else tau0
+            return v[0], v[1], v[2], chi, a, tau
+
+        def resid(v):
+            eta_, u1_, u2_, chi, a, tau = unpack(v)
+            return self.basis(chi, a, tau) @ np.array([u1_, u2_, eta_]) - self.E
+
+        chi_max = min(1e3, 700.0 / (self.length_mm / 1000.0))  # the params' bound: e^(χ L) stays finite
+        lo = [0.0, -1e3, -1e3] + ([math.log(1e-3)] if free_chi else []) + (
+            [math.log(1e-8)] if opt.fit_diffusivity else []
+        )
+        hi = [1e3, 1e3, 1e3] + ([math.log(chi_max)] if free_chi else []) + (
+            [math.log(1e-3)] if opt.fit_diffusivity else []
+        )
+        if free_tau:
+            lo.append(math.log(60.0))
+            hi.append(math.log(30 * 86400.0))
+        x0 = np.clip(x0, np.array(lo) + 1e-12, np.array(hi) - 1e-12)
+        res = optimize.least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", max_nfev=2000)
+        return res, unpack(res.x)
+
+
+def _reductions(t: np.ndarray, q: np.ndarray, params: FeedAxisParams) -> dict[str, dict[str, float]]:
+    """The linear reduction (K0, tanβ, P0) at the quarters of the log's heating time (for a Siemens CNC)."""
+    reductions = {}
+    for tt in sorted({float(v) for v in np.quantile(t, [0.25, 0.5, 0.75, 1.0])}):
+        k0, tb, p0 = linear_reduction(tt, float(np.interp(tt, t, q)), params)
+        reductions[f"{tt:g}"] = {"k0_um": k0, "tan_beta_um_per_mm": tb, "p0_mm": p0}
+    return reductions
