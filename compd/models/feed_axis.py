@@ -172,8 +172,8 @@ def error_basis(
     """E = ξ α ΔL [U1 f1 + U2 f2 + η f3] at each row's position: returns (f1, f2, f3) as n × 3 (µm/K·…).
 
     `tau_s` (duty-cycle form) scales the steady profile by Q/(τ P_ref); default: the params' τ.
-    `erf_fn`: the error function; compd.models.erf's by default, a fit passes scipy's (the
-    same numbers, faster on the large arrays a fit evaluates many times)."""
+    `erf_fn`: the error function; compd.models.erf's (the C library's) by default, a fit passes
+    scipy's (faster on the large arrays a fit evaluates many times; equal to a few ulp)."""
     if tau_s is None:
         tau_s = p.cooling_time_s
     y = _midpoints_m(p)
