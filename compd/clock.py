@@ -9,7 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 from compd.io.mailbox import Latest
-from compd.io.modbus_client import LinkFault, ModbusClient, ModbusFault
+from compd.io.modbus_client import LinkFault, ModbusClient, ModbusFault, OverModbus
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
 
@@ -100,7 +100,7 @@ class SimClock(Clock):
         self.t_s = t_s
 
 
-class PlantTimeWork(DeviceWork):
+class PlantTimeWork(OverModbus, DeviceWork):
     """The device half of a plant clock (its I/O worker's thread): read the plant time
     (ms, uint32, high word first, at `address`); in lockstep, run the plant to a time and
     read it back in the same request."""
@@ -112,13 +112,6 @@ class PlantTimeWork(DeviceWork):
         self.out = out  # (plant time s, wall time of the last answer, wall time the plant time last moved)
         self.reads = 0
         self.failed_reads = 0  # answers that were not a plant time (exception, wrong shape)
-
-    def connect(self) -> None:
-        if not self.client.connect():
-            raise LinkDown(self.client.last_error or "connect failed")
-
-    def disconnect(self) -> None:
-        self.client.close()
 
     def counters(self) -> dict[str, Any]:
         return {"reads": self.reads, "failed_reads": self.failed_reads}

@@ -35,6 +35,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from compd.io.worker import LinkDown
+
 HOLDING = 0x03
 INPUT = 0x04
 WRITE_MULTIPLE = 0x10
@@ -304,3 +306,17 @@ class ModbusClient:
             values=words, device_id=self.device_id,
         ))
         return self._checked(rr, READ_WRITE, read_count, f"read/write of registers {read_address}+{read_count}")
+
+
+class OverModbus:
+    """The connect and disconnect of a device work (compd.io.worker.DeviceWork) whose device
+    is reached through `self.client`; mixed in before the work's base class."""
+
+    client: ModbusClient
+
+    def connect(self) -> None:
+        if not self.client.connect():
+            raise LinkDown(self.client.last_error or "connect failed")
+
+    def disconnect(self) -> None:
+        self.client.close()

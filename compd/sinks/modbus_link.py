@@ -19,11 +19,11 @@ from typing import Any
 
 from compd.histogram import DurationHist
 from compd.io.mailbox import Latest, WriteQueue
-from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault
+from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault, OverModbus
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
 
-class LinkWork(DeviceWork):
+class LinkWork(OverModbus, DeviceWork):
     """The device half of a link (the worker's thread): send what is queued, read the status."""
 
     def __init__(
@@ -46,13 +46,6 @@ class LinkWork(DeviceWork):
         self.write_hist = DurationHist()  # request to reply of each write, µs
         self.latency_hist = DurationHist()  # queued by the cycle to acknowledged by the device, µs
         self._next_status_s = 0.0
-
-    def connect(self) -> None:
-        if not self.client.connect():
-            raise LinkDown(self.client.last_error or "connect failed")
-
-    def disconnect(self) -> None:
-        self.client.close()
 
     def counters(self) -> dict[str, Any]:
         return {"writes": self.writes, "reply_errors": self.reply_errors, "bad_replies": self.bad_replies}

@@ -33,6 +33,7 @@ from compd.io.modbus_client import (
     ModbusClient,
     ModbusFault,
     NoConnection,
+    OverModbus,
 )
 from compd.io.worker import LinkDown
 from compd.sources.base import PolledSource, Poller, check_serial_port
@@ -231,7 +232,7 @@ class ModbusSource(PolledSource):
         }
 
 
-class ModbusPoller(Poller):
+class ModbusPoller(OverModbus, Poller):
     """The device half of a Modbus source: the planned requests, read through the Modbus
     client, decoded into temperatures and qualities (runs on the worker's thread)."""
 
@@ -253,13 +254,6 @@ class ModbusPoller(Poller):
         self.comm_errors = 0
         self.malformed_replies = 0
         self._bad_request: dict[tuple[int, int], str] = {}  # request → why its last reply was refused
-
-    def connect(self) -> None:
-        if not self.client.connect():
-            raise LinkDown(self.client.last_error or "connect failed")
-
-    def disconnect(self) -> None:
-        self.client.close()
 
     def counters(self) -> dict[str, Any]:
         return {**super().counters(), "exception_replies": self.exception_replies, "comm_errors": self.comm_errors,

@@ -72,7 +72,9 @@ def _device(**kw):
     return tx, Pt100ModbusDevice(tx, status_address=10, **kw)
 
 
-def _check_faults(h: Harness, tx: Pt100Transmitter, srv: ModbusServerThread):
+def _check_faults(h: Harness, tx: Pt100Transmitter, srv: ModbusServerThread, slow_s: float = 0.3):
+    """Values, module codes, then each wire fault and the recovery after it (`slow_s`: an
+    answer later than the source's timeout)."""
     s = h.sample()
     for n, t in zip(NAMES, TEMPS, strict=True):
         assert s[n][1] == "GOOD"
@@ -89,7 +91,7 @@ def _check_faults(h: Harness, tx: Pt100Transmitter, srv: ModbusServerThread):
     tx.set("T3", -3.2)
 
     for fault in ("exception", "no_answer", "garbage", "crc_error", "slow"):
-        srv.faults.set(fault, slow_s=0.3)
+        srv.faults.set(fault, slow_s=slow_s)
         s = h.sample(polls=2)
         assert {q for _, q in s.values()} == {"COMMS_LOST"}, fault
         srv.faults.set("none")
@@ -112,9 +114,10 @@ def test_rtu_values_and_faults(tmp_path):
     tx, dev = _device()
     a, b = tmp_path / "ttyA", tmp_path / "ttyB"
     with PtyPair(a, b), ModbusServerThread(dev, serial_port=str(a)) as srv:
-        cfg = _cfg(transport="rtu", serial_port=str(b), baudrate=115200, timeout_s=0.1)
+        # the server thread shares this process: a timeout that a busy machine cannot break
+        cfg = _cfg(transport="rtu", serial_port=str(b), baudrate=115200, timeout_s=0.5)
         with Harness(ModbusSource(cfg)) as h:
-            _check_faults(h, tx, srv)
+            _check_faults(h, tx, srv, slow_s=1.5)
 
 
 def test_float32_little_word_order_and_nan_burnout():
