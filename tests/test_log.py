@@ -99,7 +99,9 @@ def test_writer_rotates_by_size_and_every_file_is_a_log(tmp_path: Path) -> None:
 
 def test_writer_rotates_by_time(tmp_path: Path) -> None:
     path = tmp_path / "run.csv"
-    w = LogWriter(path, ["t_s", "T1"], flush_s=0.01, rotate_s=0.05)
+    # keep enough files for every rotation a slow machine may make (the oldest beyond `keep`
+    # is dropped by design, so a small keep would make the row count depend on timing)
+    w = LogWriter(path, ["t_s", "T1"], flush_s=0.01, rotate_s=0.05, keep=100)
     for i in range(10):
         w.push((float(i), 20.0))
         time.sleep(0.03)

@@ -32,12 +32,26 @@ log: {{path: run.csv, period_s: 1.0, flush_s: 0.2}}
 """
 
 
-def wait_for(pred, timeout_s: float = 20.0) -> None:  # noqa: ANN001
+def wait_for(pred, timeout_s: float = 60.0) -> None:  # noqa: ANN001
     deadline = time.monotonic() + timeout_s
     while not pred():
         if time.monotonic() > deadline:
             raise AssertionError("timed out")
         time.sleep(0.05)
+
+
+def logged_t_s(path: Path) -> float:
+    """The time of the last complete row of a log being written (0 before the first)."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return 0.0
+    for line in reversed(lines[1:]):
+        try:
+            return float(line.split(",", 1)[0])
+        except ValueError:
+            continue
+    return 0.0
 
 
 def test_sighup_reload(tmp_path: Path) -> None:
@@ -49,17 +63,20 @@ def test_sighup_reload(tmp_path: Path) -> None:
             [sys.executable, "-m", "compd", "run", str(cfg)],
             stdout=subprocess.DEVNULL, stderr=err, env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
-        try:
-            time.sleep(2.0)
+        run_log = tmp_path / "run.csv"
+        try:  # each step waits for simulated time in the log, not for wall time
+            wait_for(lambda: logged_t_s(run_log) > 600)
             cfg.write_text(CONFIG.format(slew=0.05).replace("max_slew_um_per_s", "max_slew"))
             proc.send_signal(signal.SIGHUP)
             wait_for(lambda: "reload rejected" in err_path.read_text())
             assert proc.poll() is None  # still running on the old config
-            time.sleep(1.0)
+            t_rejected = logged_t_s(run_log)
+            wait_for(lambda: logged_t_s(run_log) > t_rejected + 600)
             cfg.write_text(CONFIG.format(slew=0.02))
             proc.send_signal(signal.SIGHUP)
             wait_for(lambda: "reloaded" in err_path.read_text())
-            time.sleep(1.5)
+            t_reloaded = logged_t_s(run_log)
+            wait_for(lambda: logged_t_s(run_log) > max(t_reloaded + 600, 2100))
             proc.send_signal(signal.SIGTERM)
             proc.wait(timeout=20)
         finally:
