@@ -115,6 +115,23 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert "bogus" in err
 
 
+def test_lvr_library_span_too_long_exits_2(tmp_path, capsys):
+    # 300 rows, 3 inputs: Q² selection tries 3 components, which need 6 library rows;
+    # eq. 11 keeps s − P* rows, so a span of 294 is the longest accepted
+    log = tmp_path / "log.csv"
+    _write_log(log)
+    out = tmp_path / "m.yaml"
+    rep = tmp_path / "r.json"
+    argv = ["fit", "--kind", "lvr", "--log", str(log), "--out", str(out), "--report", str(rep)]
+    assert main([*argv, "--option", "library_span=294"]) == 0
+    assert json.loads(rep.read_text())["details"]["fit_rows"] == 6
+    out.unlink()
+    capsys.readouterr()  # the accepted fit's output
+    err = _bad(tmp_path, capsys, [*argv, "--option", "library_span=295"])
+    assert "log.csv: --option library_span: span 295 keeps 5 of the log's 300 rows" in err
+    assert "at most 294" in err and not out.exists()
+
+
 def test_xi_command(tmp_path, capsys):
     prof = tmp_path / "p.csv"
     x = np.linspace(0, 165, 12)
