@@ -142,6 +142,7 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         bed_gain_um_per_k=[float(v) for v in theta[L : L + nb]],
         spindle_sign=sign,
         t0_c=None,
+        recursion_start="zero",
     )
     model = AR1(params, names, axis_names(targets))
     model.start(Xs[0], float(t[rows[0]]))
@@ -195,6 +196,7 @@ class _Problem:
                 e_j = np.zeros(L)
                 e_j[j] = 1.0
                 Wt[k, j] = c2_of_speed(v, rpm, list(e_j))
+        Wt[0] = 0.0  # ΔL(0) = 0 (paper 001, eq. 17): C2 enters from the second step on
         self.Wt, self.L, self.Es, self.sign = Wt, L, Es, sign
         self.cum = np.tril(np.ones((L, L)))  # C2 levels = cumulative sum of increments δ ≥ 0
         self.bed_rise = Xs[:, 1 : 1 + n_bed] - x0[:n_bed]
