@@ -282,3 +282,69 @@ def test_files_before_recursion_start_keep_their_rule(tmp_path):
         m.evaluate(X[i], t[i], out)
         stepped.append(out[0])
     np.testing.assert_allclose(stepped, p_old, atol=1e-12)
+
+
+def _headstock_c(t_s, speed_rpm, rise_100min_c):
+    """A headstock sensor: from 20 °C each run warms linearly to its rise at 100 min, then holds;
+    at standstill it is back at 20 °C (the runs start cold, as the paper's do)."""
+    T = np.full(t_s.size, 20.0)
+    start = None
+    for k in range(t_s.size):
+        if speed_rpm[k] > 0:
+            start = t_s[k] if start is None else start
+            T[k] = 20.0 + rise_100min_c[speed_rpm[k]] * min((t_s[k] - start) / 6000.0, 1.0)
+        else:
+            start = None
+    return T
+
+
+PAPER_RISES_C = {2000.0: 7.46, 1500.0: 4.11, 1000.0: 3.02}  # Table 2, the first 100 min
+
+
+def test_c2_at_unseen_speeds_from_temperature_rise(tmp_path):
+    """Paper 001, eqs. 20–21: C2 fitted at 2000 rpm (eq. 17 log), the rises of the headstock sensor
+    in runs at 1000 and 1500 rpm (another log, no error logged there) → C2(1000) 0.089, C2(1500) 0.121."""
+    from compd.log import write_log
+
+    train = _eq17_log()
+    T2 = _headstock_c(train.t_s, train.col("speed_rpm"), PAPER_RISES_C)
+    train = Log("eq17.csv", [*train.columns, "T2"], np.column_stack([train.data, T2]))
+    t = np.arange(0, 20 * 3600, 60.0)
+    speed = np.select([t < 3 * 3600, (t >= 10 * 3600) & (t < 13 * 3600)], [1000.0, 1500.0], 0.0)
+    runs = tmp_path / "runs.csv"
+    write_log(runs, ["t_s", "speed_rpm", "T2"], np.column_stack([t, speed, _headstock_c(t, speed, PAPER_RISES_C)]))
+    res = AR1.fit(train, ["T3"], None, rise_sensor="T2", rise_log=str(runs))
+    table = dict(res.model.params.c2_table)
+    assert round(table[1000.0], 3) == 0.089 and round(table[1500.0], 3) == 0.121
+    assert table[2000.0] == pytest.approx(0.22, rel=1e-6)
+    how = res.report["c2_at_unseen_speeds"]
+    assert how["method"] == "temperature_rise" and how["ref_rpm"] == 2000.0
+    assert how["rises_c"] == pytest.approx({"2000": 7.46, "1000": 3.02, "1500": 4.11})
+    assert "1000, 1500 rpm" in how["reason"] and "T2" in how["reason"]
+    assert res.model.c1_at(1000.0) == res.model.params.c1
+    # the run-time C2 at 1000 rpm is the scaled one, not the linear 0.110
+    m = res.model
+    assert c2_of_speed(1000.0, m._rpm, m._c2) == pytest.approx(0.22 * 3.02 / 7.46, rel=1e-6)
+
+
+def test_report_names_linear_c2_when_the_rises_are_missing():
+    """Without the runs (or without a sensor named) C2 stays linear in speed, and the report says why."""
+    train = _eq17_log()
+    T2 = _headstock_c(train.t_s, train.col("speed_rpm"), PAPER_RISES_C)
+    train = Log("eq17.csv", [*train.columns, "T2"], np.column_stack([train.data, T2]))
+    plain = AR1.fit(train, ["T3"], None)
+    how = plain.report["c2_at_unseen_speeds"]
+    assert how["method"] == "linear" and "no rise_sensor" in how["reason"]
+    m = plain.model
+    assert c2_of_speed(1000.0, m._rpm, m._c2) == pytest.approx(0.110, rel=1e-5)
+    sensed = AR1.fit(train, ["T3"], None, rise_sensor="T2")  # only the 2000 rpm run in the log
+    how = sensed.report["c2_at_unseen_speeds"]
+    assert how["method"] == "linear" and "without a fitted C2" in how["reason"]
+    assert how["rises_c"] == pytest.approx({"2000": 7.46})
+    assert dict(sensed.model.params.c2_table) == dict(m.params.c2_table)
+    given = AR1.fit(train, ["T3"], None, c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1000: 3.02}})
+    assert given.report["c2_at_unseen_speeds"]["method"] == "temperature_rise"
+    assert round(dict(given.model.params.c2_table)[1000.0], 3) == 0.089
+    with pytest.raises(BadInput, match="not both"):
+        AR1.fit(train, ["T3"], None, rise_sensor="T2", c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46,
+                                                               "rises_c": {1000: 3.02}})
