@@ -65,6 +65,11 @@ def test_fit_ar1_reports_ljung_box(tmp_path):
     r = json.loads(rep.read_text())
     assert {"q", "p_value", "lags"} <= set(r["details"]["ljung_box"])
     assert r["inputs"] == ["speed_rpm", "T1", "T3"]
+    # which C2 the model uses at speeds the log has no error at: in the report and the model file
+    assert r["details"]["c2_at_unseen_speeds"]["method"] == "linear"
+    model = yaml.safe_load((tmp_path / "a.yaml").read_text())
+    assert model["fit"]["c2_at_unseen_speeds"]["method"] == "linear"
+    assert model["params"]["recursion_start"] == "zero"
 
 
 def test_fit_all_prints_comparison(tmp_path, capsys):
