@@ -16,8 +16,8 @@ from pydantic import ValidationError
 
 from compd.errors import BadInput
 from compd.identify import FITS, KINDS, option_names
-from compd.identify.data import columns, default_targets, progress
-from compd.log import Log, read_log
+from compd.identify.data import HOLDOUT_BLOCKS, columns, default_targets, progress
+from compd.log import Log, is_temperature_column, read_log
 from compd.models.base import Model
 
 
@@ -78,7 +78,6 @@ def scores(model: Model, log: Log, targets: list[str], pred: np.ndarray) -> dict
     return out
 
 
-HOLDOUT_BLOCKS = 3  # the log in three contiguous blocks: two forward-chained folds
 
 
 def held_out_rmse(
@@ -116,7 +115,9 @@ def compare_with_mlr(
     (`held_out_rmse`); a warning per axis where MLR predicts the unseen rows better."""
     try:
         ours = held_out_rmse(kind, log, inputs, targets, options)
-        mlr_inputs = [c for c in inputs if c in log.columns]
+        # MLR on the temperatures among the inputs (a position or a current is not a rise);
+        # a model that takes none (the analytic feed axis) is compared with MLR on every one
+        mlr_inputs = [c for c in inputs if c in log.columns and is_temperature_column(c)] or log.temperature_columns()
         mlr = held_out_rmse("mlr", log, mlr_inputs, targets, {})
     except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
         return {"skipped": f"the held-out comparison could not fit a block: {e}"}
@@ -178,7 +179,10 @@ def fit_model(
         "details": result.report,
     }
     if baseline and kind != "mlr":
-        report["baseline_mlr"] = compare_with_mlr(kind, log, list(inputs or model.inputs), tcols, options,
+        held_options = dict(options)
+        if "form" in result.report:  # score the form the fit kept (feed_axis form: auto)
+            held_options["form"] = result.report["form"]
+        report["baseline_mlr"] = compare_with_mlr(kind, log, list(inputs or model.inputs), tcols, held_options,
                                                   model.outputs, warnings)
     report["warnings"] = warnings
     fit_info: dict[str, Any] = {

@@ -97,9 +97,15 @@ def _curves(ax: Any, outcome: Any, log: Log, e: np.ndarray) -> None:
     t_rel, q = model.heating(X, log.t_s)
     pos = X[:, model._i_pos]
     span = max(float(t_rel[-1]), 1.0)
+    p = model.params
     for frac in (0.25, 0.5, 0.75, 1.0):
         tt = frac * span
-        y, curve = error_profile_um(tt, float(np.interp(tt, t_rel, q)), model.params)
+        if model.field_form:  # the field form's E(y) from the readings at that time
+            y = p.stroke_start_mm + np.linspace(0.0, p.length_mm, 4 * p.segments + 1)
+            row = X[min(int(np.searchsorted(t_rel, tt)), len(t_rel) - 1)]
+            curve = model.field_profile_um(X, row, y)
+        else:
+            y, curve = error_profile_um(tt, float(np.interp(tt, t_rel, q)), p)
         line = ax.plot(y, curve, "-", label=f"t = {tt / 60:.0f} min")[0]
         near = np.abs(t_rel - tt) <= 0.05 * span
         ax.plot(pos[near], e[near], ".", ms=3, color=line.get_color())

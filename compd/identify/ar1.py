@@ -12,9 +12,11 @@ from scipy import optimize, signal, stats
 from compd.config import Strict
 from compd.errors import BadInput
 from compd.identify.data import (
+    HELD_OUT_METHOD,
     FitResult,
     axis_names,
     columns,
+    compare_forms,
     default_targets,
     progress,
     require_rows,
@@ -73,8 +75,11 @@ class Options(Strict):
     speed_round_rpm: float = Field(50.0, gt=0, description="speeds this close form one level")
     stopped_below_rpm: float = Field(1.0, ge=0, description="slower than this counts as stopped")
     spindle_sign: Literal[1, -1] | None = Field(None, description="none: −1 with bed inputs, else +1")
-    c1_by_speed: bool = Field(
-        False, description="fit C1 at standstill and at each logged speed (compd's form; needs stops in the log)"
+    c1_by_speed: bool | Literal["auto"] = Field(
+        "auto",
+        description="fit C1 at standstill and at each logged speed (compd's form; needs stops in the log);"
+        " false = one C1 (the paper's); auto = compd's form where it predicts the later blocks of the log"
+        " at least 5 % better held out, else the paper's",
     )
     c2_rise: dict[str, Any] | None = Field(
         None,
@@ -91,11 +96,40 @@ class Options(Strict):
     )
 
 
+AUTO_MARGIN = 0.95  # compd's form must cut the held-out RMSE by 5 % to replace the paper's
+
+
 def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any) -> FitResult:
+    """The AR(1) model; with `c1_by_speed: auto` the paper's single C1 unless C1 by speed predicts
+    the later blocks of the log clearly better (compd.identify.data.compare_forms)."""
+    opt = validate_options("ar1", Options, options)
+    if opt.c1_by_speed != "auto":
+        return _fit(log, inputs, targets, opt)
+    paper = opt.model_copy(update={"c1_by_speed": False})
+    by_speed = opt.model_copy(update={"c1_by_speed": True})
+    result = _fit(log, inputs, targets, paper)
+    target = default_targets(log, targets)[0]
+    held, blocks = compare_forms(log, target, {
+        "constant": lambda lg: _fit(lg, inputs, targets, paper),
+        "by_speed": lambda lg: _fit(lg, inputs, targets, by_speed),
+    })
+    chosen = "constant"
+    if all(isinstance(v, float) for v in held.values()) and held["by_speed"] < AUTO_MARGIN * held["constant"]:
+        chosen = "by_speed"
+        result = _fit(log, inputs, targets, by_speed)
+    result.report["c1_form"] = {
+        "chosen": chosen,
+        "method": HELD_OUT_METHOD + f"; C1 by speed is kept only below {AUTO_MARGIN:g} × the paper's RMSE",
+        "held_out_blocks": blocks,
+        "held_out_rmse_um": held,
+    }
+    return result
+
+
+def _fit(log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Options) -> FitResult:
     """C1 by a bounded 1-D search; for each C1 the rest (C2 levels ≥ 0 and monotone, bed
     gains, C3) is a bounded linear least-squares problem on the simulated output, so the
     fit minimises the free-run error the loop will make, not the one-step error."""
-    opt = validate_options("ar1", Options, options)
     targets = default_targets(log, targets)
     if len(targets) != 1:
         raise BadInput(f"ar1 fits one axis at a time; targets: {', '.join(targets)}", path="--target")

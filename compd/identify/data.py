@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import math
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -107,3 +108,57 @@ def progress(iterable: Iterable[Any], desc: str, total: int | None = None) -> It
         return iterable
     tqdm.monitor_interval = 0  # no monitor thread: a fit leaves nothing running behind it
     return tqdm(iterable, desc=desc, total=total, delay=1.0, leave=False, file=sys.stderr)
+
+
+HOLDOUT_BLOCKS = 3  # the log in three contiguous time blocks: two forward-chained folds
+HELD_OUT_METHOD = (
+    f"forward-chained blocks: the log in {HOLDOUT_BLOCKS} time blocks, each block after the first"
+    " predicted by a fit on the blocks before it"
+)
+
+
+def forward_fold_errors(
+    log: Log, target: str, fit_on: Callable[[Log], FitResult]
+) -> list[tuple[float, int] | str]:
+    """Per forward-chained fold (sum of squared errors µm², rows) of `target`, or why the fold could not be fitted.
+
+    Fold k fits on the blocks before block k (a contiguous stretch from the log's start, so a
+    model with memory starts as it would on the machine), predicts the whole log and is scored
+    on block k only. Scoring rows next to training rows would flatter a model that follows the
+    temperatures closely; predicting forward does not.
+    """
+    n = len(log)
+    edges = np.linspace(0, n, HOLDOUT_BLOCKS + 1).astype(int)
+    e = log.col(target)
+    folds: list[tuple[float, int] | str] = []
+    for k in range(1, HOLDOUT_BLOCKS):
+        try:
+            model = fit_on(Log(log.file, log.columns, log.data[: edges[k]])).model
+        except (BadInput, ValidationError, ValueError, np.linalg.LinAlgError) as exc:
+            folds.append(f"block {k + 1}: {exc}")
+            continue
+        axis = error_axis(target)
+        pred = model.predict(log.matrix(model.inputs), log.t_s)[:, model.outputs.index(axis) if axis in model.outputs else 0]
+        r = (e - pred)[edges[k]: edges[k + 1]]
+        r = r[np.isfinite(r)]
+        folds.append((float(np.sum(r * r)), int(r.size)))
+    return folds
+
+
+def compare_forms(
+    log: Log, target: str, forms: dict[str, Callable[[Log], FitResult]]
+) -> tuple[dict[str, float | str], list[int]]:
+    """Held-out RMSE (µm) of each form over the forward-chained folds that every form could be fitted on.
+
+    Returns ({form: RMSE, or why it could not be scored}, the folds used, 1-based blocks)."""
+    folds = {name: forward_fold_errors(log, target, fit_on) for name, fit_on in forms.items()}
+    usable = [k for k in range(HOLDOUT_BLOCKS - 1) if all(not isinstance(f[k], str) for f in folds.values())]
+    out: dict[str, float | str] = {}
+    for name, f in folds.items():
+        scored = [f[k] for k in usable]
+        count = sum(c for _, c in scored)  # type: ignore[misc]
+        if count:
+            out[name] = math.sqrt(sum(sq for sq, _ in scored) / count)  # type: ignore[misc]
+        else:
+            out[name] = "; ".join(x for x in f if isinstance(x, str)) or "no held-out rows"
+    return out, [k + 2 for k in usable]

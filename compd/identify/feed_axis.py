@@ -1,6 +1,23 @@
-"""Identification of the feed-axis model: bounded nonlinear least squares of (η, U1, U2, χ[, a, τ]) (paper 000).
+"""Identification of the feed-axis model: the analytic form (paper 000) or compd's field form, whichever predicts better.
 
-Identifiability: E is proportional to ξ times a function linear in (U1, U2, η), so ξ
+Forms (compd.models.feed_axis states the equations):
+* analytic, the paper's: the erf temperature field driven by the motor loss, by bounded
+  nonlinear least squares of (η, U1, U2, χ[, a, τ]) below;
+* field, compd's: the measured field of the slide's sensors, by linear least squares of
+  the gains (g_I, g_R, g_A) and the offsets b_o.
+`form: auto` (the default) fits every form the log can carry (field: slide sensors along
+the stroke; analytic: a motor current or `power_w`) and keeps the one with the smaller
+held-out RMSE: the log in three time blocks, each block after the first predicted by a fit
+on the blocks before it. The report gives both figures and the form kept.
+
+Slide sensors are named by `--option slide_sensors=COL@MM,COL@MM,...` or found by name: a
+group of temperature columns PREFIX<number>[mm] (T_base_000, T_base_150, ...) whose
+numbers, read as axis positions in mm, spread over at least a quarter of the stroke
+(so T1 … T19 are not mistaken for positions). The ambient is `--ambient COL` or the one
+temperature column whose name says amb/room; every other temperature input (`--inputs`,
+default every temperature column) enters as an offset b_o ΔT_o.
+
+Identifiability of the analytic form: E is proportional to ξ times a function linear in (U1, U2, η), so ξ
 cannot be told apart from a common scale of (U1, U2, η). The fit therefore holds ξ at
 a given value (default 1) and identifies η, U1, U2 together with the field's shape χ
 (and, optionally, the diffusivity a and the duty-cycle form's τ) by bounded nonlinear
@@ -11,7 +28,8 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any
+import re
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -20,9 +38,11 @@ from scipy import optimize, special
 from compd.config import Strict
 from compd.errors import BadInput
 from compd.identify.data import (
+    HELD_OUT_METHOD,
     FitResult,
     axis_names,
     columns,
+    compare_forms,
     default_targets,
     progress,
     require_rows,
@@ -32,7 +52,9 @@ from compd.log import Log
 from compd.models.feed_axis import (
     FeedAxis,
     FeedAxisParams,
+    SlideField,
     error_basis,
+    field_terms,
     leaky_heat_j,
     linear_reduction,
 )
@@ -62,15 +84,185 @@ class Options(Strict):
     )
     cooling_time_s: float | None = Field(None, gt=0, description="with duty_cycle: fix τ; none = fit it")
     linear_p0_mm: float | None = Field(None, description="kept in the model: see the params' linear_p0_mm")
+    form: Literal["auto", "analytic", "field"] = Field(
+        "auto", description="analytic = paper 000's; field = compd's from the slide sensors; auto = the better held out"
+    )
+    slide_sensors: str | None = Field(
+        None, description="the slide's sensors as COL@MM,COL@MM,... (axis positions); none = found by name"
+    )
+    slide_volume_m3: float | None = Field(
+        None, gt=0, le=100, description="the slide's volume V: η is then the paper's dimensionless share"
+    )
 
 
 def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any) -> FitResult:
-    """Bounded nonlinear least squares of (η, U1, U2, χ[, a, τ]) against the logged error."""
+    """The feed-axis model of `form` (auto: the form with the smaller held-out RMSE)."""
     opt = validate_options("feed_axis", Options, options)
     targets = default_targets(log, targets)
     if len(targets) != 1:
         raise BadInput(f"feed_axis fits one axis at a time; targets: {', '.join(targets)}", path="--target")
     axis = axis_names(targets)[0]
+    pos_col = opt.position or f"pos_{axis}_mm"
+    if pos_col not in log.columns:
+        raise BadInput(f"the log has no position column {pos_col} (E depends on where the axis stands)",
+                       file=log.file, path="--option position")
+    layout = _field_layout(log, inputs, opt, pos_col)
+    has_loss = opt.power_w is not None or (opt.current or f"current_{axis}_a") in log.columns
+    if opt.form == "field" or (opt.form == "auto" and not has_loss):
+        if layout is None:
+            raise BadInput(
+                "the field form needs two or more slide sensors along the stroke: name them with"
+                " --option slide_sensors=COL@MM,COL@MM (none found by name)"
+                + ("" if has_loss else "; the analytic form needs a current column or --option power_w"),
+                file=log.file, path="--option slide_sensors",
+            )
+        result = _fit_field(log, targets, axis, opt, layout)
+        result.report["form"] = "field"
+        result.report["form_selection"] = {"method": "asked" if opt.form == "field" else "the only form the log carries"}
+        return result
+    if opt.form == "analytic" or layout is None:
+        result = _fit_analytic(log, targets, axis, opt)
+        result.report["form"] = "analytic"
+        result.report["form_selection"] = {
+            "method": "asked" if opt.form == "analytic" else "no slide sensors: the only form the log carries"
+        }
+        return result
+    return _select(log, targets, axis, opt, layout)
+
+
+def _select(log: Log, targets: list[str], axis: str, opt: Options, layout: dict[str, Any]) -> FitResult:
+    """Fit both forms; keep the one whose forward-chained held-out RMSE is smaller."""
+    fits = {
+        "field": lambda lg: _fit_field(lg, targets, axis, opt, layout),
+        "analytic": lambda lg: _fit_analytic(lg, targets, axis, opt),
+    }
+    held, blocks = compare_forms(log, targets[0], fits)
+    scored = {k: v for k, v in held.items() if isinstance(v, float)}
+    best = min(scored, key=scored.__getitem__) if scored else "field"
+    result = fits[best](log)
+    result.report["form"] = best
+    result.report["form_selection"] = {
+        "method": HELD_OUT_METHOD + "; the form with the smaller RMSE is kept",
+        "held_out_blocks": blocks,
+        "held_out_rmse_um": held,
+    }
+    return result
+
+
+_NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<mm>\d+(?:\.\d+)?)(?:_?mm)?$", re.IGNORECASE)
+_AMBIENT = re.compile(r"amb|room", re.IGNORECASE)
+
+
+def _field_layout(log: Log, inputs: list[str] | None, opt: Options, pos_col: str) -> dict[str, Any] | None:
+    """The field form's inputs: slide sensors with positions, ambient, offsets; None without slide sensors."""
+    temps = [c for c in (list(inputs) if inputs else log.temperature_columns()) if c != pos_col]
+    for c in temps:
+        if c not in log.columns:
+            raise BadInput(f"the log has no column {c}", file=log.file, path="--inputs")
+    pos = log.col(pos_col)
+    length = opt.length_mm or float(np.max(pos) - opt.stroke_start_mm)
+    if opt.slide_sensors:
+        slide = _parse_slide(opt.slide_sensors, log)
+        how = "--option slide_sensors"
+    else:
+        slide = _slide_by_name(temps, opt.stroke_start_mm, length)
+        how = "found by name"
+    if slide is None or len(slide) < 2:
+        return None
+    slide.sort(key=lambda cm: cm[1])
+    names = [c for c, _ in slide]
+    ambient = opt.ambient
+    if ambient is None:
+        amb = [c for c in temps if _AMBIENT.search(c) and c not in names]
+        ambient = amb[0] if len(amb) == 1 else None
+    elif ambient not in log.columns:
+        raise BadInput(f"the log has no ambient column {ambient}", file=log.file, path="--ambient")
+    offsets = [c for c in temps if c not in names and c != ambient]
+    return {"slide": slide, "ambient": ambient, "offsets": offsets, "found": how, "length_mm": length}
+
+
+def _parse_slide(text: str, log: Log) -> list[tuple[str, float]]:
+    out = []
+    for item in text.split(","):
+        col, sep, mm = item.strip().partition("@")
+        try:
+            at = float(mm)
+        except ValueError:
+            at = math.nan
+        if not sep or not col or not math.isfinite(at):
+            raise BadInput(f"expected COL@MM, got {item.strip()!r}", path="--option slide_sensors")
+        if col not in log.columns:
+            raise BadInput(f"the log has no column {col}", file=log.file, path="--option slide_sensors")
+        out.append((col, at))
+    if len({c for c, _ in out}) != len(out) or len({m for _, m in out}) != len(out):
+        raise BadInput("each slide sensor and each position once", path="--option slide_sensors")
+    return out
+
+
+def _slide_by_name(temps: list[str], start_mm: float, length_mm: float) -> list[tuple[str, float]] | None:
+    """The largest group PREFIX<number>[mm] whose numbers lie on the stroke and span ≥ ¼ of it."""
+    groups: dict[str, list[tuple[str, float]]] = {}
+    for c in temps:
+        m = _NUMBERED.match(c)
+        if m and m["prefix"]:
+            groups.setdefault(m["prefix"], []).append((c, float(m["mm"])))
+    best = None
+    for members in groups.values():
+        mm = [v for _, v in members]
+        on_stroke = all(start_mm - 1e-9 <= v <= start_mm + length_mm + 1e-9 for v in mm)
+        spread = len(members) >= 2 and len(set(mm)) == len(mm) and max(mm) - min(mm) >= 0.25 * length_mm
+        if on_stroke and spread and (best is None or len(members) > len(best)):
+            best = members
+    return None if best is None else list(best)
+
+
+def _fit_field(log: Log, targets: list[str], axis: str, opt: Options, layout: dict[str, Any]) -> FitResult:
+    """Linear least squares of (g_I, g_R, g_A, b_o) on the measured field (rises from the first row)."""
+    pos_col = opt.position or f"pos_{axis}_mm"
+    slide = layout["slide"]
+    amb, offs = layout["ambient"], layout["offsets"]
+    names = [pos_col] + [c for c, _ in slide] + ([amb] if amb else []) + offs
+    roles = ["position"] + ["slide"] * len(slide) + (["ambient"] if amb else []) + ["offset"] * len(offs)
+    X = columns(log, names)
+    E = columns(log, targets)[:, 0]
+    n_coef = 2 + bool(amb) + len(offs)
+    require_rows(log, X.shape[0], n_coef + 3, f"feed_axis field form ({n_coef} coefficients)")
+    if np.ptp(X[:, 0]) <= 0:
+        raise BadInput("the axis never moves: E(t, y) needs several positions", file=log.file, path=pos_col)
+    length = layout["length_mm"]
+    if length <= 0:
+        raise BadInput("the stroke length must be positive", path="--option length_mm")
+    geometry = dict(
+        length_mm=length, segments=opt.segments, stroke_start_mm=opt.stroke_start_mm, alpha_per_k=opt.alpha_per_k,
+        input_roles=roles, linear_p0_mm=opt.linear_p0_mm,
+    )
+    k = len(slide)
+    probe = FeedAxisParams(**geometry, field=SlideField(
+        slide_mm=[m for _, m in slide], gain_integral=1.0, offset_um_per_k=[0.0] * len(offs)))
+    rise = X - X[0]
+    F = field_terms(rise[:, 1:1 + k], X[:, 0] - opt.stroke_start_mm, rise[:, 1 + k] if amb else None, probe)
+    A = np.column_stack([F[:, 0], F[:, 1]] + ([F[:, 2]] if amb else []) + [rise[:, 1 + k + bool(amb) + j]
+                                                                           for j in range(len(offs))])
+    coef, *_ = np.linalg.lstsq(A, E, rcond=None)
+    g_amb = float(coef[2]) if amb else 0.0
+    params = FeedAxisParams(**geometry, field=SlideField(
+        slide_mm=[m for _, m in slide], gain_integral=float(coef[0]), gain_restraint=float(coef[1]),
+        gain_ambient=g_amb, offset_um_per_k=[float(v) for v in coef[2 + bool(amb):]],
+    ))
+    model = FeedAxis(params, names, [axis])
+    report = {
+        "slide_sensors": {c: m for c, m in slide},
+        "slide_sensors_from": layout["found"],
+        "ambient": amb,
+        "offsets": offs,
+        "note": "the field form: E = g_I α∫ΔT̂ + g_R α(y/L)∫_0^L ΔT̂ + g_A α y ΔT_amb + Σ b_o ΔT_o,"
+                " rises from the readings at start",
+    }
+    return FitResult(model, report)
+
+
+def _fit_analytic(log: Log, targets: list[str], axis: str, opt: Options) -> FitResult:
+    """Bounded nonlinear least squares of (η, U1, U2, χ[, a, τ]) against the logged error."""
     names, roles, cur_col = _inputs_and_roles(log, opt, axis)
     X = columns(log, names)
     E = columns(log, targets)[:, 0]
@@ -88,7 +280,7 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         diffusivity_m2_s=opt.diffusivity_m2_s, xi=opt.xi, zeta_per_k=opt.zeta_per_k,
         power_w=opt.power_w if cur_col is None else None,
         r_cu_ohm=opt.r_cu_ohm if cur_col is not None else None, input_roles=roles,
-        linear_p0_mm=opt.linear_p0_mm,
+        linear_p0_mm=opt.linear_p0_mm, slide_volume_m3=opt.slide_volume_m3,
     )
     probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
     tmp = FeedAxis(probe, names, [axis])
@@ -111,7 +303,11 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         "optimizer": res.message,
         "nfev": int(res.nfev),
         "xi_fixed": opt.xi,
-        "note": "ξ is held fixed: E scales with ξ·(U1, U2, η), so ξ alone is not identifiable",
+        "eta_share": float(eta) if opt.slide_volume_m3 else None,
+        "eta_per_m3": float(eta) / (opt.slide_volume_m3 or 1.0),
+        "note": "ξ is held fixed: E scales with ξ·(U1, U2, η), so ξ alone is not identifiable"
+                + ("" if opt.slide_volume_m3 else "; η is per m³: give --option slide_volume_m3 for the"
+                   " paper's dimensionless share"),
         "linear_reduction": _reductions(t, shape.heat(tau), params),
     }
     return FitResult(model, report)

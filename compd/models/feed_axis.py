@@ -21,25 +21,77 @@ mean loss Q/τ relative to `ref_power_w`: T_hds(t, y) = Q/(τ P_ref) (U2 e^(χ y
 Without the loss (τ → ∞) Q is the paper's ∫ P dt; with a constant loss the steady
 profile reaches the paper's U1, U2 after a few τ. The fit finds τ with χ.
 
-The fit (η, U1, U2, χ and optionally a and τ from a log) is compd.identify.feed_axis.
+η is the paper's dimensionless share of the motor loss that heats the slide when
+`slide_volume_m3` V is given: T_hps − T_fo = η Q/(ρ c V). Files without V keep the older
+meaning, η per m³ (T_hps − T_fo = η Q/(ρ c)); the two differ by the factor V.
+
+Field form (compd's, `field:` set): where the slide carries temperature sensors, the
+measured field replaces the analytic one. With the rises ΔT_k = T_k − T_k0 of the slide
+sensors at stroke positions s_k, interpolated linearly in y (held flat beyond the first
+and last sensor) to ΔT̂(y), the ambient rise ΔT_a and further sensors ΔT_o (table, head:
+parts whose growth does not depend on the position), y the position from the stroke start
+and L the stroke:
+
+    I(y)    = α ∫_0^y ΔT̂ dy'                      the segment sum of eq. 21 on the measured field
+    R(y)    = α (y/L) ∫_0^L ΔT̂ dy'                the end supports' restraint (the reversal)
+    A(y)    = α y ΔT_a                             a scale or a guide that follows the room
+    E(t, y) = g_I I + g_R R + g_A A + Σ_o b_o ΔT_o   µm
+
+g_I plays ξ's part (the expansion's correction factor), g_R < 0 pulls the error back
+towards the far end as the fixed supports do, and every term is linear in its
+coefficient, so the fit is a least-squares solve. Heat that enters where the coil
+travels shows in the sensors there, so partial strokes are seen, and the slide's
+response to the room is measured rather than modelled. T_k0 are the readings at start
+(the heating run's equilibrium, as t = 0 is for the analytic form).
+
+The fit (η, U1, U2, χ and optionally a and τ from a log, or the field form's gains) is
+compd.identify.feed_axis.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from compd.errors import BadInput
-from compd.models.base import MAX_LENGTH_MM, Model, ModelParams
+from compd.models.base import MAX_GAIN_UM_PER_K, MAX_LENGTH_MM, Model, ModelParams
 from compd.models.erf import erf, erf_inplace
 
 ErfFn = Callable[[np.ndarray], np.ndarray]
 
-Role = Literal["position", "current", "motor_temp", "ambient"]
+Role = Literal["position", "current", "motor_temp", "ambient", "slide", "offset"]
+FIELD_ROLES = ("slide", "offset")
+
+
+class SlideField(ModelParams):
+    """compd's field form of the feed-axis model: the measured slide field (see the module doc).
+
+    Ranges: gains |g| ≤ 100 (g_I ≈ ξ ≈ 1 for a slide of the given α); offsets within the
+    gain bound of the linear models (µm per K).
+    """
+
+    slide_mm: list[Annotated[float, Field(ge=-MAX_LENGTH_MM, le=MAX_LENGTH_MM)]] = Field(
+        min_length=2,
+        description="axis position of each `slide` input, in input order, strictly increasing (mm)",
+    )
+    gain_integral: float = Field(ge=-100, le=100, description="g_I on α ∫_0^y ΔT̂ (≈ ξ)")
+    gain_restraint: float = Field(0.0, ge=-100, le=100, description="g_R on α (y/L) ∫_0^L ΔT̂ (the end supports)")
+    gain_ambient: float = Field(0.0, ge=-100, le=100, description="g_A on α y ΔT_ambient (needs an `ambient` input)")
+    offset_um_per_k: list[Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]] = Field(
+        default_factory=list, description="b_o per `offset` input, in input order (µm/K)"
+    )
+
+    @field_validator("slide_mm")
+    @classmethod
+    def _increasing(cls, v: list[float]) -> list[float]:
+        if any(b <= a for a, b in zip(v[:-1], v[1:], strict=True)):
+            raise ValueError("slide_mm must be strictly increasing (the sensors' order along the slide)")
+        return v
 
 
 class FeedAxisParams(ModelParams):
@@ -58,10 +110,21 @@ class FeedAxisParams(ModelParams):
     alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3, description="α_l, 1/K")
     rho_c_j_m3k: float = Field(3.61e6, ge=1e5, le=1e8, description="ρ c, J/(m³ K)")
     diffusivity_m2_s: float = Field(1.25e-5, gt=0, le=1e-3, description="a = λ/(ρ c), m²/s")
-    chi_per_m: float = Field(gt=0, le=1e5, description="χ = √(h A/(ρ c a)), 1/m")
-    eta: float = Field(ge=0, le=1e3, description="η, share of the motor loss that heats the slide (×ξ scale)")
-    u1_k: float = Field(ge=-1e3, le=1e3, description="U1, K")
-    u2_k: float = Field(ge=-1e3, le=1e3, description="U2, K")
+    chi_per_m: float | None = Field(None, gt=0, le=1e5, description="χ = √(h A/(ρ c a)), 1/m (analytic form)")
+    eta: float | None = Field(
+        None, ge=0, le=1e3,
+        description="η, share of the motor loss that heats the slide (×ξ scale; dimensionless with"
+        " slide_volume_m3, else per m³) (analytic form)",
+    )
+    u1_k: float | None = Field(None, ge=-1e3, le=1e3, description="U1, K (analytic form)")
+    u2_k: float | None = Field(None, ge=-1e3, le=1e3, description="U2, K (analytic form)")
+    slide_volume_m3: float | None = Field(
+        None, gt=0, le=100, description="V, the slide's volume: η is then the paper's dimensionless share;"
+        " none = η per m³ (files written before the key)",
+    )
+    field: SlideField | None = Field(
+        None, description="compd's field form from the slide's sensors (then χ, η, U1, U2 are unused)"
+    )
     xi: float = Field(1.0, gt=0, le=1e3, description="ξ, correction factor of the expansion")
     power_w: float | None = Field(None, ge=0, le=1e6, description="constant motor loss; none = from current")
     r_cu_ohm: float | None = Field(None, gt=0, le=1e3, description="copper resistance per phase")
@@ -93,8 +156,17 @@ class FeedAxisParams(ModelParams):
     @model_validator(mode="after")
     def _power(self) -> FeedAxisParams:
         roles = self.input_roles
-        if roles.count("position") != 1 or len(set(roles)) != len(roles):
-            raise ValueError("input_roles needs one 'position' and each role at most once")
+        once = [r for r in roles if r not in FIELD_ROLES]
+        if roles.count("position") != 1 or len(set(once)) != len(once):
+            raise ValueError("input_roles needs one 'position' and each role but slide and offset at most once")
+        if self.field is not None:
+            return self._field_roles()
+        if any(r in FIELD_ROLES for r in roles):
+            raise ValueError("slide and offset inputs belong to the field form: give a field section")
+        coefs = {"chi_per_m": self.chi_per_m, "eta": self.eta, "u1_k": self.u1_k, "u2_k": self.u2_k}
+        missing = [k for k, v in coefs.items() if v is None]
+        if missing:
+            raise ValueError(f"the analytic form needs {', '.join(missing)} (or a field section)")
         if "current" in roles:
             if self.r_cu_ohm is None:
                 raise ValueError("a 'current' input needs r_cu_ohm")
@@ -104,9 +176,26 @@ class FeedAxisParams(ModelParams):
             raise ValueError("cooling_time_s needs ref_power_w")
         return self
 
+    def _field_roles(self) -> FeedAxisParams:
+        f, roles = self.field, self.input_roles
+        assert f is not None
+        if not set(roles) <= {"position", "ambient", *FIELD_ROLES}:
+            raise ValueError("the field form takes position, slide, offset and ambient inputs only")
+        if roles.count("slide") != len(f.slide_mm):
+            raise ValueError(f"field.slide_mm has {len(f.slide_mm)} positions for {roles.count('slide')} slide inputs")
+        if roles.count("offset") != len(f.offset_um_per_k):
+            raise ValueError(
+                f"field.offset_um_per_k has {len(f.offset_um_per_k)} gains for {roles.count('offset')} offset inputs"
+            )
+        if f.gain_ambient and "ambient" not in roles:
+            raise ValueError("field.gain_ambient needs an ambient input")
+        return self
+
     @field_validator("chi_per_m")
     @classmethod
-    def _chi_finite_exp(cls, chi: float, info: ValidationInfo) -> float:
+    def _chi_finite_exp(cls, chi: float | None, info: ValidationInfo) -> float | None:
+        if chi is None:
+            return chi
         length_m = info.data.get("length_mm", 0.0) / 1000.0
         if chi * length_m > 700.0:
             raise ValueError(f"χ L = {chi * length_m:.3g}: e^(χ L) overflows above 700 (χ ≤ {700.0 / length_m:.4g} 1/m)")
@@ -153,6 +242,11 @@ def leaky_heat_j(t_s: np.ndarray, power_w: np.ndarray, tau_s: float | None) -> n
     return q
 
 
+def _heat_capacity(p: FeedAxisParams) -> float:
+    """ρ c V in J/K with the slide's volume, ρ c in J/(m³ K) without (η per m³)."""
+    return p.rho_c_j_m3k * (p.slide_volume_m3 or 1.0)
+
+
 def _midpoints_m(p: FeedAxisParams) -> np.ndarray:
     seg_m = p.length_mm / 1000.0 / p.segments
     return (np.arange(p.segments) + 0.5) * seg_m
@@ -182,7 +276,7 @@ def error_basis(
     if tau_s is not None and p.ref_power_w is not None:  # the steady profile's share Q/(τ P_ref)
         h *= (np.asarray(q_j, float) / (tau_s * p.ref_power_w))[:, None]
     parts = np.stack(
-        [h * np.exp(-chi * y), h * np.exp(chi * y), g * (np.asarray(q_j, float)[:, None] / p.rho_c_j_m3k)],
+        [h * np.exp(-chi * y), h * np.exp(chi * y), g * (np.asarray(q_j, float)[:, None] / _heat_capacity(p))],
         axis=2,
     )
     cum = np.cumsum(parts, axis=1)  # n × m × 3, sum over j ≤ i
@@ -233,6 +327,148 @@ def linear_reduction(
     return float(k0), float(tan_b), float(p0)
 
 
+def field_nodes(p: FeedAxisParams) -> tuple[np.ndarray, np.ndarray]:
+    """(node y from the stroke start in mm, the slide input each node reads) of the field form.
+
+    The nodes are the sensors, plus the stroke's ends where no sensor stands there (they
+    read the nearest sensor: the field is held flat beyond the first and the last)."""
+    assert p.field is not None
+    ys = np.asarray(p.field.slide_mm, float) - p.stroke_start_mm
+    nodes, src = list(ys), list(range(ys.size))
+    if ys[0] > 0.0:
+        nodes.insert(0, 0.0)
+        src.insert(0, 0)
+    if ys[-1] < p.length_mm:
+        nodes.append(p.length_mm)
+        src.append(ys.size - 1)
+    return np.asarray(nodes), np.asarray(src, dtype=np.intp)
+
+
+def _cumulative_at(nodes: np.ndarray, cum: np.ndarray, rn: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """∫ from the first node to y of the piecewise-linear field (rows of `rn`, `cum` at nodes)."""
+    y = np.clip(y, nodes[0], nodes[-1])
+    j = np.clip(np.searchsorted(nodes, y, side="right") - 1, 0, nodes.size - 2)
+    h = nodes[j + 1] - nodes[j]
+    f = y - nodes[j]
+    rows = np.arange(y.size)
+    r0, r1 = rn[rows, j], rn[rows, j + 1]
+    return cum[rows, j] + f * (r0 + 0.5 * (r1 - r0) * f / h)
+
+
+def field_terms(rises_k: np.ndarray, y_mm: np.ndarray, ambient_k: np.ndarray | None, p: FeedAxisParams) -> np.ndarray:
+    """(I, R, A) of the field form in µm, n × 3, at positions y from the stroke start (mm).
+
+    `rises_k`: n × K rises of the slide sensors; `ambient_k`: n rises of the ambient (None: A = 0)."""
+    nodes, src = field_nodes(p)
+    rn = np.asarray(rises_k, float)[:, src]
+    cum = np.zeros_like(rn)
+    cum[:, 1:] = np.cumsum(0.5 * (rn[:, 1:] + rn[:, :-1]) * np.diff(nodes), axis=1)
+    y = np.clip(np.asarray(y_mm, float), 0.0, p.length_mm)
+    start = _cumulative_at(nodes, cum, rn, np.zeros_like(y))
+    integral = _cumulative_at(nodes, cum, rn, y) - start
+    total = _cumulative_at(nodes, cum, rn, np.full_like(y, p.length_mm)) - start
+    um_per_k_mm = p.alpha_per_k * 1000.0
+    amb = np.zeros_like(y) if ambient_k is None else np.asarray(ambient_k, float) * y
+    return um_per_k_mm * np.column_stack([integral, total * y / p.length_mm, amb])
+
+
+class _FieldForm:
+    """Run-time evaluation of the field form: preallocated buffers, no allocation per cycle."""
+
+    def __init__(self, p: FeedAxisParams) -> None:
+        f = p.field
+        assert f is not None
+        roles = p.input_roles
+        self.p = p
+        self.i_pos = roles.index("position")
+        self.i_slide = np.array([i for i, r in enumerate(roles) if r == "slide"], dtype=np.intp)
+        self.i_off = np.array([i for i, r in enumerate(roles) if r == "offset"], dtype=np.intp)
+        self.i_amb = roles.index("ambient") if "ambient" in roles else -1
+        self.nodes, self.src = field_nodes(p)
+        self.node_list = [float(v) for v in self.nodes]
+        self.half_dy = 0.5 * np.diff(self.nodes)
+        self.gain = np.array([f.gain_integral, f.gain_restraint, f.gain_ambient])
+        self.b_off = np.asarray(f.offset_um_per_k, float)
+        self.um_per_k_mm = p.alpha_per_k * 1000.0
+        self.t0 = np.zeros(len(roles))
+        self.rise = np.zeros(self.i_slide.size)
+        self.rn = np.zeros(self.nodes.size)
+        self.trap = np.zeros(self.nodes.size - 1)
+        self.cum = np.zeros(self.nodes.size)
+        self.off = np.zeros(self.i_off.size)
+        self.lin: np.ndarray | None = None
+        self.v = np.zeros(self.i_slide.size + 1 + self.i_off.size)
+        self.k0_slope = np.zeros(2)
+        if p.linear_p0_mm is not None:
+            self.lin = self._linear_matrix(p)
+
+    def _linear_matrix(self, p: FeedAxisParams) -> np.ndarray:
+        """M with (K0, tanβ) = M v, v = (slide rises, ambient rise, offset rises): E is linear in v."""
+        y = np.linspace(0.0, p.length_mm, p.segments + 1)
+        k = self.i_slide.size
+        cols = []
+        for j in range(k):  # a unit rise of slide sensor j
+            r = np.zeros((y.size, k))
+            r[:, j] = 1.0
+            cols.append(field_terms(r, y, None, p) @ self.gain)
+        cols.append(field_terms(np.zeros((y.size, k)), y, np.ones_like(y), p) @ self.gain)
+        cols += [np.full_like(y, b) for b in self.b_off]
+        W = np.column_stack(cols)
+        P = np.c_[np.ones_like(y), p.stroke_start_mm + y - p.linear_p0_mm]
+        return np.linalg.pinv(P) @ W
+
+    def start(self, x: np.ndarray) -> None:
+        self.t0[:] = x
+
+    def evaluate(self, x: np.ndarray) -> float:
+        """E at the position in x, µm; with linear_p0_mm K0 (tanβ in k0_slope[1])."""
+        np.take(x, self.i_slide, out=self.rise)
+        self.rise -= self.t0[self.i_slide]
+        amb = x[self.i_amb] - self.t0[self.i_amb] if self.i_amb >= 0 else 0.0
+        off = 0.0
+        if self.i_off.size:
+            np.take(x, self.i_off, out=self.off)
+            self.off -= self.t0[self.i_off]
+            off = float(self.b_off @ self.off)
+        if self.lin is not None:
+            v, k = self.v, self.rise.size
+            v[:k] = self.rise
+            v[k] = amb
+            v[k + 1:] = self.off
+            np.dot(self.lin, v, out=self.k0_slope)
+            return float(self.k0_slope[0])
+        p = self.p
+        np.take(self.rise, self.src, out=self.rn)
+        rn, cum = self.rn, self.cum
+        np.add(rn[1:], rn[:-1], out=self.trap)
+        self.trap *= self.half_dy
+        np.cumsum(self.trap, out=cum[1:])
+        y = min(max(x[self.i_pos] - p.stroke_start_mm, 0.0), p.length_mm)
+        at_y, at_0, at_l = self._c(y), self._c(0.0), self._c(p.length_mm)
+        g = self.gain
+        s = self.um_per_k_mm
+        return s * (g[0] * (at_y - at_0) + g[1] * (at_l - at_0) * y / p.length_mm + g[2] * amb * y) + off
+
+    def _c(self, y: float) -> float:
+        """∫ from the first node to y of the field held in rn, cum."""
+        nodes = self.node_list
+        y = min(max(y, nodes[0]), nodes[-1])
+        j = min(max(bisect.bisect_right(nodes, y) - 1, 0), len(nodes) - 2)
+        h = nodes[j + 1] - nodes[j]
+        f = y - nodes[j]
+        r0, r1 = self.rn[j], self.rn[j + 1]
+        return float(self.cum[j] + f * (r0 + 0.5 * (r1 - r0) * f / h))
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        """E at each row's position (also with linear_p0_mm, as the analytic form), from the readings t0."""
+        p = self.p
+        R = X[:, self.i_slide] - self.t0[self.i_slide]
+        amb = X[:, self.i_amb] - self.t0[self.i_amb] if self.i_amb >= 0 else None
+        off = (X[:, self.i_off] - self.t0[self.i_off]) @ self.b_off if self.i_off.size else 0.0
+        y = X[:, self.i_pos] - p.stroke_start_mm
+        return field_terms(R, y, amb, p) @ self.gain + off
+
+
 class FeedAxis(Model):
     """Position-dependent feed-axis error E(t, y) of a linear-motor axis (paper 000)."""
 
@@ -247,14 +483,19 @@ class FeedAxis(Model):
         self._i_cur = roles.index("current") if "current" in roles else -1
         self._i_mot = roles.index("motor_temp") if "motor_temp" in roles else -1
         self._i_amb = roles.index("ambient") if "ambient" in roles else -1
+        self._field = _FieldForm(p) if p.field is not None else None
+        self._field_started = False
         y = _midpoints_m(p)
         self._y_m = y
-        self._hds = p.u2_k * np.exp(p.chi_per_m * y) + p.u1_k * np.exp(-p.chi_per_m * y)
+        if self._field is None:
+            self._hds = p.u2_k * np.exp(p.chi_per_m * y) + p.u1_k * np.exp(-p.chi_per_m * y)
+        else:
+            self._hds = np.zeros_like(y)
         self._buf = np.zeros(p.segments)
         self._cum = np.zeros(p.segments)
         self._seg_mm = p.length_mm / p.segments
         self._scale = p.xi * p.alpha_per_k * self._seg_mm * 1000.0
-        self._inv_rho_c = p.eta / p.rho_c_j_m3k
+        self._inv_rho_c = (p.eta or 0.0) / _heat_capacity(p)
         self._tau = p.cooling_time_s
         self._steady_per_j = 1.0 / (p.cooling_time_s * p.ref_power_w) if p.cooling_time_s else 0.0
         self._hds_now = self._hds.copy()
@@ -284,6 +525,8 @@ class FeedAxis(Model):
 
     def _power(self, x: np.ndarray) -> float:
         p = self.params
+        if self._field is not None:
+            return 0.0
         if self._i_cur < 0:
             return float(p.power_w)
         i = x[self._i_cur]
@@ -293,6 +536,9 @@ class FeedAxis(Model):
         return 3.0 * i * i * p.r_cu_ohm * corr
 
     def start(self, x: np.ndarray, t_s: float) -> None:
+        if self._field is not None and not self._field_started:  # T_k0: the readings at start
+            self._field.start(x)
+            self._field_started = True
         if self._restore is not None:
             heating_s, self.heat_j = self._restore
             self.t_start_s = t_s - heating_s
@@ -303,7 +549,15 @@ class FeedAxis(Model):
         self._p_prev = self._power(x)
 
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
-        """E(t, y) at the current position (eq. 21); heat integrated by the trapezoid rule."""
+        """E(t, y) at the current position (eq. 21); heat integrated by the trapezoid rule.
+
+        Field form: E from the measured field (module doc); with linear_p0_mm K0 and tanβ."""
+        if self._field is not None:
+            out[0] = self._field.evaluate(x)
+            if self._field.lin is not None:
+                self.slope_um_per_mm = float(self._field.k0_slope[1])
+            self._t_prev = t_s
+            return
         pw = self._power(x)
         dt = t_s - self._t_prev
         if self._tau is None:
@@ -361,6 +615,9 @@ class FeedAxis(Model):
             return np.zeros((0, 1))
         t = np.asarray(t_s, dtype=float)
         self.start(X[0], float(t[0]))
+        if self._field is not None:
+            self._t_prev = float(t[-1])
+            return self._field.predict(X)[:, None]
         pw = np.array([self._power(row) for row in X])
         q = leaky_heat_j(t, pw, self._tau)
         if self.heat_j:  # heat from before this block, leaking on
@@ -370,6 +627,19 @@ class FeedAxis(Model):
         self._t_prev, self._p_prev = float(t[-1]), float(pw[-1])
         return out
 
+    @property
+    def field_form(self) -> bool:
+        """True for compd's field form (E from the slide's sensors), False for the paper's analytic form."""
+        return self._field is not None
+
+    def field_profile_um(self, X: np.ndarray, x: np.ndarray, pos_mm: np.ndarray) -> np.ndarray:
+        """Field form: E along `pos_mm` with the readings `x`, the references being the first row of X (for reports)."""
+        assert self._field is not None
+        self._field.start(X[0])
+        rows = np.repeat(np.asarray(x, float)[None, :], len(pos_mm), axis=0)
+        rows[:, self._i_pos] = pos_mm
+        return self._field.predict(rows)
+
     def heating(self, X: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(heating time s, heat J) at each row of a log, from its first row (for reports)."""
         t = np.asarray(t_s, dtype=float)
@@ -377,12 +647,21 @@ class FeedAxis(Model):
         return t - t[0], leaky_heat_j(t, pw, self._tau)
 
     def get_state(self) -> dict[str, Any]:
+        if self._field is not None:  # the field form's memory is its reference readings
+            return {"t0_c": [float(v) for v in self._field.t0] if self._field_started else None}
         heating = None if self.t_start_s is None else self._t_prev - self.t_start_s
         return {"heating_s": heating, "heat_j": self.heat_j}
 
     def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0) -> None:
         """Resume the heating run: the outage counts as heating time without heat input
-        (in the duty-cycle form the slide also cools by e^(−outage/τ))."""
+        (in the duty-cycle form the slide also cools by e^(−outage/τ)). The field form keeps
+        its reference readings: the machine is still in the run it started from."""
+        if self._field is not None:
+            t0 = state.get("t0_c")
+            if isinstance(t0, list) and len(t0) == self._field.t0.size:
+                self._field.t0[:] = np.asarray(t0, dtype=float)
+                self._field_started = True
+            return
         if state.get("heating_s") is not None:
             gap = max(elapsed_s, 0.0)
             q = float(state.get("heat_j", 0.0))

@@ -205,7 +205,7 @@ def _speed_dependent_lathe(noise_um=0.1, seed=1):
 
 def test_c1_by_speed_recovers_both_time_constants():
     log = _speed_dependent_lathe()
-    one = AR1.fit(log, ["T3"], None)
+    one = AR1.fit(log, ["T3"], None, c1_by_speed=False)
     res = AR1.fit(log, ["T3"], None, c1_by_speed=True)
     p = res.model.params
     assert -60.0 / np.log(p.c1) == pytest.approx(3 * 3600, rel=0.03)
@@ -216,6 +216,29 @@ def test_c1_by_speed_recovers_both_time_constants():
     assert res.report["step_rmse_um"] < 0.12 < one.report["step_rmse_um"]
     tc = res.report["c1_by_speed"]["time_constant_s"]
     assert tc["0"] > tc["2000"]
+
+
+def test_auto_keeps_c1_by_speed_only_where_it_predicts_clearly_better():
+    # the truth's C1 depends on speed: the default (auto) picks compd's form, held out
+    log = _speed_dependent_lathe()
+    auto = AR1.fit(log, ["T3"], None)
+    form = auto.report["c1_form"]
+    assert form["chosen"] == "by_speed" and auto.model.params.c1_table
+    assert form["held_out_rmse_um"]["by_speed"] < 0.95 * form["held_out_rmse_um"]["constant"]
+    # a single C1 (the same day with b independent of speed): whichever form the held-out
+    # comparison keeps, it finds no speed dependence that is not there
+    t = log.t_s
+    speed = log.col("speed_rpm")
+    rng = np.random.default_rng(5)
+    s, e = 0.0, np.zeros(t.size)
+    for k in range(t.size):
+        s = np.exp(-60.0 / (3 * 3600)) * s + 0.25 * speed[k] / 2000.0
+        e[k] = 8.0 * (log.col("T3")[k] - log.col("T3")[0]) - s
+    const = Log("lathe.csv", log.columns, np.column_stack([t, speed, log.col("T3"), e + rng.normal(0, 0.05, t.size)]))
+    res = AR1.fit(const, ["T3"], None)
+    p = res.model.params
+    for c1 in [p.c1] + [c for _, c in p.c1_table]:
+        assert -60.0 / np.log(c1) == pytest.approx(3 * 3600, rel=0.03)
 
 
 def test_c1_by_speed_interpolates_b_and_evaluate_matches_predict():

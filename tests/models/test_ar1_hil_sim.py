@@ -22,7 +22,9 @@ def _log(data: dict, out: Path) -> fitting.Log:
 
 
 def _unseen_rmse(train: fitting.Log, unseen: fitting.Log, ambient: str | None) -> float:
-    opts = {"ambient": ambient} if ambient else {}
+    opts: dict = {"c1_by_speed": False}  # the paper's single C1, with and without C3
+    if ambient:
+        opts["ambient"] = ambient
     oc = fitting.fit_model("ar1", train, ["T3"], None, opts, baseline=False)
     pred = fitting.predict_log(oc.model, unseen)
     return fitting.scores(oc.model, unseen, ["err_z_um"], pred)["z"]["rmse_um"]
