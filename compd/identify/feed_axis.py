@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import math
 import re
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -52,6 +53,7 @@ from compd.log import Log
 from compd.models.feed_axis import (
     FeedAxis,
     FeedAxisParams,
+    PositionPoly,
     SlideField,
     error_basis,
     field_terms,
@@ -84,9 +86,13 @@ class Options(Strict):
     )
     cooling_time_s: float | None = Field(None, gt=0, description="with duty_cycle: fix τ; none = fit it")
     linear_p0_mm: float | None = Field(None, description="kept in the model: see the params' linear_p0_mm")
-    form: Literal["auto", "analytic", "field"] = Field(
-        "auto", description="analytic = paper 000's; field = compd's from the slide sensors; auto = the better held out"
+    form: Literal["auto", "analytic", "field", "position_poly"] = Field(
+        "auto",
+        description="analytic = paper 000's; field = compd's from the slide sensors at known positions;"
+        " position_poly = compd's with each temperature's effect a polynomial in the position; auto = the best"
+        " held out of those the log carries",
     )
+    poly_degree: int | None = Field(None, ge=1, le=3, description="position_poly degree; none = 1 or 2, held out")
     slide_sensors: str | None = Field(
         None, description="the slide's sensors as COL@MM,COL@MM,... (axis positions); none = found by name"
     )
@@ -107,46 +113,85 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         raise BadInput(f"the log has no position column {pos_col} (E depends on where the axis stands)",
                        file=log.file, path="--option position")
     layout = _field_layout(log, inputs, opt, pos_col)
+    temps = _temperatures(log, inputs, pos_col)
     has_loss = opt.power_w is not None or (opt.current or f"current_{axis}_a") in log.columns
-    if opt.form == "field" or (opt.form == "auto" and not has_loss):
-        if layout is None:
-            raise BadInput(
-                "the field form needs two or more slide sensors along the stroke: name them with"
-                " --option slide_sensors=COL@MM,COL@MM (none found by name)"
-                + ("" if has_loss else "; the analytic form needs a current column or --option power_w"),
-                file=log.file, path="--option slide_sensors",
-            )
-        result = _fit_field(log, targets, axis, opt, layout)
-        result.report["form"] = "field"
-        result.report["form_selection"] = {"method": "asked" if opt.form == "field" else "the only form the log carries"}
-        return result
-    if opt.form == "analytic" or layout is None:
-        result = _fit_analytic(log, targets, axis, opt)
-        result.report["form"] = "analytic"
-        result.report["form_selection"] = {
-            "method": "asked" if opt.form == "analytic" else "no slide sensors: the only form the log carries"
-        }
-        return result
-    return _select(log, targets, axis, opt, layout)
-
-
-def _select(log: Log, targets: list[str], axis: str, opt: Options, layout: dict[str, Any]) -> FitResult:
-    """Fit both forms; keep the one whose forward-chained held-out RMSE is smaller."""
-    fits = {
-        "field": lambda lg: _fit_field(lg, targets, axis, opt, layout),
-        "analytic": lambda lg: _fit_analytic(lg, targets, axis, opt),
-    }
-    held, blocks = compare_forms(log, targets[0], fits)
+    if opt.form == "analytic":
+        return _named(_fit_analytic(log, targets, axis, opt), "analytic", {"method": "asked"})
+    forms: dict[str, Callable[[Log], FitResult]] = {}
+    if opt.form in ("auto", "field") and layout is not None:
+        forms["field"] = lambda lg: _fit_field(lg, targets, axis, opt, layout)
+    if opt.form == "auto" and has_loss:
+        forms["analytic"] = lambda lg: _fit_analytic(lg, targets, axis, opt)
+    if opt.form in ("auto", "position_poly") and temps:
+        for d in [opt.poly_degree] if opt.poly_degree else [1, 2]:
+            forms[f"position_poly{d}"] = lambda lg, d=d: _fit_poly(lg, targets, axis, opt, temps, d)
+    if not forms:
+        need = {
+            "field": "two or more slide sensors along the stroke (--option slide_sensors=COL@MM,COL@MM;"
+                     " none found by name)",
+            "position_poly": "temperature columns",
+            "auto": "slide sensors, temperature columns, or the motor loss (a current column or --option power_w)",
+        }[opt.form]
+        raise BadInput(f"the {opt.form} form needs {need}", file=log.file,
+                       path="--option slide_sensors" if opt.form == "field" else "--inputs")
+    if len(forms) == 1:
+        ((name, fit_on),) = forms.items()
+        how = "asked" if opt.form != "auto" else "the only form the log carries"
+        return _named(fit_on(log), name, {"method": how})
+    held, blocks = compare_forms(log, targets[0], forms)
     scored = {k: v for k, v in held.items() if isinstance(v, float)}
-    best = min(scored, key=scored.__getitem__) if scored else "field"
-    result = fits[best](log)
-    result.report["form"] = best
-    result.report["form_selection"] = {
+    if not scored:
+        raise BadInput("no form could be fitted on the log's first blocks: " + "; ".join(map(str, held.values())),
+                       file=log.file)
+    best = min(scored, key=scored.__getitem__)
+    return _named(forms[best](log), best, {
         "method": HELD_OUT_METHOD + "; the form with the smaller RMSE is kept",
         "held_out_blocks": blocks,
         "held_out_rmse_um": held,
-    }
+    })
+
+
+def _named(result: FitResult, form: str, selection: dict[str, Any]) -> FitResult:
+    """The fit's report says which form it is and how it was chosen."""
+    result.report["form"] = form.rstrip("0123456789")
+    result.report["form_selection"] = selection
     return result
+
+
+def _temperatures(log: Log, inputs: list[str] | None, pos_col: str) -> list[str]:
+    """The temperature inputs: `--inputs`, or every temperature column of the log."""
+    temps = [c for c in (list(inputs) if inputs else log.temperature_columns()) if c != pos_col]
+    for c in temps:
+        if c not in log.columns:
+            raise BadInput(f"the log has no column {c}", file=log.file, path="--inputs")
+    return temps
+
+
+def _fit_poly(log: Log, targets: list[str], axis: str, opt: Options, temps: list[str], degree: int) -> FitResult:
+    """Linear least squares of b_kp in E = Σ_k ΔT_k Σ_p b_kp (y/L)^p (rises from the first row)."""
+    pos_col = opt.position or f"pos_{axis}_mm"
+    names = [pos_col, *temps]
+    X = columns(log, names)
+    E = columns(log, targets)[:, 0]
+    n_coef = len(temps) * (degree + 1)
+    require_rows(log, X.shape[0], n_coef + 3, f"feed_axis position_poly form ({n_coef} coefficients)")
+    if np.ptp(X[:, 0]) <= 0:
+        raise BadInput("the axis never moves: E(t, y) needs several positions", file=log.file, path=pos_col)
+    length = opt.length_mm or float(np.max(X[:, 0]) - opt.stroke_start_mm)
+    if length <= 0:
+        raise BadInput("the stroke length must be positive", path="--option length_mm")
+    u = np.clip(X[:, 0] - opt.stroke_start_mm, 0.0, length) / length
+    R = X[:, 1:] - X[0, 1:]
+    A = (R[:, :, None] * (u[:, None, None] ** np.arange(degree + 1))).reshape(len(E), -1)
+    coef, *_ = np.linalg.lstsq(A, E, rcond=None)
+    B = coef.reshape(len(temps), degree + 1)
+    params = FeedAxisParams(
+        length_mm=length, segments=opt.segments, stroke_start_mm=opt.stroke_start_mm, alpha_per_k=opt.alpha_per_k,
+        input_roles=["position"] + ["rise"] * len(temps), linear_p0_mm=opt.linear_p0_mm,
+        position_poly=PositionPoly(degree=degree, coef_um_per_k=[[float(v) for v in row] for row in B]),
+    )
+    report = {"degree": degree, "note": "position_poly: E = Σ_k ΔT_k Σ_p b_kp (y/L)^p, rises from the readings at start"}
+    return FitResult(FeedAxis(params, names, [axis]), report)
 
 
 _NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<mm>\d+(?:\.\d+)?)(?:_?mm)?$", re.IGNORECASE)
@@ -155,10 +200,7 @@ _AMBIENT = re.compile(r"amb|room", re.IGNORECASE)
 
 def _field_layout(log: Log, inputs: list[str] | None, opt: Options, pos_col: str) -> dict[str, Any] | None:
     """The field form's inputs: slide sensors with positions, ambient, offsets; None without slide sensors."""
-    temps = [c for c in (list(inputs) if inputs else log.temperature_columns()) if c != pos_col]
-    for c in temps:
-        if c not in log.columns:
-            raise BadInput(f"the log has no column {c}", file=log.file, path="--inputs")
+    temps = _temperatures(log, inputs, pos_col)
     pos = log.col(pos_col)
     length = opt.length_mm or float(np.max(pos) - opt.stroke_start_mm)
     if opt.slide_sensors:

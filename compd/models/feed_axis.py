@@ -44,7 +44,16 @@ travels shows in the sensors there, so partial strokes are seen, and the slide's
 response to the room is measured rather than modelled. T_k0 are the readings at start
 (the heating run's equilibrium, as t = 0 is for the analytic form).
 
-The fit (η, U1, U2, χ and optionally a and τ from a log, or the field form's gains) is
+Position-regression form (compd's, `position_poly:` set): where the slide's sensors are
+logged but not where they sit, each temperature rise ΔT_k acts through a polynomial in the
+relative position u = y/L:
+
+    E(t, y) = Σ_k ΔT_k Σ_{p=0..d} b_kp u^p        µm, d = `degree` (1–3)
+
+It is the field form with the integral's weights learnt instead of known: a sensor's
+share of ∫_0^y ΔT̂ grows with y, which a low-degree polynomial in u follows.
+
+The fit (η, U1, U2, χ and optionally a and τ from a log, or the measured forms' gains) is
 compd.identify.feed_axis.
 """
 
@@ -64,8 +73,8 @@ from compd.models.erf import erf, erf_inplace
 
 ErfFn = Callable[[np.ndarray], np.ndarray]
 
-Role = Literal["position", "current", "motor_temp", "ambient", "slide", "offset"]
-FIELD_ROLES = ("slide", "offset")
+Role = Literal["position", "current", "motor_temp", "ambient", "slide", "offset", "rise"]
+FIELD_ROLES = ("slide", "offset", "rise")  # roles several inputs may have (the measured forms)
 
 
 class SlideField(ModelParams):
@@ -93,6 +102,26 @@ class SlideField(ModelParams):
             raise ValueError("slide_mm must be strictly increasing (the sensors' order along the slide)")
         return v
 
+
+
+class PositionPoly(ModelParams):
+    """compd's position-regression form: E = Σ_k ΔT_k Σ_p b_kp (y/L)^p (see the module doc).
+
+    For a log whose slide sensors' positions are not known: each temperature's effect is a
+    polynomial in the position. Ranges: degree 1–3; gains within the linear models' bound.
+    """
+
+    degree: int = Field(ge=1, le=3, description="p = 0 … degree")
+    coef_um_per_k: list[list[Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]]] = Field(
+        description="b_kp: one row per `rise` input (input order), degree + 1 columns (µm/K)"
+    )
+
+    @model_validator(mode="after")
+    def _shape(self) -> PositionPoly:
+        for i, row in enumerate(self.coef_um_per_k):
+            if len(row) != self.degree + 1:
+                raise ValueError(f"coef_um_per_k[{i}] has {len(row)} gains for degree {self.degree} ({self.degree + 1})")
+        return self
 
 class FeedAxisParams(ModelParams):
     """Fixed physics and fitted coefficients of the feed-axis model (paper 000).
@@ -124,6 +153,9 @@ class FeedAxisParams(ModelParams):
     )
     field: SlideField | None = Field(
         None, description="compd's field form from the slide's sensors (then χ, η, U1, U2 are unused)"
+    )
+    position_poly: PositionPoly | None = Field(
+        None, description="compd's position-regression form (then χ, η, U1, U2 are unused)"
     )
     xi: float = Field(1.0, gt=0, le=1e3, description="ξ, correction factor of the expansion")
     power_w: float | None = Field(None, ge=0, le=1e6, description="constant motor loss; none = from current")
@@ -159,10 +191,16 @@ class FeedAxisParams(ModelParams):
         once = [r for r in roles if r not in FIELD_ROLES]
         if roles.count("position") != 1 or len(set(once)) != len(once):
             raise ValueError("input_roles needs one 'position' and each role but slide and offset at most once")
+        if self.field is not None and self.position_poly is not None:
+            raise ValueError("give a field or a position_poly section, not both")
         if self.field is not None:
             return self._field_roles()
+        if self.position_poly is not None:
+            if not set(roles) <= {"position", "rise"} or roles.count("rise") != len(self.position_poly.coef_um_per_k):
+                raise ValueError("position_poly takes the position and one `rise` input per row of coef_um_per_k")
+            return self
         if any(r in FIELD_ROLES for r in roles):
-            raise ValueError("slide and offset inputs belong to the field form: give a field section")
+            raise ValueError("slide, offset and rise inputs belong to the measured forms: give a field section")
         coefs = {"chi_per_m": self.chi_per_m, "eta": self.eta, "u1_k": self.u1_k, "u2_k": self.u2_k}
         missing = [k for k, v in coefs.items() if v is None]
         if missing:
@@ -179,7 +217,7 @@ class FeedAxisParams(ModelParams):
     def _field_roles(self) -> FeedAxisParams:
         f, roles = self.field, self.input_roles
         assert f is not None
-        if not set(roles) <= {"position", "ambient", *FIELD_ROLES}:
+        if not set(roles) <= {"position", "ambient", "slide", "offset"}:
             raise ValueError("the field form takes position, slide, offset and ambient inputs only")
         if roles.count("slide") != len(f.slide_mm):
             raise ValueError(f"field.slide_mm has {len(f.slide_mm)} positions for {roles.count('slide')} slide inputs")
@@ -469,6 +507,54 @@ class _FieldForm:
         return field_terms(R, y, amb, p) @ self.gain + off
 
 
+
+class _PolyForm:
+    """Run-time evaluation of the position-regression form (same interface as _FieldForm)."""
+
+    def __init__(self, p: FeedAxisParams) -> None:
+        poly = p.position_poly
+        assert poly is not None
+        roles = p.input_roles
+        self.p = p
+        self.i_pos = roles.index("position")
+        self.i_rise = np.array([i for i, r in enumerate(roles) if r == "rise"], dtype=np.intp)
+        self.B = np.asarray(poly.coef_um_per_k, float)  # K × (d + 1)
+        self.t0 = np.zeros(len(roles))
+        self.rise = np.zeros(self.i_rise.size)
+        self.c = np.zeros(poly.degree + 1)  # Σ_k ΔT_k b_kp per power p
+        self.u = np.zeros(poly.degree + 1)
+        self.k0_slope = np.zeros(2)
+        self.lin: np.ndarray | None = None
+        if p.linear_p0_mm is not None:  # (K0, tanβ) = M c: E(y) is a polynomial with coefficients c
+            y = np.linspace(0.0, p.length_mm, p.segments + 1)
+            U = (y[:, None] / p.length_mm) ** np.arange(poly.degree + 1)
+            P = np.c_[np.ones_like(y), p.stroke_start_mm + y - p.linear_p0_mm]
+            self.lin = np.linalg.pinv(P) @ U
+
+    def start(self, x: np.ndarray) -> None:
+        self.t0[:] = x
+
+    def evaluate(self, x: np.ndarray) -> float:
+        np.take(x, self.i_rise, out=self.rise)
+        self.rise -= self.t0[self.i_rise]
+        np.dot(self.rise, self.B, out=self.c)
+        if self.lin is not None:
+            np.dot(self.lin, self.c, out=self.k0_slope)
+            return float(self.k0_slope[0])
+        p = self.p
+        u = min(max(x[self.i_pos] - p.stroke_start_mm, 0.0), p.length_mm) / p.length_mm
+        v = 1.0
+        for k in range(self.u.size):  # 1, u, u², … without an array per cycle
+            self.u[k] = v
+            v *= u
+        return float(self.c @ self.u)
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        p = self.p
+        R = X[:, self.i_rise] - self.t0[self.i_rise]
+        u = np.clip(X[:, self.i_pos] - p.stroke_start_mm, 0.0, p.length_mm) / p.length_mm
+        return np.sum((R @ self.B) * u[:, None] ** np.arange(self.B.shape[1]), axis=1)
+
 class FeedAxis(Model):
     """Position-dependent feed-axis error E(t, y) of a linear-motor axis (paper 000)."""
 
@@ -483,11 +569,16 @@ class FeedAxis(Model):
         self._i_cur = roles.index("current") if "current" in roles else -1
         self._i_mot = roles.index("motor_temp") if "motor_temp" in roles else -1
         self._i_amb = roles.index("ambient") if "ambient" in roles else -1
-        self._field = _FieldForm(p) if p.field is not None else None
+        self._field: _FieldForm | _PolyForm | None = None  # a measured form (compd's), else the analytic
+        if p.field is not None:
+            self._field = _FieldForm(p)
+        elif p.position_poly is not None:
+            self._field = _PolyForm(p)
         self._field_started = False
         y = _midpoints_m(p)
         self._y_m = y
         if self._field is None:
+            assert p.chi_per_m is not None and p.u1_k is not None and p.u2_k is not None
             self._hds = p.u2_k * np.exp(p.chi_per_m * y) + p.u1_k * np.exp(-p.chi_per_m * y)
         else:
             self._hds = np.zeros_like(y)
@@ -629,7 +720,7 @@ class FeedAxis(Model):
 
     @property
     def field_form(self) -> bool:
-        """True for compd's field form (E from the slide's sensors), False for the paper's analytic form."""
+        """True for compd's measured forms (field, position_poly), False for the paper's analytic form."""
         return self._field is not None
 
     def field_profile_um(self, X: np.ndarray, x: np.ndarray, pos_mm: np.ndarray) -> np.ndarray:

@@ -137,7 +137,7 @@ def test_auto_keeps_the_analytic_form_on_a_log_without_slide_sensors():
     log = Log("a.csv", ["t_s", "pos_x_mm", "current_x_a", "err_x_um"], np.column_stack([rows, e]))
     res = fit_fa.fit(log, None, None, r_cu_ohm=0.8, length_mm=600)
     assert res.report["form"] == "analytic" and res.model.params.field is None
-    assert "no slide sensors" in res.report["form_selection"]["method"]
+    assert res.report["form_selection"]["method"] == "the only form the log carries"
 
 
 def test_eta_is_the_dimensionless_share_with_the_slide_volume():
@@ -213,3 +213,50 @@ def test_field_model_file_round_trips_and_a_config_accepts_it(tmp_path):
     assert back.field_form and back.params == model.params
     X = log.matrix(back.inputs)
     assert np.allclose(back.predict(X, log.t_s), model.predict(X, log.t_s))
+
+
+def test_position_poly_serves_a_log_whose_sensor_positions_are_unknown():
+    # the same slide, its sensors named S1…S5 (no positions in the names)
+    log = _field_log(noise_um=0.05)
+    rename = {f"T_base_{int(s):03d}": f"S{k + 1}" for k, s in enumerate(SENSORS_MM)}
+    log = Log(log.file, [rename.get(c, c) for c in log.columns], log.data)
+    res = fit_fa.fit(log, None, None, length_mm=L_MM)
+    assert res.report["form"] == "position_poly"
+    sel = res.report["form_selection"]["held_out_rmse_um"]
+    assert set(sel) == {"position_poly1", "position_poly2"}
+    model = res.model
+    X, t = log.matrix(model.inputs), log.t_s
+    e = log.col("err_y_um")
+    rmse = float(np.sqrt(np.mean((model.predict(X, t)[:, 0] - e) ** 2)))
+    assert rmse < 0.1 * float(np.sqrt(np.mean(e**2)))  # > 90 % of the error explained
+    # evaluate = predict, and the Siemens line from the same polynomial
+    live = FeedAxis(model.params, model.inputs, model.outputs)
+    live.start(X[0], t[0])
+    out = np.zeros(1)
+    for i in (10, 300, len(t) - 1):
+        live.evaluate(X[i], t[i], out)
+        assert out[0] == pytest.approx(model.predict(X[: i + 1], t[: i + 1])[i, 0], abs=1e-9)
+    lin = FeedAxis(model.params.model_copy(update={"linear_p0_mm": 300.0}), model.inputs, model.outputs)
+    lin.start(X[0], t[0])
+    lin.evaluate(X[-1], t[-1], out)
+    slope, _ = lin.linear_terms()[0]
+    ys = np.linspace(0.0, L_MM, model.params.segments + 1)
+    Xs = np.repeat(X[-1:], ys.size, axis=0)
+    Xs[:, 0] = ys
+    ref = FeedAxis(model.params, model.inputs, model.outputs)
+    ref.start(X[0], t[0])
+    k0_ref, slope_ref = np.polynomial.polynomial.polyfit(ys - 300.0, ref._field.predict(Xs), 1)
+    assert out[0] == pytest.approx(k0_ref, abs=1e-9) and slope == pytest.approx(slope_ref, abs=1e-12)
+
+
+def test_params_check_the_position_poly_wiring():
+    from compd.models.feed_axis import PositionPoly
+
+    with pytest.raises(ValueError, match="has 2 gains for degree 2"):
+        PositionPoly(degree=2, coef_um_per_k=[[1.0, 2.0]])
+    poly = PositionPoly(degree=1, coef_um_per_k=[[1.0, 2.0], [0.5, 0.0]])
+    with pytest.raises(ValueError, match="one `rise` input per row"):
+        FeedAxisParams(length_mm=600, input_roles=["position", "rise"], position_poly=poly)
+    field = SlideField(slide_mm=[0, 600], gain_integral=1.0)
+    with pytest.raises(ValueError, match="not both"):
+        FeedAxisParams(length_mm=600, input_roles=["position", "rise", "rise"], position_poly=poly, field=field)

@@ -24,7 +24,7 @@ FITS = {
     "lvr": [],
     "mlr": [],
     "ar1": ["--target", "err_x1_um", "--inputs", "T1"],
-    "feed_axis": ["--target", "err_x1_um"],
+    "feed_axis": ["--target", "err_x1_um", "--option", "form=analytic"],  # the paper form's keys below
     "xi_spindle": ["--target", "err_x1_um", "--inputs", "T1"],
 }
 
