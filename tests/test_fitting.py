@@ -121,13 +121,14 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
 
 
 def test_lvr_library_span_too_long_exits_2(tmp_path, capsys):
-    # 300 rows, 3 inputs: Q² selection tries 3 components, which need 6 library rows;
+    # 300 rows, 3 inputs: the paper's LOO Q² selection tries 3 components, which need 6 library rows;
     # eq. 11 keeps s − P* rows, so a span of 294 is the longest accepted
     log = tmp_path / "log.csv"
     _write_log(log)
     out = tmp_path / "m.yaml"
     rep = tmp_path / "r.json"
-    argv = ["fit", "--kind", "lvr", "--log", str(log), "--out", str(out), "--report", str(rep)]
+    argv = ["fit", "--kind", "lvr", "--log", str(log), "--out", str(out), "--report", str(rep),
+            "--option", "selection=loo"]
     assert main([*argv, "--option", "library_span=294"]) == 0
     assert json.loads(rep.read_text())["details"]["fit_rows"] == 6
     out.unlink()

@@ -144,20 +144,31 @@ def test_lvr_library_fit_keeps_s_minus_span_rows():
 
 def test_lvr_library_span_leaving_too_few_rows_is_refused():
     log = _log()  # 200 rows, 4 inputs: Q² selection tries 4 components, which need 7 rows
+    loo = {"selection": "loo"}  # the paper's limits: what its leave-one-out needs
     assert rows_needed(4) == 7
-    res = LVR.fit(log, None, None, library_span=193)  # keeps 7 rows: enough
+    res = LVR.fit(log, None, None, library_span=193, **loo)  # keeps 7 rows: enough
     assert res.report["fit_rows"] == 7
     with pytest.raises(BadInput, match=r"--option library_span: span 194 keeps 6 .* at least 7"):
-        LVR.fit(log, None, None, library_span=194)
+        LVR.fit(log, None, None, library_span=194, **loo)
     with pytest.raises(BadInput, match="library_span: span 250 keeps 0"):
-        LVR.fit(log, None, None, library_span=250)
+        LVR.fit(log, None, None, library_span=250, **loo)
     # the rule counts the components asked for: 2 of them need only 5 rows
-    assert LVR.fit(log, None, None, library_span=195, n_components=2).report["fit_rows"] == 5
+    assert LVR.fit(log, None, None, library_span=195, n_components=2, **loo).report["fit_rows"] == 5
     with pytest.raises(BadInput, match="library_span"):
-        LVR.fit(log, None, None, library_span=196, n_components=2)
+        LVR.fit(log, None, None, library_span=196, n_components=2, **loo)
     short = Log("s.csv", log.columns, log.data[:7])  # a library keeps at most s − 1 rows
     with pytest.raises(BadInput, match="s.csv: 7 rows are too few: a sample library"):
-        LVR.fit(short, None, None, library_span=1)
+        LVR.fit(short, None, None, library_span=1, **loo)
+
+
+def test_lvr_library_span_limit_of_blocked_selection():
+    # blocked over 5 stretches: holding out the longest still leaves 4 + 3 rows to fit,
+    # so 9 rows (blocks of 2, 2, 1, 2, 2); the message names the blocks
+    log = _log()
+    assert rows_needed(4, 5) == 9 and rows_needed(4, 2) == 14
+    assert LVR.fit(log, None, None, library_span=191).report["fit_rows"] == 9
+    with pytest.raises(BadInput, match=r"span 192 keeps 8 .* 4 components and 5 cross-validation blocks needs at least 9"):
+        LVR.fit(log, None, None, library_span=192)
 
 
 def test_lvr_bad_inputs():
