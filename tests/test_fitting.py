@@ -46,6 +46,11 @@ def test_fit_writes_model_report_plot_and_predicts(tmp_path, kind, capsys):
     assert report["rows"] == 300 and report["axes"]["x1"]["rmse_um"] < 0.5
     if kind == "lvr":
         assert len(doc["fit"]["q2"]) == 3 and "influence" in report["details"]
+        # which selection chose the components, with its PRESS per component and its blocks
+        fit = doc["fit"]
+        assert fit["selection"] == "blocked" and len(fit["press"]) == 3 and fit["n_components"] >= 1
+        assert fit["cv"]["split"] == "equal" and len(fit["cv"]["blocks"]) == 5
+        assert fit["cv"] == report["details"]["cv"] and fit["press"] == report["details"]["press"]
     assert png.stat().st_size > 10_000
     assert main(["predict", str(out), "--log", str(log), "--out", str(pred)]) == 0
     p = read_log(pred)
@@ -118,6 +123,11 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert "nan.csv:12" in err and "T1" in err
     err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out, "--option", "bogus=1"])
     assert "bogus" in err
+    err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out,
+                                  "--option", "selection=kfold"])
+    assert "--option selection: Input should be 'blocked' or 'loo' (got 'kfold')" in err
+    err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out, "--option", "cv_blocks=1"])
+    assert "--option cv_blocks" in err and "greater than or equal to 2" in err
 
 
 def test_lvr_library_span_too_long_exits_2(tmp_path, capsys):
