@@ -15,6 +15,7 @@ from compd.identify.lvr import (
     coef_path,
     cv_blocks,
     equal_blocks,
+    fewest_within,
     guard_rows_from_residuals,
     loo_press,
     rows_needed,
@@ -272,6 +273,20 @@ def test_blocked_press_equals_refits_without_the_block_and_its_guard():
     q2 = blocked_q2(press)
     total = press.sum(axis=0)
     np.testing.assert_allclose(q2, 1 - total[1:] / total[:-1])
+
+
+def test_fewest_components_within_five_percent_rms_of_the_best():
+    # the 6 h lathe log's held-out PRESS: the 4th component adds nothing, the 5th halves it;
+    # stopping at the first useless component (the paper's sequential rule) would keep 3
+    lathe = [629.2, 258.0, 144.7, 150.2, 70.7, 64.8, 58.5]
+    assert fewest_within(lathe, Q2_LIMIT) == 6  # 64.8 · 0.9025 = 58.48 ≤ 58.5: just within
+    assert fewest_within(lathe, 0.2) == 5
+    # the gantry's training day: 2 is within 5 % RMS of the best (3), more only fit noise
+    gantry = [392.9, 143.0, 132.2, 133.9, 180.0, 155.4]
+    assert fewest_within(gantry, Q2_LIMIT) == 2
+    assert fewest_within(gantry, 0.0) == 3  # no tolerance: the minimum
+    assert fewest_within(gantry, -0.1) == 3  # a negative limit: still the minimum
+    assert fewest_within(gantry, 1.0) == 1
 
 
 def test_guard_band_from_autocorrelation():
