@@ -366,7 +366,7 @@ def train_rows(n: int, blocks: list[tuple[int, int]], guard_rows: int) -> np.nda
     return np.array([n - (hi - lo) - min(guard_rows, lo) - min(guard_rows, n - hi) for lo, hi in blocks])
 
 
-def cv_blocks(t_s: np.ndarray, n_blocks: int, need: int) -> tuple[list[tuple[int, int]], str]:
+def held_out_blocks(t_s: np.ndarray, n_blocks: int, need: int) -> tuple[list[tuple[int, int]], str]:
     """The held-out blocks of blocked cross-validation over rows with times `t_s`, and how they were cut.
 
     `gaps`: the log's stretches between gaps (days logged into one file), when at least
@@ -488,7 +488,7 @@ def blocked_design(
     (their neighbours lie across the gap), only the span.
     """
     need = rows_needed(n_components)
-    blocks, split = cv_blocks(t_s[:n_fit], opt.cv_blocks, need)
+    blocks, split = held_out_blocks(t_s[:n_fit], opt.cv_blocks, need)
     span = opt.library_span or 0
     if opt.cv_guard_rows is not None:
         guard, how = opt.cv_guard_rows, "option"

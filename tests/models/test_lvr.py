@@ -13,10 +13,10 @@ from compd.identify.lvr import (
     blocked_press,
     blocked_q2,
     coef_path,
-    cv_blocks,
     equal_blocks,
     fewest_within,
     guard_rows_from_residuals,
+    held_out_blocks,
     loo_press,
     rows_needed,
     sample_library,
@@ -301,13 +301,13 @@ def test_guard_band_from_autocorrelation():
 def test_blocks_are_the_days_of_a_log_with_gaps():
     day = np.arange(0.0, 36000.0, 60.0)  # 10 h at 60 s, then 14 h off
     t = np.concatenate([day, day + 86400, day + 2 * 86400])
-    blocks, split = cv_blocks(t, 5, 7)
+    blocks, split = held_out_blocks(t, 5, 7)
     assert split == "gaps" and blocks == [(0, 600), (600, 1200), (1200, 1800)]
     assert stretches(t[:600]) == [(0, 600)]  # a log without gaps: one stretch, cut into equal blocks
-    assert cv_blocks(t[:600], 5, 7) == (equal_blocks(600, 5), "equal")
+    assert held_out_blocks(t[:600], 5, 7) == (equal_blocks(600, 5), "equal")
     # a stretch shorter than half a block (a restart) joins its neighbour
     short = np.concatenate([t, [4 * 86400.0, 4 * 86400.0 + 60]])
-    assert cv_blocks(short, 5, 7)[0] == [(0, 600), (600, 1200), (1200, 1802)]
+    assert held_out_blocks(short, 5, 7)[0] == [(0, 600), (600, 1200), (1200, 1802)]
     # a pause of 30 min in a 60 s log is not a gap (under GAP_S); one of 2 h is
     assert len(stretches(np.concatenate([day, day[-1] + 1800 + day]))) == 1
     assert len(stretches(np.concatenate([day, day[-1] + 7200 + day]))) == 2
