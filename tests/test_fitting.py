@@ -46,6 +46,11 @@ def test_fit_writes_model_report_plot_and_predicts(tmp_path, kind, capsys):
     assert report["rows"] == 300 and report["axes"]["x1"]["rmse_um"] < 0.5
     if kind == "lvr":
         assert len(doc["fit"]["q2"]) == 3 and "influence" in report["details"]
+        # which selection chose the components, with its PRESS per component and its blocks
+        fit = doc["fit"]
+        assert fit["selection"] == "blocked" and len(fit["press"]) == 3 and fit["n_components"] >= 1
+        assert fit["cv"]["split"] == "equal" and len(fit["cv"]["blocks"]) == 5
+        assert fit["cv"] == report["details"]["cv"] and fit["press"] == report["details"]["press"]
     assert png.stat().st_size > 10_000
     assert main(["predict", str(out), "--log", str(log), "--out", str(pred)]) == 0
     p = read_log(pred)
@@ -118,16 +123,22 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert "nan.csv:12" in err and "T1" in err
     err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out, "--option", "bogus=1"])
     assert "bogus" in err
+    err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out,
+                                  "--option", "selection=kfold"])
+    assert "--option selection: Input should be 'blocked' or 'loo' (got 'kfold')" in err
+    err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out, "--option", "cv_blocks=1"])
+    assert "--option cv_blocks" in err and "greater than or equal to 2" in err
 
 
 def test_lvr_library_span_too_long_exits_2(tmp_path, capsys):
-    # 300 rows, 3 inputs: Q² selection tries 3 components, which need 6 library rows;
+    # 300 rows, 3 inputs: the paper's LOO Q² selection tries 3 components, which need 6 library rows;
     # eq. 11 keeps s − P* rows, so a span of 294 is the longest accepted
     log = tmp_path / "log.csv"
     _write_log(log)
     out = tmp_path / "m.yaml"
     rep = tmp_path / "r.json"
-    argv = ["fit", "--kind", "lvr", "--log", str(log), "--out", str(out), "--report", str(rep)]
+    argv = ["fit", "--kind", "lvr", "--log", str(log), "--out", str(out), "--report", str(rep),
+            "--option", "selection=loo"]
     assert main([*argv, "--option", "library_span=294"]) == 0
     assert json.loads(rep.read_text())["details"]["fit_rows"] == 6
     out.unlink()

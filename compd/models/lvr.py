@@ -1,7 +1,8 @@
-"""Latent-variable regression (PLS) on temperature rises (paper 002); the fit chooses components by exact fast LOO Q².
+"""Latent-variable regression (PLS) on temperature rises (paper 002); the fit chooses components by blocked cross-validation (or the paper's LOO Q²).
 
-The PLS fit and its leave-one-out Q² component selection are in compd.identify.lvr; the
-fitted model evaluates the same linear form as MLR (compd.models.mlr.RiseLinear).
+The PLS fit and its component selection (blocked cross-validation over stretches of the
+log, or paper 002's exact fast leave-one-out Q²) are in compd.identify.lvr; the fitted
+model evaluates the same linear form as MLR (compd.models.mlr.RiseLinear).
 """
 
 from __future__ import annotations
