@@ -70,9 +70,10 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
 
     With two targets (axial, radial) the radial output is added: the rings' geometry
     is the paper's (7010 CETA), the ring temperatures come from the inputs after the
-    ξ sensor ([inner ring sensors], outer ring sensors, [speed]), and only the
-    centrifugal lift k (µm/rpm²) is fitted, by least squares on what u + c leaves,
-    when the last input is the spindle speed.
+    ξ sensor ([inner ring sensors], outer ring sensors, [speed]). When the last input
+    is the spindle speed, the centrifugal lift k (µm/rpm²) is fitted with the gain on
+    the axial error, where paper 003 §3.4 puts it, capped by the axial clearance
+    0.8 ΔL that the growth opens (`lift_axis: axial`); the radial output has no lift.
     """
     opt = validate_options("xi_spindle", Options, options)
     targets = default_targets(log, targets)
@@ -86,7 +87,7 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     X = columns(log, inputs)
     E = columns(log, targets)
     gain, length = _axial_gain(log, opt, X[:, 0], E[:, 0], inputs[0])
-    report: dict[str, Any] = {"gain_um_per_k": gain, "length_mm": length}
+    report: dict[str, Any] = {}
     rad = None
     if radial:
         given = {"alpha_per_k": opt.ring_alpha_per_k} if opt.ring_alpha_per_k is not None else {}
@@ -94,16 +95,17 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
             inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance, **given
         )
         if len(inputs) == 2 + opt.inner_sensors + opt.outer_sensors:
-            probe = XiSpindle(
-                XiSpindleParams(
-                    alpha_per_k=opt.alpha_per_k, length_mm=length,
-                    radial=rad.model_copy(update={"k_um_per_rpm2": 0.0}),
-                ),
-                list(inputs), axis_names(targets),
-            )
-            left = E[:, 1] - probe.predict(X, np.zeros(X.shape[0]))[:, 1]
-            rad = rad.model_copy(update={"k_um_per_rpm2": _fit_lift(left, X[:, -1], log, inputs[-1])})
-            report["k_um_per_rpm2"] = rad.k_um_per_rpm2
+            n2 = X[:, -1] ** 2
+            if not np.any(n2 > 0):
+                raise BadInput(
+                    "the speed input is 0 throughout: the lift k cannot be fitted", file=log.file, path=inputs[-1]
+                )
+            gain, k = _fit_gain_and_lift(X[:, 0] - X[0, 0], n2, E[:, 0], gain, rad.preload_share)
+            length = _length_mm(log, opt, gain, inputs[0])
+            rad = rad.model_copy(update={"k_um_per_rpm2": k, "lift_axis": "axial"})
+            report["k_um_per_rpm2"] = k
+            report["lift_axis"] = "axial"
+    report = {"gain_um_per_k": gain, "length_mm": length, **report}
     params = XiSpindleParams(
         alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, radial=rad
     )
@@ -147,19 +149,84 @@ def _axial_gain(log: Log, opt: Options, x: np.ndarray, e: np.ndarray, name: str)
         raise BadInput(
             f"the error falls as {name} rises (gain {gain:.3g} µm/K): not a ξ sensor", file=log.file, path=name,
         )
-    length = gain / (opt.alpha_per_k * 1000.0)
+    return gain, _length_mm(log, opt, gain, name)
+
+
+def _length_mm(log: Log, opt: Options, gain_um_per_k: float, name: str) -> float:
+    """L = gain/α in mm; BadInput if that is no spindle (longer than the model allows)."""
+    length = gain_um_per_k / (opt.alpha_per_k * 1000.0)
     if length > MAX_LENGTH_MM:
         raise BadInput(
-            f"the gain {gain:.3g} µm/K means a spindle {length / 1000:.3g} m long at α = {opt.alpha_per_k:g}:"
-            " not a ξ sensor", file=log.file, path=name,
+            f"the gain {gain_um_per_k:.3g} µm/K means a spindle {length / 1000:.3g} m long at"
+            f" α = {opt.alpha_per_k:g}: not a ξ sensor", file=log.file, path=name,
         )
-    return gain, length
+    return length
 
 
-def _fit_lift(left_um: np.ndarray, speed_rpm: np.ndarray, log: Log, name: str) -> float:
-    """Centrifugal lift k (µm/rpm², ≥ 0): least squares of k n² on the radial error u + c leaves."""
-    n2 = speed_rpm**2
-    n4 = float(n2 @ n2)
-    if n4 == 0.0:
-        raise BadInput("the speed input is 0 throughout: the lift k cannot be fitted", file=log.file, path=name)
-    return max(0.0, float(left_um @ n2) / n4)
+def _fit_gain_and_lift(
+    rise_k: np.ndarray, n2_rpm2: np.ndarray, e_um: np.ndarray, gain_um_per_k: float, share: float,
+) -> tuple[float, float]:
+    """(gain µm/K, k µm/rpm² ≥ 0) minimising Σ (e − g·rise − min(k n², share·max(g·rise, 0)))².
+
+    The lift is capped by the axial clearance the growth opens (paper 003 §3.4), so the
+    model is piecewise linear in each of g and k. Coordinate descent: each step minimises
+    exactly over one of them (`_argmin_piecewise`), so the sum of squares never rises.
+    """
+    g, k = gain_um_per_k, 0.0
+    pos = rise_k > 0
+    for _ in range(200):
+        # k, g fixed: row i predicts k n² below its knot cap/n², the cap above it
+        cap = share * np.maximum(g * rise_k, 0.0)
+        y = e_um - g * rise_k
+        with np.errstate(divide="ignore", invalid="ignore"):
+            knot = np.where(n2_rpm2 > 0, cap / n2_rpm2, np.inf)
+        zero = np.zeros_like(y)
+        k_new = _argmin_piecewise(y, knot, n2_rpm2, zero, zero, cap)
+        # g, k fixed: a warm row predicts (1 + share) g rise below g = k n²/(share rise), g rise + k n² above
+        lift = k_new * n2_rpm2
+        if share > 0:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                knot_g = np.where(pos, lift / (share * rise_k), np.inf)
+        else:
+            knot_g = np.zeros_like(y)
+        slope_lo = np.where(pos, (1.0 + share) * rise_k, rise_k)
+        icpt_hi = np.where(pos, lift, 0.0)
+        g_new = _argmin_piecewise(e_um, knot_g, slope_lo, zero, rise_k, icpt_hi, lo_bound=1e-12)
+        done = abs(g_new - g) <= 1e-13 * abs(g) and abs(k_new - k) <= 1e-13 * max(abs(k), 1e-30)
+        g, k = g_new, k_new
+        if done:
+            break
+    return g, k
+
+
+def _argmin_piecewise(
+    y: np.ndarray, knot: np.ndarray, s_lo: np.ndarray, c_lo: np.ndarray, s_hi: np.ndarray, c_hi: np.ndarray,
+    lo_bound: float = 0.0,
+) -> float:
+    """argmin over p ≥ lo_bound of Σ (y − f_i(p))², f_i(p) = s_lo p + c_lo for p < knot_i, s_hi p + c_hi beyond.
+
+    Each f_i is continuous at its knot, so the sum is a quadratic on each interval between
+    sorted knots; cumulative sums give every interval's minimiser at once.
+    """
+    order = np.argsort(knot, kind="stable")
+    kn = knot[order]
+    # rows already past their knot: 0..j-1 (hi), the rest lo; j runs over the intervals
+    def cum(a: np.ndarray, rev: bool) -> np.ndarray:
+        if rev:
+            return np.r_[np.cumsum(a[::-1])[::-1], 0.0]
+        return np.r_[0.0, np.cumsum(a)]
+
+    rh, rl = y[order] - c_hi[order], y[order] - c_lo[order]
+    sh, sl = s_hi[order], s_lo[order]
+    q = cum(sh * sh, False) + cum(sl * sl, True)
+    b = cum(sh * rh, False) + cum(sl * rl, True)
+    c = cum(rh * rh, False) + cum(rl * rl, True)
+    left = np.maximum(np.r_[-np.inf, kn], lo_bound)
+    right = np.r_[kn, np.inf]
+    ok = (right >= left) & np.isfinite(left)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = np.where(q > 0, b / q, left)
+    p = np.clip(p, left, right)
+    p = np.where(ok, p, 0.0)
+    sse = np.where(ok, q * p * p - 2.0 * b * p + c, np.inf)
+    return float(p[int(np.argmin(sse))])

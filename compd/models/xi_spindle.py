@@ -1,9 +1,18 @@
 """ξ-point spindle model, axial ΔL = α L [T(ξ) − T0] and radial bearing-ring model (paper 003)."""
+# Centrifugal lift (paper 003 §3.4): the balls' centrifugal force pushes the rotor along its
+# axis by k·n², but never further than the axial clearance that the preload loss has opened.
+# The paper gives no formula for that clearance; its eq. 29 does: the inner ring carries the
+# balls share·ΔL (0.8 ΔL) along the axis away from the outer raceway, and eq. 32's radial
+# clearance c = share·ΔL·tan θ is the radial leg of that move. Its axial leg, share·ΔL, is the
+# play the rotor has along its axis before the balls bear on the raceway at the original
+# preload again: `axial_clearance_um`. Only the growth between the bearings (share) counts,
+# because growth ahead of the front bearing moves the nose, not the rings. A shrinking
+# rotor (ΔL ≤ 0) raises the preload and opens nothing.
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -72,11 +81,24 @@ def clearance_um(dl_um: float, d_w_mm: float, f: float, contact_deg: float = 18.
     return share * dl_um * math.tan(math.radians(theta))
 
 
+def axial_clearance_um(dl_um: float, share: float = 0.8) -> float:
+    """Axial clearance opened by preload loss from an axial growth ΔL: share·max(ΔL, 0), µm (paper 003 eq. 29)."""
+    return share * max(dl_um, 0.0)
+
+
+def lift_um(k_um_per_rpm2: float, speed_rpm: float, dl_um: float, share: float = 0.8) -> float:
+    """Centrifugal lift min(k n², share·ΔL), never < 0, µm (paper 003 §3.4: bounded by the axial clearance)."""
+    return max(0.0, min(k_um_per_rpm2 * speed_rpm * speed_rpm, axial_clearance_um(dl_um, share)))
+
+
 class RadialParams(ModelParams):
     """Radial model of one angular-contact bearing (paper 003; defaults: 7010 CETA).
 
     Ranges: radii and ball in (0, 1000] mm (a bearing, not a machine); α in (0, 1e-3) /K;
     Poisson's μ in (0, 0.5); the lift k in [0, 1e-3] µm/rpm² (≥ 0: centrifugal force lifts).
+    `lift_axis` says where k·n² goes: `axial` is paper 003's placement, capped by the axial
+    clearance share·ΔL; `radial` is how files written before the key was added meant it
+    (uncapped, on the radial output), so such files keep their meaning until refitted.
     """
 
     r_a_mm: float = Field(25.0, gt=0, le=1000, description="inner ring bore radius")
@@ -97,6 +119,11 @@ class RadialParams(ModelParams):
     outer_sensors: int = Field(1, ge=1, le=2, description="1: uniform ring; 2: T at raceway and OD")
     k_um_per_rpm2: float | None = Field(
         None, ge=0, le=1e-3, description="centrifugal lift k·n² (µm/rpm²); set it to take a speed input (last)"
+    )
+    lift_axis: Literal["axial", "radial"] = Field(
+        "radial",
+        description="where k·n² goes: axial = paper 003 §3.4, at most the axial clearance 0.8 ΔL (what"
+        " `compd fit` writes); radial = uncapped on the radial output, the meaning of files without this key",
     )
 
     @model_validator(mode="after")
@@ -164,7 +191,10 @@ class XiSpindle(Model):
             self.ref_c = np.array(x, dtype=float)
 
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
-        """Axial ΔL = α L (T(ξ) − T0); radial E = u_C − u_B + c(ΔL) + k n² (paper 003), µm."""
+        """Axial ΔL = α L (T(ξ) − T0) + min(k n², 0.8 ΔL); radial E = u_C − u_B + c(ΔL) (paper 003), µm.
+
+        With `lift_axis: radial` (files written before the key) k n² goes uncapped on E instead.
+        """
         dl = self._gain_um_per_k * (x[0] - self.t0_c)
         out[0] = dl
         rad = self.params.radial
@@ -187,7 +217,10 @@ class XiSpindle(Model):
         if rad.clearance:
             e += clearance_um(max(dl, 0.0), rad.d_w_mm, rad.f, rad.contact_deg, rad.preload_share)
         if rad.k_um_per_rpm2 is not None:
-            e += rad.k_um_per_rpm2 * x[k] * x[k]
+            if rad.lift_axis == "axial":
+                out[0] = dl + lift_um(rad.k_um_per_rpm2, x[k], dl, rad.preload_share)
+            else:
+                e += rad.k_um_per_rpm2 * x[k] * x[k]
         out[1] = e
 
     def get_state(self) -> dict[str, Any]:

@@ -12,9 +12,11 @@ from compd.models.xi_spindle import (
     RadialParams,
     XiSpindle,
     XiSpindleParams,
+    axial_clearance_um,
     axial_growth_um,
     clearance_um,
     inner_ring_um,
+    lift_um,
     outer_ring_um,
     ring_displacement_um,
 )
@@ -59,8 +61,10 @@ def test_clearance():
     assert 0 < c1 < c2
 
 
-def test_radial_evaluate():
+def test_radial_evaluate_legacy_lift_on_the_radial_output():
+    """A file without `lift_axis` (written before it existed) keeps its meaning: k n² uncapped on radial."""
     params = XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=RadialParams(k_um_per_rpm2=1e-7))
+    assert params.radial.lift_axis == "radial"
     m = XiSpindle(params, ["T_xi", "T_in", "T_out", "speed_rpm"], ["z", "x"])
     m.start(np.array([22.5, 22.5, 22.5, 0.0]), 0.0)
     out = np.zeros(2)
@@ -146,7 +150,7 @@ def test_find_xi_rejects_constant_profile() -> None:
 
 
 def _radial_log(k_um_per_rpm2: float) -> tuple[Log, XiSpindle]:
-    """A synthetic spindle day whose radial error is exactly the model's, with lift k."""
+    """A synthetic spindle day whose errors are exactly the model's, with the axial lift k."""
     t = np.arange(0.0, 4 * 3600.0, 60.0)
     speed = np.where((t // 1800) % 2 == 0, 9000.0, 3000.0)
     t_xi = 20.0 + 9.0 * (1 - np.exp(-t / 2400.0))
@@ -154,7 +158,7 @@ def _radial_log(k_um_per_rpm2: float) -> tuple[Log, XiSpindle]:
     truth = XiSpindle(
         XiSpindleParams(
             alpha_per_k=13.6e-6, length_mm=160.0,
-            radial=RadialParams(inner_sensors=0, k_um_per_rpm2=k_um_per_rpm2),
+            radial=RadialParams(inner_sensors=0, k_um_per_rpm2=k_um_per_rpm2, lift_axis="axial"),
         ),
         ["T_xi", "T_brg_front", "speed_rpm"], ["z", "radial"],
     )
@@ -192,6 +196,7 @@ def test_fit_radial_recovers_the_lift() -> None:
     assert m.params.length_mm == pytest.approx(160.0)
     assert m.params.radial.inner_sensors == 0
     assert fit.report["k_um_per_rpm2"] == pytest.approx(8e-9, rel=1e-6)
+    assert m.params.radial.lift_axis == "axial"
     t = log.t_s
     X = np.column_stack([log.data[:, 1], log.data[:, 2], log.data[:, 3]])
     np.testing.assert_allclose(m.predict(X, t), truth.predict(X, t), atol=1e-9)
@@ -212,3 +217,96 @@ def test_fit_radial_checks_its_inputs() -> None:
         XiSpindle.fit(log, None, ["err_z_um", "err_radial_um"])
     with pytest.raises(BadInput, match="axial and radial"):
         XiSpindle.fit(log, ["T_xi"], ["err_z_um", "err_radial_um", "err_z_um"])
+
+
+# --- centrifugal lift on the axial output, capped by the axial clearance (paper 003 §3.4) ---
+
+
+def test_axial_clearance_is_the_share_of_growth_and_zero_when_shrinking() -> None:
+    assert axial_clearance_um(10.0) == pytest.approx(8.0)
+    assert axial_clearance_um(10.0, 0.5) == pytest.approx(5.0)
+    assert axial_clearance_um(0.0) == 0.0
+    assert axial_clearance_um(-4.0) == 0.0
+
+
+@pytest.mark.parametrize("dl_um", [-3.0, 0.0, 0.5, 2.0, 10.0, 25.0])
+@pytest.mark.parametrize("speed_rpm", [0.0, 3000.0, 9000.0, 20000.0])
+def test_lift_never_exceeds_the_clearance(dl_um, speed_rpm) -> None:
+    lift = lift_um(1e-7, speed_rpm, dl_um)
+    assert 0.0 <= lift <= axial_clearance_um(dl_um) + 1e-15
+    assert lift == pytest.approx(min(1e-7 * speed_rpm**2, 0.8 * max(dl_um, 0.0)))
+
+
+def test_no_lift_while_no_clearance_is_open() -> None:
+    assert lift_um(1e-7, 15000.0, 0.0) == 0.0
+    assert lift_um(1e-7, 15000.0, -2.0) == 0.0
+
+
+def _lift_model(lift_axis: str) -> XiSpindle:
+    rad = RadialParams(inner_sensors=0, k_um_per_rpm2=1e-7, lift_axis=lift_axis)
+    m = XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad), ["T_xi", "T_o", "n"], ["z", "r"])
+    m.start(np.array([22.5, 22.5, 0.0]), 0.0)
+    return m
+
+
+def test_axial_lift_goes_on_the_axial_output_not_the_radial() -> None:
+    axial, legacy = _lift_model("axial"), _lift_model("radial")
+    still, turning = np.zeros(2), np.zeros(2)
+    axial.evaluate(np.array([26.8, 24.0, 0.0]), 1.0, still)
+    axial.evaluate(np.array([26.8, 24.0, 6000.0]), 1.0, turning)
+    dl = 9.6492  # Table 1 row 26.8 °C
+    assert still[0] == pytest.approx(dl, abs=1e-3)
+    assert turning[0] == pytest.approx(dl + 1e-7 * 6000.0**2, abs=1e-3)  # 3.6 µm < 0.8 ΔL = 7.7 µm
+    assert turning[1] == pytest.approx(still[1])  # radial: no lift
+    old = np.zeros(2)
+    legacy.evaluate(np.array([26.8, 24.0, 6000.0]), 1.0, old)
+    assert old[0] == pytest.approx(dl, abs=1e-3)
+    assert old[1] == pytest.approx(still[1] + 3.6)
+
+
+def test_axial_lift_is_capped_by_the_clearance_the_growth_opened() -> None:
+    m = _lift_model("axial")
+    out = np.zeros(2)
+    m.evaluate(np.array([23.2, 22.5, 20000.0]), 1.0, out)  # k n² = 40 µm, ΔL = 1.57 µm
+    dl = float(axial_growth_um(23.2, 22.5, 13.6e-6, 165.0))
+    assert out[0] == pytest.approx(dl * 1.8)
+    m.evaluate(np.array([22.5, 22.5, 20000.0]), 1.0, out)  # cold: nothing open, nothing lifts
+    assert out[0] == 0.0
+    m.evaluate(np.array([22.0, 22.5, 20000.0]), 1.0, out)  # shrunk: preload up, no lift
+    assert out[0] == pytest.approx(float(axial_growth_um(22.0, 22.5, 13.6e-6, 165.0)))
+
+
+def test_model_file_round_trip_keeps_the_lift_axis() -> None:
+    for axis in ("axial", "radial"):
+        m = _lift_model(axis)
+        d = m.to_dict()
+        assert d["params"]["radial"]["lift_axis"] == axis
+        assert XiSpindleParams.model_validate(d["params"]).radial.lift_axis == axis
+    old = _lift_model("radial").to_dict()["params"]
+    del old["radial"]["lift_axis"]  # a file written before the key existed
+    assert XiSpindleParams.model_validate(old).radial.lift_axis == "radial"
+    with pytest.raises(ValueError):
+        RadialParams(k_um_per_rpm2=1e-7, lift_axis="tangential")
+
+
+def test_fit_recovers_k_where_the_cap_binds() -> None:
+    """k = 1e-7: 8.1 µm at 9000 rpm, more than the 0.8 ΔL open during the warm-up."""
+    log, truth = _radial_log(1e-7)
+    X = log.data[:, 1:4]
+    dl = 13.6e-6 * 160.0 * 1000.0 * (X[:, 0] - X[0, 0])  # the truth's thermal growth
+    fit = XiSpindle.fit(log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"])
+    assert fit.report["k_um_per_rpm2"] == pytest.approx(1e-7, rel=1e-6)
+    assert fit.model.params.length_mm == pytest.approx(160.0, rel=1e-9)
+    capped = 1e-7 * X[:, 2] ** 2 > 0.8 * dl  # rows where the truth's lift is its cap
+    assert 5 <= capped.sum() < len(capped) // 2
+    np.testing.assert_allclose(fit.model.predict(X, log.t_s), truth.predict(X, log.t_s), atol=1e-8)
+
+
+def test_fit_of_an_uncapped_k_would_be_worse() -> None:
+    """The fit respects the bound: least squares of k n² without the cap misses the truth."""
+    log, _ = _radial_log(1e-7)
+    X, e = log.data[:, 1:4], log.data[:, 4]
+    rise = X[:, 0] - X[0, 0]
+    A = np.column_stack([rise, X[:, 2] ** 2])
+    g, k = np.linalg.lstsq(A, e, rcond=None)[0]
+    assert abs(k - 1e-7) > 1e-9
