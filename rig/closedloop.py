@@ -70,7 +70,7 @@ MACHINES: dict[str, Machine] = {
         variants=(("ar1_c1_by_speed", ("--option", "c1_by_speed=true")),),
     ),
     # axial from the ξ sensor; radial from the front bearing's outer ring (the inner ring
-    # at the rotor's ξ temperature, paper 003) plus the clearance and the lift k n²;
+    # at the rotor's ξ temperature, paper 003) plus the clearance; the speed feeds the axial lift k n²;
     # the PMC word carries Z (high byte) and the radial shift (low byte)
     "spindle": Machine(
         "spindle", "fanuc_pmc", "fanuc_pmc", "xi_spindle",

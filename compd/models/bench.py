@@ -27,7 +27,7 @@ def _xi() -> Model:
     from compd.models.xi_spindle import RadialParams, XiSpindle, XiSpindleParams
 
     params = XiSpindleParams(
-        alpha_per_k=13.6e-6, length_mm=165.0, radial=RadialParams(k_um_per_rpm2=1e-7)
+        alpha_per_k=13.6e-6, length_mm=165.0, radial=RadialParams(k_um_per_rpm2=1e-7, lift_axis="axial")
     )
     return XiSpindle(params, ["T_xi", "T_in", "T_out", "speed_rpm"], ["z", "x"])
 
