@@ -48,9 +48,12 @@ def test_demo_reduces_rms_error(tmp_path: Path) -> None:
     words = log.col("word")
     assert len(log) >= 4.5 * 60
     assert len(set(words.tolist())) > 10
-    # applied correction is what the word says: −round(prediction) within the dead-band and slew
-    resid = log.col("err_z_um") + log.col("applied_z_um")
-    assert abs(resid[len(resid) // 2:]).max() < 3.0
+    # applied correction is what the word says: −round(prediction) within the dead-band and slew.
+    # Checked against the prediction, not the plant's error: the demo's model reads T_xi only,
+    # so the plant's centrifugal lift (axial, up to ~4 um at 12000 rpm) is model error here.
+    resid = log.col("pred_z_um") + log.col("applied_z_um")
+    half = resid[len(resid) // 2:]
+    assert abs(half[~np.isnan(half)]).max() < 1.5
 
 
 def test_duration_flag_stops_early(tmp_path: Path) -> None:
