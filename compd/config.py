@@ -760,6 +760,9 @@ def resolve_model(section: Any, doc: Document, path: PathT, base_dir: Path) -> M
         if sec.inputs is None or sec.outputs is None:
             raise doc.error("inline models need 'inputs' and 'outputs'", path)
         inputs, outputs = sec.inputs, sec.outputs
+    upgrade = getattr(cls.Params, "upgrade", None)  # params as written before a key existed
+    if upgrade is not None:
+        raw_params = upgrade(raw_params)
     params = validate(cls.Params, raw_params, pdoc, ppath, what="params")
     base = ppath[:-1]  # where the model section sits in pdoc (the file's top, or `path`)
 

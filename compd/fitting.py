@@ -187,7 +187,7 @@ def fit_model(
         "rmse_um": {a: s["rmse_um"] for a, s in axes.items()},
         "max_abs_err_um": {a: s["max_abs_err_um"] for a, s in axes.items()},
     }
-    for key in ("q2", "n_components", "ljung_box", "converged", "dt_s"):
+    for key in ("q2", "n_components", "ljung_box", "converged", "dt_s", "c2_at_unseen_speeds"):
         if key in result.report:
             fit_info[key] = result.report[key]
     model.fit_info = json.loads(json.dumps(fit_info))

@@ -65,6 +65,11 @@ def test_fit_ar1_reports_ljung_box(tmp_path):
     r = json.loads(rep.read_text())
     assert {"q", "p_value", "lags"} <= set(r["details"]["ljung_box"])
     assert r["inputs"] == ["speed_rpm", "T1", "T3"]
+    # which C2 the model uses at speeds the log has no error at: in the report and the model file
+    assert r["details"]["c2_at_unseen_speeds"]["method"] == "linear"
+    model = yaml.safe_load((tmp_path / "a.yaml").read_text())
+    assert model["fit"]["c2_at_unseen_speeds"]["method"] == "linear"
+    assert model["params"]["recursion_start"] == "zero"
 
 
 def test_fit_all_prints_comparison(tmp_path, capsys):
@@ -113,6 +118,23 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert "nan.csv:12" in err and "T1" in err
     err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out, "--option", "bogus=1"])
     assert "bogus" in err
+
+
+def test_lvr_library_span_too_long_exits_2(tmp_path, capsys):
+    # 300 rows, 3 inputs: Q² selection tries 3 components, which need 6 library rows;
+    # eq. 11 keeps s − P* rows, so a span of 294 is the longest accepted
+    log = tmp_path / "log.csv"
+    _write_log(log)
+    out = tmp_path / "m.yaml"
+    rep = tmp_path / "r.json"
+    argv = ["fit", "--kind", "lvr", "--log", str(log), "--out", str(out), "--report", str(rep)]
+    assert main([*argv, "--option", "library_span=294"]) == 0
+    assert json.loads(rep.read_text())["details"]["fit_rows"] == 6
+    out.unlink()
+    capsys.readouterr()  # the accepted fit's output
+    err = _bad(tmp_path, capsys, [*argv, "--option", "library_span=295"])
+    assert "log.csv: --option library_span: span 295 keeps 5 of the log's 300 rows" in err
+    assert "at most 294" in err and not out.exists()
 
 
 def test_xi_command(tmp_path, capsys):

@@ -80,6 +80,15 @@ class Options(Strict):
         None,
         description="{ref_rpm, ref_rise_c, rises_c: {rpm: rise}}: add C2 at unlogged speeds (paper §4)",
     )
+    rise_sensor: str | None = Field(
+        None,
+        description="headstock sensor column whose rise over a run's first `rise_window_s` scales C2 to the "
+        "speeds the error was not logged at (paper 001, eqs. 20–21); none = C2 linear in speed there",
+    )
+    rise_window_s: float = Field(6000.0, gt=0, description="the rise's window from a run's start (paper: 100 min)")
+    rise_log: str | None = Field(
+        None, description="another log (speed and `rise_sensor`) holding the runs at other speeds"
+    )
 
 
 def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any) -> FitResult:
@@ -131,8 +140,14 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     L, nb = len(rpm), len(bed)
     c2 = np.cumsum(theta[:L])
     table = [(r_, float(c)) for r_, c in zip(rpm, c2, strict=True)]
+    if opt.c2_rise and opt.rise_sensor:
+        raise BadInput("give c2_rise (the rises) or rise_sensor (measure them), not both", path="--option")
     if opt.c2_rise:
         table, report["c2_rise"] = _scaled_table(table, opt.c2_rise)
+        unseen = {"method": "temperature_rise", "reason": "the c2_rise option gives the temperature rises"}
+    else:
+        table, unseen = _rise_from_runs(table, log, opt)
+    report["c2_at_unseen_speeds"] = unseen
     params = AR1Params(
         dt_s=dt,
         c1=c1,
@@ -142,6 +157,7 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         bed_gain_um_per_k=[float(v) for v in theta[L : L + nb]],
         spindle_sign=sign,
         t0_c=None,
+        recursion_start="zero",
     )
     model = AR1(params, names, axis_names(targets))
     model.start(Xs[0], float(t[rows[0]]))
@@ -195,6 +211,7 @@ class _Problem:
                 e_j = np.zeros(L)
                 e_j[j] = 1.0
                 Wt[k, j] = c2_of_speed(v, rpm, list(e_j))
+        Wt[0] = 0.0  # ΔL(0) = 0 (paper 001, eq. 17): C2 enters from the second step on
         self.Wt, self.L, self.Es, self.sign = Wt, L, Es, sign
         self.cum = np.tril(np.ones((L, L)))  # C2 levels = cumulative sum of increments δ ≥ 0
         self.bed_rise = Xs[:, 1 : 1 + n_bed] - x0[:n_bed]
@@ -280,3 +297,74 @@ def _scaled_table(
     monotone = all(b[1] >= a[1] for a, b in zip(out, out[1:], strict=False))
     info = {"c2_ref_um": c2_ref, "added": {str(k): v for k, v in added.items()}, "monotone": monotone}
     return out, info
+
+
+def run_rises_c(
+    t_s: np.ndarray, speed_rpm: np.ndarray, temp_c: np.ndarray, window_s: float, round_rpm: float, stopped_rpm: float
+) -> dict[float, float]:
+    """Temperature rise over the first `window_s` of a run at each speed: {mean speed of the run: rise}.
+
+    A run starts from standstill (or at the log's first row) and holds one speed (within
+    `round_rpm` of its first row) for at least `window_s`; the first such run of a speed counts.
+    The reading at start + window is interpolated in time (paper 001, Table 2: the first 100 min).
+    """
+    n = np.abs(np.asarray(speed_rpm, dtype=float))
+    out: dict[float, float] = {}
+    k, K = 0, n.size
+    while k < K:
+        if n[k] < max(stopped_rpm, 1e-12) or (k > 0 and n[k - 1] >= max(stopped_rpm, 1e-12)):
+            k += 1
+            continue
+        j = k
+        while j + 1 < K and abs(n[j + 1] - n[k]) <= round_rpm:
+            j += 1
+        end_s = t_s[k] + window_s
+        level = float(np.mean(n[k : j + 1]))
+        if t_s[j] >= end_s and not any(abs(level - r) <= round_rpm for r in out):
+            rise = float(np.interp(end_s, t_s[k : j + 1], temp_c[k : j + 1]) - temp_c[k])
+            out[level] = rise
+        k = j + 1
+    return dict(sorted(out.items()))
+
+
+def _rise_from_runs(
+    table: list[tuple[float, float]], log: Log, opt: Options
+) -> tuple[list[tuple[float, float]], dict[str, Any]]:
+    """C2 at speeds with a run but no fitted level, scaled by the rise ratio to a fitted level
+    (paper 001, eqs. 20–21), when `rise_sensor` names the sensor and the runs are there;
+    otherwise the table as it is (C2 linear in speed between its levels). Returns (table, report)."""
+    linear = {"method": "linear"}
+    if opt.rise_sensor is None:
+        return table, {**linear, "reason": "no rise_sensor named: C2 is linear in speed between the fitted levels"}
+    rises: dict[float, float] = {}
+    sources = [log]
+    if opt.rise_log is not None:
+        from compd.log import read_log
+
+        sources.append(read_log(opt.rise_log, allow_nan=True))
+    for src in sources:
+        X = columns(src, [opt.speed_column, opt.rise_sensor])
+        for n, r in run_rises_c(
+            src.t_s, X[:, 0], X[:, 1], opt.rise_window_s, opt.speed_round_rpm, opt.stopped_below_rpm
+        ).items():
+            if not any(abs(n - m) <= opt.speed_round_rpm for m in rises):
+                rises[n] = r
+    info: dict[str, Any] = {"rise_sensor": opt.rise_sensor, "rise_window_s": opt.rise_window_s,
+                            "rises_c": {f"{n:g}": r for n, r in rises.items()}}
+
+    def near_level(n: float) -> bool:
+        return any(abs(n - m) <= opt.speed_round_rpm for m, _ in table)
+
+    refs = [n for n in rises if near_level(n) and rises[n] > 0]
+    others = {n: r for n, r in rises.items() if not near_level(n)}
+    if not refs or not others:
+        why = (f"no run of {opt.rise_window_s:g} s from standstill at a fitted speed" if not refs
+               else f"no run of {opt.rise_window_s:g} s from standstill at a speed without a fitted C2")
+        return table, {**linear, **info, "reason": f"{why} in the log: C2 is linear in speed between the fitted levels"}
+    ref = max(refs)  # the fastest fitted run: the largest rise, as the paper's 2000 rpm
+    scaled, added = _scaled_table(table, {"ref_rpm": ref, "ref_rise_c": rises[ref], "rises_c": others})
+    return scaled, {
+        "method": "temperature_rise", **info, "ref_rpm": ref, **added,
+        "reason": f"C2 at {', '.join(f'{n:g}' for n in others)} rpm = C2({ref:g} rpm) × the rise of "
+        f"{opt.rise_sensor} there / at {ref:g} rpm (paper 001, eqs. 20–21)",
+    }

@@ -215,16 +215,30 @@ def select_components(
 def sample_library(
     X: np.ndarray, Y: np.ndarray, span: int, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The random sample library (paper 002): sample i = W_i − W_(i+P_i), P_i uniform in [1, span].
+    """The random sample library of paper 002, eq. 11: s − P* rows from a log of s rows.
 
-    Pairs whose partner falls past the end of the log are dropped.
+    With span P* = `span`, row i of the library (i = 1 … s − P*, here 0 … s − P* − 1) is
+    W_i − W_(i+P_i), P_i drawn uniformly from the integers 1 … P*. Every partner i + P_i
+    lies inside the log (at most row s), so exactly s − P* rows are kept, none dropped.
+    Raises ValueError unless 1 ≤ `span` < s.
     """
-    n = X.shape[0]
-    step = rng.integers(1, span + 1, size=n)
-    idx = np.arange(n)
-    keep = idx + step < n
-    i, j = idx[keep], (idx + step)[keep]
+    s = X.shape[0]
+    if not 1 <= span < s:
+        raise ValueError(f"span must be 1..{s - 1} for a log of {s} rows, got {span}")
+    i = np.arange(s - span)
+    j = i + rng.integers(1, span + 1, size=i.size)
     return X[i] - X[j], Y[i] - Y[j]
+
+
+def rows_needed(n_components: int) -> int:
+    """Rows a PLS fit (on the log or on its sample library) needs for `n_components` components.
+
+    Components + 3, to fit and cross-validate them. Each leave-one-out refit
+    has rows − 1 samples, whose centred matrix has rank at most rows − 2, and h
+    components need rank h; one more row keeps the last component's left-out fit from
+    merely interpolating its data, so its Q² still means something.
+    """
+    return n_components + 3
 
 
 class Options(Strict):
@@ -233,7 +247,9 @@ class Options(Strict):
     max_components: int = Field(10, ge=1, le=100, description="components tried by Q² selection")
     n_components: int | None = Field(None, ge=1, description="force this many; no Q² selection")
     q2_limit: float = Field(Q2_LIMIT, description="keep component h while Q²_h ≥ this")
-    library_span: int | None = Field(None, ge=1, description="sample library span P*; none = off")
+    library_span: int | None = Field(
+        None, ge=1, description="sample library span P* (eq. 11: keeps s − P* of s rows); none = off"
+    )
     seed: int = Field(0, description="random seed of the sample library")
 
 
@@ -242,17 +258,26 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     opt = validate_options("lvr", Options, options)
     inputs, targets, X, Y = linear_data(log, inputs, targets)
     R = rises(X)
-    if opt.library_span is not None:
-        R_fit, Y_fit = sample_library(R, Y, opt.library_span, np.random.default_rng(opt.seed))
-    else:
-        R_fit, Y_fit = R, Y
     p = len(inputs)
     want = opt.n_components or opt.max_components
     if want > p:
         if opt.n_components is not None:
             raise BadInput(f"n_components {want} exceeds the {p} inputs", path="--option n_components")
         want = p
-    require_rows(log, R_fit.shape[0], want + 3, f"lvr with {want} components")
+    if opt.library_span is not None:
+        s, span, need = R.shape[0], opt.library_span, rows_needed(want)
+        require_rows(log, s, need + 1, f"a sample library for lvr with {want} components")
+        if s - span < need:
+            raise BadInput(
+                f"span {span} keeps {max(s - span, 0)} of the log's {s} rows (eq. 11: s − P*); "
+                f"lvr with {want} components needs at least {need}: use a span of at most {s - need}",
+                file=log.file,
+                path="--option library_span",
+            )
+        R_fit, Y_fit = sample_library(R, Y, span, np.random.default_rng(opt.seed))
+    else:
+        R_fit, Y_fit = R, Y
+    require_rows(log, R_fit.shape[0], rows_needed(want), f"lvr with {want} components")
     t0 = time.perf_counter()
     if opt.n_components is not None:
         n_comp = opt.n_components

@@ -1,7 +1,10 @@
 """AR(1) spindle elongation model with speed-dependent C2, bed term and ambient input (paper 001).
 
-Every Δτ the spindle growth steps as S(k) = C1 S(k−1) + C2(n_k) + C3 ΔT_amb(k) (eq. 9 of
-paper 001 with the ambient as exogenous input; C3 = 0 is the paper), and the error is
+Every Δτ the spindle growth steps as S(k) = C1 S(k−1) + C2(n_k) + C3 ΔT_amb(k) (eq. 12 of
+paper 001 with the ambient as exogenous input; C3 = 0 is the paper), starting as eq. 17 does
+from S(0) = 0 at the first step after a cold start (`recursion_start: zero`); model files
+written before that rule have no `recursion_start` and keep theirs, S(0) = C2(n_0) (`c2`,
+see `AR1Params.upgrade`). The error is
 E(k) = Σ_j g_j ΔT_j(k) + s·S(k): for the paper's lathe Z axis the bed sensors enter
 with g = α_bed L_bed and the spindle with s = −1 (error = bed growth − spindle growth).
 C2(n) is piecewise linear in the spindle speed n through (0, 0) and the fitted levels,
@@ -78,6 +81,19 @@ class AR1Params(ModelParams):
     t0_c: list[Annotated[float, Field(ge=TEMP_MIN_C, le=TEMP_MAX_C)]] | None = Field(
         None, description="reference readings of bed and ambient inputs (−40..150 °C)"
     )
+    recursion_start: Literal["zero", "c2"] = Field(
+        "zero",
+        description="first step after a cold start: `zero` S(0) = 0 (paper 001, eq. 17); `c2` S(0) = C2(n_0), "
+        "the rule of model files written before this key (a file or config without the key gets `c2`)",
+    )
+
+    @classmethod
+    def upgrade(cls, raw: Any) -> Any:
+        """Params of a model file or config section as written: without `recursion_start` they
+        predate it and were fitted (and are evaluated) with S(0) = C2(n_0), so they get `c2`."""
+        if isinstance(raw, dict) and "recursion_start" not in raw:
+            return {**raw, "recursion_start": "c2"}
+        return raw
 
     @model_validator(mode="after")
     def _table(self) -> AR1Params:
@@ -136,6 +152,8 @@ class AR1(Model):
         self._sign = float(params.spindle_sign)
         self.x0 = np.asarray(params.t0_c, dtype=float) if params.t0_c is not None else None
         self.s_um = 0.0
+        # True until the first step after a cold start (no step taken, no state restored)
+        self._fresh = params.recursion_start == "zero"
         self._rise = np.zeros(self._nb)
 
     @classmethod
@@ -158,11 +176,14 @@ class AR1(Model):
             self.x0 = np.array(x[1:], dtype=float)
 
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
-        """One Δτ step: S = C1 S + C2(n) + C3 ΔT_amb; E = Σ g ΔT_bed + s S (µm)."""
-        u = c2_of_speed(x[0], self._rpm, self._c2)
-        if self._amb > 0:
-            u += self._c3 * (x[self._amb] - self.x0[self._amb - 1])
-        self.s_um = self.c1_at(x[0]) * self.s_um + u
+        """One Δτ step: S = C1 S + C2(n) + C3 ΔT_amb (S(0) = 0 at a cold start); E = Σ g ΔT_bed + s S (µm)."""
+        if self._fresh:
+            self._fresh = False  # ΔL(0) = 0 (eq. 17): the first step adds nothing
+        else:
+            u = c2_of_speed(x[0], self._rpm, self._c2)
+            if self._amb > 0:
+                u += self._c3 * (x[self._amb] - self.x0[self._amb - 1])
+            self.s_um = self.c1_at(x[0]) * self.s_um + u
         e = self._sign * self.s_um
         if self._nb:
             np.subtract(x[1 : 1 + self._nb], self.x0[: self._nb], out=self._rise)
@@ -198,6 +219,11 @@ class AR1(Model):
         u = np.array([c2_of_speed(v, self._rpm, self._c2) for v in Xs[:, 0]])
         if self._amb > 0:
             u += self._c3 * (Xs[:, self._amb] - self.x0[self._amb - 1])
+        if self._fresh and u.size:
+            # ΔL(0) = 0 (eq. 17): the first row keeps S; only a cold start has _fresh, so S = s0 = 0
+            u[0] = 0.0
+            c1 = np.r_[1.0, np.broadcast_to(np.asarray(c1, dtype=float), u.shape)[1:]]
+            self._fresh = False
         s = ar_filter(c1, u, s0)
         self._last_s = s[-1]
         e = self._sign * s
@@ -214,6 +240,7 @@ class AR1(Model):
     def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0) -> None:
         """Restore S saved `elapsed_s` ago, cooled by its own time constant: S·C1^(elapsed/Δτ)."""
         s = float(state.get("s_um", 0.0))
+        self._fresh = False  # restored memory: the next step is an ordinary one
         # while compd was down the speed is unknown: the standstill C1 (`c1`) decays S slowest
         self.s_um = s * self.params.c1 ** (max(elapsed_s, 0.0) / self.params.dt_s)
         if self.params.t0_c is None and state.get("t0_c") is not None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 from statsmodels.stats.diagnostic import acorr_ljungbox
 
 from compd.errors import BadInput
@@ -62,10 +63,42 @@ def _lathe(noise_um=0.2, seed=0):
     c2 = {2000.0: 0.22, 1000.0: 0.089}
     s, E = 0.0, np.zeros(K)
     for k in range(K):
-        s = 0.9955 * s + c2.get(speed[k], 0.0)
+        if k:  # ΔL(0) = 0, then ΔL(k) = C1 ΔL(k−1) + C2(n_k) (eq. 17)
+            s = 0.9955 * s + c2.get(speed[k], 0.0)
         E[k] = 12.0 * (bed[k] - bed[0]) - s
     E += rng.normal(0, noise_um, K)
     return Log("lathe.csv", ["t_s", "speed_rpm", "T3", "err_z_um"], np.column_stack([t, speed, bed, E]))
+
+
+def _eq17_log(c1=0.9955, c2_um=0.22, bed_um_per_k=12.0):
+    """Paper 001's eq. 17 exactly, no noise: ΔL(0) = 0, ΔL(τ) = C1 ΔL(τ − Δτ) + C2 at 2000 rpm
+    (6 h), then 4 h stopped (C2(0) = 0); Z error = 12 µm/K · ΔT3 − ΔL."""
+    dt, K = 60.0, 600
+    t = np.arange(K) * dt
+    speed = np.where(t < 6 * 3600, 2000.0, 0.0)
+    bed = 20 + 3 * (1 - np.exp(-t / 15000))
+    s, E = 0.0, np.zeros(K)
+    for k in range(K):
+        if k:
+            s = c1 * s + (c2_um if speed[k] > 0 else 0.0)
+        E[k] = bed_um_per_k * (bed[k] - bed[0]) - s
+    return Log("eq17.csv", ["t_s", "speed_rpm", "T3", "err_z_um"], np.column_stack([t, speed, bed, E]))
+
+
+def test_fit_recovers_eq17_exactly():
+    """The recursion starts as the paper's does: a noise-free eq. 17 log fits back C1 and C2
+    (before the fix the shifted start gave C2 = 0.2189)."""
+    res = AR1.fit(_eq17_log(), ["T3"], None)
+    p = res.model.params
+    assert p.recursion_start == "zero"
+    assert p.c1 == pytest.approx(0.9955, rel=1e-6)
+    assert dict(p.c2_table)[2000.0] == pytest.approx(0.22, rel=1e-6)
+    assert p.bed_gain_um_per_k[0] == pytest.approx(12.0, rel=1e-6)
+    assert res.report["step_rmse_um"] < 1e-5
+    # the fitted model, run over the log from a cold start, is eq. 17: first output ΔL(0) = 0
+    pred = predict_log(res.model, _eq17_log())[:, 0]
+    np.testing.assert_allclose(pred, _eq17_log().col("err_z_um"), atol=1e-5)
+    assert pred[0] == 0.0
 
 
 def test_fit_recovers_lathe_coefficients():
@@ -137,6 +170,15 @@ def test_evaluate_matches_predict_and_state_cools():
             nxt = t[i] + 60
         held.append(out[0])
     np.testing.assert_allclose(held, P[:, 0], atol=1e-12)
+    # ΔL(0) = 0 at the cold start, then S(1) = C2 + C3 ΔT_amb(1): the bed term alone at first
+    assert held[0] == 0.0
+    s1 = 0.2 + 0.1 * (X[3, 2] - X[0, 2])  # the second step is at row 3 (60 s at 20 s)
+    assert held[3] == pytest.approx(-s1 + 10.0 * (X[3, 1] - X[0, 1]), abs=1e-12)
+    # a second batch goes on from the state: no second ΔL(0) = 0
+    m3 = AR1(params, m.inputs, m.outputs)
+    half = t.size // 2
+    parts = np.r_[m3.predict(X[:half], t[:half])[:, 0], m3.predict(X[half:], t[half:])[:, 0]]
+    np.testing.assert_allclose(parts, P[:, 0], atol=1e-12)
     state = m.get_state()
     m2 = AR1(params, m.inputs, m.outputs)
     m2.set_state(state, elapsed_s=600.0)
@@ -206,3 +248,103 @@ def test_c1_by_speed_checks():
         AR1Params(dt_s=60, c1=0.99, c1_table=[(0.0, 0.99)])
     with pytest.raises(ValueError, match="c1_table speeds"):
         AR1Params(dt_s=60, c1=0.99, c1_table=[(2000.0, 0.99), (1000.0, 0.98)])
+
+
+def test_files_before_recursion_start_keep_their_rule(tmp_path):
+    """A model file written before `recursion_start` existed was fitted with S(0) = C2(n_0): it loads
+    as `c2` and evaluates as before; a file with the key (every fit now) keeps the paper's start."""
+    from compd.fitting import load_model, write_model
+
+    params = AR1Params(dt_s=60, c1=0.99, c2_table=[(2000.0, 0.3)])
+    new = tmp_path / "new.yaml"
+    write_model(AR1(params, ["speed_rpm"], ["z"]), new)
+    old = tmp_path / "old.yaml"
+    doc = yaml.safe_load(new.read_text())
+    assert doc["params"]["recursion_start"] == "zero"
+    del doc["params"]["recursion_start"]
+    old.write_text(yaml.safe_dump(doc, sort_keys=False))
+    t = np.arange(0, 600, 60.0)
+    X = np.full((t.size, 1), 2000.0)
+    m_old, m_new = load_model(old), load_model(new)
+    assert m_old.params.recursion_start == "c2" and m_new.params.recursion_start == "zero"
+    p_old, p_new = m_old.predict(X, t)[:, 0], m_new.predict(X, t)[:, 0]
+    s, want_old = 0.0, []
+    for _ in t:
+        s = 0.99 * s + 0.3
+        want_old.append(s)
+    np.testing.assert_allclose(p_old, want_old, rtol=1e-12)  # the old rule, unchanged
+    np.testing.assert_allclose(p_new, [0.0, *want_old[:-1]], rtol=1e-12)  # one step later: eq. 17
+    # the per-cycle loop agrees with the batch for the old rule too
+    m = load_model(old)
+    m.start(X[0], 0.0)
+    out, stepped = np.zeros(1), []
+    for i in range(t.size):
+        m.evaluate(X[i], t[i], out)
+        stepped.append(out[0])
+    np.testing.assert_allclose(stepped, p_old, atol=1e-12)
+
+
+def _headstock_c(t_s, speed_rpm, rise_100min_c):
+    """A headstock sensor: from 20 °C each run warms linearly to its rise at 100 min, then holds;
+    at standstill it is back at 20 °C (the runs start cold, as the paper's do)."""
+    T = np.full(t_s.size, 20.0)
+    start = None
+    for k in range(t_s.size):
+        if speed_rpm[k] > 0:
+            start = t_s[k] if start is None else start
+            T[k] = 20.0 + rise_100min_c[speed_rpm[k]] * min((t_s[k] - start) / 6000.0, 1.0)
+        else:
+            start = None
+    return T
+
+
+PAPER_RISES_C = {2000.0: 7.46, 1500.0: 4.11, 1000.0: 3.02}  # Table 2, the first 100 min
+
+
+def test_c2_at_unseen_speeds_from_temperature_rise(tmp_path):
+    """Paper 001, eqs. 20–21: C2 fitted at 2000 rpm (eq. 17 log), the rises of the headstock sensor
+    in runs at 1000 and 1500 rpm (another log, no error logged there) → C2(1000) 0.089, C2(1500) 0.121."""
+    from compd.log import write_log
+
+    train = _eq17_log()
+    T2 = _headstock_c(train.t_s, train.col("speed_rpm"), PAPER_RISES_C)
+    train = Log("eq17.csv", [*train.columns, "T2"], np.column_stack([train.data, T2]))
+    t = np.arange(0, 20 * 3600, 60.0)
+    speed = np.select([t < 3 * 3600, (t >= 10 * 3600) & (t < 13 * 3600)], [1000.0, 1500.0], 0.0)
+    runs = tmp_path / "runs.csv"
+    write_log(runs, ["t_s", "speed_rpm", "T2"], np.column_stack([t, speed, _headstock_c(t, speed, PAPER_RISES_C)]))
+    res = AR1.fit(train, ["T3"], None, rise_sensor="T2", rise_log=str(runs))
+    table = dict(res.model.params.c2_table)
+    assert round(table[1000.0], 3) == 0.089 and round(table[1500.0], 3) == 0.121
+    assert table[2000.0] == pytest.approx(0.22, rel=1e-6)
+    how = res.report["c2_at_unseen_speeds"]
+    assert how["method"] == "temperature_rise" and how["ref_rpm"] == 2000.0
+    assert how["rises_c"] == pytest.approx({"2000": 7.46, "1000": 3.02, "1500": 4.11})
+    assert "1000, 1500 rpm" in how["reason"] and "T2" in how["reason"]
+    assert res.model.c1_at(1000.0) == res.model.params.c1
+    # the run-time C2 at 1000 rpm is the scaled one, not the linear 0.110
+    m = res.model
+    assert c2_of_speed(1000.0, m._rpm, m._c2) == pytest.approx(0.22 * 3.02 / 7.46, rel=1e-6)
+
+
+def test_report_names_linear_c2_when_the_rises_are_missing():
+    """Without the runs (or without a sensor named) C2 stays linear in speed, and the report says why."""
+    train = _eq17_log()
+    T2 = _headstock_c(train.t_s, train.col("speed_rpm"), PAPER_RISES_C)
+    train = Log("eq17.csv", [*train.columns, "T2"], np.column_stack([train.data, T2]))
+    plain = AR1.fit(train, ["T3"], None)
+    how = plain.report["c2_at_unseen_speeds"]
+    assert how["method"] == "linear" and "no rise_sensor" in how["reason"]
+    m = plain.model
+    assert c2_of_speed(1000.0, m._rpm, m._c2) == pytest.approx(0.110, rel=1e-5)
+    sensed = AR1.fit(train, ["T3"], None, rise_sensor="T2")  # only the 2000 rpm run in the log
+    how = sensed.report["c2_at_unseen_speeds"]
+    assert how["method"] == "linear" and "without a fitted C2" in how["reason"]
+    assert how["rises_c"] == pytest.approx({"2000": 7.46})
+    assert dict(sensed.model.params.c2_table) == dict(m.params.c2_table)
+    given = AR1.fit(train, ["T3"], None, c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1000: 3.02}})
+    assert given.report["c2_at_unseen_speeds"]["method"] == "temperature_rise"
+    assert round(dict(given.model.params.c2_table)[1000.0], 3) == 0.089
+    with pytest.raises(BadInput, match="not both"):
+        AR1.fit(train, ["T3"], None, rise_sensor="T2", c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46,
+                                                               "rises_c": {1000: 3.02}})

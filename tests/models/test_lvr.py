@@ -7,7 +7,7 @@ import pytest
 from sklearn.cross_decomposition import PLSRegression
 
 from compd.errors import BadInput
-from compd.identify.lvr import Q2_LIMIT, loo_press, sample_library, select_components
+from compd.identify.lvr import Q2_LIMIT, loo_press, rows_needed, sample_library, select_components
 from compd.log import Log
 from compd.models.lvr import LVR, fit_pls
 
@@ -65,15 +65,48 @@ def test_q2_selection_rule():
     assert all(v >= Q2_LIMIT for v in q2[:h])
 
 
-def test_sample_library_pairs():
-    rng = np.random.default_rng(0)
-    X = np.arange(20.0)[:, None] * np.ones((1, 3))
-    Y = np.arange(20.0)[:, None] * 2
-    dX, dY = sample_library(X, Y, 4, rng)
-    steps = -dX[:, 0]
-    assert dX.shape[0] == dY.shape[0] > 10
-    assert steps.min() >= 1 and steps.max() <= 4
-    np.testing.assert_allclose(dY[:, 0], 2 * dX[:, 0])
+def _indexed(s):
+    """A log whose row k reads (k, k²) and errors (3k): a library row's indices can be read back."""
+    k = np.arange(float(s))
+    return np.column_stack([k, k * k]), 3 * k[:, None]
+
+
+def _indices(dX):
+    """(i, j) of library rows W_i − W_j built from `_indexed` (i − j and i² − j² give both)."""
+    diff = dX[:, 0]  # i − j
+    total = dX[:, 1] / diff  # i + j
+    return np.rint((total + diff) / 2).astype(int), np.rint((total - diff) / 2).astype(int)
+
+
+def test_sample_library_keeps_eq11_rows():
+    # eq. 11: from s = 12 rows with span P* = 4, rows i = 1 … s − P* (here 0 … 7), each
+    # paired with row i + P_i, 1 ≤ P_i ≤ 4: the partner never falls past the last row
+    X, Y = _indexed(12)
+    for seed in range(20):
+        dX, dY = sample_library(X, Y, 4, np.random.default_rng(seed))
+        i, j = _indices(dX)
+        assert dX.shape == (8, 2) and dY.shape == (8, 1)
+        np.testing.assert_array_equal(i, np.arange(8))
+        assert np.all((j - i >= 1) & (j - i <= 4)) and j.max() <= 11
+        np.testing.assert_array_equal(dY[:, 0], 3 * (i - j))
+
+
+def test_sample_library_steps_cover_the_span():
+    X, Y = _indexed(403)
+    dX, _ = sample_library(X, Y, 3, np.random.default_rng(5))
+    i, j = _indices(dX)
+    assert len(i) == 400
+    counts = np.bincount(j - i, minlength=4)
+    assert counts[0] == 0 and counts[1:].min() > 100  # 1, 2 and 3 drawn about 133 times each
+
+
+def test_sample_library_span_limits():
+    X, Y = _indexed(5)
+    dX, _ = sample_library(X, Y, 4, np.random.default_rng(0))  # P* = s − 1: one row, 0 with 4
+    np.testing.assert_array_equal(np.column_stack(_indices(dX)), [[0, 4]])
+    for span in (0, 5, 9):
+        with pytest.raises(ValueError, match="span"):
+            sample_library(X, Y, span, np.random.default_rng(0))
 
 
 def _log(n=200, seed=2):
@@ -103,9 +136,28 @@ def test_lvr_fit_and_evaluate_agree():
     assert np.sqrt(np.mean((P - E) ** 2)) < 0.3
 
 
-def test_lvr_library_fit_runs():
+def test_lvr_library_fit_keeps_s_minus_span_rows():
     res = LVR.fit(_log(), None, None, library_span=20, seed=1)
-    assert res.report["fit_rows"] < 200 and res.report["library_span"] == 20
+    assert res.report["fit_rows"] == 200 - 20 and res.report["library_span"] == 20
+    assert res.report["n_components"] >= 1
+
+
+def test_lvr_library_span_leaving_too_few_rows_is_refused():
+    log = _log()  # 200 rows, 4 inputs: Q² selection tries 4 components, which need 7 rows
+    assert rows_needed(4) == 7
+    res = LVR.fit(log, None, None, library_span=193)  # keeps 7 rows: enough
+    assert res.report["fit_rows"] == 7
+    with pytest.raises(BadInput, match=r"--option library_span: span 194 keeps 6 .* at least 7"):
+        LVR.fit(log, None, None, library_span=194)
+    with pytest.raises(BadInput, match="library_span: span 250 keeps 0"):
+        LVR.fit(log, None, None, library_span=250)
+    # the rule counts the components asked for: 2 of them need only 5 rows
+    assert LVR.fit(log, None, None, library_span=195, n_components=2).report["fit_rows"] == 5
+    with pytest.raises(BadInput, match="library_span"):
+        LVR.fit(log, None, None, library_span=196, n_components=2)
+    short = Log("s.csv", log.columns, log.data[:7])  # a library keeps at most s − 1 rows
+    with pytest.raises(BadInput, match="s.csv: 7 rows are too few: a sample library"):
+        LVR.fit(short, None, None, library_span=1)
 
 
 def test_lvr_bad_inputs():

@@ -40,3 +40,15 @@ class Harness:
             n: (float(self.frame.values[i]), Quality(int(self.frame.quality[i])).name)
             for i, n in enumerate(self.frame.names)
         }
+
+    def sample_good(self, max_polls: int = 50) -> dict[str, tuple[float, str]]:
+        """Sample until every signal is GOOD (a device recovering from a fault), at most
+        `max_polls` polls: on a busy machine a reply may still come late a poll or two after
+        the fault is cleared. Returns the last sample, GOOD or not, for the caller to assert."""
+        s = self.sample(polls=1)
+        for _ in range(max_polls):
+            if all(q == "GOOD" for _, q in s.values()):
+                break
+            s = self.sample(polls=1)
+        return s
+
