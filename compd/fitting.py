@@ -116,7 +116,8 @@ def compare_with_mlr(
     (`held_out_rmse`); a warning per axis where MLR predicts the unseen rows better."""
     try:
         ours = held_out_rmse(kind, log, inputs, targets, options)
-        mlr_inputs = [c for c in inputs if c in log.columns]
+        # MLR on temperature rises (SPEC §3.5): a speed, position or current input stays out
+        mlr_inputs = [c for c in inputs if c in log.temperature_columns()]
         mlr = held_out_rmse("mlr", log, mlr_inputs, targets, {})
     except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
         return {"skipped": f"the held-out comparison could not fit a block: {e}"}
@@ -223,8 +224,9 @@ def applicable(kind: str, log: Log, inputs: list[str] | None, options: dict[str,
         return "no speed_rpm column"
     if kind == "feed_axis" and not any(c.startswith("pos_") for c in log.columns):
         return "no pos_<axis>_mm column"
-    if kind == "xi_spindle" and len(inputs or log.temperature_columns()) != 1:
-        return "needs exactly one ξ sensor (--inputs)"
+    speed = options.get("speed_input", "speed_rpm")
+    if kind == "xi_spindle" and len([c for c in inputs or log.temperature_columns() if c != speed]) != 1:
+        return "needs exactly one ξ sensor (--inputs, and the speed for the lift)"
     return None
 
 

@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 from pydantic import Field
+from scipy import optimize
 
 from compd.config import Strict
 from compd.errors import BadInput
@@ -19,7 +20,7 @@ from compd.identify.data import (
 )
 from compd.log import Log
 from compd.models.base import MAX_LENGTH_MM
-from compd.models.xi_spindle import RadialParams, XiSpindle, XiSpindleParams
+from compd.models.xi_spindle import LiftParams, RadialParams, XiSpindle, XiSpindleParams
 
 
 def find_xi(x_mm: np.ndarray, t_c: np.ndarray) -> float:
@@ -55,6 +56,10 @@ class Options(Strict):
 
     alpha_per_k: float = Field(13.6e-6, gt=0, lt=1e-3, description="α; the fit reports L = gain/α")
     xi_mm: float | None = Field(None, ge=0, description="where the sensor sits (kept in the file)")
+    speed_input: str = Field(
+        "speed_rpm", min_length=1,
+        description="the input recognised as the spindle speed (rpm): when --inputs names it, the lift k is fitted",
+    )
     inner_sensors: int = Field(
         0, ge=0, le=2, description="radial fit: inner-ring sensors after the ξ sensor (0: ring at T_xi)"
     )
@@ -63,17 +68,25 @@ class Options(Strict):
         None, gt=0, lt=1e-3, description="radial fit: bearing steel α; none = the radial params' default"
     )
     clearance: bool = Field(True, description="radial fit: add the preload-loss clearance c(ΔL)")
+    ring_gains: bool = Field(
+        True,
+        description="radial fit: fit a gain on each ring's term (compd's form); false = paper 003's u_C − u_B + c"
+        " with nothing fitted",
+    )
 
 
 def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any) -> FitResult:
     """Axial gain α L by least squares through the origin on the ξ sensor's rise.
 
-    With two targets (axial, radial) the radial output is added: the rings' geometry
-    is the paper's (7010 CETA), the ring temperatures come from the inputs after the
-    ξ sensor ([inner ring sensors], outer ring sensors, [speed]). When the last input
-    is the spindle speed, the centrifugal lift k (µm/rpm²) is fitted with the gain on
-    the axial error, where paper 003 §3.4 puts it, capped by the axial clearance
-    0.8 ΔL that the growth opens (`lift_axis: axial`); the radial output has no lift.
+    When --inputs names the speed (`speed_input`, default the log's `speed_rpm` column),
+    the centrifugal lift k (µm/rpm²) is fitted with the gain on the axial error, where
+    paper 003 §3.4 puts it, capped by the axial clearance 0.8 ΔL that the growth opens:
+    the model's `lift`. With two targets (axial, radial) the radial output is added: the
+    rings' geometry is the paper's (7010 CETA), the ring temperatures come from the inputs
+    after the ξ sensor ([inner ring sensors], outer ring sensors); with `ring_gains` (the
+    default) each ring's term gets a gain ≥ 0, fitted by least squares on the radial error
+    that the clearance c(ΔL) leaves (RadialParams says why), else the paper's form stays
+    unfitted. The radial output has no lift.
     """
     opt = validate_options("xi_spindle", Options, options)
     targets = default_targets(log, targets)
@@ -84,38 +97,84 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         )
     radial = len(targets) == 2
     inputs = _inputs(log, opt, inputs, radial)
-    X = columns(log, inputs)
+    speed = opt.speed_input if opt.speed_input in inputs else None
+    temps = [c for c in inputs if c != speed]
+    X = columns(log, temps)
     E = columns(log, targets)
-    gain, length = _axial_gain(log, opt, X[:, 0], E[:, 0], inputs[0])
+    gain, length = _axial_gain(log, opt, X[:, 0], E[:, 0], temps[0])
     report: dict[str, Any] = {}
+    lift = None
+    if speed is not None:
+        n2 = columns(log, [speed])[:, 0] ** 2
+        if not np.any(n2 > 0):
+            raise BadInput("the speed input is 0 throughout: the lift k cannot be fitted", file=log.file, path=speed)
+        gain, k = _fit_gain_and_lift(X[:, 0] - X[0, 0], n2, E[:, 0], gain, LIFT_SHARE)
+        length = _length_mm(log, opt, gain, temps[0])
+        lift = LiftParams(k_um_per_rpm2=k, speed_input=speed, preload_share=LIFT_SHARE)
+        report["k_um_per_rpm2"] = k
     rad = None
     if radial:
         given = {"alpha_per_k": opt.ring_alpha_per_k} if opt.ring_alpha_per_k is not None else {}
         rad = RadialParams(
-            inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance, **given
+            inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance,
+            preload_share=LIFT_SHARE, **given,
         )
-        if len(inputs) == 2 + opt.inner_sensors + opt.outer_sensors:
-            n2 = X[:, -1] ** 2
-            if not np.any(n2 > 0):
-                raise BadInput(
-                    "the speed input is 0 throughout: the lift k cannot be fitted", file=log.file, path=inputs[-1]
-                )
-            gain, k = _fit_gain_and_lift(X[:, 0] - X[0, 0], n2, E[:, 0], gain, rad.preload_share)
-            length = _length_mm(log, opt, gain, inputs[0])
-            rad = rad.model_copy(update={"k_um_per_rpm2": k, "lift_axis": "axial"})
-            report["k_um_per_rpm2"] = k
-            report["lift_axis"] = "axial"
+        if opt.ring_gains:
+            g_out, g_in = _ring_gains(log, temps, targets, opt, length, rad, E[:, 1])
+            rad = rad.model_copy(update={"outer_gain": g_out, "inner_gain": g_in})
+            report["outer_gain"], report["inner_gain"] = g_out, g_in
+        report["radial_form"] = "ring_gains" if opt.ring_gains else "paper"
     report = {"gain_um_per_k": gain, "length_mm": length, **report}
     params = XiSpindleParams(
-        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, radial=rad
+        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, lift=lift, radial=rad
     )
-    model = XiSpindle(params, list(inputs), axis_names(targets))
+    model = XiSpindle(params, temps + ([speed] if speed else []), axis_names(targets))
     return FitResult(model, report)
+
+
+# paper 003 §3.3: 80 % of the growth lies between the bearings (the lift's cap, the clearance's ΔL)
+LIFT_SHARE = 0.8
+
+
+def _ring_gains(
+    log: Log, temps: list[str], targets: list[str], opt: Options, length_mm: float, rad: RadialParams,
+    e_um: np.ndarray,
+) -> tuple[float, float]:
+    """(g_C, g_B) ≥ 0 minimising Σ (e − g_C u_C + g_B u_B − c)², u and c as the model computes them.
+
+    The terms come from the model itself, each alone (the others' gains 0, c off), so the
+    fit and the run-time evaluation cannot disagree.
+    """
+    X = columns(log, temps)
+    t = log.t_s
+
+    def term(**update: Any) -> np.ndarray:
+        p = XiSpindleParams(alpha_per_k=opt.alpha_per_k, length_mm=length_mm, radial=rad.model_copy(update=update))
+        return XiSpindle(p, list(temps), axis_names(targets)).predict(X, t)[:, 1]
+
+    u_c = term(inner_gain=0.0, outer_gain=1.0, clearance=False)
+    u_b = -term(inner_gain=1.0, outer_gain=0.0, clearance=False)
+    c = term(inner_gain=0.0, outer_gain=0.0) if rad.clearance else np.zeros_like(u_c)
+    A = np.column_stack([u_c, -u_b])
+    if not np.any(A):
+        raise BadInput(
+            "the ring sensors never change: the ring gains cannot be fitted (--option ring_gains=false)",
+            file=log.file, path="--inputs",
+        )
+    g, _ = optimize.nnls(A, e_um - c)
+    if np.any(g > 10.0):
+        raise BadInput(
+            f"the ring gains come out at {g[0]:.3g} (outer), {g[1]:.3g} (inner), beyond 10: the radial error"
+            " does not follow these ring sensors (--option ring_gains=false keeps the paper's form)",
+            file=log.file, path="--inputs",
+        )
+    return float(g[0]), float(g[1])
 
 
 def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> list[str]:
     """The ξ sensor (the log's one temperature column when none is named), then for a radial
-    fit the ring sensors and optionally the speed; BadInput for any other count."""
+    fit the ring sensors; the speed (`speed_input`) anywhere among them adds the lift.
+    BadInput for any other count."""
     rings = opt.inner_sensors + opt.outer_sensors
     if not inputs:
         temps = log.temperature_columns()
@@ -125,16 +184,23 @@ def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> l
                 + f" with --inputs (the log has {len(temps)} temperature columns)",
                 file=log.file, path="--inputs",
             )
-        inputs = temps
-    if not radial and len(inputs) != 1:
-        raise BadInput(f"xi_spindle takes one input (the ξ sensor), got {len(inputs)}", path="--inputs")
-    if radial and len(inputs) not in (1 + rings, 2 + rings):
+        return temps
+    rest = [c for c in inputs if c != opt.speed_input]
+    if not rest:
+        raise BadInput(f"--inputs names only the speed {opt.speed_input}: name the ξ sensor first", path="--inputs")
+    if not radial and len(rest) != 1:
+        raise BadInput(
+            f"xi_spindle takes one input (the ξ sensor), and the speed {opt.speed_input} for the lift;"
+            f" got {', '.join(inputs)} (another speed column: --option speed_input=COL)",
+            path="--inputs",
+        )
+    if radial and len(rest) != 1 + rings:
         raise BadInput(
             f"a radial fit takes the ξ sensor, {opt.inner_sensors} inner-ring and {opt.outer_sensors} "
-            f"outer-ring sensor(s), then optionally the speed: {1 + rings} or {2 + rings} inputs, "
-            f"got {len(inputs)}", path="--inputs",
+            f"outer-ring sensor(s): {1 + rings} inputs besides the speed {opt.speed_input}, got {len(rest)}"
+            " (another speed column: --option speed_input=COL)", path="--inputs",
         )
-    return inputs
+    return list(inputs)
 
 
 def _axial_gain(log: Log, opt: Options, x: np.ndarray, e: np.ndarray, name: str) -> tuple[float, float]:
