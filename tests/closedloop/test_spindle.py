@@ -19,19 +19,19 @@ def test_spindle_xi_model_through_the_pmc_cuts_the_axial_and_radial_error(tmp_pa
     print(cl.table(list(rows.values())))
     xi, mlr = rows["xi_spindle"]["axes"]["z"], rows["mlr"]["axes"]["z"]
     assert xi["rms_before_um"] > 5.0
-    # measured ~94 % on this stretch; one sensor at ξ tracks the rotor's mean
-    # temperature, so only the PMC's 1 um shift resolution and the slew remain
+    # measured 94.8 % on this stretch; one sensor at ξ tracks the rotor's mean temperature
+    # and the speed gives the lift, so only the PMC's 1 um shift resolution and the slew remain
     assert xi["reduction_pct"] > 85.0, xi
     assert mlr["reduction_pct"] > 75.0, mlr
-    # radial: measured ~45 % on this stretch (2.0 um RMS before, 1.1 after). The radial model
-    # is the paper's u + c with nothing fitted: the centrifugal lift is axial (paper 003 §3.4).
-    # Until issue 16 item 1 a k n² fitted on the radial residual reached ~75 % here by soaking
-    # up ~0.5 um the rings model under-reads while the spindle turns (the plant's inner ring
-    # follows the nose bearing's heat; the model reads it at T_xi). MLR, fitted on the radial
-    # error, does better on this axis.
+    # radial: the fitted ring gains (compd's form; RadialParams) leave ~0.1 um of model error
+    # on the unseen day, so the word's whole-um steps and its 1 um no-chatter band (SPEC §2)
+    # set what is left: 79.0 % on this stretch (2.0 um RMS before), as much as the true error
+    # itself would reach through the same guard and encoder. The paper's unfitted u + c reads
+    # the rings at their sensors' temperatures, under-reads the error by ~0.4 um while the
+    # spindle turns, and reaches ~45 % here (the accept variant xi_spindle_paper).
     rad = rows["xi_spindle"]["axes"]["radial"]
     assert rad["rms_before_um"] > 1.5
-    assert rad["reduction_pct"] > 35.0, rad
+    assert rad["reduction_pct"] > 72.0, rad
     for r in rows.values():
         assert not any(k.startswith("fault") for k in r["faults"]), r["faults"]
         assert r["sink"]["updates"] > 5  # shift updates really went to the PMC
