@@ -119,7 +119,8 @@ class Console:
         self.inputs = loop.model.inputs[:3]
         self.axes = loop.model.outputs
         self.err_idx = [loop.frame.index.get(f"err_{a}_um") for a in self.axes]
-        cols = ["time"] + [f"{n}/°C" for n in self.inputs]
+        # a name that carries its unit (speed_rpm, pos_y_mm, current_x_a) stands as it is
+        cols = ["time"] + [n if n.endswith(("_rpm", "_mm", "_a", "_um")) else f"{n}/°C" for n in self.inputs]
         for a in self.axes:
             cols += [f"pred_{a}/µm"]
         cols += ["word"]

@@ -17,7 +17,7 @@ from pydantic import ValidationError
 from compd.errors import BadInput
 from compd.identify import FITS, KINDS, option_names
 from compd.identify.data import HOLDOUT_BLOCKS, columns, default_targets, progress
-from compd.log import Log, is_temperature_column, read_log
+from compd.log import Log, read_log
 from compd.models.base import Model
 
 
@@ -115,9 +115,9 @@ def compare_with_mlr(
     (`held_out_rmse`); a warning per axis where MLR predicts the unseen rows better."""
     try:
         ours = held_out_rmse(kind, log, inputs, targets, options)
-        # MLR on the temperatures among the inputs (a position or a current is not a rise);
+        # MLR on temperature rises (SPEC §3.5): a speed, position or current input stays out;
         # a model that takes none (the analytic feed axis) is compared with MLR on every one
-        mlr_inputs = [c for c in inputs if c in log.columns and is_temperature_column(c)] or log.temperature_columns()
+        mlr_inputs = [c for c in inputs if c in log.temperature_columns()] or log.temperature_columns()
         mlr = held_out_rmse("mlr", log, mlr_inputs, targets, {})
     except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
         return {"skipped": f"the held-out comparison could not fit a block: {e}"}
@@ -228,8 +228,9 @@ def applicable(kind: str, log: Log, inputs: list[str] | None, options: dict[str,
         return "no speed_rpm column"
     if kind == "feed_axis" and not any(c.startswith("pos_") for c in log.columns):
         return "no pos_<axis>_mm column"
-    if kind == "xi_spindle" and len(inputs or log.temperature_columns()) != 1:
-        return "needs exactly one ξ sensor (--inputs)"
+    speed = options.get("speed_input", "speed_rpm")
+    if kind == "xi_spindle" and len([c for c in inputs or log.temperature_columns() if c != speed]) != 1:
+        return "needs exactly one ξ sensor (--inputs, and the speed for the lift)"
     return None
 
 

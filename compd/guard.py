@@ -90,6 +90,9 @@ class Guard:
         self._prev_val = np.full(len(inputs), math.nan)
         self._prev_t = np.full(len(inputs), math.nan)
         self._has_rate = bool(np.isfinite(self._rate).any())
+        # a signal without a rate limit beside one with: a limit no change reaches, finite so
+        # that × 0 s (the same sample again) is 0, not inf × 0 = NaN and a numpy warning
+        self._rate[~np.isfinite(self._rate)] = 1e200
         self._has_frozen = bool(np.isfinite(self._frozen_after).any())
         n_in = len(inputs)
         self._v = np.zeros(n_in)

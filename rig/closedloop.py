@@ -71,13 +71,16 @@ MACHINES: dict[str, Machine] = {
         "lathe", "siemens_nc", "siemens", "ar1", ("--inputs", "T3"), (), ("z",),
         variants=(("ar1_paper", ("--option", "c1_by_speed=false")),),
     ),
-    # axial from the ξ sensor; radial from the front bearing's outer ring (the inner ring
-    # at the rotor's ξ temperature, paper 003) plus the clearance and the lift k n²;
-    # the PMC word carries Z (high byte) and the radial shift (low byte)
+    # axial from the ξ sensor plus the centrifugal lift k n² (speed_rpm, paper 003 §3.4);
+    # radial from the front bearing's outer ring (the inner ring at the rotor's ξ temperature,
+    # paper 003) plus the clearance, each ring's term with its fitted gain (compd's form);
+    # the variant is the paper's radial form with nothing fitted. The PMC word carries Z
+    # (high byte) and the radial shift (low byte)
     "spindle": Machine(
         "spindle", "fanuc_pmc", "fanuc_pmc", "xi_spindle",
         ("--inputs", "T_xi", "T_brg_front", "speed_rpm", "--target", "err_z_um", "--target", "err_radial_um"),
         ("--target", "err_z_um", "--target", "err_radial_um"), ("z", "radial"),
+        variants=(("xi_spindle_paper", ("--option", "ring_gains=false")),),
     ),
     "gantry": Machine("gantry", "fanuc_pmc", "pci1756", "lvr", (), (), ("x1", "x2")),
     # the axis reciprocates with a 12 s period: a 60 s log would see it at one phase

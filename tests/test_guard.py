@@ -125,3 +125,21 @@ def test_clock_jump_never_licenses_a_step() -> None:
     g.update(np.array([50.0]), ok, 3600.0)
     assert abs(g.out_um[0]) <= 10.0 * 0.1 + 1e-12
     assert any(e == "jump" for _, _, e, _ in g.events)
+
+
+def test_an_input_without_a_rate_limit_beside_one_with_raises_no_warning() -> None:
+    """The demo's T_xi has max_rate_per_s, its speed_rpm has none: the same sample read again
+    (dt 0) must not make inf × 0 (a numpy warning every cycle); a real jump is still caught."""
+    import warnings
+
+    frame = Frame(["T", "n"])
+    cfg = GuardConfig(signals={"T": SignalLimits(max_rate_per_s=2.0), "n": SignalLimits(min=0.0, max=30000.0)})
+    g = Guard(cfg, ["z"], frame, ["T", "n"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for t, temp, speed in ((0.0, 25.0, 0.0), (0.1, 25.0, 0.0), (0.2, 25.0, 12000.0), (0.3, 25.0, 12000.0)):
+            for i, v in enumerate((temp, speed)):
+                frame.set(i, v, Quality.GOOD, 0.0 if t < 0.2 else 0.2)  # stamps repeat: no new sample
+            assert g.check_inputs(frame, t)
+        frame.set(0, 40.0, Quality.GOOD, 0.3)  # +15 °C in 0.1 s: implausible
+        assert not g.check_inputs(frame, 0.4)

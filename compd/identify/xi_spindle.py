@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 from pydantic import Field
+from scipy import optimize
 
 from compd.config import Strict
 from compd.errors import BadInput
@@ -19,7 +20,7 @@ from compd.identify.data import (
 )
 from compd.log import Log
 from compd.models.base import MAX_LENGTH_MM
-from compd.models.xi_spindle import RadialParams, XiSpindle, XiSpindleParams
+from compd.models.xi_spindle import LiftParams, RadialParams, XiSpindle, XiSpindleParams
 
 
 def find_xi(x_mm: np.ndarray, t_c: np.ndarray) -> float:
@@ -55,6 +56,10 @@ class Options(Strict):
 
     alpha_per_k: float = Field(13.6e-6, gt=0, lt=1e-3, description="α; the fit reports L = gain/α")
     xi_mm: float | None = Field(None, ge=0, description="where the sensor sits (kept in the file)")
+    speed_input: str = Field(
+        "speed_rpm", min_length=1,
+        description="the input recognised as the spindle speed (rpm): when --inputs names it, the lift k is fitted",
+    )
     inner_sensors: int = Field(
         0, ge=0, le=2, description="radial fit: inner-ring sensors after the ξ sensor (0: ring at T_xi)"
     )
@@ -63,16 +68,25 @@ class Options(Strict):
         None, gt=0, lt=1e-3, description="radial fit: bearing steel α; none = the radial params' default"
     )
     clearance: bool = Field(True, description="radial fit: add the preload-loss clearance c(ΔL)")
+    ring_gains: bool = Field(
+        True,
+        description="radial fit: fit a gain on each ring's term (compd's form); false = paper 003's u_C − u_B + c"
+        " with nothing fitted",
+    )
 
 
 def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any) -> FitResult:
     """Axial gain α L by least squares through the origin on the ξ sensor's rise.
 
-    With two targets (axial, radial) the radial output is added: the rings' geometry
-    is the paper's (7010 CETA), the ring temperatures come from the inputs after the
-    ξ sensor ([inner ring sensors], outer ring sensors, [speed]), and only the
-    centrifugal lift k (µm/rpm²) is fitted, by least squares on what u + c leaves,
-    when the last input is the spindle speed.
+    When --inputs names the speed (`speed_input`, default the log's `speed_rpm` column),
+    the centrifugal lift k (µm/rpm²) is fitted with the gain on the axial error, where
+    paper 003 §3.4 puts it, capped by the axial clearance 0.8 ΔL that the growth opens:
+    the model's `lift`. With two targets (axial, radial) the radial output is added: the
+    rings' geometry is the paper's (7010 CETA), the ring temperatures come from the inputs
+    after the ξ sensor ([inner ring sensors], outer ring sensors); with `ring_gains` (the
+    default) each ring's term gets a gain ≥ 0, fitted by least squares on the radial error
+    that the clearance c(ΔL) leaves (RadialParams says why), else the paper's form stays
+    unfitted. The radial output has no lift.
     """
     opt = validate_options("xi_spindle", Options, options)
     targets = default_targets(log, targets)
@@ -83,37 +97,84 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         )
     radial = len(targets) == 2
     inputs = _inputs(log, opt, inputs, radial)
-    X = columns(log, inputs)
+    speed = opt.speed_input if opt.speed_input in inputs else None
+    temps = [c for c in inputs if c != speed]
+    X = columns(log, temps)
     E = columns(log, targets)
-    gain, length = _axial_gain(log, opt, X[:, 0], E[:, 0], inputs[0])
-    report: dict[str, Any] = {"gain_um_per_k": gain, "length_mm": length}
+    gain, length = _axial_gain(log, opt, X[:, 0], E[:, 0], temps[0])
+    report: dict[str, Any] = {}
+    lift = None
+    if speed is not None:
+        n2 = columns(log, [speed])[:, 0] ** 2
+        if not np.any(n2 > 0):
+            raise BadInput("the speed input is 0 throughout: the lift k cannot be fitted", file=log.file, path=speed)
+        gain, k = _fit_gain_and_lift(X[:, 0] - X[0, 0], n2, E[:, 0], gain, LIFT_SHARE)
+        length = _length_mm(log, opt, gain, temps[0])
+        lift = LiftParams(k_um_per_rpm2=k, speed_input=speed, preload_share=LIFT_SHARE)
+        report["k_um_per_rpm2"] = k
     rad = None
     if radial:
         given = {"alpha_per_k": opt.ring_alpha_per_k} if opt.ring_alpha_per_k is not None else {}
         rad = RadialParams(
-            inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance, **given
+            inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance,
+            preload_share=LIFT_SHARE, **given,
         )
-        if len(inputs) == 2 + opt.inner_sensors + opt.outer_sensors:
-            probe = XiSpindle(
-                XiSpindleParams(
-                    alpha_per_k=opt.alpha_per_k, length_mm=length,
-                    radial=rad.model_copy(update={"k_um_per_rpm2": 0.0}),
-                ),
-                list(inputs), axis_names(targets),
-            )
-            left = E[:, 1] - probe.predict(X, np.zeros(X.shape[0]))[:, 1]
-            rad = rad.model_copy(update={"k_um_per_rpm2": _fit_lift(left, X[:, -1], log, inputs[-1])})
-            report["k_um_per_rpm2"] = rad.k_um_per_rpm2
+        if opt.ring_gains:
+            g_out, g_in = _ring_gains(log, temps, targets, opt, length, rad, E[:, 1])
+            rad = rad.model_copy(update={"outer_gain": g_out, "inner_gain": g_in})
+            report["outer_gain"], report["inner_gain"] = g_out, g_in
+        report["radial_form"] = "ring_gains" if opt.ring_gains else "paper"
+    report = {"gain_um_per_k": gain, "length_mm": length, **report}
     params = XiSpindleParams(
-        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, radial=rad
+        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, lift=lift, radial=rad
     )
-    model = XiSpindle(params, list(inputs), axis_names(targets))
+    model = XiSpindle(params, temps + ([speed] if speed else []), axis_names(targets))
     return FitResult(model, report)
+
+
+# paper 003 §3.3: 80 % of the growth lies between the bearings (the lift's cap, the clearance's ΔL)
+LIFT_SHARE = 0.8
+
+
+def _ring_gains(
+    log: Log, temps: list[str], targets: list[str], opt: Options, length_mm: float, rad: RadialParams,
+    e_um: np.ndarray,
+) -> tuple[float, float]:
+    """(g_C, g_B) ≥ 0 minimising Σ (e − g_C u_C + g_B u_B − c)², u and c as the model computes them.
+
+    The terms come from the model itself, each alone (the others' gains 0, c off), so the
+    fit and the run-time evaluation cannot disagree.
+    """
+    X = columns(log, temps)
+    t = log.t_s
+
+    def term(**update: Any) -> np.ndarray:
+        p = XiSpindleParams(alpha_per_k=opt.alpha_per_k, length_mm=length_mm, radial=rad.model_copy(update=update))
+        return XiSpindle(p, list(temps), axis_names(targets)).predict(X, t)[:, 1]
+
+    u_c = term(inner_gain=0.0, outer_gain=1.0, clearance=False)
+    u_b = -term(inner_gain=1.0, outer_gain=0.0, clearance=False)
+    c = term(inner_gain=0.0, outer_gain=0.0) if rad.clearance else np.zeros_like(u_c)
+    A = np.column_stack([u_c, -u_b])
+    if not np.any(A):
+        raise BadInput(
+            "the ring sensors never change: the ring gains cannot be fitted (--option ring_gains=false)",
+            file=log.file, path="--inputs",
+        )
+    g, _ = optimize.nnls(A, e_um - c)
+    if np.any(g > 10.0):
+        raise BadInput(
+            f"the ring gains come out at {g[0]:.3g} (outer), {g[1]:.3g} (inner), beyond 10: the radial error"
+            " does not follow these ring sensors (--option ring_gains=false keeps the paper's form)",
+            file=log.file, path="--inputs",
+        )
+    return float(g[0]), float(g[1])
 
 
 def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> list[str]:
     """The ξ sensor (the log's one temperature column when none is named), then for a radial
-    fit the ring sensors and optionally the speed; BadInput for any other count."""
+    fit the ring sensors; the speed (`speed_input`) anywhere among them adds the lift.
+    BadInput for any other count."""
     rings = opt.inner_sensors + opt.outer_sensors
     if not inputs:
         temps = log.temperature_columns()
@@ -123,16 +184,23 @@ def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> l
                 + f" with --inputs (the log has {len(temps)} temperature columns)",
                 file=log.file, path="--inputs",
             )
-        inputs = temps
-    if not radial and len(inputs) != 1:
-        raise BadInput(f"xi_spindle takes one input (the ξ sensor), got {len(inputs)}", path="--inputs")
-    if radial and len(inputs) not in (1 + rings, 2 + rings):
+        return temps
+    rest = [c for c in inputs if c != opt.speed_input]
+    if not rest:
+        raise BadInput(f"--inputs names only the speed {opt.speed_input}: name the ξ sensor first", path="--inputs")
+    if not radial and len(rest) != 1:
+        raise BadInput(
+            f"xi_spindle takes one input (the ξ sensor), and the speed {opt.speed_input} for the lift;"
+            f" got {', '.join(inputs)} (another speed column: --option speed_input=COL)",
+            path="--inputs",
+        )
+    if radial and len(rest) != 1 + rings:
         raise BadInput(
             f"a radial fit takes the ξ sensor, {opt.inner_sensors} inner-ring and {opt.outer_sensors} "
-            f"outer-ring sensor(s), then optionally the speed: {1 + rings} or {2 + rings} inputs, "
-            f"got {len(inputs)}", path="--inputs",
+            f"outer-ring sensor(s): {1 + rings} inputs besides the speed {opt.speed_input}, got {len(rest)}"
+            " (another speed column: --option speed_input=COL)", path="--inputs",
         )
-    return inputs
+    return list(inputs)
 
 
 def _axial_gain(log: Log, opt: Options, x: np.ndarray, e: np.ndarray, name: str) -> tuple[float, float]:
@@ -147,19 +215,84 @@ def _axial_gain(log: Log, opt: Options, x: np.ndarray, e: np.ndarray, name: str)
         raise BadInput(
             f"the error falls as {name} rises (gain {gain:.3g} µm/K): not a ξ sensor", file=log.file, path=name,
         )
-    length = gain / (opt.alpha_per_k * 1000.0)
+    return gain, _length_mm(log, opt, gain, name)
+
+
+def _length_mm(log: Log, opt: Options, gain_um_per_k: float, name: str) -> float:
+    """L = gain/α in mm; BadInput if that is no spindle (longer than the model allows)."""
+    length = gain_um_per_k / (opt.alpha_per_k * 1000.0)
     if length > MAX_LENGTH_MM:
         raise BadInput(
-            f"the gain {gain:.3g} µm/K means a spindle {length / 1000:.3g} m long at α = {opt.alpha_per_k:g}:"
-            " not a ξ sensor", file=log.file, path=name,
+            f"the gain {gain_um_per_k:.3g} µm/K means a spindle {length / 1000:.3g} m long at"
+            f" α = {opt.alpha_per_k:g}: not a ξ sensor", file=log.file, path=name,
         )
-    return gain, length
+    return length
 
 
-def _fit_lift(left_um: np.ndarray, speed_rpm: np.ndarray, log: Log, name: str) -> float:
-    """Centrifugal lift k (µm/rpm², ≥ 0): least squares of k n² on the radial error u + c leaves."""
-    n2 = speed_rpm**2
-    n4 = float(n2 @ n2)
-    if n4 == 0.0:
-        raise BadInput("the speed input is 0 throughout: the lift k cannot be fitted", file=log.file, path=name)
-    return max(0.0, float(left_um @ n2) / n4)
+def _fit_gain_and_lift(
+    rise_k: np.ndarray, n2_rpm2: np.ndarray, e_um: np.ndarray, gain_um_per_k: float, share: float,
+) -> tuple[float, float]:
+    """(gain µm/K, k µm/rpm² ≥ 0) minimising Σ (e − g·rise − min(k n², share·max(g·rise, 0)))².
+
+    The lift is capped by the axial clearance the growth opens (paper 003 §3.4), so the
+    model is piecewise linear in each of g and k. Coordinate descent: each step minimises
+    exactly over one of them (`_argmin_piecewise`), so the sum of squares never rises.
+    """
+    g, k = gain_um_per_k, 0.0
+    pos = rise_k > 0
+    for _ in range(200):
+        # k, g fixed: row i predicts k n² below its knot cap/n², the cap above it
+        cap = share * np.maximum(g * rise_k, 0.0)
+        y = e_um - g * rise_k
+        with np.errstate(divide="ignore", invalid="ignore"):
+            knot = np.where(n2_rpm2 > 0, cap / n2_rpm2, np.inf)
+        zero = np.zeros_like(y)
+        k_new = _argmin_piecewise(y, knot, n2_rpm2, zero, zero, cap)
+        # g, k fixed: a warm row predicts (1 + share) g rise below g = k n²/(share rise), g rise + k n² above
+        lift = k_new * n2_rpm2
+        if share > 0:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                knot_g = np.where(pos, lift / (share * rise_k), np.inf)
+        else:
+            knot_g = np.zeros_like(y)
+        slope_lo = np.where(pos, (1.0 + share) * rise_k, rise_k)
+        icpt_hi = np.where(pos, lift, 0.0)
+        g_new = _argmin_piecewise(e_um, knot_g, slope_lo, zero, rise_k, icpt_hi, lo_bound=1e-12)
+        done = abs(g_new - g) <= 1e-13 * abs(g) and abs(k_new - k) <= 1e-13 * max(abs(k), 1e-30)
+        g, k = g_new, k_new
+        if done:
+            break
+    return g, k
+
+
+def _argmin_piecewise(
+    y: np.ndarray, knot: np.ndarray, s_lo: np.ndarray, c_lo: np.ndarray, s_hi: np.ndarray, c_hi: np.ndarray,
+    lo_bound: float = 0.0,
+) -> float:
+    """argmin over p ≥ lo_bound of Σ (y − f_i(p))², f_i(p) = s_lo p + c_lo for p < knot_i, s_hi p + c_hi beyond.
+
+    Each f_i is continuous at its knot, so the sum is a quadratic on each interval between
+    sorted knots; cumulative sums give every interval's minimiser at once.
+    """
+    order = np.argsort(knot, kind="stable")
+    kn = knot[order]
+    # rows already past their knot: 0..j-1 (hi), the rest lo; j runs over the intervals
+    def cum(a: np.ndarray, rev: bool) -> np.ndarray:
+        if rev:
+            return np.r_[np.cumsum(a[::-1])[::-1], 0.0]
+        return np.r_[0.0, np.cumsum(a)]
+
+    rh, rl = y[order] - c_hi[order], y[order] - c_lo[order]
+    sh, sl = s_hi[order], s_lo[order]
+    q = cum(sh * sh, False) + cum(sl * sl, True)
+    b = cum(sh * rh, False) + cum(sl * rl, True)
+    c = cum(rh * rh, False) + cum(rl * rl, True)
+    left = np.maximum(np.r_[-np.inf, kn], lo_bound)
+    right = np.r_[kn, np.inf]
+    ok = (right >= left) & np.isfinite(left)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = np.where(q > 0, b / q, left)
+    p = np.clip(p, left, right)
+    p = np.where(ok, p, 0.0)
+    sse = np.where(ok, q * p * p - 2.0 * b * p + c, np.inf)
+    return float(p[int(np.argmin(sse))])

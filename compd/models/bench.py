@@ -24,10 +24,11 @@ def _lvr(kind: str) -> Model:
 
 
 def _xi() -> Model:
-    from compd.models.xi_spindle import RadialParams, XiSpindle, XiSpindleParams
+    from compd.models.xi_spindle import LiftParams, RadialParams, XiSpindle, XiSpindleParams
 
-    params = XiSpindleParams(
-        alpha_per_k=13.6e-6, length_mm=165.0, radial=RadialParams(k_um_per_rpm2=1e-7)
+    params = XiSpindleParams(  # the form `compd fit` writes: the axial lift, fitted ring gains
+        alpha_per_k=13.6e-6, length_mm=165.0, lift=LiftParams(k_um_per_rpm2=1e-7),
+        radial=RadialParams(outer_gain=0.72, inner_gain=0.61),
     )
     return XiSpindle(params, ["T_xi", "T_in", "T_out", "speed_rpm"], ["z", "x"])
 

@@ -2,10 +2,13 @@
 
 Axial error: the rotor's free growth α ∫ (T − T_init) dx (paper 003 eq. 1; the
 ξ-point model estimates it from one sensor, which this plant places at the mean-value
-point of its own steady-state rotor field). Radial error at the front bearing
-(paper 003 §2): ring thermoelastic displacement u = u_C − u_B from the
-rings' radial temperature profiles, plus the clearance c opened by the preload
-loss that the axial growth between the bearings causes, plus centrifugal lift k n².
+point of its own steady-state rotor field), plus the rotor's centrifugal lift (paper 003
+§3.4): the balls' centrifugal force, wedged against the outer raceway at the contact
+angle, pushes the inner ring along the axis against the bearing's axial stiffness, but
+no further than the axial play the growth between the bearings has opened. Radial error
+at the front bearing (paper 003 §2): ring thermoelastic displacement u = u_C − u_B from
+the rings' radial temperature profiles, plus the clearance c opened by the preload loss
+that the axial growth between the bearings causes.
 """
 
 from __future__ import annotations
@@ -55,6 +58,23 @@ def preload_clearance_um(
     return float(dl_mm * math.tan(math.radians(theta)) * 1000.0)
 
 
+def centrifugal_thrust_n(
+    speed_rpm: float, balls: int, ball_mm: float, pitch_mm: float, density_kg_m3: float, contact_deg: float
+) -> float:
+    """Axial thrust of the balls' centrifugal force on the inner ring (N), outer ring fixed.
+
+    The cage turns at ω_c = ω/2 (1 − (D_w/d_m) cos α) (rolling without slip); each ball of
+    mass ρ π D_w³/6 on the pitch circle d_m pushes outward with m ω_c² d_m/2, and the outer
+    raceway, touching it at the contact angle α, turns that into an axial push tan α.
+    """
+    omega = speed_rpm * 2.0 * math.pi / 60.0
+    a = math.radians(contact_deg)
+    omega_cage = 0.5 * omega * (1.0 - ball_mm / pitch_mm * math.cos(a))
+    mass_kg = density_kg_m3 * math.pi * (ball_mm / 1000.0) ** 3 / 6.0
+    force_n = mass_kg * omega_cage**2 * pitch_mm / 2000.0
+    return balls * force_n * math.tan(a)
+
+
 def mean_value_point_mm(x_mm: np.ndarray, t_c: np.ndarray) -> float:
     """Where a rod of equal cells (centres `x_mm`, temperatures `t_c`) is at its mean temperature.
 
@@ -84,7 +104,8 @@ class SpindlePlant(Plant):
     the ambient: rotor `h_w_m2k` + `h_speed_w_m2k_per_krpm`·n/1000, housing
     `housing_h_w_m2k`. Sensors: `T_xi` on the rotor at `xi_mm` (steady-state ξ if
     None), `T_amb`, outer-ring temperatures `T_brg_front`, `T_brg_rear`, and the
-    coolant supply `T_coolant`. Errors: `err_z_um` axial, `err_radial_um` radial.
+    coolant supply `T_coolant`. Errors: `err_z_um` axial (growth + centrifugal lift of
+    `balls` balls against `axial_stiffness_n_per_um`), `err_radial_um` radial.
     """
 
     name = "spindle"
@@ -113,7 +134,11 @@ class SpindlePlant(Plant):
         "groove_f": 0.53,
         "contact_deg": 18.0,
         "growth_share": 0.8,
-        "centrifugal_um_per_rpm2": 5e-9,
+        # centrifugal lift: 18 steel balls (a 7010-size angular-contact bearing; the paper
+        # gives D_w, not the count) against an axial stiffness typical of a light preload
+        "balls": 18,
+        "ball_density_kg_m3": 7850.0,
+        "axial_stiffness_n_per_um": 60.0,
         "drift_sensor": "T_brg_rear",
     }
 
@@ -143,6 +168,8 @@ class SpindlePlant(Plant):
         r_a, r_b, r_c, r_d = p["ring_mm"]
         if not 0 < r_a < r_b < r_c < r_d:
             raise ValueError("spindle plant param ring_mm: need 0 < r_A < r_B < r_C < r_D")
+        if not (int(p["balls"]) >= 0 and p["axial_stiffness_n_per_um"] > 0 and p["ball_density_kg_m3"] >= 0):
+            raise ValueError("spindle plant params: need balls ≥ 0, axial_stiffness_n_per_um > 0, density ≥ 0")
         alpha, mu = p["alpha_per_k"], p["poisson"]
         lin = np.linspace(1.0, 0.0, 9)
         self._ub = [ring_displacement_um(r_b, r_a, r_b, w, alpha, mu) for w in (lin, lin[::-1])]
@@ -203,10 +230,22 @@ class SpindlePlant(Plant):
         return np.array([self.segment().speed_rpm])
 
     def axial_um(self) -> float:
+        """The rotor's thermal growth (µm), without the lift."""
         return self.net.growth_um("rotor", self.p["alpha_per_k"])
 
+    def lift_um(self) -> float:
+        """Centrifugal lift (µm): thrust / axial stiffness, at most the axial play share·growth opened."""
+        p = self.p
+        r_b, r_c = p["ring_mm"][1], p["ring_mm"][2]
+        thrust_n = centrifugal_thrust_n(
+            self.segment().speed_rpm, int(p["balls"]), p["ball_mm"], r_b + r_c, p["ball_density_kg_m3"],
+            p["contact_deg"],
+        )
+        play_um = p["growth_share"] * max(self.axial_um(), 0.0)
+        return min(thrust_n / p["axial_stiffness_n_per_um"], play_um)
+
     def radial_um(self) -> float:
-        """Front bearing: u_C − u_B + c(ΔL) + k n² (µm)."""
+        """Front bearing: u_C − u_B + c(ΔL) (µm)."""
         p, net = self.p, self.net
         t_in = net.T[self.rotor[0]] - net.T_init[self.rotor[0]]
         t_out = net.T[self.housing[0]] - net.T_init[self.housing[0]]
@@ -216,8 +255,7 @@ class SpindlePlant(Plant):
         c = preload_clearance_um(
             self.axial_um(), p["ball_mm"], p["groove_f"], p["contact_deg"], p["growth_share"]
         )
-        n = self.segment().speed_rpm
-        return u_c - u_b + c + p["centrifugal_um_per_rpm2"] * n**2
+        return u_c - u_b + c
 
     def true_error_um(self) -> np.ndarray:
-        return np.array([self.axial_um(), self.radial_um()])
+        return np.array([self.axial_um() + self.lift_um(), self.radial_um()])

@@ -6,8 +6,8 @@ from __future__ import annotations
 from rig import closedloop as cl
 
 # The unseen day's first 5 plant-hours: 9000 rpm jobs with pauses, coolant on (axial
-# error up to ~15 um). In lockstep; SPEEDUP only sets compd's period (4 s); the two
-# models run side by side.
+# error up to ~17 um, the centrifugal lift included). In lockstep; SPEEDUP only sets
+# compd's period (4 s); the two models run side by side.
 HOURS, SPEEDUP = 5.0, 7200.0
 
 
@@ -19,15 +19,19 @@ def test_spindle_xi_model_through_the_pmc_cuts_the_axial_and_radial_error(tmp_pa
     print(cl.table(list(rows.values())))
     xi, mlr = rows["xi_spindle"]["axes"]["z"], rows["mlr"]["axes"]["z"]
     assert xi["rms_before_um"] > 5.0
-    # measured ~94 % on this stretch; one sensor at ξ tracks the rotor's mean
-    # temperature, so only the PMC's 1 um shift resolution and the slew remain
+    # measured 94.8 % on this stretch; one sensor at ξ tracks the rotor's mean temperature
+    # and the speed gives the lift, so only the PMC's 1 um shift resolution and the slew remain
     assert xi["reduction_pct"] > 85.0, xi
     assert mlr["reduction_pct"] > 75.0, mlr
-    # radial: measured ~75 % on this stretch (83 % over the whole day). The error is only
-    # ~2.3 um RMS here and the PMC shifts in whole um, which alone leaves ~0.3 um (87 %).
+    # radial: the fitted ring gains (compd's form; RadialParams) leave ~0.1 um of model error
+    # on the unseen day, so the word's whole-um steps and its 1 um no-chatter band (SPEC §2)
+    # set what is left: 79.0 % on this stretch (2.0 um RMS before), as much as the true error
+    # itself would reach through the same guard and encoder. The paper's unfitted u + c reads
+    # the rings at their sensors' temperatures, under-reads the error by ~0.4 um while the
+    # spindle turns, and reaches ~45 % here (the accept variant xi_spindle_paper).
     rad = rows["xi_spindle"]["axes"]["radial"]
     assert rad["rms_before_um"] > 1.5
-    assert rad["reduction_pct"] > 60.0, rad
+    assert rad["reduction_pct"] > 72.0, rad
     for r in rows.values():
         assert not any(k.startswith("fault") for k in r["faults"]), r["faults"]
         assert r["sink"]["updates"] > 5  # shift updates really went to the PMC

@@ -9,12 +9,15 @@ from compd.errors import BadInput
 from compd.identify.xi_spindle import find_xi
 from compd.log import Log
 from compd.models.xi_spindle import (
+    LiftParams,
     RadialParams,
     XiSpindle,
     XiSpindleParams,
+    axial_clearance_um,
     axial_growth_um,
     clearance_um,
     inner_ring_um,
+    lift_um,
     outer_ring_um,
     ring_displacement_um,
 )
@@ -59,8 +62,10 @@ def test_clearance():
     assert 0 < c1 < c2
 
 
-def test_radial_evaluate():
+def test_radial_evaluate_legacy_lift_on_the_radial_output():
+    """radial.k_um_per_rpm2 (files written before the `lift` section) keeps its meaning: k n² uncapped on radial."""
     params = XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=RadialParams(k_um_per_rpm2=1e-7))
+    assert params.lift is None
     m = XiSpindle(params, ["T_xi", "T_in", "T_out", "speed_rpm"], ["z", "x"])
     m.start(np.array([22.5, 22.5, 22.5, 0.0]), 0.0)
     out = np.zeros(2)
@@ -145,21 +150,24 @@ def test_find_xi_rejects_constant_profile() -> None:
         find_xi(np.array([0.0, 1.0, 2.0]), np.array([20.0, 20.0, 20.0]))
 
 
-def _radial_log(k_um_per_rpm2: float) -> tuple[Log, XiSpindle]:
-    """A synthetic spindle day whose radial error is exactly the model's, with lift k."""
+def _radial_log(
+    k_um_per_rpm2: float | None, outer_gain: float = 1.0, inner_gain: float = 1.0
+) -> tuple[Log, XiSpindle]:
+    """A synthetic spindle day whose errors are exactly the model's: the axial lift k, the ring gains."""
     t = np.arange(0.0, 4 * 3600.0, 60.0)
     speed = np.where((t // 1800) % 2 == 0, 9000.0, 3000.0)
     t_xi = 20.0 + 9.0 * (1 - np.exp(-t / 2400.0))
-    t_out = 20.0 + 4.0 * (1 - np.exp(-t / 3000.0))
+    t_out = 20.0 + 4.0 * (1 - np.exp(-t / 3000.0)) + 0.8 * np.sin(t / 2000.0) ** 2
+    lift = None if k_um_per_rpm2 is None else LiftParams(k_um_per_rpm2=k_um_per_rpm2)
     truth = XiSpindle(
         XiSpindleParams(
-            alpha_per_k=13.6e-6, length_mm=160.0,
-            radial=RadialParams(inner_sensors=0, k_um_per_rpm2=k_um_per_rpm2),
+            alpha_per_k=13.6e-6, length_mm=160.0, lift=lift,
+            radial=RadialParams(inner_sensors=0, outer_gain=outer_gain, inner_gain=inner_gain),
         ),
-        ["T_xi", "T_brg_front", "speed_rpm"], ["z", "radial"],
+        ["T_xi", "T_brg_front"] + ([] if lift is None else ["speed_rpm"]), ["z", "radial"],
     )
     X = np.column_stack([t_xi, t_out, speed])
-    E = truth.predict(X, t)
+    E = truth.predict(X[:, : len(truth.inputs)], t)
     cols = ["t_s", "T_xi", "T_brg_front", "speed_rpm", "err_z_um", "err_radial_um"]
     return Log("spindle.csv", cols, np.column_stack([t, X, E])), truth
 
@@ -189,17 +197,25 @@ def test_fit_radial_recovers_the_lift() -> None:
     )
     m = fit.model
     assert m.outputs == ["z", "radial"]
+    assert m.inputs == ["T_xi", "T_brg_front", "speed_rpm"]
     assert m.params.length_mm == pytest.approx(160.0)
     assert m.params.radial.inner_sensors == 0
     assert fit.report["k_um_per_rpm2"] == pytest.approx(8e-9, rel=1e-6)
+    assert m.params.lift.k_um_per_rpm2 == pytest.approx(8e-9, rel=1e-6)
+    assert m.params.lift.speed_input == "speed_rpm"
+    assert m.params.radial.k_um_per_rpm2 is None  # the radial output carries no lift
+    # the truth's rings are the paper's (gains 1): the fitted gains find that
+    assert m.params.radial.outer_gain == pytest.approx(1.0, abs=1e-6)
+    assert m.params.radial.inner_gain == pytest.approx(1.0, abs=1e-6)
     t = log.t_s
-    X = np.column_stack([log.data[:, 1], log.data[:, 2], log.data[:, 3]])
-    np.testing.assert_allclose(m.predict(X, t), truth.predict(X, t), atol=1e-9)
+    X = log.data[:, 1:4]
+    np.testing.assert_allclose(m.predict(X, t), truth.predict(X, t), atol=1e-6)
 
 
 def test_fit_radial_without_speed_has_no_lift() -> None:
-    log, _ = _radial_log(0.0)
+    log, _ = _radial_log(None)
     m = XiSpindle.fit(log, ["T_xi", "T_brg_front"], ["err_z_um", "err_radial_um"]).model
+    assert m.params.lift is None
     assert m.params.radial.k_um_per_rpm2 is None
     assert m.inputs == ["T_xi", "T_brg_front"]
 
@@ -208,7 +224,260 @@ def test_fit_radial_checks_its_inputs() -> None:
     log, _ = _radial_log(8e-9)
     with pytest.raises(BadInput, match="a radial fit takes"):
         XiSpindle.fit(log, ["T_xi"], ["err_z_um", "err_radial_um"])
+    with pytest.raises(BadInput, match="a radial fit takes"):
+        XiSpindle.fit(log, ["T_xi", "speed_rpm"], ["err_z_um", "err_radial_um"])
     with pytest.raises(BadInput, match="ring sensors"):
         XiSpindle.fit(log, None, ["err_z_um", "err_radial_um"])
     with pytest.raises(BadInput, match="axial and radial"):
         XiSpindle.fit(log, ["T_xi"], ["err_z_um", "err_radial_um", "err_z_um"])
+    with pytest.raises(BadInput, match="name the ξ sensor first"):
+        XiSpindle.fit(log, ["speed_rpm"], ["err_z_um"])
+
+
+# --- the ring gains: compd's form of the radial output (the paper's: both 1) ---
+
+
+def test_ring_gains_scale_each_ring_term() -> None:
+    paper = RadialParams(inner_sensors=0)
+    gained = RadialParams(inner_sensors=0, outer_gain=0.7, inner_gain=0.6)
+    assert (paper.outer_gain, paper.inner_gain) == (1.0, 1.0)  # files without the keys: the paper's form
+    outs = []
+    for rad in (paper, gained):
+        m = XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad), ["T_xi", "T_o"], ["z", "r"])
+        m.start(np.array([22.5, 22.5]), 0.0)
+        out = np.zeros(2)
+        m.evaluate(np.array([26.8, 25.0]), 1.0, out)
+        outs.append(out)
+    u_c = outer_ring_um(2.5, 2.5, 37.66, 40.0, 11.5e-6)
+    u_b = inner_ring_um(4.3, 4.3, 25.0, 27.34, 11.5e-6, 0.26)
+    c = clearance_um(outs[0][0], 10.319, 0.53)
+    assert outs[0][1] == pytest.approx(u_c - u_b + c)
+    assert outs[1][1] == pytest.approx(0.7 * u_c - 0.6 * u_b + c)
+    assert outs[1][0] == outs[0][0]  # the axial output does not change
+
+
+def test_fit_recovers_the_ring_gains_and_the_paper_form_fits_none() -> None:
+    log, truth = _radial_log(8e-9, outer_gain=0.72, inner_gain=0.61)
+    inputs, targets = ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"]
+    fit = XiSpindle.fit(log, inputs, targets)
+    rad = fit.model.params.radial
+    assert rad.outer_gain == pytest.approx(0.72, abs=1e-6)
+    assert rad.inner_gain == pytest.approx(0.61, abs=1e-6)
+    assert fit.report["radial_form"] == "ring_gains"
+    X, t = log.data[:, 1:4], log.t_s
+    np.testing.assert_allclose(fit.model.predict(X, t)[:, 1], truth.predict(X, t)[:, 1], atol=1e-6)
+    paper = XiSpindle.fit(log, inputs, targets, ring_gains=False)
+    assert (paper.model.params.radial.outer_gain, paper.model.params.radial.inner_gain) == (1.0, 1.0)
+    assert paper.report["radial_form"] == "paper"
+    # the truth is not the paper's form, so the unfitted rings miss by what the gains say
+    miss = paper.model.predict(X, t)[:, 1] - log.data[:, 5]
+    assert np.sqrt(np.mean(miss**2)) > 0.1
+
+
+def test_ring_gains_are_never_negative() -> None:
+    """A radial error that falls as the outer ring warms gives g_C = 0, not a negative gain."""
+    log, _ = _radial_log(None, outer_gain=0.0, inner_gain=0.5)
+    data = log.data.copy()
+    data[:, 5] -= 0.3 * (data[:, 2] - data[0, 2])  # the radial error falls with T_brg_front
+    bent = Log(log.file, log.columns, data)
+    rad = XiSpindle.fit(bent, ["T_xi", "T_brg_front"], ["err_z_um", "err_radial_um"]).model.params.radial
+    assert rad.outer_gain == 0.0
+    assert rad.inner_gain > 0.0
+
+
+# --- centrifugal lift on the axial output, capped by the axial clearance (paper 003 §3.4) ---
+
+
+def test_axial_clearance_is_the_share_of_growth_and_zero_when_shrinking() -> None:
+    assert axial_clearance_um(10.0) == pytest.approx(8.0)
+    assert axial_clearance_um(10.0, 0.5) == pytest.approx(5.0)
+    assert axial_clearance_um(0.0) == 0.0
+    assert axial_clearance_um(-4.0) == 0.0
+
+
+@pytest.mark.parametrize("dl_um", [-3.0, 0.0, 0.5, 2.0, 10.0, 25.0])
+@pytest.mark.parametrize("speed_rpm", [0.0, 3000.0, 9000.0, 20000.0])
+def test_lift_never_exceeds_the_clearance(dl_um, speed_rpm) -> None:
+    lift = lift_um(1e-7, speed_rpm, dl_um)
+    assert 0.0 <= lift <= axial_clearance_um(dl_um) + 1e-15
+    assert lift == pytest.approx(min(1e-7 * speed_rpm**2, 0.8 * max(dl_um, 0.0)))
+
+
+def test_no_lift_while_no_clearance_is_open() -> None:
+    assert lift_um(1e-7, 15000.0, 0.0) == 0.0
+    assert lift_um(1e-7, 15000.0, -2.0) == 0.0
+
+
+def _axial_lift_model(inputs: tuple[str, ...] = ("T_xi", "speed_rpm")) -> XiSpindle:
+    """The axial-only model with the lift (what the demo runs): no radial output needed."""
+    params = XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, lift=LiftParams(k_um_per_rpm2=1e-7))
+    m = XiSpindle(params, list(inputs), ["z"])
+    m.start(np.array([22.5 if n == "T_xi" else 0.0 for n in inputs]), 0.0)
+    return m
+
+
+def test_axial_only_model_carries_the_lift() -> None:
+    m = _axial_lift_model()
+    still, turning = np.zeros(1), np.zeros(1)
+    m.evaluate(np.array([26.8, 0.0]), 1.0, still)
+    m.evaluate(np.array([26.8, 6000.0]), 1.0, turning)
+    dl = 9.6492  # Table 1 row 26.8 °C
+    assert still[0] == pytest.approx(dl, abs=1e-3)
+    assert turning[0] == pytest.approx(dl + 1e-7 * 6000.0**2, abs=1e-3)  # 3.6 µm < 0.8 ΔL = 7.7 µm
+    # the speed input is found by its name, wherever it stands
+    swapped = _axial_lift_model(("speed_rpm", "T_xi"))
+    again = np.zeros(1)
+    swapped.evaluate(np.array([6000.0, 26.8]), 1.0, again)
+    assert again[0] == turning[0]
+    assert swapped.t0_c == 22.5
+
+
+def test_axial_lift_is_capped_by_the_clearance_the_growth_opened() -> None:
+    m = _axial_lift_model()
+    out = np.zeros(1)
+    m.evaluate(np.array([23.2, 20000.0]), 1.0, out)  # k n² = 40 µm, ΔL = 1.57 µm
+    dl = float(axial_growth_um(23.2, 22.5, 13.6e-6, 165.0))
+    assert out[0] == pytest.approx(dl * 1.8)
+    m.evaluate(np.array([22.5, 20000.0]), 1.0, out)  # cold: nothing open, nothing lifts
+    assert out[0] == 0.0
+    m.evaluate(np.array([22.0, 20000.0]), 1.0, out)  # shrunk: preload up, no lift
+    assert out[0] == pytest.approx(float(axial_growth_um(22.0, 22.5, 13.6e-6, 165.0)))
+
+
+def test_lift_goes_on_the_axial_output_not_the_radial() -> None:
+    rad = RadialParams(inner_sensors=0)
+    lifted = XiSpindle(
+        XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, lift=LiftParams(k_um_per_rpm2=1e-7), radial=rad),
+        ["T_xi", "T_o", "speed_rpm"], ["z", "r"],
+    )
+    plain = XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad), ["T_xi", "T_o"], ["z", "r"])
+    lifted.start(np.array([22.5, 22.5, 0.0]), 0.0)
+    plain.start(np.array([22.5, 22.5]), 0.0)
+    a, b = np.zeros(2), np.zeros(2)
+    lifted.evaluate(np.array([26.8, 24.0, 6000.0]), 1.0, a)
+    plain.evaluate(np.array([26.8, 24.0]), 1.0, b)
+    assert a[0] == pytest.approx(b[0] + 3.6)
+    assert a[1] == b[1]
+
+
+def test_lift_wiring_and_params_are_checked() -> None:
+    params = XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, lift=LiftParams(k_um_per_rpm2=1e-7))
+    with pytest.raises(BadInput, match="not among the model's inputs") as e:
+        XiSpindle(params, ["T_xi", "n"], ["z"])
+    assert e.value.path == "params.lift.speed_input"
+    with pytest.raises(BadInput, match="takes 2 inputs"):
+        XiSpindle(params, ["T_xi", "T_o", "speed_rpm"], ["z"])
+    named = params.model_copy(update={"lift": LiftParams(k_um_per_rpm2=1e-7, speed_input="S1")})
+    assert XiSpindle(named, ["T_xi", "S1"], ["z"]).inputs == ["T_xi", "S1"]
+    with pytest.raises(ValueError, match="cannot both be set"):
+        XiSpindleParams(
+            alpha_per_k=13.6e-6, length_mm=165, lift=LiftParams(k_um_per_rpm2=1e-7),
+            radial=RadialParams(k_um_per_rpm2=1e-7),
+        )
+    with pytest.raises(ValueError, match="same bearings"):
+        XiSpindleParams(
+            alpha_per_k=13.6e-6, length_mm=165, lift=LiftParams(k_um_per_rpm2=1e-7, preload_share=0.7),
+            radial=RadialParams(),
+        )
+    with pytest.raises(ValueError):
+        LiftParams(k_um_per_rpm2=-1e-9)
+
+
+def test_older_model_file_keeps_its_radial_lift(tmp_path) -> None:
+    """A model file as `compd fit` wrote it before the `lift` section: k under radial, no gains,
+    the speed last. It loads, means k n² uncapped on the radial output, and writes back as it was."""
+    from compd.fitting import load_model
+
+    f = tmp_path / "old.yaml"
+    f.write_text(
+        "kind: xi_spindle\ninputs: [T_xi, T_brg_front, speed_rpm]\noutputs: [z, radial]\n"
+        "params:\n  alpha_per_k: 1.36e-05\n  length_mm: 165.0\n  t0_c: 22.5\n  xi_mm: null\n"
+        "  radial:\n    r_a_mm: 25.0\n    r_b_mm: 27.34\n    r_c_mm: 37.66\n    r_d_mm: 40.0\n"
+        "    alpha_per_k: 1.15e-05\n    mu: 0.26\n    d_w_mm: 10.319\n    f: 0.53\n    contact_deg: 18.0\n"
+        "    preload_share: 0.8\n    clearance: true\n    inner_sensors: 0\n    outer_sensors: 1\n"
+        "    k_um_per_rpm2: 2.0e-08\n"
+        "fit: {rows: 10}\n"
+    )
+    m = load_model(f)
+    assert m.params.lift is None
+    assert (m.params.radial.outer_gain, m.params.radial.inner_gain) == (1.0, 1.0)
+    m.start(np.array([22.5, 22.5, 0.0]), 0.0)
+    out = np.zeros(2)
+    m.evaluate(np.array([26.8, 24.0, 12000.0]), 1.0, out)
+    dl = 13.6e-6 * 165.0 * 1000.0 * 4.3
+    assert out[0] == pytest.approx(dl)  # no lift on the axial output, however fast it turns
+    expect = (
+        outer_ring_um(1.5, 1.5, 37.66, 40.0, 11.5e-6) - inner_ring_um(4.3, 4.3, 25.0, 27.34, 11.5e-6, 0.26)
+        + clearance_um(dl, 10.319, 0.53) + 2.0e-8 * 12000.0**2
+    )
+    assert out[1] == pytest.approx(expect)
+    assert out[1] == pytest.approx(4.5749, abs=1e-3)  # of which k n² = 2.88 µm
+    assert m.to_dict()["params"]["radial"]["k_um_per_rpm2"] == 2.0e-08
+
+
+def test_fit_axial_only_with_the_speed_fits_the_lift() -> None:
+    """--inputs T_xi speed_rpm with one target: the lift is fitted, no radial output needed."""
+    log, truth = _radial_log(1e-7)
+    axial = Log(log.file, log.columns[:5], log.data[:, :5])
+    fit = XiSpindle.fit(axial, ["T_xi", "speed_rpm"], ["err_z_um"])
+    m = fit.model
+    assert m.outputs == ["z"] and m.params.radial is None
+    assert m.inputs == ["T_xi", "speed_rpm"]
+    assert m.params.lift.k_um_per_rpm2 == pytest.approx(1e-7, rel=1e-6)
+    assert m.params.length_mm == pytest.approx(160.0, rel=1e-9)
+    X = axial.data[:, 1:4:2]
+    np.testing.assert_allclose(m.predict(X, axial.t_s)[:, 0], axial.data[:, 4], atol=1e-8)
+    # the speed named otherwise: --option speed_input=COL
+    renamed = Log(axial.file, ["t_s", "T_xi", "T_brg_front", "S1", "err_z_um"], axial.data)
+    m2 = XiSpindle.fit(renamed, ["T_xi", "S1"], ["err_z_um"], speed_input="S1").model
+    assert m2.params.lift.speed_input == "S1"
+    assert m2.params.lift.k_um_per_rpm2 == pytest.approx(1e-7, rel=1e-6)
+    with pytest.raises(BadInput, match="speed_input=COL"):
+        XiSpindle.fit(renamed, ["T_xi", "S1"], ["err_z_um"])
+    # without the speed, no lift: the axial fit alone, as before
+    assert XiSpindle.fit(axial, ["T_xi"], ["err_z_um"]).model.params.lift is None
+
+
+def test_model_file_round_trip_keeps_the_lift() -> None:
+    m = _axial_lift_model()
+    d = m.to_dict()
+    assert d["params"]["lift"] == {"k_um_per_rpm2": 1e-7, "speed_input": "speed_rpm", "preload_share": 0.8}
+    back = XiSpindle(XiSpindleParams.model_validate(d["params"]), d["inputs"], d["outputs"])
+    assert back.params == m.params
+
+
+def test_fit_recovers_k_where_the_cap_binds() -> None:
+    """k = 1e-7: 8.1 µm at 9000 rpm, more than the 0.8 ΔL open during the warm-up."""
+    log, truth = _radial_log(1e-7)
+    X = log.data[:, 1:4]
+    dl = 13.6e-6 * 160.0 * 1000.0 * (X[:, 0] - X[0, 0])  # the truth's thermal growth
+    fit = XiSpindle.fit(log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"])
+    assert fit.report["k_um_per_rpm2"] == pytest.approx(1e-7, rel=1e-6)
+    assert fit.model.params.length_mm == pytest.approx(160.0, rel=1e-9)
+    capped = 1e-7 * X[:, 2] ** 2 > 0.8 * dl  # rows where the truth's lift is its cap
+    assert 5 <= capped.sum() < len(capped) // 2
+    np.testing.assert_allclose(fit.model.predict(X, log.t_s), truth.predict(X, log.t_s), atol=1e-6)
+
+
+def test_fit_of_an_uncapped_k_would_be_worse() -> None:
+    """The fit respects the bound: least squares of k n² without the cap misses the truth."""
+    log, _ = _radial_log(1e-7)
+    X, e = log.data[:, 1:4], log.data[:, 4]
+    rise = X[:, 0] - X[0, 0]
+    A = np.column_stack([rise, X[:, 2] ** 2])
+    g, k = np.linalg.lstsq(A, e, rcond=None)[0]
+    assert abs(k - 1e-7) > 1e-9
+
+
+def test_compd_fit_with_the_speed_compares_with_mlr_on_the_temperatures() -> None:
+    """`compd fit --kind all` keeps xi_spindle when the inputs are the ξ sensor and the speed,
+    and the held-out MLR baseline regresses on the temperature rises only (SPEC §3.5)."""
+    from compd import fitting
+
+    log, _ = _radial_log(1e-7)
+    assert fitting.applicable("xi_spindle", log, ["T_xi", "speed_rpm"], {}) is None
+    assert fitting.applicable("xi_spindle", log, ["T_xi", "T_brg_front"], {}) is not None
+    oc = fitting.fit_model("xi_spindle", log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"], {})
+    base = oc.report["baseline_mlr"]
+    assert base["inputs"] == ["T_xi", "T_brg_front"]
+    assert base["axes"]["z"]["held_out_rmse_um"] < 1e-3  # the exact law, forward in time

@@ -1,12 +1,14 @@
-"""Motorized spindle (paper 003): ξ point, coolant, bearing rings and the radial error."""
+"""Motorized spindle (paper 003): ξ point, coolant, bearing rings, the radial error and the axial lift."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
 
 from hil_sim.plants import PLANTS
-from hil_sim.plants.spindle import preload_clearance_um, ring_displacement_um
+from hil_sim.plants.spindle import centrifugal_thrust_n, preload_clearance_um, ring_displacement_um
 from hil_sim.scenario import Scenario
 
 
@@ -30,8 +32,9 @@ def test_xi_point_gives_the_axial_growth_at_steady_state():
     p.advance_to(40 * 3600)
     t_xi = p.net.at("rotor", p.xi_mm / 1000.0)
     predicted = 13.6e-6 * 165.0 * 1000.0 * (t_xi - 20.0)
-    assert p.true_error_um()[0] > 10
-    assert predicted == pytest.approx(p.true_error_um()[0], rel=0.01)
+    assert p.axial_um() > 10
+    assert predicted == pytest.approx(p.axial_um(), rel=0.01)  # the growth; the error adds the lift
+    assert p.true_error_um()[0] == pytest.approx(p.axial_um() + p.lift_um(), rel=1e-12)
     assert 0 < p.xi_mm < 165
 
 
@@ -82,3 +85,51 @@ def test_unknown_param_is_an_error():
         spindle([{"duration_s": 10}], bogus=1)
     with pytest.raises(ValueError, match="drift_sensor"):
         spindle([{"duration_s": 10}], drift_sensor="T_nowhere")
+
+
+# --- centrifugal lift (paper 003 §3.4): axial, ∝ n² below the play the growth opened ---
+
+
+def test_centrifugal_thrust_scales_with_speed_squared():
+    f1 = centrifugal_thrust_n(5000.0, 18, 10.319, 65.0, 7850.0, 18.0)
+    f2 = centrifugal_thrust_n(10000.0, 18, 10.319, 65.0, 7850.0, 18.0)
+    assert f1 > 0
+    assert f2 == pytest.approx(4.0 * f1, rel=1e-12)
+    assert centrifugal_thrust_n(0.0, 18, 10.319, 65.0, 7850.0, 18.0) == 0.0
+    # by hand: cage 0.5·ω·(1 − 10.319/65·cos 18°), ball 4.52 g on a 32.5 mm radius, ×18 tan 18°
+    w = 0.5 * 10000 * math.pi / 30 * (1 - 10.319 / 65 * math.cos(math.radians(18)))
+    m = 7850 * math.pi * 10.319e-3**3 / 6
+    assert f2 == pytest.approx(18 * m * w**2 * 0.0325 * math.tan(math.radians(18)), rel=1e-12)
+
+
+def test_lift_is_n_squared_below_the_play_and_bounded_by_it():
+    p = spindle([{"duration_s": 40 * 3600, "speed_rpm": 6000}])
+    p.advance_to(40 * 3600)  # warm: ~0.8·growth of play, far above the lift
+    growth = p.axial_um()
+    lift6 = p.lift_um()
+    assert 0 < lift6 < 0.8 * growth
+    p.segment().speed_rpm = 12000.0  # same thermal state, twice the speed
+    assert p.lift_um() == pytest.approx(4.0 * lift6, rel=1e-12)
+    stiff = spindle([{"duration_s": 40 * 3600, "speed_rpm": 6000}], axial_stiffness_n_per_um=1e-3)
+    stiff.advance_to(40 * 3600)  # a soft bearing: the thrust would lift it by metres
+    assert stiff.lift_um() == pytest.approx(0.8 * stiff.axial_um(), rel=1e-12)
+
+
+def test_no_lift_before_the_growth_opens_any_play():
+    p = spindle([{"duration_s": 3600, "speed_rpm": 15000}])
+    assert p.axial_um() == pytest.approx(0.0, abs=1e-12)
+    assert p.lift_um() == 0.0
+    assert p.true_error_um()[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_lift_is_on_the_axial_error_not_the_radial():
+    p = spindle([{"duration_s": 40 * 3600, "speed_rpm": 9000}])
+    p.advance_to(40 * 3600)
+    z, radial = p.true_error_um()
+    assert z == pytest.approx(p.axial_um() + p.lift_um(), rel=1e-12)
+    lift = p.lift_um()
+    assert lift > 1.0
+    p.segment().speed_rpm = 0.0  # same thermal state, stopped: radial unchanged, axial falls by the lift
+    z0, radial0 = p.true_error_um()
+    assert radial0 == pytest.approx(radial, rel=1e-12)
+    assert z - z0 == pytest.approx(lift, rel=1e-9)
