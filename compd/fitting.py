@@ -115,7 +115,7 @@ def compare_with_mlr(
     (`held_out_rmse`); a warning per axis where MLR predicts the unseen rows better."""
     try:
         ours = held_out_rmse(kind, log, inputs, targets, options)
-        # MLR on temperature rises (SPEC §3.5): a speed, position or current input stays out;
+        # MLR on temperature rises (the papers' baseline): a speed, position or current input stays out;
         # a model that takes none (the analytic feed axis) is compared with MLR on every one
         mlr_inputs = [c for c in inputs if c in log.temperature_columns()] or log.temperature_columns()
         mlr = held_out_rmse("mlr", log, mlr_inputs, targets, {})

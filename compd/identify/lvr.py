@@ -314,7 +314,7 @@ def select_blocked(
     residual of the fit to all rows. Leaving one row out, PRESS_(h−1) ≈ SS_(h−1) unless the
     fit is over-fitted already, so the two read alike. A held-out stretch of time is
     predicted by extrapolation and its PRESS stays well above SS: on the simulated
-    gantry's training day (hil_sim gantry_train at 60 s, 5 blocks, a guard of 144 rows) the
+    gantry's training day (the simulator's gantry_train at 60 s, 5 blocks, a guard of 144 rows) the
     second component cuts the blocked PRESS from 393 to 143, but SS_1 is 149, so the
     paper's ratio, Q²_2 = 0.04, would drop the component that axis X2 needs (78 % instead
     of 91 % RMS reduction on the unseen day, open loop). Comparing held-out with held-out
