@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from hil_sim.devices.plant import SIGNAL_BASE, residual_report
@@ -204,7 +205,7 @@ def compd_config(
         "model": {"kind": yaml.safe_load(model_file.read_text())["kind"], "file": str(model_file)},
         # plant seconds: thermal errors move by < 0.05 um/s, so 0.2 um/s never limits a
         # model that tracks them, and keeps word changes within the PMC's step limit
-        "guard": {"max_slew_um_per_s": 0.2, "stale_after_s": max(600.0, 1.0 * speedup)},
+        "guard": {"max_slew_um_per_s": SLEW_UM_PER_S, "stale_after_s": max(600.0, 1.0 * speedup)},
         "codec": {"axes": list(m.axes)},
         "sink": sink_section(machine, ports["cnc"], speedup),
         "console": {"period_s": 0, "summary": False},
@@ -297,10 +298,12 @@ def closed_loop(
     wall_s = time.monotonic() - t0
     summary = json.loads(summary_file.read_text())
     report = residual_report(residual_log, 0.0, dur)
+    floor = word_floor_pct(residual_log, MACHINES[machine]) if MACHINES[machine].sink in WORD_SINKS else {}
     return {
         "machine": machine,
         "model": tag,
         "axes": {a: report[a] for a in MACHINES[machine].axes},
+        "word_floor_pct": floor,
         "compd": summary["compensation"],
         "faults": summary["faults"],
         "sink": summary["sink"],
@@ -310,6 +313,44 @@ def closed_loop(
         "residual_log": str(residual_log),
         "serve_stderr": serve_err[-2000:],
     }
+
+
+SLEW_UM_PER_S = 0.2  # the guard's slew in every closed loop (plant time)
+WORD_SINKS = ("fanuc_pmc", "pci1756")  # sinks that carry the 16-bit word (1 µm LSB, 1 µm dead-band)
+
+
+def word_floor_pct(residual_log: Path, machine: Machine) -> dict[str, float]:
+    """Per axis, the RMS reduction a perfect prediction would reach through the word on this run.
+
+    The plant's true error (`err_<axis>_um` of the residual log) is corrected exactly, slewed
+    at the guard's rate and encoded by compd's Encoder with the word's default LSB and
+    dead-band (paper 002: 1 µm each): what remains is the word's own resolution and its
+    no-chatter band, which no model can remove. An axis with small errors (the spindle's
+    radial, ~3 µm RMS) cannot reach 85 % through a 1 µm word.
+    """
+    from compd.codec import Encoder
+    from compd.log import read_log
+
+    log = read_log(residual_log)
+    axes = list(machine.axes)
+    err = np.column_stack([log.col(f"err_{a}_um") for a in axes] + [np.zeros(len(log))] * (2 - len(axes)))
+    enc = Encoder(1.0, 1.0, SLEW_UM_PER_S, 0.0)
+    guarded = np.zeros(2)
+    applied = np.zeros_like(err)
+    t_prev = float(log.t_s[0])
+    for i, t in enumerate(log.t_s):
+        dt = float(t) - t_prev
+        t_prev = float(t)
+        step = SLEW_UM_PER_S * dt
+        guarded += np.clip(-err[i] - guarded, -step, step)
+        enc.update(float(guarded[0]), float(guarded[1]), dt_s=dt)
+        applied[i] = np.asarray(enc.codes, float) * enc.lsb_um
+    out = {}
+    for k, a in enumerate(axes):
+        before = float(np.sqrt(np.mean(err[:, k] ** 2)))
+        after = float(np.sqrt(np.mean((err[:, k] + applied[:, k]) ** 2)))
+        out[a] = 100.0 * (1.0 - after / before) if before > 0 else 100.0
+    return out
 
 
 def closed_loops(runs: list[dict[str, Any]], jobs: int = 2) -> list[dict[str, Any]]:
