@@ -369,13 +369,13 @@ def closed_loops(runs: list[dict[str, Any]], jobs: int = 2) -> list[dict[str, An
 
 def table(rows: list[dict[str, Any]]) -> str:
     """machine, model, axis, RMS/max without and with compensation, reduction."""
-    head = (f"{'machine':<10} {'model':<14} {'axis':<5} {'rms_without':>11} {'rms_with':>9} "
+    head = (f"{'machine':<10} {'model':<18} {'axis':<6} {'rms_without':>11} {'rms_with':>9} "
             f"{'max_without':>11} {'max_with':>9} {'reduction_%':>11}")
     lines = [head]
     for r in rows:
         for a, s in r["axes"].items():
             lines.append(
-                f"{r['machine']:<10} {r['model']:<14} {a:<5} {s['rms_before_um']:>11.2f} {s['rms_after_um']:>9.2f} "
+                f"{r['machine']:<10} {r['model']:<18} {a:<6} {s['rms_before_um']:>11.2f} {s['rms_after_um']:>9.2f} "
                 f"{s['max_abs_before_um']:>11.2f} {s['max_abs_after_um']:>9.2f} {s['reduction_pct']:>11.1f}"
             )
     return "\n".join(lines)
