@@ -180,6 +180,7 @@ class App:
                 guard_cfg=top.guard,
                 codec_cfg=top.codec,
                 observe=self.observe,
+                adapt_cfg=top.adapt,
             )
         except BadInput as e:
             raise cfg.doc.error(e.message, e.keys) from None

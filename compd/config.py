@@ -562,6 +562,33 @@ class ConsoleConfig(Strict):
     summary: bool = Field(True, description="print RMS without/with compensation at exit")
 
 
+class AdaptConfig(Strict):
+    """Probe-updated compensation (compd.adapt): a Kalman filter per axis on the model's offset (and gain)."""
+
+    apply: bool = Field(True, description="add the estimate to the prediction; false = estimate and show only")
+    gain: bool = Field(False, description="also estimate a gain error g on the prediction (ê = p + b + g p)")
+    sigma_um: float = Field(0.3, gt=0, le=100, description="a probe's σ when it does not carry its own, µm")
+    gate_sigma: float = Field(
+        4.0, ge=1, le=100, description="reject a probe whose innovation exceeds this many of its σ"
+    )
+    initial_offset_sigma_um: float = Field(5.0, gt=0, le=1000, description="σ of the offset before the first probe")
+    initial_gain_sigma: float = Field(0.2, gt=0, le=10, description="σ of the gain error before the first probe")
+    offset_drift_um_per_sqrt_h: float = Field(
+        1.0, ge=0, le=1000, description="random walk of the offset between probes, µm per √h"
+    )
+    gain_drift_per_sqrt_h: float = Field(0.02, ge=0, le=10, description="random walk of the gain error, per √h")
+    stale_after_s: float = Field(
+        14400.0, gt=0, le=30 * 86400, description="no probe for this long: the estimate is stale"
+    )
+    stale_policy: Literal["hold", "decay"] = Field(
+        "hold", description="a stale estimate holds, or decays to zero with decay_tau_s"
+    )
+    decay_tau_s: float = Field(7200.0, gt=0, le=30 * 86400, description="time constant of the decay, s")
+    reject_fault_after: int = Field(
+        3, ge=1, le=1000, description="this many probes rejected in a row raise a fault event"
+    )
+
+
 class StateConfig(Strict):
     """Where model state (AR memory, T0 references) is persisted."""
 
@@ -617,6 +644,9 @@ class ConfigModel(Strict):
     status: StatusConfig = Field(StatusConfig(), description="live status for `compd status`")
     metrics: MetricsConfig = Field(MetricsConfig(), description="Prometheus metrics endpoint")
     logging: LoggingConfig = Field(LoggingConfig(), description="event log lines")
+    adapt: AdaptConfig | None = Field(
+        None, description="probe-updated compensation (compd.adapt, the section adapt); none = the model alone"
+    )
 
 
 # ---------------------------------------------------------------- plugin sections

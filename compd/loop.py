@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from compd.adapt import Adapter
 from compd.clock import Clock
 from compd.codec import Encoder
 from compd.frame import Frame
@@ -125,6 +126,7 @@ class Loop:
         word_axes: list[int],
         observers: list[Callable[[Loop, float], None]] | None = None,
         cycle_hooks: list[Callable[[Loop, float], None]] | None = None,
+        adapter: Adapter | None = None,
     ) -> None:
         self.period_s = period_s
         self.clock = clock
@@ -144,6 +146,8 @@ class Loop:
         self._good = np.zeros(len(model.inputs), dtype=bool)
         self.degraded = False
         self.pred_um = np.full(n_out, math.nan)
+        self.adapter = adapter  # probe-updated offset (and gain) per axis, or None
+        self.pred_adapted_um = np.full(n_out, math.nan)  # what the guard gets: pred + the adapter's
         self.applied_um = np.zeros(n_out)
         self._word_applied = np.zeros(2)
         self.stats = TimingStats(period_s)
@@ -312,8 +316,12 @@ class Loop:
                 self.pred_um.fill(math.nan)
             if ok:
                 self.degraded = False
+        pred = self.pred_um
+        if self.adapter is not None:
+            self.adapter.apply(pred, now, self.pred_adapted_um)
+            pred = self.pred_adapted_um
         t2 = perf()
-        self.guard.update(self.pred_um, ok or self.degraded, now, degraded=self.degraded)
+        self.guard.update(pred, ok or self.degraded, now, degraded=self.degraded)
         t3 = perf()
         g = self.guard
         wa = self.word_axes

@@ -14,9 +14,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from compd.adapt import Adapter
 from compd.clock import Clock, LockstepPlantClock, PlantClock, SimClock, WallClock
 from compd.codec import Encoder
-from compd.config import CodecConfig, GuardConfig, LoopConfig
+from compd.config import AdaptConfig, CodecConfig, GuardConfig, LoopConfig
 from compd.errors import BadInput
 from compd.frame import Frame
 from compd.guard import Guard
@@ -75,10 +76,12 @@ def build_pipeline(
     guard_cfg: GuardConfig | None = None,
     codec_cfg: CodecConfig | None = None,
     observe: bool = False,
+    adapt_cfg: AdaptConfig | None = None,
 ) -> Pipeline:
     """Wire the stages: one frame of every source's signals, the guard on the model's
     inputs, the word's two axes (`codec.axes`, else the model's first two outputs),
-    the sink bound to them (held disabled when `observe`), and the loop."""
+    the sink bound to them (held disabled when `observe`), the probe adapter when
+    `adapt_cfg` is given (between the model and the guard), and the loop."""
     guard_cfg = guard_cfg or GuardConfig()
     codec_cfg = codec_cfg or CodecConfig()
     sources = list(sources)
@@ -120,5 +123,9 @@ def build_pipeline(
         encoder=encoder,
         sink=sink,
         word_axes=word_axes,
+        adapter=Adapter(adapt_cfg, list(model.outputs)) if adapt_cfg is not None else None,
     )
+    if loop.adapter is not None:
+        for s in sources:
+            s.bind_probes(loop.adapter.inbox)
     return Pipeline(sources, frame, model, guard, encoder, sink, loop, word_names)

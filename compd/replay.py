@@ -9,14 +9,16 @@ applied is what the report counts: residual = logged error + applied correction.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from compd.adapt import Probe
 from compd.clock import SimClock
-from compd.config import CodecConfig, GuardConfig
+from compd.config import AdaptConfig, CodecConfig, GuardConfig
 from compd.errors import BadInput
 from compd.log import Log, read_log
 from compd.models.base import Model
@@ -42,22 +44,47 @@ class ReplayResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+def probe_columns(log: Log, axes: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
+    """Per axis with a `probe_<axis>_um` column: (the probes, NaN between them; their positions or None)."""
+    out = {}
+    for axis in axes:
+        col = f"probe_{axis}_um"
+        if col in log.columns:
+            pos = f"probe_pos_{axis}_mm"
+            out[axis] = (log.col(col), log.col(pos) if pos in log.columns else None)
+    return out
+
+
 def replay_log(
     log: Log,
     model: Model,
     sink: Sink,
     guard_cfg: GuardConfig | None = None,
     codec_cfg: CodecConfig | None = None,
+    adapt_cfg: AdaptConfig | None = None,
+    use_probes: bool = True,
 ) -> ReplayResult:
-    """Run every row of `log` through model → guard → codec → sink (the PLC)."""
+    """Run every row of `log` through model → guard → codec → sink (the PLC).
+
+    A log with `probe_<axis>_um` columns hands each probe to the adapter at its row, as a
+    running daemon's probe source would (`adapt_cfg`, or the defaults when the config has
+    none); the report then also gives each axis `without_adaptation`: the same replay with
+    the probes ignored (the model alone)."""
     if len(log) == 0:
         raise BadInput("the log has no rows", file=log.file)
+    probes = probe_columns(log, list(model.outputs)) if use_probes else {}
+    if probes and adapt_cfg is None:
+        adapt_cfg = AdaptConfig()
+    plain = None
+    if probes:  # the model alone, on a fresh sink of the same kind: the report's without_adaptation
+        fresh = type(sink)(sink.cfg, sink.base_dir)
+        plain = replay_log(log, copy_model(model), fresh, guard_cfg, codec_cfg, None, use_probes=False)
     source = ReplaySource(ReplayConfig(kind="replay", name="log", path=log.file), log=log)
     clock = SimClock(float(log.t_s[0]))
     try:
         loop = build_pipeline(
             sources=[source], model=model, sink=sink, clock=clock, period_s=1.0,
-            guard_cfg=guard_cfg, codec_cfg=codec_cfg,
+            guard_cfg=guard_cfg, codec_cfg=codec_cfg, adapt_cfg=adapt_cfg if probes else None,
         ).loop
     except BadInput as e:
         raise BadInput(e.message, file=log.file, path=e.keys) from None
@@ -69,9 +96,15 @@ def replay_log(
     prev_word = 0
     loop.open()
     try:
+        inbox = loop.adapter.inbox if loop.adapter is not None else None
         for i in range(n):
             now = float(t[i])
             clock.set(now)
+            if inbox is not None:
+                for axis, (z, pos) in probes.items():
+                    if math.isfinite(z[i]):
+                        inbox.append(Probe(now, axis, float(z[i]), None,
+                                           None if pos is None else float(pos[i]), "log"))
             loop.step(now)
             sink.settle(now)
             applied[i] = loop.applied()
@@ -94,6 +127,19 @@ def replay_log(
     alarms = sink_status.get("alarm_count")
     if alarms and sum(alarms):
         faults["plc_alarm"] = int(sum(alarms))
+    if plain is not None:
+        for axis, rep in axes_rep.items():
+            base = plain.report["axes"].get(axis)
+            if base is not None:
+                rep["without_adaptation"] = {k: base[k] for k in ("rms_after_um", "reduction_pct")}
+        events = list(loop.adapter.events) if loop.adapter is not None else []
+        adaptation = {
+            "probes": {a: int(np.isfinite(z).sum()) for a, (z, _) in probes.items()},
+            "accepted": sum(e["event"] == "accepted" for e in events),
+            "rejected": sum(e["event"] == "rejected" for e in events),
+            "faults": sum(e["event"] == "fault" for e in events),
+            "estimate": loop.adapter.get_status() if loop.adapter is not None else {},
+        }
     report = {
         "rows": n,
         "codes_sent": codes_sent,
@@ -103,7 +149,14 @@ def replay_log(
         "plc": sink.cfg.kind,
         "duration_s": float(t[-1] - t[0]),
     }
+    if probes:
+        report["adaptation"] = adaptation
     return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, applied, words)
+
+
+def copy_model(model: Model) -> Model:
+    """A fresh model of the same kind and params (no state): for a second replay of the same log."""
+    return type(model)(model.params, list(model.inputs), list(model.outputs), dict(model.fit_info))
 
 
 def _pmc_sink(host: str | None = None) -> FanucPmcSink:
@@ -126,7 +179,7 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
         sink = FanucPmcSink(sink_cfg, base_dir=str(Path(cfg.file).parent))
     else:
         sink = _pmc_sink()
-    result = replay_log(log, model, sink, cfg.guard, cfg.codec)
+    result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt)
     host = sink.cfg.host
     result.report["plc"] = f"{host}:{sink.cfg.port}" if host else "in_process"
     return result

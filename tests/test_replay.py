@@ -184,3 +184,31 @@ def test_bench_day_of_1hz_log(tmp_path, log_and_model):
     print(f"replay of {result.report['rows']} rows: {wall_s:.2f} s")
     assert result.report["rows"] == 86400
     assert wall_s < 60.0
+
+
+def test_replay_applies_a_logs_probes_and_reports_without_them(log_and_model, tmp_path):
+    """A model 20 % short of the truth, probed every 20 min: the adapted replay leaves less
+    error than the model alone, which the report also gives; a +30 µm outlier is rejected."""
+    log_path, model = log_and_model
+    log = read_log(log_path)
+    short = tmp_path / "short.yaml"
+    doc = yaml.safe_load(model.read_text())
+    doc["params"]["length_mm"] = LENGTH_MM * 0.8
+    short.write_text(yaml.safe_dump(doc))
+    e = log.col("err_z_um")
+    probe = np.full(len(log), np.nan)
+    rng = np.random.default_rng(4)
+    for i in range(1200, len(log), 1200):
+        probe[i] = e[i] + rng.normal(0.0, 0.3)
+    probe[5400] = e[5400] + 30.0
+    probed = tmp_path / "probed.csv"
+    write_log(probed, log.columns + ["probe_z_um"], np.column_stack([log.data, probe]))
+    plain = replay_model(short, log_path).report
+    rep = replay_model(short, probed).report
+    z = rep["axes"]["z"]
+    assert "without_adaptation" not in plain["axes"]["z"] and "adaptation" not in plain
+    assert z["without_adaptation"]["rms_after_um"] == pytest.approx(plain["axes"]["z"]["rms_after_um"])
+    assert z["rms_after_um"] < 0.8 * z["without_adaptation"]["rms_after_um"], z
+    ad = rep["adaptation"]
+    print(z, ad)
+    assert ad["probes"] == {"z": 9} and ad["rejected"] >= 1 and ad["accepted"] >= 6

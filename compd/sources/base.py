@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -14,6 +14,11 @@ from compd.frame import Frame, Quality
 from compd.histogram import DurationHist
 from compd.io.mailbox import Snapshot
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
+
+if TYPE_CHECKING:
+    from collections import deque
+
+    from compd.adapt import Probe
 
 
 def check_serial_port(port: str, config_path: tuple[str | int, ...], key: str = "serial_port") -> None:
@@ -53,6 +58,11 @@ class Source(ABC):
     def bind(self, frame: Frame) -> None:
         """Remember where this source's signals live in the frame."""
         self._idx = frame.indices(self.signal_names(), what="signal")
+
+    def bind_probes(self, inbox: deque[Probe]) -> None:
+        """Where to hand probe measurements (compd.adapt.Probe): a source that reads them
+        (a CNC's probing cycle) appends to `inbox` from its own thread; the cycle takes them.
+        Called only when the config has an `adapt` section; other sources ignore it."""
 
     def open(self, now_s: float) -> None:
         """Connect; called once before the first cycle."""

@@ -1,0 +1,206 @@
+"""Probe-updated compensation: a Kalman filter per axis on the model's drifting offset (and gain).
+
+A probe measurement (plant time, axis, measured thermal error µm, σ) says how far the
+machine's true error is from what the model predicts. Per axis the adapter keeps the
+state s = (b, g): an offset b (µm) and, optionally, a gain error g on the model's
+prediction p, so that the error the loop compensates is
+
+    ê = p + b + g p
+
+Both drift as random walks: between probes the covariance grows by Q Δt, with
+Q = diag(q_b², q_g²) per hour (`offset_drift_um_per_sqrt_h`, `gain_drift_per_sqrt_h`).
+A probe z at prediction p is the measurement z = p + H s + v, H = (1, p), v ~ N(0, σ²):
+
+    ν = z − (p + H s),  S = H P Hᵀ + σ²
+    |ν| > k √S      → rejected (innovation gate, `gate_sigma` k): logged, never applied
+    K = P Hᵀ / S,  s ← s + K ν,  P ← (I − K H) P (I − K H)ᵀ + K σ² Kᵀ   (Joseph form)
+
+An update changes ê at once, but the correction still reaches the machine through the
+guard, whose slew limit moves it, never steps it. An estimate without a probe for
+`stale_after_s` holds (`stale_policy: hold`) or decays to zero with `decay_tau_s`
+(`decay`); `reject_fault_after` probes rejected in a row raise a fault event (the
+model or the probe is wrong, and the operator should know). With `apply: false` the
+estimate is kept, logged and shown but not applied (observe).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from compd.config import AdaptConfig
+
+
+@dataclass(frozen=True)
+class Probe:
+    """One probe measurement: the thermal error the machine measured on an axis at time t_s."""
+
+    t_s: float
+    axis: str
+    error_um: float
+    sigma_um: float | None = None  # None: the config's sigma_um
+    position_mm: float | None = None
+    source: str = "probe"
+
+
+class AxisEstimate:
+    """The Kalman filter of one axis: state (b, g) or (b,) and its covariance."""
+
+    def __init__(self, cfg: AdaptConfig) -> None:
+        self.cfg = cfg
+        self.n = 2 if cfg.gain else 1
+        self.s = np.zeros(self.n)
+        self.P = np.zeros((self.n, self.n))
+        self.reset()
+        self.t_s: float | None = None  # time of the state (last predict step)
+        self.t_probe_s: float | None = None
+        self.accepted = 0
+        self.rejected = 0
+        self.rejected_in_a_row = 0
+        self.last_innovation_um = math.nan
+
+    def reset(self) -> None:
+        """Forget: zero offset and gain with the initial uncertainty (a new model)."""
+        self.s[:] = 0.0
+        self.P[:] = 0.0
+        self.P[0, 0] = self.cfg.initial_offset_sigma_um**2
+        if self.n == 2:
+            self.P[1, 1] = self.cfg.initial_gain_sigma**2
+
+    def advance(self, t_s: float) -> None:
+        """Let the covariance grow (random walk) and a stale estimate decay, up to t_s."""
+        if self.t_s is None:
+            self.t_s = t_s
+            return
+        dt = t_s - self.t_s
+        if dt <= 0:
+            return
+        self.t_s = t_s
+        h = dt / 3600.0
+        self.P[0, 0] += self.cfg.offset_drift_um_per_sqrt_h**2 * h
+        if self.n == 2:
+            self.P[1, 1] += self.cfg.gain_drift_per_sqrt_h**2 * h
+        cfg = self.cfg
+        if (cfg.stale_policy == "decay" and self.t_probe_s is not None
+                and t_s - self.t_probe_s > cfg.stale_after_s):
+            self.s *= math.exp(-dt / cfg.decay_tau_s)
+
+    def correction_um(self, pred_um: float) -> float:
+        """b + g p: what the estimate adds to the model's prediction."""
+        return float(self.s[0] + (self.s[1] * pred_um if self.n == 2 else 0.0))
+
+    def update(self, pred_um: float, z_um: float, sigma_um: float, t_s: float) -> tuple[bool, float, float]:
+        """One probe: (accepted, innovation µm, its σ µm)."""
+        self.advance(t_s)
+        H = np.array([1.0, pred_um])[: self.n]
+        nu = z_um - (pred_um + float(H @ self.s))
+        S = float(H @ self.P @ H) + sigma_um * sigma_um
+        sd = math.sqrt(S)
+        self.last_innovation_um = nu
+        if not math.isfinite(nu) or abs(nu) > self.cfg.gate_sigma * sd:
+            self.rejected += 1
+            self.rejected_in_a_row += 1
+            return False, nu, sd
+        K = (self.P @ H) / S
+        self.s += K * nu
+        A = np.eye(self.n) - np.outer(K, H)
+        self.P = A @ self.P @ A.T + np.outer(K, K) * sigma_um * sigma_um
+        self.accepted += 1
+        self.rejected_in_a_row = 0
+        self.t_probe_s = t_s
+        return True, nu, sd
+
+    def get_state(self) -> dict[str, Any]:
+        return {
+            "s": [float(v) for v in self.s], "P": [[float(v) for v in row] for row in self.P],
+            "t_probe_s": self.t_probe_s, "accepted": self.accepted, "rejected": self.rejected,
+        }
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        s, P = state.get("s"), state.get("P")
+        if isinstance(s, list) and len(s) == self.n and isinstance(P, list) and len(P) == self.n:
+            self.s[:] = np.asarray(s, float)
+            self.P[:] = np.asarray(P, float)
+            self.t_probe_s = state.get("t_probe_s")
+            self.accepted = int(state.get("accepted", 0))
+            self.rejected = int(state.get("rejected", 0))
+
+
+class Adapter:
+    """Per-axis estimates on top of the model's outputs; the loop drains `inbox` every cycle.
+
+    `inbox` is a deque: producers (a probe source's thread, the command line, a replay)
+    append Probe objects, the cycle pops them, so it never waits on them.
+    """
+
+    def __init__(self, cfg: AdaptConfig, axes: list[str]) -> None:
+        self.cfg = cfg
+        self.axes = list(axes)
+        self.est = [AxisEstimate(cfg) for _ in axes]
+        self.inbox: deque[Probe] = deque(maxlen=1000)
+        self.events: deque[dict[str, Any]] = deque(maxlen=1000)  # accepted/rejected probes, faults
+        self.offset_um = np.zeros(len(axes))  # b + g p of the last cycle, per axis
+        self.fault = [False] * len(axes)
+
+    def reset(self) -> None:
+        for e in self.est:
+            e.reset()
+            e.t_probe_s = None
+
+    def apply(self, pred_um: np.ndarray, now_s: float, out_um: np.ndarray) -> None:
+        """out = pred + b + g pred per axis (pred if `apply` is off), after taking the inbox's probes."""
+        while self.inbox:
+            self._take(self.inbox.popleft(), pred_um)
+        for a, e in enumerate(self.est):
+            e.advance(now_s)
+            p = float(pred_um[a])
+            c = e.correction_um(p) if math.isfinite(p) else 0.0
+            self.offset_um[a] = c
+            out_um[a] = p + c if self.cfg.apply else p
+
+    def _take(self, probe: Probe, pred_um: np.ndarray) -> None:
+        if probe.axis not in self.axes:
+            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "unknown_axis"})
+            return
+        a = self.axes.index(probe.axis)
+        p = float(pred_um[a])
+        if not math.isfinite(p):  # no prediction to compare with: the probe cannot be used
+            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_prediction",
+                                "error_um": probe.error_um})
+            return
+        sigma = probe.sigma_um if probe.sigma_um is not None else self.cfg.sigma_um
+        e = self.est[a]
+        ok, nu, sd = e.update(p, probe.error_um, sigma, probe.t_s)
+        self.events.append({
+            "t_s": probe.t_s, "axis": probe.axis, "event": "accepted" if ok else "rejected",
+            "error_um": probe.error_um, "innovation_um": nu, "innovation_sigma_um": sd,
+            "offset_um": float(e.s[0]), "source": probe.source,
+        })
+        was = self.fault[a]
+        self.fault[a] = e.rejected_in_a_row >= self.cfg.reject_fault_after
+        if self.fault[a] and not was:
+            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "fault",
+                                "why": f"{e.rejected_in_a_row} probes rejected in a row"})
+
+    def get_state(self) -> dict[str, Any]:
+        return {axis: e.get_state() for axis, e in zip(self.axes, self.est, strict=True)}
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        for axis, e in zip(self.axes, self.est, strict=True):
+            if isinstance(state.get(axis), dict):
+                e.set_state(state[axis])
+
+    def get_status(self) -> dict[str, Any]:
+        out = {}
+        for axis, e in zip(self.axes, self.est, strict=True):
+            out[axis] = {
+                "offset_um": float(e.s[0]), "offset_sigma_um": math.sqrt(max(e.P[0, 0], 0.0)),
+                "gain": float(e.s[1]) if e.n == 2 else None,
+                "accepted": e.accepted, "rejected": e.rejected, "last_probe_s": e.t_probe_s,
+                "applied": self.cfg.apply,
+            }
+        return out

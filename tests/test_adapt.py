@@ -1,0 +1,106 @@
+"""Probe adaptation (compd.adapt): the Kalman estimate converges, gates outliers, never touches
+the prediction without probes, decays when stale, persists; replay applies a log's probes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from compd.adapt import Adapter, Probe
+from compd.config import AdaptConfig
+
+
+def _run(adapter: Adapter, pred: float, t_s: float) -> float:
+    out = np.zeros(1)
+    adapter.apply(np.array([pred]), t_s, out)
+    return float(out[0])
+
+
+def test_without_probes_the_prediction_passes_unchanged():
+    ad = Adapter(AdaptConfig(gain=True), ["z"])
+    for k in range(100):
+        p = 5.0 * math.sin(k / 10.0)
+        assert _run(ad, p, k * 60.0) == p
+
+
+def test_an_offset_is_learnt_within_two_probes_and_an_outlier_changes_nothing():
+    rng = np.random.default_rng(1)
+    ad = Adapter(AdaptConfig(), ["z"])
+    true_offset = 3.0
+    for k in range(2):  # two probes an hour apart; the model under-reads by 3 µm
+        t = 3600.0 * (k + 1)
+        ad.inbox.append(Probe(t, "z", 10.0 + true_offset + rng.normal(0, 0.3)))
+        out = _run(ad, 10.0, t)
+    assert abs(out - 13.0) < 0.6
+    before = ad.get_state()
+    ad.inbox.append(Probe(3 * 3600.0, "z", 10.0 + true_offset + 30.0))  # +30 µm: a chip on the artifact
+    _run(ad, 10.0, 3 * 3600.0)
+    after = ad.get_state()
+    assert after["z"]["s"] == before["z"]["s"]
+    assert [e["event"] for e in ad.events][-1] == "rejected"
+
+
+def test_probes_rejected_in_a_row_raise_a_fault_event():
+    ad = Adapter(AdaptConfig(reject_fault_after=3), ["z"])
+    for k in range(4):
+        ad.inbox.append(Probe(600.0 * k, "z", 100.0))
+        _run(ad, 0.0, 600.0 * k)
+    kinds = [e["event"] for e in ad.events]
+    assert kinds.count("rejected") == 4 and kinds.count("fault") == 1 and ad.fault[0]
+    ad.inbox.append(Probe(3000.0, "z", 0.1))  # a plausible probe again clears it
+    _run(ad, 0.0, 3000.0)
+    assert not ad.fault[0]
+
+
+def test_a_gain_error_is_learnt():
+    rng = np.random.default_rng(2)
+    ad = Adapter(AdaptConfig(gain=True, initial_gain_sigma=0.5), ["x"])
+    for k in range(12):
+        p = 2.0 + 8.0 * (k % 3)  # probes at different predicted errors separate offset and gain
+        ad.inbox.append(Probe(1800.0 * k, "x", 1.2 * p + rng.normal(0, 0.1)))
+        _run(ad, p, 1800.0 * k)
+    st = ad.get_status()["x"]
+    assert st["gain"] == pytest.approx(0.2, abs=0.03)
+    assert abs(st["offset_um"]) < 0.4
+
+
+def test_observe_keeps_the_estimate_but_not_the_output():
+    ad = Adapter(AdaptConfig(apply=False), ["z"])
+    ad.inbox.append(Probe(0.0, "z", 4.0))
+    assert _run(ad, 1.0, 0.0) == 1.0
+    assert ad.get_status()["z"]["offset_um"] > 2.0 and ad.offset_um[0] > 2.0
+
+
+def test_a_stale_estimate_decays_or_holds():
+    for policy, expect in (("decay", math.exp(-2.0)), ("hold", 1.0)):
+        ad = Adapter(AdaptConfig(stale_after_s=3600.0, stale_policy=policy, decay_tau_s=1800.0,
+                                 initial_offset_sigma_um=100.0), ["z"])
+        ad.inbox.append(Probe(0.0, "z", 5.0, sigma_um=0.01))
+        b0 = _run(ad, 0.0, 0.0)
+        _run(ad, 0.0, 3600.0)  # stale from here
+        b1 = _run(ad, 0.0, 3600.0 + 3600.0)
+        assert b0 == pytest.approx(5.0, abs=0.01)
+        assert b1 == pytest.approx(b0 * expect, rel=1e-6)
+
+
+def test_state_round_trips_and_a_reset_forgets():
+    ad = Adapter(AdaptConfig(gain=True), ["x", "y"])
+    ad.inbox.append(Probe(0.0, "y", 2.0))
+    _run2 = np.zeros(2)
+    ad.apply(np.array([0.0, 0.5]), 0.0, _run2)
+    other = Adapter(AdaptConfig(gain=True), ["x", "y"])
+    other.set_state(ad.get_state())
+    assert other.get_status() == ad.get_status()
+    other.reset()
+    assert other.get_status()["y"]["offset_um"] == 0.0 and other.get_status()["y"]["accepted"] == 1
+
+
+def test_config_bounds_are_one_line_errors():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="gate_sigma"):
+        AdaptConfig(gate_sigma=0.5)
+    with pytest.raises(ValidationError, match="stale_policy"):
+        AdaptConfig(stale_policy="forget")
