@@ -45,6 +45,9 @@ class Probe:
     sigma_um: float | None = None  # None: the config's sigma_um
     position_mm: float | None = None
     source: str = "probe"
+    # True: `error_um` is the deviation measured with the correction in place (what a probe
+    # on a compensated machine sees); the adapter adds back the correction applied then
+    residual: bool = False
 
 
 class AxisEstimate:
@@ -151,10 +154,14 @@ class Adapter:
             e.reset()
             e.t_probe_s = None
 
-    def apply(self, pred_um: np.ndarray, now_s: float, out_um: np.ndarray) -> None:
-        """out = pred + b + g pred per axis (pred if `apply` is off), after taking the inbox's probes."""
+    def apply(
+        self, pred_um: np.ndarray, now_s: float, out_um: np.ndarray, applied_um: np.ndarray | None = None
+    ) -> None:
+        """out = pred + b + g pred per axis (pred if `apply` is off), after taking the inbox's probes.
+
+        `applied_um`: the correction the machine applies now, per axis (for residual probes)."""
         while self.inbox:
-            self._take(self.inbox.popleft(), pred_um)
+            self._take(self.inbox.popleft(), pred_um, applied_um)
         for a, e in enumerate(self.est):
             e.advance(now_s)
             p = float(pred_um[a])
@@ -162,11 +169,17 @@ class Adapter:
             self.offset_um[a] = c
             out_um[a] = p + c if self.cfg.apply else p
 
-    def _take(self, probe: Probe, pred_um: np.ndarray) -> None:
+    def _take(self, probe: Probe, pred_um: np.ndarray, applied_um: np.ndarray | None) -> None:
         if probe.axis not in self.axes:
             self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "unknown_axis"})
             return
         a = self.axes.index(probe.axis)
+        z = probe.error_um
+        if probe.residual:  # deviation with the correction in place: the whole error is d − c
+            if applied_um is None or not math.isfinite(float(applied_um[a])):
+                self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_correction_known"})
+                return
+            z = probe.error_um - float(applied_um[a])
         p = float(pred_um[a])
         if not math.isfinite(p):  # no prediction to compare with: the probe cannot be used
             self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_prediction",
@@ -174,10 +187,10 @@ class Adapter:
             return
         sigma = probe.sigma_um if probe.sigma_um is not None else self.cfg.sigma_um
         e = self.est[a]
-        ok, nu, sd = e.update(p, probe.error_um, sigma, probe.t_s)
+        ok, nu, sd = e.update(p, z, sigma, probe.t_s)
         self.events.append({
             "t_s": probe.t_s, "axis": probe.axis, "event": "accepted" if ok else "rejected",
-            "error_um": probe.error_um, "innovation_um": nu, "innovation_sigma_um": sd,
+            "error_um": z, "measured_um": probe.error_um, "innovation_um": nu, "innovation_sigma_um": sd,
             "offset_um": float(e.s[0]), "source": probe.source,
         })
         was = self.fault[a]

@@ -317,8 +317,8 @@ class Loop:
             if ok:
                 self.degraded = False
         pred = self.pred_um
-        if self.adapter is not None:
-            self.adapter.apply(pred, now, self.pred_adapted_um)
+        if self.adapter is not None:  # the sink's applied correction only when a probe waits
+            self.adapter.apply(pred, now, self.pred_adapted_um, self.applied() if self.adapter.inbox else None)
             pred = self.pred_adapted_um
         t2 = perf()
         self.guard.update(pred, ok or self.degraded, now, degraded=self.degraded)

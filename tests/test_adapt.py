@@ -104,3 +104,16 @@ def test_config_bounds_are_one_line_errors():
         AdaptConfig(gate_sigma=0.5)
     with pytest.raises(ValidationError, match="stale_policy"):
         AdaptConfig(stale_policy="forget")
+
+
+def test_a_residual_probe_adds_back_the_correction_applied_then():
+    ad = Adapter(AdaptConfig(), ["z"])
+    # the machine applies −9 µm against a predicted 9 µm; the probe sees +1 µm left over:
+    # the whole error was 10 µm, so the model under-reads by 1 µm
+    ad.inbox.append(Probe(0.0, "z", 1.0, sigma_um=0.01, residual=True))
+    out = np.zeros(1)
+    ad.apply(np.array([9.0]), 0.0, out, applied_um=np.array([-9.0]))
+    assert out[0] == pytest.approx(10.0, abs=0.01)
+    ad.inbox.append(Probe(1.0, "z", 1.0, residual=True))  # no applied correction known: not used
+    ad.apply(np.array([9.0]), 1.0, out)
+    assert ad.events[-1]["event"] == "no_correction_known"
