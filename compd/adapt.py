@@ -9,6 +9,8 @@ prediction p, so that the error the loop compensates is
 
 Both drift as random walks: between probes the covariance grows by Q Δt, with
 Q = diag(q_b², q_g²) per hour (`offset_drift_um_per_sqrt_h`, `gain_drift_per_sqrt_h`).
+On an axis whose error depends on where it stands (a feed axis), `slope_position` adds a
+slope m over the position y (m from `slope_ref_mm`): ê = p + b + g p + m y, H = (1, p, y).
 A probe z at prediction p is the measurement z = p + H s + v, H = (1, p), v ~ N(0, σ²):
 
     ν = z − (p + H s),  S = H P Hᵀ + σ²
@@ -33,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from compd.config import AdaptConfig
+from compd.errors import BadInput
 
 
 @dataclass(frozen=True)
@@ -53,9 +56,11 @@ class Probe:
 class AxisEstimate:
     """The Kalman filter of one axis: state (b, g) or (b,) and its covariance."""
 
-    def __init__(self, cfg: AdaptConfig) -> None:
+    def __init__(self, cfg: AdaptConfig, slope: bool = False) -> None:
         self.cfg = cfg
-        self.n = 2 if cfg.gain else 1
+        self.i_gain = 1 if cfg.gain else -1
+        self.i_slope = (2 if cfg.gain else 1) if slope else -1
+        self.n = 1 + cfg.gain + slope
         self.s = np.zeros(self.n)
         self.P = np.zeros((self.n, self.n))
         self.reset()
@@ -71,8 +76,10 @@ class AxisEstimate:
         self.s[:] = 0.0
         self.P[:] = 0.0
         self.P[0, 0] = self.cfg.initial_offset_sigma_um**2
-        if self.n == 2:
-            self.P[1, 1] = self.cfg.initial_gain_sigma**2
+        if self.i_gain > 0:
+            self.P[self.i_gain, self.i_gain] = self.cfg.initial_gain_sigma**2
+        if self.i_slope > 0:
+            self.P[self.i_slope, self.i_slope] = self.cfg.initial_slope_sigma_um_per_m**2
 
     def advance(self, t_s: float) -> None:
         """Let the covariance grow (random walk) and a stale estimate decay, up to t_s."""
@@ -85,21 +92,35 @@ class AxisEstimate:
         self.t_s = t_s
         h = dt / 3600.0
         self.P[0, 0] += self.cfg.offset_drift_um_per_sqrt_h**2 * h
-        if self.n == 2:
-            self.P[1, 1] += self.cfg.gain_drift_per_sqrt_h**2 * h
+        if self.i_gain > 0:
+            self.P[self.i_gain, self.i_gain] += self.cfg.gain_drift_per_sqrt_h**2 * h
+        if self.i_slope > 0:
+            self.P[self.i_slope, self.i_slope] += self.cfg.slope_drift_um_per_m_sqrt_h**2 * h
         cfg = self.cfg
         if (cfg.stale_policy == "decay" and self.t_probe_s is not None
                 and t_s - self.t_probe_s > cfg.stale_after_s):
             self.s *= math.exp(-dt / cfg.decay_tau_s)
 
-    def correction_um(self, pred_um: float) -> float:
-        """b + g p: what the estimate adds to the model's prediction."""
-        return float(self.s[0] + (self.s[1] * pred_um if self.n == 2 else 0.0))
+    def correction_um(self, pred_um: float, pos_m: float = 0.0) -> float:
+        """b + g p + m y: what the estimate adds to the model's prediction at position y (m)."""
+        c = float(self.s[0])
+        if self.i_gain > 0:
+            c += float(self.s[self.i_gain]) * pred_um
+        if self.i_slope > 0:
+            c += float(self.s[self.i_slope]) * pos_m
+        return c
 
-    def update(self, pred_um: float, z_um: float, sigma_um: float, t_s: float) -> tuple[bool, float, float]:
+    def update(
+        self, pred_um: float, z_um: float, sigma_um: float, t_s: float, pos_m: float = 0.0
+    ) -> tuple[bool, float, float]:
         """One probe: (accepted, innovation µm, its σ µm)."""
         self.advance(t_s)
-        H = np.array([1.0, pred_um])[: self.n]
+        H = np.zeros(self.n)
+        H[0] = 1.0
+        if self.i_gain > 0:
+            H[self.i_gain] = pred_um
+        if self.i_slope > 0:
+            H[self.i_slope] = pos_m
         nu = z_um - (pred_um + float(H @ self.s))
         S = float(H @ self.P @ H) + sigma_um * sigma_um
         sd = math.sqrt(S)
@@ -143,11 +164,35 @@ class Adapter:
     def __init__(self, cfg: AdaptConfig, axes: list[str]) -> None:
         self.cfg = cfg
         self.axes = list(axes)
-        self.est = [AxisEstimate(cfg) for _ in axes]
+        self.est = [AxisEstimate(cfg, slope=a in cfg.slope_position) for a in axes]
+        # per axis: the signal its slope term reads (the axis position, mm), or None
+        self.position_signal = [cfg.slope_position.get(a) for a in axes]
+        self.pos_m = np.zeros(len(axes))  # the positions of this cycle (m from slope_ref_mm)
+        self._pos_idx: list[tuple[int, int]] = []
         self.inbox: deque[Probe] = deque(maxlen=1000)
         self.events: deque[dict[str, Any]] = deque(maxlen=1000)  # accepted/rejected probes, faults
         self.offset_um = np.zeros(len(axes))  # b + g p of the last cycle, per axis
         self.fault = [False] * len(axes)
+
+    def bind(self, signal_index: dict[str, int]) -> None:
+        """Where each slope axis's position signal lives in the frame (name → index)."""
+        self._pos_idx = []
+        for a, name in enumerate(self.position_signal):
+            if name is None:
+                continue
+            if name not in signal_index:
+                raise BadInput(f"{name!r} is not a signal of any source", path=("adapt", "slope_position", self.axes[a]))
+            self._pos_idx.append((a, signal_index[name]))
+        for axis in self.cfg.slope_position:
+            if axis not in self.axes:
+                raise BadInput(f"{axis!r} is not an output of the model", path=("adapt", "slope_position", axis))
+
+    def read_positions(self, values: np.ndarray) -> None:
+        """This cycle's positions of the slope axes from the frame's values (mm → m from slope_ref_mm)."""
+        for a, i in self._pos_idx:
+            v = float(values[i])
+            if math.isfinite(v):
+                self.pos_m[a] = (v - self.cfg.slope_ref_mm) / 1000.0
 
     def reset(self) -> None:
         for e in self.est:
@@ -165,7 +210,7 @@ class Adapter:
         for a, e in enumerate(self.est):
             e.advance(now_s)
             p = float(pred_um[a])
-            c = e.correction_um(p) if math.isfinite(p) else 0.0
+            c = e.correction_um(p, float(self.pos_m[a])) if math.isfinite(p) else 0.0
             self.offset_um[a] = c
             out_um[a] = p + c if self.cfg.apply else p
 
@@ -187,7 +232,10 @@ class Adapter:
             return
         sigma = probe.sigma_um if probe.sigma_um is not None else self.cfg.sigma_um
         e = self.est[a]
-        ok, nu, sd = e.update(p, z, sigma, probe.t_s)
+        pos_m = float(self.pos_m[a])  # where the axis stands now, unless the probe says where it measured
+        if probe.position_mm is not None and math.isfinite(probe.position_mm):
+            pos_m = (probe.position_mm - self.cfg.slope_ref_mm) / 1000.0
+        ok, nu, sd = e.update(p, z, sigma, probe.t_s, pos_m)
         self.events.append({
             "t_s": probe.t_s, "axis": probe.axis, "event": "accepted" if ok else "rejected",
             "error_um": z, "measured_um": probe.error_um, "innovation_um": nu, "innovation_sigma_um": sd,
@@ -212,7 +260,8 @@ class Adapter:
         for axis, e in zip(self.axes, self.est, strict=True):
             out[axis] = {
                 "offset_um": float(e.s[0]), "offset_sigma_um": math.sqrt(max(e.P[0, 0], 0.0)),
-                "gain": float(e.s[1]) if e.n == 2 else None,
+                "gain": float(e.s[e.i_gain]) if e.i_gain > 0 else None,
+                "slope_um_per_m": float(e.s[e.i_slope]) if e.i_slope > 0 else None,
                 "accepted": e.accepted, "rejected": e.rejected, "last_probe_s": e.t_probe_s,
                 "applied": self.cfg.apply,
             }

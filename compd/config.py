@@ -577,6 +577,17 @@ class AdaptConfig(Strict):
         1.0, ge=0, le=1000, description="random walk of the offset between probes, µm per √h"
     )
     gain_drift_per_sqrt_h: float = Field(0.02, ge=0, le=10, description="random walk of the gain error, per √h")
+    slope_position: dict[str, str] = Field(
+        default_factory=dict,
+        description="axis → the signal of its position (mm): also estimate a slope over the position there",
+    )
+    slope_ref_mm: float = Field(0.0, ge=-1e5, le=1e5, description="position where the slope term is zero, mm")
+    initial_slope_sigma_um_per_m: float = Field(
+        10.0, gt=0, le=1e4, description="σ of the slope before the first probe, µm/m"
+    )
+    slope_drift_um_per_m_sqrt_h: float = Field(
+        2.0, ge=0, le=1e4, description="random walk of the slope between probes, µm/m per √h"
+    )
     stale_after_s: float = Field(
         14400.0, gt=0, le=30 * 86400, description="no probe for this long: the estimate is stale"
     )

@@ -318,6 +318,7 @@ class Loop:
                 self.degraded = False
         pred = self.pred_um
         if self.adapter is not None:  # the sink's applied correction only when a probe waits
+            self.adapter.read_positions(frame.values)
             self.adapter.apply(pred, now, self.pred_adapted_um, self.applied() if self.adapter.inbox else None)
             pred = self.pred_adapted_um
         t2 = perf()

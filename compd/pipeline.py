@@ -126,6 +126,7 @@ def build_pipeline(
         adapter=Adapter(adapt_cfg, list(model.outputs)) if adapt_cfg is not None else None,
     )
     if loop.adapter is not None:
+        loop.adapter.bind(frame.index)
         for s in sources:
             s.bind_probes(loop.adapter.inbox)
     return Pipeline(sources, frame, model, guard, encoder, sink, loop, word_names)

@@ -117,3 +117,31 @@ def test_a_residual_probe_adds_back_the_correction_applied_then():
     ad.inbox.append(Probe(1.0, "z", 1.0, residual=True))  # no applied correction known: not used
     ad.apply(np.array([9.0]), 1.0, out)
     assert ad.events[-1]["event"] == "no_correction_known"
+
+
+def test_a_slope_over_the_position_is_learnt_from_probes_at_several_positions():
+    cfg = AdaptConfig(slope_position={"y": "pos_y_mm"}, slope_ref_mm=300.0, initial_offset_sigma_um=10.0)
+    ad = Adapter(cfg, ["y"])
+    ad.bind({"pos_y_mm": 0})
+    rng = np.random.default_rng(3)
+    out = np.zeros(1)
+    for k in range(10):  # the model misses 1 µm + 4 µm/m × (y − 300 mm); probes at both ends
+        y = 0.0 if k % 2 else 600.0
+        miss = 1.0 + 4.0 * (y - 300.0) / 1000.0
+        ad.inbox.append(Probe(600.0 * k, "y", 5.0 + miss + rng.normal(0, 0.05), position_mm=y))
+        ad.read_positions(np.array([y]))
+        ad.apply(np.array([5.0]), 600.0 * k, out)
+    st = ad.get_status()["y"]
+    assert st["slope_um_per_m"] == pytest.approx(4.0, abs=0.3) and st["offset_um"] == pytest.approx(1.0, abs=0.1)
+    ad.read_positions(np.array([500.0]))  # between probes the correction follows the position
+    ad.apply(np.array([5.0]), 6000.0, out)
+    assert out[0] == pytest.approx(5.0 + 1.0 + 0.8, abs=0.15)
+
+
+def test_slope_position_must_name_a_signal_and_an_axis():
+    from compd.errors import BadInput
+
+    with pytest.raises(BadInput, match="not a signal"):
+        Adapter(AdaptConfig(slope_position={"y": "pos_q_mm"}), ["y"]).bind({"pos_y_mm": 0})
+    with pytest.raises(BadInput, match="not an output"):
+        Adapter(AdaptConfig(slope_position={"q": "pos_y_mm"}), ["y"]).bind({"pos_y_mm": 0})
