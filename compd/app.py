@@ -399,6 +399,8 @@ class App:
             "realtime": self.service.realtime_result,
             "state_error": self.state_writer.error if self.state_writer is not None else None,
             "observe": self.observe,
+            # the probe adapter's estimate per axis (accepted and rejected probes), when configured
+            "adaptation": self.loop.adapter.get_status() if self.loop.adapter is not None else None,
         }
 
     def run(self) -> dict[str, Any]:
