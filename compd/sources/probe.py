@@ -47,8 +47,8 @@ BLOCK_ADDRESS = {"fanuc_pmc": 500, "siemens_nc": 1000}
 class ProbeConfig(SourceConfig):
     """The CNC's probe-result block on Modbus TCP (the PMC's or the NC's gateway)."""
 
-    host: str = "127.0.0.1"
-    port: int = Field(502, ge=1, le=65535)
+    host: str = Field("127.0.0.1", description="the CNC's Modbus TCP gateway (the one its sink writes to)")
+    port: int = Field(502, ge=1, le=65535, description="its TCP port")
     device_id: int = Field(1, ge=0, le=247, description="unit id")
     cnc: Literal["fanuc_pmc", "siemens_nc"] = Field(
         description="whose register map: fanuc_pmc (block at 500, PMC D100–D107) or siemens_nc (block at 1000)"
@@ -58,8 +58,10 @@ class ProbeConfig(SourceConfig):
     )
     axes: list[str] = Field(min_length=1, description="axis names in the block's axis-index order (0, 1, …)")
     function: Literal["holding", "input"] = Field("holding", description="register table")
-    poll_period_s: float = Field(0.5, ge=0.001, le=60)
-    timeout_s: float = Field(0.25, ge=0.001, le=30)
+    poll_period_s: float = Field(
+        0.5, ge=0.001, le=60, description="read the block this often; faster than the CNC probes"
+    )
+    timeout_s: float = Field(0.25, ge=0.001, le=30, description="wait this long for a reply")
     reconnect_min_s: float = Field(0.1, ge=0.01, le=60)
     reconnect_max_s: float = Field(10.0, ge=0.01, le=3600, description="at least reconnect_min_s")
 
