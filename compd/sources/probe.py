@@ -35,9 +35,9 @@ from compd.io.modbus_client import (
     NoConnection,
     OverModbus,
 )
-from compd.io.worker import LinkDown
+from compd.io.worker import DeviceWork, LinkDown
 from compd.plc.probe_block import PROBE_COUNT, decode_result
-from compd.sources.base import PolledSource, Poller
+from compd.sources.base import PolledSource
 
 log = logging.getLogger("compd.sources.probe")
 
@@ -108,7 +108,7 @@ class ProbeSource(PolledSource):
                 extra={"event": "probe_unused", "source": self.name},
             )
 
-    def make_poller(self, snapshot: Any) -> ProbePoller:
+    def make_poller(self, snapshot: Any) -> ProbePoller:  # type: ignore[override]  # no snapshot: no signals
         self._poller = ProbePoller(self.cfg, self.address, self._out, self.name)
         return self._poller
 
@@ -118,6 +118,7 @@ class ProbeSource(PolledSource):
         return self._poller.polls if self._poller is not None else 0
 
     def sampled(self) -> bool:
+        """No signals: nothing for the cycle to wait for."""
         return True
 
     def read(self, frame: Frame, now_s: float) -> None:
@@ -128,18 +129,17 @@ class ProbeSource(PolledSource):
         return {
             **super().get_status(),
             "cnc": self.cfg.cnc, "address": self.address,
-            **{k: io.get(k) for k in ("polls", "probes", "missed", "torn", "bad_axis", "exception_replies",
+            **{k: io.get(k) for k in ("state", "polls", "probes", "missed", "torn", "bad_axis", "exception_replies",
                                       "comm_errors", "malformed_replies", "last_seq", "last_error")},
         }
 
 
-class ProbePoller(OverModbus, Poller):
-    """The device half: read the block, compare its sequence number, hand new results on."""
+class ProbePoller(OverModbus, DeviceWork):
+    """The device half, on the worker's thread: read the block, compare its sequence number,
+    hand a new result on."""
 
     def __init__(self, cfg: ProbeConfig, address: int, out: _Outbox, name: str) -> None:
-        from compd.io.mailbox import Snapshot
-
-        super().__init__(0, Snapshot(0))
+        super().__init__()
         self.cfg = cfg
         self.address = address
         self.out = out
@@ -151,7 +151,7 @@ class ProbePoller(OverModbus, Poller):
 
     def counters(self) -> dict[str, Any]:
         return {
-            **super().counters(), "polls": self.polls, "probes": self.probes, "missed": self.missed,
+            "polls": self.polls, "probes": self.probes, "missed": self.missed,
             "torn": self.torn, "bad_axis": self.bad_axis, "exception_replies": self.exception_replies,
             "comm_errors": self.comm_errors, "malformed_replies": self.malformed_replies, "last_seq": self.last_seq,
         }
@@ -159,9 +159,6 @@ class ProbePoller(OverModbus, Poller):
     def connect(self) -> None:
         self.last_seq = None  # results that came while the link was down are of unknown age
         OverModbus.connect(self)
-
-    def poll(self, values: Any, quality: Any) -> None:  # the Poller interface; `round` does the work
-        raise NotImplementedError
 
     def round(self, request: Any) -> bool:
         """One read of the block stamped `request` (a lockstep clock's time) or now; True when

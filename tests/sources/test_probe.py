@@ -141,3 +141,29 @@ sink: {kind: pci1756}
     with pytest.raises(ConfigError) as ei:
         load_config(p)
     assert "cnc" in str(ei.value) and "\n" not in str(ei.value)
+
+
+def test_a_result_published_while_the_link_was_down_is_skipped_then_new_ones_count():
+    pmc = FanucPmc()
+    inbox: deque = deque()
+    srv = ModbusServerThread(pmc, port=0).start()
+    port = srv.port
+    try:
+        src = _source(port)
+        src.bind_probes(inbox)
+        with Harness(src):
+            _wait_polls(src)
+            srv.stop()
+            deadline = time.monotonic() + 10
+            while src.get_status()["state"] != "down":
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            pmc.publish_probe(0, 1.0)  # while compd cannot read: of unknown age when it can
+            srv = ModbusServerThread(pmc, port=port).start()
+            _wait_polls(src, 2, timeout_s=20)
+            assert not inbox
+            pmc.publish_probe(0, 2.0)
+            _wait_polls(src)
+            assert [p.error_um for p in inbox] == [2.0]
+    finally:
+        srv.stop()
