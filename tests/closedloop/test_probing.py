@@ -23,3 +23,18 @@ def test_lathe_probes_reach_compd_and_an_outlier_is_rejected(tmp_path):
     assert abs(z["offset_um"]) < 5.0  # the model is good: the estimated offset stays small
     assert not any(k.startswith("fault") for k in r["faults"]), r["faults"]
     assert r["axes"]["z"]["reduction_pct"] > 60.0, r["axes"]
+
+
+def test_spindle_probes_through_the_fanuc_pmc_reach_both_axes(tmp_path):
+    """The same through the PMC's D100–D107: the plant probes z and radial in turn."""
+    model = cl.prepare_model("spindle", "xi_spindle", tmp_path)
+    probing = {"every_s": 600.0, "sigma_um": 0.3, "seed": 2}
+    r = cl.closed_loop("spindle", model, tmp_path, speedup=SPEEDUP, duration_s=2 * 3600.0, tag="probing",
+                       probing=probing)
+    print(cl.table([r]), r["adaptation"])
+    ad = r["adaptation"]
+    # 11 probes from 600 s to 6600 s, z and radial in turn: 6 and 5
+    assert ad["z"]["accepted"] + ad["z"]["rejected"] == 6, ad
+    assert ad["radial"]["accepted"] + ad["radial"]["rejected"] == 5, ad
+    assert ad["z"]["accepted"] >= 5 and ad["radial"]["accepted"] >= 4, ad
+    assert not any(k.startswith("fault") for k in r["faults"]), r["faults"]
