@@ -167,3 +167,31 @@ def test_a_result_published_while_the_link_was_down_is_skipped_then_new_ones_cou
             assert [p.error_um for p in inbox] == [2.0]
     finally:
         srv.stop()
+
+
+def test_a_reload_that_keeps_the_probe_source_hands_its_probes_to_the_new_adapter(tmp_path):
+    from compd.app import App
+
+    text = """\
+loop: {{period_s: 0.1}}
+sources:
+  - {{kind: modbus, name: t, port: 5998, channels: [{{name: T_xi, address: 0}}]}}
+  - {{kind: probe, name: p, port: 5999, cnc: siemens_nc, axes: [z]}}
+model: {{kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {{alpha_per_k: 13.6e-6, length_mm: 165.0}}}}
+sink: {{kind: pci1756}}
+adapt: {{sigma_um: {sigma}}}
+"""
+    paths = []
+    for k, sigma in enumerate((0.3, 0.4)):
+        p = tmp_path / f"c{k}.yaml"
+        p.write_text(text.format(sigma=sigma))
+        paths.append(p)
+    old, new = App(load_config(paths[0])), App(load_config(paths[1]))
+    src = old.sources[1]
+    assert src._out.inbox is old.loop.adapter.inbox
+    new.adopt(old)
+    assert new.sources[1] is src  # unchanged section: taken over
+    new._take_over()
+    assert src._out.inbox is new.loop.adapter.inbox
+    new._give_back()  # the reload failed: back to the old one
+    assert src._out.inbox is old.loop.adapter.inbox
