@@ -278,6 +278,8 @@ class App:
         for s in self.sources:
             if id(s) in self._adopted:
                 s.bind(self.frame)
+                if self.loop.adapter is not None:  # a probe source hands its probes to this adapter
+                    s.bind_probes(self.loop.adapter.inbox)
         if id(self.sink) in self._adopted:
             self.sink.bind_model(self.model)
 
@@ -288,6 +290,8 @@ class App:
         assert prev is not None
         for s in prev.sources:
             s.bind(prev.frame)
+            if prev.loop.adapter is not None:
+                s.bind_probes(prev.loop.adapter.inbox)
         prev.sink.bind_model(prev.model)
         if id(prev.sink) in self._released:
             prev.sink.open(prev.clock.now())
@@ -399,6 +403,8 @@ class App:
             "realtime": self.service.realtime_result,
             "state_error": self.state_writer.error if self.state_writer is not None else None,
             "observe": self.observe,
+            # the probe adapter's estimate per axis (accepted and rejected probes), when configured
+            "adaptation": self.loop.adapter.get_status() if self.loop.adapter is not None else None,
         }
 
     def run(self) -> dict[str, Any]:

@@ -16,7 +16,10 @@ The file is a list of devices (like pyvisa-sim's device files), each a mapping w
   `speedup` (plant s per wall s), `start` (immediate / on_clock_read), `log_path` and
   `log_period_s` (the residual log), `duration_s`, `seed`, `cnc` (name of the PMC or NC
   device whose applied correction reaches the plant) and `cnc_axes` (plant axis → CNC
-  axis); its clock and signals on Modbus TCP (`host`, `port`, `device_id`).
+  axis); its clock and signals on Modbus TCP (`host`, `port`, `device_id`). Opt-in
+  probing: `probe_every_s`, `probe_axes`, `probe_sigma_um` (0.3), `probe_outliers`
+  ([plant time s, µm] pairs), `probe_seed`: the machine's probing cycle publishes the
+  residual it measures through its CNC's probe-result block.
 
 A transmitter (`pt100_modbus`, `dcon`, `can_pt100`) with `plant: NAME` reads its channels
 (by name) from that plant. A `fanuc_pmc` or `siemens_nc` with `clock: plant` scans on

@@ -24,6 +24,11 @@ byte for byte, on an idle or a busy machine, and it takes as long as the work do
 follows its clock (the timing bench: how compd keeps up with a machine in real time).
 In both, `speedup` also sets compd's loop period (`compd_config`), so the two paces run
 the same configuration.
+
+`probing` (optional, a dict: `every_s`, `sigma_um`, `outliers`, `seed`, `adapt`) turns on
+the plant's probing schedule on the compensated axes (its CNC publishes each result in
+its probe-result block) and, in compd, a `probe` source reading that block from the CNC
+and an `adapt` section (the dict's `adapt`, else the defaults).
 """
 
 from __future__ import annotations
@@ -141,25 +146,41 @@ def plant_signals(machine: str) -> tuple[list[str], list[str], list[str]]:
     return list(p.sensor_names), list(p.extra_names), list(p.axes)
 
 
+def cnc_axes(machine: str) -> dict[str, int]:
+    """Plant axis → CNC axis index: every plant axis on the Siemens NC, the word's axes on the PMC
+    (first axis high byte = PMC axis 1)."""
+    m = MACHINES[machine]
+    _, _, axes = plant_signals(machine)
+    return {a: i for i, a in enumerate(axes if m.cnc == "siemens_nc" else m.axes)}
+
+
 def bench(
-    machine: str, scenario: Path, speedup: float, duration_s: float, residual_log: Path, lockstep: bool = False
+    machine: str, scenario: Path, speedup: float, duration_s: float, residual_log: Path, lockstep: bool = False,
+    probing: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The `hil_sim serve` file: PT100 module fed by the plant, the CNC on plant time, the plant."""
+    """The `hil_sim serve` file: PT100 module fed by the plant, the CNC on plant time, the plant
+    (probing the compensated axes when `probing` is given)."""
     m = MACHINES[machine]
     sensors, _, axes = plant_signals(machine)
     cnc: dict[str, Any] = {"kind": m.cnc, "name": "cnc", "port": 0, "clock": "plant"}
     if m.cnc == "siemens_nc":
         cnc["axes"] = len(axes)
-        cnc_axes = {a: i for i, a in enumerate(axes)}
-    else:
-        cnc_axes = {a: i for i, a in enumerate(m.axes)}  # word: first axis high byte = PMC axis 1
+    plant: dict[str, Any] = {
+        "kind": "plant", "name": machine, "scenario": str(scenario), "port": 0, "speedup": speedup,
+        "start": "on_clock_read", "duration_s": duration_s, "log_path": str(residual_log),
+        "log_period_s": 10.0, "cnc": "cnc", "cnc_axes": cnc_axes(machine), "lockstep": lockstep,
+    }
+    if probing is not None:
+        plant.update({
+            "probe_every_s": float(probing["every_s"]), "probe_axes": list(m.axes),
+            "probe_sigma_um": float(probing.get("sigma_um", 0.3)),
+            "probe_outliers": [list(o) for o in probing.get("outliers", [])], "probe_seed": int(probing.get("seed", 0)),
+        })
     return {"devices": [
         {"kind": "pt100_modbus", "name": "temps", "port": 0, "plant": machine,
          "channels": [{"name": s} for s in sensors]},
         cnc,
-        {"kind": "plant", "name": machine, "scenario": str(scenario), "port": 0, "speedup": speedup,
-         "start": "on_clock_read", "duration_s": duration_s, "log_path": str(residual_log),
-         "log_period_s": 10.0, "cnc": "cnc", "cnc_axes": cnc_axes, "lockstep": lockstep},
+        plant,
     ]}
 
 
@@ -178,9 +199,10 @@ def sink_section(machine: str, port: int, speedup: float) -> dict[str, Any]:
 
 def compd_config(
     machine: str, model_file: Path, ports: dict[str, int], speedup: float, log_path: Path | None = None,
-    lockstep: bool = False,
+    lockstep: bool = False, probing: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """compd's config: two Modbus TCP sources, the model, the machine's sink, the plant clock.
+    """compd's config: two Modbus TCP sources, the model, the machine's sink, the plant clock;
+    with `probing`, a third source, the CNC's probe-result block, and the `adapt` section.
 
     In lockstep the sources are polled by the clock once per cycle and wait long for a reply
     (a stall must not turn into a lost sample), and the plant clock says `lockstep`."""
@@ -210,6 +232,13 @@ def compd_config(
         "sink": sink_section(machine, ports["cnc"], speedup),
         "console": {"period_s": 0, "summary": False},
     }
+    if probing is not None:
+        order = sorted(cnc_axes(machine).items(), key=lambda kv: kv[1])
+        cfg["sources"].append({
+            "kind": "probe", "name": "cnc_probe", "port": ports["cnc"], "cnc": m.cnc,
+            "axes": [a for a, _ in order], "poll_period_s": poll,
+        })
+        cfg["adapt"] = dict(probing.get("adapt", {}))
     if lockstep:
         cfg["loop"]["plant_clock"] = {"port": ports[machine], "lockstep": True}
         for s in cfg["sources"]:
@@ -266,11 +295,14 @@ def closed_loop(
     scenario: Path | None = None,
     tag: str = "",
     lockstep: bool = True,
+    probing: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One closed-loop run on the unseen day; returns the plant's residual report and compd's summary.
 
     `lockstep` (default): the plant waits for compd, the result does not depend on wall time;
-    otherwise the plant runs at `speedup` and compd follows it (see the module's doc)."""
+    otherwise the plant runs at `speedup` and compd follows it (see the module's doc).
+    `probing`: the plant probes, compd adapts (the module's doc); the result's `adaptation`
+    is compd's estimate per axis (accepted and rejected probes)."""
     from hil_sim.scenario import Scenario
 
     workdir.mkdir(parents=True, exist_ok=True)
@@ -280,13 +312,13 @@ def closed_loop(
     residual_log = workdir / f"residual_{machine}_{tag}.csv"
     bench_file = workdir / f"bench_{machine}_{tag}.yaml"
     bench_file.write_text(
-        yaml.safe_dump(bench(machine, scenario, speedup, dur, residual_log, lockstep), sort_keys=False)
+        yaml.safe_dump(bench(machine, scenario, speedup, dur, residual_log, lockstep, probing), sort_keys=False)
     )
     t0 = time.monotonic()
     proc, ports = start_serve(bench_file)
     try:
         cfg_file = workdir / f"compd_{machine}_{tag}.yaml"
-        cfg = compd_config(machine, model_file, ports, speedup, lockstep=lockstep)
+        cfg = compd_config(machine, model_file, ports, speedup, lockstep=lockstep, probing=probing)
         cfg_file.write_text(yaml.safe_dump(cfg, sort_keys=False))
         summary_file = workdir / f"summary_{machine}_{tag}.json"
         # lockstep: as long as the work takes (a stall only makes it longer); a day is ~1 min
@@ -307,6 +339,7 @@ def closed_loop(
         "compd": summary["compensation"],
         "faults": summary["faults"],
         "sink": summary["sink"],
+        "adaptation": summary.get("adaptation"),
         "wall_s": wall_s,
         "plant_s": dur,
         "lockstep": lockstep,

@@ -18,6 +18,7 @@ Memory map (Modbus holding registers, one register per PMC byte for X and Y, one
 | 403      | —       | alarm reset: write non-zero, the next scan clears the alarms and this register |
 | 404, 405 | —       | applied external machine coordinate shift, axis 1 and 2, µm |
 | 406, 407 | —       | alarm count, axis 1 and 2 |
+| 500–507  | D100–D107 | probe result, written by the CNC's probing cycle (compd.plc.probe_block): 500 sequence (first), 501 axis index, 502–503 deviation nm int32, 504–505 position µm int32 (0x80000000 none), 506 σ nm, 507 sequence (last) |
 
 Ladder, every scan (default 8 ms): copy the wired card's DO bytes into X0–X3 (if a
 PCI-1756 card is wired); on any edge of the strobe bit latch X(word)..X(word)+1
@@ -26,6 +27,9 @@ magnitude × LSB) into R2/R3; then per axis, if the command differs from the app
 shift: apply it when the change is within the step limit, otherwise raise the
 axis alarm and hold the shift until reset (the shift is absolute: the axis moves by
 the difference, FANUC external machine coordinate shift).
+
+The probe result (500–507) is not the ladder's: the CNC's probing cycle writes it
+(`publish_probe`, or a client over Modbus); the PMC only holds it.
 """
 
 from __future__ import annotations
@@ -34,14 +38,15 @@ import threading
 from typing import Any
 
 from compd.plc.link import VirtualDevice
+from compd.plc.probe_block import PROBE_COUNT, ProbeBlock
 
-X_BASE, Y_BASE, R_BASE, D_BASE, S_BASE = 0, 100, 200, 300, 400
+X_BASE, Y_BASE, R_BASE, D_BASE, S_BASE, PROBE_BASE = 0, 100, 200, 300, 400, 500
 N_X, N_Y, N_R, N_D, N_S = 16, 16, 16, 16, 16
-REGISTER_COUNT = S_BASE + N_S
+REGISTER_COUNT = PROBE_BASE + PROBE_COUNT
 SCAN_LO, SCAN_HI, ALARM, RESET, APPLIED, ALARM_COUNT = 400, 401, 402, 403, 404, 406
 LATCHED, LATCH_COUNT, COMMAND = 200, 201, 202
 STEP_LIMIT, LSB_NM, WORD_X, STROBE_X, STROBE_BIT = 300, 301, 302, 303, 304
-AREAS = [(X_BASE, N_X), (Y_BASE, N_Y), (R_BASE, N_R), (D_BASE, N_D), (S_BASE, N_S)]
+AREAS = [(X_BASE, N_X), (Y_BASE, N_Y), (R_BASE, N_R), (D_BASE, N_D), (S_BASE, N_S), (PROBE_BASE, PROBE_COUNT)]
 
 
 def _signed(v: int) -> int:
@@ -71,7 +76,8 @@ class FanucPmc(VirtualDevice):
         card: Any = None,
     ) -> None:
         self.scan_s = scan_s
-        self.mem = [0] * REGISTER_COUNT
+        self.mem = [0] * PROBE_BASE  # X..status; the probe block lives in `probe`
+        self.probe = ProbeBlock()
         self.mem[STEP_LIMIT] = step_limit_um
         self.mem[LSB_NM] = int(round(lsb_um * 1000))
         self.mem[WORD_X], self.mem[STROBE_X], self.mem[STROBE_BIT] = word_x, strobe_x, strobe_bit
@@ -92,15 +98,27 @@ class FanucPmc(VirtualDevice):
         if not self._valid(address, count):
             return None
         with self._lock:
+            if address >= PROBE_BASE:
+                return self.probe.regs[address - PROBE_BASE : address - PROBE_BASE + count]
             return self.mem[address : address + count]
 
     def write_registers(self, address: int, values: list[int]) -> bool:
         if not self._valid(address, len(values)):
             return False
         with self._lock:
+            mem, base = (self.probe.regs, PROBE_BASE) if address >= PROBE_BASE else (self.mem, 0)
             for k, v in enumerate(values):
-                self.mem[address + k] = v & 0xFFFF
+                mem[address - base + k] = v & 0xFFFF
         return True
+
+    def publish_probe(
+        self, axis: int, deviation_um: float, position_mm: float | None = None, sigma_um: float | None = None
+    ) -> int:
+        """The probing cycle ran: write its result (axis index 0-based, deviation µm measured
+        with the correction in place, position mm or None, σ µm or None) into D100–D107 at
+        once, with the next sequence number, which it returns."""
+        with self._lock:
+            return self.probe.publish(axis, deviation_um, position_mm, sigma_um)
 
     # ------------------------------------------------------------------ ladder
     def scan(self) -> bool:

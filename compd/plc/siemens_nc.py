@@ -12,6 +12,12 @@ high word first, IEEE 754 big-endian):
 velocity per IPO cycle), +9 axis position P mm (written by the plant or a test),
 +11 applied ΔK mm (read only), +13 target ΔK mm (read only), +15 IPO counter (mod 65536).
 The siemens sink writes this map, to the NC here in process or to an NC gateway over Modbus TCP.
+
+Probe result, registers 1000–1007 whatever the number of axes (compd.plc.probe_block),
+written by the NC's probing cycle (R parameters the gateway maps here; `publish_probe`
+in the emulator) and only held by the NC: 1000 sequence (written first), 1001 axis index,
+1002–1003 deviation nm int32, 1004–1005 position µm int32 (0x80000000 = none),
+1006 σ nm (0 = not given), 1007 sequence (written last; a new result when it changes).
 """
 
 from __future__ import annotations
@@ -20,10 +26,13 @@ import struct
 import threading
 
 from compd.plc.link import VirtualDevice
+from compd.plc.probe_block import PROBE_COUNT, ProbeBlock
 
 K0, SLOPE, P0, TYPE, VELO_FACTOR, POSITION, APPLIED, TARGET, IPO = 0, 2, 4, 6, 7, 9, 11, 13, 15
 BLOCK = 16
 READ_ONLY = (APPLIED, APPLIED + 1, TARGET, TARGET + 1, IPO)
+PROBE_BASE = 1000  # above the axis blocks of up to 62 axes
+MAX_AXES = PROBE_BASE // BLOCK
 
 
 def f32_regs(v: float) -> list[int]:
@@ -49,11 +58,14 @@ class SiemensNc(VirtualDevice):
         velo_factor: float = 1e-5,
         comp_type: int = 1,
     ) -> None:
+        if not 1 <= axes <= MAX_AXES:
+            raise ValueError(f"siemens_nc: axes must be 1..{MAX_AXES}, got {axes}")
         self.n = axes
         self.ipo_s = ipo_s
         self.max_velo_mm_min = max_velo_mm_min
-        self.register_count = BLOCK * axes
-        self.mem = [0] * self.register_count
+        self.register_count = PROBE_BASE + PROBE_COUNT  # the axis blocks, a gap, the probe block
+        self.mem = [0] * (BLOCK * axes)
+        self.probe = ProbeBlock()
         for a in range(axes):
             self._set(a, VELO_FACTOR, velo_factor)
             self.mem[BLOCK * a + TYPE] = comp_type
@@ -68,14 +80,26 @@ class SiemensNc(VirtualDevice):
     def _set(self, a: int, off: int, v: float) -> None:
         self.mem[BLOCK * a + off : BLOCK * a + off + 2] = f32_regs(v)
 
+    def _in_probe(self, address: int, count: int) -> bool:
+        return address >= PROBE_BASE and address + count <= PROBE_BASE + PROBE_COUNT
+
     def read_registers(self, address: int, count: int) -> list[int] | None:
-        if address < 0 or address + count > self.register_count:
+        if self._in_probe(address, count):
+            with self._lock:
+                return self.probe.regs[address - PROBE_BASE : address - PROBE_BASE + count]
+        if address < 0 or address + count > len(self.mem):
             return None
         with self._lock:
             return self.mem[address : address + count]
 
     def write_registers(self, address: int, values: list[int]) -> bool:
-        if address < 0 or address + len(values) > self.register_count:
+        if self._in_probe(address, len(values)):
+            with self._lock:
+                self.probe.regs[address - PROBE_BASE : address - PROBE_BASE + len(values)] = [
+                    v & 0xFFFF for v in values
+                ]
+            return True
+        if address < 0 or address + len(values) > len(self.mem):
             return False
         if any((address + k) % BLOCK in READ_ONLY for k in range(len(values))):
             return False
@@ -123,6 +147,15 @@ class SiemensNc(VirtualDevice):
     def applied_mm(self) -> list[float]:
         with self._lock:
             return [self._get(a, APPLIED) for a in range(self.n)]
+
+    def publish_probe(
+        self, axis: int, deviation_um: float, position_mm: float | None = None, sigma_um: float | None = None
+    ) -> int:
+        """The probing cycle ran: write its result (axis index 0-based, deviation µm measured
+        with the correction in place, position mm or None, σ µm or None) into 1000–1007 at
+        once, with the next sequence number, which it returns."""
+        with self._lock:
+            return self.probe.publish(axis, deviation_um, position_mm, sigma_um)
 
     def set_position(self, a: int, p_mm: float) -> None:
         with self._lock:

@@ -90,7 +90,7 @@ class SiemensSink(Sink):
         if self.nc is not None:
             from compd.plc.link import VirtualLink
 
-            status = (0, min(count, self.nc.register_count))
+            status = (0, min(count, BLOCK * self.nc.n))
             return VirtualLink(self.nc, self.time, status=status, name="siemens")
         from compd.sinks.modbus_link import ModbusLink
 

@@ -13,6 +13,7 @@ SOURCES = Registry(
         "modbus": ("compd.sources.modbus", "ModbusSource"),
         "dcon": ("compd.sources.dcon", "DconSource"),
         "can": ("compd.sources.can", "CanSource"),
+        "probe": ("compd.sources.probe", "ProbeSource"),
     },
     group="compd.sources",
 )

@@ -19,6 +19,15 @@ its signals once, and only then is acknowledged. compd writes it after a cycle's
 writes have been acknowledged by the CNC, so every run of the same scenario and seed
 sees the same inputs at the same plant times, however busy the machine is.
 
+Probing (opt-in, `probe_every_s`): every `probe_every_s` of plant time the machine runs
+its probing cycle on the next axis of `probe_axes` (round robin; default every axis
+the CNC corrects): it measures the deviation a probe on the compensated machine sees,
+true error + the correction the CNC applies now (the residual) + N(0, `probe_sigma_um`²)
+(seeded by `probe_seed`), plus the `probe_outliers` (plant time, µm) due by then, at the
+axis's position where the plant has one (`pos_<axis>_mm`), and publishes it through the
+CNC's probe-result block (`publish_probe`, with the CNC's axis index and σ). `probes`
+keeps what was published (plant time, axis, deviation, the residual without noise).
+
 Register map (holding registers, read-only, unit id 1):
 
 | register | data |
@@ -65,6 +74,11 @@ class PlantDevice:
         duration_s: float | None = None,
         wall_step_s: float = 0.002,
         lockstep: bool = False,
+        probe_every_s: float | None = None,
+        probe_axes: Sequence[str] | None = None,
+        probe_sigma_um: float = 0.3,
+        probe_outliers: Sequence[Sequence[float]] = (),
+        probe_seed: int = 0,
     ) -> None:
         if not speedup > 0:
             raise ValueError("plant: speedup must be > 0")
@@ -97,7 +111,34 @@ class PlantDevice:
         self._pos_idx: list[int] = []
         self.rows: list[list[float]] = []
         self.steps = 0
+        self._init_probing(probe_every_s, probe_axes, probe_sigma_um, probe_outliers, probe_seed)
         self._publish()
+
+    def _init_probing(
+        self, every_s: float | None, axes: Sequence[str] | None, sigma_um: float,
+        outliers: Sequence[Sequence[float]], seed: int,
+    ) -> None:
+        if every_s is not None and not every_s > 0:
+            raise ValueError("plant: probe_every_s must be > 0")
+        if not sigma_um >= 0:
+            raise ValueError("plant: probe_sigma_um must be >= 0")
+        unknown = [a for a in (axes or []) if a not in self.plant.axes]
+        if unknown:
+            raise ValueError(f"plant: probe_axes names {unknown[0]!r}, not an axis of the plant {self.plant.axes}")
+        try:
+            self._outliers = sorted((float(t), float(um)) for t, um in outliers)
+        except (TypeError, ValueError):
+            raise ValueError("plant: probe_outliers must be a list of [plant time s, um]") from None
+        self.probe_every_s = float(every_s) if every_s is not None else None
+        self._probe_axes = list(axes) if axes else None
+        self.probe_sigma_um = float(sigma_um)
+        self._probe_rng = np.random.default_rng(seed)
+        self._next_probe_s = self.plant.t_s + (self.probe_every_s or 0.0)
+        self._probe_turn = 0
+        extras = list(self.plant.extra_names)
+        self._probe_pos = {a: extras.index(f"pos_{a}_mm") for a in self.plant.axes if f"pos_{a}_mm" in extras}
+        # published: (plant time, axis, deviation µm, residual µm without noise and outlier)
+        self.probes: list[tuple[float, str, float, float]] = []
 
     # ------------------------------------------------------------------ wiring
     def attach_cnc(self, cnc: Any, kind: str, axes: dict[str, int] | None, on_plant_clock: bool) -> None:
@@ -112,6 +153,11 @@ class PlantDevice:
         self._pos_idx = [extras.index(f"pos_{a}_mm") if f"pos_{a}_mm" in extras else -1 for a in self.plant.axes]
         if on_plant_clock:
             cnc.start_at(self.plant.t_s)
+        if self._probe_axes is None:
+            self._probe_axes = [a for a, k in zip(self.plant.axes, self.cnc_axes, strict=True) if k >= 0]
+        off = [a for a in self._probe_axes if self.cnc_axes[self.plant.axes.index(a)] < 0]
+        if self.probe_every_s is not None and off:
+            raise ValueError(f"plant: probe_axes names {off[0]!r}, which cnc_axes does not map to the CNC")
 
     def feed_for(self, channels: Sequence[str]) -> Callable[[], list[float]]:
         """A transmitter feed: the plant's latest readings of `channels` (°C)."""
@@ -205,11 +251,31 @@ class PlantDevice:
                     if k >= 0 and self._pos_idx[a] >= 0:
                         cnc.set_position(k, float(ex[self._pos_idx[a]]))
             p.correction_um[:] = self._applied_um()
+            if self.probe_every_s is not None and p.t_s + 1e-9 >= self._next_probe_s:
+                self._probe()
         if p.t_s + 1e-9 >= self._next_log_s:
             self._log_row()
             self._next_log_s += self.log_period_s
         p.advance_to(p.t_s + p.dt_s)
         self.steps += 1
+
+    def _probe(self) -> None:
+        """The machine's probing cycle on the next axis: the residual plus noise, through the CNC."""
+        p = self.plant
+        assert self.probe_every_s is not None and self._probe_axes
+        self._next_probe_s += self.probe_every_s * max(1, int((p.t_s - self._next_probe_s) // self.probe_every_s) + 1)
+        axis = self._probe_axes[self._probe_turn % len(self._probe_axes)]
+        self._probe_turn += 1
+        a = p.axes.index(axis)
+        residual = float(p.true_error_um()[a] + p.correction_um[a])
+        extra = 0.0
+        while self._outliers and self._outliers[0][0] <= p.t_s + 1e-9:
+            extra += self._outliers.pop(0)[1]
+        dev = residual + float(self._probe_rng.normal(0.0, self.probe_sigma_um)) + extra
+        pos = float(p.extras()[self._probe_pos[axis]]) if axis in self._probe_pos else None
+        sigma = self.probe_sigma_um if self.probe_sigma_um > 0 else None
+        self.cnc.publish_probe(self.cnc_axes[a], dev, pos, sigma)
+        self.probes.append((p.t_s, axis, dev, residual))
 
     def _run(self) -> None:
         p = self.plant
@@ -232,6 +298,8 @@ class PlantDevice:
                 self._stop.wait(self.wall_step_s)
 
     def start(self) -> PlantDevice:
+        if self.probe_every_s is not None and self.cnc is None:
+            raise ValueError("plant: probe_every_s needs a cnc to publish the probe results through")
         if self.lockstep:  # no thread: writes of registers 4-5 step the plant
             self.state = 1
             self._publish()
