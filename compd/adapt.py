@@ -297,6 +297,5 @@ class Adapter:
                 "slope_um_per_m": float(e.s[e.i_slope]) if e.i_slope > 0 else None,
                 "accepted": e.accepted, "rejected": e.rejected, "last_probe_s": e.t_probe_s,
                 "applied": self.cfg.apply, "fault": self.fault[self.axes.index(axis)],
-                "last_innovation_um": e.last_innovation_um,
             }
         return out
