@@ -455,7 +455,8 @@ def probe_socket(config: str | None) -> str:
 
     cfg = load_config(config)
     if cfg.top.adapt is None:
-        raise BadInput("has no adapt section: its daemon takes no probes", file=config, path="adapt")
+        raise BadInput("has no adapt section, so its daemon takes no probes (add `adapt: {}`, or"
+                       " `adapt: {apply: false}` to estimate without applying)", file=config, path="adapt")
     found = socket_path(cfg, env={})
     if found is not None:
         return str(found)

@@ -214,6 +214,9 @@ class Service:
             self.loop.observers.append(self.watchdog)
         if self.control is not None:
             self.control.loop = self.loop
+        elif self.loop.adapter is not None:
+            log.warning("no probe socket: `compd probe` cannot reach this daemon (set adapt.socket_path or status.path)",
+                        extra={"event": "probe_socket", "path": None})
         self.state = "running"
         self._tick()
         self._thread = threading.Thread(target=self._run, name="compd-status", daemon=True)
