@@ -123,12 +123,17 @@ class SnapshotCollector:
             )
             acc = CounterMetricFamily("compd_probes_accepted", "Probes accepted by the innovation gate", labels=["axis"])
             rej = CounterMetricFamily("compd_probes_rejected", "Probes rejected by the innovation gate", labels=["axis"])
+            slope = GaugeMetricFamily(
+                "compd_adapt_slope_micrometres_per_metre", "Probe-estimated slope over the axis position", labels=["axis"]
+            )
             for axis, e in adapt.items():
+                if e.get("slope_um_per_m") is not None:
+                    slope.add_metric([axis], _f(e["slope_um_per_m"]))
                 off.add_metric([axis], _f(e.get("offset_um")))
                 sd.add_metric([axis], _f(e.get("offset_sigma_um")))
                 acc.add_metric([axis], e.get("accepted", 0))
                 rej.add_metric([axis], e.get("rejected", 0))
-            yield from (off, sd, acc, rej)
+            yield from (off, sd, acc, rej, slope)
 
 
 def _f(value: Any) -> float:

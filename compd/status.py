@@ -288,6 +288,8 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
             gain = e.get("gain")
             last = e.get("last_probe_s")
             note = "" if e.get("applied", True) else " (observe: not applied)"
+            if e.get("slope_um_per_m") is not None:
+                note += f" slope {e['slope_um_per_m']:+.2f} um/m"
             if e.get("fault"):
                 note += " FAULT: probes rejected in a row"
             lines.append(
