@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -90,16 +91,19 @@ class AxisEstimate:
         if dt <= 0:
             return
         self.t_s = t_s
-        h = dt / 3600.0
+        self._grow(dt / 3600.0)
+        cfg = self.cfg
+        if (cfg.stale_policy == "decay" and self.t_probe_s is not None
+                and t_s - self.t_probe_s > cfg.stale_after_s):
+            self.s *= math.exp(-dt / cfg.decay_tau_s)
+
+    def _grow(self, h: float) -> None:
+        """The random walk's covariance over h hours."""
         self.P[0, 0] += self.cfg.offset_drift_um_per_sqrt_h**2 * h
         if self.i_gain > 0:
             self.P[self.i_gain, self.i_gain] += self.cfg.gain_drift_per_sqrt_h**2 * h
         if self.i_slope > 0:
             self.P[self.i_slope, self.i_slope] += self.cfg.slope_drift_um_per_m_sqrt_h**2 * h
-        cfg = self.cfg
-        if (cfg.stale_policy == "decay" and self.t_probe_s is not None
-                and t_s - self.t_probe_s > cfg.stale_after_s):
-            self.s *= math.exp(-dt / cfg.decay_tau_s)
 
     def correction_um(self, pred_um: float, pos_m: float = 0.0) -> float:
         """b + g p + m y: what the estimate adds to the model's prediction at position y (m)."""
@@ -139,12 +143,17 @@ class AxisEstimate:
         return True, nu, sd
 
     def get_state(self) -> dict[str, Any]:
+        age = None if self.t_probe_s is None or self.t_s is None else self.t_s - self.t_probe_s
         return {
             "s": [float(v) for v in self.s], "P": [[float(v) for v in row] for row in self.P],
             "t_probe_s": self.t_probe_s, "accepted": self.accepted, "rejected": self.rejected,
+            "probe_age_s": age,
         }
 
-    def set_state(self, state: dict[str, Any]) -> None:
+    def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0, now_s: float | None = None) -> None:
+        """Take a saved state. From a file (`now_s`, the loop time now; `elapsed_s` since it was
+        saved): the last probe's time moves onto this loop's clock and the covariance grows
+        by the drift over the time the daemon was down."""
         s, P = state.get("s"), state.get("P")
         if isinstance(s, list) and len(s) == self.n and isinstance(P, list) and len(P) == self.n:
             self.s[:] = np.asarray(s, float)
@@ -152,6 +161,11 @@ class AxisEstimate:
             self.t_probe_s = state.get("t_probe_s")
             self.accepted = int(state.get("accepted", 0))
             self.rejected = int(state.get("rejected", 0))
+            if now_s is not None:
+                age = state.get("probe_age_s")
+                self.t_probe_s = None if age is None else now_s - float(age) - elapsed_s
+                self.t_s = None
+                self._grow(max(elapsed_s, 0.0) / 3600.0)
 
 
 class Adapter:
@@ -173,6 +187,13 @@ class Adapter:
         self.events: deque[dict[str, Any]] = deque(maxlen=1000)  # accepted/rejected probes, faults
         self.offset_um = np.zeros(len(axes))  # b + g p of the last cycle, per axis
         self.fault = [False] * len(axes)
+        # the probes taken this cycle (whole error µm, position mm; NaN for none), for the data log
+        self.probe_um = np.full(len(axes), math.nan)
+        self.probe_pos_mm = np.full(len(axes), math.nan)
+        self.probe_seq = 0  # probes taken so far: a change tells the log a row is due
+        self._probed = False
+        # called with get_state() after a probe changed the estimate (the state file's writer)
+        self.on_state: Callable[[dict[str, Any]], None] | None = None
 
     def bind(self, signal_index: dict[str, int]) -> None:
         """Where each slope axis's position signal lives in the frame (name → index)."""
@@ -205,6 +226,10 @@ class Adapter:
         """out = pred + b + g pred per axis (pred if `apply` is off), after taking the inbox's probes.
 
         `applied_um`: the correction the machine applies now, per axis (for residual probes)."""
+        if self._probed:
+            self.probe_um.fill(math.nan)
+            self.probe_pos_mm.fill(math.nan)
+            self._probed = False
         while self.inbox:
             self._take(self.inbox.popleft(), pred_um, applied_um)
         for a, e in enumerate(self.est):
@@ -216,19 +241,21 @@ class Adapter:
 
     def _take(self, probe: Probe, pred_um: np.ndarray, applied_um: np.ndarray | None) -> None:
         if probe.axis not in self.axes:
-            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "unknown_axis"})
+            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "unknown_axis",
+                                "source": probe.source})
             return
         a = self.axes.index(probe.axis)
         z = probe.error_um
         if probe.residual:  # deviation with the correction in place: the whole error is d − c
             if applied_um is None or not math.isfinite(float(applied_um[a])):
-                self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_correction_known"})
+                self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_correction_known",
+                                    "source": probe.source})
                 return
             z = probe.error_um - float(applied_um[a])
         p = float(pred_um[a])
         if not math.isfinite(p):  # no prediction to compare with: the probe cannot be used
             self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_prediction",
-                                "error_um": probe.error_um})
+                                "error_um": probe.error_um, "source": probe.source})
             return
         sigma = probe.sigma_um if probe.sigma_um is not None else self.cfg.sigma_um
         e = self.est[a]
@@ -236,6 +263,10 @@ class Adapter:
         if probe.position_mm is not None and math.isfinite(probe.position_mm):
             pos_m = (probe.position_mm - self.cfg.slope_ref_mm) / 1000.0
         ok, nu, sd = e.update(p, z, sigma, probe.t_s, pos_m)
+        self.probe_um[a] = z
+        self.probe_pos_mm[a] = math.nan if probe.position_mm is None else probe.position_mm
+        self.probe_seq += 1
+        self._probed = True
         self.events.append({
             "t_s": probe.t_s, "axis": probe.axis, "event": "accepted" if ok else "rejected",
             "error_um": z, "measured_um": probe.error_um, "innovation_um": nu, "innovation_sigma_um": sd,
@@ -246,14 +277,16 @@ class Adapter:
         if self.fault[a] and not was:
             self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "fault",
                                 "why": f"{e.rejected_in_a_row} probes rejected in a row"})
+        if self.on_state is not None:
+            self.on_state(self.get_state())
 
     def get_state(self) -> dict[str, Any]:
         return {axis: e.get_state() for axis, e in zip(self.axes, self.est, strict=True)}
 
-    def set_state(self, state: dict[str, Any]) -> None:
+    def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0, now_s: float | None = None) -> None:
         for axis, e in zip(self.axes, self.est, strict=True):
             if isinstance(state.get(axis), dict):
-                e.set_state(state[axis])
+                e.set_state(state[axis], elapsed_s, now_s)
 
     def get_status(self) -> dict[str, Any]:
         out = {}
@@ -263,6 +296,6 @@ class Adapter:
                 "gain": float(e.s[e.i_gain]) if e.i_gain > 0 else None,
                 "slope_um_per_m": float(e.s[e.i_slope]) if e.i_slope > 0 else None,
                 "accepted": e.accepted, "rejected": e.rejected, "last_probe_s": e.t_probe_s,
-                "applied": self.cfg.apply,
+                "applied": self.cfg.apply, "fault": self.fault[self.axes.index(axis)],
             }
         return out

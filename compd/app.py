@@ -17,7 +17,7 @@ from compd.log import LogWriter
 from compd.loop import Loop
 from compd.pipeline import build_clock, build_model, build_pipeline
 from compd.scoring import RunningScore
-from compd.state import StateWriter, load_state
+from compd.state import StateWriter, load_saved, params_digest
 
 log = logging.getLogger("compd")
 
@@ -47,6 +47,9 @@ class LogObserver:
         self.period_s = period_s
         self._next_s = -math.inf
         self._last_word = -1
+        self.adapter = loop.adapter
+        self._probe_seq = loop.adapter.probe_seq if loop.adapter is not None else 0
+        self._blank = (math.nan,) * (2 * len(loop.model.outputs))
 
     @staticmethod
     def columns_of(loop: Loop) -> list[str]:
@@ -58,10 +61,14 @@ class LogObserver:
             + [f"corr_{a}_um" for a in outs]
             + [f"applied_{a}_um" for a in outs]
             + ["word"]
+            # a probe's whole thermal error and where it was measured, blank between probes
+            + ([f"probe_{a}_um" for a in outs] + [f"probe_pos_{a}_mm" for a in outs] if loop.adapter else [])
         )
 
     def __call__(self, loop: Loop, now: float) -> None:
-        if now < self._next_s and loop.word == self._last_word:
+        ad = self.adapter
+        probed = ad is not None and ad.probe_seq != self._probe_seq  # a probe this cycle: a row now
+        if now < self._next_s and loop.word == self._last_word and not probed:
             return
         if now >= self._next_s:
             self._next_s = now + self.period_s
@@ -74,6 +81,12 @@ class LogObserver:
             + tuple(loop.applied().tolist())
             + (float(loop.word),)
         )
+        if ad is not None:
+            if probed:
+                self._probe_seq = ad.probe_seq
+                row += tuple(ad.probe_um.tolist()) + tuple(ad.probe_pos_mm.tolist())
+            else:
+                row += self._blank
         self.writer.push(row)
 
     def close(self) -> None:
@@ -197,6 +210,7 @@ class App:
         self._clock_adopted = False
         self._state_adopted = False
         self._model_carried = False  # a reload carried the running model's memory over
+        self._adapt_carried = False  # ... and the adapter's estimate (same model, same params)
         if top.console.period_s > 0:
             self.loop.observers.append(Console(self.loop, top.console.period_s, out))
         self.duration_s = duration_s if duration_s is not None else lp.duration_s
@@ -209,24 +223,58 @@ class App:
         self.service = Service(self, self.observe)  # notify, status, metrics, event log
 
     def restore_state(self) -> None:
-        """Load persisted model state (if any) and start the state writer."""
+        """Load persisted model state and the adapter's estimate (if any) and start the state writer.
+
+        The adapter's estimate is restored only for the same model: kind, inputs, outputs
+        (the file's own check) and params (a hash kept with it); a refit model starts
+        from zero offset."""
         path = self.cfg.top.state.path
         if not path:
             return
         spath = self.cfg.resolve_path(path)
         m = self.model
+        ad = self.loop.adapter
+        digest = params_digest(self.cfg.model.params)
         if self._state_adopted:  # a reload: the running model's state was carried over
             assert self.state_writer is not None
             self.loop.on_model_state = self.state_writer.submit
+            self.state_writer.params_sha256 = digest
+            if ad is not None:
+                ad.on_state = self.state_writer.submit_adapt
+                self.state_writer.submit_adapt(ad.get_state())
             return
-        loaded = None if self._model_carried else load_state(spath, m.kind, m.inputs, m.outputs)
-        if loaded is not None:
-            state, elapsed_s = loaded
-            m.set_state(state, elapsed_s)
-            log.info("model state restored from %s (saved %.0f s ago)", spath, elapsed_s,
-                     extra={"event": "state_restored", "path": str(spath), "elapsed_s": round(elapsed_s)})
-        self.state_writer = StateWriter(spath, m.kind, m.inputs, m.outputs)
+        saved = None if self._model_carried else load_saved(spath, m.kind, m.inputs, m.outputs)
+        if saved is not None:
+            m.set_state(saved.state, saved.elapsed_s)
+            log.info("model state restored from %s (saved %.0f s ago)", spath, saved.elapsed_s,
+                     extra={"event": "state_restored", "path": str(spath), "elapsed_s": round(saved.elapsed_s)})
+        if ad is not None and saved is not None and saved.adapt is not None and not self._adapt_carried:
+            self._restore_adapt(saved.adapt, digest, spath)
+        self.state_writer = StateWriter(spath, m.kind, m.inputs, m.outputs, params_sha256=digest)
         self.loop.on_model_state = self.state_writer.submit
+        if ad is not None:
+            ad.on_state = self.state_writer.submit_adapt
+            self.state_writer.submit_adapt(ad.get_state())
+
+    def _restore_adapt(self, part: dict[str, Any], digest: str, spath: Path) -> None:
+        import time
+
+        ad = self.loop.adapter
+        assert ad is not None
+        if part.get("params_sha256") != digest:
+            log.warning("adaptation reset: the model's params changed since %s was saved", spath,
+                        extra={"event": "adapt_reset", "path": str(spath), "reason": "model params changed"})
+            return
+        try:
+            elapsed = max(time.time() - float(part["saved_unix_s"]), 0.0)
+            ad.set_state(dict(part["axes"]), elapsed, self.clock.now())
+        except (KeyError, TypeError, ValueError) as e:
+            ad.reset()
+            log.warning("adaptation state ignored: %s: %s", spath, e,
+                        extra={"event": "state_ignored", "path": str(spath), "reason": f"adapt: {e}"})
+            return
+        log.info("adaptation restored from %s (saved %.0f s ago)", spath, elapsed,
+                 extra={"event": "adapt_restored", "path": str(spath), "elapsed_s": round(elapsed)})
 
     def adopt(self, previous: App) -> None:
         """Config reload: take over what did not change from the running App (no I/O).
@@ -256,6 +304,12 @@ class App:
         if same_model and previous.loop.model_started:
             m.set_state(pm.get_state(), 0.0)
             self._model_carried = True
+        pa, ad = previous.loop.adapter, self.loop.adapter
+        if same_model and pa is not None and ad is not None and (
+            params_digest(previous.cfg.model.params) == params_digest(self.cfg.model.params)
+        ):
+            ad.set_state(pa.get_state())
+            self._adapt_carried = True
         if same_model and previous.state_writer is not None and self.cfg.top.state.path and (
             self.cfg.resolve_path(self.cfg.top.state.path) == previous.state_writer.path
         ):
@@ -344,6 +398,8 @@ class App:
                 undo.append(self.clock.stop)
             self.service.open_metrics()
             undo.append(self.service.close_metrics)
+            self.service.open_control()
+            undo.append(self.service.close_control)
             state_was = self.state_writer
             self.restore_state()
             if self.state_writer is not None and self.state_writer is not state_was:
@@ -386,6 +442,8 @@ class App:
             if self.logger and not (new is not None and new.logger is not None and new.logger.writer is self.logger.writer):
                 self.logger.close()
             if self.state_writer is not None and not (new is not None and new.state_writer is self.state_writer):
+                if self.loop.adapter is not None:
+                    self.state_writer.submit_adapt(self.loop.adapter.get_state())
                 if self.loop.model_started:
                     self.state_writer.submit(self.model.get_state())
                 self.state_writer.close()

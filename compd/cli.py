@@ -444,6 +444,55 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0 if alive else 1
 
 
+def probe_socket(config: str | None) -> str:
+    """The probe socket of the daemon of CONFIG (compd.control.socket_path), where the
+    systemd units put it when the config names no status file, or the default."""
+    from compd.control import DEFAULT_PATH, sock_beside, socket_path
+
+    if config is None:
+        return DEFAULT_PATH
+    from compd.config import load_config
+
+    cfg = load_config(config)
+    if cfg.top.adapt is None:
+        raise BadInput("has no adapt section, so its daemon takes no probes (add `adapt: {}`, or"
+                       " `adapt: {apply: false}` to estimate without applying)", file=config, path="adapt")
+    found = socket_path(cfg, env={})
+    if found is not None:
+        return str(found)
+    stem = Path(config).stem
+    return DEFAULT_PATH if stem == "compd" else str(sock_beside(Path(f"/run/compd/{stem}/status.json")))
+
+
+@command("probe")
+def cmd_probe(args: argparse.Namespace) -> int:
+    from compd.control import NoDaemon, send_probe
+
+    path = probe_socket(args.config)
+    request = {"op": "probe", "axis": args.axis, "error_um": args.error_um, "position_mm": args.position_mm,
+               "sigma_um": args.sigma_um, "residual": args.residual}
+    try:
+        answer = send_probe(path, request)
+    except NoDaemon as e:
+        print(f"compd: {e}", file=sys.stderr)
+        return 1
+    if not answer.get("ok"):
+        why = str(answer.get("error", "refused"))
+        raise BadInput(f"the daemon refused the probe: {why}", path="--axis" if why.startswith("unknown axis") else None)
+    what = "deviation" if args.residual else "error"
+    head = f"compd: probe {args.axis} {what} {args.error_um:g} um"
+    outcome = answer.get("outcome")
+    if outcome in ("accepted", "rejected"):
+        print(f"{head} {outcome} at t={answer['t_s']:.1f} s: thermal error {answer['error_um']:.2f} um,"
+              f" innovation {answer['innovation_um']:.2f} um (sigma {answer['innovation_sigma_um']:.2f} um),"
+              f" offset now {answer['offset_um']:.2f} um")
+    elif outcome == "queued":
+        print(f"{head} queued at t={answer['t_s']:.1f} s (the loop has not taken it yet; see the daemon's log)")
+    else:  # no_prediction, no_correction_known: handed over but not used
+        print(f"{head} not used: {outcome} (pid {answer.get('pid')})")
+    return 0
+
+
 @command("docs")
 def cmd_docs(args: argparse.Namespace) -> int:
     from compd.docgen import generate
@@ -525,6 +574,19 @@ def build_parser() -> argparse.ArgumentParser:
     where = s.add_mutually_exclusive_group()
     where.add_argument("--config", default=None, help="the daemon's config (finds its status file)")
     where.add_argument("--status", default=None, metavar="PATH", help="the status file")
+
+    s = sub.add_parser("probe", help="hand one probe measurement to the running daemon")
+    s.add_argument("--axis", required=True, metavar="AX", help="the axis (a model output)")
+    s.add_argument("--error-um", required=True, type=finite, dest="error_um", metavar="E",
+                   help="the axis's whole thermal error measured on the machine, um (see --residual)")
+    s.add_argument("--position-mm", type=finite, default=None, dest="position_mm", metavar="P",
+                   help="where the probe measured")
+    s.add_argument("--sigma-um", type=positive, default=None, dest="sigma_um", metavar="S",
+                   help="the measurement's sigma (default: adapt.sigma_um)")
+    s.add_argument("--residual", action="store_true",
+                   help="E is the deviation that remains on the compensated machine (the daemon adds back"
+                   " the correction applied at that moment)")
+    s.add_argument("--config", default=None, help="the daemon's config (finds its probe socket)")
 
     s = sub.add_parser("docs", help="generate docs/configuration.md from the config schema")
     s.add_argument("--out", default=None, metavar="FILE", help="write here (default: stdout)")

@@ -598,6 +598,11 @@ class AdaptConfig(Strict):
     reject_fault_after: int = Field(
         3, ge=1, le=1000, description="this many probes rejected in a row raise a fault event"
     )
+    socket_path: str | None = Field(
+        None,
+        description="Unix socket `compd probe` talks to (relative to the config); none = beside the status"
+        " file (status.json → status.sock), and none without a status file",
+    )
 
 
 class StateConfig(Strict):

@@ -24,7 +24,7 @@ MAX_T_S = 1e10
 RESERVED_PREFIXES = ("err_", "pos_", "current_")
 RESERVED_NAMES = ("t_s", "speed_rpm")
 # Columns the loop itself writes into its log (compd.app.LogObserver): never inputs.
-OUTPUT_PREFIXES = ("pred_", "corr_", "applied_")
+OUTPUT_PREFIXES = ("pred_", "corr_", "applied_", "probe_")
 OUTPUT_NAMES = ("word",)
 
 log = logging.getLogger("compd.log")
@@ -33,7 +33,7 @@ log = logging.getLogger("compd.log")
 def is_temperature_column(name: str) -> bool:
     """Any column but t_s, err_*, pos_*, speed_rpm, current_* is a temperature.
 
-    compd's own output columns (pred_*, corr_*, applied_*, word) are excluded too, so
+    compd's own output columns (pred_*, corr_*, applied_*, probe_*, word) are excluded too, so
     a fit on a log that compd wrote does not take its own predictions as inputs.
     """
     return (

@@ -115,6 +115,25 @@ class SnapshotCollector:
         for kind, n in sorted(snap["faults"].items()):
             faults.add_metric([kind], n)
         yield faults
+        adapt = snap.get("adapt")
+        if adapt:  # the probe-updated estimate (compd.adapt)
+            off = GaugeMetricFamily("compd_adapt_offset_micrometres", "Probe-estimated offset per axis", labels=["axis"])
+            sd = GaugeMetricFamily(
+                "compd_adapt_offset_sigma_micrometres", "Standard deviation of the offset estimate", labels=["axis"]
+            )
+            acc = CounterMetricFamily("compd_probes_accepted", "Probes accepted by the innovation gate", labels=["axis"])
+            rej = CounterMetricFamily("compd_probes_rejected", "Probes rejected by the innovation gate", labels=["axis"])
+            slope = GaugeMetricFamily(
+                "compd_adapt_slope_micrometres_per_metre", "Probe-estimated slope over the axis position", labels=["axis"]
+            )
+            for axis, e in adapt.items():
+                if e.get("slope_um_per_m") is not None:
+                    slope.add_metric([axis], _f(e["slope_um_per_m"]))
+                off.add_metric([axis], _f(e.get("offset_um")))
+                sd.add_metric([axis], _f(e.get("offset_sigma_um")))
+                acc.add_metric([axis], e.get("accepted", 0))
+                rej.add_metric([axis], e.get("rejected", 0))
+            yield from (off, sd, acc, rej, slope)
 
 
 def _f(value: Any) -> float:

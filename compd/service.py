@@ -19,6 +19,7 @@ from typing import Any
 
 from compd import logsetup  # noqa: F401  (installs the library's NullHandler)
 from compd import status as status_mod
+from compd.control import ControlServer, socket_path
 from compd.metrics import MetricsServer
 from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
 from compd.realtime import apply_realtime
@@ -78,6 +79,55 @@ class EventLogger:
         return n
 
 
+class ProbeEventLogger:
+    """Turns the adapter's new events (probes accepted, rejected, ignored; faults) into log lines."""
+
+    def __init__(self, adapter: Any) -> None:
+        self.adapter = adapter
+        self._last: Any = None
+        self.logged = 0
+
+    def flush(self) -> int:
+        if self.adapter is None:
+            return 0
+        events = list(self.adapter.events)  # a copy: the cycle appends
+        start = 0
+        if self._last is not None:
+            for i in range(len(events) - 1, -1, -1):
+                if events[i] is self._last:
+                    start = i + 1
+                    break
+        for ev in events[start:]:
+            self._log(ev)
+        if events:
+            self._last = events[-1]
+        n = len(events) - start
+        self.logged += n
+        return n
+
+    @staticmethod
+    def _log(ev: dict[str, Any]) -> None:
+        kind, axis = ev.get("event"), ev.get("axis")
+        extra = {"event": f"probe_{kind}", "axis": axis, "t_s": ev.get("t_s"), "source": ev.get("source")}
+        if kind in ("accepted", "rejected"):
+            extra.update({k: ev.get(k) for k in ("error_um", "measured_um", "innovation_um",
+                                                   "innovation_sigma_um", "offset_um")})
+            log.log(
+                logging.INFO if kind == "accepted" else logging.WARNING,
+                "probe %s %s: error %.2f um, innovation %.2f um (sigma %.2f um), offset now %.2f um",
+                axis, kind, ev["error_um"], ev["innovation_um"], ev["innovation_sigma_um"], ev["offset_um"],
+                extra=extra,
+            )
+        elif kind == "fault":
+            extra["event"] = "adapt_fault"
+            extra["reason"] = ev.get("why")
+            log.warning("probe %s fault: %s", axis, ev.get("why"), extra=extra)
+        else:  # unknown_axis, no_prediction, no_correction_known: the probe was not used
+            extra["event"] = "probe_ignored"
+            extra["reason"] = kind
+            log.warning("probe %s ignored: %s", axis, kind, extra=extra)
+
+
 class Service:
     """Notify, status, metrics and event logging for one App."""
 
@@ -94,6 +144,10 @@ class Service:
         self._metrics_adopted = False
         self.realtime = top.loop.realtime
         self.events = EventLogger(self.loop.guard)
+        self.probe_events = ProbeEventLogger(self.loop.adapter)
+        spath = socket_path(app.cfg) if self.loop.adapter is not None else None
+        self.control = ControlServer(spath, self.loop) if spath is not None else None
+        self._control_adopted = False
         self.notifier: Notifier | None = None
         self.watchdog: WatchdogObserver | None = None
         self.state = "starting"
@@ -111,6 +165,20 @@ class Service:
             self.metrics = previous.metrics
             self.metrics_url = previous.metrics_url
             self._metrics_adopted = True
+        pc = previous.control
+        if self.control is not None and pc is not None and pc.path == self.control.path and pc._sock is not None:
+            self.control = pc  # the same socket goes on; `start` points it at this loop
+            self._control_adopted = True
+
+    def open_control(self) -> None:
+        """Bind the probe socket (BadInput if it cannot); a kept one is already bound."""
+        if self.control is not None and not self._control_adopted:
+            self.control.open()
+
+    def close_control(self) -> None:
+        """Undo `open_control` (a reload that failed later): a kept socket stays."""
+        if self.control is not None and not self._control_adopted:
+            self.control.close()
 
     def open_metrics(self) -> None:
         """Bind the metrics endpoint (BadInput if it cannot); a kept one is already bound."""
@@ -144,6 +212,11 @@ class Service:
             status = "observe mode: output held disabled" if self.observe else "compensating"
             self.watchdog = WatchdogObserver(self.notifier, wd, status)
             self.loop.observers.append(self.watchdog)
+        if self.control is not None:
+            self.control.loop = self.loop
+        elif self.loop.adapter is not None:
+            log.warning("no probe socket: `compd probe` cannot reach this daemon (set adapt.socket_path or status.path)",
+                        extra={"event": "probe_socket", "path": None})
         self.state = "running"
         self._tick()
         self._thread = threading.Thread(target=self._run, name="compd-status", daemon=True)
@@ -174,7 +247,10 @@ class Service:
                 self._tick()
             else:
                 self.events.flush()
+                self.probe_events.flush()
         finally:
+            if self.control is not None and (handing_over_to is None or handing_over_to.control is not self.control):
+                self.control.close()
             if self.metrics is not None and (handing_over_to is None or handing_over_to.metrics is not self.metrics):
                 self.metrics.stop()
             if self.notifier is not None:
@@ -210,6 +286,7 @@ class Service:
 
     def _tick(self) -> None:
         self.events.flush()
+        self.probe_events.flush()
         misses = self.loop.stats.misses
         if misses > self._misses:
             log.warning(

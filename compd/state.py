@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
 import os
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +37,31 @@ def write_atomic(path: Path, data: dict[str, Any]) -> None:
         os.close(fd)
 
 
+def params_digest(params: Any) -> str:
+    """A short hash of a model's params (a pydantic object or plain data): the adapter's
+    estimate belongs to the model it was probed against, and a refit changes it."""
+    data = params.model_dump(mode="json") if hasattr(params, "model_dump") else params
+    text = json.dumps(data, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+
+
+@dataclass
+class Saved:
+    """What a state file holds for the model it was checked against."""
+
+    state: dict[str, Any]  # the model's state
+    elapsed_s: float  # since it was saved
+    adapt: dict[str, Any] | None  # the adapter's part: params_sha256, saved_unix_s, axes; None if none
+
+
 def load_state(path: Path, model_kind: str, inputs: list[str], outputs: list[str]) -> tuple[dict[str, Any], float] | None:
-    """The saved model state and the seconds elapsed since it was saved, or None.
+    """The saved model state and the seconds elapsed since it was saved, or None (see load_saved)."""
+    saved = load_saved(path, model_kind, inputs, outputs)
+    return None if saved is None else (saved.state, saved.elapsed_s)
+
+
+def load_saved(path: Path, model_kind: str, inputs: list[str], outputs: list[str]) -> Saved | None:
+    """The saved model state, the seconds elapsed since it was saved and the adapter's part, or None.
 
     A file for another model (kind, inputs or outputs differ), a corrupt file, or
     one saved "in the future" (clock jumped back) is ignored with a warning: the
@@ -62,7 +87,8 @@ def load_state(path: Path, model_kind: str, inputs: list[str], outputs: list[str
         elapsed = time.time() - saved
         if elapsed < -5.0:
             raise ValueError(f"saved {-elapsed:.0f} s in the future (clock jumped?)")
-        return dict(raw["state"]), max(elapsed, 0.0)
+        adapt = raw.get("adapt")
+        return Saved(dict(raw["state"]), max(elapsed, 0.0), adapt if isinstance(adapt, dict) else None)
     except (KeyError, TypeError, ValueError) as e:
         log.warning("state ignored: %s: %s", path, e,
                     extra={"event": "state_ignored", "path": str(path), "reason": str(e)})
@@ -73,16 +99,23 @@ class StateWriter:
     """Persists model state from a background thread (the cycle never waits on fsync).
 
     `submit(state)` is called at a model step; only the newest pending state is
-    written. Errors (full disk) are kept in `error` and logged, never raised.
+    written. `submit_adapt(state)` (after a probe) keeps the adapter's state, written
+    with the model's in the same file: at once when a model state is known, else with
+    the next one. Errors (full disk) are kept in `error` and logged, never raised.
     `close()` writes what is pending before it returns.
     """
 
-    def __init__(self, path: Path, model_kind: str, inputs: list[str], outputs: list[str]) -> None:
+    def __init__(
+        self, path: Path, model_kind: str, inputs: list[str], outputs: list[str], params_sha256: str | None = None
+    ) -> None:
         self.path = path
         self.header = {"format": FORMAT, "kind": model_kind, "inputs": inputs, "outputs": outputs}
+        self.params_sha256 = params_sha256
         self.writes = 0
         self.error: str | None = None
         self._pending: dict[str, Any] | None = None
+        self._last: dict[str, Any] | None = None  # the model state written last
+        self._adapt: dict[str, Any] | None = None  # the adapter's newest state, with its time
         self._closing = False
         self._cv = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="compd-state", daemon=True)
@@ -93,9 +126,22 @@ class StateWriter:
             self._pending = state
             self._cv.notify()
 
+    def submit_adapt(self, axes: dict[str, Any]) -> None:
+        """The adapter's state (Adapter.get_state()); called on the cycle after a probe."""
+        with self._cv:
+            self._adapt = {"params_sha256": self.params_sha256, "saved_unix_s": time.time(), "axes": axes}
+            if self._pending is None and self._last is not None:
+                self._pending = self._last
+            self._cv.notify()
+
     def write_now(self, state: dict[str, Any]) -> None:
         """Synchronous write."""
-        data = {**self.header, "saved_unix_s": time.time(), "state": state}
+        data: dict[str, Any] = {**self.header, "saved_unix_s": time.time(), "state": state}
+        with self._cv:
+            adapt = self._adapt
+            self._last = state
+        if adapt is not None:
+            data["adapt"] = adapt
         try:
             write_atomic(self.path, data)
             self.writes += 1

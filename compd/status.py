@@ -103,6 +103,8 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
         "saturations": int(enc.saturations),
         "events": events,
     }
+    if loop.adapter is not None:  # the probe-updated estimate per axis (compd.adapt)
+        snap["adapt"] = loop.adapter.get_status()
     if extra:
         snap.update(extra)
     return _jsonable(snap)
@@ -160,7 +162,7 @@ _SHAPE: dict[str, tuple[type, ...]] = {
     "pid": (int,), "state": (str,), "observe": (bool,), "written_unix_s": _NUMBER,
     "status_period_s": _NUMBER, "uptime_s": _NUMBER, "loop_time_s": _NUMBER, "word": (str,),
     "config": (str,), "metrics_url": (str,), "axes": (dict,), "signals": (dict,), "loop": (dict,),
-    "model": (dict,), "sink": (dict,), "faults": (dict,), "events": (list,),
+    "model": (dict,), "sink": (dict,), "faults": (dict,), "events": (list,), "adapt": (dict,),
 }
 
 
@@ -174,7 +176,7 @@ def _check_shape(data: dict[str, Any], path: str) -> None:
         if v is not None and (not isinstance(v, types) or (types is _NUMBER and isinstance(v, bool))):
             want = "a number" if types is _NUMBER else _NAMES[types[0]]
             raise BadInput(f"not a compd status file: expected {want}", file=path, path=key)
-    for key in ("axes", "signals"):
+    for key in ("axes", "signals", "adapt"):
         for name, v in (data.get(key) or {}).items():
             if not isinstance(v, dict):
                 raise BadInput("not a compd status file: expected an object", file=path, path=(key, name))
@@ -279,6 +281,22 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
             f"{name:<14} {_num(s.get('value'), '10.3f')} {s.get('quality', '?'):<13}"
             f" {_num(s.get('age_s'), '8.2f')}"
         )
+    adapt = data.get("adapt") or {}
+    if adapt:
+        lines.append(f"{'adapt':<8} {'offset':>17} {'gain':>7} {'accepted':>9} {'rejected':>9} {'last probe':>11}")
+        for name, e in adapt.items():
+            gain = e.get("gain")
+            last = e.get("last_probe_s")
+            note = "" if e.get("applied", True) else " (observe: not applied)"
+            if e.get("slope_um_per_m") is not None:
+                note += f" slope {e['slope_um_per_m']:+.2f} um/m"
+            if e.get("fault"):
+                note += " FAULT: probes rejected in a row"
+            lines.append(
+                f"{name:<8} {_num(e.get('offset_um'), '+8.2f')} ± {_num(e.get('offset_sigma_um'), '5.2f')} um"
+                f" {'-' if gain is None else format(gain, '+7.3f'):>7} {e.get('accepted', 0):>9}"
+                f" {e.get('rejected', 0):>9} {'never' if last is None else format(last, '.1f') + ' s':>11}{note}"
+            )
     faults = data.get("faults") or {}
     lines.append("faults: " + (", ".join(f"{k} {v}" for k, v in sorted(faults.items())) or "none"))
     events = data.get("events") or []

@@ -144,3 +144,26 @@ def test_connections_beyond_the_cap_are_closed_not_queued():
         for s in socks:
             s.close()
         server.stop()
+
+
+def test_the_adaptation_estimate_and_probe_counts(tmp_path):
+    from compd.adapt import Probe
+
+    app = App(load_config(sim_config(tmp_path, "adapt: {}", duration_s=600)))
+    app.run()
+    ad = app.loop.adapter
+    ad.inbox.extend([Probe(t_s=app.loop.now_s, axis="z", error_um=float(app.loop.pred_um[0]) + 2.0),
+                     Probe(t_s=app.loop.now_s, axis="z", error_um=1e4)])  # the second fails the gate
+    app.loop.step(app.loop.now_s + 1.0)
+    server = MetricsServer("127.0.0.1", 0)
+    url = server.start()
+    try:
+        server.update(snapshot(app.loop, state="stopped", observe=False), app.loop.stats)
+        m = _scrape(url)
+    finally:
+        server.stop()
+    assert m['compd_probes_accepted_total{axis="z"}'] == 1
+    assert m['compd_probes_rejected_total{axis="z"}'] == 1
+    assert m['compd_adapt_offset_micrometres{axis="z"}'] == pytest.approx(float(ad.est[0].s[0]))
+    assert 0 < m['compd_adapt_offset_micrometres{axis="z"}'] <= 2.0
+    assert m['compd_adapt_offset_sigma_micrometres{axis="z"}'] > 0

@@ -1,0 +1,273 @@
+"""The probe socket: how `compd probe` hands a measurement to the running daemon.
+
+The daemon (`ControlServer`, started by compd/service.py when the config has an
+`adapt` section) listens on a Unix domain socket; a background thread serves it and
+touches the cycle only by appending a `compd.adapt.Probe` to the adapter's inbox
+(a deque: the append is thread-safe and the cycle never waits). It then watches the
+adapter's events for that probe, at most `WAIT_S`, so the answer can say whether the
+probe was accepted or rejected; if the cycle has not taken it by then (the loop is
+paused for a reload) the answer is `queued`.
+
+Where the socket is (`socket_path`): `adapt.socket_path` (relative to the config),
+else the status file's path with the suffix `.sock` (status.json → status.sock), so
+under systemd it is $RUNTIME_DIRECTORY/status.sock. The file is 0660 and removed at
+shutdown; a stale one left by a crashed daemon refuses connections, which the client
+reports as "no daemon" (exit 1) and the next daemon replaces.
+
+Protocol: one JSON object on one line each way.
+  request  {"op": "probe", "axis": "x", "error_um": 5.2, "position_mm": null,
+            "sigma_um": null, "residual": false}
+  answer   {"ok": true, "outcome": "accepted" | "rejected" | "queued" | ..., ...}
+           {"ok": false, "error": "why"}   (a bad request: `compd probe` exits 2)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import socket
+import stat
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from compd.adapt import Probe
+from compd.errors import BadInput
+
+log = logging.getLogger("compd.control")
+
+WAIT_S = 2.0  # how long the server waits for the cycle to take a probe before answering "queued"
+CLIENT_TIMEOUT_S = 5.0  # how long `compd probe` waits for the answer
+MAX_REQUEST = 4096
+SUN_PATH_MAX = 107  # bytes of a Unix socket path (sun_path is 108 with the NUL)
+DEFAULT_PATH = "/run/compd/status.sock"
+
+
+class NoDaemon(Exception):
+    """Nothing answers on the socket: no file, a stale file, or no answer in time."""
+
+
+def socket_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
+    """The probe socket of a config with an `adapt` section: `adapt.socket_path`, else next
+    to the status file (its suffix replaced by `.sock`); None without either."""
+    from compd.service import status_path
+
+    ad = cfg.top.adapt
+    if ad is None:
+        return None
+    if ad.socket_path:
+        return cfg.resolve_path(ad.socket_path)
+    status = status_path(cfg, env)
+    return None if status is None else sock_beside(status)
+
+
+def sock_beside(status: Path) -> Path:
+    """status.json → status.sock (a status file already named .sock gets .sock appended)."""
+    p = Path(status).with_suffix(".sock")
+    return p if p != Path(status) else Path(f"{status}.sock")
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_request(req: Any, axes: list[str]) -> str | None:
+    """Why a probe request is bad, or None."""
+    if not isinstance(req, dict) or req.get("op") != "probe":
+        return "not a probe request"
+    axis = req.get("axis")
+    if not isinstance(axis, str) or axis not in axes:
+        return f"unknown axis {axis!r}: the daemon adapts {', '.join(axes)}"
+    if not _finite(req.get("error_um")):
+        return f"error_um must be a finite number, got {req.get('error_um')!r}"
+    for key in ("position_mm", "sigma_um"):
+        v = req.get(key)
+        if v is not None and not _finite(v):
+            return f"{key} must be a finite number, got {v!r}"
+    if req.get("sigma_um") is not None and req["sigma_um"] <= 0:
+        return f"sigma_um must be > 0, got {req['sigma_um']!r}"
+    if not isinstance(req.get("residual", False), bool):
+        return "residual must be true or false"
+    return None
+
+
+class ControlServer:
+    """The daemon's end of the probe socket: one background thread, one request at a time."""
+
+    def __init__(self, path: Path, loop: Any) -> None:
+        self.path = Path(path)
+        self.loop = loop  # the running pipeline's loop (a reload points it at the new one)
+        self.served = 0
+        self._sock: socket.socket | None = None
+        self._ino: int | None = None
+        self._n = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ life
+    def open(self) -> None:
+        """Bind (0660), replacing a stale socket file; BadInput if another daemon serves it."""
+        path = self.path
+        if len(os.fsencode(path)) > SUN_PATH_MAX:
+            raise BadInput(f"a Unix socket path is at most {SUN_PATH_MAX} bytes: {path}", path=("adapt", "socket_path"))
+        try:
+            mode = path.lstat().st_mode
+        except FileNotFoundError:
+            mode = None
+        if mode is not None:
+            if not stat.S_ISSOCK(mode):
+                raise BadInput(f"{path} exists and is not a socket", path=("adapt", "socket_path"))
+            if _answers(path):
+                raise BadInput(f"another compd serves {path}", path=("adapt", "socket_path"))
+            path.unlink()  # a crashed daemon's socket
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            sock.bind(str(path))
+            os.chmod(path, 0o660)  # before listen(): no one can connect earlier
+            sock.listen(8)
+            sock.settimeout(0.2)
+            self._ino = path.stat().st_ino
+        except OSError as e:
+            sock.close()
+            raise BadInput(f"cannot open the probe socket {path}: {e.strerror or e}",
+                           path=("adapt", "socket_path")) from None
+        self._sock = sock
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="compd-control", daemon=True)
+        self._thread.start()
+        log.info("probe socket %s", path, extra={"event": "probe_socket", "path": str(path)})
+
+    def close(self) -> None:
+        """Stop serving and remove the socket file (unless another daemon has replaced it)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+            with contextlib.suppress(OSError):
+                if self.path.stat().st_ino == self._ino:
+                    self.path.unlink()
+
+    # ------------------------------------------------------------- the thread
+    def _run(self) -> None:
+        sock = self._sock
+        assert sock is not None
+        while not self._stop.is_set():
+            try:
+                conn, _ = sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            with conn:
+                try:
+                    self._serve(conn)
+                except Exception:  # a client that hangs up or sends garbage never stops the thread
+                    log.debug("probe request failed", exc_info=True, extra={"event": "probe_request_error"})
+
+    def _serve(self, conn: socket.socket) -> None:
+        conn.settimeout(WAIT_S)
+        data = b""
+        while b"\n" not in data and len(data) < MAX_REQUEST:
+            chunk = conn.recv(MAX_REQUEST)
+            if not chunk:
+                break
+            data += chunk
+        try:
+            req = json.loads(data.split(b"\n", 1)[0].decode("utf-8"))
+        except (UnicodeDecodeError, ValueError):
+            answer: dict[str, Any] = {"ok": False, "error": "not a JSON request"}
+        else:
+            answer = self.handle(req)
+        conn.sendall((json.dumps(answer) + "\n").encode("utf-8"))
+        self.served += 1
+
+    def handle(self, req: Any) -> dict[str, Any]:
+        """Queue one probe and wait (bounded) for the cycle's verdict on it."""
+        loop = self.loop
+        adapter = loop.adapter
+        if adapter is None:
+            return {"ok": False, "error": "this daemon has no adapt section"}
+        why = check_request(req, adapter.axes)
+        if why is not None:
+            return {"ok": False, "error": why}
+        self._n += 1
+        tag = f"cli#{self._n}"
+        probe = Probe(
+            t_s=float(loop.now_s), axis=req["axis"], error_um=float(req["error_um"]),
+            sigma_um=None if req.get("sigma_um") is None else float(req["sigma_um"]),
+            position_mm=None if req.get("position_mm") is None else float(req["position_mm"]),
+            source=tag, residual=bool(req.get("residual", False)),
+        )
+        adapter.inbox.append(probe)
+        answer: dict[str, Any] = {"ok": True, "outcome": "queued", "axis": probe.axis, "t_s": probe.t_s,
+                                  "pid": os.getpid()}
+        deadline = time.monotonic() + WAIT_S
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            for ev in reversed(list(adapter.events)):  # list(): a copy taken while the cycle may append
+                if ev.get("source") == tag:
+                    answer.update({k: v for k, v in ev.items() if k not in ("source", "event")})
+                    answer["outcome"] = ev["event"]
+                    return _jsonable(answer)
+            self._stop.wait(0.01)
+        return answer
+
+
+def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+
+def _answers(path: Path) -> bool:
+    """True if a daemon accepts connections on `path`."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(1.0)
+    try:
+        s.connect(str(path))
+    except OSError:
+        return False
+    finally:
+        s.close()
+    return True
+
+
+def send_probe(path: Path | str, request: dict[str, Any], timeout_s: float = CLIENT_TIMEOUT_S) -> dict[str, Any]:
+    """Send one request, return the daemon's answer; NoDaemon when nothing answers."""
+    path = str(path)
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout_s)
+    try:
+        try:
+            s.connect(path)
+        except FileNotFoundError:
+            raise NoDaemon(f"no compd running: no probe socket {path}") from None
+        except ConnectionRefusedError:
+            raise NoDaemon(f"no compd running: {path} refuses connections (left by a daemon that stopped)") from None
+        except OSError as e:
+            raise NoDaemon(f"cannot reach compd at {path}: {e.strerror or e}") from None
+        try:
+            s.sendall((json.dumps(request) + "\n").encode("utf-8"))
+            data = b""
+            while b"\n" not in data:
+                chunk = s.recv(MAX_REQUEST)
+                if not chunk:
+                    break
+                data += chunk
+        except TimeoutError:
+            raise NoDaemon(f"compd at {path} did not answer within {timeout_s:g} s") from None
+        except OSError as e:
+            raise NoDaemon(f"compd at {path} hung up: {e.strerror or e}") from None
+    finally:
+        s.close()
+    try:
+        answer = json.loads(data.split(b"\n", 1)[0].decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        raise NoDaemon(f"{path}: the answer is not compd's") from None
+    if not isinstance(answer, dict):
+        raise NoDaemon(f"{path}: the answer is not compd's")
+    return answer

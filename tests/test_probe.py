@@ -1,0 +1,250 @@
+"""`compd probe` and the daemon's probe socket (compd/control.py), with the daemon as a real process."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from compd import control
+from compd.adapt import Adapter
+from compd.config import AdaptConfig
+from compd.errors import BadInput
+from tests.service_helpers import sim_config
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+WAIT_S = 60.0  # an upper bound for a condition to become true, never a sleep
+
+EXTRA = """
+status: {{path: status.json, period_s: 0.1}}
+log: {{path: log.csv, period_s: 10}}
+state: {{path: state.json}}
+adapt: {{}}
+"""
+
+
+def compd(*args: str, cwd: Path, timeout: float = 30) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "compd", *args], cwd=cwd, env=ENV, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def until(cond, what: str, timeout: float = WAIT_S):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = cond()
+        if v:
+            return v
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def status_of(folder: Path) -> dict:
+    try:
+        return json.loads((folder / "status.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
+def stale_socket(path: Path) -> None:
+    """What a crashed daemon leaves: a socket file nobody listens on."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.bind(str(path))
+    s.close()
+
+
+@pytest.fixture
+def daemon(tmp_path):
+    """A daemon on the simulated spindle (paced: 50× real time), stopped with SIGTERM at the end."""
+    cfg = sim_config(tmp_path, EXTRA.format(), duration_s=1e6, speedup=50)
+    stale_socket(tmp_path / "status.sock")  # a crashed daemon's: the new one must replace it
+    proc = subprocess.Popen([sys.executable, "-m", "compd", "run", cfg.name], cwd=tmp_path, env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        until(lambda: status_of(tmp_path).get("state") == "running" or proc.poll() is not None, "the daemon")
+        assert proc.poll() is None, proc.communicate()
+        yield proc, cfg
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+
+
+def test_probe_reaches_the_daemon_which_logs_shows_and_keeps_it(daemon, tmp_path):
+    proc, cfg = daemon
+    sock = tmp_path / "status.sock"
+    assert stat.S_IMODE(sock.stat().st_mode) == 0o660
+    until(lambda: (status_of(tmp_path).get("axes") or {}).get("z", {}).get("prediction_um") is not None,
+          "a prediction")
+
+    r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "3.5", "--position-mm", "120",
+              cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert len(r.stdout.splitlines()) == 1 and "probe z error 3.5 um" in r.stdout
+    assert any(w in r.stdout for w in ("accepted", "rejected", "queued"))
+
+    # an unknown axis: the daemon knows its axes and answers with an error (exit 2, one line)
+    r = compd("probe", "--config", cfg.name, "--axis", "q", "--error-um", "1", cwd=tmp_path)
+    assert r.returncode == 2 and len(r.stderr.splitlines()) == 1 and "unknown axis 'q'" in r.stderr
+    # a non-finite error never leaves the command line
+    r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "inf", cwd=tmp_path)
+    assert r.returncode == 2 and len(r.stderr.splitlines()) == 1 and "finite" in r.stderr
+
+    def taken():
+        z = (status_of(tmp_path).get("adapt") or {}).get("z") or {}
+        return z if z.get("accepted", 0) + z.get("rejected", 0) else None
+
+    adapt = until(taken, "the probe in the status")
+    assert adapt["accepted"] + adapt["rejected"] == 1
+    shown = compd("status", "--config", cfg.name, cwd=tmp_path)
+    assert shown.returncode == 0 and "adapt" in shown.stdout and "±" in shown.stdout
+
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "event=probe_accepted" in err or "event=probe_rejected" in err
+    assert not sock.exists()  # removed at shutdown
+
+    header, *rows = (tmp_path / "log.csv").read_text(encoding="utf-8").splitlines()
+    cols = header.split(",")
+    assert cols[-2:] == ["probe_z_um", "probe_pos_z_mm"]
+    probed = [r.split(",") for r in rows if r.split(",")[-2] != ""]
+    assert len(probed) == 1 and float(probed[0][-2]) == 3.5 and float(probed[0][-1]) == 120.0
+
+    saved = json.loads((tmp_path / "state.json").read_text(encoding="utf-8"))
+    z = saved["adapt"]["axes"]["z"]
+    assert z["accepted"] + z["rejected"] == 1 and saved["adapt"]["params_sha256"]
+
+    # after the daemon: nothing answers (the socket is gone): exit 1, one line
+    r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "1", cwd=tmp_path)
+    assert r.returncode == 1 and len(r.stderr.splitlines()) == 1 and "no compd running" in r.stderr
+
+
+def run_briefly(tmp_path: Path, cfg: Path) -> tuple[str, dict]:
+    r = compd("run", cfg.name, "--duration", "5", cwd=tmp_path, timeout=60)
+    assert r.returncode == 0, r.stderr
+    return r.stderr, status_of(tmp_path)
+
+
+def test_the_estimate_is_restored_for_the_same_model_and_reset_for_a_refit_one(tmp_path):
+    cfg = sim_config(tmp_path, EXTRA.format(), duration_s=1e6, speedup=0)
+    saved = {
+        "format": 1, "kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"], "saved_unix_s": time.time(),
+        "state": {"t0_c": 19.8, "ref_c": None},
+    }
+    from compd.config import load_config
+    from compd.state import params_digest
+
+    digest = params_digest(load_config(cfg).model.params)
+    axes = {"z": {"s": [2.5], "P": [[0.04]], "t_probe_s": 10.0, "accepted": 4, "rejected": 1, "probe_age_s": 30.0}}
+    (tmp_path / "state.json").write_text(json.dumps(
+        {**saved, "adapt": {"params_sha256": digest, "saved_unix_s": time.time(), "axes": axes}}), encoding="utf-8")
+    err, st = run_briefly(tmp_path, cfg)
+    assert "event=adapt_restored" in err
+    assert st["adapt"]["z"]["accepted"] == 4 and st["adapt"]["z"]["offset_um"] == pytest.approx(2.5)
+    kept = json.loads((tmp_path / "state.json").read_text(encoding="utf-8"))["adapt"]
+    assert kept["params_sha256"] == digest and kept["axes"]["z"]["accepted"] == 4
+
+    # the same model refitted (other params): the estimate starts again from zero
+    cfg.write_text(cfg.read_text(encoding="utf-8").replace("13.6e-6", "14.1e-6"), encoding="utf-8")
+    err, st = run_briefly(tmp_path, cfg)
+    assert "event=adapt_reset" in err
+    assert st["adapt"]["z"]["accepted"] == 0 and st["adapt"]["z"]["offset_um"] == 0.0
+    kept = json.loads((tmp_path / "state.json").read_text(encoding="utf-8"))["adapt"]
+    assert kept["params_sha256"] != digest and kept["axes"]["z"]["accepted"] == 0
+
+
+def test_no_daemon_and_a_stale_socket_exit_1_at_once(tmp_path):
+    cfg = sim_config(tmp_path, EXTRA.format())
+    r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "1", cwd=tmp_path)
+    assert r.returncode == 1 and len(r.stderr.splitlines()) == 1 and "no probe socket" in r.stderr
+    stale_socket(tmp_path / "status.sock")
+    r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "1", cwd=tmp_path)
+    assert r.returncode == 1 and len(r.stderr.splitlines()) == 1 and "refuses connections" in r.stderr
+    # refused at once, not after a timeout: with an hour's timeout it still returns
+    with pytest.raises(control.NoDaemon, match="refuses connections"):
+        control.send_probe(tmp_path / "status.sock", {"op": "probe"}, timeout_s=3600)
+
+
+def test_bad_input_exits_2_with_one_line(tmp_path):
+    no_adapt = sim_config(tmp_path)
+    r = compd("probe", "--config", no_adapt.name, "--axis", "z", "--error-um", "1", cwd=tmp_path)
+    assert r.returncode == 2 and len(r.stderr.splitlines()) == 1 and "adapt" in r.stderr
+    for args in (["--axis", "z", "--error-um", "nan"], ["--axis", "z"], ["--axis", "z", "--error-um", "1",
+                                                                        "--sigma-um", "0"]):
+        r = compd("probe", *args, cwd=tmp_path)
+        assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, (args, r.stderr)
+
+
+class FakeLoop:
+    """What the control thread touches: the adapter (its inbox and events) and the loop time."""
+
+    def __init__(self) -> None:
+        self.adapter = Adapter(AdaptConfig(), ["x", "z"])
+        self.now_s = 42.0
+
+
+def test_server_queues_the_probe_and_answers_queued_when_no_cycle_takes_it(tmp_path, monkeypatch):
+    monkeypatch.setattr(control, "WAIT_S", 0.05)
+    loop = FakeLoop()
+    server = control.ControlServer(tmp_path / "c.sock", loop)
+    server.open()
+    try:
+        with pytest.raises(BadInput, match="another compd serves"):
+            control.ControlServer(tmp_path / "c.sock", loop).open()
+        answer = control.send_probe(tmp_path / "c.sock", {"op": "probe", "axis": "x", "error_um": 4.0,
+                                                          "position_mm": 3.0, "residual": True})
+        assert answer["ok"] and answer["outcome"] == "queued" and answer["t_s"] == 42.0
+        (probe,) = loop.adapter.inbox
+        assert (probe.axis, probe.error_um, probe.position_mm, probe.residual) == ("x", 4.0, 3.0, True)
+        bad = control.send_probe(tmp_path / "c.sock", {"op": "probe", "axis": "x", "error_um": "1"})
+        assert not bad["ok"] and "finite" in bad["error"]
+    finally:
+        server.close()
+    assert not (tmp_path / "c.sock").exists()
+
+
+def test_a_path_that_is_not_a_socket_is_refused(tmp_path):
+    (tmp_path / "c.sock").write_text("x", encoding="utf-8")
+    with pytest.raises(BadInput, match="not a socket"):
+        control.ControlServer(tmp_path / "c.sock", FakeLoop()).open()
+
+
+def test_a_reload_keeps_the_socket_and_the_estimate(tmp_path):
+    from compd.adapt import Probe
+    from compd.app import App
+    from compd.config import load_config
+
+    cfg = sim_config(tmp_path, EXTRA.format(), duration_s=600)
+    old = App(load_config(cfg))
+    old.open()
+    new = None
+    try:
+        old.loop.run(100.0)
+        old.loop.adapter.inbox.append(Probe(t_s=old.loop.now_s, axis="z", error_um=float(old.loop.pred_um[0]) + 1))
+        old.loop.step(old.loop.now_s + 1.0)
+        assert old.loop.adapter.est[0].accepted == 1
+        new = App(load_config(cfg))
+        new.adopt(old)
+        new.open()
+        old.close(handing_over_to=new)
+        assert new.service.control is old.service.control and (tmp_path / "status.sock").is_socket()
+        assert new.service.control.loop is new.loop
+        assert new.loop.adapter.est[0].accepted == 1  # the same model and params: carried over
+        answer = control.send_probe(tmp_path / "status.sock", {"op": "probe", "axis": "x", "error_um": 1.0})
+        assert not answer["ok"] and "unknown axis" in answer["error"]
+    finally:
+        (new or old).close()
+    assert not (tmp_path / "status.sock").exists()
