@@ -410,17 +410,47 @@ def field_terms(rises_k: np.ndarray, y_mm: np.ndarray, ambient_k: np.ndarray | N
     return um_per_k_mm * np.column_stack([integral, total * y / p.length_mm, amb])
 
 
-class _FieldForm:
-    """Run-time evaluation of the field form: preallocated buffers, no allocation per cycle."""
+class _Measured:
+    """What both measured forms share: the position input, the readings at start T_k0 and the
+    rises of the inputs of one role, taken into preallocated buffers (no allocation per cycle)."""
+
+    def __init__(self, p: FeedAxisParams, role: str) -> None:
+        roles = p.input_roles
+        self.p = p
+        self.i_pos = roles.index("position")
+        self.i_rise = _role_indices(roles, role)
+        self.t0 = np.zeros(len(roles))
+        self.t0_rise = np.zeros(self.i_rise.size)
+        self.rise = np.zeros(self.i_rise.size)
+        self.lin: np.ndarray | None = None  # (K0, tanβ) = lin @ (…) with linear_p0_mm
+        self.k0_slope = np.zeros(2)
+
+    def start(self, x: np.ndarray) -> None:
+        """Latch the readings at start (the references of every rise)."""
+        self.t0[:] = x
+        np.take(self.t0, self.i_rise, out=self.t0_rise)
+
+    def _rises(self, x: np.ndarray) -> np.ndarray:
+        np.take(x, self.i_rise, out=self.rise)
+        self.rise -= self.t0_rise
+        return self.rise
+
+
+def _role_indices(roles: list[str], role: str) -> np.ndarray:
+    return np.array([i for i, r in enumerate(roles) if r == role], dtype=np.intp)
+
+
+class _FieldForm(_Measured):
+    """Run-time evaluation of the field form."""
 
     def __init__(self, p: FeedAxisParams) -> None:
         f = p.field
         assert f is not None
+        super().__init__(p, "slide")
         roles = p.input_roles
-        self.p = p
-        self.i_pos = roles.index("position")
-        self.i_slide = np.array([i for i, r in enumerate(roles) if r == "slide"], dtype=np.intp)
-        self.i_off = np.array([i for i, r in enumerate(roles) if r == "offset"], dtype=np.intp)
+        self.i_slide = self.i_rise
+        self.i_off = _role_indices(roles, "offset")
+        self.t0_off = np.zeros(self.i_off.size)
         self.i_amb = roles.index("ambient") if "ambient" in roles else -1
         self.nodes, self.src = field_nodes(p)
         self.node_list = [float(v) for v in self.nodes]
@@ -428,15 +458,11 @@ class _FieldForm:
         self.gain = np.array([f.gain_integral, f.gain_restraint, f.gain_ambient])
         self.b_off = np.asarray(f.offset_um_per_k, float)
         self.um_per_k_mm = p.alpha_per_k * 1000.0
-        self.t0 = np.zeros(len(roles))
-        self.rise = np.zeros(self.i_slide.size)
         self.rn = np.zeros(self.nodes.size)
         self.trap = np.zeros(self.nodes.size - 1)
         self.cum = np.zeros(self.nodes.size)
         self.off = np.zeros(self.i_off.size)
-        self.lin: np.ndarray | None = None
         self.v = np.zeros(self.i_slide.size + 1 + self.i_off.size)
-        self.k0_slope = np.zeros(2)
         if p.linear_p0_mm is not None:
             self.lin = self._linear_matrix(p)
 
@@ -456,17 +482,17 @@ class _FieldForm:
         return np.linalg.pinv(P) @ W
 
     def start(self, x: np.ndarray) -> None:
-        self.t0[:] = x
+        super().start(x)
+        np.take(self.t0, self.i_off, out=self.t0_off)
 
     def evaluate(self, x: np.ndarray) -> float:
         """E at the position in x, µm; with linear_p0_mm K0 (tanβ in k0_slope[1])."""
-        np.take(x, self.i_slide, out=self.rise)
-        self.rise -= self.t0[self.i_slide]
+        self._rises(x)
         amb = x[self.i_amb] - self.t0[self.i_amb] if self.i_amb >= 0 else 0.0
         off = 0.0
         if self.i_off.size:
             np.take(x, self.i_off, out=self.off)
-            self.off -= self.t0[self.i_off]
+            self.off -= self.t0_off
             off = float(self.b_off @ self.off)
         if self.lin is not None:
             v, k = self.v, self.rise.size
@@ -508,36 +534,24 @@ class _FieldForm:
 
 
 
-class _PolyForm:
-    """Run-time evaluation of the position-regression form (same interface as _FieldForm)."""
+class _PolyForm(_Measured):
+    """Run-time evaluation of the position-regression form."""
 
     def __init__(self, p: FeedAxisParams) -> None:
         poly = p.position_poly
         assert poly is not None
-        roles = p.input_roles
-        self.p = p
-        self.i_pos = roles.index("position")
-        self.i_rise = np.array([i for i, r in enumerate(roles) if r == "rise"], dtype=np.intp)
+        super().__init__(p, "rise")
         self.B = np.asarray(poly.coef_um_per_k, float)  # K × (d + 1)
-        self.t0 = np.zeros(len(roles))
-        self.rise = np.zeros(self.i_rise.size)
         self.c = np.zeros(poly.degree + 1)  # Σ_k ΔT_k b_kp per power p
         self.u = np.zeros(poly.degree + 1)
-        self.k0_slope = np.zeros(2)
-        self.lin: np.ndarray | None = None
         if p.linear_p0_mm is not None:  # (K0, tanβ) = M c: E(y) is a polynomial with coefficients c
             y = np.linspace(0.0, p.length_mm, p.segments + 1)
             U = (y[:, None] / p.length_mm) ** np.arange(poly.degree + 1)
             P = np.c_[np.ones_like(y), p.stroke_start_mm + y - p.linear_p0_mm]
             self.lin = np.linalg.pinv(P) @ U
 
-    def start(self, x: np.ndarray) -> None:
-        self.t0[:] = x
-
     def evaluate(self, x: np.ndarray) -> float:
-        np.take(x, self.i_rise, out=self.rise)
-        self.rise -= self.t0[self.i_rise]
-        np.dot(self.rise, self.B, out=self.c)
+        np.dot(self._rises(x), self.B, out=self.c)
         if self.lin is not None:
             np.dot(self.lin, self.c, out=self.k0_slope)
             return float(self.k0_slope[0])
@@ -750,7 +764,7 @@ class FeedAxis(Model):
         if self._field is not None:
             t0 = state.get("t0_c")
             if isinstance(t0, list) and len(t0) == self._field.t0.size:
-                self._field.t0[:] = np.asarray(t0, dtype=float)
+                self._field.start(np.asarray(t0, dtype=float))
                 self._field_started = True
             return
         if state.get("heating_s") is not None:
