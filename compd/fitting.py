@@ -16,7 +16,13 @@ from pydantic import ValidationError
 
 from compd.errors import BadInput
 from compd.identify import FITS, KINDS, option_names
-from compd.identify.data import HOLDOUT_BLOCKS, columns, default_targets, progress
+from compd.identify.data import (
+    HELD_OUT_METHOD,
+    columns,
+    default_targets,
+    forward_fold_errors,
+    progress,
+)
 from compd.log import Log, read_log
 from compd.models.base import Model
 
@@ -83,27 +89,16 @@ def scores(model: Model, log: Log, targets: list[str], pred: np.ndarray) -> dict
 def held_out_rmse(
     kind: str, log: Log, inputs: list[str] | None, targets: list[str], options: dict[str, Any]
 ) -> np.ndarray:
-    """RMSE per target (µm) on rows the fit did not see, in time order.
-
-    The log is cut into HOLDOUT_BLOCKS contiguous blocks; for each block k ≥ 1 the kind is
-    fitted on the blocks before it (a contiguous stretch from the start, so a model with
-    memory starts as it would on the machine), predicts the whole log from its start, and is
-    scored on block k only. Scoring rows close in time to training rows would flatter a model
-    that follows the temperature closely; predicting forward does not.
-    """
-    n = len(log)
-    edges = np.linspace(0, n, HOLDOUT_BLOCKS + 1).astype(int)
-    Y = columns(log, targets)
+    """RMSE per target (µm) on rows the fit did not see, in time order: the forward-chained
+    folds of compd.identify.data.forward_fold_errors, every fold fitted (ValueError if one cannot be)."""
+    folds = forward_fold_errors(log, targets, lambda lg: FITS.get(kind)(lg, inputs, targets, **options))
     sq = np.zeros(len(targets))
     count = np.zeros(len(targets))
-    for k in range(1, HOLDOUT_BLOCKS):
-        train = Log(log.file, log.columns, log.data[: edges[k]])
-        model = FITS.get(kind)(train, inputs, targets, **options).model
-        lo, hi = edges[k], edges[k + 1]
-        r = Y[lo:hi] - predict_log(model, log)[lo:hi]
-        ok = np.isfinite(r)
-        sq += (np.where(ok, r, 0.0) ** 2).sum(axis=0)
-        count += ok.sum(axis=0)
+    for f in folds:
+        if isinstance(f, str):
+            raise ValueError(f)
+        sq += f[0]
+        count += f[1]
     return np.sqrt(sq / np.maximum(count, 1))
 
 
@@ -122,8 +117,7 @@ def compare_with_mlr(
     except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
         return {"skipped": f"the held-out comparison could not fit a block: {e}"}
     out: dict[str, Any] = {
-        "method": f"forward-chained blocks: the log in {HOLDOUT_BLOCKS} time blocks, each block after the"
-                  " first scored by a fit on the blocks before it",
+        "method": HELD_OUT_METHOD,
         "inputs": mlr_inputs,
         "axes": {},
     }

@@ -118,9 +118,9 @@ HELD_OUT_METHOD = (
 
 
 def forward_fold_errors(
-    log: Log, target: str, fit_on: Callable[[Log], FitResult]
-) -> list[tuple[float, int] | str]:
-    """Per forward-chained fold (sum of squared errors µm², rows) of `target`, or why the fold could not be fitted.
+    log: Log, targets: Sequence[str], fit_on: Callable[[Log], FitResult]
+) -> list[tuple[np.ndarray, np.ndarray] | str]:
+    """Per forward-chained fold, (sum of squared errors µm², rows) per target, or why the fold could not be fitted.
 
     Fold k fits on the blocks before block k (a contiguous stretch from the log's start, so a
     model with memory starts as it would on the machine), predicts the whole log and is scored
@@ -129,19 +129,19 @@ def forward_fold_errors(
     """
     n = len(log)
     edges = np.linspace(0, n, HOLDOUT_BLOCKS + 1).astype(int)
-    e = log.col(target)
-    folds: list[tuple[float, int] | str] = []
+    Y = columns(log, targets)
+    folds: list[tuple[np.ndarray, np.ndarray] | str] = []
     for k in range(1, HOLDOUT_BLOCKS):
         try:
             model = fit_on(Log(log.file, log.columns, log.data[: edges[k]])).model
         except (BadInput, ValidationError, ValueError, np.linalg.LinAlgError) as exc:
             folds.append(f"block {k + 1}: {exc}")
             continue
-        axis = error_axis(target)
-        pred = model.predict(log.matrix(model.inputs), log.t_s)[:, model.outputs.index(axis) if axis in model.outputs else 0]
-        r = (e - pred)[edges[k]: edges[k + 1]]
-        r = r[np.isfinite(r)]
-        folds.append((float(np.sum(r * r)), int(r.size)))
+        pred = model.predict(log.matrix(model.inputs), log.t_s)
+        out = [model.outputs.index(a) if a in model.outputs else 0 for a in map(error_axis, targets)]
+        r = (Y - pred[:, out])[edges[k]: edges[k + 1]]
+        ok = np.isfinite(r)
+        folds.append(((np.where(ok, r, 0.0) ** 2).sum(axis=0), ok.sum(axis=0)))
     return folds
 
 
@@ -151,14 +151,14 @@ def compare_forms(
     """Held-out RMSE (µm) of each form over the forward-chained folds that every form could be fitted on.
 
     Returns ({form: RMSE, or why it could not be scored}, the folds used, 1-based blocks)."""
-    folds = {name: forward_fold_errors(log, target, fit_on) for name, fit_on in forms.items()}
+    folds = {name: forward_fold_errors(log, [target], fit_on) for name, fit_on in forms.items()}
     usable = [k for k in range(HOLDOUT_BLOCKS - 1) if all(not isinstance(f[k], str) for f in folds.values())]
     out: dict[str, float | str] = {}
     for name, f in folds.items():
         scored = [f[k] for k in usable]
-        count = sum(c for _, c in scored)  # type: ignore[misc]
+        count = sum(int(c[0]) for _, c in scored)  # type: ignore[misc]
         if count:
-            out[name] = math.sqrt(sum(sq for sq, _ in scored) / count)  # type: ignore[misc]
+            out[name] = math.sqrt(sum(float(sq[0]) for sq, _ in scored) / count)  # type: ignore[misc]
         else:
             out[name] = "; ".join(x for x in f if isinstance(x, str)) or "no held-out rows"
     return out, [k + 2 for k in usable]
