@@ -14,6 +14,7 @@ import logging
 import os
 import threading
 import time
+from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any
 
@@ -46,51 +47,24 @@ def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
     return Path(runtime) / "status.json" if runtime else None
 
 
-class EventLogger:
-    """Turns the guard's new events (since the last call) into log lines."""
+class _TailLogger(ABC):
+    """Logs what a bounded event deque gained since the last flush (the cycle appends to it;
+    flush runs off the cycle, on a copy, and finds where it left off by identity)."""
 
-    def __init__(self, guard: Any) -> None:
-        self.guard = guard
+    def __init__(self) -> None:
         self._last: Any = None
         self.logged = 0
 
-    def flush(self) -> int:
-        events = list(self.guard.events)
-        start = 0
-        if self._last is not None:
-            for i in range(len(events) - 1, -1, -1):
-                if events[i] is self._last:
-                    start = i + 1
-                    break
-        for t, subject, event, reason in events[start:]:
-            kind = "sensor" if event in ("bad", "good") else ("clock" if event == "jump" else "axis")
-            log.log(
-                _EVENT_LEVEL.get(event, logging.INFO),
-                "%s %s: %s",
-                subject,
-                event,
-                reason,
-                extra={"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t},
-            )
-        if events:
-            self._last = events[-1]
-        n = len(events) - start
-        self.logged += n
-        return n
+    @abstractmethod
+    def _events(self) -> list[Any]:
+        """A copy of the event deque, oldest first."""
 
-
-class ProbeEventLogger:
-    """Turns the adapter's new events (probes accepted, rejected, ignored; faults) into log lines."""
-
-    def __init__(self, adapter: Any) -> None:
-        self.adapter = adapter
-        self._last: Any = None
-        self.logged = 0
+    @abstractmethod
+    def _log(self, ev: Any) -> None:
+        """One event as a log line."""
 
     def flush(self) -> int:
-        if self.adapter is None:
-            return 0
-        events = list(self.adapter.events)  # a copy: the cycle appends
+        events = self._events()
         start = 0
         if self._last is not None:
             for i in range(len(events) - 1, -1, -1):
@@ -105,8 +79,41 @@ class ProbeEventLogger:
         self.logged += n
         return n
 
-    @staticmethod
-    def _log(ev: dict[str, Any]) -> None:
+
+class EventLogger(_TailLogger):
+    """Turns the guard's new events (since the last call) into log lines."""
+
+    def __init__(self, guard: Any) -> None:
+        super().__init__()
+        self.guard = guard
+
+    def _events(self) -> list[Any]:
+        return list(self.guard.events)
+
+    def _log(self, ev: Any) -> None:
+        t, subject, event, reason = ev
+        kind = "sensor" if event in ("bad", "good") else ("clock" if event == "jump" else "axis")
+        log.log(
+            _EVENT_LEVEL.get(event, logging.INFO),
+            "%s %s: %s",
+            subject,
+            event,
+            reason,
+            extra={"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t},
+        )
+
+
+class ProbeEventLogger(_TailLogger):
+    """Turns the adapter's new events (probes accepted, rejected, ignored; faults) into log lines."""
+
+    def __init__(self, adapter: Any) -> None:
+        super().__init__()
+        self.adapter = adapter
+
+    def _events(self) -> list[Any]:
+        return [] if self.adapter is None else list(self.adapter.events)  # a copy: the cycle appends
+
+    def _log(self, ev: dict[str, Any]) -> None:
         kind, axis = ev.get("event"), ev.get("axis")
         extra = {"event": f"probe_{kind}", "axis": axis, "t_s": ev.get("t_s"), "source": ev.get("source")}
         if kind in ("accepted", "rejected"):
