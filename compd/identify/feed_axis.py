@@ -112,8 +112,8 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     if pos_col not in log.columns:
         raise BadInput(f"the log has no position column {pos_col} (E depends on where the axis stands)",
                        file=log.file, path="--option position")
-    layout = _field_layout(log, inputs, opt, pos_col)
     temps = _temperatures(log, inputs, pos_col)
+    layout = _field_layout(log, temps, opt, pos_col)
     has_loss = opt.power_w is not None or (opt.current or f"current_{axis}_a") in log.columns
     if opt.form == "analytic":
         return _named(_fit_analytic(log, targets, axis, opt), "analytic", {"method": "asked"})
@@ -202,9 +202,9 @@ _NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<mm>\d+(?:\.\d+)?)(?:_?mm)?$", re.IG
 _AMBIENT = re.compile(r"amb|room", re.IGNORECASE)
 
 
-def _field_layout(log: Log, inputs: list[str] | None, opt: Options, pos_col: str) -> dict[str, Any] | None:
-    """The field form's inputs: slide sensors with positions, ambient, offsets; None without slide sensors."""
-    temps = _temperatures(log, inputs, pos_col)
+def _field_layout(log: Log, temps: list[str], opt: Options, pos_col: str) -> dict[str, Any] | None:
+    """The field form's inputs among the temperatures: slide sensors with positions, ambient, offsets;
+    None without slide sensors."""
     pos = log.col(pos_col)
     length = opt.length_mm or float(np.max(pos) - opt.stroke_start_mm)
     if opt.slide_sensors:
