@@ -38,6 +38,9 @@ import numpy as np
 from compd.config import AdaptConfig
 from compd.errors import BadInput
 
+HISTORY = 4096  # cycles of (position, prediction, correction sent) kept per slope axis (8 s at 2 ms)
+POSITION_MATCH_MM = 0.5  # the axis stood "at" the probe's position within this
+
 
 @dataclass(frozen=True)
 class Probe:
@@ -51,6 +54,7 @@ class Probe:
     source: str = "probe"
     # True: `error_um` is the deviation measured with the correction in place (what a probe
     # on a compensated machine sees); the adapter adds back the correction applied then
+    # (on a slope axis with a position: when the axis last stood there, `Adapter.at_position`)
     residual: bool = False
 
 
@@ -183,6 +187,12 @@ class Adapter:
         self.position_signal = [cfg.slope_position.get(a) for a in axes]
         self.pos_m = np.zeros(len(axes))  # the positions of this cycle (m from slope_ref_mm)
         self._pos_idx: list[tuple[int, int]] = []
+        # per slope axis, the last HISTORY cycles: loop time, position (mm) and the correction
+        # sent; a residual probe's position finds what was applied where it was measured
+        self._hist_pos_mm = np.full((len(axes), HISTORY), math.nan)
+        self._hist_out_um = np.full((len(axes), HISTORY), math.nan)
+        self._hist_pred_um = np.full((len(axes), HISTORY), math.nan)
+        self._hist_i = 0
         self.inbox: deque[Probe] = deque(maxlen=1000)
         self.events: deque[dict[str, Any]] = deque(maxlen=1000)  # accepted/rejected probes, faults
         self.offset_um = np.zeros(len(axes))  # b + g p of the last cycle, per axis
@@ -215,6 +225,31 @@ class Adapter:
             if math.isfinite(v):
                 self.pos_m[a] = (v - self.cfg.slope_ref_mm) / 1000.0
 
+    def record(self, pred_um: np.ndarray, sent_um: np.ndarray) -> None:
+        """After the guard: this cycle's positions of the slope axes, the model's prediction
+        and the correction sent, into the last HISTORY cycles."""
+        if not self._pos_idx:
+            return
+        i = self._hist_i
+        for a, _ in self._pos_idx:
+            self._hist_pos_mm[a, i] = self.pos_m[a] * 1000.0 + self.cfg.slope_ref_mm
+            self._hist_pred_um[a, i] = pred_um[a]
+            self._hist_out_um[a, i] = sent_um[a]
+        self._hist_i = (i + 1) % HISTORY
+
+    def at_position(self, a: int, position_mm: float) -> tuple[float, float] | None:
+        """(prediction, correction sent) of the last of the HISTORY cycles in which axis `a`
+        stood at `position_mm`, or None: not there lately, or no position signal."""
+        if all(a != k for k, _ in self._pos_idx):
+            return None
+        order = (self._hist_i - 1 - np.arange(HISTORY)) % HISTORY  # newest first
+        hit = np.flatnonzero(np.abs(self._hist_pos_mm[a, order] - position_mm) <= POSITION_MATCH_MM)
+        if hit.size == 0:
+            return None
+        j = order[hit[0]]
+        p, c = float(self._hist_pred_um[a, j]), float(self._hist_out_um[a, j])
+        return (p, c) if math.isfinite(p) and math.isfinite(c) else None
+
     def reset(self) -> None:
         for e in self.est:
             e.reset()
@@ -246,13 +281,23 @@ class Adapter:
             return
         a = self.axes.index(probe.axis)
         z = probe.error_um
+        p = float(pred_um[a])
+        # an axis that moves may have left the probe's position before the result came: the
+        # prediction and the correction are those of the last cycle it stood there
+        then = None
+        if probe.position_mm is not None and math.isfinite(probe.position_mm):
+            then = self.at_position(a, probe.position_mm)
+        if then is not None:
+            p = then[0]
         if probe.residual:  # deviation with the correction in place: the whole error is d − c
-            if applied_um is None or not math.isfinite(float(applied_um[a])):
+            c = then[1] if then is not None else None
+            if c is None and applied_um is not None and math.isfinite(float(applied_um[a])):
+                c = float(applied_um[a])
+            if c is None:
                 self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_correction_known",
                                     "source": probe.source})
                 return
-            z = probe.error_um - float(applied_um[a])
-        p = float(pred_um[a])
+            z = probe.error_um - c
         if not math.isfinite(p):  # no prediction to compare with: the probe cannot be used
             self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_prediction",
                                 "error_um": probe.error_um, "source": probe.source})

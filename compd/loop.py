@@ -323,6 +323,8 @@ class Loop:
             pred = self.pred_adapted_um
         t2 = perf()
         self.guard.update(pred, ok or self.degraded, now, degraded=self.degraded)
+        if self.adapter is not None:
+            self.adapter.record(self.pred_um, self.guard.out_um)
         t3 = perf()
         g = self.guard
         wa = self.word_axes

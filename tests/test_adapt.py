@@ -119,6 +119,27 @@ def test_a_residual_probe_adds_back_the_correction_applied_then():
     assert ad.events[-1]["event"] == "no_correction_known"
 
 
+def test_a_moving_axis_adds_back_the_correction_sent_where_it_measured():
+    # the axis stood at 100 mm with −4 µm sent, then moved on to 500 mm (−9 µm) before the
+    # CNC's result came: the probe measured at 100 mm, so −4 µm is what it saw in place
+    ad = Adapter(AdaptConfig(slope_position={"y": "pos_y_mm"}), ["y"])
+    ad.bind({"pos_y_mm": 0})
+    out = np.zeros(1)
+    for k, (y, sent) in enumerate([(100.0, -4.0), (100.0, -4.0), (300.0, -6.0), (500.0, -9.0)]):
+        ad.read_positions(np.array([y]))
+        ad.apply(np.array([-sent]), 0.002 * k, out)
+        ad.record(np.array([-sent]), np.array([sent]))
+    ad.inbox.append(Probe(0.008, "y", 0.5, sigma_um=0.01, position_mm=100.0, residual=True))
+    ad.apply(np.array([9.0]), 0.008, out, applied_um=np.array([-9.0]))
+    ev = ad.events[-1]
+    assert ev["error_um"] == pytest.approx(4.5)  # 0.5 − (−4), not 0.5 − (−9)
+    assert ev["innovation_um"] == pytest.approx(0.5)  # against the 4 µm predicted there
+    # a position the axis was not at in the last seconds: the correction applied now
+    ad.inbox.append(Probe(0.010, "y", 0.5, sigma_um=0.01, position_mm=250.0, residual=True))
+    ad.apply(np.array([9.0]), 0.010, out, applied_um=np.array([-9.0]))
+    assert ad.events[-1]["error_um"] == pytest.approx(9.5)
+
+
 def test_a_slope_over_the_position_is_learnt_from_probes_at_several_positions():
     cfg = AdaptConfig(slope_position={"y": "pos_y_mm"}, slope_ref_mm=300.0, initial_offset_sigma_um=10.0)
     ad = Adapter(cfg, ["y"])
