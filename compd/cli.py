@@ -432,6 +432,13 @@ def cmd_status(args: argparse.Namespace) -> int:
         path = str(found) if found else DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json"
     else:
         path = DEFAULT_PATH
+    if args.watch:
+        from compd.watch import watch
+
+        if args.json:
+            raise BadInput("--watch shows the live view; --json prints the snapshot once (give one of them)",
+                           path="--watch")
+        return watch(path, args.interval_s)
     data = read_status(path)
     try:
         alive, why = liveness(data)
@@ -604,6 +611,10 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Show the live state of a running daemon: per axis the model (file, fit date, coefficients, T0), correction and state, per signal value and quality; exit 1 when none runs.",
                        epilog="example:\n  compd status --config /etc/compd/compd.yaml\n  compd status --status /run/compd/status.json --watch --interval-s 1")
     s.add_argument("--json", action="store_true", help="print the status snapshot as JSON")
+    s.add_argument("--watch", action="store_true",
+                   help="redraw every --interval-s until Ctrl-C (rich tables if installed); waits while no daemon runs")
+    s.add_argument("--interval-s", type=positive, default=1.0, dest="interval_s", metavar="S",
+                   help="--watch: seconds between redraws (default 1)")
     where = s.add_mutually_exclusive_group()
     where.add_argument("--config", default=None, help="the daemon's config (finds its status file)")
     where.add_argument("--status", default=None, metavar="PATH", help="the status file")

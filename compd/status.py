@@ -272,7 +272,7 @@ def _model_lines(model: dict[str, Any]) -> list[str]:
         lines.append(f"  T0 (latched at start): {_short(t0)} C")
     elif "t0_c" in state:
         lines.append("  T0 (latched at start): not yet (no good input vector so far)")
-    other = {k: v for k, v in state.items() if k != "t0_c"}
+    other = {k: v for k, v in state.items() if k != "t0_c" and v is not None}
     if other:
         lines.append("  model state: " + ", ".join(f"{k} {_short(v)}" for k, v in other.items()))
     return lines
