@@ -504,7 +504,12 @@ def cmd_probe(args: argparse.Namespace) -> int:
 def cmd_docs(args: argparse.Namespace) -> int:
     from compd.docgen import generate
 
-    text = generate()
+    if args.metrics:
+        from compd.metrics import metrics_markdown
+
+        text = metrics_markdown()
+    else:
+        text = generate()
     if args.check:
         if args.out is None:
             raise BadInput("--check needs --out FILE")
@@ -635,10 +640,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", default=None, help="the daemon's config (finds its probe socket)")
 
     s = sub.add_parser("docs", help="generate docs/configuration.md from the config schema",
-                       description="Generate the configuration reference (docs/configuration.md) from the config schema, or check that FILE is up to date.",
-                       epilog="example:\n  compd docs --out docs/configuration.md\n  compd docs --out docs/configuration.md --check")
+                       description="Generate the configuration reference (docs/configuration.md) from the config schema, or with --metrics the metrics reference (docs/metrics.md); --check tells whether FILE is up to date.",
+                       epilog="example:\n  compd docs --out docs/configuration.md\n  compd docs --out docs/configuration.md --check\n  compd docs --metrics --out docs/metrics.md")
     s.add_argument("--out", default=None, metavar="FILE", help="write here (default: stdout)")
     s.add_argument("--check", action="store_true", help="exit 1 if FILE differs from a fresh generation")
+    s.add_argument("--metrics", action="store_true",
+                   help="the metrics reference (docs/metrics.md) instead of the configuration's")
 
     s = sub.add_parser("check-config", help="validate a config; prints ok or exits 2",
                        description="Validate a config and its wiring without opening a device: prints ok, or one line naming the file, line and key (exit 2).",
