@@ -155,3 +155,29 @@ def test_each_change_of_the_error_is_logged_and_a_flapping_one_only_once(caplog)
     assert [r.getMessage() for r in _records(caplog, "device_error")] == ["dev: timeout", "dev: garbled"]
     assert not _records(caplog, "device_recovered")
     assert w.reported_error == "garbled"
+
+
+def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
+    from compd.service import EventLogger
+
+    class Guard:
+        events = [(1.0, "T_xi", "bad", "comms_lost"), (2.0, "T_amb", "bad", "out_of_range"),
+                  (3.0, "T_xi", "good", "")]
+
+    class Src:
+        name = "adam"
+
+        def signal_names(self) -> list[str]:
+            return ["T_xi", "T_amb"]
+
+        def get_status(self) -> dict[str, Any]:
+            return {"last_error": "open: could not open port /dev/ttyUSB9: [Errno 2] No such file or directory"}
+
+    caplog.set_level(logging.DEBUG, logger="compd.service")
+    assert EventLogger(Guard(), [Src()]).flush() == 3
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines[0] == ("T_xi bad: comms_lost (source adam: open: could not open port /dev/ttyUSB9:"
+                        " [Errno 2] No such file or directory)")
+    assert caplog.records[0].cause.startswith("source adam: open: could not open port")
+    assert lines[1] == "T_amb bad: out_of_range"  # not a device's fault: no cause
+    assert lines[2] == "T_xi good: "
