@@ -82,7 +82,7 @@ class _TailLogger(ABC):
 
 class EventLogger(_TailLogger):
     """Turns the guard's new events (since the last call) into log lines. A sensor that went
-    bad because its device is not answering (comms_lost, stale) gets its source's last error
+    bad because its device is not answering (comms_lost, no_data, stale) gets its source's last error
     as the cause: "T_xi bad: comms_lost (source adam: connect: could not open port …)"."""
 
     def __init__(self, guard: Any, sources: Any = ()) -> None:
@@ -108,7 +108,7 @@ class EventLogger(_TailLogger):
         t, subject, event, reason = ev
         kind = "sensor" if event in ("bad", "good") else ("clock" if event == "jump" else "axis")
         extra = {"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t}
-        cause = self._cause(subject) if event == "bad" and reason in ("comms_lost", "stale") else None
+        cause = self._cause(subject) if event == "bad" and reason in ("comms_lost", "no_data", "stale") else None
         if cause is not None:
             extra["cause"] = cause
         log.log(
