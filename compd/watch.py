@@ -29,9 +29,12 @@ def read_frame(path: str) -> tuple[dict[str, Any] | None, bool, str]:
     try:
         data = read_status(path)
         alive, why = liveness(data)
+        render(data, alive, why)  # a field deeper down of the wrong type shows here, as in `compd status`
         return data, alive, why
     except BadInput as e:
         return None, False, f"not running: {e.message}"
+    except (TypeError, ValueError, AttributeError, KeyError) as e:
+        return None, False, f"not a compd status file: {type(e).__name__}: {e}"
 
 
 def plain_frame(path: str, data: dict[str, Any] | None, alive: bool, why: str, interval_s: float) -> str:

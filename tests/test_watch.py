@@ -89,3 +89,15 @@ def test_rich_view_has_a_table_per_axis_and_signal(tmp_path, snap):
     assert rc == 0 and calls == [1.0]
     assert "axes" in text and "signals" in text and "policy" in text
     assert "T_xi" in text and "good" in text and "normal" in text
+
+
+def test_a_malformed_status_file_is_said_not_a_traceback(tmp_path, snap):
+    path = tmp_path / "status.json"
+    _live(path, snap, model={"kind": "mlr", "fit": ["not", "a", "mapping"]})
+    out = io.StringIO()
+    assert watch(str(path), 1.0, out=out, use_rich=False, frames=1) == 1
+    assert "not a compd status file: AttributeError" in out.getvalue()
+    path.write_text("{", encoding="utf-8")
+    out = io.StringIO()
+    assert watch(str(path), 1.0, out=out, use_rich=False, frames=1) == 1
+    assert "not running: not a status file" in out.getvalue()

@@ -181,3 +181,21 @@ def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
     assert caplog.records[0].cause.startswith("source adam: open: could not open port")
     assert lines[1] == "T_amb bad: out_of_range"  # not a device's fault: no cause
     assert lines[2] == "T_xi good: "
+
+
+def test_a_sink_link_to_a_closed_port_logs_connection_refused_once(caplog) -> None:
+    from compd.sinks.modbus_link import ModbusLink
+
+    port = _free_port()
+    link = ModbusLink("127.0.0.1", port, name="pmc", status_period_s=0.01, reconnect_min_s=0.01,
+                      reconnect_max_s=0.02)
+    caplog.set_level(logging.DEBUG, logger="compd.io")
+    link.start()
+    try:
+        link.submit(0, [1])
+        _wait(lambda: link.errors >= 5, "the link did not retry")
+    finally:
+        link.stop()
+    errors = _records(caplog, "device_error")
+    assert [r.getMessage() for r in errors] == [f"modbus-link-pmc: connect to 127.0.0.1:{port}: [Errno 111] Connection refused"]
+    assert link.last_error == f"connect to 127.0.0.1:{port}: [Errno 111] Connection refused"
