@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import yaml
@@ -31,11 +37,12 @@ def _fitted(tmp_path):
     return model
 
 
-def _config(tmp_path, model):
+def _config(tmp_path, model, loop="{clock: sim, period_s: 1.0}", extra=""):
     cfg = tmp_path / "c.yaml"
     cfg.write_text(
         f"""
-loop: {{clock: sim, period_s: 1.0}}
+loop: {loop}
+{extra}
 sources: [{{kind: replay, name: log, path: log.csv}}]
 model: {{kind: mlr, file: {model.name}}}
 guard: {{stale_after_s: 60}}
@@ -112,3 +119,42 @@ def test_inline_params_say_so_and_a_model_without_t0_before_start(tmp_path):
     assert "(inline params in the config)" in text
     assert "alpha_per_k 1.36e-05" in text and "length_mm 165" in text
     assert "T0 (latched at start): not yet" in text
+
+
+def test_a_running_daemon_s_status_shows_them(tmp_path):
+    """`compd run` as a real process (the log replayed at 20x), `compd status --config` beside it."""
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    model = _fitted(tmp_path)
+    cfg = _config(tmp_path, model, loop="{clock: sim, period_s: 1.0, speedup: 20}",
+                  extra="status: {path: status.json, period_s: 0.1}")
+    proc = subprocess.Popen([sys.executable, "-m", "compd", "run", cfg.name], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60.0  # an upper bound, never a sleep
+        snap: dict = {}
+        while not (snap.get("state") == "running" and (snap.get("model") or {}).get("state", {}).get("t0_c")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+            try:
+                snap = json.loads((tmp_path / "status.json").read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                snap = {}
+        out = subprocess.run([sys.executable, "-m", "compd", "status", "--config", cfg.name], cwd=tmp_path,
+                             env=env, capture_output=True, text=True, timeout=60)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+    assert out.returncode == 0, out.stderr
+    text = out.stdout
+    fitted_at = yaml.safe_load(model.read_text())["fit"]["fitted_at"]
+    assert f"compd running — pid {proc.pid}" in text and f"compd {version()}" in text
+    assert f"file: {model.resolve()}; fitted {fitted_at}" in text
+    for axis in ("x1", "x2"):
+        line = next(ln for ln in text.splitlines() if ln.strip().startswith(f"axis {axis}:"))
+        assert "mlr, fit RMSE" in line and "coef_um_per_k [" in line
+    assert "T0 (latched at start): T1 " in text
