@@ -165,6 +165,7 @@ _SHAPE: dict[str, tuple[type, ...]] = {
     "status_period_s": _NUMBER, "uptime_s": _NUMBER, "loop_time_s": _NUMBER, "word": (str,),
     "config": (str,), "metrics_url": (str,), "version": (str,), "axes": (dict,), "signals": (dict,), "loop": (dict,),
     "model": (dict,), "sink": (dict,), "faults": (dict,), "events": (list,), "adapt": (dict,),
+    "sources": (list,),
 }
 
 
@@ -182,9 +183,10 @@ def _check_shape(data: dict[str, Any], path: str) -> None:
         for name, v in (data.get(key) or {}).items():
             if not isinstance(v, dict):
                 raise BadInput("not a compd status file: expected an object", file=path, path=(key, name))
-    for i, e in enumerate(data.get("events") or []):
-        if not isinstance(e, dict):
-            raise BadInput("not a compd status file: expected an object", file=path, path=("events", i))
+    for key in ("events", "sources"):
+        for i, e in enumerate(data.get(key) or []):
+            if not isinstance(e, dict):
+                raise BadInput("not a compd status file: expected an object", file=path, path=(key, i))
     for key in ("lateness_us",):
         v = (data.get("loop") or {}).get(key)
         if v is not None and not isinstance(v, dict):
@@ -332,6 +334,9 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
             f"{name:<14} {_num(s.get('value'), '10.3f')} {s.get('quality', '?'):<13}"
             f" {_num(s.get('age_s'), '8.2f')}"
         )
+    for src in data.get("sources") or []:
+        if src.get("last_error"):  # why a device's signals are lost, as its I/O worker logged it
+            lines.append(f"source {src.get('name')} ({src.get('kind')}): last error: {src['last_error']}")
     adapt = data.get("adapt") or {}
     if adapt:
         lines.append(f"{'adapt':<8} {'offset':>17} {'gain':>7} {'accepted':>9} {'rejected':>9} {'last probe':>11}")

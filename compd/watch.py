@@ -90,7 +90,7 @@ def rich_frame(path: str, data: dict[str, Any] | None, alive: bool, why: str, in
         sigs.add_row(name, _cell(sg.get("value"), ".3f"), q, _cell(sg.get("age_s"), ".2f"),
                      style="" if q == "good" else "red")
     parts += [axes, sigs]
-    tail = [ln for ln in lines[cut:] if ln.startswith(("faults:", "metrics:", "recent events", "  t="))]
+    tail = [ln for ln in lines[cut:] if ln.startswith(("source ", "faults:", "metrics:", "recent events", "  t="))]
     if tail:
         parts.append(Text("\n".join(tail)))
     return Group(*parts)

@@ -101,3 +101,18 @@ def test_a_malformed_status_file_is_said_not_a_traceback(tmp_path, snap):
     out = io.StringIO()
     assert watch(str(path), 1.0, out=out, use_rich=False, frames=1) == 1
     assert "not running: not a status file" in out.getvalue()
+
+
+def test_a_source_s_last_error_is_shown(tmp_path, snap):
+    path = tmp_path / "status.json"
+    sources = [{"kind": "dcon", "name": "adam", "last_error": "open: could not open port /dev/ttyUSB9: [Errno 2] No"
+                " such file or directory"}, {"kind": "replay", "name": "log"}]
+    _live(path, snap, sources=sources)
+    for use_rich in (False, True):
+        if use_rich:
+            pytest.importorskip("rich")
+        out = io.StringIO()
+        watch(str(path), 1.0, out=out, use_rich=use_rich, frames=1)
+        text = " ".join(out.getvalue().split())
+        assert "source adam (dcon): last error: open: could not open port /dev/ttyUSB9" in text
+        assert "source log" not in text
