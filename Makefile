@@ -52,9 +52,11 @@ bench: $(TEST_STAMP) sysdeps
 install: $(BASE_STAMP)
 	PYTHON="$(abspath $(PY))" scripts/install.sh
 
-# regenerates the configuration reference from the config schema (a test checks it is current)
+# regenerates the configuration reference from the config schema and the metrics reference
+# from compd/metrics.py (tests check both are current)
 docs: $(BASE_STAMP)
 	$(VENV)/bin/compd docs --out docs/configuration.md
+	$(VENV)/bin/compd docs --metrics --out docs/metrics.md
 
 # reruns the fault-injection matrix and the lvr degraded-mode table into docs/reliability.md
 reliability: $(TEST_STAMP) sysdeps

@@ -432,6 +432,13 @@ def cmd_status(args: argparse.Namespace) -> int:
         path = str(found) if found else DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json"
     else:
         path = DEFAULT_PATH
+    if args.watch:
+        from compd.watch import watch
+
+        if args.json:
+            raise BadInput("--watch shows the live view; --json prints the snapshot once (give one of them)",
+                           path="--watch")
+        return watch(path, args.interval_s)
     data = read_status(path)
     try:
         alive, why = liveness(data)
@@ -497,7 +504,12 @@ def cmd_probe(args: argparse.Namespace) -> int:
 def cmd_docs(args: argparse.Namespace) -> int:
     from compd.docgen import generate
 
-    text = generate()
+    if args.metrics:
+        from compd.metrics import metrics_markdown
+
+        text = metrics_markdown()
+    else:
+        text = generate()
     if args.check:
         if args.out is None:
             raise BadInput("--check needs --out FILE")
@@ -544,8 +556,32 @@ def installed_command(name: str, needs: str) -> Callable[[argparse.Namespace], i
         raise BadInput(f"`compd {name}` comes from {ep.value}, which cannot be loaded: {e}") from None
 
 
+def _fit_options_help() -> str:
+    """`compd fit --help`'s list of the options of every kind (from compd.identify, imported here only)."""
+    from compd.identify import options_help
+
+    return options_help()
+
+
 class Parser(argparse.ArgumentParser):
-    """argparse with compd's error form: one line on stderr, exit 2 (`--help` shows the usage)."""
+    """argparse with compd's error form: one line on stderr, exit 2 (`--help` shows the usage).
+    The description and the epilog (an example) are printed as written; `epilog_extra`, when
+    set, adds text computed only when the help is shown (the fit options per kind)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
+        super().__init__(*args, **kwargs)
+        self.epilog_extra: Callable[[], str] | None = None
+
+    def format_help(self) -> str:
+        if self.epilog_extra is None:
+            return super().format_help()
+        saved = self.epilog
+        self.epilog = f"{self.epilog_extra()}\n\n{saved or ''}".rstrip()
+        try:
+            return super().format_help()
+        finally:
+            self.epilog = saved
 
     def error(self, message: str) -> typing.NoReturn:
         one_line = " ".join(message.split())
@@ -553,12 +589,19 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from compd import version
+
     p = Parser(
-        prog="compd", description="Real-time thermal-error compensation for CNC machine tools."
+        prog="compd", description="Real-time thermal-error compensation for CNC machine tools.",
+        epilog="example:\n  compd check-config configs/demo.yaml\n  compd run configs/demo.yaml --observe\n"
+        "  compd status --config configs/demo.yaml\n\n`compd COMMAND --help` describes a command.",
     )
+    p.add_argument("--version", action="version", version=f"compd {version()}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    s = sub.add_parser("run", help="run the compensation loop")
+    s = sub.add_parser("run", help="run the compensation loop",
+                       description="Run the compensation loop of CONFIG until SIGTERM or SIGINT (then emit the safe output); SIGHUP reloads the config.",
+                       epilog="example:\n  compd run configs/demo.yaml --duration 60\n  compd run /etc/compd/compd.yaml --observe --log-level debug")
     s.add_argument("config")
     s.add_argument("--duration", type=positive, default=None, metavar="S", help="stop after S seconds (> 0)")
     s.add_argument("--json", default=None, metavar="FILE", help="write the run summary as JSON")
@@ -569,13 +612,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--log-level", default=None, choices=("debug", "info", "warning", "error"), dest="log_level"
     )
 
-    s = sub.add_parser("status", help="the live state of a running daemon")
+    s = sub.add_parser("status", help="the live state of a running daemon",
+                       description="Show the live state of a running daemon: per axis the model (file, fit date, coefficients, T0), correction and state, per signal value and quality; exit 1 when none runs.",
+                       epilog="example:\n  compd status --config /etc/compd/compd.yaml\n  compd status --status /run/compd/status.json --watch --interval-s 1")
     s.add_argument("--json", action="store_true", help="print the status snapshot as JSON")
+    s.add_argument("--watch", action="store_true",
+                   help="redraw every --interval-s until Ctrl-C (rich tables if installed); waits while no daemon runs")
+    s.add_argument("--interval-s", type=positive, default=1.0, dest="interval_s", metavar="S",
+                   help="--watch: seconds between redraws (default 1)")
     where = s.add_mutually_exclusive_group()
     where.add_argument("--config", default=None, help="the daemon's config (finds its status file)")
     where.add_argument("--status", default=None, metavar="PATH", help="the status file")
 
-    s = sub.add_parser("probe", help="hand one probe measurement to the running daemon")
+    s = sub.add_parser("probe", help="hand one probe measurement to the running daemon",
+                       description="Hand one probe measurement (the axis's thermal error measured on the machine) to the running daemon of CONFIG; exit 1 when none runs.",
+                       epilog="example:\n  compd probe --axis z --error-um 12.5 --config /etc/compd/compd.yaml")
     s.add_argument("--axis", required=True, metavar="AX", help="the axis (a model output)")
     s.add_argument("--error-um", required=True, type=finite, dest="error_um", metavar="E",
                    help="the axis's whole thermal error measured on the machine, um (see --residual)")
@@ -588,30 +639,44 @@ def build_parser() -> argparse.ArgumentParser:
                    " the correction applied at that moment)")
     s.add_argument("--config", default=None, help="the daemon's config (finds its probe socket)")
 
-    s = sub.add_parser("docs", help="generate docs/configuration.md from the config schema")
+    s = sub.add_parser("docs", help="generate docs/configuration.md from the config schema",
+                       description="Generate the configuration reference (docs/configuration.md) from the config schema, or with --metrics the metrics reference (docs/metrics.md); --check tells whether FILE is up to date.",
+                       epilog="example:\n  compd docs --out docs/configuration.md\n  compd docs --out docs/configuration.md --check\n  compd docs --metrics --out docs/metrics.md")
     s.add_argument("--out", default=None, metavar="FILE", help="write here (default: stdout)")
     s.add_argument("--check", action="store_true", help="exit 1 if FILE differs from a fresh generation")
+    s.add_argument("--metrics", action="store_true",
+                   help="the metrics reference (docs/metrics.md) instead of the configuration's")
 
-    s = sub.add_parser("check-config", help="validate a config; prints ok or exits 2")
+    s = sub.add_parser("check-config", help="validate a config; prints ok or exits 2",
+                       description="Validate a config and its wiring without opening a device: prints ok, or one line naming the file, line and key (exit 2).",
+                       epilog="example:\n  compd check-config configs/demo.yaml")
     s.add_argument("config")
 
-    s = sub.add_parser("replay", help="replay a log through the pipeline into the software PLC")
+    s = sub.add_parser("replay", help="replay a log through the pipeline into the software PLC",
+                       description="Replay a log's signals through the configured pipeline (model, guard, codec) into the software PLC, as fast as it can, and score the result.",
+                       epilog="example:\n  compd replay configs/replay_spindle.yaml --log configs/logs/spindle_demo_30s.csv --report r.json\n  compd replay --model model.yaml --log day1.csv --plot replay.png")
     s.add_argument("config", nargs="?", default=None, metavar="CONFIG")
     s.add_argument("--model", default=None, metavar="MODEL.yaml", help="a model file instead of a config")
     s.add_argument("--log", required=True, metavar="LOG.csv")
     s.add_argument("--report", default=None, metavar="REPORT.json")
     s.add_argument("--plot", default=None, metavar="FILE.png")
 
-    s = sub.add_parser("encode", help="the 16-bit word for two corrections (µm)")
+    s = sub.add_parser("encode", help="the 16-bit word for two corrections (µm)",
+                       description="Print the 16-bit compensation word for two corrections C1, C2 (µm), with what each byte means.",
+                       epilog="example:\n  compd encode 12 -3.5")
     s.add_argument("c1_um", type=finite, metavar="C1_UM")
     s.add_argument("c2_um", type=finite, metavar="C2_UM")
     s.add_argument("--lsb-um", type=positive, default=1.0, dest="lsb_um")
     s.add_argument("--deadband-um", type=non_negative, default=1.0, dest="deadband_um")
 
-    s = sub.add_parser("decode", help="direction, enable and magnitude of both axes of a word")
+    s = sub.add_parser("decode", help="direction, enable and magnitude of both axes of a word",
+                       description="Print direction, enable and magnitude of both axes of a 16-bit compensation word.",
+                       epilog="example:\n  compd decode 0xC543")
     s.add_argument("word", metavar="WORD")
     s.add_argument("--lsb-um", type=positive, default=1.0, dest="lsb_um")
-    s = sub.add_parser("fit", help="identify a model's coefficients from a log")
+    s = sub.add_parser("fit", help="identify a model's coefficients from a log",
+                       description="Identify a model's coefficients from a log and write the model file (with its fit date and scores); --kind all fits every kind that applies and compares them.",
+                       epilog="example:\n  compd fit --kind lvr --log day1.csv --out lvr.yaml --report fit.json\n  compd fit --kind ar1 --log day1.csv --out ar1.yaml --inputs T_bed --ambient T_amb --option dt_s=60")
     s.add_argument("--kind", required=True, choices=["feed_axis", "lvr", "xi_spindle", "ar1", "mlr", "all"])
     s.add_argument("--log", required=True, metavar="LOG.csv")
     s.add_argument("--out", required=True, metavar="MODEL.yaml", help="model file (a folder with --kind all)")
@@ -622,15 +687,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a fit option of the kind (value read as YAML)")
     s.add_argument("--report", default=None, metavar="REPORT.json")
     s.add_argument("--plot", default=None, metavar="FILE.png")
+    s.epilog_extra = _fit_options_help
 
-    s = sub.add_parser("predict", help="batch prediction of a fitted model over a log")
+    s = sub.add_parser("predict", help="batch prediction of a fitted model over a log",
+                       description="Predict the thermal error of every row of a log with a fitted model (pred_<axis>_um columns).",
+                       epilog="example:\n  compd predict lvr.yaml --log day2.csv --out pred.csv")
     s.add_argument("model", metavar="MODEL.yaml")
     s.add_argument("--log", required=True, metavar="LOG.csv")
     s.add_argument("--out", required=True, metavar="PRED.csv")
 
-    s = sub.add_parser("xi", help="the mean-value point ξ of a temperature profile (CSV x_mm, T_c)")
+    s = sub.add_parser("xi", help="the mean-value point ξ of a temperature profile (CSV x_mm, T_c)",
+                       description="Find the mean-value point ξ of a temperature profile along the spindle (CSV columns x_mm, T_c): where to put the ξ sensor.",
+                       epilog="example:\n  compd xi --profile profile.csv")
     s.add_argument("--profile", required=True, metavar="FILE.csv")
-    s = sub.add_parser("bench", help="time the 2 ms cycle against real Modbus devices, beside a naive loop")
+    s = sub.add_parser("bench", help="time the 2 ms cycle against real Modbus devices, beside a naive loop",
+                       description="Time the 2 ms cycle against Modbus devices served by the test rig, beside a naive loop (needs the rig installed).",
+                       epilog="example:\n  compd bench --cycles 20000 --json bench.json")
     s.add_argument("--cycles", type=int, default=100_000, metavar="N", help="cycles of compd's loop")
     s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON (keys: docs/formats.md)")
     s.add_argument("--scheduler", choices=("other", "fifo"), default="other", help="loop.realtime.scheduler")

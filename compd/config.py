@@ -708,6 +708,7 @@ class ModelSpec:
     fit: dict[str, Any]
     doc: Document
     path: PathT
+    file: str | None = None  # the model file (absolute), None for inline params
 
 
 @dataclass
@@ -830,7 +831,8 @@ def resolve_model(section: Any, doc: Document, path: PathT, base_dir: Path) -> M
             wdoc, wpath = where(str(keys[0]))
             raise wdoc.error(e.message, (*wpath, *keys[1:])) from None
         raise pdoc.error(e.message, (*base, *keys) if keys else ppath) from None
-    return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path)
+    mfile = None if sec.file is None else str(fpath.resolve())
+    return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path, mfile)
 
 
 def _check_timings(top: ConfigModel, doc: Document) -> None:

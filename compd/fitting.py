@@ -7,6 +7,7 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ import numpy as np
 import yaml
 from pydantic import ValidationError
 
+from compd import version
 from compd.errors import BadInput
 from compd.identify import FITS, KINDS, option_names
 from compd.identify.data import (
@@ -180,6 +182,8 @@ def fit_model(
                                                   model.outputs, warnings)
     report["warnings"] = warnings
     fit_info: dict[str, Any] = {
+        "fitted_at": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
+        "compd_version": version(),
         "log": Path(log.file).name,
         "rows": len(log),
         "rmse_um": {a: s["rmse_um"] for a, s in axes.items()},

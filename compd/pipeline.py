@@ -30,6 +30,7 @@ from compd.sources.base import Source
 def build_model(spec: Any) -> Model:
     """Instantiate the model of a resolved model section (a config's or a model file's)."""
     model = spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
+    model.file = spec.file
     if spec.update_period_s is not None:
         model.update_period_s = spec.update_period_s
     return model

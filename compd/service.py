@@ -81,11 +81,25 @@ class _TailLogger(ABC):
 
 
 class EventLogger(_TailLogger):
-    """Turns the guard's new events (since the last call) into log lines."""
+    """Turns the guard's new events (since the last call) into log lines. A sensor that went
+    bad because its device is not answering (comms_lost, no_data, stale) gets its source's last error
+    as the cause: "T_xi bad: comms_lost (source adam: connect: could not open port …)"."""
 
-    def __init__(self, guard: Any) -> None:
+    def __init__(self, guard: Any, sources: Any = ()) -> None:
         super().__init__()
         self.guard = guard
+        self.sources = list(sources)
+
+    def _cause(self, signal: str) -> str | None:
+        """`source NAME: its last error` of the source that publishes `signal`, if it has one."""
+        for src in self.sources:
+            try:
+                if signal in src.signal_names():
+                    err = src.get_status().get("last_error")
+                    return f"source {src.name}: {err}" if err else None
+            except Exception:  # a source's status must not stop the event log
+                return None
+        return None
 
     def _events(self) -> list[Any]:
         return list(self.guard.events)
@@ -93,13 +107,18 @@ class EventLogger(_TailLogger):
     def _log(self, ev: Any) -> None:
         t, subject, event, reason = ev
         kind = "sensor" if event in ("bad", "good") else ("clock" if event == "jump" else "axis")
+        extra = {"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t}
+        cause = self._cause(subject) if event == "bad" and reason in ("comms_lost", "no_data", "stale") else None
+        if cause is not None:
+            extra["cause"] = cause
         log.log(
             _EVENT_LEVEL.get(event, logging.INFO),
-            "%s %s: %s",
+            "%s %s: %s%s",
             subject,
             event,
             reason,
-            extra={"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t},
+            "" if cause is None else f" ({cause})",
+            extra=extra,
         )
 
 
@@ -150,7 +169,7 @@ class Service:
         self._metrics_cfg = (top.metrics.bind, top.metrics.port) if top.metrics.enabled else None
         self._metrics_adopted = False
         self.realtime = top.loop.realtime
-        self.events = EventLogger(self.loop.guard)
+        self.events = EventLogger(self.loop.guard, self.loop.sources)
         self.probe_events = ProbeEventLogger(self.loop.adapter)
         spath = socket_path(app.cfg) if self.loop.adapter is not None else None
         self.control = ControlServer(spath, self.loop) if spath is not None else None

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from compd import version
 from compd.codec import word_bytes
 from compd.errors import BadInput
 from compd.histogram import bin_percentiles
@@ -86,6 +87,7 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
     ]
     snap = {
         "schema": SCHEMA,
+        "version": version(),
         "pid": os.getpid(),
         "state": state,
         "observe": observe,
@@ -161,8 +163,9 @@ _NUMBER = (int, float)
 _SHAPE: dict[str, tuple[type, ...]] = {
     "pid": (int,), "state": (str,), "observe": (bool,), "written_unix_s": _NUMBER,
     "status_period_s": _NUMBER, "uptime_s": _NUMBER, "loop_time_s": _NUMBER, "word": (str,),
-    "config": (str,), "metrics_url": (str,), "axes": (dict,), "signals": (dict,), "loop": (dict,),
+    "config": (str,), "metrics_url": (str,), "version": (str,), "axes": (dict,), "signals": (dict,), "loop": (dict,),
     "model": (dict,), "sink": (dict,), "faults": (dict,), "events": (list,), "adapt": (dict,),
+    "sources": (list,),
 }
 
 
@@ -180,9 +183,10 @@ def _check_shape(data: dict[str, Any], path: str) -> None:
         for name, v in (data.get(key) or {}).items():
             if not isinstance(v, dict):
                 raise BadInput("not a compd status file: expected an object", file=path, path=(key, name))
-    for i, e in enumerate(data.get("events") or []):
-        if not isinstance(e, dict):
-            raise BadInput("not a compd status file: expected an object", file=path, path=("events", i))
+    for key in ("events", "sources"):
+        for i, e in enumerate(data.get(key) or []):
+            if not isinstance(e, dict):
+                raise BadInput("not a compd status file: expected an object", file=path, path=(key, i))
     for key in ("lateness_us",):
         v = (data.get("loop") or {}).get(key)
         if v is not None and not isinstance(v, dict):
@@ -229,11 +233,59 @@ def _num(value: Any, fmt: str) -> str:
     return "nan" if value is None else format(value, fmt)
 
 
+def _short(value: Any) -> str:
+    """A coefficient as text: numbers as given (already rounded), lists and mappings compact."""
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_short(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_short(v) for v in value) + "]"
+    return "-" if value is None else f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _model_lines(model: dict[str, Any]) -> list[str]:
+    """What is running, per axis: the file, kind, fit date and score, key coefficients, the
+    latched start temperatures (T0)."""
+    fit = model.get("fit") or {}
+    coef = dict(model.get("coefficients") or {})
+    lines = [
+        f"  file: {model.get('file') or '(inline params in the config)'};"
+        f" fitted {fit.get('fitted_at') or 'unknown (no fit date in the file)'}"
+        + (f" on {fit['log']} ({fit.get('rows', '?')} rows)" if fit.get("log") else "")
+        + (f" by compd {fit['compd_version']}" if fit.get("compd_version") else "")
+    ]
+    rmse = fit.get("rmse_um") or {}
+    per_axis = {k: v for k, v in coef.items() if isinstance(v, dict) and set(v) <= set(model.get("outputs") or [])
+                and v}
+    for axis in model.get("outputs") or []:
+        parts = [f"{model.get('kind')}"]
+        if isinstance(rmse, dict) and rmse.get(axis) is not None:
+            parts.append(f"fit RMSE {rmse[axis]:.3g} um")
+        parts += [f"{k} {_short(v[axis])}" for k, v in per_axis.items() if axis in v]
+        lines.append(f"  axis {axis}: " + ", ".join(parts))
+    rest = {k: v for k, v in coef.items() if k not in per_axis}
+    if rest:
+        lines.append("  coefficients: " + ", ".join(f"{k} {_short(v)}" for k, v in rest.items()))
+    state = model.get("state") or {}
+    t0 = state.get("t0_c")
+    inputs = model.get("inputs") or []
+    if isinstance(t0, list) and len(t0) == len(inputs):
+        lines.append("  T0 (latched at start): " + ", ".join(f"{n} {_short(v)} C" for n, v in zip(inputs, t0, strict=True)))
+    elif t0 is not None:
+        lines.append(f"  T0 (latched at start): {_short(t0)} C")
+    elif "t0_c" in state:
+        lines.append("  T0 (latched at start): not yet (no good input vector so far)")
+    other = {k: v for k, v in state.items() if k != "t0_c" and v is not None}
+    if other:
+        lines.append("  model state: " + ", ".join(f"{k} {_short(v)}" for k, v in other.items()))
+    return lines
+
+
 def render(data: dict[str, Any], alive: bool, why: str) -> str:
     """The human view of a status snapshot."""
     lines = []
     head = f"compd {why}"
     head += f" — pid {data.get('pid')}, up {_hms(data.get('uptime_s'))} loop time"
+    head += f", compd {data.get('version') or 'version unknown'}"
     if data.get("observe"):
         head += ", OBSERVE MODE (output held disabled)"
     lines.append(head)
@@ -252,6 +304,7 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
         f"model: {model.get('kind')} ({', '.join(model.get('inputs', []))} ->"
         f" {', '.join(model.get('outputs', []))})"
     )
+    lines.extend(_model_lines(model))
     sink = data.get("sink", {})
     sink_word = sink.get("word")
     word = f"word: {data.get('word')}"
@@ -281,6 +334,9 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
             f"{name:<14} {_num(s.get('value'), '10.3f')} {s.get('quality', '?'):<13}"
             f" {_num(s.get('age_s'), '8.2f')}"
         )
+    for src in data.get("sources") or []:
+        if src.get("last_error"):  # why a device's signals are lost, as its I/O worker logged it
+            lines.append(f"source {src.get('name')} ({src.get('kind')}): last error: {src['last_error']}")
     adapt = data.get("adapt") or {}
     if adapt:
         lines.append(f"{'adapt':<8} {'offset':>17} {'gain':>7} {'accepted':>9} {'rejected':>9} {'last probe':>11}")

@@ -38,3 +38,21 @@ def identify(
 def option_names(kind: str) -> set[str]:
     """The fit options `kind` takes."""
     return set(OPTIONS.get(kind).model_fields)
+
+
+def options_help(width: int = 100) -> str:
+    """The fit options of every kind, as `compd fit --help` lists them: one line per option
+    with its type, default and description, from the kinds' own `Options` (imports scipy)."""
+    import textwrap
+
+    lines = ["fit options per kind (--option KEY=VALUE, the value read as YAML):"]
+    for kind in KINDS:
+        fields = OPTIONS.get(kind).model_fields
+        lines.append(f"  {kind}:" + ("" if fields else " none"))
+        for name, f in fields.items():
+            ann = f.annotation
+            kind_of = ann.__name__ if isinstance(ann, type) else str(ann).replace("typing.", "")
+            default = "required" if f.is_required() else f"default {f.default!r}"
+            text = f"{name} ({kind_of}, {default})" + (f": {f.description}" if f.description else "")
+            lines += textwrap.wrap(text, width, initial_indent="    ", subsequent_indent="        ")
+    return "\n".join(lines)

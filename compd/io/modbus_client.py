@@ -181,14 +181,13 @@ class ModbusClient:
 
     # ------------------------------------------------------------- connection
     def _build(self) -> Any:
-        from pymodbus.client import ModbusSerialClient, ModbusTcpClient
-
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # faults are reported, not logged twice
+        tcp_client, serial_client = _client_classes()
         if self.transport == "tcp":
-            return ModbusTcpClient(
+            return tcp_client(
                 self.host, port=self.port, timeout=self.timeout_s, retries=0, trace_packet=self._tap
             )
-        return ModbusSerialClient(
+        return serial_client(
             self.serial_port or "",
             baudrate=self.baudrate,
             parity=self.parity,
@@ -207,6 +206,7 @@ class ModbusClient:
             self._client = self._build()
         if self._client.connected:
             return True
+        self._client.connect_error = None
         try:
             ok = bool(self._client.connect())
         except Exception as e:  # pyserial/OS errors while opening
@@ -214,8 +214,11 @@ class ModbusClient:
             return False
         if ok:
             self.connects += 1
-        else:
-            self.last_error = f"connect: no connection to {self.where()}"
+        elif self.transport == "tcp":
+            why = self._client.connect_error or "no connection"
+            self.last_error = f"connect to {self.where()}: {why}"
+        else:  # pyserial's text names the port
+            self.last_error = f"connect: {self._client.connect_error or f'cannot open {self.where()}'}"
         return ok
 
     def close(self) -> None:
@@ -306,6 +309,60 @@ class ModbusClient:
             values=words, device_id=self.device_id,
         ))
         return self._checked(rr, READ_WRITE, read_count, f"read/write of registers {read_address}+{read_count}")
+
+
+_CLASSES: tuple[type, type] | None = None
+
+
+def _client_classes() -> tuple[type, type]:
+    """pymodbus's TCP and serial clients, whose failed `connect` keeps the OS's reason in
+    `connect_error` (pymodbus only logs it): "[Errno 111] Connection refused", "could not
+    open port /dev/ttyUSB9: [Errno 2] No such file or directory: '/dev/ttyUSB9'". The
+    connects are pymodbus 3.16's own, with the exception kept."""
+    global _CLASSES
+    if _CLASSES is not None:
+        return _CLASSES
+    import socket
+
+    import serial
+    from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
+    class TcpClient(ModbusTcpClient):
+        connect_error: str | None = None
+
+        def connect(self) -> bool:
+            if self.socket:
+                return True
+            p = self.comm_params
+            try:
+                self.socket = socket.create_connection(
+                    (p.host, p.port), timeout=p.timeout_connect, source_address=p.source_address
+                )
+            except OSError as e:
+                self.connect_error = str(e) or type(e).__name__
+                self.close()
+            return self.socket is not None
+
+    class SerialClient(ModbusSerialClient):
+        connect_error: str | None = None
+
+        def connect(self) -> bool:
+            if self.socket:
+                return True
+            p = self.comm_params
+            try:
+                self.socket = serial.serial_for_url(
+                    p.host, timeout=p.timeout_connect, write_timeout=p.timeout_connect, bytesize=p.bytesize,
+                    stopbits=p.stopbits, baudrate=p.baudrate, parity=p.parity, exclusive=True,
+                )
+                self.socket.inter_byte_timeout = self.inter_byte_timeout
+            except Exception as e:  # pyserial raises termios and other errors besides its own
+                self.connect_error = str(e) or type(e).__name__
+                self.close()
+            return self.socket is not None
+
+    _CLASSES = (TcpClient, SerialClient)
+    return _CLASSES
 
 
 class OverModbus:

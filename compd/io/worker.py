@@ -20,6 +20,13 @@ and `close`. The worker owns the rest:
 * accounts: `state` (closed, connecting, up, down), `rounds`, `errors`, `connects`,
   the work's `last_error` and counters (`get_status`), and `round_hist`, the duration
   of every round (µs).
+* the log: the first failure of the device and every change of its error are logged
+  (warning, logger `compd.io`, event `device_error`) with the reason as the work set it
+  (the OS's text: "could not open port /dev/ttyUSB9: [Errno 2] No such file or
+  directory"); the same error again, retry after retry, is not. Rounds without an error
+  for `recovered_after_s` log one info line (`device_recovered`), so a device that flaps
+  between an error and a good round logs the error once, not at every flap. This
+  happens on the worker's thread, never in the cycle.
 
 The interface between the cycle and its device is data only, so that the workers can
 later move out of the cycle's interpreter (another process: the mailboxes in shared
@@ -59,6 +66,10 @@ log = logging.getLogger("compd.io")
 
 WORKER_STATES = ("closed", "connecting", "up", "down")
 
+# a device's recovery is logged once its rounds have gone through without an error this long
+# (a device that flaps between an error and a good round logs the error once, not every flap)
+RECOVERED_AFTER_S = 5.0
+
 
 class LinkDown(Exception):
     """Raised by a round when the link to the device is gone (the worker reconnects)."""
@@ -69,8 +80,20 @@ class DeviceWork(ABC):
     runs on the worker's thread (but `counters`, which only reads numbers)."""
 
     def __init__(self) -> None:
-        self.last_error: str | None = None
+        self._last_error: str | None = None
+        self.errors_set = 0  # times `last_error` was set: a round that set it had an error
         self.now: Callable[[], float] = time.monotonic  # the loop clock (set by IoWorker.start)
+
+    @property
+    def last_error(self) -> str | None:
+        """The latest error of the device (its text names the reason), kept after recovery."""
+        return self._last_error
+
+    @last_error.setter
+    def last_error(self, text: str | None) -> None:
+        self._last_error = text
+        if text is not None:
+            self.errors_set += 1
 
     def open(self) -> None:
         """Start-up: open or check what must be there (an error is raised to `start`'s caller)."""
@@ -113,6 +136,7 @@ class IoWorker:
         reconnect_max_s: float = 10.0,
         join_timeout_s: float = 5.0,
         round_hist: DurationHist | None = None,
+        recovered_after_s: float = RECOVERED_AFTER_S,
     ) -> None:
         if reconnect_max_s < reconnect_min_s:
             raise ValueError("reconnect_max_s is below reconnect_min_s")
@@ -127,6 +151,9 @@ class IoWorker:
         self.errors = 0
         self.connects = 0
         self.retry_in_s = 0.0  # the wait before the connect after the latest failure
+        self.reported_error: str | None = None  # the error the log last said the device has (None: fine)
+        self.recovered_after_s = recovered_after_s
+        self._healthy_since: float | None = None  # rounds without an error since (monotonic s)
         self._paced = True
         self._stop = False
         self._wakes = 0  # counted by `wake`; the thread runs a round when it changed (no flag to lose)
@@ -277,6 +304,28 @@ class IoWorker:
             with self._done:
                 self._done.notify_all()
 
+    def _report(self, error: str | None) -> None:
+        """Log the device's error when it changed (warning), and its recovery (info) once it
+        has held `recovered_after_s`: once per change, on this thread. `error` None: the
+        round went through without one."""
+        if error is not None:
+            self._healthy_since = None
+            if error != self.reported_error:
+                self.reported_error = error
+                log.warning("%s: %s", self.name, error,
+                            extra={"event": "device_error", "worker": self.name, "reason": error})
+            return
+        if self.reported_error is None:
+            return
+        now = time.monotonic()
+        if self._healthy_since is None:
+            self._healthy_since = now
+        if now - self._healthy_since < self.recovered_after_s:
+            return
+        was, self.reported_error, self._healthy_since = self.reported_error, None, None
+        log.info("%s: recovered (was: %s)", self.name, was,
+                 extra={"event": "device_recovered", "worker": self.name, "reason": was})
+
     def _next_request(self) -> tuple[int, Any] | None:
         with self._done:
             return self._requests.popleft() if self._requests else None
@@ -302,6 +351,7 @@ class IoWorker:
                 except Exception as e:
                     self.errors += 1
                     work.last_error = str(e) if isinstance(e, LinkDown) else f"connect: {type(e).__name__}: {e}"
+                    self._report(work.last_error)
                     self.state = "down"
                     self.retry_in_s = backoff
                     next_connect = now + backoff
@@ -312,6 +362,7 @@ class IoWorker:
                 if self._paced:
                     next_paced = now + (self.period_s or 0.0)
                 p0 = perf()
+                set_before = work.errors_set
                 try:
                     reply = work.round(None if req is None else req[1])
                     ok = True
@@ -320,6 +371,7 @@ class IoWorker:
                     reply = None
                     work.last_error = str(e) if isinstance(e, LinkDown) else f"{type(e).__name__}: {e}"
                 self.round_hist.add_ns(perf() - p0)
+                self._report(work.last_error if work.errors_set != set_before else None)
                 if ok:
                     self.rounds += 1
                     self.state = "up"

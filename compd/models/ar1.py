@@ -135,6 +135,7 @@ class AR1(Model):
     """AR(1) spindle growth stepped every Δτ, plus linear bed terms (paper 001)."""
 
     kind = "ar1"
+    summary_keys = ("c1", "c2_table", "c3_um_per_k", "c1_table", "bed_gain_um_per_k", "spindle_sign", "dt_s")
     Params = AR1Params
 
     def __init__(self, params: AR1Params, inputs: list[str], outputs: list[str], fit=None):

@@ -82,6 +82,9 @@ class Model(ABC):
     kind: ClassVar[str]
     Params: ClassVar[type[Strict]]
     update_period_s: float = 0.0
+    # the params `compd status` shows as the model's key coefficients (`coefficients`)
+    summary_keys: ClassVar[tuple[str, ...]] = ()
+    per_axis_keys: ClassVar[tuple[str, ...]] = ()  # those of them that hold one value per output axis
 
     def __init__(
         self,
@@ -95,6 +98,7 @@ class Model(ABC):
         self.inputs = list(inputs)
         self.outputs = list(outputs)
         self.fit_info = dict(fit or {})
+        self.file: str | None = None  # the model file it was loaded from (set by the pipeline)
 
     @classmethod
     def check_wiring(cls, params: Strict, inputs: list[str], outputs: list[str]) -> None:
@@ -179,5 +183,44 @@ class Model(ABC):
             "fit": self.fit_info,
         }
 
+    def coefficients(self) -> dict[str, Any]:
+        """The key params (`summary_keys`), rounded to 4 significant digits: a matrix of one
+        column per output axis becomes {axis: column}, a list of `per_axis_keys` {axis: value};
+        a long list its length."""
+        dump = self.params.model_dump(mode="json")
+        out: dict[str, Any] = {}
+        for key in self.summary_keys:
+            value = dump.get(key)
+            if value is None:
+                continue
+            if (isinstance(value, list) and value and all(isinstance(r, list) for r in value)
+                    and all(len(r) == len(self.outputs) for r in value)):
+                value = {axis: [row[j] for row in value] for j, axis in enumerate(self.outputs)}
+            elif key in self.per_axis_keys and isinstance(value, list) and len(value) == len(self.outputs):
+                value = dict(zip(self.outputs, value, strict=True))
+            out[key] = _compact(value)
+        return out
+
     def get_status(self) -> dict[str, Any]:
-        return {"kind": self.kind, "inputs": self.inputs, "outputs": self.outputs}
+        """Kind, wiring, the file and its fit (when fitted_at, on what, how well), the key
+        coefficients and the model's memory (the latched T0 where it has one). Not for the
+        cycle: it allocates."""
+        fit = {k: self.fit_info[k] for k in ("fitted_at", "log", "rows", "rmse_um", "compd_version")
+               if k in self.fit_info}
+        return {"kind": self.kind, "inputs": self.inputs, "outputs": self.outputs, "file": self.file,
+                "fit": fit, "coefficients": self.coefficients(), "state": self.get_state()}
+
+
+def _compact(value: Any, max_items: int = 12) -> Any:
+    """Numbers to 4 significant digits; a list longer than `max_items` as its length."""
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, int | float):
+        return float(f"{value:.4g}") if isinstance(value, float) else value
+    if isinstance(value, dict):
+        return {str(k): _compact(v, max_items) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        if len(value) > max_items:
+            return f"[{len(value)} values]"
+        return [_compact(v, max_items) for v in value]
+    return str(value)

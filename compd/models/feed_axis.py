@@ -573,6 +573,8 @@ class FeedAxis(Model):
     """Position-dependent feed-axis error E(t, y) of a linear-motor axis (paper 000)."""
 
     kind = "feed_axis"
+    summary_keys = ("eta", "u1_k", "u2_k", "chi_per_m", "xi", "alpha_per_k", "length_mm", "cooling_time_s",
+                    "linear_p0_mm", "field", "position_poly")
     Params = FeedAxisParams
 
     def __init__(self, params: FeedAxisParams, inputs: list[str], outputs: list[str], fit=None):

@@ -40,6 +40,8 @@ class LVR(RiseLinear):
     """PLS model on temperature rises (paper 002)."""
 
     kind = "lvr"
+    summary_keys = ("n_components", "coef_um_per_k", "intercept_um")
+    per_axis_keys = ("intercept_um",)
     Params = LVRParams
 
     @classmethod

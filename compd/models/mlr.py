@@ -162,3 +162,5 @@ class MLR(RiseLinear):
     """Multiple linear regression on temperature rises (the papers' comparison model)."""
 
     kind = "mlr"
+    summary_keys = ("coef_um_per_k", "intercept_um")
+    per_axis_keys = ("intercept_um",)
