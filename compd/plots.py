@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ class Trend:
     pred_um: np.ndarray | None = None  # the model's predicted error
     corr_um: np.ndarray | None = None  # the guard's correction (before the word's LSB steps)
     fault: np.ndarray | None = None  # bool: the guard had the axis in fault (or recovering)
-    fault_label: str = "guard fault"
+    fault_label: str = "guard fault or recovering"
     scores: dict[str, Any] = field(default_factory=dict)  # per axis: the replay report's figures
     title: str = ""
     notes: list[str] = field(default_factory=list)  # one-line remarks under the title
@@ -57,14 +58,15 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(d[0::2].tolist(), d[1::2].tolist(), strict=True))
 
 
-def _band(ax: Any, x: np.ndarray, mask: np.ndarray, color: str, alpha: float, label: str, hatch: str | None = None) -> bool:
+def _band(ax: Any, x: np.ndarray, mask: np.ndarray, color: str, alpha: float, label: str, hatch: bool = False) -> bool:
     """Shade the spans where `mask` holds (each row until the next); True when anything was shaded."""
     runs = _runs(mask)
     for k, (i, j) in enumerate(runs):
         x1 = x[j] if j < len(x) else x[-1]
         if x1 <= x[i]:  # one row at the end: a sliver a cycle wide
             x1 = x[i] + (x[-1] - x[0]) / max(len(x), 1) * 0.5
-        ax.axvspan(x[i], x1, color=color, alpha=alpha, lw=0, hatch=hatch, label=label if k == 0 else None, zorder=0)
+        style = {"facecolor": "none", "edgecolor": color, "hatch": "///"} if hatch else {"color": color}
+        ax.axvspan(x[i], x1, alpha=alpha, lw=0, label=label if k == 0 else None, zorder=0, **style)
     return bool(runs)
 
 
@@ -124,11 +126,9 @@ def write_trend(trend: Trend, path: str | Path, dpi: int = 100) -> None:
             _legend(ax)
     start = trend.t_s[0]
     panels[-1].set_xlabel(f"time since the first row (t_s = {start:.6g} s) / {unit}")
-    title = trend.title or "compd trend"
-    if trend.notes:
-        title += "\n" + "\n".join(trend.notes)
-    fig.suptitle(title, fontsize=10, x=0.01, ha="left")
-    fig.tight_layout(rect=(0, 0, 1, 1))
+    lines = [trend.title or "compd trend"] + [w for note in trend.notes for w in textwrap.wrap(note, 140)]
+    fig.suptitle("\n".join(lines), fontsize=10, x=0.01, ha="left", va="top", y=0.998)
+    fig.tight_layout()  # leaves room for the suptitle's lines
     fig.savefig(path, dpi=dpi, bbox_inches="tight")
     plt.close(fig)
 
@@ -188,7 +188,7 @@ def _correction_panel(ax: Any, x: np.ndarray, trend: Trend, a: int, word_um: np.
         _band(ax, x, ~word_en[:, slot], C_DISABLED, 1.0, "disabled (enable bit off)")
     ax.step(x, trend.applied_um[:, a], where="post", lw=1, ls=(0, (4, 2)), color=C_APPLIED, label="applied (device)")
     if trend.fault is not None:
-        _band(ax, x, trend.fault[:, a], C_FAULT, 0.18, trend.fault_label)
+        _band(ax, x, trend.fault[:, a], C_FAULT, 0.5, trend.fault_label, hatch=True)
     ax.axhline(0.0, color="0.6", lw=0.5)
     ax.set_ylabel(f"{axis} correction / µm")
     where = "" if on_word else " (not on the word)"
@@ -274,7 +274,7 @@ def trend_from_replay(result: Any) -> Trend:
     faults = rep.get("faults") or {}
     notes = [f"replayed against the software PLC ({rep.get('plc', '?')}): {rep.get('rows', len(result.t_s))} rows,"
              f" {rep.get('codes_sent', 0)} codes sent, {rep.get('saturated', 0)} saturated words,"
-             f" faults: {', '.join(f'{k} {v}' for k, v in faults.items()) or 'none'}"]
+             f" guard events: {', '.join(f'{k} {v}' for k, v in faults.items()) or 'none'}"]
     name = Path(str(ex.get("log", ""))).name
     return Trend(
         t_s=result.t_s, axes=list(result.axes), signals=dict(ex.get("signals", {})), word=result.word,
