@@ -240,7 +240,8 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
     w = log.col("word")
     if not np.isfinite(w).all() or (w < 0).any() or (w > 0xFFFF).any() or (w != np.round(w)).any():
         bad = int(np.flatnonzero(~np.isfinite(w) | (w < 0) | (w > 0xFFFF) | (w != np.round(w)))[0])
-        raise BadInput("the word is not an integer 0..65535", file=log.file, line=bad + 2, path="word")
+        raise BadInput(f"the word is not an integer 0..65535 (got {w[bad]:g} in the row at t_s = {log.t_s[bad]:g})",
+                       file=log.file, path="word")
 
     def block(prefix: str) -> np.ndarray:
         return np.column_stack([log.col(f"{prefix}_{a}_um") for a in axes])
