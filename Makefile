@@ -7,7 +7,7 @@ BASE_STAMP := $(VENV)/.base-installed
 TEST_STAMP := $(VENV)/.test-installed
 # Debian packages the tests need (serial ptys, an independent Modbus client, the systemd units'
 # verify and security checks); COMMAND:PACKAGE where the command is not named like its package.
-APT_PACKAGES := socat mbpoll systemd-analyze:systemd
+APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell
 
 .PHONY: venv demo test accept bench lint sysdeps clean install docs reliability
 

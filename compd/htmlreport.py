@@ -347,8 +347,28 @@ def replay_section(page: Page) -> str:
                        "max |error| after / µm", "reduction"], rows))
     faults = rep.get("faults") or {}
     text = ", ".join(f"{_e(k)}: {_e(v)}" for k, v in faults.items()) if faults else "none"
-    out.append(f"<p>Faults during the replay: {text}.</p>")
+    out.append(f"<p>Guard events during the replay (the report's <code>faults</code>, by kind): {text}.</p>")
     return "\n".join(out)
+
+
+def summary_section(page: Page) -> str:
+    """At a glance: the unseen day's reduction per axis and the fit's held-out RMSE against MLR."""
+    items = []
+    for axis, r in page.replay["axes"].items():
+        items.append(f"<li>axis {_e(axis)}, unseen day: RMS {r['rms_before_um']:.2f} → {r['rms_after_um']:.2f} µm,"
+                     f" <b>{r['reduction_pct']:.0f} % less</b>; largest error left {r['max_abs_after_um']:.2f} µm</li>")
+    for axis, b in ((page.fit.get("baseline_mlr") or {}).get("axes") or {}).items():
+        own, mlr = b.get("held_out_rmse_um"), b.get("mlr_held_out_rmse_um")
+        if isinstance(own, (int, float)) and isinstance(mlr, (int, float)):
+            verdict = ('<span class="good">better than</span>' if own < mlr
+                       else '<span class="bad">not better than</span>')
+            items.append(f"<li>axis {_e(axis)}, fit: held-out RMSE {own:.2f} µm, {verdict} the MLR baseline"
+                         f" ({mlr:.2f} µm)</li>")
+    faults = {k: v for k, v in (page.replay.get("faults") or {}).items() if str(k).startswith(("fault", "bad"))}
+    if faults:
+        items.append(f'<li class="warn">the replay had guard faults or bad inputs: '
+                     f'{_e(", ".join(f"{k} {v}" for k, v in faults.items()))}</li>')
+    return "<h2>At a glance</h2><ul>" + "".join(items) + "</ul>"
 
 
 def figures_section(page: Page) -> str:
@@ -382,7 +402,7 @@ def render(page: Page) -> str:
         f"<h1>{_e(title)}</h1>",
         f'<p class="muted">Made by compd {_e(__version__)} from <code>{_e(page.fit_file)}</code> and'
         f" <code>{_e(page.replay_file)}</code>.</p>",
-        fit_section(page), replay_section(page), figures_section(page), config_section(page),
+        summary_section(page), fit_section(page), replay_section(page), figures_section(page), config_section(page),
         "</body></html>",
     ]) + "\n"
 
