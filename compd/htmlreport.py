@@ -278,12 +278,18 @@ def _flat(d: Any, prefix: str = "") -> list[tuple[str, Any]]:
     return [(prefix, d)]
 
 
-def _value(v: Any) -> str:
+def _text(v: Any, limit: int = 12) -> str:
+    """A parameter as a person reads it: six significant digits, long lists cut after `limit` values."""
     if isinstance(v, float):
-        return _e(f"{v:.6g}")
-    if isinstance(v, list) and len(v) > 12:
-        return _e(f"[{', '.join(f'{x:.4g}' if isinstance(x, float) else str(x) for x in v[:12])}, … ({len(v)} values)]")
-    return _e("null" if v is None else v)
+        return f"{v:.6g}"
+    if isinstance(v, list):
+        inner = ", ".join(_text(x, limit) for x in v[:limit])
+        return f"[{inner}{f', … ({len(v)} values)' if len(v) > limit else ''}]"
+    return "null" if v is None else str(v)
+
+
+def _value(v: Any) -> str:
+    return _e(_text(v))
 
 
 def fit_section(page: Page) -> str:
