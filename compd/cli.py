@@ -438,7 +438,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     with writing(args.out, "--out"):
         page = write_report(args.out, args.fit, args.replay, args.config, args.png)
     drawn = sum(f.png is not None for f in page.figures)
-    print(f"compd report: {page.fit['kind']} fit, replay of {len(page.replay['axes'])} axes,"
+    print(f"compd report: {page.fit['kind']} fit, replay of {', '.join(page.replay['axes'])},"
           f" {drawn} plots -> {args.out}")
     for f in page.figures:
         if f.png is None:

@@ -54,7 +54,7 @@ def test_report_is_one_self_contained_page(reports, capsys):
     rep = json.loads((reports / "replay.json").read_text())
     assert fit["model"] == "model.yaml" and rep["log"] == "unseen.csv" and rep["config"] == "c.yaml"
     assert main(["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "report.html"]) == 0
-    assert "2 plots -> report.html" in capsys.readouterr().out
+    assert "replay of x1, 2 plots -> report.html" in capsys.readouterr().out
     text = (reports / "report.html").read_text()
     assert text.startswith("<!DOCTYPE html>")
     # nothing fetched from anywhere: no scripts, no links, no external sources
