@@ -636,7 +636,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser(
         "plot", help="trend of a daemon's data log: inputs, error, commanded and applied correction, bands",
-        epilog="example: compd plot /var/lib/compd/log.csv --out trend.png --config /etc/compd/compd.yaml",
+        epilog="example:\n  compd plot compensated.csv --out trend.png --config compensate.yaml",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     s.add_argument("log", metavar="LOG.csv", help="the log the daemon writes (log.path)")
     s.add_argument("--out", required=True, metavar="FILE.png")
@@ -645,7 +646,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser(
         "report", help="one self-contained HTML commissioning page from a fit and a replay report",
-        epilog="example: compd report --fit fit.json --replay replay.json --out report.html --config compensate.yaml",
+        epilog="example:\n  compd report --fit fit.json --replay replay.json --out report.html --config compensate.yaml",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     s.add_argument("--fit", required=True, metavar="FIT.json", help="compd fit --report")
     s.add_argument("--replay", required=True, metavar="REPLAY.json", help="compd replay --report (the unseen day)")

@@ -59,15 +59,17 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _band(ax: Any, x: np.ndarray, mask: np.ndarray, color: str, alpha: float, label: str, hatch: bool = False) -> bool:
-    """Shade the spans where `mask` holds (each row until the next); True when anything was shaded."""
+    """Shade the spans where `mask` holds (each row until the next), as one artist however many
+    spans there are; True when anything was shaded."""
     runs = _runs(mask)
-    for k, (i, j) in enumerate(runs):
-        x1 = x[j] if j < len(x) else x[-1]
-        if x1 <= x[i]:  # one row at the end: a sliver a cycle wide
-            x1 = x[i] + (x[-1] - x[0]) / max(len(x), 1) * 0.5
-        style = {"facecolor": "none", "edgecolor": color, "hatch": "///"} if hatch else {"color": color}
-        ax.axvspan(x[i], x1, alpha=alpha, lw=0, label=label if k == 0 else None, zorder=0, **style)
-    return bool(runs)
+    if not runs:
+        return False
+    sliver = (x[-1] - x[0]) / max(len(x), 1) * 0.5  # a run of the last row: half a row wide
+    spans = [(x[i], (x[j] if j < len(x) else x[-1] + sliver) - x[i]) for i, j in runs]
+    style = {"facecolors": "none", "edgecolors": color, "hatch": "///"} if hatch else {"facecolors": color}
+    ax.broken_barh(spans, (0, 1), transform=ax.get_xaxis_transform(), alpha=alpha, lw=0, label=label,
+                   zorder=0, **style)
+    return True
 
 
 def _time_axis(t_s: np.ndarray) -> tuple[np.ndarray, str]:
@@ -124,8 +126,14 @@ def write_trend(trend: Trend, path: str | Path, dpi: int = 100) -> None:
         ax.grid(True, color="0.92", lw=0.6)
         if kind != "inputs":  # the inputs panel places its own (it may have a right axis)
             _legend(ax)
-    start = trend.t_s[0]
-    panels[-1].set_xlabel(f"time since the first row (t_s = {start:.6g} s) / {unit}")
+    start = float(trend.t_s[0])
+    if start > 1e9:  # Unix time (a wall clock): say when
+        import datetime
+
+        when = datetime.datetime.fromtimestamp(start, datetime.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+        panels[-1].set_xlabel(f"time since {when} / {unit}")
+    else:
+        panels[-1].set_xlabel(f"time since the first row (t_s = {start:.6g} s) / {unit}")
     lines = [trend.title or "compd trend"] + [w for note in trend.notes for w in textwrap.wrap(note, 140)]
     fig.suptitle("\n".join(lines), fontsize=10, x=0.01, ha="left", va="top", y=0.998)
     fig.tight_layout()  # leaves room for the suptitle's lines
@@ -211,6 +219,8 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
     per axis and `word`); with the daemon's config, its codec (LSB, the word's axes) and the
     model's inputs, else LSB 1 µm, the logged axes in order and every temperature column."""
     axes = _axes_of(log)
+    if len(log) == 0:
+        raise BadInput("the log has no rows: nothing to plot", file=log.file)
     if not axes or "word" not in log.columns:
         raise BadInput(
             "not a log that compd wrote: it needs applied_<axis>_um and word columns"

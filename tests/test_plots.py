@@ -106,6 +106,7 @@ def test_cli_plot(tmp_path, capsys):
     ("t_s,T1,err_x1_um\n0,20,0\n1,20,0\n", ["not a log that compd wrote", "applied_<axis>_um"]),
     ("t_s,T1,applied_x1_um,word\n0,20,0,0\n1,20,0,70000\n", ["word: ", "0..65535", "70000", "t_s = 1"]),
     ("t_s,T1,applied_x1_um,word\n0,20,0,0\n1,abc,0,0\n", ["T1"]),
+    ("t_s,T1,applied_x1_um,word\n", ["no rows"]),
 ])
 def test_cli_plot_bad_log_is_exit_2(tmp_path, capsys, content, words):
     log = tmp_path / "bad.csv"
