@@ -70,8 +70,9 @@ def check_fit(data: dict[str, Any], file: str) -> None:
         if not isinstance(base, dict) or not isinstance(base.get("axes", {}), dict):
             raise BadInput("not an object with per-axis figures", file=file, path="baseline_mlr")
         for axis, fig in base.get("axes", {}).items():
-            for k in fig if isinstance(fig, dict) else ("held_out_rmse_um",):
-                _number(data, ("baseline_mlr", "axes", axis, k), file)
+            for k in ("held_out_rmse_um", "mlr_held_out_rmse_um"):
+                if not isinstance(fig, dict) or k in fig:
+                    _number(data, ("baseline_mlr", "axes", axis, k), file)
 
 
 REPLAY_KEYS = ("rms_before_um", "rms_after_um", "max_abs_after_um", "reduction_pct")
@@ -318,6 +319,9 @@ def fit_section(page: Page) -> str:
     method = (fit.get("baseline_mlr") or {}).get("method")
     if method:
         out.append(f'<p class="muted">Held out: {_e(method)}.</p>')
+    skipped = (fit.get("baseline_mlr") or {}).get("skipped")
+    if skipped:
+        out.append(f'<p class="warn">No held-out comparison with MLR: {_e(skipped)}.</p>')
     for w in fit.get("warnings") or []:
         out.append(f'<p class="warn">warning: {_e(w)}</p>')
     if page.model_params is not None:

@@ -101,6 +101,9 @@ def test_report_without_the_data_says_what_is_missing(reports, capsys):
     ("fit", json.dumps({"axes": {"x1": {"rmse_um": 1.0}}}), ["bad.json", "kind"]),
     ("fit", json.dumps({"kind": "mlr", "axes": {"x1": {"rmse_um": "big"}}}), ["bad.json", "axes.x1.rmse_um"]),
     ("fit", json.dumps({"mlr": {"kind": "mlr"}, "ar1": {"kind": "ar1"}}), ["bad.json", "--kind all"]),
+    ("fit", json.dumps({"kind": "mlr", "axes": {"x1": {"rmse_um": 1.0}},
+                        "baseline_mlr": {"axes": {"x1": {"held_out_rmse_um": None}}}}),
+     ["bad.json", "baseline_mlr.axes.x1.held_out_rmse_um"]),
     ("replay", json.dumps({"rows": 3}), ["bad.json", "axes", "compd replay --report"]),
     ("replay", json.dumps({"axes": {"z": {"rms_before_um": 1, "rms_after_um": 1, "reduction_pct": 0}}}),
      ["bad.json", "axes.z.max_abs_after_um", "missing"]),
@@ -166,3 +169,13 @@ def test_report_renders_in_headless_chromium(reports):
     assert (img.min(axis=2) < 0.5).mean() > 0.005
     saturated = (img.max(axis=2) - img.min(axis=2)) > 0.35
     assert saturated.sum() > 2000
+
+
+def test_report_says_when_the_mlr_comparison_was_skipped(reports):
+    fit = json.loads((reports / "fit.json").read_text())
+    fit["baseline_mlr"] = {"skipped": "the held-out comparison could not fit a block: <too few rows>"}
+    (reports / "fit2.json").write_text(json.dumps(fit))
+    assert main(["report", "--fit", "fit2.json", "--replay", "replay.json", "--out", "r.html"]) == 0
+    text = (reports / "r.html").read_text()
+    assert "No held-out comparison with MLR: the held-out comparison could not fit a block: &lt;too few rows&gt;" in text
+    assert "MLR baseline held-out RMSE" not in text
