@@ -131,3 +131,41 @@ def test_cli_plot_bad_arguments_are_exit_2(tmp_path, capsys):
     assert main(["plot", str(tmp_path / "log.csv"), "--out", str(tmp_path / "t.png"), "--config", str(cfg)]) == 2
     err = capsys.readouterr().err
     assert "c.yaml" in err and err.count("\n") == 1
+
+
+def test_replay_trend_has_the_guards_fault_spans_and_the_words_bytes(tmp_path):
+    """A replay through a config whose guard faults the axis on an out-of-range input: the
+    trend's fault mask is the guard's state, and the commanded line is the word decoded."""
+    from compd.guard import FAULT, RECOVERING
+    from compd.plots import trend_from_replay
+    from compd.replay import replay_config, write_plot
+
+    n = 200
+    t = np.arange(n) * 10.0
+    temp = 20.0 + 4.0 * (1 - np.exp(-t / 600.0))
+    err = 3.0 * (temp - 20.0)
+    temp[80:90] = 150.0  # out of the guard's range: the axis faults, then recovers
+    write_log(tmp_path / "day.csv", ["t_s", "T1", "err_x1_um"], np.column_stack([t, temp, err]))
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        "loop: {clock: sim, period_s: 1.0}\n"
+        "sources:\n  - {kind: replay, name: log, path: day.csv}\n"
+        "model: {kind: mlr, inputs: [T1], outputs: [x1], params: {coef_um_per_k: [[3.0]], intercept_um: [0.0]}}\n"
+        "guard: {fault_policy: hold, recovery_s: 100, signals: {T1: {min: 0.0, max: 80.0}}}\n"
+        "codec: {lsb_um: 0.5}\n"
+        "sink: {kind: fanuc_pmc}\n"
+    )
+    result = replay_config(cfg, tmp_path / "day.csv")
+    trend = trend_from_replay(result)
+    state = result.extra["guard_state"][:, 0]
+    assert trend.fault is not None
+    np.testing.assert_array_equal(trend.fault[:, 0], (state == FAULT) | (state == RECOVERING))
+    faulted = np.flatnonzero(trend.fault[:, 0])
+    assert faulted[0] == 80 and 90 <= faulted[-1] < 110  # from the bad rows until recovery_s later
+    um, _ = decode_words(trend.word, 0.5)
+    assert trend.lsb_um == 0.5 and trend.word_axes == ["x1"]
+    assert um[-1, 0] == pytest.approx(-err[-1], abs=1.0)  # the word commands −error
+    assert list(trend.signals) == ["T1"]
+    assert trend.scores["x1"]["reduction_pct"] > 50
+    write_plot(result, tmp_path / "r.png")
+    assert (tmp_path / "r.png").read_bytes()[:8] == PNG
