@@ -35,6 +35,7 @@ class Trend:
     corr_um: np.ndarray | None = None  # the guard's correction (before the word's LSB steps)
     fault: np.ndarray | None = None  # bool: the guard had the axis in fault (or recovering)
     fault_label: str = "guard fault or recovering"
+    probe_um: np.ndarray | None = None  # probe measurements of the whole thermal error, NaN between
     scores: dict[str, Any] = field(default_factory=dict)  # per axis: the replay report's figures
     title: str = ""
     notes: list[str] = field(default_factory=list)  # one-line remarks under the title
@@ -111,7 +112,9 @@ def write_trend(trend: Trend, path: str | Path, dpi: int = 100) -> None:
     has_err = trend.error_um is not None and bool(np.isfinite(trend.error_um).any())
     rows: list[tuple[str, int]] = [("inputs", -1)]
     for a in range(len(trend.axes)):
-        if trend.pred_um is not None or has_err and np.isfinite(trend.error_um[:, a]).any():  # type: ignore[index]
+        if trend.pred_um is not None or has_err and np.isfinite(trend.error_um[:, a]).any() or (  # type: ignore[index]
+            trend.probe_um is not None and np.isfinite(trend.probe_um[:, a]).any()
+        ):
             rows.append(("error", a))
         rows.append(("correction", a))
     fig, panels = plt.subplots(len(rows), 1, figsize=(12, 2.5 * len(rows) + 0.6), sharex=True, squeeze=False)
@@ -174,6 +177,8 @@ def _error_panel(ax: Any, x: np.ndarray, trend: Trend, a: int) -> None:
         ax.plot(x, e + trend.applied_um[:, a], lw=1, color=C_RESIDUAL, label="left with compensation\n(error + applied)")
     if trend.pred_um is not None:
         ax.plot(x, trend.pred_um[:, a], lw=1, ls="--", color=C_PRED, label="predicted error (model)")
+    if trend.probe_um is not None and np.isfinite(trend.probe_um[:, a]).any():
+        ax.plot(x, trend.probe_um[:, a], "D", ms=4, color="black", label="probe (measured error)")
     ax.axhline(0.0, color="0.6", lw=0.5)
     ax.set_ylabel(f"{axis} error / µm")
     s = trend.scores.get(axis)
@@ -263,6 +268,7 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
         err = np.column_stack([log.col(f"err_{a}_um") if f"err_{a}_um" in log.columns else np.full(len(log), np.nan)
                                for a in axes])
     fault = ~np.isfinite(pred) if pred is not None else None
+    probe = probe_matrix(log, axes)
     applied = np.nan_to_num(block("applied"), nan=0.0)
     if not applied.any() and w.any():
         notes.append("applied is 0 throughout: observe mode, or a device that applies nothing")
@@ -270,7 +276,16 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
         t_s=log.t_s.copy(), axes=axes, signals=signals, word=w.astype(np.int64), word_axes=word_axes,
         lsb_um=lsb_um, applied_um=applied, error_um=err, pred_um=pred, corr_um=corr, fault=fault,
         fault_label="no prediction (guard fault)", title=f"compd trend of {Path(log.file).name}", notes=notes,
+        probe_um=probe,
     )
+
+
+def probe_matrix(log: Log, axes: list[str]) -> np.ndarray | None:
+    """The `probe_<axis>_um` columns (NaN between probes) as rows × axes, or None without any."""
+    if not any(f"probe_{a}_um" in log.columns for a in axes):
+        return None
+    return np.column_stack([log.col(f"probe_{a}_um") if f"probe_{a}_um" in log.columns else np.full(len(log), np.nan)
+                            for a in axes])
 
 
 def trend_from_replay(result: Any) -> Trend:
@@ -292,5 +307,5 @@ def trend_from_replay(result: Any) -> Trend:
         word_axes=list(ex.get("word_axes", result.axes[:2])), lsb_um=float(ex.get("lsb_um", 1.0)),
         applied_um=result.applied_um, error_um=result.error_um, pred_um=ex.get("pred_um"),
         corr_um=ex.get("corr_um"), fault=fault, scores=dict(rep.get("axes", {})),
-        title=f"compd replay of {name}" if name else "compd replay", notes=notes,
+        title=f"compd replay of {name}" if name else "compd replay", notes=notes, probe_um=ex.get("probe_um"),
     )

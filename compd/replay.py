@@ -163,6 +163,10 @@ def replay_log(
         "signals": {name: log.col(name) for name in model.inputs if name in log.columns},
         "log": log.file,
     }
+    if probes:
+        from compd.plots import probe_matrix
+
+        extra["probe_um"] = probe_matrix(log, list(model.outputs))
     return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, applied, words, extra)
 
 

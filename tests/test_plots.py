@@ -169,3 +169,18 @@ def test_replay_trend_has_the_guards_fault_spans_and_the_words_bytes(tmp_path):
     assert trend.scores["x1"]["reduction_pct"] > 50
     write_plot(result, tmp_path / "r.png")
     assert (tmp_path / "r.png").read_bytes()[:8] == PNG
+
+
+def test_trend_from_log_marks_the_probes(tmp_path):
+    data = daemon_log(tmp_path / "log.csv")
+    probe = np.full(len(data), np.nan)
+    probe[[30, 90]] = [4.0, 9.0]
+    cols = read_log(tmp_path / "log.csv", allow_nan=True).columns + ["probe_x1_um", "probe_pos_x1_mm"]
+    write_log(tmp_path / "p.csv", cols, np.column_stack([data, probe, probe * 0 + 100.0]))
+    trend = trend_from_log(read_log(tmp_path / "p.csv", allow_nan=True))
+    assert trend.probe_um is not None
+    assert np.flatnonzero(np.isfinite(trend.probe_um[:, 0])).tolist() == [30, 90]
+    assert trend.probe_um[90, 0] == 9.0 and not np.isfinite(trend.probe_um[:, 1]).any()
+    assert "probe_pos_x1_mm" not in trend.signals and "probe_x1_um" not in trend.signals
+    write_trend(trend, tmp_path / "p.png")
+    assert (tmp_path / "p.png").read_bytes()[:8] == PNG
