@@ -6,8 +6,8 @@ PY := $(VENV)/bin/python
 BASE_STAMP := $(VENV)/.base-installed
 TEST_STAMP := $(VENV)/.test-installed
 # Debian packages the tests need (serial ptys, an independent Modbus client, the systemd units'
-# verify and security checks); COMMAND:PACKAGE where the command is not named like its package.
-APT_PACKAGES := socat mbpoll systemd-analyze:systemd
+# verify and security checks, headless Chromium for compd report's page); COMMAND:PACKAGE where the command is not named like its package.
+APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell
 
 .PHONY: venv demo test accept bench lint sysdeps clean install docs reliability
 

@@ -99,7 +99,7 @@ def check_plot(path: str | None, flag: str = "--plot") -> None:
         try:
             from matplotlib.backend_bases import FigureCanvasBase
         except ImportError:
-            raise BadInput("--plot needs matplotlib: pip install 'compd[plot]'", path=flag) from None
+            raise BadInput(f"{flag} needs matplotlib: pip install 'compd[plot]'", path=flag) from None
         known = FigureCanvasBase.get_supported_filetypes()
         if suffix not in known:
             raise BadInput(
@@ -341,9 +341,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
     oc = fitting.fit_model(args.kind, log, args.inputs, args.target, options)
     with writing(args.out, "--out"):
         fitting.write_model(oc.model, args.out)
-    if args.report:
+    if args.report:  # the model file and plot beside the figures, for `compd report`
+        files = {"model": str(args.out), **({"plot": str(args.plot)} if args.plot else {})}
         with writing(args.report, "--report"):
-            report.write_json(args.report, oc.report)
+            report.write_json(args.report, {**oc.report, **files})
     if args.plot:
         with writing(args.plot, "--plot"):
             report.plot_fit(oc, log, args.plot)
@@ -405,12 +406,43 @@ def cmd_replay(args: argparse.Namespace) -> int:
             f"axis {axis}: RMS {r['rms_before_um']:.2f} -> {r['rms_after_um']:.2f} um,"
             f" max |residual| {r['max_abs_after_um']:.2f} um, reduction {r['reduction_pct']:.1f} %"
         )
-    if args.report:
+    if args.report:  # what was replayed, for `compd report`
+        files = {"log": str(args.log), **({"model": str(args.model)} if args.model else {"config": str(args.config)}),
+                 **({"plot": str(args.plot)} if args.plot else {})}
         with writing(args.report, "--report"), open(args.report, "w", encoding="utf-8") as fh:
-            json.dump(rep, fh, indent=2)
+            json.dump({**rep, **files}, fh, indent=2)
     if args.plot:
         with writing(args.plot, "--plot"):
             write_plot(result, args.plot)
+    return 0
+
+
+@command("plot")
+def cmd_plot(args: argparse.Namespace) -> int:
+    from compd.log import read_log
+    from compd.plots import trend_from_log, write_trend
+
+    check_plot(args.out, "--out")
+    trend = trend_from_log(read_log(args.log, allow_nan=True), args.config)
+    with writing(args.out, "--out"):
+        write_trend(trend, args.out)
+    print(f"compd plot: {len(trend.t_s)} rows, axes {', '.join(trend.axes)} -> {args.out}")
+    return 0
+
+
+@command("report")
+def cmd_report(args: argparse.Namespace) -> int:
+    from compd.htmlreport import write_report
+
+    check_output(args.out, "--out")
+    with writing(args.out, "--out"):
+        page = write_report(args.out, args.fit, args.replay, args.config, args.png)
+    drawn = sum(f.png is not None for f in page.figures)
+    print(f"compd report: {page.fit['kind']} fit, replay of {', '.join(page.replay['axes'])},"
+          f" {drawn} plots -> {args.out}")
+    for f in page.figures:
+        if f.png is None:
+            print(f"compd: {f.caption}: {f.why_not}", file=sys.stderr)
     return 0
 
 
@@ -660,6 +692,33 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--log", required=True, metavar="LOG.csv")
     s.add_argument("--report", default=None, metavar="REPORT.json")
     s.add_argument("--plot", default=None, metavar="FILE.png")
+
+    s = sub.add_parser(
+        "plot", help="trend of a daemon's data log: inputs, error, commanded and applied correction, bands",
+        description="Draw the trend of a running daemon's own data log: the model's inputs, the error, the commanded"
+                    " and applied correction per axis (µm) and the enable and fault bands.",
+        epilog="example:\n  compd plot compensated.csv --out trend.png --config compensate.yaml",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    s.add_argument("log", metavar="LOG.csv", help="the log the daemon writes (log.path)")
+    s.add_argument("--out", required=True, metavar="FILE.png")
+    s.add_argument("--config", default=None, metavar="CONFIG.yaml",
+                   help="the daemon's config: its LSB, word axes and model inputs (default: LSB 1 um)")
+
+    s = sub.add_parser(
+        "report", help="one self-contained HTML commissioning page from a fit and a replay report",
+        description="Write one self-contained HTML page for the machine's file: the fit, the unseen-day score,"
+                    " the plots and the config.",
+        epilog="example:\n  compd report --fit fit.json --replay replay.json --out report.html --config compensate.yaml",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    s.add_argument("--fit", required=True, metavar="FIT.json", help="compd fit --report")
+    s.add_argument("--replay", required=True, metavar="REPLAY.json", help="compd replay --report (the unseen day)")
+    s.add_argument("--out", required=True, metavar="report.html")
+    s.add_argument("--config", default=None, metavar="CONFIG.yaml",
+                   help="the config to show (default: the one the replay report names)")
+    s.add_argument("--png", nargs="+", action="extend", default=None, metavar="FILE.png",
+                   help="embed these plots instead of drawing them from the reports' data")
 
     s = sub.add_parser("encode", help="the 16-bit word for two corrections (µm)",
                        description="Print the 16-bit compensation word for two corrections C1, C2 (µm), with what each byte means.",

@@ -90,6 +90,9 @@ def replay_log(
         raise BadInput(e.message, file=log.file, path=e.keys) from None
     n, n_out = len(log), len(model.outputs)
     applied = np.zeros((n, n_out))
+    pred = np.zeros((n, n_out))
+    corr = np.zeros((n, n_out))
+    state = np.zeros((n, n_out), dtype=np.uint8)
     words = np.zeros(n, dtype=np.int64)
     t = log.t_s
     codes_sent = 0
@@ -108,6 +111,9 @@ def replay_log(
             loop.step(now)
             sink.settle(now)
             applied[i] = loop.applied()
+            pred[i] = loop.pred_um
+            corr[i] = loop.guard.out_um
+            state[i] = loop.guard.state
             w = loop.word
             words[i] = w
             if w != prev_word:
@@ -151,7 +157,17 @@ def replay_log(
     }
     if probes:
         report["adaptation"] = adaptation
-    return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, applied, words)
+    extra = {
+        "pred_um": pred, "corr_um": corr, "guard_state": state, "lsb_um": loop.encoder.lsb_um,
+        "word_axes": [model.outputs[a] for a in loop.word_axes],
+        "signals": {name: log.col(name) for name in model.inputs if name in log.columns},
+        "log": log.file,
+    }
+    if probes:
+        from compd.plots import probe_matrix
+
+        extra["probe_um"] = probe_matrix(log, list(model.outputs))
+    return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, applied, words, extra)
 
 
 def copy_model(model: Model) -> Model:
@@ -204,36 +220,8 @@ def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
 
 
 def write_plot(result: ReplayResult, path: str | Path) -> None:
-    """PNG: per axis the error without and with compensation, and the word over time."""
-    import matplotlib
+    """The replay's trend (compd.plots): inputs, per axis error without and with compensation,
+    commanded (the word decoded) and applied correction in µm, enable and fault bands."""
+    from compd.plots import trend_from_replay, write_trend
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    axes = [a for a in range(len(result.axes)) if np.isfinite(result.error_um[:, a]).any()]
-    fig, ax = plt.subplots(len(axes) + 1, 1, figsize=(10, 3 * (len(axes) + 1)), sharex=True)
-    ax = np.atleast_1d(ax)
-    hours = (result.t_s - result.t_s[0]) / 3600.0
-    for k, a in enumerate(axes):
-        e = result.error_um[:, a]
-        ax[k].plot(hours, e, label="without compensation", lw=1)
-        ax[k].plot(hours, e + result.applied_um[:, a], label="with compensation (PLC applied)", lw=1)
-        ax[k].set_ylabel(f"{result.axes[a]} error / µm")
-        ax[k].axhline(0.0, color="grey", lw=0.5)
-        ax[k].legend(loc="best")
-        r = result.report["axes"].get(result.axes[a], {})
-        if r:
-            ax[k].set_title(
-                f"axis {result.axes[a]}: RMS {r['rms_before_um']:.2f} → {r['rms_after_um']:.2f} µm"
-                f" ({r['reduction_pct']:.0f} % less)"
-            )
-    ax[-1].step(hours, result.word, where="post", lw=1)
-    ax[-1].set_ylabel("word")
-    ax[-1].set_xlabel("time / h")
-    ticks = ax[-1].get_yticks()
-    ax[-1].set_yticks(ticks)
-    ax[-1].set_yticklabels([f"0x{int(v) & 0xFFFF:04X}" if v >= 0 else "" for v in ticks])
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
+    write_trend(trend_from_replay(result), path)

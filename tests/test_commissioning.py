@@ -141,6 +141,15 @@ def test_commissioning_walk(tmp_path, capsys, monkeypatch):
         (sum(e * e for e in log["err_z_um"]) / len(log["err_z_um"])) ** 0.5, rel=1e-6
     )
 
+    # read the replay of the unseen day: its trend, and the commissioning page with the fit
+    r = compd("compd replay compensate.yaml --log day2.csv --report replay.json --plot replay.png", tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "replay.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rc, out, err = cli("compd report --fit fit.json --replay replay.json --out report.html", capsys)
+    assert (rc, out, err) == (0, "compd report: xi_spindle fit, replay of z, 2 plots -> report.html\n", "")
+    page = (tmp_path / "report.html").read_text()
+    assert page.count('<img src="data:image/png;base64,') == 2 and "compensate.yaml" in page
+
     # 6. enable the output
     text = files["compensate.yaml"]
     assert "port: 9105" in text
@@ -176,5 +185,8 @@ def test_commissioning_walk(tmp_path, capsys, monkeypatch):
     assert after < 0.2 * before, out
     comp = read_csv(tmp_path / "compensated.csv")
     assert min(comp["applied_z_um"]) < -10.0  # corrections reached the (emulated) card
+    rc, out, _ = cli("compd plot compensated.csv --out trend.png --config compensate.yaml", capsys)
+    assert rc == 0 and out == f"compd plot: {len(comp['t_s'])} rows, axes z -> trend.png\n"
+    assert (tmp_path / "trend.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rc, _, err = cli("compd status --config compensate.yaml", capsys)
     assert rc == 1 and "stopped" in err
