@@ -368,6 +368,34 @@ def cmd_predict(args: argparse.Namespace) -> int:
     return 0
 
 
+@command("score")
+def cmd_score(args: argparse.Namespace) -> int:
+    from compd import fitting, report
+
+    check_output(args.json, "--json")
+    model = fitting.load_model(args.model)
+    log = fitting.read_fit_log(args.log)
+    result = fitting.score_model(model, log)
+    base = result["baseline_mlr"]
+    print(f"{model.kind} on {args.log}: {result['rows']} rows")
+    for axis, r in result["axes"].items():
+        print(f"axis {axis}: RMS {r['rms_before_um']:.2f} -> {r['rms_after_um']:.2f} um,"
+              f" max {r['max_abs_before_um']:.2f} -> {r['max_abs_after_um']:.2f} um,"
+              f" reduction {r['reduction_pct']:.1f} %")
+        b = base.get("axes", {}).get(axis)
+        if b:
+            print(f"axis {axis}: on the rows MLR did not see: model RMS {b['model_rmse_um']:.2f} um,"
+                  f" MLR on {' '.join(base['inputs'])} {b['mlr_held_out_rmse_um']:.2f} um")
+            if b["model_rmse_um"] > b["mlr_held_out_rmse_um"]:
+                fitting.warn([f"axis {axis}: the MLR baseline predicts this log better than the model"])
+    if "skipped" in base:
+        fitting.warn([base["skipped"]])
+    if args.json:
+        with writing(args.json, "--json"):
+            report.write_json(args.json, result)
+    return 0
+
+
 @command("xi")
 def cmd_xi(args: argparse.Namespace) -> int:
     import numpy as np
@@ -627,6 +655,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model", metavar="MODEL.yaml")
     s.add_argument("--log", required=True, metavar="LOG.csv")
     s.add_argument("--out", required=True, metavar="PRED.csv")
+
+    s = sub.add_parser(
+        "score", help="score a model on a log with the measured errors (an unseen day), against MLR",
+        epilog="example: compd score model.yaml --log day2.csv --json score.json",
+    )
+    s.add_argument("model", metavar="MODEL.yaml")
+    s.add_argument("--log", required=True, metavar="LOG.csv")
+    s.add_argument("--json", default=None, metavar="FILE", help="write the scores as JSON")
 
     s = sub.add_parser("xi", help="the mean-value point ξ of a temperature profile (CSV x_mm, T_c)")
     s.add_argument("--profile", required=True, metavar="FILE.csv")
