@@ -46,9 +46,9 @@ def test_score_prints_and_writes_before_after_and_baseline(day, capsys):
     resid = e - 2.0 * (T1[ok] - 20)
     z = rep["axes"]["x1"]
     assert z["rows"] == int(ok.sum())
-    assert z["rms_before_um"] == pytest.approx(math.sqrt(np.mean(e * e)), rel=1e-4)
-    assert z["rms_after_um"] == pytest.approx(math.sqrt(np.mean(resid * resid)), rel=1e-4)  # the CSV keeps 6 digits
-    assert z["max_abs_after_um"] == pytest.approx(np.max(np.abs(resid)), rel=1e-4)
+    assert z["rms_before_um"] == pytest.approx(math.sqrt(np.mean(e * e)), rel=1e-3)
+    assert z["rms_after_um"] == pytest.approx(math.sqrt(np.mean(resid * resid)), rel=1e-3)  # the CSV keeps 6 digits
+    assert z["max_abs_after_um"] == pytest.approx(np.max(np.abs(resid)), rel=1e-3)
     assert z["reduction_pct"] == pytest.approx(100 * (1 - z["rms_after_um"] / z["rms_before_um"]))
     base = rep["baseline_mlr"]
     assert base["inputs"] == ["T1"]  # the model's temperature inputs
