@@ -214,15 +214,17 @@ def score_model(model: Model, log: Log) -> dict[str, Any]:
     temps = log.temperature_columns()
     mlr_inputs = [c for c in model.inputs if c in temps] or temps
     baseline: dict[str, Any] = {"method": HELD_OUT_METHOD, "inputs": mlr_inputs}
+    measured = np.isfinite(Y).all(axis=1)  # MLR fits on the rows with every error measured
+    sub = Log(log.file, log.columns, log.data[measured])
     try:
-        mlr = held_out_rmse("mlr", log, mlr_inputs, targets, {})
+        mlr = held_out_rmse("mlr", sub, mlr_inputs, targets, {})
     except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
         baseline["skipped"] = f"the held-out MLR could not fit a block: {e}"
     else:
-        held = slice(int(holdout_edges(len(log))[1]), None)
+        held = slice(int(holdout_edges(len(sub))[1]), None)
         baseline["axes"] = {}
         for k, axis in enumerate(model.outputs):
-            r = (Y[:, k] - pred[:, k])[held]
+            r = (Y[:, k] - pred[:, k])[measured][held]
             r = r[np.isfinite(r)]
             baseline["axes"][axis] = {
                 "model_rmse_um": float(np.sqrt(np.mean(r * r))) if r.size else float("nan"),
