@@ -54,7 +54,7 @@ def test_score_prints_and_writes_before_after_and_baseline(day, capsys):
     assert base["inputs"] == ["T1"]  # the model's temperature inputs
     # err is exactly linear in T1: MLR fitted on the earlier blocks predicts the rest ~exactly,
     # better than a model with the wrong gain, and the command says so
-    assert base["axes"]["x1"]["mlr_held_out_rmse_um"] < 1e-6
+    assert base["axes"]["x1"]["mlr_held_out_rmse_um"] < 1e-3
     assert base["axes"]["x1"]["model_rmse_um"] > 0.1
     assert "MLR baseline predicts this log better" in errout
     line = next(ln for ln in out.splitlines() if ln.startswith("axis x1: RMS"))
