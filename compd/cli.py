@@ -314,9 +314,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     options = fitting.parse_options(args.option)
     if args.ambient:
         options["ambient"] = args.ambient
-    check_output(args.out, "--out", folder=args.kind == "all")
     check_output(args.report, "--report")
     check_plot(args.plot)
+    check_output(args.out, "--out", folder=args.kind == "all")  # last: it may create the folder
     log = fitting.read_fit_log(args.log)
     if args.kind == "all":
         rows = fitting.fit_all(log, args.inputs, args.target, options)
