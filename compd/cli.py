@@ -171,6 +171,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     app = App(cfg, out=sys.stderr)  # wiring is checked by building the pipeline (opens no device)
     if app.logger is not None:  # App opens the data log when built: stop its writer thread
         app.logger.close()
+    app.service.check_status_free()  # no other running compd writes its status file
     print("ok")
     return 0
 

@@ -153,7 +153,7 @@ def test_commissioning_walk(tmp_path, capsys, monkeypatch):
     )
     try:
         # 7. watch, while it runs
-        wait_for_status(tmp_path / "status.json", proc.pid, proc)
+        wait_for_status(tmp_path / "compensate.status.json", proc.pid, proc)
         rc, out, _ = cli("compd status --config compensate.yaml", capsys)
         assert rc == 0 and out.startswith("compd running") and "OBSERVE" not in out
         assert re.search(r"^z .* (starting|normal) +hold", out, re.M)
