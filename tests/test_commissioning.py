@@ -265,12 +265,56 @@ def test_commissioning_guide_runs_as_written(shell) -> None:
     print(f"the guide's commands ran in {time.monotonic() - t0:.1f} s")
 
 
+SYNOPSIS = "synopsis:"
+SHELL_START = ("compd ", "python -m ", "make ", "sudo ", "$ ")
+
+
 def test_page_marks_are_known() -> None:
-    """Every console block of the guide and of the README is run, or marked with why not."""
+    """Every block of commands in the guide and in the README is run (or checked, for a
+    synopsis), or marked with why not."""
     for path in (GUIDE, README):
         for b in blocks(path):
-            if b.lang == "console":
-                assert b.marker in ("", CONCURRENT) or b.marker.startswith(NOT_RUN), (path.name, b.marker)
+            commands = any(line.startswith(SHELL_START) for line in b.body.splitlines())
+            if b.lang == "console" or (commands and b.lang == ""):
+                known = b.marker in ("", CONCURRENT) if b.lang == "console" else b.marker.startswith(SYNOPSIS)
+                assert known or b.marker.startswith(NOT_RUN), (path.name, b.marker, b.body[:80])
             if b.marker.startswith(NOT_RUN):
                 assert len(b.marker) > len(NOT_RUN) + 5, f"{path.name}: say why the test does not run it"
+
+
+def synopsis_commands(body: str) -> list[tuple[str, str]]:
+    """(command with its continuation lines, its comment) of a synopsis block."""
+    out: list[tuple[str, str]] = []
+    for raw in body.splitlines():
+        text, _, comment = raw.partition("#")
+        if raw.startswith(("compd ", "python -m ")):
+            out.append((text.strip(), comment.strip()))
+        elif out and raw.strip():
+            out[-1] = (f"{out[-1][0]} {text.strip()}".strip(), f"{out[-1][1]} {comment.strip()}".strip())
+    return [(c.replace("\\", " "), m) for c, m in out]
+
+
+def test_readme_synopses_match_the_commands(shell) -> None:
+    """The README's command lists: every command exists with every flag shown, every "e.g."
+    example runs and prints what the README says (after `->`)."""
+    checked = 0
+    for b in blocks(README):
+        if not b.marker.startswith(SYNOPSIS):
+            continue
+        for command, comment in synopsis_commands(b.body):
+            words = command.split()
+            sub = words[:4] if words[0] == "python" else words[:2]
+            r = shell(" ".join([*sub, "--help"]))
+            assert r.returncode == 0, (command, r.stderr)
+            for flag in re.findall(r"(?<![\w-])--[a-z][a-z-]*", command):
+                assert flag in r.stdout, f"README: `{' '.join(sub)}` has no {flag}"
+            for example in re.findall(r"e\.g\. ((?:compd|python -m) [^;]*?)(?=$|;|\s+e\.g\.)", comment):
+                cmd, _, expect = example.partition("->")
+                r = shell(cmd.strip())
+                assert r.returncode == 0, (cmd, r.stderr)
+                if expect.strip():
+                    assert " ".join(r.stdout.split()).startswith(" ".join(expect.split())), (example, r.stdout)
+                checked += 1
+            checked += 1
+    assert checked >= 14, checked  # the Commands list and the simulator's log command
 
