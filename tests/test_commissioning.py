@@ -150,6 +150,13 @@ def _fit(r: subprocess.CompletedProcess, work: Path) -> None:
     report = json.loads((work / "fit.json").read_text())
     assert report["axes"]["z"]["rmse_um"] == pytest.approx(model["fit"]["rmse_um"]["z"])
     assert "baseline_mlr" in report
+    # the page's figure for the fit without the speed (no lift)
+    from compd import fitting
+
+    quoted = re.search(r"without it, ([\d.]+) µm here", " ".join(GUIDE.read_text(encoding="utf-8").split()))
+    oc = fitting.fit_model("xi_spindle", fitting.read_fit_log(work / "warmup.csv"), ["T_xi"], ["err_z_um"], {},
+                           baseline=False)
+    assert quoted and abs(oc.report["axes"]["z"]["rmse_um"] - float(quoted[1])) <= 0.0051, quoted
 
 
 def _score(r: subprocess.CompletedProcess, work: Path) -> None:
