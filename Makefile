@@ -14,7 +14,7 @@ APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell
 $(BASE_STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[plot]'
+	$(PY) -m pip install -q -e '.[plot,metrics]'
 	touch $@
 
 $(TEST_STAMP): pyproject.toml $(BASE_STAMP)

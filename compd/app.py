@@ -393,6 +393,7 @@ class App:
         over is given back, and the exception propagates: the previous App resumes."""
         undo: list[Any] = []
         try:
+            self.service.check_status_free()
             if not self._clock_adopted:  # connect before anything is stamped
                 self.clock.start()
                 undo.append(self.clock.stop)

@@ -171,6 +171,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     app = App(cfg, out=sys.stderr)  # wiring is checked by building the pipeline (opens no device)
     if app.logger is not None:  # App opens the data log when built: stop its writer thread
         app.logger.close()
+    app.service.check_status_free()  # no other running compd writes its status file
     print("ok")
     return 0
 
@@ -314,9 +315,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     options = fitting.parse_options(args.option)
     if args.ambient:
         options["ambient"] = args.ambient
-    check_output(args.out, "--out", folder=args.kind == "all")
     check_output(args.report, "--report")
     check_plot(args.plot)
+    check_output(args.out, "--out", folder=args.kind == "all")  # last: it may create the folder
     log = fitting.read_fit_log(args.log)
     if args.kind == "all":
         rows = fitting.fit_all(log, args.inputs, args.target, options)
@@ -366,6 +367,34 @@ def cmd_predict(args: argparse.Namespace) -> int:
     with writing(args.out, "--out"):
         fitting.write_prediction(args.out, log.t_s, model.outputs, pred)
     print(f"{model.kind}: {len(log)} rows -> {args.out}")
+    return 0
+
+
+@command("score")
+def cmd_score(args: argparse.Namespace) -> int:
+    from compd import fitting, report
+
+    check_output(args.json, "--json")
+    model = fitting.load_model(args.model)
+    log = fitting.read_fit_log(args.log)
+    result = fitting.score_model(model, log)
+    base = result["baseline_mlr"]
+    print(f"{model.kind} on {args.log}: {result['rows']} rows")
+    for axis, r in result["axes"].items():
+        print(f"axis {axis}: RMS {r['rms_before_um']:.2f} -> {r['rms_after_um']:.2f} um,"
+              f" max {r['max_abs_before_um']:.2f} -> {r['max_abs_after_um']:.2f} um,"
+              f" reduction {r['reduction_pct']:.1f} %")
+        b = base.get("axes", {}).get(axis)
+        if b:
+            print(f"axis {axis}: on the rows MLR did not see: model RMS {b['model_rmse_um']:.2f} um,"
+                  f" MLR on {' '.join(base['inputs'])} {b['mlr_held_out_rmse_um']:.2f} um")
+            if b["model_rmse_um"] > b["mlr_held_out_rmse_um"]:
+                fitting.warn([f"axis {axis}: the MLR baseline predicts this log better than the model"])
+    if "skipped" in base:
+        fitting.warn([base["skipped"]])
+    if args.json:
+        with writing(args.json, "--json"):
+            report.write_json(args.json, result)
     return 0
 
 
@@ -754,6 +783,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("model", metavar="MODEL.yaml")
     s.add_argument("--log", required=True, metavar="LOG.csv")
     s.add_argument("--out", required=True, metavar="PRED.csv")
+
+    s = sub.add_parser(
+        "score", help="score a model on a log with the measured errors (an unseen day), against MLR",
+        description="Score a fitted model on a log that carries the measured error (a day it has not seen):"
+                    " RMS and max before and after per axis, and the held-out MLR baseline on the same rows.",
+        epilog="example:\n  compd score model.yaml --log day2.csv --json score.json",
+    )
+    s.add_argument("model", metavar="MODEL.yaml")
+    s.add_argument("--log", required=True, metavar="LOG.csv")
+    s.add_argument("--json", default=None, metavar="FILE", help="write the scores as JSON")
 
     s = sub.add_parser("xi", help="the mean-value point ξ of a temperature profile (CSV x_mm, T_c)",
                        description="Find the mean-value point ξ of a temperature profile along the spindle (CSV columns x_mm, T_c): where to put the ξ sensor.",

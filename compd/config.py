@@ -9,6 +9,7 @@ registries, so each driver owns its options (STYLE: one config section, one modu
 from __future__ import annotations
 
 import difflib
+import importlib
 import os
 import stat
 import types
@@ -848,6 +849,30 @@ def _check_timings(top: ConfigModel, doc: Document) -> None:
             raise doc.error(f"{value:g} s is not longer than one cycle (loop.period_s = {period:g} s)", path)
 
 
+# An optional feature a config can switch on: the key that switches it on, the module it
+# imports and the extra of pyproject.toml that installs that module.
+OPTIONAL_MODULES: dict[PathT, tuple[str, str]] = {
+    ("metrics", "enabled"): ("prometheus_client", "metrics"),
+}
+
+
+def _check_optional(top: ConfigModel, doc: Document) -> None:
+    """A ConfigError naming the key of an optional feature the config enables whose module is missing."""
+    for path, (module, extra) in OPTIONAL_MODULES.items():
+        value: Any = top
+        for key in path:
+            value = getattr(value, str(key), None)
+        if not value:
+            continue
+        try:
+            importlib.import_module(module)
+        except ImportError:
+            raise doc.error(
+                f"needs the Python module {module}, which is not installed: pip install 'compd[{extra}]'",
+                path,
+            ) from None
+
+
 def load_config(file: str | Path, text: str | None = None) -> Config:
     """Load and validate a config file; raises ConfigError (exit 2) on any problem."""
     from compd.sinks import SINKS
@@ -858,6 +883,7 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
         raise ConfigError("the config is empty", file=doc.file)
     top = validate(ConfigModel, doc.data, doc, (), what="config")
     _check_timings(top, doc)
+    _check_optional(top, doc)
     sources = []
     names: set[str] = set()
     for i, sec in enumerate(top.sources):

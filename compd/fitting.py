@@ -23,10 +23,12 @@ from compd.identify.data import (
     columns,
     default_targets,
     forward_fold_errors,
+    holdout_edges,
     progress,
 )
 from compd.log import Log, read_log
 from compd.models.base import Model
+from compd.scoring import score_residual
 
 
 @dataclass
@@ -195,6 +197,45 @@ def fit_model(
             fit_info[key] = result.report[key]
     model.fit_info = json.loads(json.dumps(fit_info))
     return FitOutcome(kind, model, report, pred, warnings)
+
+
+def score_model(model: Model, log: Log) -> dict[str, Any]:
+    """`compd score`: a fitted model on a log with the measured errors (a day it has not seen).
+
+    Per axis the error before (`err_<axis>_um`) and after (error − prediction), scored as every
+    report is (compd.scoring); blank error cells between measurements are left out. The baseline
+    is the fit report's: MLR on the model's temperature inputs (all the log's temperatures if it
+    has none), fitted forward-chained on this log's earlier blocks (HELD_OUT_METHOD), beside the
+    model's RMS on the same held-out rows."""
+    targets = [f"err_{a}_um" for a in model.outputs]
+    Y = log.matrix(targets)  # a missing err_<axis>_um column is BadInput naming it
+    pred = predict_log(model, log)
+    axes = {axis: score_residual(Y[:, k], Y[:, k] - pred[:, k]) for k, axis in enumerate(model.outputs)}
+    for axis, s in axes.items():
+        if s["rows"] == 0:
+            raise BadInput(f"no measured error to score axis {axis} against", file=log.file,
+                           path=f"err_{axis}_um")
+    temps = log.temperature_columns()
+    mlr_inputs = [c for c in model.inputs if c in temps] or temps
+    baseline: dict[str, Any] = {"method": HELD_OUT_METHOD, "inputs": mlr_inputs}
+    measured = np.isfinite(Y).all(axis=1)  # MLR fits on the rows with every error measured
+    sub = Log(log.file, log.columns, log.data[measured])
+    try:
+        mlr = held_out_rmse("mlr", sub, mlr_inputs, targets, {})
+    except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
+        baseline["skipped"] = f"the held-out MLR could not fit a block: {e}"
+    else:
+        held = slice(int(holdout_edges(len(sub))[1]), None)
+        baseline["axes"] = {}
+        for k, axis in enumerate(model.outputs):
+            r = (Y[:, k] - pred[:, k])[measured][held]
+            r = r[np.isfinite(r)]
+            baseline["axes"][axis] = {
+                "model_rmse_um": float(np.sqrt(np.mean(r * r))) if r.size else float("nan"),
+                "mlr_held_out_rmse_um": float(mlr[k]),
+            }
+    return {"kind": model.kind, "log": log.file, "rows": len(log), "inputs": model.inputs,
+            "axes": axes, "baseline_mlr": baseline}
 
 
 def write_model(model: Model, path: str | Path) -> None:

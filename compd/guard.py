@@ -25,6 +25,7 @@ STALE = int(Quality.STALE)
 OUT_OF_RANGE = int(Quality.OUT_OF_RANGE)
 IMPLAUSIBLE = int(Quality.IMPLAUSIBLE)
 FROZEN = int(Quality.FROZEN)
+NO_DATA = int(Quality.NO_DATA)
 STARTING, NORMAL, FAULT, RECOVERING = 0, 1, 2, 3
 
 
@@ -112,6 +113,11 @@ class Guard:
         self.events: list[tuple[float, str, str, str]] = []  # (t, subject, event, reason)
         self._input_names = list(inputs)
         self._was_bad = np.zeros(len(inputs), dtype=bool)
+        # before its first sample an input is waiting, not bad: no event, until it has had no
+        # sample for its staleness limit since the first check (then `bad no_data`, a fault)
+        self._waiting = np.ones(len(inputs), dtype=bool)
+        self._any_waiting = len(inputs) > 0
+        self._start_s = math.nan
 
     # ------------------------------------------------------------ plausibility
     def check_inputs(self, frame: Frame, now_s: float) -> bool:
@@ -182,16 +188,32 @@ class Guard:
         frame.quality[idx] = q
         ok = bool(m.all())
         np.logical_not(m, out=tmp)  # tmp: bad now
-        if not np.array_equal(tmp, self._was_bad):
-            for j in np.flatnonzero(tmp != self._was_bad):
-                if tmp[j]:
+        report = tmp  # bad and not waiting for its first sample
+        if self._any_waiting:
+            self._check_waiting(q, m, now_s)
+            report = self._tmp2
+            np.logical_not(self._waiting, out=report)
+            np.logical_and(report, tmp, out=report)
+        if not np.array_equal(report, self._was_bad):
+            for j in np.flatnonzero(report != self._was_bad):
+                if report[j]:
                     self._event(now_s, self._input_names[j], "bad", QUALITY_NAMES.get(int(q[j]), "?"))
                 else:
                     self._event(now_s, self._input_names[j], "good", "recovered")
-            self._was_bad[:] = tmp
+            self._was_bad[:] = report
         self.inputs_ok = ok
         self.bad_input = -1 if ok else int(np.argmax(tmp))
         return ok
+
+    def _check_waiting(self, q: np.ndarray, good: np.ndarray, now_s: float) -> None:
+        """Start-up only: an input stops waiting at its first good sample, at any quality but
+        no_data, or when it has had none for its staleness limit since the first check."""
+        if self._start_s != self._start_s:
+            self._start_s = now_s
+        for j in np.flatnonzero(self._waiting):
+            if good[j] or q[j] != NO_DATA or now_s - self._start_s > self._stale[j]:
+                self._waiting[j] = False
+        self._any_waiting = bool(self._waiting.any())
 
     def _others_moved(self, j: int, since_s: float) -> bool:
         """Did another model input change after `since_s`? (True when there is no other.)"""

@@ -21,6 +21,7 @@ from typing import Any
 from compd import logsetup  # noqa: F401  (installs the library's NullHandler)
 from compd import status as status_mod
 from compd.control import ControlServer, socket_path
+from compd.errors import BadInput
 from compd.metrics import MetricsServer
 from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
 from compd.realtime import apply_realtime
@@ -217,6 +218,24 @@ class Service:
         """Undo `open_metrics` (a reload that failed later): a kept endpoint stays."""
         if self.metrics is not None and not self._metrics_adopted:
             self.metrics.stop()
+
+    def check_status_free(self) -> None:
+        """BadInput when another compd that is alive writes this status file: two instances on
+        one file overwrite each other's state (and `compd status` shows either)."""
+        if self.path is None:
+            return
+        try:
+            data = status_mod.read_status(self.path)
+        except BadInput:
+            return  # none yet, or not a status file: this daemon overwrites it
+        pid = data.get("pid")
+        if pid == os.getpid() or not status_mod.liveness(data)[0]:
+            return  # a reload of this daemon, or one that has stopped
+        msg = (f"{self.path} is the status file of a running compd (pid {pid}, config {data.get('config')});"
+               " give each config its own status.path")
+        if self.app.cfg.top.status.path:
+            raise self.app.cfg.doc.error(msg, ("status", "path"))
+        raise BadInput(msg, file=str(self.path))
 
     def start(self) -> None:
         """Start the status thread, hook the watchdog; then real-time options (after `open_metrics`)."""

@@ -116,6 +116,19 @@ CASES = [
     (["run", "{d}/sim.yaml", "--json", "{d}/adir"], ["adir", "--json"]),
     (["bench", "--cycles", "10", "--json", "/proc/b.json"], ["/proc/b.json", "--json"]),
     (["docs", "--out", "/proc/x.md"], ["/proc/x.md", "--out"]),
+    # an output in a folder that does not exist: every command with an output path, before the work
+    *[(argv + [flag, "{d}/nofolder/" + name], ["nofolder/" + name, flag, "No such file or directory"])
+      for argv, flag, name in [
+          (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml"], "--report", "r.json"),
+          (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml"], "--plot", "p.png"),
+          (["fit", "--kind", "all", "--log", "{d}/log.csv", "--out", "{d}/nofolder/all"], "--report", "r.json"),
+          (["predict", "{d}/model.yaml", "--log", "{d}/log.csv"], "--out", "p.csv"),
+          (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv"], "--report", "r.json"),
+          (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv"], "--plot", "p.png"),
+          (["run", "{d}/sim.yaml"], "--json", "r.json"),
+          (["score", "{d}/model.yaml", "--log", "{d}/log.csv"], "--json", "s.json"),
+          (["docs"], "--out", "c.md"),
+      ]],
     # log time: non-finite, absurd, absurd span
     (["replay", "--model", "{d}/model.yaml", "--log", "{d}/t_1e308.csv"], ["t_1e308.csv:31", "t_s"]),
     (["replay", "--model", "{d}/model.yaml", "--log", "{d}/t_inf.csv"], ["t_inf.csv:31", "t_s", "finite"]),
@@ -166,6 +179,7 @@ def test_bad_input_is_exit_2_one_line(files, argv, words):
     for w in words:
         assert w.replace("{d}", str(files)) in lines[0], (w, lines[0])
     assert "cycles" not in proc.stdout  # refused before the loop ran, not after
+    assert not (files / "nofolder").exists()  # nothing written (nor a folder made) before the refusal
 
 
 def test_refused_outputs_are_not_left_behind(files, tmp_path):

@@ -1,8 +1,15 @@
-"""Walks docs/commissioning.md on hil_sim, from an empty folder to a compensated machine.
+"""Walks docs/commissioning.md as written, in an empty folder, from wired sensors to enabled output.
 
-The configs are the guide's own blocks (`<!-- file: NAME -->`), and every command run
-here must appear in the guide as written. The one step the guide leaves to the machine,
-a second day's log to compare models on, comes from `python -m hil_sim log`.
+Every fenced block of the page is taken in order: a ```yaml block after `<!-- file: NAME -->`
+is written to NAME, every ```console block is run line by line (`$ COMMAND`, then the output
+the page shows), except those after `<!-- not run by the test: WHY -->`. A block after
+`<!-- run by the test while the command before it runs -->` runs while the last command of
+the block before it (a `compd run`) is still running. `compd` and `python` are this
+checkout's; the one change to the page's text is the metrics port (9105 → a free port).
+
+The output the page shows is checked line by line: each shown line must be printed, with the
+same words and numbers, except times (a number followed by `us` or `s`), which depend on the
+computer.
 """
 
 from __future__ import annotations
@@ -11,42 +18,99 @@ import csv
 import json
 import os
 import re
+import socket
 import subprocess
 import sys
 import time
-import urllib.request
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
-
-from compd.cli import main
+import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 GUIDE = ROOT / "docs" / "commissioning.md"
+README = ROOT / "README.md"
+CONCURRENT = "run by the test while the command before it runs"
+NOT_RUN = "not run by the test:"
+BLOCK = re.compile(r"(?:<!-- (?P<marker>[^\n]*?) -->\n)?```(?P<lang>[\w-]*)\n(?P<body>.*?)```", re.S)
+NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
+TIME_UNIT = re.compile(r"\s*(us|s)\b")
 
 
-def guide_files() -> dict[str, str]:
-    text = GUIDE.read_text(encoding="utf-8")
-    return dict(re.findall(r"<!-- file: (\S+) -->\n```yaml\n(.*?)```", text, re.S))
+@dataclass
+class Block:
+    marker: str
+    lang: str
+    body: str
+    commands: list[tuple[str, list[str]]] = field(default_factory=list)  # (command, shown output lines)
 
 
-def in_guide(command: str) -> str:
-    assert f"$ {command}\n" in GUIDE.read_text(encoding="utf-8"), f"not in the guide: {command}"
-    return command
+def blocks(path: Path) -> list[Block]:
+    out = []
+    for m in BLOCK.finditer(path.read_text(encoding="utf-8")):
+        b = Block(m["marker"] or "", m["lang"], m["body"])
+        if b.lang == "console":
+            for line in b.body.splitlines():
+                if line.startswith("$ "):
+                    b.commands.append((line[2:], []))
+                elif line.strip():
+                    assert b.commands, f"output before any command in {path.name}: {line}"
+                    b.commands[-1][1].append(line)
+        out.append(b)
+    return out
 
 
-def compd(command: str, cwd: Path, **kw) -> subprocess.CompletedProcess:
-    """Run a guide command line (`compd ...`) as a process, in this checkout."""
-    argv = [sys.executable, "-m", "compd", *in_guide(command).split()[1:]]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=120, **kw)
+def same_line(shown: str, printed: str) -> bool:
+    """The same words and numbers (to the digits shown); times are the computer's."""
+    if NUMBER.sub("#", shown).split() != NUMBER.sub("#", printed).split():
+        return False
+    for m, p in zip(NUMBER.finditer(shown), NUMBER.finditer(printed), strict=True):
+        if TIME_UNIT.match(shown, m.end()):
+            continue
+        digits = len(m[0].partition(".")[2])
+        if abs(float(m[0]) - float(p[0])) > 1.01 * 10.0**-digits:
+            return False
+    return True
 
 
-def cli(command: str, capsys) -> tuple[int, str, str]:
-    """Run a guide command line in process (fast: used while the daemon runs)."""
-    rc = main(in_guide(command).split()[1:])
-    out, err = capsys.readouterr()
-    return rc, out, err
+def check_shown(command: str, shown: list[str], printed: str) -> None:
+    lines = printed.splitlines()
+    for s in shown:
+        assert any(same_line(s, p) for p in lines), f"`{command}`: the page shows\n  {s}\nit printed:\n{printed}"
+
+
+@pytest.fixture()
+def shell(tmp_path: Path) -> Callable[..., Any]:
+    """A shell whose `compd` and `python` are this checkout's, working in an empty folder."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "compd").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m compd "$@"\n')
+    (bin_dir / "python").write_text(f'#!/bin/sh\nexec "{sys.executable}" "$@"\n')
+    for f in bin_dir.iterdir():
+        f.chmod(0o755)
+    work = tmp_path / "work"
+    work.mkdir()
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '/usr/bin:/bin')}",
+           "PYTHONPATH": str(ROOT)}
+    env.pop("RUNTIME_DIRECTORY", None)
+
+    def run(command: str, background: bool = False) -> Any:
+        argv = ["bash", "-o", "pipefail", "-c", command]
+        if background:
+            return subprocess.Popen(argv, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        return subprocess.run(argv, cwd=work, env=env, capture_output=True, text=True, timeout=300)
+
+    run.work = work  # type: ignore[attr-defined]
+    return run
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def read_csv(path: Path) -> dict[str, list[float]]:
@@ -55,138 +119,209 @@ def read_csv(path: Path) -> dict[str, list[float]]:
     return {name: [float(r[i]) for r in rows[1:]] for i, name in enumerate(rows[0])}
 
 
-def wait_for_status(path: Path, pid: int, proc: subprocess.Popen, timeout_s: float = 60) -> dict:
+def wait_running(status_file: Path, proc: subprocess.Popen, timeout_s: float = 120) -> dict:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         assert proc.poll() is None, proc.communicate()
         try:
-            data = json.loads(path.read_text())
-            if data["pid"] == pid and data["state"] == "running" and data["loop"]["cycles"] > 0:
+            data = json.loads(status_file.read_text())
+            if data["state"] == "running" and data["loop"]["cycles"] > 0:
                 return data
         except (OSError, ValueError, KeyError):
             pass
         time.sleep(0.02)
-    raise AssertionError("the daemon never reported running")
+    raise AssertionError(f"the daemon never reported running in {status_file}")
+
+
+# What the walk checks beyond the output the page shows, by the command's start.
+def _warmup(r: subprocess.CompletedProcess, work: Path) -> None:
+    assert "level=info event=start" in r.stderr and "observe=True" in r.stderr
+    assert "level=warning" not in r.stderr, r.stderr  # no sensor_bad no_data at the start
+    log = read_csv(work / "warmup.csv")
+    assert {"t_s", "T_xi", "T_amb", "speed_rpm", "err_z_um", "pred_z_um", "applied_z_um", "word"} <= set(log)
+    assert set(log["applied_z_um"]) == {0.0}, "observe mode applied a correction"
+    assert max(log["pred_z_um"]) > 10.0 and max(log["err_z_um"]) > 10.0 and max(log["word"]) > 0
+    assert log["t_s"][-1] >= 14000
+
+
+def _fit(r: subprocess.CompletedProcess, work: Path) -> None:
+    model = yaml.safe_load((work / "model.yaml").read_text())
+    assert model["kind"] == "xi_spindle" and model["inputs"] == ["T_xi", "speed_rpm"] and model["outputs"] == ["z"]
+    report = json.loads((work / "fit.json").read_text())
+    assert report["axes"]["z"]["rmse_um"] == pytest.approx(model["fit"]["rmse_um"]["z"])
+    assert "baseline_mlr" in report
+    # the page's figure for the fit without the speed (no lift)
+    from compd import fitting
+
+    quoted = re.search(r"without it, ([\d.]+) µm here", " ".join(GUIDE.read_text(encoding="utf-8").split()))
+    oc = fitting.fit_model("xi_spindle", fitting.read_fit_log(work / "warmup.csv"), ["T_xi"], ["err_z_um"], {},
+                           baseline=False)
+    assert quoted and abs(oc.report["axes"]["z"]["rmse_um"] - float(quoted[1])) <= 0.0051, quoted
+
+
+def _score(r: subprocess.CompletedProcess, work: Path) -> None:
+    rep = json.loads((work / "score.json").read_text())
+    z = rep["axes"]["z"]
+    assert z["rows"] == len(read_csv(work / "day2.csv")["t_s"])
+    assert f"RMS {z['rms_before_um']:.2f} -> {z['rms_after_um']:.2f} um" in r.stdout
+    b = rep["baseline_mlr"]["axes"]["z"]
+    assert b["model_rmse_um"] < b["mlr_held_out_rmse_um"]  # the physics model beats the baseline
+    assert "warning" not in r.stderr
+
+
+def _replay(r: subprocess.CompletedProcess, work: Path) -> None:
+    rep = json.loads((work / "replay.json").read_text())
+    day2 = read_csv(work / "day2.csv")
+    assert rep["rows"] == len(day2["t_s"]) and rep["codes_sent"] > 5
+    assert rep["axes"]["z"]["reduction_pct"] > 90 and rep["saturated"] == 0
+    assert not any(k.startswith(("fault", "bad")) for k in rep["faults"]), rep["faults"]
+
+
+def _compensate(r: subprocess.CompletedProcess, work: Path) -> None:
+    before, after = map(float, re.search(r"without compensation ([\d.]+) um, with ([\d.]+) um", r.stdout).groups())
+    assert after < 0.2 * before, r.stdout
+    assert "level=warning" not in r.stderr, r.stderr
+    assert min(read_csv(work / "compensated.csv")["applied_z_um"]) < -10.0  # corrections reached the card
+
+
+def _status_observe(r: subprocess.CompletedProcess, work: Path) -> None:
+    assert "OBSERVE MODE" in r.stdout and "(on the output: 0x0000)" in r.stdout
+
+
+def _status(r: subprocess.CompletedProcess, work: Path) -> None:
+    if r.stdout.startswith("{"):
+        status = json.loads(r.stdout)
+        assert status["alive"] is True and status["observe"] is False and status["sink"]["kind"] == "pci1756"
+    else:
+        assert r.stdout.startswith("compd running") and "OBSERVE" not in r.stdout
+        assert re.search(r"^z .* (starting|normal) +hold", r.stdout, re.M)
+        assert re.search(r"^T_xi +[\d.]+ good", r.stdout, re.M)
+
+
+def _metrics(r: subprocess.CompletedProcess, work: Path) -> None:
+    assert 'compd_correction_micrometres{axis="z"}' in r.stdout
+
+
+CHECKS: dict[str, Callable[[subprocess.CompletedProcess, Path], None]] = {
+    "compd run machine.yaml": _warmup,
+    "compd status --config machine.yaml": _status_observe,
+    "compd fit --kind xi_spindle": _fit,
+    "compd score model.yaml": _score,
+    "compd replay compensate.yaml": _replay,
+    "compd run compensate.yaml": _compensate,
+    "compd status --config compensate.yaml": _status,
+    "curl ": _metrics,
+}
+
+
+def extra_check(command: str, r: subprocess.CompletedProcess, work: Path, done: set[str]) -> None:
+    for start, check in CHECKS.items():
+        if command.startswith(start):
+            check(r, work)
+            done.add(start)
 
 
 @pytest.mark.slow
-def test_commissioning_walk(tmp_path, capsys, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # an empty folder
-    assert list(tmp_path.iterdir()) == []
-    files = guide_files()
+def test_commissioning_guide_runs_as_written(shell) -> None:
+    work: Path = shell.work
+    assert list(work.iterdir()) == []
+    port = free_port()
+    page = blocks(GUIDE)
+    done: set[str] = set()
+    skipped = [b.marker for b in page if b.lang == "console" and b.marker.startswith(NOT_RUN)]
+    assert len(skipped) <= 3, skipped  # few, and each says why
+    background: tuple[str, list[str], subprocess.Popen] | None = None
+    t0 = time.monotonic()
+    for i, b in enumerate(page):
+        if b.marker.startswith("file: "):
+            (work / b.marker[6:]).write_text(b.body.replace("port: 9105", f"port: {port}"))
+            continue
+        if b.lang != "console" or b.marker.startswith(NOT_RUN):
+            continue
+        assert b.marker in ("", CONCURRENT), f"unknown marker: {b.marker}"
+        nxt = next((n for n in page[i + 1:] if n.lang == "console"), None)
+        for k, (command, shown) in enumerate(b.commands):
+            command = command.replace("9105", str(port))
+            last = k == len(b.commands) - 1
+            if last and nxt is not None and nxt.marker == CONCURRENT:
+                assert command.startswith("compd run "), command
+                proc = shell(command, background=True)
+                cfg = yaml.safe_load((work / command.split()[2]).read_text())
+                wait_running(work / cfg["status"]["path"], proc)
+                background = (command, shown, proc)
+                continue
+            r = shell(command)
+            assert r.returncode == 0, f"`{command}` exited {r.returncode}:\n{r.stdout}\n{r.stderr}"
+            check_shown(command, shown, r.stdout)
+            extra_check(command, r, work, done)
+        if b.marker == CONCURRENT:
+            assert background is not None
+            command, shown, proc = background
+            try:
+                out, err = proc.communicate(timeout=300)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.communicate()
+            r = subprocess.CompletedProcess(command, proc.returncode, out, err)
+            assert r.returncode == 0, f"`{command}` exited {r.returncode}:\n{out}\n{err}"
+            check_shown(command, shown, out)
+            extra_check(command, r, work, done)
+            background = None
+    assert done == set(CHECKS), set(CHECKS) - done  # every command the walk checks is on the page
+    print(f"the guide's commands ran in {time.monotonic() - t0:.1f} s")
 
-    # 1. wire the sensors: the observe-mode config, checked
-    (tmp_path / "machine.yaml").write_text(files["machine.yaml"])
-    assert cli("compd check-config machine.yaml", capsys)[:2] == (0, "ok\n")
 
-    # 2. a warm-up day in observe mode
-    r = compd("compd run machine.yaml", tmp_path)
-    assert r.returncode == 0, r.stderr
-    assert "observe mode: the output was held disabled" in r.stdout
-    summary = re.search(r"RMS error without compensation ([\d.]+) um, with ([\d.]+) um", r.stdout)
-    assert summary and summary[1] == summary[2] and float(summary[1]) > 5.0
-    assert "level=info event=start" in r.stderr and "observe=True" in r.stderr
-    log = read_csv(tmp_path / "warmup.csv")
-    assert {"t_s", "T_xi", "T_amb", "speed_rpm", "err_z_um", "pred_z_um", "applied_z_um", "word"} <= set(log)
-    assert set(log["applied_z_um"]) == {0.0}, "observe mode applied a correction"
-    assert max(log["pred_z_um"]) > 10.0 and max(log["err_z_um"]) > 10.0
-    assert max(log["word"]) > 0  # the loop did compute words: they were held back
-    assert log["t_s"][-1] >= 14000
-    rc, out, err = cli("compd status --config machine.yaml", capsys)
-    assert rc == 1 and "stopped" in err  # the run is over; its last status stays readable
-    assert "OBSERVE MODE" in out and "(on the output: 0x0000)" in out
+SYNOPSIS = "synopsis:"
+SHELL_START = ("compd ", "python -m ", "make ", "sudo ", "$ ")
 
-    # 3. fit the model on the warm-up log
-    r = compd("compd fit --kind xi_spindle --log warmup.csv --inputs T_xi --target err_z_um --out model.yaml --report fit.json", tmp_path)
-    assert r.returncode == 0, r.stderr
-    import yaml
 
-    model = yaml.safe_load((tmp_path / "model.yaml").read_text())
-    assert model["kind"] == "xi_spindle" and model["inputs"] == ["T_xi"] and model["outputs"] == ["z"]
-    assert model["fit"]["rows"] == len(log["t_s"])
-    fit_rmse = model["fit"]["rmse_um"]["z"]
-    assert 0 < fit_rmse < 1.5
-    fit_report = json.loads((tmp_path / "fit.json").read_text())
-    assert fit_report["axes"]["z"]["rmse_um"] == pytest.approx(fit_rmse)
+def test_page_marks_are_known() -> None:
+    """Every block of commands in the guide and in the README is run (or checked, for a
+    synopsis), or marked with why not."""
+    for path in (GUIDE, README):
+        for b in blocks(path):
+            commands = any(line.startswith(SHELL_START) for line in b.body.splitlines())
+            if b.lang == "console" or (commands and b.lang == ""):
+                known = b.marker in ("", CONCURRENT) if b.lang == "console" else b.marker.startswith(SYNOPSIS)
+                assert known or b.marker.startswith(NOT_RUN), (path.name, b.marker, b.body[:80])
+            if b.marker.startswith(NOT_RUN):
+                assert len(b.marker) > len(NOT_RUN) + 5, f"{path.name}: say why the test does not run it"
 
-    # 4. compare models: the baseline on the same log, and both on an unseen day.
-    #    On hil_sim, "another day on the machine" is a day the simulator logs:
-    day2 = subprocess.run(
-        [sys.executable, "-m", "hil_sim", "log", "--scenario", str(ROOT / "hil_sim/scenarios/spindle_unseen.yaml"),
-         "--out", "day2.csv", "--rate-s", "30", "--duration-s", "14400"],
-        cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=120,
-    )
-    assert day2.returncode == 0, day2.stderr
-    r = compd("compd fit --kind mlr --log warmup.csv --inputs T_xi T_amb --target err_z_um --out mlr.yaml --report mlr.json", tmp_path)
-    assert r.returncode == 0, r.stderr
-    mlr_report = json.loads((tmp_path / "mlr.json").read_text())
-    assert mlr_report["axes"]["z"]["rmse_um"] > 0
-    r = compd("compd predict model.yaml --log day2.csv --out pred.csv", tmp_path)
-    assert r.returncode == 0, r.stderr
-    pred, unseen = read_csv(tmp_path / "pred.csv"), read_csv(tmp_path / "day2.csv")
-    assert list(pred) == ["t_s", "pred_z_um"] and pred["t_s"] == unseen["t_s"]
-    resid = [p - e for p, e in zip(pred["pred_z_um"], unseen["err_z_um"], strict=True)]
-    rms_err = (sum(e * e for e in unseen["err_z_um"]) / len(resid)) ** 0.5
-    rms_resid = (sum(x * x for x in resid) / len(resid)) ** 0.5
-    assert rms_resid < 0.5 * rms_err  # the physics model carries over to a day it has not seen
 
-    # 5. replay the warm-up log through the enabling config against the software PLC
-    (tmp_path / "compensate.yaml").write_text(files["compensate.yaml"])
-    r = compd("compd replay compensate.yaml --log warmup.csv --report replay.json", tmp_path)
-    assert r.returncode == 0, r.stderr
-    rep = json.loads((tmp_path / "replay.json").read_text())
-    assert rep["rows"] == len(log["t_s"]) and rep["codes_sent"] > 5
-    assert rep["axes"]["z"]["reduction_pct"] > 70 and rep["saturated"] == 0
-    assert rep["axes"]["z"]["rms_before_um"] == pytest.approx(
-        (sum(e * e for e in log["err_z_um"]) / len(log["err_z_um"])) ** 0.5, rel=1e-6
-    )
+def synopsis_commands(body: str) -> list[tuple[str, str]]:
+    """(command with its continuation lines, its comment) of a synopsis block."""
+    out: list[tuple[str, str]] = []
+    for raw in body.splitlines():
+        text, _, comment = raw.partition("#")
+        if raw.startswith(("compd ", "python -m ")):
+            out.append((text.strip(), comment.strip()))
+        elif out and raw.strip():
+            out[-1] = (f"{out[-1][0]} {text.strip()}".strip(), f"{out[-1][1]} {comment.strip()}".strip())
+    return [(c.replace("\\", " "), m) for c, m in out]
 
-    # read the replay of the unseen day: its trend, and the commissioning page with the fit
-    r = compd("compd replay compensate.yaml --log day2.csv --report replay.json --plot replay.png", tmp_path)
-    assert r.returncode == 0, r.stderr
-    assert (tmp_path / "replay.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    rc, out, err = cli("compd report --fit fit.json --replay replay.json --out report.html", capsys)
-    assert (rc, out, err) == (0, "compd report: xi_spindle fit, replay of z, 2 plots -> report.html\n", "")
-    page = (tmp_path / "report.html").read_text()
-    assert page.count('<img src="data:image/png;base64,') == 2 and "compensate.yaml" in page
 
-    # 6. enable the output
-    text = files["compensate.yaml"]
-    assert "port: 9105" in text
-    (tmp_path / "compensate.yaml").write_text(text.replace("port: 9105", "port: 0"))  # any free port
-    assert cli("compd check-config compensate.yaml", capsys)[:2] == (0, "ok\n")
-    argv = [sys.executable, "-m", "compd", *in_guide("compd run compensate.yaml").split()[1:]]
-    proc = subprocess.Popen(
-        argv, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)},
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    try:
-        # 7. watch, while it runs
-        wait_for_status(tmp_path / "status.json", proc.pid, proc)
-        rc, out, _ = cli("compd status --config compensate.yaml", capsys)
-        assert rc == 0 and out.startswith("compd running") and "OBSERVE" not in out
-        assert re.search(r"^z .* (starting|normal) +hold", out, re.M)
-        assert re.search(r"^T_xi +[\d.]+ good", out, re.M)
-        rc, out, _ = cli("compd status --config compensate.yaml --json", capsys)
-        status = json.loads(out)
-        assert rc == 0 and status["alive"] is True and status["observe"] is False
-        assert status["sink"]["kind"] == "pci1756" and "would_write" not in status["sink"]
-        with urllib.request.urlopen(status["metrics_url"], timeout=10) as resp:
-            metrics = resp.read().decode()
-        assert 'compd_correction_micrometres{axis="z"}' in metrics
-        assert "compd_observe_mode 0.0" in metrics
-        out, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert proc.returncode == 0, err
-    before, after = map(float, re.search(r"without compensation ([\d.]+) um, with ([\d.]+) um", out).groups())
-    assert after < 0.2 * before, out
-    comp = read_csv(tmp_path / "compensated.csv")
-    assert min(comp["applied_z_um"]) < -10.0  # corrections reached the (emulated) card
-    rc, out, _ = cli("compd plot compensated.csv --out trend.png --config compensate.yaml", capsys)
-    assert rc == 0 and out == f"compd plot: {len(comp['t_s'])} rows, axes z -> trend.png\n"
-    assert (tmp_path / "trend.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    rc, _, err = cli("compd status --config compensate.yaml", capsys)
-    assert rc == 1 and "stopped" in err
+def test_readme_synopses_match_the_commands(shell) -> None:
+    """The README's command lists: every command exists with every flag shown, every "e.g."
+    example runs and prints what the README says (after `->`)."""
+    checked = 0
+    for b in blocks(README):
+        if not b.marker.startswith(SYNOPSIS):
+            continue
+        for command, comment in synopsis_commands(b.body):
+            words = command.split()
+            sub = words[:4] if words[0] == "python" else words[:2]
+            r = shell(" ".join([*sub, "--help"]))
+            assert r.returncode == 0, (command, r.stderr)
+            for flag in re.findall(r"(?<![\w-])--[a-z][a-z-]*", command):
+                assert flag in r.stdout, f"README: `{' '.join(sub)}` has no {flag}"
+            for example in re.findall(r"e\.g\. ((?:compd|python -m) [^;]*?)(?=$|;|\s+e\.g\.)", comment):
+                cmd, _, expect = example.partition("->")
+                r = shell(cmd.strip())
+                assert r.returncode == 0, (cmd, r.stderr)
+                if expect.strip():
+                    assert " ".join(r.stdout.split()).startswith(" ".join(expect.split())), (example, r.stdout)
+                checked += 1
+            checked += 1
+    assert checked >= 14, checked  # the Commands list and the simulator's log command
+

@@ -41,6 +41,9 @@ def test_demo_reduces_rms_error(tmp_path: Path) -> None:
     # measured 97.2 %: the ξ sensor gives the growth, the speed the centrifugal lift (paper 003 §3.4)
     assert reduction > 95.0
     assert abs(reduction - 100 * (1 - after / before)) < 0.2
+    # the README quotes it: "(about NN % less)"
+    quoted = re.search(r"\(about (\d+) % less\)", (ROOT / "README.md").read_text(encoding="utf-8"))
+    assert quoted and abs(reduction - float(quoted[1])) < 1.0, (quoted and quoted[0], reduction)
     log = read_log(tmp_path / "demo.csv", allow_nan=True)
     assert not np.isnan(log.col("pred_z_um")[1:]).any()  # inputs stayed plausible
     for col in ("t_s", "T_xi", "err_z_um", "pred_z_um", "corr_z_um", "applied_z_um", "word"):

@@ -117,6 +117,11 @@ HELD_OUT_METHOD = (
 )
 
 
+def holdout_edges(n: int) -> np.ndarray:
+    """Row indices bounding the HOLDOUT_BLOCKS time blocks of an n-row log (block k is edges[k]:edges[k+1])."""
+    return np.linspace(0, n, HOLDOUT_BLOCKS + 1).astype(int)
+
+
 def forward_fold_errors(
     log: Log, targets: Sequence[str], fit_on: Callable[[Log], FitResult]
 ) -> list[tuple[np.ndarray, np.ndarray] | str]:
@@ -127,8 +132,7 @@ def forward_fold_errors(
     on block k only. Scoring rows next to training rows would flatter a model that follows the
     temperatures closely; predicting forward does not.
     """
-    n = len(log)
-    edges = np.linspace(0, n, HOLDOUT_BLOCKS + 1).astype(int)
+    edges = holdout_edges(len(log))
     Y = columns(log, targets)
     folds: list[tuple[np.ndarray, np.ndarray] | str] = []
     for k in range(1, HOLDOUT_BLOCKS):
