@@ -399,7 +399,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         result = replay_config(args.config, args.log)
     rep = result.report
     rep["wall_s"] = round(time.perf_counter() - t0, 3)
-    print(f"compd replay: {rep['rows']} rows in {rep['wall_s']:.2f} s, {rep['codes_sent']} codes sent, PLC {rep['plc']}")
+    lim = rep["device_limits"]
+    print(f"compd replay: {rep['rows']} rows in {rep['wall_s']:.2f} s, {rep['codes_sent']} codes sent,"
+          f" device {rep['device']} (resolution {lim['resolution_um']} um, max {lim['max_abs_um']} um)")
     for axis, r in rep["axes"].items():
         print(
             f"axis {axis}: RMS {r['rms_before_um']:.2f} -> {r['rms_after_um']:.2f} um,"

@@ -1,10 +1,13 @@
-"""`compd replay`: a log's signals through model, guard and codec into the PMC software PLC.
+"""`compd replay`: a log's signals through model, guard and codec into the configured sink's virtual device.
 
 The loop runs on simulated time, one cycle per log row (the clock jumps from row to
 row, so a day of 1 Hz log is 86 400 cycles, not 43 million); the guard's slew limit,
 the sink's update rate and the PMC's scans all follow that simulated time. After
-each cycle the PMC is given two scans to act, and the shift it then reports as
-applied is what the report counts: residual = logged error + applied correction.
+each cycle the device is given time to act (the PMC two scans, the NC its IPO
+cycles), and what it then reports as applied is what the report counts: residual =
+logged error + applied correction. A config replays through its own sink's device of
+the software PLC (FANUC PMC, Siemens NC data, PCI-1756 card), with that device's
+resolution and limits; a bare model file through the FANUC PMC, and the report says so.
 """
 
 from __future__ import annotations
@@ -148,10 +151,17 @@ def replay_log(
         "faults": faults,
         "plc": sink.cfg.kind,
         "duration_s": float(t[-1] - t[0]),
+        **device_report(sink),
     }
     if probes:
         report["adaptation"] = adaptation
     return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, applied, words)
+
+
+def device_report(sink: Sink) -> dict[str, Any]:
+    """The report's `device` (what was replayed against) and that device's resolution and limits."""
+    info = sink.device_info()
+    return {"device": info["device"], "device_limits": {k: v for k, v in info.items() if k != "device"}}
 
 
 def copy_model(model: Model) -> Model:
@@ -166,8 +176,9 @@ def _pmc_sink(host: str | None = None) -> FanucPmcSink:
 
 
 def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult:
-    """Replay with a config's model, guard, codec and sink (the PMC in process unless the
-    sink is a fanuc_pmc that names a host); the config's sources are replaced by the log."""
+    """Replay with a config's model, guard, codec and sink: the sink's own device of the
+    software PLC in process (a fanuc_pmc that names a host: that PMC over Modbus TCP); the
+    config's sources are replaced by the log."""
     from compd.config import load_config
     from compd.sinks.fanuc_pmc import FanucPmcSink
 
@@ -175,12 +186,11 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     log = read_log(log_file, allow_nan=True)
     model = build_model(cfg.model)
     sink_cls, sink_cfg, _ = cfg.sink
-    if sink_cls is FanucPmcSink:
-        sink = FanucPmcSink(sink_cfg, base_dir=str(Path(cfg.file).parent))
-    else:
-        sink = _pmc_sink()
+    sink = sink_cls(sink_cfg, base_dir=str(Path(cfg.file).parent))
+    if not isinstance(sink, FanucPmcSink):
+        sink = sink.in_process()
     result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt)
-    host = sink.cfg.host
+    host = sink.cfg.host if isinstance(sink, FanucPmcSink) else None
     result.report["plc"] = f"{host}:{sink.cfg.port}" if host else "in_process"
     return result
 
@@ -200,6 +210,7 @@ def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
     log = read_log(log_file, allow_nan=True)
     result = replay_log(log, model, _pmc_sink())
     result.report["plc"] = "in_process"
+    result.report["device"] += " (the default for a bare model file: replay a config for its own sink)"
     return result
 
 
