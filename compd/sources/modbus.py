@@ -105,6 +105,11 @@ class ModbusChannel(Strict):
     burnout_codes: list[Code] | None = None
     out_of_range_codes: list[Code] | None = None
     status_address: int | None = Field(None, ge=0, le=65535, description="status register")
+    bit: int | None = Field(
+        None, ge=0, le=31,
+        description="read one bit of the register as 0 or 1 (a PMC or PLC signal: inhibit, referenced);"
+        " no scale, offset or fault codes",
+    )
 
 
 class ModbusConfig(SourceConfig):
@@ -167,6 +172,7 @@ class _Channel:
     burnout: frozenset[int]
     out_of_range: frozenset[int]
     status_address: int | None
+    bit: int | None = None
 
 
 def _resolve(cfg: ModbusConfig) -> list[_Channel]:
@@ -186,6 +192,7 @@ def _resolve(cfg: ModbusConfig) -> list[_Channel]:
                 frozenset(cfg.burnout_codes if c.burnout_codes is None else c.burnout_codes),
                 frozenset(cfg.out_of_range_codes if c.out_of_range_codes is None else c.out_of_range_codes),
                 c.status_address,
+                c.bit,
             )
         )
     return out
@@ -294,6 +301,10 @@ class ModbusPoller(OverModbus, Poller):
                 quality[i] = Quality.COMMS_LOST
                 continue
             raw, number = decode_registers(words, ch.data_type, ch.byte_order, ch.word_order)
+            if ch.bit is not None:  # a signal bit: no fault codes in a control register
+                values[i] = float((raw >> ch.bit) & 1)
+                quality[i] = Quality.GOOD
+                continue
             q = Quality.GOOD
             if status & cfg.status_burnout_mask or raw in ch.burnout:
                 q = Quality.BURNOUT
