@@ -419,7 +419,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 @command("output-test")
 def cmd_output_test(args: argparse.Namespace) -> int:
     from compd.config import load_config
-    from compd.outputtest import build_sink, check_request, run_output_test
+    from compd.outputtest import DeviceUnreachable, build_sink, check_request, run_output_test
 
     if (args.config is None) == (args.config_opt is None):
         raise BadInput("give the CONFIG (or --config CONFIG), once", path="CONFIG")
@@ -441,6 +441,9 @@ def cmd_output_test(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         res = run_output_test(cfg, args.axis, args.um, args.hold_s)
+    except DeviceUnreachable as e:
+        print(f"compd output-test: {e}", file=sys.stderr)
+        return 1
     finally:
         signal.signal(signal.SIGTERM, previous)
     if args.json:

@@ -32,6 +32,11 @@ from compd.sinks.base import Sink
 SETTLE_CYCLES = 3  # cycles run after a ramp reached its goal, so the sink delivers the last step
 DEVICE_WAIT_S = 2.0  # then at most this long for the device to report the goal as applied
 SAFE_WAIT_S = 0.5  # after the safe state, before the last read-back (an NC ramps what is left)
+LINK_WAIT_S = 3.0  # the device must answer this soon after the sink opens, or nothing is written
+
+
+class DeviceUnreachable(Exception):
+    """The sink's device did not answer: the test wrote nothing (exit 1)."""
 
 
 class _FixedOffsets:
@@ -197,6 +202,11 @@ def run_output_test(
     clock.start()
     sink.open(clock.now())
     try:
+        t_end = clock.now() + LINK_WAIT_S
+        while sink.link_state() != "up":
+            if clock.now() >= t_end:
+                raise DeviceUnreachable(f"{info['device']} does not answer (link {sink.link_state()}): nothing written")
+            clock.wait_until(clock.now() + 0.05)
         try:
             say(f"output-test: axis {axis} to {um:+.3f} um through {info['device']}, at {slew:g} um/s")
             ramp_to(um)

@@ -119,3 +119,18 @@ def test_cli_output_test_bad_input_is_one_line_exit_2(tmp_path, capsys, argv, ne
     assert main(["output-test", path, *argv]) == 2
     err = capsys.readouterr().err
     assert needle in err and path in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_device_that_does_not_answer_gets_nothing_written(tmp_path, capsys, monkeypatch):
+    import socket
+
+    import compd.outputtest
+
+    monkeypatch.setattr(compd.outputtest, "LINK_WAIT_S", 0.3)
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    path = _config(tmp_path, {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": port}, period_s=0.01)
+    assert main(["output-test", path, "--axis", "z", "--um", "5", "--yes"]) == 1
+    err = capsys.readouterr().err
+    assert f"fanuc_pmc at 127.0.0.1:{port} does not answer" in err and "nothing written" in err
