@@ -178,3 +178,15 @@ def test_pmc_bits_over_modbus_hold_the_axis_and_ramp_at_the_slew(tmp_path: Path)
     assert np.all(np.abs(np.diff(c)) <= SLEW * dt + 1e-9)
     # the ramp down took the slew's time, not one cycle
     assert t[inhibited[-1]] - t[inhibited[0]] >= abs(TARGET_UM) / SLEW - 0.05
+
+
+def test_check_config_names_an_unknown_inhibit_signal(tmp_path: Path, capsys):
+    from compd.cli import main
+
+    text = (Path(__file__).parent.parent / "configs" / "inhibit_fanuc.yaml").read_text()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("{referenced: z_referenced}", "{referenced: z_refd}"))
+    assert main(["check-config", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("inhibit.axes.z.referenced: 'z_refd' is not a signal of any source")
+    assert f"{bad}:" in err and len(err.splitlines()) == 1
