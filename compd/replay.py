@@ -21,7 +21,7 @@ import numpy as np
 
 from compd.adapt import Probe
 from compd.clock import SimClock
-from compd.config import AdaptConfig, CodecConfig, GuardConfig
+from compd.config import AdaptConfig, CodecConfig, Document, GuardConfig
 from compd.errors import BadInput
 from compd.log import Log, read_log
 from compd.models.base import Model
@@ -175,6 +175,19 @@ def _pmc_sink(host: str | None = None) -> FanucPmcSink:
     return FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", host=host))
 
 
+def _check_reachable(host: str, port: int, device_id: int, doc: Document) -> None:
+    """BadInput naming `sink.host` when nothing answers there (a replay would wait on every row)."""
+    from compd.io.modbus_client import ModbusClient
+
+    client = ModbusClient.tcp(host, port, device_id=device_id, timeout_s=1.0)
+    try:
+        if not client.connect():
+            raise doc.error(f"the PMC at {host}:{port} does not answer: start it, or drop host to replay"
+                            " against the PMC in process", ("sink", "host"))
+    finally:
+        client.close()
+
+
 def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult:
     """Replay with a config's model, guard, codec and sink: the sink's own device of the
     software PLC in process (a fanuc_pmc that names a host: that PMC over Modbus TCP); the
@@ -189,6 +202,8 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     sink = sink_cls(sink_cfg, base_dir=str(Path(cfg.file).parent))
     if not isinstance(sink, FanucPmcSink):
         sink = sink.in_process()
+    elif sink.cfg.host is not None:  # a PMC over Modbus TCP: it answers, or the replay does not start
+        _check_reachable(sink.cfg.host, sink.cfg.port, sink.cfg.device_id, cfg.doc)
     result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt)
     host = sink.cfg.host if isinstance(sink, FanucPmcSink) else None
     result.report["plc"] = f"{host}:{sink.cfg.port}" if host else "in_process"

@@ -276,3 +276,19 @@ def test_config_replay_of_a_pci1756_over_modbus_uses_the_card_in_process(tmp_pat
     assert res.report["device"] == "pci1756 card in process"
     assert res.report["device_limits"]["max_abs_um"] == pytest.approx(31.5)
     assert res.applied_um[:, 0].min() == pytest.approx(-31.5)  # the word's full scale at 0.5 µm LSB
+
+
+def test_config_replay_against_a_pmc_that_does_not_answer_is_one_line_exit_2(log_and_model, capsys):
+    """configs/modbus_tcp_fanuc.yaml names a PMC at 127.0.0.1:5021: with nothing there the
+    replay stops at once naming sink.host, instead of waiting on every row."""
+    import socket
+
+    text = Path("configs/modbus_tcp_fanuc.yaml").read_text(encoding="utf-8")
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = Path(log_and_model[0]).parent / "fanuc_absent.yaml"
+    cfg.write_text(text.replace("port: 5021", f"port: {port}"), encoding="utf-8")
+    assert main(["replay", str(cfg), "--log", str(log_and_model[0])]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"{cfg}:" in err and "sink.host: the PMC at 127.0.0.1" in err and len(err.splitlines()) == 1
