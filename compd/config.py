@@ -627,8 +627,8 @@ class InhibitConfig(Strict):
 
     signal: str | None = Field(
         None,
-        description="a signal (any source's: a register bit, `bit` of a modbus channel) that inhibits every"
-        " axis when on (value not 0)",
+        description="a signal (any source's: a register bit, `bit` of a modbus channel, or a coil or discrete"
+        " input of a modbus source with `function: coils`) that inhibits every axis when on (value not 0)",
     )
     invert: bool = Field(
         False, description="the inhibit signals are enables: 0 inhibits, not 0 releases"
