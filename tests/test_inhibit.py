@@ -31,7 +31,9 @@ def _guard_with_hold(slew: float = SLEW) -> Guard:
     return g
 
 
-def test_guard_ramps_a_held_axis_to_zero_at_the_slew_and_back():
+def test_guard_ramps_a_held_axis_to_zero_at_the_slew_and_back(caplog):
+    from compd.service import EventLogger
+
     g = _guard_with_hold()
     pred = np.array([20.0])  # target −20 µm
     t, dt = 0.0, 0.01
@@ -50,6 +52,10 @@ def test_guard_ramps_a_held_axis_to_zero_at_the_slew_and_back():
     assert c[-1] == pytest.approx(-20.0)
     assert [e[2:] for e in g.events] == [("held", "inhibited"), ("released", "inhibited")]
     assert g.get_status()["z"]["inhibit"] is None
+    with caplog.at_level("INFO", logger="compd"):
+        EventLogger(g).flush()
+    assert [r.event for r in caplog.records] == ["axis_held", "axis_released"]
+    assert caplog.records[0].getMessage() == "z held: inhibited"
 
 
 def test_inhibit_reads_bits_fail_safe_and_names_unknown_signals():
