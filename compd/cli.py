@@ -418,14 +418,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 @command("output-test")
 def cmd_output_test(args: argparse.Namespace) -> int:
+    from compd import outputtest as ot
     from compd.config import load_config
-    from compd.outputtest import DeviceUnreachable, build_sink, check_request, run_output_test
 
     if (args.config is None) == (args.config_opt is None):
         raise BadInput("give the CONFIG (or --config CONFIG), once", path="CONFIG")
     cfg = load_config(args.config or args.config_opt)
-    sink, _, word_axes = build_sink(cfg)
-    check_request(cfg, sink, word_axes, args.axis, args.um)  # before asking
+    sink, _, word_axes = ot.build_sink(cfg)
+    ot.check_request(cfg, sink, word_axes, args.axis, args.um)  # before asking
+    busy = ot.running_daemon(cfg)
+    if busy:
+        print(f"compd output-test: {busy}", file=sys.stderr)
+        return 1
     if not args.yes:
         if not sys.stdin.isatty():
             raise BadInput("writes a correction to the machine: confirm on a terminal, or give --yes",
@@ -440,8 +444,8 @@ def cmd_output_test(args: argparse.Namespace) -> int:
 
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        res = run_output_test(cfg, args.axis, args.um, args.hold_s)
-    except DeviceUnreachable as e:
+        res = ot.run_output_test(cfg, args.axis, args.um, args.hold_s)
+    except ot.DeviceUnreachable as e:
         print(f"compd output-test: {e}", file=sys.stderr)
         return 1
     finally:

@@ -129,6 +129,25 @@ def check_request(cfg: Config, sink: Sink, word_axes: list[str], axis: str, um: 
         raise BadInput("give a correction other than 0", path="--um", file=cfg.file)
 
 
+def running_daemon(cfg: Config) -> str | None:
+    """Why a daemon of this config seems to hold the sink's device now (its status file is
+    fresh, its process exists), or None: the test must not write beside a running loop."""
+    from compd.service import status_path
+    from compd.status import DEFAULT_PATH, liveness, read_status
+
+    found = status_path(cfg, env={})
+    stem = Path(cfg.file).stem
+    path = found or Path(DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json")
+    if not path.is_file():
+        return None
+    try:
+        data = read_status(path)
+        alive, _ = liveness(data)
+    except (BadInput, TypeError, ValueError):
+        return None
+    return f"a daemon of this config is running (pid {data.get('pid')}, {path}): stop it first" if alive else None
+
+
 def run_output_test(
     cfg: Config,
     axis: str,

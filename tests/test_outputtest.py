@@ -134,3 +134,25 @@ def test_a_device_that_does_not_answer_gets_nothing_written(tmp_path, capsys, mo
     assert main(["output-test", path, "--axis", "z", "--um", "5", "--yes"]) == 1
     err = capsys.readouterr().err
     assert f"fanuc_pmc at 127.0.0.1:{port} does not answer" in err and "nothing written" in err
+
+
+def test_refuses_beside_a_running_daemon_of_the_config(tmp_path, capsys):
+    import os
+    import time
+
+    path = _config(tmp_path, {"kind": "fanuc_pmc"})
+    from compd.status import SCHEMA
+
+    with open(path, encoding="utf-8") as fh:
+        doc = yaml.safe_load(fh)
+    doc["status"] = {"path": "status.json"}
+    with open(path, "w", encoding="utf-8") as fh:
+        yaml.safe_dump(doc, fh)
+    status = {"schema": SCHEMA, "pid": os.getpid(),
+              "state": "running", "written_unix_s": time.time(), "status_period_s": 1.0}
+    (tmp_path / "status.json").write_text(json.dumps(status))
+    assert main(["output-test", path, "--axis", "z", "--um", "5", "--yes"]) == 1
+    assert "a daemon of this config is running" in capsys.readouterr().err
+    status["state"] = "stopped"
+    (tmp_path / "status.json").write_text(json.dumps(status))
+    assert main(["output-test", path, "--axis", "z", "--um", "5", "--hold-s", "0.1", "--yes"]) == 0
