@@ -400,8 +400,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     rep = result.report
     rep["wall_s"] = round(time.perf_counter() - t0, 3)
     lim = rep["device_limits"]
+    clamp = "no clamp of its own" if lim["max_abs_um"] is None else f"max {lim['max_abs_um']:g} um"
     print(f"compd replay: {rep['rows']} rows in {rep['wall_s']:.2f} s, {rep['codes_sent']} codes sent,"
-          f" device {rep['device']} (resolution {lim['resolution_um']} um, max {lim['max_abs_um']} um)")
+          f" device {rep['device']} (resolution {lim['resolution_um']:g} um, {clamp})")
     for axis, r in rep["axes"].items():
         print(
             f"axis {axis}: RMS {r['rms_before_um']:.2f} -> {r['rms_after_um']:.2f} um,"

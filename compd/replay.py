@@ -199,11 +199,11 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     log = read_log(log_file, allow_nan=True)
     model = build_model(cfg.model)
     sink_cls, sink_cfg, _ = cfg.sink
+    if sink_cls is not FanucPmcSink:  # the sink's own device, in process
+        sink_cfg = sink_cls.in_process_config(sink_cfg)
+    elif sink_cfg.host is not None:  # a PMC over Modbus TCP: it answers, or the replay does not start
+        _check_reachable(sink_cfg.host, sink_cfg.port, sink_cfg.device_id, cfg.doc)
     sink = sink_cls(sink_cfg, base_dir=str(Path(cfg.file).parent))
-    if not isinstance(sink, FanucPmcSink):
-        sink = sink.in_process()
-    elif sink.cfg.host is not None:  # a PMC over Modbus TCP: it answers, or the replay does not start
-        _check_reachable(sink.cfg.host, sink.cfg.port, sink.cfg.device_id, cfg.doc)
     result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt)
     host = sink.cfg.host if isinstance(sink, FanucPmcSink) else None
     result.report["plc"] = f"{host}:{sink.cfg.port}" if host else "in_process"

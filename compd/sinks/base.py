@@ -99,10 +99,11 @@ class Sink(ABC):
     def close(self) -> None:
         """Release the device (after `safe`)."""
 
-    def in_process(self) -> Sink:
-        """This sink on its own device of the software PLC in this process, with the same
-        layout, resolution and limits (replay; `self` when it already is in process)."""
-        return self
+    @classmethod
+    def in_process_config(cls, cfg: SinkConfig) -> SinkConfig:
+        """`cfg` for this sink's own device of the software PLC in this process, with the
+        same layout, resolution and limits (replay); `cfg` when it is in process already."""
+        return cfg
 
     def device_info(self) -> dict[str, Any]:
         """What device this sink drives and how finely and how far it can move an axis:

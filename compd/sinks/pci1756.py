@@ -178,11 +178,10 @@ class Pci1756Sink(Sink):
         if out.shape[0] > 1:
             out[1] = c2
 
-    def in_process(self) -> Pci1756Sink:
-        """The software PLC's card in process, with this sink's word port, strobe and heartbeat."""
-        if self.cfg.device == "emulated":
-            return self
-        return Pci1756Sink(self.cfg.model_copy(update={"device": "emulated"}), self.base_dir)
+    @classmethod
+    def in_process_config(cls, cfg: SinkConfig) -> SinkConfig:
+        """The software PLC's card in process, with this section's word port, strobe and heartbeat."""
+        return cfg.model_copy(update={"device": "emulated"})
 
     def device_info(self) -> dict[str, Any]:
         """The word on the DO lines: the codec's LSB, full scale 63 LSB, no rate limit of its own."""

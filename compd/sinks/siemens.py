@@ -163,11 +163,10 @@ class SiemensSink(Sink):
     def flush(self, timeout_s: float) -> bool:
         return self.link is None or self.link.drain(timeout_s)
 
-    def in_process(self) -> SiemensSink:
-        """The software PLC's NC in process with this sink's axes, IPO cycle and MD32760."""
-        if self.cfg.host is None:
-            return self
-        return SiemensSink(self.cfg.model_copy(update={"host": None}), self.base_dir)
+    @classmethod
+    def in_process_config(cls, cfg: SinkConfig) -> SinkConfig:
+        """The software PLC's NC in process, with this section's axes, IPO cycle and MD32760."""
+        return cfg.model_copy(update={"host": None})
 
     def device_info(self) -> dict[str, Any]:
         """K0 is a float32 in mm (no word, no ±63 LSB): a change reaches the NC once it is
