@@ -21,7 +21,7 @@ import numpy as np
 
 from compd.adapt import Probe
 from compd.clock import SimClock
-from compd.config import AdaptConfig, CodecConfig, Document, GuardConfig
+from compd.config import AdaptConfig, CodecConfig, Document, GuardConfig, InhibitConfig
 from compd.errors import BadInput
 from compd.log import Log, read_log
 from compd.models.base import Model
@@ -66,13 +66,15 @@ def replay_log(
     codec_cfg: CodecConfig | None = None,
     adapt_cfg: AdaptConfig | None = None,
     use_probes: bool = True,
+    inhibit_cfg: InhibitConfig | None = None,
 ) -> ReplayResult:
     """Run every row of `log` through model → guard → codec → sink (the PLC).
 
     A log with `probe_<axis>_um` columns hands each probe to the adapter at its row, as a
     running daemon's probe source would (`adapt_cfg`, or the defaults when the config has
     none); the report then also gives each axis `without_adaptation`: the same replay with
-    the probes ignored (the model alone)."""
+    the probes ignored (the model alone). With `inhibit_cfg` the log's inhibit and
+    referenced columns hold the axes off as they held the machine's."""
     if len(log) == 0:
         raise BadInput("the log has no rows", file=log.file)
     probes = probe_columns(log, list(model.outputs)) if use_probes else {}
@@ -81,13 +83,15 @@ def replay_log(
     plain = None
     if probes:  # the model alone, on a fresh sink of the same kind: the report's without_adaptation
         fresh = type(sink)(sink.cfg, sink.base_dir)
-        plain = replay_log(log, copy_model(model), fresh, guard_cfg, codec_cfg, None, use_probes=False)
+        plain = replay_log(log, copy_model(model), fresh, guard_cfg, codec_cfg, None, use_probes=False,
+                           inhibit_cfg=inhibit_cfg)
     source = ReplaySource(ReplayConfig(kind="replay", name="log", path=log.file), log=log)
     clock = SimClock(float(log.t_s[0]))
     try:
         loop = build_pipeline(
             sources=[source], model=model, sink=sink, clock=clock, period_s=1.0,
             guard_cfg=guard_cfg, codec_cfg=codec_cfg, adapt_cfg=adapt_cfg if probes else None,
+            inhibit_cfg=inhibit_cfg,
         ).loop
     except BadInput as e:
         raise BadInput(e.message, file=log.file, path=e.keys) from None
@@ -175,6 +179,12 @@ def _pmc_sink(host: str | None = None) -> FanucPmcSink:
     return FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", host=host))
 
 
+def inhibit_signals(cfg: InhibitConfig) -> list[str]:
+    """Every signal the inhibit section names (inhibit and referenced)."""
+    names = [cfg.signal] + [n for ax in cfg.axes.values() for n in (ax.signal, ax.referenced)]
+    return [n for n in names if n is not None]
+
+
 def _check_reachable(host: str, port: int, device_id: int, doc: Document) -> None:
     """BadInput naming `sink.host` when nothing answers there (a replay would wait on every row)."""
     from compd.io.modbus_client import ModbusClient
@@ -204,7 +214,13 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     elif sink_cfg.host is not None:  # a PMC over Modbus TCP: it answers, or the replay does not start
         _check_reachable(sink_cfg.host, sink_cfg.port, sink_cfg.device_id, cfg.doc)
     sink = sink_cls(sink_cfg, base_dir=str(Path(cfg.file).parent))
-    result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt)
+    inhibit = cfg.top.inhibit
+    held = inhibit_signals(inhibit) if inhibit is not None else []
+    use_inhibit = bool(held) and all(name in log.columns for name in held)
+    result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt,
+                        inhibit_cfg=inhibit if use_inhibit else None)
+    if held:
+        result.report["inhibit"] = "from the log" if use_inhibit else "not in the log: never held off"
     host = sink.cfg.host if isinstance(sink, FanucPmcSink) else None
     result.report["plc"] = f"{host}:{sink.cfg.port}" if host else "in_process"
     return result

@@ -196,3 +196,40 @@ def test_check_config_names_an_unknown_inhibit_signal(tmp_path: Path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.endswith("inhibit.axes.z.referenced: 'z_refd' is not a signal of any source")
     assert f"{bad}:" in err and len(err.splitlines()) == 1
+
+
+def test_replay_holds_off_where_the_log_says_the_machine_did(tmp_path: Path):
+    """A log with the inhibit column: the replay ramps the correction to 0 at the slew where
+    the machine inhibited it and back after; a log without it is replayed never held off."""
+    from compd.log import write_log
+    from compd.replay import replay_config
+
+    n = 400
+    t = np.arange(n, dtype=float)
+    temp = np.full(n, 30.0)
+    inhibit = ((t >= 100) & (t < 200)).astype(float)
+    err = np.full(n, -TARGET_UM)
+    write_log(tmp_path / "held.csv", ["t_s", "T_xi", "cnc_inhibit", "err_z_um"], np.column_stack([t, temp, inhibit, err]))
+    write_log(tmp_path / "plain.csv", ["t_s", "T_xi", "err_z_um"], np.column_stack([t, temp, err]))
+    doc = {
+        "sources": [{"kind": "replay", "name": "log", "path": "held.csv"}],
+        "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
+                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0}},
+        "guard": {"max_slew_um_per_s": 2.0},
+        "inhibit": {"signal": "cnc_inhibit", "stale_after_s": 5.0},
+        "sink": {"kind": "siemens"},
+    }
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(yaml.safe_dump(doc))
+    res = replay_config(cfg, tmp_path / "held.csv")
+    assert res.report["inhibit"] == "from the log"
+    c = res.applied_um[:, 0]
+    assert c[99] == pytest.approx(TARGET_UM, abs=0.1)
+    assert abs(c[199]) < 1e-6  # 22.4 µm at 2 µm/s: held at 0 well before the release
+    assert c[-1] == pytest.approx(TARGET_UM, abs=0.1)
+    assert np.max(np.abs(np.diff(c))) <= 2.0 * 1.0 + 1e-6  # never faster than the slew, row to row
+    plain = replay_config(cfg, tmp_path / "plain.csv")
+    assert plain.report["inhibit"] == "not in the log: never held off"
+    assert plain.applied_um[150, 0] == pytest.approx(TARGET_UM, abs=0.1)
+    # the held rows count uncompensated: a worse score than the replay never held off
+    assert res.report["axes"]["z"]["rms_after_um"] > plain.report["axes"]["z"]["rms_after_um"] + 5.0
