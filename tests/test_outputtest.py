@@ -156,3 +156,17 @@ def test_refuses_beside_a_running_daemon_of_the_config(tmp_path, capsys):
     status["state"] = "stopped"
     (tmp_path / "status.json").write_text(json.dumps(status))
     assert main(["output-test", path, "--axis", "z", "--um", "5", "--hold-s", "0.1", "--yes"]) == 0
+
+
+def test_an_interrupt_ramps_back_to_zero_at_the_slew(tmp_path):
+    """Ctrl-C (or SIGTERM, which the CLI turns into it) after the ramp up: back to zero at the
+    slew, then the safe state; the result says it was interrupted."""
+    def say(text: str) -> None:
+        if text.startswith("  ramped up"):
+            raise KeyboardInterrupt
+
+    cfg = load_config(_config(tmp_path, {"kind": "fanuc_pmc"}))
+    res = run_output_test(cfg, "z", -6.0, hold_s=5.0, say=say)
+    assert res.interrupted and res.applied_after_um == 0.0
+    assert not res.matches(res.resolution_um)  # no read-back during a hold that never ran
+    _assert_ramps_at_the_slew(res)
