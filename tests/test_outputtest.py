@@ -103,6 +103,9 @@ def test_cli_output_test_with_yes_prints_commanded_and_applied(tmp_path, capsys)
     rep = json.loads(out.read_text())
     assert rep["applied_um"] == 3.0 and rep["matches"] is True
     assert rep["max_step_um"] <= 20.0 * 0.002 + 1e-9
+    # the contract's spelling: --config CONFIG
+    assert main(["output-test", "--config", path, "--axis", "z", "--um", "-2", "--hold-s", "0.5", "--yes"]) == 0
+    assert "commanded -2.000 um, applied -2.000 um: ok" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
