@@ -194,6 +194,7 @@ class App:
                 codec_cfg=top.codec,
                 observe=self.observe,
                 adapt_cfg=top.adapt,
+                inhibit_cfg=top.inhibit,
             )
         except BadInput as e:
             raise cfg.doc.error(e.message, e.keys) from None

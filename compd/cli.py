@@ -429,7 +429,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         result = replay_config(args.config, args.log)
     rep = result.report
     rep["wall_s"] = round(time.perf_counter() - t0, 3)
-    print(f"compd replay: {rep['rows']} rows in {rep['wall_s']:.2f} s, {rep['codes_sent']} codes sent, PLC {rep['plc']}")
+    lim = rep["device_limits"]
+    clamp = "no clamp of its own" if lim["max_abs_um"] is None else f"max {lim['max_abs_um']:g} um"
+    print(f"compd replay: {rep['rows']} rows in {rep['wall_s']:.2f} s, {rep['codes_sent']} codes sent,"
+          f" device {rep['device']} (resolution {lim['resolution_um']:g} um, {clamp})")
     for axis, r in rep["axes"].items():
         print(
             f"axis {axis}: RMS {r['rms_before_um']:.2f} -> {r['rms_after_um']:.2f} um,"
@@ -473,6 +476,49 @@ def cmd_report(args: argparse.Namespace) -> int:
         if f.png is None:
             print(f"compd: {f.caption}: {f.why_not}", file=sys.stderr)
     return 0
+
+
+@command("output-test")
+def cmd_output_test(args: argparse.Namespace) -> int:
+    from compd import outputtest as ot
+    from compd.config import load_config
+
+    if (args.config is None) == (args.config_opt is None):
+        raise BadInput("give the CONFIG (or --config CONFIG), once", path="CONFIG")
+    cfg = load_config(args.config or args.config_opt)
+    sink, _, word_axes = ot.build_sink(cfg)
+    ot.check_request(cfg, sink, word_axes, args.axis, args.um)  # before asking
+    busy = ot.running_daemon(cfg)
+    if busy:
+        print(f"compd output-test: {busy}", file=sys.stderr)
+        return 1
+    if not args.yes:
+        if not sys.stdin.isatty():
+            raise BadInput("writes a correction to the machine: confirm on a terminal, or give --yes",
+                           path="--yes", file=cfg.file)
+        answer = input(f"Write {args.um:+g} um on axis {args.axis} through {sink.device_info()['device']}? [y/N] ")
+        if answer.strip().lower() not in ("y", "yes"):
+            print("compd output-test: not confirmed, nothing written")
+            return 1
+
+    def _interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt  # SIGTERM as Ctrl-C: ramp back to zero at the slew, then the safe state
+
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        res = ot.run_output_test(cfg, args.axis, args.um, args.hold_s)
+    except ot.DeviceUnreachable as e:
+        print(f"compd output-test: {e}", file=sys.stderr)
+        return 1
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if args.json:
+        with writing(args.json, "--json"), open(args.json, "w", encoding="utf-8") as fh:
+            json.dump(res.as_dict(), fh, indent=2)
+    ok = res.matches(res.resolution_um) and not res.interrupted
+    print(f"compd output-test: commanded {res.commanded_um:+.3f} um, applied {res.applied_um:+.3f} um:"
+          f" {'ok' if ok else 'MISMATCH'}; now check the axis moved the way the sign says")
+    return 0 if ok else 1
 
 
 @command("status")
@@ -721,6 +767,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--log", required=True, metavar="LOG.csv")
     s.add_argument("--report", default=None, metavar="REPORT.json")
     s.add_argument("--plot", default=None, metavar="FILE.png")
+
+    s = sub.add_parser(
+        "output-test", help="write a known correction through the configured sink, read it back, ramp to 0",
+        description="Write a known correction through the configured sink at the guard's slew, hold it, read back"
+                    " what the device applied and ramp back to zero: the sign check of commissioning.",
+        epilog="example:\n  compd output-test machine.yaml --axis z --um 5 --hold-s 5",
+    )
+    s.add_argument("config", nargs="?", default=None, metavar="CONFIG")
+    s.add_argument("--config", default=None, dest="config_opt", metavar="CONFIG", help="the config (or positional)")
+    s.add_argument("--axis", required=True, metavar="AX", help="the axis (one the sink drives)")
+    s.add_argument("--um", required=True, type=finite, metavar="U", help="the correction, um (within guard.max_abs_um)")
+    s.add_argument("--hold-s", type=positive, default=5.0, dest="hold_s", metavar="S", help="hold it this long (default 5)")
+    s.add_argument("--yes", action="store_true", help="do not ask (scripts); without a terminal it is required")
+    s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON")
 
     s = sub.add_parser(
         "plot", help="trend of a daemon's data log: inputs, error, commanded and applied correction, bands",

@@ -185,6 +185,10 @@ class Encoder:
             self._rate_lsb_per_s[i] = slew[i] / self.lsb_um
             self._one_a_cycle[i] = self._rate_lsb_per_s[i] * period_s < 1.0
 
+    def settled(self, i: int) -> bool:
+        """Axis `i` (0 high byte, 1 low byte) is not walking toward a goal."""
+        return not self._moving[i]
+
     def reset(self) -> None:
         """Forget the held codes (the word walks up again from 0x0000)."""
         self.word = 0

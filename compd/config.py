@@ -606,6 +606,42 @@ class AdaptConfig(Strict):
     )
 
 
+class InhibitAxisConfig(Strict):
+    """One axis's own signals from the machine."""
+
+    signal: str | None = Field(
+        None, description="a signal (any source's) that inhibits this axis when on, beside inhibit.signal"
+    )
+    referenced: str | None = Field(
+        None,
+        description="a signal that is on once the axis is referenced; until then (and whenever it is off"
+        " or bad) the axis waits at 0 (`waiting for reference`)",
+    )
+
+
+class InhibitConfig(Strict):
+    """Compensation held off from the machine: an inhibit bit, and per axis a reference bit.
+
+    A held axis ramps its correction to 0 at its slew limit (never a step) and ramps back
+    to the model's correction at the same slew once released. A signal that is not good
+    (comms lost, stale) counts as inhibiting, a bad reference signal as not referenced."""
+
+    signal: str | None = Field(
+        None,
+        description="a signal (any source's: a register bit, `bit` of a modbus channel, or a coil or discrete"
+        " input of a modbus source with `function: coils`) that inhibits every axis when on (value not 0)",
+    )
+    invert: bool = Field(
+        False, description="the inhibit signals are enables: 0 inhibits, not 0 releases"
+    )
+    stale_after_s: float = Field(
+        1.0, gt=0, le=3600, description="an inhibit or reference sample older than this counts as bad"
+    )
+    axes: dict[str, InhibitAxisConfig] = Field(
+        default_factory=dict, description="per axis (a model output): its own inhibit and reference signals"
+    )
+
+
 class StateConfig(Strict):
     """Where model state (AR memory, T0 references) is persisted."""
 
@@ -663,6 +699,9 @@ class ConfigModel(Strict):
     logging: LoggingConfig = Field(LoggingConfig(), description="event log lines")
     adapt: AdaptConfig | None = Field(
         None, description="probe-updated compensation (compd.adapt, the section adapt); none = the model alone"
+    )
+    inhibit: InhibitConfig | None = Field(
+        None, description="the machine's inhibit and axis-referenced signals; none = never held off"
     )
 
 
@@ -902,6 +941,12 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
             raise doc.error(
                 f"{axis!r} is not an output of the model ({', '.join(model.outputs)})",
                 ("codec", "axes", i),
+            )
+    for axis in top.inhibit.axes if top.inhibit is not None else {}:
+        if axis not in model.outputs:
+            raise doc.error(
+                f"{axis!r} is not an output of the model ({', '.join(model.outputs)})",
+                ("inhibit", "axes", axis),
             )
     for axis in top.guard.axes:
         if axis not in model.outputs:

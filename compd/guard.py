@@ -7,6 +7,9 @@ faster than the slew limit, or — when an input the axis needs is bad — appli
 axis's fault policy: `hold` the last correction, `ramp_to_zero` at a set rate, or
 `disable` (enable bit off). Recovery waits until the inputs have been good for
 `recovery_s` and then slews from wherever the output is, so nothing ever steps.
+An axis the machine holds off (`hold`, set each cycle by compd.inhibit: inhibited, or
+waiting for its reference) targets zero at its slew limit, whatever its state, and
+slews back to its target once released.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import numpy as np
 
 from compd.config import GuardConfig
 from compd.frame import QUALITY_NAMES, Frame, Quality
+from compd.inhibit import HOLD_NAMES
 
 GOOD = int(Quality.GOOD)
 STALE = int(Quality.STALE)
@@ -66,6 +70,10 @@ class Guard:
         self.enable = np.zeros(n, dtype=bool)
         self.target_um = np.zeros(n)
         self.state = np.full(n, STARTING, dtype=np.uint8)
+        # why the machine holds an axis off this cycle (compd.inhibit: 0 none, 1 inhibited,
+        # 2 waiting for reference); written before `update`, which ramps a held axis to 0
+        self.hold = np.zeros(n, dtype=np.uint8)
+        self._held = np.zeros(n, dtype=np.uint8)
         self._good_since = np.full(n, math.nan)
         self._last_t = math.nan
         self.dt_s = 0.0  # the time the last update licensed (what the codec may spend too)
@@ -255,7 +263,19 @@ class Guard:
         self._last_t = now_s
         self.dt_s = dt
         recovery_s = self._recovery_s
+        hold, held = self.hold, self._held
         for a in range(self._n_axes):
+            if hold[a] != held[a]:
+                self._hold_event(now_s, a, int(hold[a]), int(held[a]))
+                held[a] = hold[a]
+            if hold[a]:  # held off by the machine: to 0 at the slew, never a step
+                self.target_um[a] = 0.0
+                out = float(self.out_um[a])
+                step = self._slew[a] * dt
+                out = out - step if out > step else (out + step if out < -step else 0.0)
+                self.out_um[a] = out
+                self.enable[a] = out != 0.0
+                continue
             p = float(pred_um[a])
             good = inputs_ok and math.isfinite(p)
             lim = self._max_abs[a]
@@ -299,6 +319,12 @@ class Guard:
                 # hold: out unchanged
             self.out_um[a] = out
 
+    def _hold_event(self, now_s: float, a: int, hold: int, was: int) -> None:
+        if hold:
+            self._event(now_s, self.axes[a], "held", str(HOLD_NAMES[hold]))
+        else:
+            self._event(now_s, self.axes[a], "released", str(HOLD_NAMES[was]))
+
     def safe(self) -> None:
         self.out_um[:] = 0.0
         self.enable[:] = False
@@ -312,6 +338,7 @@ class Guard:
                 "state": STATE_NAMES[int(self.state[i])],
                 "policy": POLICIES[self.policy[i]],
                 "degraded": self.degraded,
+                "inhibit": HOLD_NAMES[int(self.hold[i])],
             }
             for i, a in enumerate(self.axes)
         }

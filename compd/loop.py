@@ -28,6 +28,7 @@ from compd.codec import Encoder
 from compd.frame import Frame
 from compd.guard import Guard
 from compd.histogram import bin_percentiles
+from compd.inhibit import Inhibit
 from compd.models.base import Model
 from compd.sinks.base import Sink
 from compd.sources.base import Source
@@ -127,6 +128,7 @@ class Loop:
         observers: list[Callable[[Loop, float], None]] | None = None,
         cycle_hooks: list[Callable[[Loop, float], None]] | None = None,
         adapter: Adapter | None = None,
+        inhibit: Inhibit | None = None,
     ) -> None:
         self.period_s = period_s
         self.clock = clock
@@ -147,6 +149,7 @@ class Loop:
         self.degraded = False
         self.pred_um = np.full(n_out, math.nan)
         self.adapter = adapter  # probe-updated offset (and gain) per axis, or None
+        self.inhibit = inhibit  # the machine's inhibit and referenced signals, or None
         self.pred_adapted_um = np.full(n_out, math.nan)  # what the guard gets: pred + the adapter's
         self.applied_um = np.zeros(n_out)
         self._word_applied = np.zeros(2)
@@ -322,6 +325,8 @@ class Loop:
             self.adapter.apply(pred, now, self.pred_adapted_um, self.applied() if self.adapter.inbox else None)
             pred = self.pred_adapted_um
         t2 = perf()
+        if self.inhibit is not None:
+            self.inhibit.evaluate(frame, now, self.guard.hold)
         self.guard.update(pred, ok or self.degraded, now, degraded=self.degraded)
         if self.adapter is not None:
             self.adapter.record(self.pred_um, self.guard.out_um)

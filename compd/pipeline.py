@@ -17,10 +17,11 @@ from typing import Any
 from compd.adapt import Adapter
 from compd.clock import Clock, LockstepPlantClock, PlantClock, SimClock, WallClock
 from compd.codec import Encoder
-from compd.config import AdaptConfig, CodecConfig, GuardConfig, LoopConfig
+from compd.config import AdaptConfig, CodecConfig, GuardConfig, InhibitConfig, LoopConfig
 from compd.errors import BadInput
 from compd.frame import Frame
 from compd.guard import Guard
+from compd.inhibit import Inhibit
 from compd.loop import Loop
 from compd.models.base import Model
 from compd.sinks.base import Sink
@@ -78,11 +79,13 @@ def build_pipeline(
     codec_cfg: CodecConfig | None = None,
     observe: bool = False,
     adapt_cfg: AdaptConfig | None = None,
+    inhibit_cfg: InhibitConfig | None = None,
 ) -> Pipeline:
     """Wire the stages: one frame of every source's signals, the guard on the model's
     inputs, the word's two axes (`codec.axes`, else the model's first two outputs),
     the sink bound to them (held disabled when `observe`), the probe adapter when
-    `adapt_cfg` is given (between the model and the guard), and the loop."""
+    `adapt_cfg` is given (between the model and the guard), the machine's inhibit and
+    referenced signals when `inhibit_cfg` is given (the guard's hold), and the loop."""
     guard_cfg = guard_cfg or GuardConfig()
     codec_cfg = codec_cfg or CodecConfig()
     sources = list(sources)
@@ -102,6 +105,7 @@ def build_pipeline(
     for name in guard_cfg.signals:
         if name not in frame.index:
             raise BadInput(f"{name!r} is not a signal of any source", path=("guard", "signals", name))
+    inhibit = Inhibit(inhibit_cfg, model.outputs, frame) if inhibit_cfg is not None else None
     word_names = list(codec_cfg.axes or model.outputs[:2])
     for name in word_names:
         if name not in model.outputs:
@@ -125,6 +129,7 @@ def build_pipeline(
         sink=sink,
         word_axes=word_axes,
         adapter=Adapter(adapt_cfg, list(model.outputs)) if adapt_cfg is not None else None,
+        inhibit=inhibit,
     )
     if loop.adapter is not None:
         loop.adapter.bind(frame.index)

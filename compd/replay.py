@@ -1,10 +1,13 @@
-"""`compd replay`: a log's signals through model, guard and codec into the PMC software PLC.
+"""`compd replay`: a log's signals through model, guard and codec into the configured sink's virtual device.
 
 The loop runs on simulated time, one cycle per log row (the clock jumps from row to
 row, so a day of 1 Hz log is 86 400 cycles, not 43 million); the guard's slew limit,
 the sink's update rate and the PMC's scans all follow that simulated time. After
-each cycle the PMC is given two scans to act, and the shift it then reports as
-applied is what the report counts: residual = logged error + applied correction.
+each cycle the device is given time to act (the PMC two scans, the NC its IPO
+cycles), and what it then reports as applied is what the report counts: residual =
+logged error + applied correction. A config replays through its own sink's device of
+the software PLC (FANUC PMC, Siemens NC data, PCI-1756 card), with that device's
+resolution and limits; a bare model file through the FANUC PMC, and the report says so.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import numpy as np
 
 from compd.adapt import Probe
 from compd.clock import SimClock
-from compd.config import AdaptConfig, CodecConfig, GuardConfig
+from compd.config import AdaptConfig, CodecConfig, Document, GuardConfig, InhibitConfig
 from compd.errors import BadInput
 from compd.log import Log, read_log
 from compd.models.base import Model
@@ -63,13 +66,15 @@ def replay_log(
     codec_cfg: CodecConfig | None = None,
     adapt_cfg: AdaptConfig | None = None,
     use_probes: bool = True,
+    inhibit_cfg: InhibitConfig | None = None,
 ) -> ReplayResult:
     """Run every row of `log` through model → guard → codec → sink (the PLC).
 
     A log with `probe_<axis>_um` columns hands each probe to the adapter at its row, as a
     running daemon's probe source would (`adapt_cfg`, or the defaults when the config has
     none); the report then also gives each axis `without_adaptation`: the same replay with
-    the probes ignored (the model alone)."""
+    the probes ignored (the model alone). With `inhibit_cfg` the log's inhibit and
+    referenced columns hold the axes off as they held the machine's."""
     if len(log) == 0:
         raise BadInput("the log has no rows", file=log.file)
     probes = probe_columns(log, list(model.outputs)) if use_probes else {}
@@ -78,13 +83,15 @@ def replay_log(
     plain = None
     if probes:  # the model alone, on a fresh sink of the same kind: the report's without_adaptation
         fresh = type(sink)(sink.cfg, sink.base_dir)
-        plain = replay_log(log, copy_model(model), fresh, guard_cfg, codec_cfg, None, use_probes=False)
+        plain = replay_log(log, copy_model(model), fresh, guard_cfg, codec_cfg, None, use_probes=False,
+                           inhibit_cfg=inhibit_cfg)
     source = ReplaySource(ReplayConfig(kind="replay", name="log", path=log.file), log=log)
     clock = SimClock(float(log.t_s[0]))
     try:
         loop = build_pipeline(
             sources=[source], model=model, sink=sink, clock=clock, period_s=1.0,
             guard_cfg=guard_cfg, codec_cfg=codec_cfg, adapt_cfg=adapt_cfg if probes else None,
+            inhibit_cfg=inhibit_cfg,
         ).loop
     except BadInput as e:
         raise BadInput(e.message, file=log.file, path=e.keys) from None
@@ -154,6 +161,7 @@ def replay_log(
         "faults": faults,
         "plc": sink.cfg.kind,
         "duration_s": float(t[-1] - t[0]),
+        **device_report(sink),
     }
     if probes:
         report["adaptation"] = adaptation
@@ -170,6 +178,12 @@ def replay_log(
     return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, applied, words, extra)
 
 
+def device_report(sink: Sink) -> dict[str, Any]:
+    """The report's `device` (what was replayed against) and that device's resolution and limits."""
+    info = sink.device_info()
+    return {"device": info["device"], "device_limits": {k: v for k, v in info.items() if k != "device"}}
+
+
 def copy_model(model: Model) -> Model:
     """A fresh model of the same kind and params (no state): for a second replay of the same log."""
     return type(model)(model.params, list(model.inputs), list(model.outputs), dict(model.fit_info))
@@ -181,9 +195,29 @@ def _pmc_sink(host: str | None = None) -> FanucPmcSink:
     return FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", host=host))
 
 
+def inhibit_signals(cfg: InhibitConfig) -> list[str]:
+    """Every signal the inhibit section names (inhibit and referenced)."""
+    names = [cfg.signal] + [n for ax in cfg.axes.values() for n in (ax.signal, ax.referenced)]
+    return [n for n in names if n is not None]
+
+
+def _check_reachable(host: str, port: int, device_id: int, doc: Document) -> None:
+    """BadInput naming `sink.host` when nothing answers there (a replay would wait on every row)."""
+    from compd.io.modbus_client import ModbusClient
+
+    client = ModbusClient.tcp(host, port, device_id=device_id, timeout_s=1.0)
+    try:
+        if not client.connect():
+            raise doc.error(f"the PMC at {host}:{port} does not answer: start it, or drop host to replay"
+                            " against the PMC in process", ("sink", "host"))
+    finally:
+        client.close()
+
+
 def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult:
-    """Replay with a config's model, guard, codec and sink (the PMC in process unless the
-    sink is a fanuc_pmc that names a host); the config's sources are replaced by the log."""
+    """Replay with a config's model, guard, codec and sink: the sink's own device of the
+    software PLC in process (a fanuc_pmc that names a host: that PMC over Modbus TCP); the
+    config's sources are replaced by the log."""
     from compd.config import load_config
     from compd.sinks.fanuc_pmc import FanucPmcSink
 
@@ -191,12 +225,19 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     log = read_log(log_file, allow_nan=True)
     model = build_model(cfg.model)
     sink_cls, sink_cfg, _ = cfg.sink
-    if sink_cls is FanucPmcSink:
-        sink = FanucPmcSink(sink_cfg, base_dir=str(Path(cfg.file).parent))
-    else:
-        sink = _pmc_sink()
-    result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt)
-    host = sink.cfg.host
+    if sink_cls is not FanucPmcSink:  # the sink's own device, in process
+        sink_cfg = sink_cls.in_process_config(sink_cfg)
+    elif sink_cfg.host is not None:  # a PMC over Modbus TCP: it answers, or the replay does not start
+        _check_reachable(sink_cfg.host, sink_cfg.port, sink_cfg.device_id, cfg.doc)
+    sink = sink_cls(sink_cfg, base_dir=str(Path(cfg.file).parent))
+    inhibit = cfg.top.inhibit
+    held = inhibit_signals(inhibit) if inhibit is not None else []
+    use_inhibit = bool(held) and all(name in log.columns for name in held)
+    result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt,
+                        inhibit_cfg=inhibit if use_inhibit else None)
+    if held:
+        result.report["inhibit"] = "from the log" if use_inhibit else "not in the log: never held off"
+    host = sink.cfg.host if isinstance(sink, FanucPmcSink) else None
     result.report["plc"] = f"{host}:{sink.cfg.port}" if host else "in_process"
     return result
 
@@ -216,6 +257,7 @@ def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
     log = read_log(log_file, allow_nan=True)
     result = replay_log(log, model, _pmc_sink())
     result.report["plc"] = "in_process"
+    result.report["device"] += " (the default for a bare model file: replay a config for its own sink)"
     return result
 
 

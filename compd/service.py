@@ -36,6 +36,8 @@ _EVENT_NAME = {
     "recovering": "axis_recovering",
     "normal": "axis_normal",
     "jump": "clock_jump",
+    "held": "axis_held",  # the machine inhibits the axis, or it waits for its reference
+    "released": "axis_released",
 }
 
 

@@ -326,7 +326,8 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
             f"{name:<8} {_num(a.get('prediction_um'), '10.2f')} {_num(a.get('correction_um'), '11.2f')}"
             f" {_num(a.get('target_um'), '9.2f')} {a.get('byte') or '-':>5}"
             f" {('yes' if a.get('enable') else 'no'):>8}"
-            f" {a.get('state', '?'):<11} {a.get('policy', '?'):<13} {'yes' if a.get('saturated') else 'no'}"
+            f" {str(a.get('inhibit') or a.get('state', '?')):<11} {a.get('policy', '?'):<13}"
+            f" {'yes' if a.get('saturated') else 'no'}"
         )
     lines.append(f"{'signal':<14} {'value':>10} {'quality':<13} {'age_s':>8}")
     for name, s in data.get("signals", {}).items():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -212,3 +213,82 @@ def test_replay_applies_a_logs_probes_and_reports_without_them(log_and_model, tm
     ad = rep["adaptation"]
     print(z, ad)
     assert ad["probes"] == {"z": 9} and ad["rejected"] >= 1 and ad["accepted"] >= 6
+
+
+def _big_error_log(path, n: int = 600) -> None:
+    """A 1 Hz log whose ξ temperature rises so the spindle grows past 63 µm (about 80 µm)."""
+    t = np.arange(n, dtype=float)
+    temp = 20.0 + 36.0 * t / t[-1]  # 13.6e-6 × 165 mm × 36 K ≈ 80.8 µm at the end
+    err = ALPHA * LENGTH_MM * 1000.0 * (temp - 20.0)
+    write_log(path, ["t_s", "T_xi", "err_z_um"], np.column_stack([t, temp, err]))
+
+
+def test_config_replay_drives_the_siemens_nc_with_its_resolution_and_no_word_clamp(tmp_path):
+    """configs/modbus_rtu_siemens.yaml's sink (an NC gateway at an address) replays through the
+    software PLC's Siemens NC in process: K0 moves in fine steps, not the word's 1 µm LSB, and
+    past the word's ±63 µm when the guard allows it; the report names the NC."""
+    from compd.replay import replay_config
+
+    src = yaml.safe_load(Path("configs/modbus_rtu_siemens.yaml").read_text(encoding="utf-8"))
+    src["guard"]["max_abs_um"] = 200.0
+    src["guard"]["max_slew_um_per_s"] = 4.0
+    src["model"]["params"]["t0_c"] = 20.0
+    cfg = tmp_path / "siemens.yaml"
+    cfg.write_text(yaml.safe_dump(src))
+    log = tmp_path / "big.csv"
+    _big_error_log(log)
+    res = replay_config(cfg, log)
+    rep = res.report
+    assert rep["device"] == "siemens_nc in process"
+    assert rep["device_limits"]["resolution_um"] == pytest.approx(0.1)
+    assert rep["device_limits"]["max_abs_um"] is None
+    applied = res.applied_um[:, 0]
+    assert applied.min() < -70.0  # past the word's 63 LSB: the NC has no such clamp
+    frac = np.abs(applied - np.round(applied))
+    assert (frac > 0.05).sum() > len(applied) // 4  # not whole-µm steps
+    assert rep["axes"]["z"]["max_abs_after_um"] < 1.0
+    # the same config replays unchanged from the file as shipped (the guard's ±63 µm clamp)
+    shipped = replay_config("configs/modbus_rtu_siemens.yaml", log).report
+    assert shipped["device"] == "siemens_nc in process"
+
+
+def test_model_replay_says_it_uses_the_default_pmc(log_and_model, capsys):
+    log, model = log_and_model
+    rep = replay_model(model, log).report
+    assert rep["device"].startswith("fanuc_pmc in process") and "default" in rep["device"]
+    assert rep["device_limits"] == {"resolution_um": 1.0, "max_abs_um": 63.0, "max_rate_um_per_s": 250.0}
+
+
+def test_config_replay_of_a_pci1756_over_modbus_uses_the_card_in_process(tmp_path):
+    from compd.replay import replay_config
+
+    doc = {
+        "sources": [{"kind": "replay", "name": "log", "path": "big.csv"}],
+        "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
+                  "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM, "t0_c": 20.0}},
+        "codec": {"lsb_um": 0.5, "deadband_um": 0.5},
+        "sink": {"kind": "pci1756", "device": "modbus", "host": "127.0.0.1", "port": 1},
+    }
+    cfg = tmp_path / "card.yaml"
+    cfg.write_text(yaml.safe_dump(doc))
+    _big_error_log(tmp_path / "big.csv")
+    res = replay_config(cfg, tmp_path / "big.csv")
+    assert res.report["device"] == "pci1756 card in process"
+    assert res.report["device_limits"]["max_abs_um"] == pytest.approx(31.5)
+    assert res.applied_um[:, 0].min() == pytest.approx(-31.5)  # the word's full scale at 0.5 µm LSB
+
+
+def test_config_replay_against_a_pmc_that_does_not_answer_is_one_line_exit_2(log_and_model, capsys):
+    """configs/modbus_tcp_fanuc.yaml names a PMC at 127.0.0.1:5021: with nothing there the
+    replay stops at once naming sink.host, instead of waiting on every row."""
+    import socket
+
+    text = Path("configs/modbus_tcp_fanuc.yaml").read_text(encoding="utf-8")
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = Path(log_and_model[0]).parent / "fanuc_absent.yaml"
+    cfg.write_text(text.replace("port: 5021", f"port: {port}"), encoding="utf-8")
+    assert main(["replay", str(cfg), "--log", str(log_and_model[0])]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"{cfg}:" in err and "sink.host: the PMC at 127.0.0.1" in err and len(err.splitlines()) == 1

@@ -1,4 +1,4 @@
-"""The one Modbus client (TCP or RTU, pymodbus): register reads and writes, every reply shape-checked.
+"""The one Modbus client (TCP or RTU, pymodbus): register and bit reads, register writes, every reply shape-checked.
 
 `ModbusClient` is the only place in compd that builds a pymodbus client. Each call
 sends one request, waits for its reply (up to `timeout_s`) and returns either the
@@ -42,7 +42,10 @@ INPUT = 0x04
 WRITE_MULTIPLE = 0x10
 READ_WRITE = 0x17  # function 23: write, then read, in one request
 
+COILS = 0x01
+DISCRETE = 0x02
 TableT = Literal["holding", "input"]
+BitTableT = Literal["coils", "discrete"]
 
 
 @dataclass(frozen=True)
@@ -122,10 +125,11 @@ class FrameTap:
             self.last = data
         return data
 
-    def tcp_error(self, transaction_id: int, count: int | None) -> str | None:
+    def tcp_error(self, transaction_id: int, count: int | None, *, bits: bool = False) -> str | None:
         """Why the received frame with `transaction_id` is not a reply carrying exactly
-        `count` registers, or (count None) a write's acknowledgement of 4 bytes; None: it
-        is, or it is not in the buffer."""
+        `count` registers (`bits`: coils or discrete inputs, 8 to a byte), or (count None) a
+        write's acknowledgement of 4 bytes; None: it is, or it is not in the buffer."""
+        n_bytes = 0 if count is None else ((count + 7) // 8 if bits else 2 * count)
         buf = self.last
         while len(buf) >= 8:
             length = int.from_bytes(buf[4:6], "big")
@@ -134,9 +138,9 @@ class FrameTap:
                     return None  # an exception reply: the caller has it already
                 if count is None:
                     return None if length == 6 else f"frame length {length} for a write acknowledgement"
-                if len(buf) < 9 or length != 3 + 2 * count or buf[8] != 2 * count:
+                if len(buf) < 9 or length != 3 + n_bytes or buf[8] != n_bytes:
                     byte_count = buf[8] if len(buf) >= 9 else "none"
-                    return f"frame length {length}, byte count {byte_count} for {count} registers"
+                    return f"frame length {length}, byte count {byte_count} for {count} {'bits' if bits else 'registers'}"
                 return None
             buf = buf[6 + length :]
         return None
@@ -281,6 +285,29 @@ class ModbusClient:
             fc = INPUT
             rr = self._call(lambda c: c.read_input_registers(address, count=count, device_id=self.device_id))
         return self._checked(rr, fc, count, f"registers {address}+{count}")
+
+    def read_bits(self, address: int, count: int, *, table: BitTableT = "coils") -> list[int] | ModbusFault:
+        """Read `count` coils (function 1) or discrete inputs (function 2) from `address`, as 0 or 1."""
+        if table == "coils":
+            fc = COILS
+            rr = self._call(lambda c: c.read_coils(address, count=count, device_id=self.device_id))
+        else:
+            fc = DISCRETE
+            rr = self._call(lambda c: c.read_discrete_inputs(address, count=count, device_id=self.device_id))
+        if isinstance(rr, ModbusFault):
+            return rr
+        if rr.isError():
+            code = getattr(rr, "exception_code", 0)
+            return ExceptionReply(f"exception reply, code {code}", code if isinstance(code, int) else 0)
+        problem = _unit_and_function(rr, fc, self.device_id)
+        bits = getattr(rr, "bits", None)
+        if problem is None and (bits is None or len(bits) < count):
+            problem = f"reply has {0 if bits is None else len(bits)} bits, asked {count}"
+        if problem is None and self.transport == "tcp":
+            problem = self._tap.tcp_error(getattr(rr, "transaction_id", 0), count, bits=True)
+        if problem is not None:
+            return self._bad(f"malformed reply to {table} {address}+{count}: {problem}", problem)
+        return [1 if b else 0 for b in bits[:count]]
 
     def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault:
         """Write holding registers from `address` (function 16); None once acknowledged."""

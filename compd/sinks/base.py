@@ -99,5 +99,18 @@ class Sink(ABC):
     def close(self) -> None:
         """Release the device (after `safe`)."""
 
+    @classmethod
+    def in_process_config(cls, cfg: SinkConfig) -> SinkConfig:
+        """`cfg` for this sink's own device of the software PLC in this process, with the
+        same layout, resolution and limits (replay); `cfg` when it is in process already."""
+        return cfg
+
+    def device_info(self) -> dict[str, Any]:
+        """What device this sink drives and how finely and how far it can move an axis:
+        `device` (a name, with "in process" or the address), `resolution_um` (the smallest
+        change that reaches the machine), `max_abs_um` (the device's largest correction, None
+        when only the guard clamps), `max_rate_um_per_s` (the device's own rate limit, or None)."""
+        return {"device": self.cfg.kind, "resolution_um": None, "max_abs_um": None, "max_rate_um_per_s": None}
+
     def get_status(self) -> dict[str, Any]:
         return {"kind": self.cfg.kind, "writes": self.writes, "link": self.link_state()}

@@ -227,6 +227,17 @@ class FanucPmcSink(Sink):
     def flush(self, timeout_s: float) -> bool:
         return self.link is None or self.link.drain(timeout_s)
 
+    def device_info(self) -> dict[str, Any]:
+        """The word's LSB (the shift registers hold whole µm), its full scale 63 LSB, and
+        the step rate: `max_step_um` per `min_update_s`."""
+        from compd.codec import MAX_MAG
+
+        cfg = self.cfg
+        where = "in process" if cfg.host is None else f"at {cfg.host}:{cfg.port}"
+        res = self.lsb_um if cfg.mode == "word" else max(1.0, self.lsb_um)
+        return {"device": f"fanuc_pmc {where}", "resolution_um": res, "max_abs_um": MAX_MAG * self.lsb_um,
+                "max_rate_um_per_s": cfg.max_step_um / cfg.min_update_s}
+
     def close(self) -> None:
         """Stop the link; what it last knew of the PMC stays readable (the run's summary)."""
         if self.link is not None:

@@ -68,5 +68,8 @@ class ObserveSink(Sink):
     def close(self) -> None:
         self.inner.close()
 
+    def device_info(self) -> dict[str, Any]:
+        return self.inner.device_info()
+
     def get_status(self) -> dict[str, Any]:
         return {**self.inner.get_status(), "observe": True, "would_write": f"0x{self.would_write:04X}"}

@@ -178,5 +178,19 @@ class Pci1756Sink(Sink):
         if out.shape[0] > 1:
             out[1] = c2
 
+    @classmethod
+    def in_process_config(cls, cfg: SinkConfig) -> SinkConfig:
+        """The software PLC's card in process, with this section's word port, strobe and heartbeat."""
+        return cfg.model_copy(update={"device": "emulated"})
+
+    def device_info(self) -> dict[str, Any]:
+        """The word on the DO lines: the codec's LSB, full scale 63 LSB, no rate limit of its own."""
+        from compd.codec import MAX_MAG
+
+        cfg = self.cfg
+        where = "in process" if cfg.device == "emulated" else f"over modbus at {cfg.host}:{cfg.port}"
+        return {"device": f"pci1756 card {where}", "resolution_um": self.lsb_um,
+                "max_abs_um": MAX_MAG * self.lsb_um, "max_rate_um_per_s": None}
+
     def get_status(self) -> dict[str, Any]:
         return {**super().get_status(), "word": f"0x{self.word:04X}"}

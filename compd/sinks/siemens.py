@@ -163,6 +163,21 @@ class SiemensSink(Sink):
     def flush(self, timeout_s: float) -> bool:
         return self.link is None or self.link.drain(timeout_s)
 
+    @classmethod
+    def in_process_config(cls, cfg: SinkConfig) -> SinkConfig:
+        """The software PLC's NC in process, with this section's axes, IPO cycle and MD32760."""
+        return cfg.model_copy(update={"host": None})
+
+    def device_info(self) -> dict[str, Any]:
+        """K0 is a float32 in mm (no word, no ±63 LSB): a change reaches the NC once it is
+        `min_change_um`; the NC ramps ΔK at MD32760 × max velocity (the in-process NC's)."""
+        where = "in process" if self.cfg.host is None else f"at {self.cfg.host}:{self.cfg.port}"
+        rate = None
+        if self.nc is not None:
+            rate = 1000.0 * self.nc.cap_mm(0) / self.nc.ipo_s
+        return {"device": f"siemens_nc {where}", "resolution_um": self.cfg.min_change_um,
+                "max_abs_um": None, "max_rate_um_per_s": rate}
+
     def close(self) -> None:
         """Stop the link; what it last knew of the NC stays readable (the run's summary)."""
         if self.link is not None:

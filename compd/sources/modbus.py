@@ -1,4 +1,4 @@
-"""PT100 modules over Modbus TCP or Modbus RTU (pymodbus), polled beside the cycle.
+"""PT100 modules (and PLC signal bits) over Modbus TCP or Modbus RTU (pymodbus), polled beside the cycle.
 
 Each channel is a register (or a register pair) holding a scaled temperature:
 value_c = raw · scale + offset_c, with the data type, byte order and word order of
@@ -9,7 +9,9 @@ a reply of the wrong shape (another function code, more or fewer registers than 
 a frame longer than its byte count: `compd.io.modbus_client`) or a lost connection makes
 the channels of that request COMMS_LOST; a reply fills only the registers its own request
 asked for. The source's I/O worker re-establishes the connection with exponential
-back-off and the daemon never sees an exception.
+back-off and the daemon never sees an exception. A channel with `bit`, or any channel
+of a source that reads coils or discrete inputs (`function`), is a signal bit (0 or 1:
+a CNC's inhibit, an axis referenced), with no scale and no fault codes.
 """
 
 from __future__ import annotations
@@ -105,6 +107,11 @@ class ModbusChannel(Strict):
     burnout_codes: list[Code] | None = None
     out_of_range_codes: list[Code] | None = None
     status_address: int | None = Field(None, ge=0, le=65535, description="status register")
+    bit: int | None = Field(
+        None, ge=0, le=31,
+        description="read one bit of the register as 0 or 1 (a PMC or PLC signal: inhibit, referenced);"
+        " no scale, offset or fault codes",
+    )
 
 
 class ModbusConfig(SourceConfig):
@@ -118,7 +125,11 @@ class ModbusConfig(SourceConfig):
     parity: Literal["N", "E", "O"] = "N"
     stopbits: Literal[1, 2] = 1
     device_id: int = Field(1, ge=0, le=247, description="unit id / slave address")
-    function: Literal["holding", "input"] = Field("holding", description="register table")
+    function: Literal["holding", "input", "coils", "discrete"] = Field(
+        "holding",
+        description="register table; coils or discrete (inputs): every channel is one bit at its address,"
+        " read as 0 or 1 (a PLC signal: inhibit, referenced)",
+    )
     data_type: DataTypeT = "int16"
     scale: float = Field(0.1, ge=-1e6, le=1e6, description="°C per count (int16 × 0.1 °C: 0.1); not 0")
     offset_c: float = Field(0.0, ge=-1000, le=1000, description="added after scaling")
@@ -148,6 +159,13 @@ class ModbusConfig(SourceConfig):
             raise ValueError("stale_after_s must be longer than poll_period_s (else every sample is stale)")
         if 0 in {self.scale, *(c.scale for c in self.channels)}:
             raise ValueError("scale 0 would read every temperature as offset_c")
+        one_bit = register_width(self.data_type) == 1 and not any(
+            c.bit is not None or c.status_address is not None or (c.data_type or "").endswith("32")
+            for c in self.channels
+        )
+        if self.function in ("coils", "discrete") and not one_bit:
+            raise ValueError(f"function {self.function}: a channel is one bit (no bit, status_address"
+                             " or 32-bit data_type)")
         names = [c.name for c in self.channels]
         if len(set(names)) != len(names):
             raise ValueError("a channel name is used twice")
@@ -167,6 +185,7 @@ class _Channel:
     burnout: frozenset[int]
     out_of_range: frozenset[int]
     status_address: int | None
+    bit: int | None = None
 
 
 def _resolve(cfg: ModbusConfig) -> list[_Channel]:
@@ -186,6 +205,7 @@ def _resolve(cfg: ModbusConfig) -> list[_Channel]:
                 frozenset(cfg.burnout_codes if c.burnout_codes is None else c.burnout_codes),
                 frozenset(cfg.out_of_range_codes if c.out_of_range_codes is None else c.out_of_range_codes),
                 c.status_address,
+                c.bit,
             )
         )
     return out
@@ -263,8 +283,12 @@ class ModbusPoller(OverModbus, Poller):
         cfg = self.cfg
         regs: dict[int, int] = {}
         unreachable: NoConnection | None = None
+        bit_table = cfg.function in ("coils", "discrete")
         for start, count in self.requests:
-            r = self.client.read_registers(start, count, table=cfg.function)
+            if cfg.function == "coils" or cfg.function == "discrete":
+                r = self.client.read_bits(start, count, table=cfg.function)
+            else:
+                r = self.client.read_registers(start, count, table=cfg.function)
             if isinstance(r, NoConnection):
                 self.last_error = r.detail
                 unreachable = r
@@ -294,6 +318,10 @@ class ModbusPoller(OverModbus, Poller):
                 quality[i] = Quality.COMMS_LOST
                 continue
             raw, number = decode_registers(words, ch.data_type, ch.byte_order, ch.word_order)
+            if ch.bit is not None or bit_table:  # a signal bit: no fault codes in a control register
+                values[i] = float((raw >> (ch.bit or 0)) & 1)
+                quality[i] = Quality.GOOD
+                continue
             q = Quality.GOOD
             if status & cfg.status_burnout_mask or raw in ch.burnout:
                 q = Quality.BURNOUT

@@ -164,3 +164,22 @@ def test_reconnects_after_server_restart():
 def test_config_requires_serial_port_for_rtu():
     with pytest.raises(ValueError, match="serial_port"):
         ModbusConfig.model_validate({"kind": "modbus", "name": "x", "transport": "rtu", "channels": [{"name": "a", "address": 0}]})
+
+
+def test_bit_channel_reads_one_register_bit_without_fault_codes():
+    """A PMC signal (Y5.2, Y5.15) as 0/1: 0x8004 is a burn-out code for a temperature, not for a bit."""
+    from compd.plc.fanuc_pmc import FanucPmc
+
+    pmc = FanucPmc()
+    pmc.write_registers(105, [0x8004])
+    channels = [{"name": "inh", "address": 105, "bit": 2}, {"name": "b15", "address": 105, "bit": 15},
+                {"name": "b0", "address": 105, "bit": 0}]
+    with (
+        ModbusServerThread(pmc, port=0) as srv,
+        Harness(ModbusSource(_cfg(port=srv.port, channels=channels))) as h,
+    ):
+        s = h.sample()
+        assert s == {"inh": (1.0, "GOOD"), "b15": (1.0, "GOOD"), "b0": (0.0, "GOOD")}
+        pmc.write_registers(105, [0])
+        s = h.sample(polls=2)
+        assert s["inh"] == (0.0, "GOOD")
