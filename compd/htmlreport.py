@@ -178,7 +178,7 @@ def fit_figure(fit: dict[str, Any], fit_file: str) -> Figure:
 
 def replay_figure(replay: dict[str, Any], replay_file: str) -> Figure:
     """The replay's trend (compd.plots), replayed again from the log and config or model it names."""
-    caption = "The unseen day: replayed through model, guard and codec into the software PLC"
+    caption = "The unseen day: replayed through model, guard and codec into a software copy of the output device"
     log_file = find_beside(replay.get("log"), replay_file)
     what = "config" if "config" in replay else "model"
     source = find_beside(replay.get(what), replay_file)
@@ -344,7 +344,9 @@ def replay_section(page: Page) -> str:
     for key, label in (("rows", "rows"), ("codes_sent", "codes sent"), ("saturated", "saturated words")):
         if key in rep:
             facts.append(f"{_e(rep[key])} {label}")
-    if "plc" in rep:
+    if "device" in rep:
+        facts.append(f"device {_e(rep['device'])}")
+    elif "plc" in rep:
         facts.append(f"PLC {_e(rep['plc'])}")
     out.append(f'<p class="muted">{"; ".join(facts)}</p>')
     rows = []

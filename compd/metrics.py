@@ -83,6 +83,10 @@ class SnapshotCollector:
         )
         sat = GaugeMetricFamily("compd_axis_saturated", "1 when the axis's word byte is clamped at 63 LSB", labels=["axis"])
         st = GaugeMetricFamily("compd_axis_state", "1 for the axis's current guard state", labels=["axis", "state"])
+        held = GaugeMetricFamily(
+            "compd_axis_held", "1 when the machine holds the axis off (inhibited, or waiting for its reference)",
+            labels=["axis", "reason"],
+        )
         for axis, a in snap["axes"].items():
             corr.add_metric([axis], _f(a["correction_um"]))
             pred.add_metric([axis], _f(a.get("prediction_um")))
@@ -90,7 +94,9 @@ class SnapshotCollector:
             sat.add_metric([axis], 1.0 if a.get("saturated") else 0.0)
             for state in ("starting", "normal", "fault", "recovering"):
                 st.add_metric([axis, state], 1.0 if a["state"] == state else 0.0)
-        yield from (corr, pred, en, sat, st)
+            for reason in ("inhibited", "waiting for reference"):
+                held.add_metric([axis, reason], 1.0 if a.get("inhibit") == reason else 0.0)
+        yield from (corr, pred, en, sat, st, held)
         from compd.sinks.base import LINK_STATES
 
         link = snap["sink"].get("link")

@@ -298,7 +298,8 @@ def trend_from_replay(result: Any) -> Trend:
     fault = None if state is None else (state == FAULT) | (state == RECOVERING)
     rep = result.report
     faults = rep.get("faults") or {}
-    notes = [f"replayed against the software PLC ({rep.get('plc', '?')}): {rep.get('rows', len(result.t_s))} rows,"
+    device = rep.get("device") or f"the software PLC ({rep.get('plc', '?')})"
+    notes = [f"replayed into {device}: {rep.get('rows', len(result.t_s))} rows,"
              f" {rep.get('codes_sent', 0)} codes sent, {rep.get('saturated', 0)} saturated words,"
              f" guard events: {', '.join(f'{k} {v}' for k, v in faults.items()) or 'none'}"]
     name = Path(str(ex.get("log", ""))).name

@@ -55,6 +55,22 @@ def test_metrics_endpoint(tmp_path):
     assert m['compd_signal_quality{quality="good",signal="T_xi"}'] == 1.0
     assert 'compd_stage_max_seconds{stage="model"}' in m
     assert m["compd_observe_mode"] == 0.0
+    assert m['compd_axis_held{axis="z",reason="inhibited"}'] == 0.0
+
+
+def test_an_axis_the_machine_holds_off(tmp_path):
+    app = App(load_config(sim_config(tmp_path, duration_s=60)))
+    app.run()
+    app.loop.guard.hold[0] = 2  # compd.inhibit.WAITING: the axis waits for its reference
+    server = MetricsServer("127.0.0.1", 0)
+    url = server.start()
+    try:
+        server.update(snapshot(app.loop, state="running", observe=False), app.loop.stats)
+        m = _scrape(url)
+    finally:
+        server.stop()
+    assert m['compd_axis_held{axis="z",reason="waiting for reference"}'] == 1.0
+    assert m['compd_axis_held{axis="z",reason="inhibited"}'] == 0.0
 
 
 def test_faults_by_kind(tmp_path):
