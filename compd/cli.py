@@ -644,6 +644,8 @@ def cmd_docs(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.cycles < 1:
         raise BadInput("--cycles must be at least 1", path="--cycles")
+    if not 0 <= args.load <= 64:
+        raise BadInput("--load must be 0 to 64 processes", path="--load")
     check_output(args.json, "--json")
     return installed_command("bench", "runs against simulated devices served by the closed-loop test rig")(args)
 
@@ -865,6 +867,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON (keys: docs/formats.md)")
     s.add_argument("--scheduler", choices=("other", "fifo"), default="other", help="loop.realtime.scheduler")
     s.add_argument("--period-ms", type=positive, default=2.0, dest="period_ms")
+    s.add_argument("--load", type=int, default=0, metavar="N",
+                   help="start N CPU-bound processes beside the loops for the run (default 0)")
+    s.add_argument("--late-us", type=positive, default=200.0, dest="late_us", metavar="US",
+                   help="cycles later than this are matched with the other threads' work (default 200)")
     s.add_argument(
         "--naive-cycles", type=int, default=None, dest="naive_cycles",
         help="cycles of the hand-written loop (default min(N, 5000))",

@@ -618,6 +618,9 @@ class LogWriter:
     def _run(self) -> None:
         import time
 
+        from compd import activity
+
+        spans = activity.ring("compd-log")  # None unless the bench records who runs when
         last_flush = time.monotonic()
         while True:
             try:
@@ -626,6 +629,7 @@ class LogWriter:
                 row = ()
             if row is None:
                 break
+            t0 = time.perf_counter_ns()
             if row:
                 self._pending.append((_fmt_t(row[0]) + "".join("," + _fmt(v) for v in row[1:]) + "\n").encode())
                 if len(self._pending) > self.max_pending_rows:
@@ -635,6 +639,8 @@ class LogWriter:
             if now - last_flush >= self.flush_s:
                 self._flush(now)
                 last_flush = now
+            if spans is not None:
+                spans.mark(t0, time.perf_counter_ns())
         self._flush(time.monotonic())
 
     def _flush(self, now_s: float) -> None:

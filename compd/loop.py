@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from compd import activity
 from compd.adapt import Adapter
 from compd.clock import Clock
 from compd.codec import Encoder
@@ -242,6 +243,8 @@ class Loop:
         half = period * 0.5
         jump_s = max(20.0 * period, 0.5)
         next_gc = t0 + self.gc_period_s
+        late_spans = activity.ring("cycle")  # None unless the bench records who runs when
+        late_ns = activity.late_threshold_ns()
         try:
             while not self._stop:
                 deadline = t0 + k * period
@@ -253,6 +256,8 @@ class Loop:
                 if lateness > jump_s:  # clock jump or stall: the output never steps for it
                     self.guard.clock_jump(now, period)
                 c0 = perf()
+                if late_spans is not None and lateness * 1e9 > late_ns:
+                    late_spans.mark(c0 - int(lateness * 1e9), c0)
                 self._cycle(now, perf)
                 compute = perf() - c0
                 stats.record(lateness, compute)

@@ -18,7 +18,10 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any
 
-from compd import logsetup  # noqa: F401  (installs the library's NullHandler)
+from compd import (
+    activity,
+    logsetup,  # noqa: F401  (installs the library's NullHandler)
+)
 from compd import status as status_mod
 from compd.control import ControlServer, socket_path
 from compd.errors import BadInput
@@ -314,13 +317,17 @@ class Service:
 
     # ------------------------------------------------------------- the thread
     def _run(self) -> None:
+        spans = activity.ring("compd-status")  # None unless the bench records who runs when
         while not self._stop.wait(self.period_s):
+            t0 = time.perf_counter_ns()
             try:
                 self._tick()
             except Exception:  # the status thread must never take the daemon down
                 self.status_errors += 1
                 if self.status_errors <= 3:
                     log.exception("status update failed", extra={"event": "status_error"})
+            if spans is not None:
+                spans.mark(t0, time.perf_counter_ns())
 
     def snapshot(self) -> dict[str, Any]:
         extra = {

@@ -385,6 +385,20 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     }
 
 
+def start_load(n: int) -> list[subprocess.Popen]:
+    """`n` CPU-bound processes (a Python busy loop each) at the default priority."""
+    if n < 0:
+        raise BadInput("--load must be 0 or more", path="--load")
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+
+def stop_load(hogs: list[subprocess.Popen]) -> None:
+    for p in hogs:
+        p.kill()
+    for p in hogs:
+        p.wait(timeout=10)
+
+
 def run_bench(
     cycles: int = 100_000,
     *,
@@ -392,8 +406,15 @@ def run_bench(
     scheduler: str = "other",
     naive_cycles: int | None = None,
     model_evals: int = 2000,
+    load: int = 0,
+    late_us: float = 200.0,
 ) -> dict[str, Any]:
-    """The whole benchmark; returns the JSON of docs/formats.md (plus baseline, ratio, memory)."""
+    """The whole benchmark; returns the JSON of docs/formats.md (plus baseline, ratio, memory).
+
+    `load`: CPU-bound processes started beside both loops (and stopped after). `late_us`:
+    cycles later than this are matched against the spans of the other threads' work
+    (compd.activity) and counted per thread in `late_attribution`."""
+    from compd import activity
     from compd.models.bench import model_eval_us
 
     if cycles < 1:
@@ -405,11 +426,18 @@ def run_bench(
         model_path, sensors = _fit_gantry_model(work)
         speedup = plant_speedup(cycles, period_s)
         devices = Devices(_device_file(work, sensors, speedup))
+        hogs = start_load(load)
         try:
             cfg = _compd_config(work, model_path, sensors, devices.ports, scheduler, period_s)
-            compd = run_compd_loop(cfg, cycles)
+            activity.enable(late_us)
+            try:
+                compd = run_compd_loop(cfg, cycles)
+                attribution = activity.attribute()
+            finally:
+                activity.disable()
             naive = run_naive_loop(model_path, sensors, devices.ports, naive_cycles, period_s)
         finally:
+            stop_load(hogs)
             devices.stop()
     evals = model_eval_us(model_evals)
     result: dict[str, Any] = {
@@ -431,6 +459,8 @@ def run_bench(
         "io_us": compd["io_us"],
         "host": compd["host"],
         "plant_speedup": speedup,
+        "load_processes": load,
+        "late_attribution": attribution,
         "naive": naive,
     }
     miss_rate = compd["misses"] / max(compd["cycles"], 1)
@@ -447,7 +477,8 @@ def format_table(r: dict[str, Any]) -> str:
     c, n = r, r["naive"]
     lines = [
         f"compd bench: {r['cycles']} cycles at {r['period_ms']:g} ms, scheduler {r['scheduler']}"
-        f" ({'; '.join(r['realtime']) or 'no real-time options'})",
+        f" ({'; '.join(r['realtime']) or 'no real-time options'}), {r.get('load_processes', 0)} CPU-bound"
+        " processes beside it",
         f"{'':24}{'compd loop':>14}{'naive loop':>14}",
         f"{'cycles':24}{c['cycles']:>14}{n['cycles']:>14}",
         f"{'misses':24}{c['misses']:>14}{n['misses']:>14}",
@@ -479,6 +510,13 @@ def format_table(r: dict[str, Any]) -> str:
         f" {h['cycle_thread_involuntary_switches']} times; {h['misses_with_steal']} of the"
         f" {r['misses']} misses in a second in which the hypervisor stole time"
     )
+    la = r.get("late_attribution")
+    if la:
+        who = ", ".join(f"{k} {v}" for k, v in la["overlapping"].items()) or "no thread recorded"
+        lines.append(
+            f"cycles late by > {la['threshold_us']:.0f} us: {la['late_cycles']}; their wait overlapped the work of: {who};"
+            f" of no other thread: {la['overlapping_none']}"
+        )
     lines.append("model evaluate, median us: " + ", ".join(f"{k} {v:.2f}" for k, v in r["model_eval_us"].items()))
     lines.append(
         f"naive loop: start-to-start interval p50 {n['period_us']['p50']:.0f} us, p99 {n['period_us']['p99']:.0f} us"
@@ -500,7 +538,8 @@ def main(args: Any) -> int:
     from compd.cli import writing
 
     result = run_bench(
-        args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles
+        args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles,
+        load=args.load, late_us=args.late_us,
     )
     print(format_table(result))
     if args.json:

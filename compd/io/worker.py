@@ -60,6 +60,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any
 
+from compd import activity
 from compd.histogram import DurationHist
 
 log = logging.getLogger("compd.io")
@@ -333,6 +334,7 @@ class IoWorker:
     def _run(self) -> None:
         work = self.work
         perf = time.perf_counter_ns
+        spans = activity.ring(self.name)  # None unless the bench records who runs when
         backoff = self.reconnect_min_s
         next_connect = 0.0
         next_paced = 0.0
@@ -370,7 +372,10 @@ class IoWorker:
                     ok = False
                     reply = None
                     work.last_error = str(e) if isinstance(e, LinkDown) else f"{type(e).__name__}: {e}"
-                self.round_hist.add_ns(perf() - p0)
+                p1 = perf()
+                self.round_hist.add_ns(p1 - p0)
+                if spans is not None:
+                    spans.mark(p0, p1)
                 self._report(work.last_error if work.errors_set != set_before else None)
                 if ok:
                     self.rounds += 1
