@@ -11,7 +11,8 @@ from pathlib import Path
 def test_bench_writes_contract_json(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     r = subprocess.run(
-        [sys.executable, "-m", "compd", "bench", "--cycles", "400", "--naive-cycles", "30", "--json", str(out)],
+        [sys.executable, "-m", "compd", "bench", "--cycles", "400", "--naive-cycles", "30", "--load", "1",
+         "--late-us", "1", "--json", str(out)],
         capture_output=True, text=True, timeout=180,
     )
     assert r.returncode == 0, r.stderr
@@ -36,6 +37,20 @@ def test_bench_writes_contract_json(tmp_path: Path) -> None:
     assert (io["write"]["count"] >= 1) == (io["output_latency"]["count"] >= 1)
     # the naive loop's own start-to-start interval is at least the period it sleeps
     assert b["naive"]["period_us"]["p50"] >= 2000
+    # every cycle later than 1 us is matched with the other threads' work: each counted
+    # once per thread at most, and every thread that recorded is a device's or compd's own
+    assert b["load_processes"] == 1
+    la = b["late_attribution"]
+    assert la["threshold_us"] == 1.0 and 0 <= la["overlapping_none"] <= la["late_cycles"] <= 400
+    assert all(0 <= v <= la["late_cycles"] for v in la["overlapping"].values())
+    # the threads that can overlap: the three modules' pollers, the PMC's link, the status writer
+    assert set(la["overlapping"]) <= {"poll-pt100_1", "poll-pt100_2", "poll-pt100_3", "modbus-link-fanuc_pmc",
+                                      "compd-status", "compd-log"}
+
+
+def test_bench_rejects_a_negative_load() -> None:
+    r = subprocess.run([sys.executable, "-m", "compd", "bench", "--load", "-1"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--load" in r.stderr
 
 
 def test_bench_rejects_zero_cycles() -> None:
