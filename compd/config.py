@@ -366,7 +366,10 @@ class RealtimeConfig(Strict):
     cpu_affinity: list[Annotated[int, Field(ge=0, le=1023)]] | None = Field(
         None, description="CPUs the cycle thread may run on; none = any"
     )
-    lock_memory: bool = Field(False, description="lock all memory (mlockall) against paging")
+    lock_memory: bool = Field(
+        False, description="lock memory against paging (mlockall; each page from when it is first touched,"
+        " MCL_ONFAULT, where the kernel has it)"
+    )
 
 
 class PlantClockConfig(Strict):

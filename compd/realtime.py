@@ -16,14 +16,24 @@ from typing import Any
 
 MCL_CURRENT = 1
 MCL_FUTURE = 2
+MCL_ONFAULT = 4  # Linux 4.4: lock each page when it is first touched, not every mapped page now
 
 
-def _mlockall() -> int:
-    """mlockall(MCL_CURRENT | MCL_FUTURE); returns 0 or the errno."""
+def _mlockall() -> tuple[int, bool]:
+    """mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT), or without MCL_ONFAULT on a kernel
+    that does not know it; returns (0 or the errno, whether on fault).
+
+    Without MCL_ONFAULT, mlockall makes resident every page mapped: the whole text of every
+    shared library (numpy's OpenBLAS alone, with a kernel for each CPU type, is tens of MB),
+    every thread's 8 MB stack, the BLAS buffers. compd's process measured 216 MB that way
+    against 53 MB on fault. On fault, every page the process has touched stays in RAM, and
+    the cycle touches its paths in the priming cycle before the schedule starts."""
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    if libc.mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) == 0:
+        return 0, True
     if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
-        return ctypes.get_errno()
-    return 0
+        return ctypes.get_errno(), False
+    return 0, False
 
 
 def apply_realtime(cfg: Any) -> list[tuple[bool, str]]:
@@ -44,9 +54,9 @@ def apply_realtime(cfg: Any) -> list[tuple[bool, str]]:
                 (False, f"cannot use SCHED_FIFO {cfg.priority}: {e.strerror} (install realtime.conf)")
             )
     if cfg.lock_memory:
-        err = _mlockall()
+        err, onfault = _mlockall()
         if err == 0:
-            done.append((True, "memory locked (mlockall)"))
+            done.append((True, "memory locked (mlockall, as touched)" if onfault else "memory locked (mlockall)"))
         else:
             done.append((False, f"cannot lock memory: {os.strerror(err)} (LimitMEMLOCK)"))
     return done
