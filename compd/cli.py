@@ -528,15 +528,10 @@ def cmd_status(args: argparse.Namespace) -> int:
     if args.status:
         path = args.status
     elif args.config:
-        from pathlib import Path
-
         from compd.config import load_config
-        from compd.service import status_path
+        from compd.service import daemon_status_path
 
-        found = status_path(load_config(args.config), env={})
-        # no status.path: where the systemd units put it (RuntimeDirectory=compd or compd/%i)
-        stem = Path(args.config).stem
-        path = str(found) if found else DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json"
+        path = str(daemon_status_path(load_config(args.config)))
     else:
         path = DEFAULT_PATH
     if args.watch:
@@ -571,11 +566,9 @@ def probe_socket(config: str | None) -> str:
     if cfg.top.adapt is None:
         raise BadInput("has no adapt section, so its daemon takes no probes (add `adapt: {}`, or"
                        " `adapt: {apply: false}` to estimate without applying)", file=config, path="adapt")
-    found = socket_path(cfg, env={})
-    if found is not None:
-        return str(found)
-    stem = Path(config).stem
-    return DEFAULT_PATH if stem == "compd" else str(sock_beside(Path(f"/run/compd/{stem}/status.json")))
+    from compd.service import daemon_status_path
+
+    return str(socket_path(cfg, env={}) or sock_beside(daemon_status_path(cfg)))
 
 
 @command("probe")

@@ -132,12 +132,10 @@ def check_request(cfg: Config, sink: Sink, word_axes: list[str], axis: str, um: 
 def running_daemon(cfg: Config) -> str | None:
     """Why a daemon of this config seems to hold the sink's device now (its status file is
     fresh, its process exists), or None: the test must not write beside a running loop."""
-    from compd.service import status_path
-    from compd.status import DEFAULT_PATH, liveness, read_status
+    from compd.service import daemon_status_path
+    from compd.status import liveness, read_status
 
-    found = status_path(cfg, env={})
-    stem = Path(cfg.file).stem
-    path = found or Path(DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json")
+    path = daemon_status_path(cfg)
     if not path.is_file():
         return None
     try:

@@ -53,6 +53,17 @@ def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
     return Path(runtime) / "status.json" if runtime else None
 
 
+def daemon_status_path(cfg: Any) -> Path:
+    """Where the daemon of `cfg` writes its status, as another process finds it: `status.path`,
+    else where the systemd units put it (RuntimeDirectory `compd` for compd.yaml, `compd/NAME`
+    for the instance compd@NAME)."""
+    found = status_path(cfg, env={})
+    if found is not None:
+        return found
+    stem = Path(cfg.file).stem
+    return Path(status_mod.DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json")
+
+
 class _TailLogger(ABC):
     """Logs what a bounded event deque gained since the last flush (the cycle appends to it;
     flush runs off the cycle, on a copy, and finds where it left off by identity)."""

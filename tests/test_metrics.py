@@ -27,6 +27,17 @@ def _scrape(url: str) -> dict[str, float]:
     return out
 
 
+def _served(app: App, state: str) -> dict[str, float]:
+    """The metrics of the loop's snapshot, scraped over HTTP from a server started for it."""
+    server = MetricsServer("127.0.0.1", 0)
+    url = server.start()
+    try:
+        server.update(snapshot(app.loop, state=state, observe=False), app.loop.stats)
+        return _scrape(url)
+    finally:
+        server.stop()
+
+
 def test_metrics_endpoint(tmp_path):
     app = App(load_config(sim_config(tmp_path, duration_s=1200)))
     app.run()
@@ -62,13 +73,7 @@ def test_an_axis_the_machine_holds_off(tmp_path):
     app = App(load_config(sim_config(tmp_path, duration_s=60)))
     app.run()
     app.loop.guard.hold[0] = 2  # compd.inhibit.WAITING: the axis waits for its reference
-    server = MetricsServer("127.0.0.1", 0)
-    url = server.start()
-    try:
-        server.update(snapshot(app.loop, state="running", observe=False), app.loop.stats)
-        m = _scrape(url)
-    finally:
-        server.stop()
+    m = _served(app, "running")
     assert m['compd_axis_held{axis="z",reason="waiting for reference"}'] == 1.0
     assert m['compd_axis_held{axis="z",reason="inhibited"}'] == 0.0
 
@@ -78,13 +83,7 @@ def test_faults_by_kind(tmp_path):
 
     app = App(load_config(fault_config(tmp_path)))
     app.run()
-    server = MetricsServer("127.0.0.1", 0)
-    url = server.start()
-    try:
-        server.update(snapshot(app.loop, state="stopped", observe=False), app.loop.stats)
-        m = _scrape(url)
-    finally:
-        server.stop()
+    m = _served(app, "stopped")
     assert m['compd_faults_total{kind="bad:out_of_range"}'] == 1
     assert m['compd_faults_total{kind="fault:input bad"}'] == 1
 
@@ -171,13 +170,7 @@ def test_the_adaptation_estimate_and_probe_counts(tmp_path):
     ad.inbox.extend([Probe(t_s=app.loop.now_s, axis="z", error_um=float(app.loop.pred_um[0]) + 2.0),
                      Probe(t_s=app.loop.now_s, axis="z", error_um=1e4)])  # the second fails the gate
     app.loop.step(app.loop.now_s + 1.0)
-    server = MetricsServer("127.0.0.1", 0)
-    url = server.start()
-    try:
-        server.update(snapshot(app.loop, state="stopped", observe=False), app.loop.stats)
-        m = _scrape(url)
-    finally:
-        server.stop()
+    m = _served(app, "stopped")
     assert m['compd_probes_accepted_total{axis="z"}'] == 1
     assert m['compd_probes_rejected_total{axis="z"}'] == 1
     assert m['compd_adapt_offset_micrometres{axis="z"}'] == pytest.approx(float(ad.est[0].s[0]))

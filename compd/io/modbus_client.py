@@ -354,39 +354,39 @@ def _client_classes() -> tuple[type, type]:
     import serial
     from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
-    class TcpClient(ModbusTcpClient):
+    class KeepsReason:
+        """pymodbus's `connect`, with the exception kept: `_open` makes the socket."""
+
+        socket: Any
         connect_error: str | None = None
+
+        def _open(self) -> Any:
+            raise NotImplementedError
 
         def connect(self) -> bool:
             if self.socket:
                 return True
-            p = self.comm_params
             try:
-                self.socket = socket.create_connection(
-                    (p.host, p.port), timeout=p.timeout_connect, source_address=p.source_address
-                )
-            except OSError as e:
+                self.socket = self._open()
+            except Exception as e:  # OSError, and pyserial's termios and other errors besides its own
                 self.connect_error = str(e) or type(e).__name__
-                self.close()
+                self.close()  # type: ignore[attr-defined]
             return self.socket is not None
 
-    class SerialClient(ModbusSerialClient):
-        connect_error: str | None = None
-
-        def connect(self) -> bool:
-            if self.socket:
-                return True
+    class TcpClient(KeepsReason, ModbusTcpClient):
+        def _open(self) -> Any:
             p = self.comm_params
-            try:
-                self.socket = serial.serial_for_url(
-                    p.host, timeout=p.timeout_connect, write_timeout=p.timeout_connect, bytesize=p.bytesize,
-                    stopbits=p.stopbits, baudrate=p.baudrate, parity=p.parity, exclusive=True,
-                )
-                self.socket.inter_byte_timeout = self.inter_byte_timeout
-            except Exception as e:  # pyserial raises termios and other errors besides its own
-                self.connect_error = str(e) or type(e).__name__
-                self.close()
-            return self.socket is not None
+            return socket.create_connection((p.host, p.port), timeout=p.timeout_connect, source_address=p.source_address)
+
+    class SerialClient(KeepsReason, ModbusSerialClient):
+        def _open(self) -> Any:
+            p = self.comm_params
+            port = serial.serial_for_url(
+                p.host, timeout=p.timeout_connect, write_timeout=p.timeout_connect, bytesize=p.bytesize,
+                stopbits=p.stopbits, baudrate=p.baudrate, parity=p.parity, exclusive=True,
+            )
+            port.inter_byte_timeout = self.inter_byte_timeout
+            return port
 
     _CLASSES = (TcpClient, SerialClient)
     return _CLASSES
