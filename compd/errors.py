@@ -42,6 +42,10 @@ class BadInput(Exception):
         self.path = path if isinstance(path, str) or path is None else format_path(path)
         super().__init__(str(self))
 
+    def __reduce__(self) -> tuple[object, ...]:
+        # whole across a process boundary (an I/O worker's child raises it at start-up)
+        return (_rebuilt, (type(self), self.message, self.file, self.line, self.keys or None))
+
     def __str__(self) -> str:
         where = ""
         if self.file:
@@ -51,6 +55,12 @@ class BadInput(Exception):
             where += ": "
         key = f"{self.path}: " if self.path else ""
         return f"{where}{key}{self.message}".replace("\n", " ")
+
+
+def _rebuilt(
+    cls: type[BadInput], message: str, file: str | None, line: int | None, keys: tuple[str | int, ...] | None
+) -> BadInput:
+    return cls(message, file=file, line=line, path=keys)
 
 
 class ConfigError(BadInput):

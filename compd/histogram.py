@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from array import array
+import mmap
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -23,20 +23,33 @@ def bin_percentiles(bins: Any, qs: Sequence[float]) -> list[float]:
 
 
 class DurationHist:
-    """Counts durations in 1 µs bins up to `max_us` (the last bin holds everything above)."""
+    """Counts durations in 1 µs bins up to `max_us` (the last bin holds everything above).
+
+    Its counts live in memory shared with the children forked after it was made, so an
+    I/O worker in a process of its own (compd.io.child) counts into the same histogram.
+    """
 
     def __init__(self, max_us: int = 20000) -> None:
-        self.bins = array("q", bytes(8 * max_us))
-        self.count = 0
-        self.max_ns = 0
+        self._buf = mmap.mmap(-1, 8 * (max_us + 2), flags=mmap.MAP_SHARED | mmap.MAP_ANONYMOUS)
+        self._words = memoryview(self._buf).cast("q")  # count, max ns, then the bins
+        self.bins = np.frombuffer(self._buf, dtype=np.int64, offset=16)
+
+    @property
+    def count(self) -> int:
+        return self._words[0]
+
+    @property
+    def max_ns(self) -> int:
+        return self._words[1]
 
     def add_ns(self, d_ns: int) -> None:
+        w = self._words
         us = d_ns // 1000
-        n = len(self.bins)
-        self.bins[us if us < n else n - 1] += 1
-        self.count += 1
-        if d_ns > self.max_ns:
-            self.max_ns = d_ns
+        n = len(w) - 2
+        w[2 + (us if us < n else n - 1)] += 1
+        w[0] += 1
+        if d_ns > w[1]:
+            w[1] = d_ns
 
     def percentile_us(self, q: float) -> float:
         """The bin (µs) holding the q-quantile; 0 when empty."""
@@ -58,9 +71,7 @@ class DurationHist:
         hists = list(hists)
         out = cls(len(hists[0].bins) if hists else 20000)
         for h in hists:
-            for i, c in enumerate(h.bins):
-                if c:
-                    out.bins[i] += c
-            out.count += h.count
-            out.max_ns = max(out.max_ns, h.max_ns)
+            out.bins += h.bins
+            out._words[0] += h.count
+            out._words[1] = max(out.max_ns, h.max_ns)
         return out

@@ -28,17 +28,23 @@ and `close`. The worker owns the rest:
   between an error and a good round logs the error once, not at every flap. This
   happens on the worker's thread, never in the cycle.
 
-The interface between the cycle and its device is data only, so that the workers can
-later move out of the cycle's interpreter (another process: the mailboxes in shared
-memory, requests and counts over a pipe) while sources and sinks stay as they are:
+Where it runs: a thread of the daemon, or (`start(process=True)`, the daemon's choice
+on the wall clock: `loop.io`) a child process of its own (`compd.io.child`), so that
+its Python never holds the GIL the cycle needs. The interface between the cycle and
+its device is data only, in memory shared with the child (`compd.io.mailbox`), so
+sources and sinks are the same either way:
 
   cycle → worker   `WriteQueue.submit(address, values)` (which calls `wake()`);
                    `request(arg)`: one round now with `arg` (a stamp, a target time,
                    a register range), and its reply — for everything that is not the
                    cycle itself (a lockstep clock between cycles, a settle, a test);
-  worker → cycle   `Snapshot` (values, quality and stamp of each signal), `Latest`
-                   (status registers, a plant time), `get_status()` (a dict of counts).
+                   over the child's pipe when the worker runs there;
+  worker → cycle   `Snapshot` (values, quality and stamp of each signal),
+                   `SharedRegisters` (status registers), the worker's accounts
+                   (`state`, `rounds`, `errors`, `connects`, `round_hist`), and
+                   `get_status()` (a dict of counts, over the pipe from a child).
 
+The wake-up is an eventfd, made before the fork and so shared with the child.
 The cycle only ever appends to a queue, reads a published object or writes to an
 eventfd: it never takes a lock a worker could hold, never waits for a worker's
 Python, never blocks on a device. Times that stamp samples come from the `clock`
@@ -60,8 +66,12 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from compd import activity
 from compd.histogram import DurationHist
+from compd.io.child import Child, ChildGone
+from compd.io.mailbox import shared_buffer
 
 log = logging.getLogger("compd.io")
 
@@ -124,6 +134,20 @@ class DeviceWork(ABC):
         return {}
 
 
+class _Account:
+    """One count of an IoWorker's accounts, held in its shared memory (`_acct[index]`)."""
+
+    def __init__(self, index: int, doc: str) -> None:
+        self.index = index
+        self.__doc__ = doc
+
+    def __get__(self, worker: IoWorker | None, owner: type) -> Any:
+        return self if worker is None else int(worker._acct[self.index])
+
+    def __set__(self, worker: IoWorker, value: int) -> None:
+        worker._acct[self.index] = value
+
+
 class IoWorker:
     """Runs one `DeviceWork` on a thread of its own, named `name`: see the module."""
 
@@ -147,17 +171,18 @@ class IoWorker:
         self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
         self.join_timeout_s = join_timeout_s
         self.round_hist = round_hist if round_hist is not None else DurationHist()
-        self.state = "closed"
-        self.rounds = 0
-        self.errors = 0
-        self.connects = 0
-        self.retry_in_s = 0.0  # the wait before the connect after the latest failure
+        # the accounts, in memory shared with a child the worker may run in: state (an
+        # index of WORKER_STATES), rounds, errors, connects, wakes asked; the retry wait (s)
+        self._acct_buf = shared_buffer(48)
+        self._acct = np.frombuffer(self._acct_buf, dtype=np.int64, count=5)
+        self._retry = np.frombuffer(self._acct_buf, dtype=np.float64, count=1, offset=40)
         self.reported_error: str | None = None  # the error the log last said the device has (None: fine)
         self.recovered_after_s = recovered_after_s
         self._healthy_since: float | None = None  # rounds without an error since (monotonic s)
+        self._child: Child | None = None  # the process the worker runs in (None: a thread here)
+        self._last_status: dict[str, Any] | None = None  # a stopped child's final counts
         self._paced = True
         self._stop = False
-        self._wakes = 0  # counted by `wake`; the thread runs a round when it changed (no flag to lose)
         self._wakes_seen = 0
         self._thread: threading.Thread | None = None
         self._open_error: BaseException | None = None
@@ -170,17 +195,90 @@ class IoWorker:
         self._fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         weakref.finalize(self, os.close, self._fd)
 
+    # ------------------------------------------------------------ accounts (shared)
+    rounds = _Account(1, "rounds of I/O done")
+    errors = _Account(2, "failed connects and rounds")
+    connects = _Account(3, "connects that went through")
+    _wakes = _Account(4, "counted by `wake`; the thread runs a round when it changed (no flag to lose)")
+
+    @property
+    def state(self) -> str:
+        """closed, connecting, up or down."""
+        return WORKER_STATES[int(self._acct[0])]
+
+    @state.setter
+    def state(self, value: str) -> None:
+        self._acct[0] = WORKER_STATES.index(value)
+
+    @property
+    def retry_in_s(self) -> float:
+        """The wait before the connect after the latest failure."""
+        return float(self._retry[0])
+
+    @retry_in_s.setter
+    def retry_in_s(self, value: float) -> None:
+        self._retry[0] = value
+
     # ------------------------------------------------------------ life cycle
     @property
     def running(self) -> bool:
+        if self._child is not None:
+            return self._child.alive()
         th = self._thread
         return th is not None and th.is_alive()
 
-    def start(self, *, paced: bool = True, clock: Callable[[], float] | None = None) -> None:
-        """Start the thread: `open` the work there (its error is raised here), then run
-        rounds every `period_s` (paced, and a period set) or only when woken or asked."""
+    @property
+    def in_process(self) -> bool:
+        """Whether the worker runs in a child process of its own."""
+        return self._child is not None
+
+    def start(
+        self, *, paced: bool = True, clock: Callable[[], float] | None = None, process: bool = False,
+        avoid_cpus: frozenset[int] = frozenset(),
+    ) -> None:
+        """Start the worker: `open` the work on its thread (its error is raised here), then
+        run rounds every `period_s` (paced, and a period set) or only when woken or asked.
+        `process`: the thread runs in a child process of its own (forked now; `clock` must
+        be readable there, e.g. the wall clock), kept off the CPUs `avoid_cpus`."""
         if self.running:
             raise RuntimeError(f"I/O worker {self.name} is running already")
+        self._last_status = None
+        if not process:
+            self._start_thread(paced, clock)
+            return
+        child = Child(self.name)
+
+        def answer(what: str, *args: Any) -> Any:
+            if what == "open":
+                self._start_thread(paced, clock)
+                return None
+            if what == "request":
+                return self.request(args[0], args[1])
+            if what == "status":
+                return self.get_status()
+            if what == "stop":
+                return self.stop(args[0])
+            raise ValueError(f"unknown call {what!r}")
+
+        def serve(ch: Child) -> None:
+            self._child = None  # in the child, the worker is a thread of its own process
+            try:
+                ch.serve_calls(answer)
+            finally:
+                self.stop()
+
+        child.start(serve, avoid_cpus, keep_fds=(self._fd,))
+        try:
+            child.call("open", timeout_s=60.0)
+        except BaseException:
+            with contextlib.suppress(ChildGone):
+                child.call("exit", timeout_s=self.join_timeout_s)
+            child.stop(self.join_timeout_s)
+            self.state = "closed"
+            raise
+        self._child = child
+
+    def _start_thread(self, paced: bool, clock: Callable[[], float] | None) -> None:
         if clock is not None:
             self.work.now = clock
         self._paced = paced and self.period_s is not None
@@ -202,14 +300,30 @@ class IoWorker:
             raise err
 
     def stop(self, timeout_s: float | None = None) -> bool:
-        """Stop the thread and join it (within `timeout_s`, default `join_timeout_s`); False
-        when it is still in a device call (it ends, and closes the device, by itself)."""
+        """Stop the worker and join it (within `timeout_s`, default `join_timeout_s`); False
+        when it is still in a device call (it ends, and closes the device, by itself; a
+        child process that does not end is killed)."""
+        timeout = self.join_timeout_s if timeout_s is None else timeout_s
+        child = self._child
+        if child is not None:
+            self._child = None
+            stopped = False
+            with contextlib.suppress(ChildGone):
+                stopped = bool(child.call("stop", timeout, timeout_s=timeout + 1.0))
+                self._last_status = dict(child.call("status", timeout_s=1.0))
+                child.call("exit", timeout_s=1.0)
+            clean = child.stop(timeout + 1.0)
+            self.state = "closed"
+            if not (stopped and clean):
+                log.warning("I/O worker %s did not stop in time", self.name,
+                            extra={"event": "io_worker_stuck", "worker": self.name})
+            return stopped and clean
         th = self._thread
         if th is None:
             return True
         self._stop = True
         self._signal()
-        th.join(self.join_timeout_s if timeout_s is None else timeout_s)
+        th.join(timeout)
         if th.is_alive():
             log.warning("I/O worker %s did not stop in time", self.name,
                         extra={"event": "io_worker_stuck", "worker": self.name})
@@ -220,13 +334,19 @@ class IoWorker:
     # ------------------------------------------------------------ the cycle's side
     def wake(self) -> None:
         """Ask for a round soon (something was queued). Never waits."""
-        self._wakes += 1
+        self._acct[4] += 1
         self._signal()
 
     def request(self, arg: Any = None, timeout_s: float = 5.0) -> Any:
         """One round now with `arg`, on the worker's thread; its reply, or None when the
         worker is not running or the round did not end within `timeout_s`. Not for the
         cycle: it waits."""
+        child = self._child
+        if child is not None:
+            try:
+                return child.call("request", arg, timeout_s, timeout_s=timeout_s + 1.0)
+            except ChildGone:
+                return None
         if not self.running:
             return None
         seq = next(self._seq)
@@ -248,8 +368,15 @@ class IoWorker:
                 self._waiting.discard(seq)
 
     def wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
-        """Wait until `predicate()` holds (checked after every round), or `timeout_s`."""
+        """Wait until `predicate()` holds (checked after every round, or every few ms when
+        the worker runs in a child), or `timeout_s`."""
         deadline = time.monotonic() + timeout_s
+        if self._child is not None:
+            while not predicate():
+                if time.monotonic() >= deadline:
+                    return False
+                time.sleep(0.002)
+            return True
         with self._done:
             while not predicate():
                 rest = deadline - time.monotonic()
@@ -259,9 +386,19 @@ class IoWorker:
         return True
 
     def get_status(self) -> dict[str, Any]:
-        """state, rounds, errors, connects, last_error and the work's counters."""
+        """state, rounds, errors, connects, last_error and the work's counters (asked of the
+        child when the worker runs in one)."""
+        child = self._child
+        if child is not None:
+            try:
+                return dict(child.call("status", timeout_s=2.0))
+            except ChildGone as e:
+                return {"state": self.state, "rounds": self.rounds, "errors": self.errors,
+                        "connects": self.connects, "last_error": str(e)}
+        if self._last_status is not None:  # stopped: the counts its process had at the end
+            return {**self._last_status, "state": self.state}
         return {"state": self.state, "rounds": self.rounds, "errors": self.errors, "connects": self.connects,
-                "last_error": self.work.last_error, **self.work.counters()}
+                "last_error": self.work.last_error, "pid": os.getpid(), **self.work.counters()}
 
     # ------------------------------------------------------------ the thread
     def _signal(self) -> None:

@@ -1,0 +1,328 @@
+"""A forked child process beside the cycle: control pipe, forwarded log records, ends with its parent.
+
+Device I/O and the data log's writer run Python; in the cycle's interpreter that
+Python holds the GIL the cycle needs when it wakes. `Child` forks a process that runs
+such work instead, so the cycle never waits on it. What the two share is set up
+before the fork (shared memory: `compd.io.mailbox`, an eventfd to wake the child);
+everything else goes over the control pipe (pickled, never on the cycle's path):
+
+  parent → child   `call(what, *args)`: the child's `serve` answers it (a request, a
+                   status query, stop);
+  child → parent   the replies, and the child's log records: its `compd` loggers send
+                   them to the parent, whose handlers write them (one journal, one
+                   format, and a test's log capture sees them).
+
+The child:
+* runs at normal priority on every CPU the cycle is not pinned to (a fork inherits
+  the cycle thread's SCHED_FIFO and affinity), and is not memory-locked (mlockall is
+  not inherited);
+* ignores SIGINT and SIGTERM: the parent, stopping, still sends the safe state through
+  a sink's child; the parent stops its children, and a child whose parent is gone
+  (pipe closed, or re-parented) exits by itself;
+* closes every file descriptor it inherited but stdin, stdout, stderr, its pipe and
+  those it is given (`keep_fds`: the worker's eventfd): a listening socket of the
+  parent (the metrics server, a control socket) must not stay bound in a child, or the
+  port could not be opened again at a reload; and it freezes the inherited objects out
+  of the garbage collector's view, so no copy of a parent's socket is ever finalized
+  there (its number may belong to the child's own socket by then);
+* ends with `os._exit`: nothing of the parent's (atexit, buffered files, finalizers)
+  runs twice.
+
+Fork, not spawn: the device objects are built and checked in the parent (a bad config
+is refused there, before anything runs) and the child starts in milliseconds with them.
+The parent has threads when it forks (the status writer, a metrics server): the child
+uses only its own objects, and Python re-creates the import and logging locks after a
+fork. Pages the parent writes after a fork are copied on the first write (a minor fault
+each), so children are forked at start-up and at a reload, not while the cycle runs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import gc
+import itertools
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection, Pipe
+from typing import Any
+
+log = logging.getLogger("compd.io")
+
+PARENT_CHECK_S = 0.5  # how often a child checks that its parent is still there
+
+
+@dataclass
+class Hosting:
+    """Where I/O workers started now run: `process` (a child each) or threads; `cpus`: the
+    CPUs the cycle thread is pinned to (children keep off them when others are left)."""
+
+    process: bool = False
+    cpus: frozenset[int] = field(default_factory=frozenset)
+
+
+_hosting = Hosting()
+
+
+def hosting_now() -> Hosting:
+    """How I/O workers started now are hosted (set around a loop's `open`)."""
+    return _hosting
+
+
+@contextlib.contextmanager
+def hosting(process: bool, cpus: frozenset[int] | set[int] = frozenset()) -> Iterator[None]:
+    """Workers started inside run in child processes (`process`) or threads."""
+    global _hosting
+    was = _hosting
+    _hosting = Hosting(process, frozenset(cpus))
+    try:
+        yield
+    finally:
+        _hosting = was
+
+
+class ChildGone(Exception):
+    """The child process has exited, or did not answer in time."""
+
+
+class _PipeHandler(logging.Handler):
+    """In the child: sends each record to the parent, formatted to plain data."""
+
+    def __init__(self, send: Callable[[Any], None]) -> None:
+        super().__init__()
+        self._send = send
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            d = dict(record.__dict__)
+            d["msg"] = record.getMessage()
+            d["args"] = None
+            if record.exc_info:
+                d["exc_text"] = logging.Formatter().formatException(record.exc_info)
+            d["exc_info"] = None
+            d.pop("message", None)
+            self._send(("log", d))
+        except Exception:
+            self.handleError(record)
+
+
+def _set_name(name: str) -> None:
+    """The process name `ps` and `top` show (15 bytes)."""
+    with contextlib.suppress(Exception):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
+
+
+def _normal_scheduling(avoid: frozenset[int]) -> None:
+    """Normal priority, on every CPU but the cycle's (when that leaves any)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    n = os.cpu_count() or 1
+    cpus = set(range(n)) - set(avoid) or set(range(n))
+    with contextlib.suppress(OSError):
+        os.sched_setaffinity(0, cpus)
+
+
+class Child:
+    """A forked child running `serve(child)` (see the module). In the parent: `start`,
+    `call`, `alive`, `stop`; in the child: `send` (replies, sent by `serve_calls`)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.pid: int | None = None
+        self.exit_code: int | None = None
+        self._conn: Connection | None = None
+        self._lock = threading.Lock()  # parent: one call on the pipe at a time
+        self._send_lock = threading.Lock()  # child: the handler and the server share the pipe
+        self._replies: dict[int, Any] = {}
+        self._arrived = threading.Condition()
+        self._seq = itertools.count(1)
+        self._reader: threading.Thread | None = None
+        self._eof = False
+
+    # ------------------------------------------------------------ parent
+    def start(
+        self, serve: Callable[[Child], None], avoid_cpus: frozenset[int] = frozenset(),
+        keep_fds: Iterable[int] = (),
+    ) -> None:
+        """Fork; the child runs `serve(self)` and exits when it returns. The child keeps of
+        its inherited file descriptors only stdio, its pipe and `keep_fds`."""
+        keep = set(keep_fds)
+        mine, theirs = Pipe(duplex=True)
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        parent_pid = os.getpid()
+        pid = os.fork()
+        if pid == 0:  # the child
+            code = 0
+            try:
+                mine.close()
+                self._conn = theirs
+                self._in_child(parent_pid, avoid_cpus, keep | {0, 1, 2, theirs.fileno()})
+                serve(self)
+            except BaseException:
+                code = 1
+                with contextlib.suppress(Exception):
+                    log.exception("I/O process %s failed", self.name,
+                                  extra={"event": "io_process_failed", "worker": self.name})
+            finally:
+                os._exit(code)
+        theirs.close()
+        self.pid = pid
+        self._conn = mine
+        self._eof = False
+        self._reader = threading.Thread(target=self._read, name=f"{self.name}-pipe", daemon=True)
+        self._reader.start()
+
+    def alive(self) -> bool:
+        """Whether the child still runs (reaps it when it has exited)."""
+        if self.pid is None or self.exit_code is not None:
+            return False
+        try:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+        except ChildProcessError:
+            self.exit_code = -1
+            return False
+        if pid == 0:
+            return True
+        self.exit_code = os.waitstatus_to_exitcode(status)
+        return False
+
+    def call(self, *msg: Any, timeout_s: float) -> Any:
+        """Send `msg` to the child and wait for its answer; ChildGone when the child has
+        exited or did not answer within `timeout_s`. Not for the cycle: it waits."""
+        if self._conn is None or self._eof:
+            raise ChildGone(f"{self.name}: the I/O process has exited")
+        seq = next(self._seq)
+        with self._lock:
+            try:
+                self._conn.send((seq, *msg))
+            except (OSError, ValueError) as e:
+                raise ChildGone(f"{self.name}: {e}") from None
+        deadline = time.monotonic() + timeout_s
+        with self._arrived:
+            while seq not in self._replies:
+                rest = deadline - time.monotonic()
+                if rest <= 0 or self._eof:
+                    raise ChildGone(f"{self.name}: no answer from the I/O process")
+                self._arrived.wait(min(rest, 0.2))
+            ok, value = self._replies.pop(seq)
+        if not ok:
+            raise value
+        return value
+
+    def stop(self, timeout_s: float) -> bool:
+        """Wait up to `timeout_s` for the child to exit (after it was told to), then kill
+        it; True when it exited by itself."""
+        if self.pid is None:
+            return True
+        deadline = time.monotonic() + timeout_s
+        clean = True
+        while self.alive():
+            if time.monotonic() >= deadline:
+                clean = False
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(self.pid, signal.SIGKILL)
+                with contextlib.suppress(ChildProcessError):
+                    os.waitpid(self.pid, 0)
+                self.exit_code = -signal.SIGKILL
+                break
+            time.sleep(0.005)
+        if self._conn is not None:
+            with contextlib.suppress(OSError):
+                self._conn.close()
+        if self._reader is not None:
+            self._reader.join(1.0)
+        self._conn = None
+        return clean
+
+    def _read(self) -> None:
+        """The parent's reader: replies to their callers, log records to the handlers."""
+        conn = self._conn
+        assert conn is not None
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError, ValueError):
+                break
+            except Exception as e:  # a message that does not unpickle: say so, go on
+                log.warning("%s: unreadable message from the I/O process: %s", self.name, e)
+                continue
+            if msg[0] == "log":
+                record = logging.makeLogRecord(msg[1])
+                logging.getLogger(record.name).handle(record)
+            elif msg[0] == "reply":
+                with self._arrived:
+                    self._replies[msg[1]] = (msg[2], msg[3])
+                    self._arrived.notify_all()
+        with self._arrived:
+            self._eof = True
+            self._arrived.notify_all()
+
+    # ------------------------------------------------------------ child
+    def _in_child(self, parent_pid: int, avoid_cpus: frozenset[int], keep_fds: set[int]) -> None:
+        gc.freeze()
+        for name in os.listdir("/proc/self/fd"):
+            fd = int(name)
+            if fd not in keep_fds:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self.pid = None
+        self._parent_pid = parent_pid
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        with contextlib.suppress(ValueError, OSError):
+            signal.set_wakeup_fd(-1)
+        _set_name(f"compd:{self.name}")
+        _normal_scheduling(avoid_cpus)
+        self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
+        handler = _PipeHandler(self.send)
+        for name in ("", "compd"):
+            lg = logging.getLogger(name)
+            for h in list(lg.handlers):
+                lg.removeHandler(h)
+        logging.getLogger().addHandler(handler)
+        from compd import activity
+
+        activity.disable()
+
+    def send(self, msg: Any) -> None:
+        """In the child: a message to the parent (never raises: a gone parent is seen by `serve_calls`)."""
+        with self._send_lock, contextlib.suppress(OSError, ValueError):
+            assert self._conn is not None
+            self._conn.send(msg)
+
+    def serve_calls(self, answer: Callable[..., Any]) -> None:
+        """In the child: answer the parent's calls with `answer(what, *args)` until it sends
+        ("exit",) or goes away. An exception is sent back to the caller and raised there."""
+        conn = self._conn
+        assert conn is not None
+        while True:
+            if os.getppid() != self._parent_pid:
+                return
+            try:
+                if not conn.poll(PARENT_CHECK_S):
+                    continue
+                msg = conn.recv()
+            except (EOFError, OSError):
+                return
+            seq, what, *args = msg
+            if what == "exit":
+                self.send(("reply", seq, True, None))
+                return
+            try:
+                value, ok = answer(what, *args), True
+            except Exception as e:
+                value, ok = e, False
+            try:
+                self.send(("reply", seq, ok, value))
+            except Exception as e:  # an answer that does not pickle
+                self.send(("reply", seq, False, RuntimeError(f"{type(e).__name__}: {e}")))
