@@ -201,6 +201,8 @@ class App:
         self.sources, self.frame, self.model, self.guard = p.sources, p.frame, p.model, p.guard
         self.encoder, self.sink, self.loop = p.encoder, p.sink, p.loop
         self.loop.gil_switch_interval_s = lp.gil_switch_interval_s
+        self.loop.io_process = lp.io == "process"
+        self.loop.cycle_cpus = frozenset(lp.realtime.cpu_affinity or ())
         self.summary = CompensationSummary(self.loop)
         self.loop.observers.append(self.summary)
         self.logger: LogObserver | None = None
@@ -349,7 +351,8 @@ class App:
                 s.bind_probes(prev.loop.adapter.inbox)
         prev.sink.bind_model(prev.model)
         if id(prev.sink) in self._released:
-            prev.sink.open(prev.clock.now())
+            with prev.loop.io_hosting():
+                prev.sink.open(prev.clock.now())
             self._released.clear()
 
     def _open_log(self) -> None:

@@ -22,6 +22,8 @@ class Clock(ABC):
     """
 
     simulated: bool = False
+    # whether `now` reads the same time in a forked child (an I/O worker's process)
+    fork_safe: bool = False
 
     @abstractmethod
     def now(self) -> float:
@@ -53,6 +55,7 @@ class WallClock(Clock):
     deadline, then spins, which cuts lateness from ~0.1 ms to a few µs."""
 
     simulated = False
+    fork_safe = True
 
     def __init__(self, spin_margin_s: float = 0.0002) -> None:
         self.spin_margin_s = spin_margin_s

@@ -419,6 +419,11 @@ class LoopConfig(Strict):
         0.0001, gt=0, le=0.005,
         description="wall clock: how soon a thread holding the GIL must hand it to the waking cycle",
     )
+    io: Literal["process", "thread"] = Field(
+        "process",
+        description="wall clock: where device I/O runs — a process of its own per device (its Python"
+        " never holds the GIL the cycle needs) or a thread of the daemon (other clocks: always a thread)",
+    )
     realtime: RealtimeConfig = Field(RealtimeConfig(), description="real-time options")
 
     @model_validator(mode="after")

@@ -30,6 +30,7 @@ from compd.frame import Frame
 from compd.guard import Guard
 from compd.histogram import bin_percentiles
 from compd.inhibit import Inhibit
+from compd.io.child import hosting
 from compd.models.base import Model
 from compd.sinks.base import Sink
 from compd.sources.base import Source
@@ -165,30 +166,39 @@ class Loop:
         self.gc_period_s = 1.0
         self.gil_switch_interval_s = 0.0001
         self.primed = False
+        # device I/O workers in processes of their own (on a clock a child can read), kept
+        # off the CPUs the cycle is pinned to
+        self.io_process = False
+        self.cycle_cpus: frozenset[int] = frozenset()
 
     def stop(self) -> None:
         """Ask the loop to finish after the current cycle (signal-safe)."""
         self._stop = True
 
+    def io_hosting(self) -> contextlib.AbstractContextManager[None]:
+        """Where the I/O workers of devices opened inside run (compd.io.child.hosting)."""
+        return hosting(self.io_process and self.clock.fork_safe, self.cycle_cpus)
+
     def open(self, adopted: frozenset[int] | set[int] = frozenset()) -> None:
         """Open the sources and the sink (those whose id() is in `adopted` are open already)."""
         now = self.clock.now()
         opened: list[Any] = []
-        try:
-            for s in self.sources:
-                if id(s) in adopted:
-                    continue
-                opened.append(s)
-                s.open(now)
-                s.start_polling(self.clock)  # a PolledSource's own thread, on the loop clock
-            if id(self.sink) not in adopted:
-                opened.append(self.sink)
-                self.sink.open(now)
-        except BaseException:  # one device failed: close the ones opened (and it), leave no thread
-            for stage in reversed(opened):
-                with contextlib.suppress(Exception):
-                    stage.close()
-            raise
+        with self.io_hosting():
+            try:
+                for s in self.sources:
+                    if id(s) in adopted:
+                        continue
+                    opened.append(s)
+                    s.open(now)
+                    s.start_polling(self.clock)  # a PolledSource's own worker, on the loop clock
+                if id(self.sink) not in adopted:
+                    opened.append(self.sink)
+                    self.sink.open(now)
+            except BaseException:  # one device failed: close the ones opened (and it), leave no worker
+                for stage in reversed(opened):
+                    with contextlib.suppress(Exception):
+                        stage.close()
+                raise
 
     def close(self, keep: frozenset[int] | set[int] = frozenset()) -> None:
         """Safe output first, then release everything — except what a reloaded

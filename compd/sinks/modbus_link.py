@@ -18,7 +18,8 @@ import time
 from typing import Any
 
 from compd.histogram import DurationHist
-from compd.io.mailbox import Latest, WriteQueue
+from compd.io.child import hosting_now
+from compd.io.mailbox import SharedRegisters, WriteQueue
 from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault, OverModbus
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
@@ -30,7 +31,7 @@ class LinkWork(OverModbus, DeviceWork):
         self,
         client: ModbusClient,
         queue: WriteQueue,
-        status_out: Latest[tuple[list[int] | None, float]],
+        status_out: SharedRegisters,
         status_range: tuple[int, int] | None,
         status_period_s: float,
     ) -> None:
@@ -73,7 +74,7 @@ class LinkWork(OverModbus, DeviceWork):
             w = self.queue.take()
             if w is None:
                 return
-            address, values, queued_ns = w
+            address, values, queued_ns = w[0], w[1], w[2]
             w0 = perf()
             r = self.client.write_registers(address, values)
             w1 = perf()
@@ -127,7 +128,7 @@ class ModbusLink:
         self.status_period_s = status_period_s
         self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
         self.name = name
-        self._status: Latest[tuple[list[int] | None, float]] = Latest((None, -1.0))
+        self._status = SharedRegisters(status[1] if status is not None else 0)
         self._queue = WriteQueue()
         self._work = LinkWork(
             ModbusClient.tcp(host, port, device_id=device_id, timeout_s=timeout_s),
@@ -142,7 +143,9 @@ class ModbusLink:
         self.latency_hist = self._work.latency_hist
 
     def start(self) -> None:
-        self._worker.start()
+        """Start the link's worker (in a process of its own when the loop hosts I/O so)."""
+        host = hosting_now()
+        self._worker.start(process=host.process, avoid_cpus=host.cpus)
 
     # ------------------------------------------------------------ the cycle's side
     def submit(self, address: int, values: list[int]) -> None:
@@ -174,25 +177,32 @@ class ModbusLink:
 
     @property
     def writes(self) -> int:
-        return self._work.writes
+        return int(self._worker.get_status()["writes"])
 
     @property
     def errors(self) -> int:
         """Failed connects and I/O, exception replies, malformed replies."""
-        return self._worker.errors + self._work.reply_errors
+        io = self._worker.get_status()
+        return int(io["errors"]) + int(io.get("reply_errors", 0))
 
     @property
     def bad_replies(self) -> int:
-        return self._work.bad_replies
+        return int(self._worker.get_status()["bad_replies"])
 
     @property
     def last_error(self) -> str | None:
-        return self._work.last_error
+        return self._worker.get_status()["last_error"]
+
+    @property
+    def in_process(self) -> bool:
+        """Whether the link's worker runs in a process of its own."""
+        return self._worker.in_process
 
     def get_status(self) -> dict[str, Any]:
         io = self._worker.get_status()
-        return {"state": io["state"], "writes": io["writes"], "errors": io["errors"] + io["reply_errors"],
-                "bad_replies": io["bad_replies"], "last_error": io["last_error"]}
+        return {"state": io["state"], "writes": io.get("writes", 0),
+                "errors": io["errors"] + io.get("reply_errors", 0),
+                "bad_replies": io.get("bad_replies", 0), "last_error": io["last_error"], "pid": io.get("pid")}
 
     # ------------------------------------------------------------ between cycles
     def flush(self, timeout_s: float = 2.0) -> bool:

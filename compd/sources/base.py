@@ -12,6 +12,7 @@ from compd.config import SourceConfig
 from compd.errors import BadInput
 from compd.frame import Frame, Quality
 from compd.histogram import DurationHist
+from compd.io.child import hosting_now
 from compd.io.mailbox import Snapshot
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
@@ -162,6 +163,8 @@ class PolledSource(Source):
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 10.0
     poll_timeout_s: float = 60.0  # how long `poll_now` waits for its poll to end
+    # the poller may run in a child process (it hands the cycle nothing but its Snapshot)
+    forkable: bool = True
 
     def __init__(self, cfg: SourceConfig, base_dir: str = ".") -> None:
         super().__init__(cfg, base_dir)
@@ -188,7 +191,9 @@ class PolledSource(Source):
         """Poll every `poll_period_s`; or, when the clock drives the polls (a lockstep plant
         clock), only when it asks (`poll_now`, between cycles)."""
         driven = clock.adopt_poller(self)
-        self.worker.start(paced=not driven, clock=clock.now)
+        host = hosting_now()
+        self.worker.start(paced=not driven, clock=clock.now, process=host.process and self.forkable and not driven,
+                          avoid_cpus=host.cpus)
 
     def poll_now(self, stamp: float) -> bool:
         """One poll, stamped `stamp`, and wait for it; False when the device did not answer
@@ -204,9 +209,9 @@ class PolledSource(Source):
         return self._snapshot.count > 0
 
     def read(self, frame: Frame, now_s: float) -> None:
-        stamps = self._snapshot.copy_to(frame, self._idx)
+        stamp = self._snapshot.copy_to(frame, self._idx)
         stale = self.stale_after_s
-        if stale is not None and now_s - stamps[0] > stale:
+        if stale is not None and now_s - stamp > stale:
             q = frame.quality[self._idx]
             frame.quality[self._idx] = np.where(q == Quality.GOOD, Quality.STALE, q)
 

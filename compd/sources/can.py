@@ -24,6 +24,7 @@ from compd.clock import Clock
 from compd.config import SourceConfig, Strict
 from compd.errors import BadInput
 from compd.frame import Frame, Quality
+from compd.io.child import hosting_now
 from compd.io.mailbox import Snapshot
 from compd.io.worker import DeviceWork, IoWorker
 from compd.sources.base import Source
@@ -132,7 +133,10 @@ class CanSource(Source):
         worker = self.worker
         assert isinstance(worker.work, CanReader)
         worker.work.config_path = self.config_path  # set by the app after construction
-        worker.start(clock=clock.now)
+        host = hosting_now()
+        # python-can's virtual bus lives in this process: its reader stays here
+        process = host.process and self.cfg.interface != "virtual"
+        worker.start(clock=clock.now, process=process, avoid_cpus=host.cpus)
 
     def read(self, frame: Frame, now_s: float) -> None:
         idx = self._idx

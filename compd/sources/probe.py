@@ -85,6 +85,7 @@ class ProbeSource(PolledSource):
     """The CNC's probe-result block, polled by an I/O worker; no frame signals."""
 
     Config = ProbeConfig
+    forkable = False  # its probes go to the adapter's inbox, an object of the cycle's process
 
     def __init__(self, cfg: ProbeConfig, base_dir: str = ".") -> None:
         super().__init__(cfg, base_dir)

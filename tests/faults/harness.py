@@ -46,6 +46,8 @@ WANT_UM = -13.6e-6 * 165.0 * 1000.0 * (24.0 - T0_C)  # the correction at 24 °C
 class JumpClock(WallClock):
     """Monotonic time plus an offset a test can jump (a suspend or a stall seen by the loop)."""
 
+    fork_safe = False  # the offset lives in the test's process: the I/O workers stay threads of it
+
     def __init__(self) -> None:
         super().__init__(0.0002)
         self.offset_s = 0.0
