@@ -862,6 +862,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--period-ms", type=positive, default=2.0, dest="period_ms")
     s.add_argument("--load", type=int, default=0, metavar="N",
                    help="start N CPU-bound processes beside the loops for the run (default 0)")
+    s.add_argument("--io", choices=("process", "thread"), default="process",
+                   help="loop.io: device I/O in processes of its own (default) or threads of the loop's process")
     s.add_argument("--late-us", type=positive, default=200.0, dest="late_us", metavar="US",
                    help="cycles later than this are matched with the other threads' work (default 200)")
     s.add_argument(

@@ -156,7 +156,10 @@ class Devices:
             self.proc.stdout.close()
 
 
-def _compd_config(work: Path, model_path: Path, sensors: list[str], ports: dict[str, int], scheduler: str, period_s: float) -> Path:
+def _compd_config(
+    work: Path, model_path: Path, sensors: list[str], ports: dict[str, int], scheduler: str, period_s: float,
+    io: str = "process",
+) -> Path:
     realtime: dict[str, Any] = {"scheduler": scheduler, "priority": 50}
     if scheduler == "fifo":
         # what a real-time deployment sets (docs/commissioning.md): memory locked, and the
@@ -183,7 +186,7 @@ def _compd_config(work: Path, model_path: Path, sensors: list[str], ports: dict[
             }
         )
     cfg = {
-        "loop": {"period_s": period_s, "realtime": realtime},
+        "loop": {"period_s": period_s, "io": io, "realtime": realtime},
         "sources": sources,
         "model": {"kind": "lvr", "file": str(model_path)},
         "guard": {"max_slew_um_per_s": 20.0, "stale_after_s": 1.0},
@@ -300,12 +303,14 @@ def run_bench(
     model_evals: int = 2000,
     load: int = 0,
     late_us: float = 200.0,
+    io: str = "process",
 ) -> dict[str, Any]:
     """The whole benchmark; returns the JSON of docs/formats.md (plus baseline, ratio, memory).
 
     `load`: CPU-bound processes started beside both loops (and stopped after). `late_us`:
     cycles later than this are matched against the spans of the other threads' work
-    (compd.activity) and counted per thread in `late_attribution`."""
+    (compd.activity) and counted per thread in `late_attribution`. `io`: loop.io of
+    compd's config (device I/O in processes of its own, or threads)."""
     from compd.models.bench import model_eval_us
 
     if cycles < 1:
@@ -319,7 +324,7 @@ def run_bench(
         devices = Devices(_device_file(work, sensors, speedup))
         hogs = start_load(load)
         try:
-            cfg = _compd_config(work, model_path, sensors, devices.ports, scheduler, period_s)
+            cfg = _compd_config(work, model_path, sensors, devices.ports, scheduler, period_s, io)
             compd = run_compd_loop_child(cfg, cycles, late_us, work / "loop.json")
             attribution = compd["late_attribution"]
             naive = run_naive_loop(model_path, sensors, devices.ports, naive_cycles, period_s)
@@ -348,6 +353,8 @@ def run_bench(
         "host": compd["host"],
         "plant_speedup": speedup,
         "load_processes": load,
+        "io": io,
+        "io_processes": compd["io_processes"],
         "late_attribution": attribution,
         "naive": naive,
     }
@@ -383,12 +390,21 @@ def format_table(r: dict[str, Any]) -> str:
         f"memory: {rss.get('after_warmup_kb', 0)} kB after warm-up, {rss['end_kb']} kB at the end"
         f" (growth {rss['growth_kb']} kB, largest {rss['max_growth_kb']} kB over {rss['samples']} samples)"
     )
+    procs = r.get("io_processes") or []
+    if procs:
+        lines.append(
+            f"device I/O: {len(procs)} processes beside the loop's ({', '.join(p['name'] for p in procs)}),"
+            f" {sum(p['pss_kb'] for p in procs)} kB proportional set size together"
+            f" ({sum(p['rss_kb'] for p in procs)} kB resident, counting pages shared with the loop's)"
+        )
+    else:
+        lines.append("device I/O: threads of the loop's process")
     io = r["io_us"]
     for key, what in (("read", "poll (8 regs)"), ("write", "PMC write"), ("output_latency", "queued->acked")):
         if io.get(key):
             h = io[key]
             lines.append(
-                f"I/O thread {what}: {h['count']} round trips, p50 {h['p50']:.0f} us, p99 {h['p99']:.0f} us,"
+                f"I/O {what}: {h['count']} round trips, p50 {h['p50']:.0f} us, p99 {h['p99']:.0f} us,"
                 f" max {h['max']:.0f} us"
             )
     lines.append(f"words sent to the PMC: {r['words_sent']} (plant at {r['plant_speedup']:.0f}x)")
@@ -427,7 +443,7 @@ def main(args: Any) -> int:
 
     result = run_bench(
         args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles,
-        load=args.load, late_us=args.late_us,
+        load=args.load, late_us=args.late_us, io=args.io,
     )
     print(format_table(result))
     if args.json:

@@ -55,6 +55,40 @@ def thread_switches(tid: int) -> tuple[int, int]:
     return vol, invol
 
 
+def memory_of_kb(pid: int) -> dict[str, int]:
+    """Resident (`rss_kb`) and proportional (`pss_kb`: pages shared with the loop's process
+    after the fork counted in part) size of process `pid`, kB (0 when it is gone)."""
+    out = {"rss_kb": 0, "pss_kb": 0}
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as fh:
+            for line in fh:
+                if line.startswith("Rss:"):
+                    out["rss_kb"] = int(line.split()[1])
+                elif line.startswith("Pss:"):
+                    out["pss_kb"] = int(line.split()[1])
+    except OSError:
+        pass
+    return out
+
+
+def io_processes(app: Any) -> list[dict[str, Any]]:
+    """The device I/O workers that run in processes of their own: name, pid, resident and
+    proportional size (kB)."""
+    from compd.sinks.modbus_link import ModbusLink
+    from compd.sources.base import PolledSource
+
+    out = []
+    statuses = [(s.name, s.io_status()) for s in app.sources if isinstance(s, PolledSource)]
+    link = app.sink.link
+    if isinstance(link, ModbusLink):
+        statuses.append(("sink", link.get_status()))
+    for name, st in statuses:
+        pid = st.get("pid")
+        if pid is not None and pid != os.getpid():
+            out.append({"name": name, "pid": pid, **memory_of_kb(pid)})
+    return out
+
+
 def io_stats(app: Any) -> dict[str, dict[str, float]]:
     """Modbus TCP round trips of compd's I/O threads: every poll of the PT100 modules
     (8 registers in one request), every write to the PMC, and the output latency from
@@ -113,6 +147,7 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
         app.loop.run(max_cycles=cycles)
         steal1, sw1 = host_steal_ms(), thread_switches(tid)
         io = io_stats(app)  # before close: closing the sink drops its link
+        procs = io_processes(app)
     finally:
         app.close()
     rss["end_kb"] = rss_kb()
@@ -126,6 +161,7 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     out = stats.as_dict()
     out["rss"] = rss
     out["io_us"] = io
+    out["io_processes"] = procs
     # what the OS and the hypervisor did to the cycle thread during the run
     out["host"] = {
         "steal_ms": round(steal1 - steal0, 1),
