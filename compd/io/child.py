@@ -1,39 +1,41 @@
-"""A forked child process beside the cycle: control pipe, forwarded log records, ends with its parent.
+"""A forked child process beside the cycle: control pipe, ends with its parent.
 
-Device I/O and the data log's writer run Python; in the cycle's interpreter that
-Python holds the GIL the cycle needs when it wakes. `Child` forks a process that runs
-such work instead, so the cycle never waits on it. What the two share is set up
-before the fork (shared memory: `compd.io.mailbox`, an eventfd to wake the child);
-everything else goes over the control pipe (pickled, never on the cycle's path):
-
-  parent → child   `call(what, *args)`: the child's `serve` answers it (a request, a
-                   status query, stop);
-  child → parent   the replies, and the child's log records: its `compd` loggers send
-                   them to the parent, whose handlers write them (one journal, one
-                   format, and a test's log capture sees them).
+Device I/O and the service work (status, metrics, logs) run Python; in the cycle's
+interpreter that Python holds the GIL the cycle needs when it wakes. `Child` forks a
+process that runs such work instead, so the cycle never waits on it. What the two
+share is set up before the fork (shared memory: `compd.io.mailbox`, `compd.io.ring`;
+an eventfd to wake the child); the control pipe carries only calls and their answers
+(pickled, never on the cycle's path): `call(what, *args)` in the parent, answered by
+the child's `serve_calls`. The parent has no thread reading the pipe: a call reads
+its own answer.
 
 The child:
 * runs at normal priority on every CPU the cycle is not pinned to (a fork inherits
   the cycle thread's SCHED_FIFO and affinity), and is not memory-locked (mlockall is
   not inherited);
+* writes its own log lines, with the handlers and format it inherited (stderr: the
+  journal under systemd), so a device's error is logged without the parent running
+  a line of Python for it;
 * ignores SIGINT and SIGTERM: the parent, stopping, still sends the safe state through
-  a sink's child; the parent stops its children, and a child whose parent is gone
-  (pipe closed, or re-parented) exits by itself;
+  a sink's child; the parent stops its children. A parent killed outright (SIGKILL)
+  takes its children along (PR_SET_PDEATHSIG), as it would its threads: nothing is
+  written after it died;
 * closes every file descriptor it inherited but stdin, stdout, stderr, its pipe and
-  those it is given (`keep_fds`: the worker's eventfd): a listening socket of the
-  parent (the metrics server, a control socket) must not stay bound in a child, or the
-  port could not be opened again at a reload; and it freezes the inherited objects out
-  of the garbage collector's view, so no copy of a parent's socket is ever finalized
+  those it is given (`keep_fds`: the worker's eventfd, a listening socket it serves):
+  another listening socket of the parent must not stay bound in a child, or its port
+  could not be opened again at a reload; and it freezes the inherited objects out of
+  the garbage collector's view, so no copy of a parent's socket is ever finalized
   there (its number may belong to the child's own socket by then);
 * ends with `os._exit`: nothing of the parent's (atexit, buffered files, finalizers)
   runs twice.
 
 Fork, not spawn: the device objects are built and checked in the parent (a bad config
 is refused there, before anything runs) and the child starts in milliseconds with them.
-The parent has threads when it forks (the status writer, a metrics server): the child
-uses only its own objects, and Python re-creates the import and logging locks after a
-fork. Pages the parent writes after a fork are copied on the first write (a minor fault
-each), so children are forked at start-up and at a reload, not while the cycle runs.
+The parent has threads when it forks (a simulated clock's workers): the child uses only
+its own objects, and Python re-creates the import and logging locks after a fork. Pages
+the parent writes after a fork are copied on the first write (a fault each), so
+children are forked at start-up and at a reload, never while cycles run, and a
+memory-locked daemon copies its pages before the first cycle (`compd.realtime.unshare_pages`).
 """
 
 from __future__ import annotations
@@ -91,32 +93,21 @@ class ChildGone(Exception):
     """The child process has exited, or did not answer in time."""
 
 
-class _PipeHandler(logging.Handler):
-    """In the child: sends each record to the parent, formatted to plain data."""
-
-    def __init__(self, send: Callable[[Any], None]) -> None:
-        super().__init__()
-        self._send = send
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            d = dict(record.__dict__)
-            d["msg"] = record.getMessage()
-            d["args"] = None
-            if record.exc_info:
-                d["exc_text"] = logging.Formatter().formatException(record.exc_info)
-            d["exc_info"] = None
-            d.pop("message", None)
-            self._send(("log", d))
-        except Exception:
-            self.handleError(record)
-
-
 def _set_name(name: str) -> None:
     """The process name `ps` and `top` show (15 bytes)."""
     with contextlib.suppress(Exception):
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """SIGKILL when the parent dies (PR_SET_PDEATHSIG): a daemon killed with -9 takes its
+    children along, as it would its threads (no late rows written after it)."""
+    with contextlib.suppress(Exception):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent_pid:  # it died before the signal was armed
+        os._exit(0)
 
 
 def _normal_scheduling(avoid: frozenset[int]) -> None:
@@ -139,12 +130,8 @@ class Child:
         self.exit_code: int | None = None
         self._conn: Connection | None = None
         self._lock = threading.Lock()  # parent: one call on the pipe at a time
-        self._send_lock = threading.Lock()  # child: the handler and the server share the pipe
-        self._replies: dict[int, Any] = {}
-        self._arrived = threading.Condition()
         self._seq = itertools.count(1)
-        self._reader: threading.Thread | None = None
-        self._eof = False
+        self._gone = False
 
     # ------------------------------------------------------------ parent
     def start(
@@ -170,16 +157,16 @@ class Child:
             except BaseException:
                 code = 1
                 with contextlib.suppress(Exception):
-                    log.exception("I/O process %s failed", self.name,
+                    log.exception("%s process failed", self.name,
                                   extra={"event": "io_process_failed", "worker": self.name})
             finally:
+                with contextlib.suppress(Exception):
+                    logging.shutdown()  # the child's own handlers: flush what it logged
                 os._exit(code)
         theirs.close()
         self.pid = pid
         self._conn = mine
-        self._eof = False
-        self._reader = threading.Thread(target=self._read, name=f"{self.name}-pipe", daemon=True)
-        self._reader.start()
+        self._gone = False
 
     def alive(self) -> bool:
         """Whether the child still runs (reaps it when it has exited)."""
@@ -196,24 +183,33 @@ class Child:
         return False
 
     def call(self, *msg: Any, timeout_s: float) -> Any:
-        """Send `msg` to the child and wait for its answer; ChildGone when the child has
-        exited or did not answer within `timeout_s`. Not for the cycle: it waits."""
-        if self._conn is None or self._eof:
-            raise ChildGone(f"{self.name}: the I/O process has exited")
-        seq = next(self._seq)
+        """Send `msg` to the child and read its answer; ChildGone when the child has exited
+        or did not answer within `timeout_s`. Not for the cycle: it waits."""
         with self._lock:
+            conn = self._conn
+            if conn is None or self._gone:
+                raise ChildGone(f"{self.name}: the process has exited")
+            seq = next(self._seq)
             try:
-                self._conn.send((seq, *msg))
+                conn.send((seq, *msg))
             except (OSError, ValueError) as e:
+                self._gone = True
                 raise ChildGone(f"{self.name}: {e}") from None
-        deadline = time.monotonic() + timeout_s
-        with self._arrived:
-            while seq not in self._replies:
+            deadline = time.monotonic() + timeout_s
+            while True:
                 rest = deadline - time.monotonic()
-                if rest <= 0 or self._eof:
-                    raise ChildGone(f"{self.name}: no answer from the I/O process")
-                self._arrived.wait(min(rest, 0.2))
-            ok, value = self._replies.pop(seq)
+                try:
+                    if rest <= 0 or not conn.poll(min(rest, 0.5)):
+                        if rest <= 0 or not self.alive():
+                            raise ChildGone(f"{self.name}: no answer from the process")
+                        continue
+                    answer = conn.recv()
+                except (EOFError, OSError) as e:
+                    self._gone = True
+                    raise ChildGone(f"{self.name}: the process has exited ({e or 'pipe closed'})") from None
+                if answer[0] == "reply" and answer[1] == seq:  # an older call's late answer is passed over
+                    break
+        ok, value = answer[2], answer[3]
         if not ok:
             raise value
         return value
@@ -235,36 +231,13 @@ class Child:
                 self.exit_code = -signal.SIGKILL
                 break
             time.sleep(0.005)
-        if self._conn is not None:
-            with contextlib.suppress(OSError):
-                self._conn.close()
-        if self._reader is not None:
-            self._reader.join(1.0)
-        self._conn = None
+        with self._lock:
+            if self._conn is not None:
+                with contextlib.suppress(OSError):
+                    self._conn.close()
+            self._conn = None
+            self._gone = True
         return clean
-
-    def _read(self) -> None:
-        """The parent's reader: replies to their callers, log records to the handlers."""
-        conn = self._conn
-        assert conn is not None
-        while True:
-            try:
-                msg = conn.recv()
-            except (EOFError, OSError, ValueError):
-                break
-            except Exception as e:  # a message that does not unpickle: say so, go on
-                log.warning("%s: unreadable message from the I/O process: %s", self.name, e)
-                continue
-            if msg[0] == "log":
-                record = logging.makeLogRecord(msg[1])
-                logging.getLogger(record.name).handle(record)
-            elif msg[0] == "reply":
-                with self._arrived:
-                    self._replies[msg[1]] = (msg[2], msg[3])
-                    self._arrived.notify_all()
-        with self._arrived:
-            self._eof = True
-            self._arrived.notify_all()
 
     # ------------------------------------------------------------ child
     def _in_child(self, parent_pid: int, avoid_cpus: frozenset[int], keep_fds: set[int]) -> None:
@@ -274,22 +247,25 @@ class Child:
             if fd not in keep_fds:
                 with contextlib.suppress(OSError):
                     os.close(fd)
+        for name in ("stdout", "stderr"):  # a stream on a descriptor just closed (a test's capture): fd 1, 2
+            stream = getattr(sys, name)
+            try:
+                ok = stream.fileno() in keep_fds
+            except (AttributeError, OSError, ValueError):
+                ok = False
+            if not ok:
+                setattr(sys, name, open(1 if name == "stdout" else 2, "w", buffering=1, closefd=False))  # noqa: SIM115
         self.pid = None
         self._parent_pid = parent_pid
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        _die_with_parent(parent_pid)
         with contextlib.suppress(ValueError, OSError):
             signal.set_wakeup_fd(-1)
         _set_name(f"compd:{self.name}")
         _normal_scheduling(avoid_cpus)
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
-        handler = _PipeHandler(self.send)
-        for name in ("", "compd"):
-            lg = logging.getLogger(name)
-            for h in list(lg.handlers):
-                lg.removeHandler(h)
-        logging.getLogger().addHandler(handler)
         from compd import activity
 
         activity.disable()
@@ -323,6 +299,6 @@ class Child:
             except Exception as e:
                 value, ok = e, False
             try:
-                self.send(("reply", seq, ok, value))
+                self._conn.send(("reply", seq, ok, value))
             except Exception as e:  # an answer that does not pickle
                 self.send(("reply", seq, False, RuntimeError(f"{type(e).__name__}: {e}")))

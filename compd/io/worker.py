@@ -56,6 +56,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import itertools
+import json
 import logging
 import os
 import select
@@ -72,6 +73,7 @@ from compd import activity
 from compd.histogram import DurationHist
 from compd.io.child import Child, ChildGone
 from compd.io.mailbox import shared_buffer
+from compd.io.ring import SharedBlob
 
 log = logging.getLogger("compd.io")
 
@@ -80,6 +82,8 @@ WORKER_STATES = ("closed", "connecting", "up", "down")
 # a device's recovery is logged once its rounds have gone through without an error this long
 # (a device that flaps between an error and a good round logs the error once, not every flap)
 RECOVERED_AFTER_S = 5.0
+STATUS_BYTES = 4096  # a worker's status as JSON, at most
+STATUS_EVERY_S = 0.1  # how often a worker refreshes its published status (and at every change of state or error)
 
 
 class LinkDown(Exception):
@@ -177,6 +181,10 @@ class IoWorker:
         self._acct = np.frombuffer(self._acct_buf, dtype=np.int64, count=5)
         self._retry = np.frombuffer(self._acct_buf, dtype=np.float64, count=1, offset=40)
         self.reported_error: str | None = None  # the error the log last said the device has (None: fine)
+        # `get_status()` as JSON, refreshed by the worker's thread: read from shared memory
+        # when the worker runs in a child, so that asking never waits on the child
+        self._status_blob = SharedBlob(STATUS_BYTES)
+        self._status_published = (-1.0, b"")
         self.recovered_after_s = recovered_after_s
         self._healthy_since: float | None = None  # rounds without an error since (monotonic s)
         self._child: Child | None = None  # the process the worker runs in (None: a thread here)
@@ -386,19 +394,41 @@ class IoWorker:
         return True
 
     def get_status(self) -> dict[str, Any]:
-        """state, rounds, errors, connects, last_error and the work's counters (asked of the
-        child when the worker runs in one)."""
-        child = self._child
-        if child is not None:
-            try:
-                return dict(child.call("status", timeout_s=2.0))
-            except ChildGone as e:
-                return {"state": self.state, "rounds": self.rounds, "errors": self.errors,
-                        "connects": self.connects, "last_error": str(e)}
+        """state, rounds, errors, connects, last_error, pid and the work's counters. When the
+        worker runs in a child, what its thread last published in shared memory (at most
+        `STATUS_EVERY_S` old; the counts are live): asking never waits on the child."""
+        if self._child is not None:
+            raw = self._status_blob.read()
+            # nothing published yet: the counts as they were when the child was forked
+            published: dict[str, Any] = json.loads(raw) if raw else {**self._own_status(), "pid": self._child.pid}
+            return {**published, **self._accounts()}
         if self._last_status is not None:  # stopped: the counts its process had at the end
             return {**self._last_status, "state": self.state}
-        return {"state": self.state, "rounds": self.rounds, "errors": self.errors, "connects": self.connects,
-                "last_error": self.work.last_error, "pid": os.getpid(), **self.work.counters()}
+        return self._own_status()
+
+    def _accounts(self) -> dict[str, Any]:
+        return {"state": self.state, "rounds": self.rounds, "errors": self.errors, "connects": self.connects}
+
+    def _own_status(self) -> dict[str, Any]:
+        return {**self._accounts(), "last_error": self.work.last_error, "pid": os.getpid(), **self.work.counters()}
+
+    def _publish_status(self, force: bool = False) -> None:
+        """On the worker's thread: put `get_status()` where the parent reads it (JSON in
+        shared memory), every `STATUS_EVERY_S` or when `force`d (state or error changed)."""
+        now = time.monotonic()
+        last_s, last = self._status_published
+        if not force and now - last_s < STATUS_EVERY_S:
+            return
+        try:
+            data = json.dumps(self._own_status(), default=str).encode()
+        except (TypeError, ValueError) as e:
+            data = json.dumps({"last_error": f"status: {e}", "pid": os.getpid()}).encode()
+        if len(data) > STATUS_BYTES:
+            data = json.dumps({"last_error": self.work.last_error, "pid": os.getpid(),
+                               "status_error": f"status of {len(data)} bytes cut"}).encode()
+        if data != last:
+            self._status_blob.publish(data)
+        self._status_published = (now, data)
 
     # ------------------------------------------------------------ the thread
     def _signal(self) -> None:
@@ -439,6 +469,7 @@ class IoWorker:
             except Exception as e:
                 self.work.last_error = f"close: {type(e).__name__}: {e}"
             self.state = "closed"
+            self._publish_status(force=True)
             with self._done:
                 self._done.notify_all()
 
@@ -476,6 +507,7 @@ class IoWorker:
         next_connect = 0.0
         next_paced = 0.0
         up = False
+        published: tuple[str, str | None] = ("", None)
         while not self._stop:
             req = self._next_request()
             wakes = self._wakes
@@ -538,6 +570,9 @@ class IoWorker:
                 if req is not None and req[0] in self._waiting:
                     self._replies[req[0]] = reply
                 self._done.notify_all()
+            seen = (self.state, work.last_error)
+            self._publish_status(force=seen != published)
+            published = seen
             if self._stop or self._requests or self._wakes != self._wakes_seen:
                 continue
             deadline = next_paced if self._paced else None

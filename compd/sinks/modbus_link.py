@@ -177,7 +177,7 @@ class ModbusLink:
 
     @property
     def writes(self) -> int:
-        return int(self._worker.get_status()["writes"])
+        return int(self._worker.get_status().get("writes", 0))
 
     @property
     def errors(self) -> int:
@@ -187,11 +187,11 @@ class ModbusLink:
 
     @property
     def bad_replies(self) -> int:
-        return int(self._worker.get_status()["bad_replies"])
+        return int(self._worker.get_status().get("bad_replies", 0))
 
     @property
     def last_error(self) -> str | None:
-        return self._worker.get_status()["last_error"]
+        return self._worker.get_status().get("last_error")
 
     @property
     def in_process(self) -> bool:

@@ -1,11 +1,11 @@
-"""An I/O worker in a process of its own: it publishes to the cycle through shared memory, answers
-requests and status over its pipe, its log records reach the parent's handlers, its open error
-is raised in the parent, it ignores SIGTERM (the parent still sends the safe state through it),
-keeps off the cycle's CPUs and ends with its parent. Every wait is for a condition."""
+"""An I/O worker in a process of its own: it publishes to the cycle through shared memory (its
+samples, its counts and its status), answers requests over its pipe, writes its own log lines to
+the stderr it inherited, raises its open error in the parent, ignores SIGTERM (the parent still
+sends the safe state through it), keeps off the cycle's CPUs and ends with its parent. Every wait
+is for a condition."""
 
 from __future__ import annotations
 
-import logging
 import os
 import signal
 import socket
@@ -68,10 +68,12 @@ def _worker(fail_open: bool = False) -> tuple[IoWorker, Snapshot, WriteQueue, Sn
     return w, snap, writes, echo
 
 
-def test_a_worker_in_its_own_process_publishes_answers_and_logs_through_the_parent(
-    caplog: pytest.LogCaptureFixture,
+def test_a_worker_in_its_own_process_publishes_answers_and_logs_its_own_lines(
+    capfd: pytest.CaptureFixture[str],
 ) -> None:
-    caplog.set_level(logging.INFO, logger="compd")
+    from compd.logsetup import setup_logging
+
+    setup_logging("info", journal=False)
     w, snap, writes, echo = _worker()
     w.start(process=True, clock=time.monotonic)
     try:
@@ -87,14 +89,16 @@ def test_a_worker_in_its_own_process_publishes_answers_and_logs_through_the_pare
         assert writes.wait_empty(WAIT_S)
         assert w.wait_for(lambda: echo.count >= 1, WAIT_S)
         assert echo.sample()[0].tolist() == [40.0, 7.0]
-        # a request and the status go over the pipe, answered by the child
+        # a request goes over the pipe, answered by the child; the status is what the
+        # child's thread published in shared memory (read without asking the child)
         assert w.request("x", WAIT_S) == ("pid", child_pid, "x")
+        assert w.wait_for(lambda: w.get_status().get("my_rounds", 0) >= 3, WAIT_S)
         status = w.get_status()
-        assert status["pid"] == child_pid and status["my_rounds"] >= 3 and status["state"] == "up"
-        # the child's device error reached this process's handlers, once
-        errors = [r for r in caplog.records if getattr(r, "event", None) == "device_error"]
-        assert len(errors) == 1 and "Connection refused" in errors[0].getMessage()
-        assert errors[0].process == child_pid
+        assert status["pid"] == child_pid and status["state"] == "up"
+        # the child wrote its device error to stderr itself, once, in the daemon's format
+        err = capfd.readouterr().err
+        lines = [ln for ln in err.splitlines() if "event=device_error" in ln]
+        assert len(lines) == 1 and "Connection refused" in lines[0] and "level=warning" in lines[0], err
     finally:
         assert w.stop(WAIT_S)
     assert not w.running and w.state == "closed"
