@@ -8,7 +8,9 @@ from the deadline to the first bytecode of the cycle. A thread whose span overla
 a late cycle's was running Python (or waiting in a device call, which releases the
 GIL) while the cycle thread waited: `attribute` counts, per thread, the late cycles
 it overlapped, and how many overlapped no one (the wait was the kernel's or the
-host's, not another thread's Python).
+host's, not another thread's Python). On the wall clock the I/O and the service run in
+processes of their own and the loop's process has no other thread: what delayed a cycle
+is then the kernel's or the host's, which `rig.late_trace` tells apart from a kernel trace.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from typing import Any
 import numpy as np
 
 SPANS = 1 << 16  # spans kept per thread (a few minutes of 2 ms rounds)
+LATE = "cycle"  # the ring of the late cycles: from the deadline to the cycle's first bytecode
+SLOW = "cycle-slow"  # the ring of the cycles whose own work took longer than the threshold
 
 _enabled = False
 _late_ns = 0
@@ -71,6 +75,16 @@ def ring(name: str) -> Ring | None:
         return r
 
 
+def spans(name: str) -> tuple[list[int], list[int]]:
+    """The (start, end) perf_counter_ns of the spans kept in ring `name` (empty when none)."""
+    with _lock:
+        r = _rings.get(name)
+    if r is None:
+        return [], []
+    s, e = r.spans()
+    return s.tolist(), e.tolist()
+
+
 def late_threshold_ns() -> int:
     """Cycles later than this are marked (0: recording is off)."""
     return _late_ns if _enabled else 0
@@ -80,7 +94,8 @@ def attribute() -> dict[str, Any]:
     """Per thread, the late cycles (ring "cycle") whose wait overlapped one of its spans."""
     with _lock:
         rings = dict(_rings)
-    late = rings.pop("cycle", None)
+    late = rings.pop(LATE, None)
+    rings.pop(SLOW, None)
     if late is None or late.count == 0:
         return {"late_cycles": 0, "threshold_us": _late_ns / 1000, "overlapping": {}, "overlapping_none": 0}
     d0, w0 = late.spans()

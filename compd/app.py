@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -13,11 +14,11 @@ import numpy as np
 from compd.clock import Clock, PlantClock, SimClock
 from compd.config import Config
 from compd.errors import BadInput
-from compd.log import LogWriter
 from compd.loop import Loop
 from compd.pipeline import build_clock, build_model, build_pipeline
 from compd.scoring import RunningScore
-from compd.state import StateWriter, load_saved, params_digest
+from compd.service import LogSpec, Service, StateSpec
+from compd.state import load_saved, params_digest
 
 log = logging.getLogger("compd")
 
@@ -35,15 +36,12 @@ def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, bas
 
 
 class LogObserver:
-    """Pushes a log row every `period_s` of loop time and on every change of the word."""
+    """Hands a log row to `push` every `period_s` of loop time and on every change of the
+    word (the service's data log writes it: compd/service.py)."""
 
-    def __init__(
-        self, loop: Loop, path: Path, period_s: float, flush_s: float, *, writer: LogWriter | None = None,
-        **rotation: Any,
-    ) -> None:
+    def __init__(self, loop: Loop, push: Callable[[tuple[float, ...]], Any], period_s: float) -> None:
         self.columns = self.columns_of(loop)
-        # a reload whose log is the same file with the same columns writes on through the same writer
-        self.writer = writer if writer is not None else LogWriter(path, self.columns, flush_s, **rotation)
+        self.push = push
         self.period_s = period_s
         self._next_s = -math.inf
         self._last_word = -1
@@ -87,10 +85,7 @@ class LogObserver:
                 row += tuple(ad.probe_um.tolist()) + tuple(ad.probe_pos_mm.tolist())
             else:
                 row += self._blank
-        self.writer.push(row)
-
-    def close(self) -> None:
-        self.writer.close()
+        self.push(row)
 
 
 class CompensationSummary:
@@ -206,7 +201,6 @@ class App:
         self.summary = CompensationSummary(self.loop)
         self.loop.observers.append(self.summary)
         self.logger: LogObserver | None = None
-        self.state_writer: StateWriter | None = None
         self._adopted: set[int] = set()  # sources and sink taken over from the App before a reload
         self._released: set[int] = set()  # the previous App's sink, released for ours (same device)
         self._previous: App | None = None
@@ -221,12 +215,11 @@ class App:
             ends = [e for e in (s.end_s for s in self.sources) if e]
             if ends:
                 self.duration_s = min(ends) - self.clock.now()
-        from compd.service import Service
-
         self.service = Service(self, self.observe)  # notify, status, metrics, event log
 
     def restore_state(self) -> None:
-        """Load persisted model state and the adapter's estimate (if any) and start the state writer.
+        """Load persisted model state and the adapter's estimate (if any); the service writes
+        the state file from then on (what the cycle hands it: `Publisher.model_state`).
 
         The adapter's estimate is restored only for the same model: kind, inputs, outputs
         (the file's own check) and params (a hash kept with it); a refit model starts
@@ -238,26 +231,20 @@ class App:
         m = self.model
         ad = self.loop.adapter
         digest = params_digest(self.cfg.model.params)
-        if self._state_adopted:  # a reload: the running model's state was carried over
-            assert self.state_writer is not None
-            self.loop.on_model_state = self.state_writer.submit
-            self.state_writer.params_sha256 = digest
-            if ad is not None:
-                ad.on_state = self.state_writer.submit_adapt
-                self.state_writer.submit_adapt(ad.get_state())
-            return
-        saved = None if self._model_carried else load_saved(spath, m.kind, m.inputs, m.outputs)
-        if saved is not None:
-            m.set_state(saved.state, saved.elapsed_s)
-            log.info("model state restored from %s (saved %.0f s ago)", spath, saved.elapsed_s,
-                     extra={"event": "state_restored", "path": str(spath), "elapsed_s": round(saved.elapsed_s)})
-        if ad is not None and saved is not None and saved.adapt is not None and not self._adapt_carried:
-            self._restore_adapt(saved.adapt, digest, spath)
-        self.state_writer = StateWriter(spath, m.kind, m.inputs, m.outputs, params_sha256=digest)
-        self.loop.on_model_state = self.state_writer.submit
+        pub = self.service.publisher
+        self.service.state_spec = StateSpec(spath, m.kind, list(m.inputs), list(m.outputs), digest)
+        if not self._state_adopted:  # (a reload of the same model and file carried its state over)
+            saved = None if self._model_carried else load_saved(spath, m.kind, m.inputs, m.outputs)
+            if saved is not None:
+                m.set_state(saved.state, saved.elapsed_s)
+                log.info("model state restored from %s (saved %.0f s ago)", spath, saved.elapsed_s,
+                         extra={"event": "state_restored", "path": str(spath), "elapsed_s": round(saved.elapsed_s)})
+            if ad is not None and saved is not None and saved.adapt is not None and not self._adapt_carried:
+                self._restore_adapt(saved.adapt, digest, spath)
+        self.loop.on_model_state = pub.model_state
         if ad is not None:
-            ad.on_state = self.state_writer.submit_adapt
-            self.state_writer.submit_adapt(ad.get_state())
+            ad.on_state = pub.adapt_state
+            pub.adapt_state(ad.get_state())
 
     def _restore_adapt(self, part: dict[str, Any], digest: str, spath: Path) -> None:
         import time
@@ -313,10 +300,10 @@ class App:
         ):
             ad.set_state(pa.get_state())
             self._adapt_carried = True
-        if same_model and previous.state_writer is not None and self.cfg.top.state.path and (
-            self.cfg.resolve_path(self.cfg.top.state.path) == previous.state_writer.path
+        prev_state = previous.service.state_spec
+        if same_model and prev_state is not None and self.cfg.top.state.path and (
+            self.cfg.resolve_path(self.cfg.top.state.path) == prev_state.path
         ):
-            self.state_writer = previous.state_writer
             self._state_adopted = True
         if previous.sink.cfg == self.sink.cfg and previous.observe == self.observe:
             self.sink = self.loop.sink = previous.sink
@@ -356,21 +343,14 @@ class App:
             self._released.clear()
 
     def _open_log(self) -> None:
+        """The data log: rows from the cycle (`LogObserver`) to the service, which writes them."""
         top = self.cfg.top
         if not top.log.path:
             return
         path = self.cfg.resolve_path(top.log.path)
-        rotation = {"rotate_bytes": top.log.rotate_bytes, "rotate_s": top.log.rotate_s, "keep": top.log.keep}
-        prev = self._previous.logger if self._previous is not None else None
-        writer = None
-        if prev is not None:
-            w = prev.writer
-            same = (w.path, w.flush_s, w.rotate_bytes, w.rotate_s, w.keep) == (
-                path, top.log.flush_s, rotation["rotate_bytes"], rotation["rotate_s"], rotation["keep"]
-            )
-            if same and prev.columns == LogObserver.columns_of(self.loop):
-                writer = w
-        self.logger = LogObserver(self.loop, path, top.log.period_s, top.log.flush_s, writer=writer, **rotation)
+        self.logger = LogObserver(self.loop, self.service.publisher.row, top.log.period_s)
+        self.service.log_spec = LogSpec(path, self.logger.columns, top.log.flush_s, top.log.rotate_bytes,
+                                        top.log.rotate_s, top.log.keep)
         self.loop.observers.append(self.logger)
 
     def _release_clashing_sink(self) -> None:
@@ -390,7 +370,7 @@ class App:
 
     def open(self) -> None:
         """Start I/O: plant clock, metrics, state, log, the sources and sink not adopted,
-        then the status thread and real-time options.
+        then the service and real-time options.
 
         On a reload (after `adopt`), every step that can fail runs before the previous
         App is touched; if one fails, what this App opened is closed again, what it took
@@ -405,16 +385,8 @@ class App:
             undo.append(self.service.close_metrics)
             self.service.open_control()
             undo.append(self.service.close_control)
-            state_was = self.state_writer
             self.restore_state()
-            if self.state_writer is not None and self.state_writer is not state_was:
-                undo.append(self.state_writer.close)
             self._open_log()
-            if self.logger is not None and (
-                self._previous is None or self._previous.logger is None
-                or self.logger.writer is not self._previous.logger.writer
-            ):
-                undo.append(self.logger.close)
             self._release_clashing_sink()
             undo.append(lambda: self.loop.close(self._adopted))
             self.loop.open(self._adopted)
@@ -444,27 +416,28 @@ class App:
         try:
             self.loop.close(keep)
         finally:
-            if self.logger and not (new is not None and new.logger is not None and new.logger.writer is self.logger.writer):
-                self.logger.close()
-            if self.state_writer is not None and not (new is not None and new.state_writer is self.state_writer):
+            if self.service.state_spec is not None:  # the last state, written before the service stops
+                pub = self.service.publisher
                 if self.loop.adapter is not None:
-                    self.state_writer.submit_adapt(self.loop.adapter.get_state())
+                    pub.adapt_state(self.loop.adapter.get_state())
                 if self.loop.model_started:
-                    self.state_writer.submit(self.model.get_state())
-                self.state_writer.close()
+                    pub.model_state(self.model.get_state())
             self.service.stop(handing_over_to=new.service if new is not None else None)
             if not (new is not None and new.clock is self.clock):
                 self.clock.stop()
 
     def summary_dict(self) -> dict[str, Any]:
+        counts = self.service.counts()
+        log_status = counts.get("log") if self.logger else None
         return {
             "loop": self.loop.stats.as_dict(),
             "compensation": self.summary.result(self.model.outputs),
             "faults": dict(self.guard.faults),
-            "log_error": self.logger.writer.error if self.logger else None,
+            "log_error": (log_status or {}).get("error") if self.logger else None,
+            "log": log_status,  # rows written and dropped, rotations
             "sink": self.sink.get_status(),
             "realtime": self.service.realtime_result,
-            "state_error": self.state_writer.error if self.state_writer is not None else None,
+            "state_error": counts.get("state_error"),
             "observe": self.observe,
             # the probe adapter's estimate per axis (accepted and rejected probes), when configured
             "adaptation": self.loop.adapter.get_status() if self.loop.adapter is not None else None,

@@ -169,8 +169,6 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     app = App(cfg, out=sys.stderr)  # wiring is checked by building the pipeline (opens no device)
-    if app.logger is not None:  # App opens the data log when built: stop its writer thread
-        app.logger.close()
     app.service.check_status_free()  # no other running compd writes its status file
     print("ok")
     return 0
@@ -639,7 +637,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise BadInput("--cycles must be at least 1", path="--cycles")
     if not 0 <= args.load <= 64:
         raise BadInput("--load must be 0 to 64 processes", path="--load")
+    if args.bare_cycles is not None and args.bare_cycles < 0:
+        raise BadInput("--bare-cycles must be 0 or more", path="--bare-cycles")
+    if args.naive_cycles is not None and args.naive_cycles < 1:
+        raise BadInput("--naive-cycles must be at least 1", path="--naive-cycles")
     check_output(args.json, "--json")
+    check_output(args.trace, "--trace")
     return installed_command("bench", "runs against simulated devices served by the closed-loop test rig")(args)
 
 
@@ -853,8 +856,9 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Find the mean-value point ξ of a temperature profile along the spindle (CSV columns x_mm, T_c): where to put the ξ sensor.",
                        epilog="example:\n  compd xi --profile profile.csv")
     s.add_argument("--profile", required=True, metavar="FILE.csv")
-    s = sub.add_parser("bench", help="time the 2 ms cycle against real Modbus devices, beside a naive loop",
-                       description="Time the 2 ms cycle against Modbus devices served by the test rig, beside a naive loop (needs the rig installed).",
+    s = sub.add_parser("bench", help="time the 2 ms cycle against real Modbus devices, beside a bare and a naive loop",
+                       description="Time the 2 ms cycle against Modbus devices served by the test rig, beside a bare"
+                                   " sleep-and-spin loop (the machine's limit) and a naive loop (needs the rig installed).",
                        epilog="example:\n  compd bench --cycles 20000 --json bench.json")
     s.add_argument("--cycles", type=int, default=100_000, metavar="N", help="cycles of compd's loop")
     s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON (keys: docs/formats.md)")
@@ -863,12 +867,21 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--load", type=int, default=0, metavar="N",
                    help="start N CPU-bound processes beside the loops for the run (default 0)")
     s.add_argument("--io", choices=("process", "thread"), default="process",
-                   help="loop.io: device I/O in processes of its own (default) or threads of the loop's process")
+                   help="loop.io: device I/O and the service in processes of their own (default) or threads of"
+                        " the loop's process")
     s.add_argument("--late-us", type=positive, default=200.0, dest="late_us", metavar="US",
                    help="cycles later than this are matched with the other threads' work (default 200)")
     s.add_argument(
         "--naive-cycles", type=int, default=None, dest="naive_cycles",
         help="cycles of the hand-written loop (default min(N, 5000))",
+    )
+    s.add_argument(
+        "--trace", default=None, metavar="FILE",
+        help="run compd's loop under perf and write why each late or slow cycle was (needs perf; short runs)",
+    )
+    s.add_argument(
+        "--bare-cycles", type=int, default=None, dest="bare_cycles", metavar="N",
+        help="cycles of the bare sleep-and-spin loop, the machine's limit (default: as --cycles; 0: none)",
     )
     return p
 

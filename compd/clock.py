@@ -24,6 +24,8 @@ class Clock(ABC):
     simulated: bool = False
     # whether `now` reads the same time in a forked child (an I/O worker's process)
     fork_safe: bool = False
+    # `wait_until` spins through this much before a deadline (the loop keeps it free)
+    spin_margin_s: float = 0.0
 
     @abstractmethod
     def now(self) -> float:

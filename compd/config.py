@@ -421,8 +421,9 @@ class LoopConfig(Strict):
     )
     io: Literal["process", "thread"] = Field(
         "process",
-        description="wall clock: where device I/O runs — a process of its own per device (its Python"
-        " never holds the GIL the cycle needs) or a thread of the daemon (other clocks: always a thread)",
+        description="wall clock: where device I/O and the service (status, metrics, logs) run — a process"
+        " of its own each (their Python never holds the GIL the cycle needs) or threads of the daemon"
+        " (other clocks: always threads)",
     )
     realtime: RealtimeConfig = Field(RealtimeConfig(), description="real-time options")
 
@@ -657,7 +658,7 @@ class StateConfig(Strict):
 
 
 class StatusConfig(Strict):
-    """The live status file that `compd status` reads, rewritten by a background thread."""
+    """The live status file that `compd status` reads, rewritten by the daemon's service process."""
 
     path: str | None = Field(
         None,

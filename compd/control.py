@@ -1,12 +1,12 @@
 """The probe socket: how `compd probe` hands a measurement to the running daemon.
 
-The daemon (`ControlServer`, started by compd/service.py when the config has an
-`adapt` section) listens on a Unix domain socket; a background thread serves it and
-touches the cycle only by appending a `compd.adapt.Probe` to the adapter's inbox
-(a deque: the append is thread-safe and the cycle never waits). It then watches the
-adapter's events for that probe, at most `WAIT_S`, so the answer can say whether the
-probe was accepted or rejected; if the cycle has not taken it by then (the loop is
-paused for a reload) the answer is `queued`.
+The daemon (`ControlServer`, bound by compd/service.py when the config has an
+`adapt` section) listens on a Unix domain socket; a thread of the service (a process
+of its own on the wall clock) serves it through a `ProbeLink`: it hands the probe to
+the cycle (a message ring the cycle reads between cycles: the cycle never waits) and
+then watches the adapter's events that come back for that probe, at most `WAIT_S`,
+so the answer can say whether the probe was accepted or rejected; if the cycle has
+not taken it by then (the loop is paused for a reload) the answer is `queued`.
 
 Where the socket is (`socket_path`): `adapt.socket_path` (relative to the config),
 else the status file's path with the suffix `.sock` (status.json → status.sock), so
@@ -32,6 +32,7 @@ import socket
 import stat
 import threading
 import time
+from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any
 
@@ -95,12 +96,31 @@ def check_request(req: Any, axes: list[str]) -> str | None:
     return None
 
 
-class ControlServer:
-    """The daemon's end of the probe socket: one background thread, one request at a time."""
+class ProbeLink(ABC):
+    """What the probe socket's thread reaches of the running pipeline."""
 
-    def __init__(self, path: Path, loop: Any) -> None:
+    @property
+    @abstractmethod
+    def axes(self) -> list[str] | None:
+        """The axes the adapter estimates (None: no adapter)."""
+
+    @abstractmethod
+    def send(self, probe: Probe) -> None:
+        """Hand `probe` to the cycle (never waits on it); a NaN `t_s` is stamped by the cycle."""
+
+    @abstractmethod
+    def outcome(self, tag: str) -> dict[str, Any] | None:
+        """The adapter's newest event for the probe sent with source `tag`, or None yet."""
+
+
+class ControlServer:
+    """The daemon's end of the probe socket: bound by the daemon (`open`), served one request
+    at a time by a thread of the service (`serve`)."""
+
+    def __init__(self, path: Path) -> None:
         self.path = Path(path)
-        self.loop = loop  # the running pipeline's loop (a reload points it at the new one)
+        self.daemon_pid = os.getpid()  # the daemon's, also when a service process serves the socket
+        self.link: ProbeLink | None = None  # the running pipeline's (a reload points it at the new one)
         self.served = 0
         self._sock: socket.socket | None = None
         self._ino: int | None = None
@@ -136,17 +156,31 @@ class ControlServer:
             raise BadInput(f"cannot open the probe socket {path}: {e.strerror or e}",
                            path=("adapt", "socket_path")) from None
         self._sock = sock
+        log.info("probe socket %s", path, extra={"event": "probe_socket", "path": str(path)})
+
+    def fileno(self) -> int | None:
+        """The listening socket (a service process keeps it open), or None when not bound."""
+        return self._sock.fileno() if self._sock is not None else None
+
+    def serve(self, link: ProbeLink) -> None:
+        """Answer requests from a thread of this process, through `link`."""
+        self.link = link
+        if self._sock is None or self._thread is not None:
+            return
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="compd-control", daemon=True)
         self._thread.start()
-        log.info("probe socket %s", path, extra={"event": "probe_socket", "path": str(path)})
 
-    def close(self) -> None:
-        """Stop serving and remove the socket file (unless another daemon has replaced it)."""
+    def stop_serving(self) -> None:
+        """End this process's serving thread; the socket stays bound (another takes over)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
+
+    def close(self) -> None:
+        """Stop serving and remove the socket file (unless another daemon has replaced it)."""
+        self.stop_serving()
         if self._sock is not None:
             self._sock.close()
             self._sock = None
@@ -189,32 +223,31 @@ class ControlServer:
         self.served += 1
 
     def handle(self, req: Any) -> dict[str, Any]:
-        """Queue one probe and wait (bounded) for the cycle's verdict on it."""
-        loop = self.loop
-        adapter = loop.adapter
-        if adapter is None:
+        """Send one probe to the cycle and wait (bounded) for its verdict on it."""
+        link = self.link
+        if link is None or link.axes is None:
             return {"ok": False, "error": "this daemon has no adapt section"}
-        why = check_request(req, adapter.axes)
+        why = check_request(req, link.axes)
         if why is not None:
             return {"ok": False, "error": why}
         self._n += 1
-        tag = f"cli#{self._n}"
+        tag = f"cli#{self._n}@{os.getpid()}"
         probe = Probe(
-            t_s=float(loop.now_s), axis=req["axis"], error_um=float(req["error_um"]),
+            t_s=math.nan, axis=req["axis"], error_um=float(req["error_um"]),
             sigma_um=None if req.get("sigma_um") is None else float(req["sigma_um"]),
             position_mm=None if req.get("position_mm") is None else float(req["position_mm"]),
             source=tag, residual=bool(req.get("residual", False)),
         )
-        adapter.inbox.append(probe)
-        answer: dict[str, Any] = {"ok": True, "outcome": "queued", "axis": probe.axis, "t_s": probe.t_s,
-                                  "pid": os.getpid()}
+        link.send(probe)
+        answer: dict[str, Any] = {"ok": True, "outcome": "queued", "axis": probe.axis, "t_s": None,
+                                  "pid": self.daemon_pid}
         deadline = time.monotonic() + WAIT_S
         while not self._stop.is_set() and time.monotonic() < deadline:
-            for ev in reversed(list(adapter.events)):  # list(): a copy taken while the cycle may append
-                if ev.get("source") == tag:
-                    answer.update({k: v for k, v in ev.items() if k not in ("source", "event")})
-                    answer["outcome"] = ev["event"]
-                    return _jsonable(answer)
+            ev = link.outcome(tag)
+            if ev is not None:
+                answer.update({k: v for k, v in ev.items() if k not in ("source", "event")})
+                answer["outcome"] = ev["event"]
+                return _jsonable(answer)
             self._stop.wait(0.01)
         return answer
 

@@ -1,4 +1,4 @@
-"""The log CSV (docs/formats.md): read and validate it, and write it from a background thread."""
+"""The log CSV (docs/formats.md): read and validate it, and write it from a thread of the service."""
 
 from __future__ import annotations
 

@@ -170,6 +170,8 @@ class Loop:
         # off the CPUs the cycle is pinned to
         self.io_process = False
         self.cycle_cpus: frozenset[int] = frozenset()
+        # what the daemon's service needs from the loop, handed over after each cycle (compd.publish)
+        self.publisher: Any = None
 
     def stop(self) -> None:
         """Ask the loop to finish after the current cycle (signal-safe)."""
@@ -253,7 +255,10 @@ class Loop:
         half = period * 0.5
         jump_s = max(20.0 * period, 0.5)
         next_gc = t0 + self.gc_period_s
+        simulated = clock.simulated
+        margin = clock.spin_margin_s
         late_spans = activity.ring("cycle")  # None unless the bench records who runs when
+        slow_spans = activity.ring(activity.SLOW)  # ... and the cycles whose work took that long
         late_ns = activity.late_threshold_ns()
         try:
             while not self._stop:
@@ -271,6 +276,8 @@ class Loop:
                 self._cycle(now, perf)
                 compute = perf() - c0
                 stats.record(lateness, compute)
+                if slow_spans is not None and compute > late_ns:
+                    slow_spans.mark(c0, c0 + compute)
                 done = clock.now()
                 if lateness > half or done > deadline + period:
                     stats.misses += 1
@@ -289,6 +296,9 @@ class Loop:
                         stats.gc_max_ns = g_ns
                     stats.gc_runs += 1
                     next_gc = done + self.gc_period_s
+                pub = self.publisher
+                if pub is not None:  # the service's share, in the room left before the next deadline
+                    pub.after_cycle(math.inf if simulated else t0 + k * period - clock.now() - margin)
         finally:
             sys.setswitchinterval(switch_was)
             gc.unfreeze()

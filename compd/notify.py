@@ -16,6 +16,8 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from compd.io.ring import SharedBlob
+
 
 def socket_address(value: str) -> str:
     """$NOTIFY_SOCKET as a socket address: '@name' → '\\0name' (abstract namespace)."""
@@ -78,10 +80,13 @@ class Notifier:
 
 
 class WatchdogObserver:
-    """A loop observer: READY=1 after the first cycle, then WATCHDOG=1 every `interval_s`.
+    """A loop observer: READY=1 after the first cycle, then WATCHDOG=1 every `interval_s`,
+    and STATUS= whenever the line in `status_line` (written by the service) changed,
+    checked every `status_every_s`.
 
     Per cycle it reads the monotonic clock and compares it with a deadline; it
-    sends something only on the first cycle and once per interval.
+    sends something only on the first cycle, once per interval and when the status
+    line changed.
     """
 
     def __init__(
@@ -90,17 +95,31 @@ class WatchdogObserver:
         watchdog_s: float | None,
         status: str = "running",
         clock: Callable[[], float] = time.monotonic,
+        status_line: SharedBlob | None = None,
+        status_every_s: float = 1.0,
     ) -> None:
         self.notifier = notifier
         self.clock = clock
         self.interval_s = watchdog_s / 2 if watchdog_s else math.inf
         self.status = status
+        self.status_line = status_line
+        self.status_every_s = status_every_s
         self.ready = False
         self.pings = 0
         self._next_s = -math.inf
+        self._next_status_s = math.inf if status_line is None else -math.inf
+        self._line_version = 0
 
     def __call__(self, loop: Any, now_s: float) -> None:
         t = self.clock()
+        if t >= self._next_status_s and self.ready:
+            self._next_status_s = t + self.status_every_s
+            assert self.status_line is not None
+            if self.status_line.version != self._line_version:
+                self._line_version = self.status_line.version
+                line = self.status_line.read()
+                if line:
+                    self.notifier.send(STATUS=line.decode("utf-8", "replace"))
         if t < self._next_s:
             return
         self._next_s = t + self.interval_s

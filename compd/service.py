@@ -1,20 +1,39 @@
-"""What runs beside the loop when compd is a daemon: systemd notify, status file, metrics, event log.
+"""What runs beside the loop when compd is a daemon: status file, metrics, event log, data log, model state, probe socket.
 
-`Service` is built with the App (opens nothing) and started by `App.run` after
-the devices are open. The cycle carries only `WatchdogObserver` (READY after the
-first cycle, a watchdog ping at half of $WATCHDOG_USEC). Everything else happens
-on one background thread about once a second: snapshot the loop, write the
-status file, feed the metrics, log new guard events and late cycles, send
-STATUS= to systemd. At the end it writes a last snapshot (state `stopped`).
+Two halves, so that the cycle's interpreter runs no Python but the cycle's own:
+
+* the cycle's side, `compd.publish.Publisher`: between cycles the loop's thread hands
+  over, as plain values in a shared-memory ring, what the rest needs (a snapshot of
+  the loop every `status.period_s`, the guard's and the adapter's events, the data
+  log's rows, the model's and the adapter's state) and takes the probes that came in;
+* the service, `ServiceWork`: writes the status file, serves and feeds the metrics,
+  logs the events and late cycles, writes the data log and the model state, serves the
+  probe socket, composes the STATUS= line for systemd. On the wall clock (`loop.io: process`, the
+  default) it runs in a process of its own (`compd.io.child`), so none of this ever
+  holds the GIL the cycle needs; on a simulated clock, and with `loop.io: thread`, on a
+  thread of the daemon, fed the same way.
+
+The daemon itself (`Service`) binds the metrics endpoint and the probe socket before
+anything runs, so a busy port is refused at start-up with its config key, and keeps
+them bound across a reload; the service serves what it inherited. Every message to
+systemd leaves the daemon's main process (NotifyAccess=main): READY=1 and the
+watchdog pings from the cycle (`WatchdogObserver`: a ping proves the cycle runs),
+STOPPING=1 from the daemon, and the STATUS= line the service composes, which reaches
+the cycle through shared memory.
+
+A reload starts the new pipeline's service paused: it takes over the files and
+sockets only when the old one has written its last rows and stopped (`go`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
 import time
-from abc import ABC, abstractmethod
+from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,11 +42,17 @@ from compd import (
     logsetup,  # noqa: F401  (installs the library's NullHandler)
 )
 from compd import status as status_mod
-from compd.control import ControlServer, socket_path
+from compd.adapt import Probe
+from compd.control import ControlServer, ProbeLink, socket_path
 from compd.errors import BadInput
+from compd.io.child import Child, ChildGone
+from compd.io.ring import MessageRing, SharedBlob
+from compd.log import LogWriter
 from compd.metrics import MetricsServer
 from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
-from compd.realtime import apply_realtime
+from compd.publish import Publisher, Tail, sensor_cause
+from compd.realtime import apply_realtime, unshare_pages
+from compd.state import StateWriter
 
 log = logging.getLogger("compd.service")
 
@@ -42,6 +67,11 @@ _EVENT_NAME = {
     "held": "axis_held",  # the machine inhibits the axis, or it waits for its reference
     "released": "axis_released",
 }
+
+POLL_S = 0.02  # how often the service takes what the cycle handed over
+OUTBOX_BYTES = 2 << 20  # cycle → service: ~5000 log rows (a stalled service; it takes them every 20 ms)
+INBOX_BYTES = 64 << 10  # service → cycle: probes
+STOP_TIMEOUT_S = 15.0  # a service that has not written its last rows by then is killed
 
 
 def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
@@ -64,115 +94,361 @@ def daemon_status_path(cfg: Any) -> Path:
     return Path(status_mod.DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json")
 
 
-class _TailLogger(ABC):
-    """Logs what a bounded event deque gained since the last flush (the cycle appends to it;
-    flush runs off the cycle, on a copy, and finds where it left off by identity)."""
-
-    def __init__(self) -> None:
-        self._last: Any = None
-        self.logged = 0
-
-    @abstractmethod
-    def _events(self) -> list[Any]:
-        """A copy of the event deque, oldest first."""
-
-    @abstractmethod
-    def _log(self, ev: Any) -> None:
-        """One event as a log line."""
-
-    def flush(self) -> int:
-        events = self._events()
-        start = 0
-        if self._last is not None:
-            for i in range(len(events) - 1, -1, -1):
-                if events[i] is self._last:
-                    start = i + 1
-                    break
-        for ev in events[start:]:
-            self._log(ev)
-        if events:
-            self._last = events[-1]
-        n = len(events) - start
-        self.logged += n
-        return n
+def log_guard_event(t: float, subject: str, event: str, reason: str, cause: str | None = None) -> None:
+    """One guard event as a log line: "T_xi bad: comms_lost (source adam: connect: …)"."""
+    kind = "sensor" if event in ("bad", "good") else ("clock" if event == "jump" else "axis")
+    extra = {"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t}
+    if cause is not None:
+        extra["cause"] = cause
+    log.log(_EVENT_LEVEL.get(event, logging.INFO), "%s %s: %s%s", subject, event, reason,
+            "" if cause is None else f" ({cause})", extra=extra)
 
 
-class EventLogger(_TailLogger):
-    """Turns the guard's new events (since the last call) into log lines. A sensor that went
-    bad because its device is not answering (comms_lost, no_data, stale) gets its source's last error
-    as the cause: "T_xi bad: comms_lost (source adam: connect: could not open port …)"."""
-
-    def __init__(self, guard: Any, sources: Any = ()) -> None:
-        super().__init__()
-        self.guard = guard
-        self.sources = list(sources)
-
-    def _cause(self, signal: str) -> str | None:
-        """`source NAME: its last error` of the source that publishes `signal`, if it has one."""
-        for src in self.sources:
-            try:
-                if signal in src.signal_names():
-                    err = src.get_status().get("last_error")
-                    return f"source {src.name}: {err}" if err else None
-            except Exception:  # a source's status must not stop the event log
-                return None
-        return None
-
-    def _events(self) -> list[Any]:
-        return list(self.guard.events)
-
-    def _log(self, ev: Any) -> None:
-        t, subject, event, reason = ev
-        kind = "sensor" if event in ("bad", "good") else ("clock" if event == "jump" else "axis")
-        extra = {"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t}
-        cause = self._cause(subject) if event == "bad" and reason in ("comms_lost", "no_data", "stale") else None
-        if cause is not None:
-            extra["cause"] = cause
+def log_probe_event(ev: dict[str, Any]) -> None:
+    """One adapter event (a probe accepted, rejected or ignored; a fault) as a log line."""
+    kind, axis = ev.get("event"), ev.get("axis")
+    extra = {"event": f"probe_{kind}", "axis": axis, "t_s": ev.get("t_s"), "source": ev.get("source")}
+    if kind in ("accepted", "rejected"):
+        extra.update({k: ev.get(k) for k in ("error_um", "measured_um", "innovation_um",
+                                               "innovation_sigma_um", "offset_um")})
         log.log(
-            _EVENT_LEVEL.get(event, logging.INFO),
-            "%s %s: %s%s",
-            subject,
-            event,
-            reason,
-            "" if cause is None else f" ({cause})",
+            logging.INFO if kind == "accepted" else logging.WARNING,
+            "probe %s %s: error %.2f um, innovation %.2f um (sigma %.2f um), offset now %.2f um",
+            axis, kind, ev["error_um"], ev["innovation_um"], ev["innovation_sigma_um"], ev["offset_um"],
             extra=extra,
         )
+    elif kind == "fault":
+        extra["event"] = "adapt_fault"
+        extra["reason"] = ev.get("why")
+        log.warning("probe %s fault: %s", axis, ev.get("why"), extra=extra)
+    else:  # unknown_axis, no_prediction, no_correction_known: the probe was not used
+        extra["event"] = "probe_ignored"
+        extra["reason"] = kind
+        log.warning("probe %s ignored: %s", axis, kind, extra=extra)
 
 
-class ProbeEventLogger(_TailLogger):
-    """Turns the adapter's new events (probes accepted, rejected, ignored; faults) into log lines."""
+class EventLogger:
+    """Logs the guard's new events (since the last call), each sensor event with its source's
+    last error as the cause."""
 
-    def __init__(self, adapter: Any) -> None:
-        super().__init__()
-        self.adapter = adapter
+    def __init__(self, guard: Any, sources: Any = ()) -> None:
+        self._tail = Tail(lambda: guard.events)
+        self.sources = list(sources)
+        self.logged = 0
 
-    def _events(self) -> list[Any]:
-        return [] if self.adapter is None else list(self.adapter.events)  # a copy: the cycle appends
+    def flush(self) -> int:
+        new = self._tail.new()
+        for t, subject, event, reason in new:
+            cause = None
+            if event == "bad" and reason in ("comms_lost", "no_data", "stale"):
+                cause = sensor_cause(self.sources, subject)
+            log_guard_event(t, subject, event, reason, cause)
+        self.logged += len(new)
+        return len(new)
 
-    def _log(self, ev: dict[str, Any]) -> None:
-        kind, axis = ev.get("event"), ev.get("axis")
-        extra = {"event": f"probe_{kind}", "axis": axis, "t_s": ev.get("t_s"), "source": ev.get("source")}
-        if kind in ("accepted", "rejected"):
-            extra.update({k: ev.get(k) for k in ("error_um", "measured_um", "innovation_um",
-                                                   "innovation_sigma_um", "offset_um")})
-            log.log(
-                logging.INFO if kind == "accepted" else logging.WARNING,
-                "probe %s %s: error %.2f um, innovation %.2f um (sigma %.2f um), offset now %.2f um",
-                axis, kind, ev["error_um"], ev["innovation_um"], ev["innovation_sigma_um"], ev["offset_um"],
-                extra=extra,
-            )
-        elif kind == "fault":
-            extra["event"] = "adapt_fault"
-            extra["reason"] = ev.get("why")
-            log.warning("probe %s fault: %s", axis, ev.get("why"), extra=extra)
-        else:  # unknown_axis, no_prediction, no_correction_known: the probe was not used
-            extra["event"] = "probe_ignored"
-            extra["reason"] = kind
-            log.warning("probe %s ignored: %s", axis, kind, extra=extra)
+
+@dataclass
+class LogSpec:
+    """The data log's file and its settings (config `log`)."""
+
+    path: Path
+    columns: list[str]
+    flush_s: float
+    rotate_bytes: int | None
+    rotate_s: float | None
+    keep: int
+
+
+@dataclass
+class StateSpec:
+    """The model state file (config `state`) and the model it belongs to."""
+
+    path: Path
+    kind: str
+    inputs: list[str]
+    outputs: list[str]
+    params_sha256: str | None
+
+
+@dataclass
+class ServiceSpec:
+    """Everything the service needs besides what the cycle hands over: plain data."""
+
+    config: str
+    observe: bool
+    status_path: Path | None
+    log: LogSpec | None = None
+    state: StateSpec | None = None
+    adapt_axes: list[str] | None = None
+
+
+class _RingLink(ProbeLink):
+    """The probe socket's way to the cycle: probes into the ring the cycle reads, verdicts
+    from the adapter's events the cycle handed back."""
+
+    def __init__(self, inbox: MessageRing, axes: list[str] | None) -> None:
+        self._inbox = inbox
+        self._axes = axes
+        self._lock = threading.Lock()  # the socket's thread sends, the service's thread ... too
+        self.events: deque[dict[str, Any]] = deque(maxlen=200)
+
+    @property
+    def axes(self) -> list[str] | None:
+        return self._axes
+
+    def send(self, probe: Probe) -> None:
+        with self._lock:
+            self._inbox.put(probe)
+
+    def outcome(self, tag: str) -> dict[str, Any] | None:
+        for ev in reversed(list(self.events)):
+            if ev.get("source") == tag:
+                return ev
+        return None
+
+
+class ServiceWork:
+    """The service (see the module): runs on what the cycle handed over. In a process of
+    its own or on a thread; `go` opens its files and serves its sockets, `run` takes
+    the messages until `finish`."""
+
+    def __init__(
+        self, spec: ServiceSpec, outbox: MessageRing, inbox: MessageRing,
+        metrics: MetricsServer | None, control: ControlServer | None, status_line: SharedBlob | None = None,
+    ) -> None:
+        self.spec = spec
+        self.outbox = outbox
+        self.status_line = status_line  # STATUS= for systemd, sent by the cycle (NotifyAccess=main)
+        self.link = _RingLink(inbox, spec.adapt_axes)
+        self.metrics = metrics
+        self.control = control
+        self.log_writer: LogWriter | None = None
+        self.state_writer: StateWriter | None = None
+        self.status_errors = 0
+        self.status_writes = 0
+        self.messages = 0
+        self.last_snapshot: dict[str, Any] | None = None
+        self._misses = 0
+        self._going = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # one taker of the ring at a time (the thread, finish)
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ life
+    def start(self, paused: bool) -> None:
+        """Start taking messages on a thread; `paused`: only after `go`."""
+        self._thread = threading.Thread(target=self._run, name="compd-service", daemon=True)
+        self._thread.start()
+        if not paused:
+            self.go()
+
+    def go(self) -> None:
+        """Open the data log and the state file, serve the sockets, take messages."""
+        if self._going.is_set():
+            return
+        spec = self.spec
+        if spec.log is not None:
+            lg = spec.log
+            self.log_writer = LogWriter(lg.path, lg.columns, lg.flush_s, rotate_bytes=lg.rotate_bytes,
+                                        rotate_s=lg.rotate_s, keep=lg.keep)
+        if spec.state is not None:
+            st = spec.state
+            self.state_writer = StateWriter(st.path, st.kind, st.inputs, st.outputs, params_sha256=st.params_sha256)
+        if self.metrics is not None:
+            self.metrics.serve()
+        if self.control is not None:
+            self.control.serve(self.link)
+        self._going.set()
+
+    def finish(self) -> dict[str, Any]:
+        """Take what is left, close the files (the last rows and state written), stop serving
+        (the sockets stay bound: the daemon owns them); the final counts."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=STOP_TIMEOUT_S)
+            self._thread = None
+        if self._going.is_set():
+            self.step()
+        if self.control is not None:
+            self.control.stop_serving()
+        if self.metrics is not None:
+            self.metrics.stop_serving()
+        if self.log_writer is not None:
+            self.log_writer.close()
+        if self.state_writer is not None:
+            self.state_writer.close()
+        return self.counts()
+
+    def counts(self) -> dict[str, Any]:
+        return {
+            "pid": os.getpid(),
+            "messages": self.messages,
+            "status_writes": self.status_writes,
+            "status_errors": self.status_errors,
+            "log": self.log_writer.get_status() if self.log_writer is not None else None,
+            "state_error": self.state_writer.error if self.state_writer is not None else None,
+            "state_writes": self.state_writer.writes if self.state_writer is not None else 0,
+            "probes_served": self.control.served if self.control is not None else 0,
+        }
+
+    # ------------------------------------------------------------- the thread
+    def _run(self) -> None:
+        spans = activity.ring("compd-service")  # None unless the bench records who runs when (a thread)
+        while not self._stop.is_set():
+            if self._going.is_set():
+                t0 = time.perf_counter_ns()
+                try:
+                    self.step()
+                except Exception:  # the service must never take the daemon down
+                    self.status_errors += 1
+                    if self.status_errors <= 3:
+                        log.exception("service failed", extra={"event": "status_error"})
+                if spans is not None:
+                    spans.mark(t0, time.perf_counter_ns())
+            self._stop.wait(POLL_S)
+
+    def step(self) -> int:
+        """Act on every message the cycle handed over since the last step; how many."""
+        with self._lock:
+            msgs = self.outbox.take()
+            for msg in msgs:
+                self._handle(msg)
+            self.messages += len(msgs)
+            return len(msgs)
+
+    def _handle(self, msg: tuple[Any, ...]) -> None:
+        what, value = msg[0], msg[1]
+        if what == "status":
+            self._status(value, msg[2])
+        elif what == "events":
+            for ev in value:
+                log_guard_event(*ev)
+        elif what == "probe_events":
+            for ev in value:
+                self.link.events.append(ev)
+                log_probe_event(ev)
+        else:
+            self._to_file(what, value)
+
+    def _to_file(self, what: str, value: Any) -> None:
+        """A data-log row, or a model or adapter state to persist."""
+        if what == "row":
+            if self.log_writer is not None:
+                self.log_writer.push(value)
+            return
+        sw = self.state_writer
+        if sw is None:
+            return
+        if what == "model_state":
+            sw.submit(value)
+        elif what == "adapt_state":
+            sw.submit_adapt(value)
+
+    def _status(self, raw: dict[str, Any], buckets: Any) -> None:
+        snap = status_mod.jsonable(raw)
+        snap["service_pid"] = os.getpid()  # the daemon's pid when the service is a thread of it
+        self.last_snapshot = snap
+        misses = int(snap["loop"]["misses"])
+        if misses > self._misses:
+            log.warning("%d late cycles (%d in all)", misses - self._misses, misses,
+                        extra={"event": "late_cycles", "new": misses - self._misses, "misses": misses})
+        self._misses = misses
+        path = self.spec.status_path
+        if path is not None:
+            try:
+                status_mod.write_atomic(path, snap)
+                self.status_writes += 1
+            except OSError as e:
+                self.status_errors += 1
+                if self.status_errors <= 3:
+                    log.warning("cannot write status %s: %s", path, e.strerror or e, extra={"event": "status_error"})
+        if self.metrics is not None:
+            self.metrics.update_buckets(snap, buckets)
+        if self.status_line is not None and snap["state"] == "running" and snap["loop"]["cycles"] > 0:
+            states = " ".join(f"{a}={s['state']}" for a, s in snap["axes"].items())
+            mode = "observe" if snap["observe"] else "compensating"
+            if snap["sink"]["link"] != "up":
+                mode += f" (sink link {snap['sink']['link']}: output not reaching the machine)"
+            line = f"{mode}: word {snap['word']}, {states}, {snap['loop']['misses']} missed"
+            self.status_line.publish(line.encode("utf-8")[: self.status_line.capacity])
+
+
+class _ServiceHost:
+    """Where a `ServiceWork` runs: a child process (`process`) or a thread of the daemon."""
+
+    def __init__(self, work: ServiceWork, process: bool, avoid_cpus: frozenset[int]) -> None:
+        self.work = work
+        self.process = process
+        self.avoid_cpus = avoid_cpus
+        self.child: Child | None = None
+        self.final: dict[str, Any] | None = None
+
+    def start(self, paused: bool) -> None:
+        if not self.process:
+            self.work.start(paused)
+            return
+        work = self.work
+        keep = [fd for fd in (work.metrics.fileno() if work.metrics else None,
+                              work.control.fileno() if work.control else None) if fd is not None]
+        child = Child("service")
+
+        def answer(what: str, *args: Any) -> Any:
+            if what == "go":
+                return work.go()
+            if what == "counts":
+                return work.counts()
+            if what == "finish":
+                return work.finish()
+            raise ValueError(f"unknown call {what!r}")
+
+        def serve(ch: Child) -> None:
+            work.start(paused)
+            try:
+                ch.serve_calls(answer)
+            finally:
+                work.finish()
+
+        child.start(serve, self.avoid_cpus, keep_fds=keep)
+        self.child = child
+
+    def go(self) -> None:
+        if self.child is None:
+            self.work.go()
+            return
+        with contextlib.suppress(ChildGone):
+            self.child.call("go", timeout_s=STOP_TIMEOUT_S)
+
+    def counts(self) -> dict[str, Any]:
+        if self.final is not None:
+            return self.final
+        if self.child is None:
+            return self.work.counts()
+        try:
+            return dict(self.child.call("counts", timeout_s=5.0))
+        except ChildGone as e:
+            return {"error": str(e)}
+
+    def finish(self) -> dict[str, Any]:
+        if self.final is not None:
+            return self.final
+        child = self.child
+        if child is None:
+            self.final = self.work.finish()
+            return self.final
+        try:
+            self.final = dict(child.call("finish", timeout_s=STOP_TIMEOUT_S))
+            child.call("exit", timeout_s=5.0)
+        except ChildGone as e:
+            self.final = {"error": f"the service process did not finish: {e}"}
+            log.warning("%s", self.final["error"], extra={"event": "service_stuck"})
+        child.stop(5.0)
+        self.child = None
+        return self.final
 
 
 class Service:
-    """Notify, status, metrics and event logging for one App."""
+    """The daemon's side of the service for one App: binds the sockets, builds the
+    publisher the loop feeds, starts and stops the service (see the module)."""
 
     def __init__(self, app: Any, observe: bool = False) -> None:
         self.app = app
@@ -186,31 +462,38 @@ class Service:
         self._metrics_cfg = (top.metrics.bind, top.metrics.port) if top.metrics.enabled else None
         self._metrics_adopted = False
         self.realtime = top.loop.realtime
-        self.events = EventLogger(self.loop.guard, self.loop.sources)
-        self.probe_events = ProbeEventLogger(self.loop.adapter)
         spath = socket_path(app.cfg) if self.loop.adapter is not None else None
-        self.control = ControlServer(spath, self.loop) if spath is not None else None
+        self.control = ControlServer(spath) if spath is not None else None
         self._control_adopted = False
         self.notifier: Notifier | None = None
         self.watchdog: WatchdogObserver | None = None
         self.state = "starting"
-        self.status_errors = 0
-        self._misses = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._t0 = time.monotonic()
         self.realtime_result: list[tuple[bool, str]] = []
+        # made before any fork: shared with a service process
+        self.outbox = MessageRing(OUTBOX_BYTES)
+        self.inbox = MessageRing(INBOX_BYTES)
+        self.status_line = SharedBlob(512)  # the service's STATUS= line, sent by the cycle
+        self.publisher = Publisher(
+            self.loop, self.outbox, self.inbox, status_period_s=self.period_s, status_extra=self._extra,
+            observe=observe,
+        )
+        self.log_spec: LogSpec | None = None
+        self.state_spec: StateSpec | None = None
+        self._host: _ServiceHost | None = None
+        self._previous: Service | None = None
 
     # ------------------------------------------------------------------ life
     def adopt(self, previous: Service) -> None:
-        """Config reload: keep the running metrics endpoint when its bind and port are unchanged."""
+        """Config reload: keep the bound metrics endpoint and probe socket when unchanged."""
+        self._previous = previous
         if self._metrics_cfg is not None and self._metrics_cfg == previous._metrics_cfg and previous.metrics_url:
             self.metrics = previous.metrics
             self.metrics_url = previous.metrics_url
             self._metrics_adopted = True
         pc = previous.control
-        if self.control is not None and pc is not None and pc.path == self.control.path and pc._sock is not None:
-            self.control = pc  # the same socket goes on; `start` points it at this loop
+        if self.control is not None and pc is not None and pc.path == self.control.path and pc.fileno() is not None:
+            self.control = pc  # the same socket goes on; the new service serves it
             self._control_adopted = True
 
     def open_control(self) -> None:
@@ -227,7 +510,7 @@ class Service:
         """Bind the metrics endpoint (BadInput if it cannot); a kept one is already bound."""
         if self.metrics is None or self._metrics_adopted:
             return
-        self.metrics_url = self.metrics.start()
+        self.metrics_url = self.metrics.bind_socket()
         log.info("metrics on %s", self.metrics_url, extra={"event": "metrics", "url": self.metrics_url})
 
     def close_metrics(self) -> None:
@@ -253,38 +536,62 @@ class Service:
             raise self.app.cfg.doc.error(msg, ("status", "path"))
         raise BadInput(msg, file=str(self.path))
 
+    @property
+    def in_process(self) -> bool:
+        """Whether the service runs in a process of its own."""
+        return self._host is not None and self._host.process
+
+    @property
+    def pid(self) -> int | None:
+        """The service's process id while it runs in a process of its own, else None."""
+        child = self._host.child if self._host is not None else None
+        return child.pid if child is not None else None
+
     def start(self) -> None:
-        """Start the status thread, hook the watchdog; then real-time options (after `open_metrics`)."""
+        """Start the service (paused on a reload, until the old one has stopped), hook the
+        publisher and the watchdog into the loop; then real-time options."""
         app = self.app
+        loop = self.loop
         log.info(
             "compd starting: %s, model %s, sink %s%s",
             app.cfg.file,
-            self.loop.model.kind,
-            self.loop.sink.cfg.kind,
+            loop.model.kind,
+            loop.sink.cfg.kind,
             " (observe mode: output held disabled)" if self.observe else "",
-            extra={"event": "start", "config": app.cfg.file, "period_s": self.loop.period_s,
+            extra={"event": "start", "config": app.cfg.file, "period_s": loop.period_s,
                    "observe": self.observe, "pid": os.getpid()},
         )
         if self.metrics is not None and self.metrics_url is None:
             self.open_metrics()
+        if self.control is None and loop.adapter is not None:
+            log.warning("no probe socket: `compd probe` cannot reach this daemon (set adapt.socket_path or status.path)",
+                        extra={"event": "probe_socket", "path": None})
+        spec = ServiceSpec(
+            config=app.cfg.file, observe=self.observe, status_path=self.path, log=self.log_spec,
+            state=self.state_spec, adapt_axes=list(loop.adapter.axes) if loop.adapter is not None else None,
+        )
+        work = ServiceWork(spec, self.outbox, self.inbox, self.metrics, self.control, self.status_line)
+        host = _ServiceHost(work, process=loop.io_process and loop.clock.fork_safe, avoid_cpus=loop.cycle_cpus)
+        host.start(paused=self._previous is not None)
+        self._host = host
         self.notifier = Notifier.from_env()
         if self.notifier is not None:
             wd = watchdog_interval_s()
             status = "observe mode: output held disabled" if self.observe else "compensating"
-            self.watchdog = WatchdogObserver(self.notifier, wd, status)
-            self.loop.observers.append(self.watchdog)
-        if self.control is not None:
-            self.control.loop = self.loop
-        elif self.loop.adapter is not None:
-            log.warning("no probe socket: `compd probe` cannot reach this daemon (set adapt.socket_path or status.path)",
-                        extra={"event": "probe_socket", "path": None})
+            self.watchdog = WatchdogObserver(self.notifier, wd, status, status_line=self.status_line)
+            loop.observers.append(self.watchdog)
+        # the probes a source reads (its worker puts them in a ring of its own), and compd probe's
+        self.publisher.watch_probes(loop.sources)
+        loop.publisher = self.publisher
         self.state = "running"
-        self._tick()
-        self._thread = threading.Thread(target=self._run, name="compd-status", daemon=True)
-        self._thread.start()
-        self.realtime_result = apply_realtime(self.realtime) if not self.loop.clock.simulated else []
+        self.publisher.publish_status("running")
+        self.realtime_result = apply_realtime(self.realtime) if not loop.clock.simulated else []
         for ok, what in self.realtime_result:
             log.log(logging.INFO if ok else logging.WARNING, what, extra={"event": "realtime", "ok": ok})
+        if self.realtime.lock_memory and not loop.clock.simulated:
+            unshared = unshare_pages()  # the children forked above share our pages until written
+            log.info("%d kB of memory copied from the pages shared with the daemon's child processes", unshared,
+                     extra={"event": "realtime", "unshared_kb": unshared})
 
     def stopping(self) -> None:
         """The loop has returned: tell systemd we are shutting down."""
@@ -293,22 +600,20 @@ class Service:
             self.notifier.send(STOPPING=1, STATUS="stopping: emitting the safe output")
 
     def stop(self, handing_over_to: Service | None = None) -> None:
-        """After the safe output: last snapshot, close everything, log the summary line.
+        """After the safe output: the last events and snapshot, the service's last rows and
+        state written, the sockets closed; log the summary line.
 
         Handing over to a reloaded pipeline's Service: no last snapshot (the status file
-        is the new pipeline's, never a "stopped" between the two) and a metrics endpoint
-        it kept stays up."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=10)
-            self._thread = None
+        is the new pipeline's, never a "stopped" between the two), the sockets it kept
+        stay bound, and the new service starts once this one has stopped."""
+        self.loop.publisher = None
+        self.publisher.flush_events()
+        if handing_over_to is None:
+            self.state = "stopped"
+            self.publisher.publish_status("stopped")
         try:
-            if handing_over_to is None:
-                self.state = "stopped"
-                self._tick()
-            else:
-                self.events.flush()
-                self.probe_events.flush()
+            if self._host is not None:
+                self._host.finish()
         finally:
             if self.control is not None and (handing_over_to is None or handing_over_to.control is not self.control):
                 self.control.close()
@@ -317,6 +622,8 @@ class Service:
             if self.notifier is not None:
                 self.notifier.close()
         if handing_over_to is not None:
+            if handing_over_to._host is not None:
+                handing_over_to._host.go()
             return
         st = self.loop.stats
         log.info(
@@ -326,61 +633,15 @@ class Service:
             extra={"event": "stop", "cycles": st.cycles, "misses": st.misses},
         )
 
-    # ------------------------------------------------------------- the thread
-    def _run(self) -> None:
-        spans = activity.ring("compd-status")  # None unless the bench records who runs when
-        while not self._stop.wait(self.period_s):
-            t0 = time.perf_counter_ns()
-            try:
-                self._tick()
-            except Exception:  # the status thread must never take the daemon down
-                self.status_errors += 1
-                if self.status_errors <= 3:
-                    log.exception("status update failed", extra={"event": "status_error"})
-            if spans is not None:
-                spans.mark(t0, time.perf_counter_ns())
+    def counts(self) -> dict[str, Any]:
+        """The service's counts: rows of the data log written and dropped, status and state
+        writes and errors (the final ones once it stopped)."""
+        return self._host.counts() if self._host is not None else {}
 
-    def snapshot(self) -> dict[str, Any]:
-        extra = {
+    def _extra(self) -> dict[str, Any]:
+        return {
             "config": self.app.cfg.file,
             "status_period_s": self.period_s,
             "wall_uptime_s": time.monotonic() - self._t0,
             "metrics_url": self.metrics_url,
         }
-        return status_mod.snapshot(self.loop, state=self.state, observe=self.observe, extra=extra)
-
-    def _tick(self) -> None:
-        self.events.flush()
-        self.probe_events.flush()
-        misses = self.loop.stats.misses
-        if misses > self._misses:
-            log.warning(
-                "%d late cycles (%d in all)",
-                misses - self._misses,
-                misses,
-                extra={"event": "late_cycles", "new": misses - self._misses, "misses": misses},
-            )
-            self._misses = misses
-        if self.path is None and self.metrics is None and self.notifier is None:
-            return
-        snap = self.snapshot()
-        if self.path is not None:
-            try:
-                status_mod.write_atomic(self.path, snap)
-            except OSError as e:
-                self.status_errors += 1
-                if self.status_errors <= 3:
-                    log.warning(
-                        "cannot write status %s: %s", self.path, e.strerror or e,
-                        extra={"event": "status_error"},
-                    )
-        if self.metrics is not None:
-            self.metrics.update(snap, self.loop.stats)
-        if self.notifier is not None and self.state == "running" and self.watchdog and self.watchdog.ready:
-            states = " ".join(f"{a}={s['state']}" for a, s in snap["axes"].items())
-            mode = "observe" if self.observe else "compensating"
-            if snap["sink"]["link"] != "up":
-                mode += f" (sink link {snap['sink']['link']}: output not reaching the machine)"
-            self.notifier.send(
-                STATUS=f"{mode}: word {snap['word']}, {states}, {snap['loop']['misses']} missed"
-            )

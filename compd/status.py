@@ -1,8 +1,9 @@
 """Live status of a running daemon: a JSON snapshot written atomically, and `compd status`.
 
-A background thread (compd/service.py), never the cycle, takes a `snapshot` of
-the loop about once a second and writes it with `write_atomic` (temp file +
-rename, so a reader never sees half a file). `compd status` reads it back with
+The cycle's thread takes a `snapshot` of the loop about once a second, between two
+cycles when there is room (compd/publish.py), and the service (compd/service.py, a
+process of its own on the wall clock) makes it JSON (`jsonable`) and writes it with
+`write_atomic` (temp file + rename, so a reader never sees half a file). `compd status` reads it back with
 `read_status`, judges whether the daemon is alive (`liveness`) and prints it
 (`render`) or passes the JSON through.
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -63,7 +65,8 @@ def lateness_buckets(
 
 
 def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """A plain, JSON-able picture of the loop: per axis, per signal, loop timing, model, sink."""
+    """A plain picture of the loop: per axis, per signal, loop timing, model, sink (`jsonable`
+    makes it JSON: NaN → None, numpy scalars → numbers)."""
     now = loop.now_s
     guard = loop.guard
     axes = guard.get_status()
@@ -104,20 +107,22 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
         "faults": dict(guard.faults),
         "saturations": int(enc.saturations),
         "events": events,
+        # the threads of Python in the cycle's process (on the wall clock: the cycle's alone)
+        "threads": sorted(t.name for t in threading.enumerate()),
     }
     if loop.adapter is not None:  # the probe-updated estimate per axis (compd.adapt)
         snap["adapt"] = loop.adapter.get_status()
     if extra:
         snap.update(extra)
-    return _jsonable(snap)
+    return snap
 
 
-def _jsonable(value: Any) -> Any:
+def jsonable(value: Any) -> Any:
     """NaN and infinities become None (JSON has neither); numpy scalars become Python numbers."""
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, np.generic):
         value = value.item()
     if isinstance(value, float) and not math.isfinite(value):

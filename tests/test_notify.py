@@ -102,3 +102,31 @@ def test_observer_without_watchdog_only_readies(listener):
         assert obs.ready and obs.pings == 0 and n.sent == 1
     finally:
         n.close()
+
+
+def test_observer_sends_the_service_s_status_line_from_the_main_process_when_it_changes(listener):
+    """The service composes STATUS= (in a process of its own); the cycle sends it, so every
+    message comes from the main process (NotifyAccess=main)."""
+    from compd.io.ring import SharedBlob
+
+    sock, path = listener
+    sock.settimeout(5)
+    t = [0.0]
+    n = Notifier(path)
+    line = SharedBlob(64)
+    obs = WatchdogObserver(n, None, status="compensating", clock=lambda: t[0], status_line=line)
+    try:
+        obs(None, 0.0)
+        assert sock.recv(4096) == b"READY=1\nSTATUS=compensating"
+        line.publish(b"compensating: word 0xC500, z=normal, 0 missed")
+        for _ in range(3):  # checked once a second, sent once
+            t[0] += 1.0
+            obs(None, 0.0)
+        assert sock.recv(4096) == b"STATUS=compensating: word 0xC500, z=normal, 0 missed"
+        assert n.sent == 2
+        line.publish(b"compensating: word 0xC600, z=normal, 0 missed")
+        t[0] += 1.0
+        obs(None, 0.0)
+        assert sock.recv(4096).endswith(b"0xC600, z=normal, 0 missed") and n.sent == 3
+    finally:
+        n.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import socket
@@ -15,8 +16,6 @@ from pathlib import Path
 import pytest
 
 from compd import control
-from compd.adapt import Adapter
-from compd.config import AdaptConfig
 from compd.errors import BadInput
 from tests.service_helpers import sim_config
 
@@ -188,27 +187,45 @@ def test_bad_input_exits_2_with_one_line(tmp_path):
         assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, (args, r.stderr)
 
 
-class FakeLoop:
-    """What the control thread touches: the adapter (its inbox and events) and the loop time."""
+class FakeLink(control.ProbeLink):
+    """What the socket's thread reaches: where probes go, and the verdicts that come back."""
 
-    def __init__(self) -> None:
-        self.adapter = Adapter(AdaptConfig(), ["x", "z"])
-        self.now_s = 42.0
+    def __init__(self, verdicts: bool = False) -> None:
+        self.sent: list = []
+        self.verdicts = verdicts
+
+    @property
+    def axes(self) -> list[str]:
+        return ["x", "z"]
+
+    def send(self, probe) -> None:  # noqa: ANN001
+        self.sent.append(probe)
+
+    def outcome(self, tag: str) -> dict | None:
+        if not self.verdicts or not self.sent or self.sent[-1].source != tag:
+            return None
+        return {"event": "accepted", "source": tag, "t_s": 42.0, "offset_um": float("nan")}
 
 
 def test_server_queues_the_probe_and_answers_queued_when_no_cycle_takes_it(tmp_path, monkeypatch):
     monkeypatch.setattr(control, "WAIT_S", 0.05)
-    loop = FakeLoop()
-    server = control.ControlServer(tmp_path / "c.sock", loop)
+    link = FakeLink()
+    server = control.ControlServer(tmp_path / "c.sock")
     server.open()
+    server.serve(link)
     try:
         with pytest.raises(BadInput, match="another compd serves"):
-            control.ControlServer(tmp_path / "c.sock", loop).open()
+            control.ControlServer(tmp_path / "c.sock").open()
         answer = control.send_probe(tmp_path / "c.sock", {"op": "probe", "axis": "x", "error_um": 4.0,
                                                           "position_mm": 3.0, "residual": True})
-        assert answer["ok"] and answer["outcome"] == "queued" and answer["t_s"] == 42.0
-        (probe,) = loop.adapter.inbox
+        assert answer["ok"] and answer["outcome"] == "queued" and answer["t_s"] is None
+        assert answer["pid"] == os.getpid()
+        (probe,) = link.sent
         assert (probe.axis, probe.error_um, probe.position_mm, probe.residual) == ("x", 4.0, 3.0, True)
+        assert math.isnan(probe.t_s)  # the cycle stamps it when it takes it
+        link.verdicts = True
+        answer = control.send_probe(tmp_path / "c.sock", {"op": "probe", "axis": "z", "error_um": 1.0})
+        assert answer["outcome"] == "accepted" and answer["t_s"] == 42.0 and answer["offset_um"] is None
         bad = control.send_probe(tmp_path / "c.sock", {"op": "probe", "axis": "x", "error_um": "1"})
         assert not bad["ok"] and "finite" in bad["error"]
     finally:
@@ -219,7 +236,7 @@ def test_server_queues_the_probe_and_answers_queued_when_no_cycle_takes_it(tmp_p
 def test_a_path_that_is_not_a_socket_is_refused(tmp_path):
     (tmp_path / "c.sock").write_text("x", encoding="utf-8")
     with pytest.raises(BadInput, match="not a socket"):
-        control.ControlServer(tmp_path / "c.sock", FakeLoop()).open()
+        control.ControlServer(tmp_path / "c.sock").open()
 
 
 def test_a_reload_keeps_the_socket_and_the_estimate(tmp_path):
@@ -241,7 +258,7 @@ def test_a_reload_keeps_the_socket_and_the_estimate(tmp_path):
         new.open()
         old.close(handing_over_to=new)
         assert new.service.control is old.service.control and (tmp_path / "status.sock").is_socket()
-        assert new.service.control.loop is new.loop
+        assert new.service.control.link.axes == ["z"]  # served for the new pipeline
         assert new.loop.adapter.est[0].accepted == 1  # the same model and params: carried over
         answer = control.send_probe(tmp_path / "status.sock", {"op": "probe", "axis": "x", "error_um": 1.0})
         assert not answer["ok"] and "unknown axis" in answer["error"]

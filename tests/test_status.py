@@ -69,11 +69,11 @@ def test_numpy_percentiles_match_the_loops_own():
 
 
 def test_nan_becomes_null_and_an_empty_histogram_reads_zero():
-    from compd.status import _jsonable
+    from compd.status import jsonable
 
     lt = timing(TimingStats(0.002))["lateness_us"]
     assert lt == {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
-    assert _jsonable({"a": [float("nan"), np.float64(2.0)]}) == {"a": [None, 2.0]}
+    assert jsonable({"a": [float("nan"), np.float64(2.0)]}) == {"a": [None, 2.0]}
 
 
 def test_write_atomic_and_read_back(tmp_path, ran_app):

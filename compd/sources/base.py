@@ -14,6 +14,7 @@ from compd.frame import Frame, Quality
 from compd.histogram import DurationHist
 from compd.io.child import hosting_now
 from compd.io.mailbox import Snapshot
+from compd.io.ring import MessageRing
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
 if TYPE_CHECKING:
@@ -61,9 +62,13 @@ class Source(ABC):
         self._idx = frame.indices(self.signal_names(), what="signal")
 
     def bind_probes(self, inbox: deque[Probe]) -> None:
-        """Where to hand probe measurements (compd.adapt.Probe): a source that reads them
-        (a CNC's probing cycle) appends to `inbox` from its own thread; the cycle takes them.
-        Called only when the config has an `adapt` section; other sources ignore it."""
+        """The config has an `adapt` section whose inbox takes probe measurements
+        (compd.adapt.Probe); other sources ignore it. A source that reads them (a CNC's
+        probing cycle) puts them in its `probe_ring`, which the cycle takes between cycles."""
+
+    def probe_ring(self) -> MessageRing | None:
+        """Where this source's worker puts the probes it reads (None: it reads none)."""
+        return None
 
     def open(self, now_s: float) -> None:
         """Connect; called once before the first cycle."""
@@ -218,6 +223,11 @@ class PolledSource(Source):
     def io_status(self) -> dict[str, Any]:
         """The worker's and the poller's counts (state, connects, errors, last_error, …)."""
         return self.worker.get_status()
+
+    def get_status(self) -> dict[str, Any]:
+        """Kind, name and the process its device I/O runs in (`io_pid`: the daemon's own
+        when the worker is a thread)."""
+        return {**super().get_status(), "io_pid": self.io_status().get("pid")}
 
     def close(self) -> None:
         if self._worker is not None:

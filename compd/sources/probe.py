@@ -35,6 +35,7 @@ from compd.io.modbus_client import (
     NoConnection,
     OverModbus,
 )
+from compd.io.ring import MessageRing
 from compd.io.worker import DeviceWork, LinkDown
 from compd.plc.probe_block import PROBE_COUNT, decode_result
 from compd.sources.base import PolledSource
@@ -42,6 +43,7 @@ from compd.sources.base import PolledSource
 log = logging.getLogger("compd.sources.probe")
 
 BLOCK_ADDRESS = {"fanuc_pmc": 500, "siemens_nc": 1000}
+PROBE_RING_BYTES = 64 << 10  # probes waiting for the cycle (a few hundred)
 
 
 class ProbeConfig(SourceConfig):
@@ -74,18 +76,10 @@ class ProbeConfig(SourceConfig):
         return self
 
 
-class _Outbox:
-    """Where the poller hands its probes: the adapter's inbox once bound, else nowhere."""
-
-    def __init__(self) -> None:
-        self.inbox: deque[Probe] | None = None
-
-
 class ProbeSource(PolledSource):
     """The CNC's probe-result block, polled by an I/O worker; no frame signals."""
 
     Config = ProbeConfig
-    forkable = False  # its probes go to the adapter's inbox, an object of the cycle's process
 
     def __init__(self, cfg: ProbeConfig, base_dir: str = ".") -> None:
         super().__init__(cfg, base_dir)
@@ -93,17 +87,21 @@ class ProbeSource(PolledSource):
         self.poll_period_s = cfg.poll_period_s
         self.reconnect_min_s, self.reconnect_max_s = cfg.reconnect_min_s, cfg.reconnect_max_s
         self.address = cfg.address if cfg.address is not None else BLOCK_ADDRESS[cfg.cnc]
-        self._out = _Outbox()
+        self._out = MessageRing(PROBE_RING_BYTES)  # made before a fork: the poller's process puts, the cycle takes
+        self._used = False
         self._poller: ProbePoller | None = None
 
     def signal_names(self) -> list[str]:
         return []
 
     def bind_probes(self, inbox: deque[Probe]) -> None:
-        self._out.inbox = inbox
+        self._used = True
+
+    def probe_ring(self) -> MessageRing:
+        return self._out
 
     def open(self, now_s: float) -> None:
-        if self._out.inbox is None:
+        if not self._used:
             log.warning(
                 "%s: no adapt section: probe results are read but not used", self.name,
                 extra={"event": "probe_unused", "source": self.name},
@@ -123,7 +121,7 @@ class ProbeSource(PolledSource):
         return True
 
     def read(self, frame: Frame, now_s: float) -> None:
-        """Nothing to copy: probes go to the adapter's inbox from the worker."""
+        """Nothing to copy: probes reach the adapter through `probe_ring`."""
 
     def get_status(self) -> dict[str, Any]:
         io = self.io_status()
@@ -139,7 +137,7 @@ class ProbePoller(OverModbus, DeviceWork):
     """The device half, on the worker's thread: read the block, compare its sequence number,
     hand a new result on."""
 
-    def __init__(self, cfg: ProbeConfig, address: int, out: _Outbox, name: str) -> None:
+    def __init__(self, cfg: ProbeConfig, address: int, out: MessageRing, name: str) -> None:
         super().__init__()
         self.cfg = cfg
         self.address = address
@@ -201,8 +199,8 @@ class ProbePoller(OverModbus, DeviceWork):
             position_mm=res.position_mm, source=self.name, residual=True,
         )
         self.probes += 1
-        if self.out.inbox is not None:
-            self.out.inbox.append(probe)
+        if not self.out.put(probe):
+            self.last_error = f"probe result {res.seq}: dropped, the cycle is not taking probes"
         return True
 
     def offline(self, request: Any) -> bool:

@@ -11,7 +11,6 @@ matrix table shows; `record()` writes them as JSON for `python -m compd.faultdoc
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import threading
@@ -29,6 +28,7 @@ from compd.codec import decode
 from compd.config import load_config
 from compd.guard import AxisState
 from tests.faults.matrix import MATRIX
+from tests.logcapture import log_lines
 
 RESULTS_ENV = "COMPD_FAULTS_OUT"  # a folder: each row writes <row>.json there (else tmp_path)
 PERIOD_S = 0.01
@@ -57,17 +57,6 @@ class JumpClock(WallClock):
 
     def wait_until(self, deadline_s: float) -> None:
         super().wait_until(deadline_s - self.offset_s)
-
-
-class _Capture(logging.Handler):
-    """Keeps the compd logger's records (the key=value event lines) for the checks."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.DEBUG)
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
 
 
 def base_config(source: dict[str, Any], policy: str, **guard: Any) -> dict[str, Any]:
@@ -149,7 +138,7 @@ class FaultRun:
         self.trace = Trace()
         self.app: App | None = None
         self.summary: dict[str, Any] = {}
-        self.records: list[logging.LogRecord] = []
+        self.records: list[Any] = []  # the run's log lines (tests.logcapture)
 
     def at(self, t_s: float, label: str, action: Callable[[], None]) -> FaultRun:
         """Run `action` (on a helper thread) `t_s` after the loop started; `label` 'fault' marks
@@ -202,25 +191,21 @@ class FaultRun:
                 action()
                 self.times[label] = app.clock.now()  # after: a clock jump counts from its new time
 
-        capture = _Capture()
-        logger = logging.getLogger("compd")
-        old_level = logger.level
-        logger.addHandler(capture)
-        logger.setLevel(logging.DEBUG)
         th = threading.Thread(target=scheduler, name="fault-schedule")
         th.start()
         running = True
-        try:
-            self.summary = app.run()
-        except Exception:
-            running = False
-            raise
-        finally:
-            stop.set()
-            th.join(10)
-            logger.removeHandler(capture)
-            logger.setLevel(old_level)
-            self.records = capture.records
+        # the event lines come from the service (a process of its own on the wall clock): read
+        # them where the journal would, on stderr
+        with log_lines() as records:
+            try:
+                self.summary = app.run()
+            except Exception:
+                running = False
+                raise
+            finally:
+                stop.set()
+                th.join(10)
+        self.records = records
         return self._measure(sensor, reasons, kind, running)
 
     def settled(self, now: float) -> bool:
@@ -287,14 +272,14 @@ class FaultRun:
             and getattr(r, "reason", None) == hit[2]
             for r in self.records
         )
-        writer = app.logger.writer if app.logger else None
+        log_counts = self.summary.get("log") or {}
         m = Measured(
             max_step_um=max_step,
             allowed_step_um=rate * PERIOD_S,
             max_step_ratio=ratio,
             time_to_safe_s=time_to_safe,
             recovered=bool(tr.state) and tr.state[-1] == AxisState.NORMAL,
-            samples_lost=writer.rows_dropped if writer else 0,
+            samples_lost=int(log_counts.get("rows_dropped", 0)),
             event=event,
             logged=logged,
             word_valid=word_valid,

@@ -1,4 +1,5 @@
-"""The `probe` source: the CNC's probe-result block over Modbus TCP, each new result into the adapter's inbox once."""
+"""The `probe` source: the CNC's probe-result block over Modbus TCP, each new result into its ring once (the
+cycle takes them from there into the adapter's inbox)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,32 @@ from compd.sources.probe import ProbeConfig, ProbeSource
 from hil_sim.devices.modbus_server import ModbusServerThread
 from tests.sources.helpers import Harness
 from tests.sources.rawmodbus import RawModbusServer
+
+
+class RingInbox:
+    """The probes the source's worker put in its ring, as the adapter's inbox would hold them."""
+
+    def __init__(self) -> None:
+        self._got: deque = deque()
+        self._ring = None
+
+    def attach(self, src: ProbeSource) -> None:
+        src.bind_probes(deque())
+        self._ring = src.probe_ring()
+
+    def _drain(self) -> deque:
+        if self._ring is not None:
+            self._got.extend(self._ring.take())
+        return self._got
+
+    def __len__(self) -> int:
+        return len(self._drain())
+
+    def __iter__(self):  # noqa: ANN204
+        return iter(list(self._drain()))
+
+    def popleft(self):  # noqa: ANN201
+        return self._drain().popleft()
 
 
 def _source(port: int, cnc: str = "fanuc_pmc", axes=("x", "z")) -> ProbeSource:
@@ -37,11 +64,11 @@ def _wait_polls(src: ProbeSource, n: int = 2, timeout_s: float = 10.0) -> None:
 def test_each_published_result_reaches_the_inbox_once(cnc):
     dev = FanucPmc() if cnc == "fanuc_pmc" else SiemensNc(axes=2)
     dev.publish_probe(0, 9.9)  # in the block before compd starts: of unknown age, not used
-    inbox: deque = deque()
+    inbox = RingInbox()
     with ModbusServerThread(dev, port=0) as srv:
         src = _source(srv.port, cnc)
         assert src.signal_names() == []
-        src.bind_probes(inbox)
+        inbox.attach(src)
         with Harness(src):
             _wait_polls(src)
             assert not inbox
@@ -61,10 +88,10 @@ def test_each_published_result_reaches_the_inbox_once(cnc):
 def test_a_wrapped_sequence_number_is_a_new_result():
     pmc = FanucPmc()
     pmc.write_registers(500, encode_result(0xFFFE, 0, 1.0))
-    inbox: deque = deque()
+    inbox = RingInbox()
     with ModbusServerThread(pmc, port=0) as srv:
         src = _source(srv.port)
-        src.bind_probes(inbox)
+        inbox.attach(src)
         with Harness(src):
             _wait_polls(src)
             assert pmc.publish_probe(0, 2.0) == 0xFFFF
@@ -76,10 +103,10 @@ def test_a_wrapped_sequence_number_is_a_new_result():
 
 def test_results_between_polls_count_as_missed_and_torn_blocks_wait():
     pmc = FanucPmc()
-    inbox: deque = deque()
+    inbox = RingInbox()
     with ModbusServerThread(pmc, port=0) as srv:
         src = _source(srv.port)
-        src.bind_probes(inbox)
+        inbox.attach(src)
         with Harness(src):
             _wait_polls(src)
             with pmc._lock:  # the cycle writes the block: first sequence number only so far
@@ -99,14 +126,14 @@ def test_results_between_polls_count_as_missed_and_torn_blocks_wait():
 
 
 def test_bad_axis_index_and_malformed_replies_are_faults_not_probes():
-    inbox: deque = deque()
+    inbox = RingInbox()
     with RawModbusServer({}) as srv:
 
         def put(regs: list[int]) -> None:
             srv.registers.update(zip(range(500, 508), regs, strict=True))
 
         src = _source(srv.port, axes=("x",))
-        src.bind_probes(inbox)
+        inbox.attach(src)
         with Harness(src):
             _wait_polls(src)
             put(encode_result(1, 3, 2.0))  # axis index 3, one axis configured
@@ -145,12 +172,12 @@ sink: {kind: pci1756}
 
 def test_a_result_published_while_the_link_was_down_is_skipped_then_new_ones_count():
     pmc = FanucPmc()
-    inbox: deque = deque()
+    inbox = RingInbox()
     srv = ModbusServerThread(pmc, port=0).start()
     port = srv.port
     try:
         src = _source(port)
-        src.bind_probes(inbox)
+        inbox.attach(src)
         with Harness(src):
             _wait_polls(src)
             srv.stop()
@@ -186,12 +213,15 @@ adapt: {{sigma_um: {sigma}}}
         p = tmp_path / f"c{k}.yaml"
         p.write_text(text.format(sigma=sigma))
         paths.append(p)
+    from compd.adapt import Probe
+
     old, new = App(load_config(paths[0])), App(load_config(paths[1]))
     src = old.sources[1]
-    assert src._out.inbox is old.loop.adapter.inbox
+    old.service.publisher.watch_probes(old.loop.sources)
+    assert src.probe_ring() in old.service.publisher.probe_rings
     new.adopt(old)
     assert new.sources[1] is src  # unchanged section: taken over
-    new._take_over()
-    assert src._out.inbox is new.loop.adapter.inbox
-    new._give_back()  # the reload failed: back to the old one
-    assert src._out.inbox is old.loop.adapter.inbox
+    new.service.publisher.watch_probes(new.loop.sources)  # (what starting the new service does)
+    src.probe_ring().put(Probe(t_s=1.0, axis="z", error_um=2.0, source="p", residual=True))
+    new.service.publisher.after_cycle(float("inf"))  # the new pipeline's cycle takes it
+    assert [p.error_um for p in new.loop.adapter.inbox] == [2.0] and not old.loop.adapter.inbox

@@ -1,0 +1,183 @@
+"""The cycle's side of the service: what status, logs and metrics need from the loop, handed over between cycles.
+
+The service work (status file, metrics, event log lines, the data log, model state,
+the probe socket) runs beside the loop, in a process of its own on the wall clock
+(compd/service.py). It never reads the pipeline's objects: the cycle's thread hands
+it what it needs, as plain values in a `MessageRing` (compd/io/ring.py), so there is
+never a second thread of Python in the cycle's interpreter and nothing the cycle
+writes is read half-written.
+
+After every cycle the loop calls `Publisher.after_cycle` with the time left before
+the next deadline:
+
+* the guard's new events and the adapter's new probe events (few, cheap), each
+  sensor event with its source's last error as the cause;
+* every `status.period_s` of wall time, a snapshot of the loop (compd/status.py),
+  only when the time left holds it with room to spare (its cost is measured each
+  time): a snapshot never makes a cycle late, it waits for a cycle with room;
+* probes that arrived for the adapter (`compd probe` through the service, a CNC's
+  probe block through its source's worker) go into the adapter's inbox.
+
+Model and adapter state and the data log's rows are put in the ring when the cycle
+makes them (a few µs: pickling a tuple). A full ring drops the message and counts it
+(the service is gone or far behind); the cycle never waits for room.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+from compd.adapt import Probe
+from compd.io.ring import MessageRing
+from compd.metrics import LATENESS_BOUNDS_US
+from compd.status import lateness_buckets, snapshot
+
+ROOM_FACTOR = 1.5  # a snapshot is taken only when the time left is this many times its cost ...
+ROOM_EXTRA_S = 100e-6  # ... plus this
+
+
+class Tail:
+    """The items a list or deque gained since the last call (it may be trimmed at the
+    front meanwhile): found by the identity of the last item seen, O(1) when none."""
+
+    def __init__(self, items: Callable[[], Any]) -> None:
+        self._items = items
+        self._last: Any = None
+
+    def new(self) -> list[Any]:
+        items = self._items()
+        if not items or items[-1] is self._last:
+            return []
+        copy = list(items)
+        start = 0
+        if self._last is not None:
+            for i in range(len(copy) - 1, -1, -1):
+                if copy[i] is self._last:
+                    start = i + 1
+                    break
+        self._last = copy[-1]
+        return copy[start:]
+
+
+def sensor_cause(sources: list[Any], signal: str) -> str | None:
+    """`source NAME: its last error` of the source that publishes `signal`, if it has one."""
+    for src in sources:
+        try:
+            if signal in src.signal_names():
+                err = src.get_status().get("last_error")
+                return f"source {src.name}: {err}" if err else None
+        except Exception:  # a source's status must not stop the events
+            return None
+    return None
+
+
+class Publisher:
+    """Feeds the service from the cycle's thread (see the module); one per pipeline."""
+
+    def __init__(
+        self,
+        loop: Any,
+        outbox: MessageRing,
+        inbox: MessageRing,
+        *,
+        status_period_s: float,
+        status_extra: Callable[[], dict[str, Any]],
+        observe: bool,
+        probe_rings: list[MessageRing] = (),  # type: ignore[assignment]
+    ) -> None:
+        self.loop = loop
+        self.outbox = outbox
+        self.inbox = inbox
+        self.status_period_s = status_period_s
+        self.status_extra = status_extra
+        self.observe = observe
+        self.state = "starting"
+        self.probe_rings = [inbox, *probe_rings]
+        self._guard_events = Tail(lambda: loop.guard.events)
+        self._probe_events = Tail(lambda: loop.adapter.events) if loop.adapter is not None else None
+        self._next_status_s = -math.inf  # wall (monotonic) time of the next snapshot
+        self.snapshot_cost_s = 300e-6  # the estimate a snapshot needs room for (measured from the first)
+        self.snapshots = 0
+        self.snapshots_waited = 0  # cycles a due snapshot waited for room
+
+    # ------------------------------------------------------------ the cycle's thread
+    def after_cycle(self, room_s: float) -> None:
+        """After a cycle, with `room_s` before the next deadline (inf: no real-time schedule)."""
+        for ring in self.probe_rings:
+            if ring.pending():
+                self._take_probes(ring)
+        events = self._guard_events.new()
+        if events:
+            self._put_events(events)
+        if self._probe_events is not None:
+            pe = self._probe_events.new()
+            if pe:
+                self.outbox.put(("probe_events", pe))
+        if time.monotonic() >= self._next_status_s:
+            if room_s < ROOM_FACTOR * self.snapshot_cost_s + ROOM_EXTRA_S:
+                self.snapshots_waited += 1
+                return
+            t0 = time.perf_counter()
+            self.publish_status()
+            cost = time.perf_counter() - t0
+            self._next_status_s = time.monotonic() + self.status_period_s
+            # the estimate follows a slower snapshot at once and a faster one slowly
+            self.snapshot_cost_s = cost if cost > self.snapshot_cost_s else 0.9 * self.snapshot_cost_s + 0.1 * cost
+
+    def watch_probes(self, sources: list[Any]) -> None:
+        """Take probes from these sources' rings (a CNC's probe block) besides the inbox."""
+        self.probe_rings = [self.inbox, *(r for s in sources if (r := s.probe_ring()) is not None)]
+
+    def publish_status(self, state: str | None = None) -> None:
+        """Put a snapshot of the loop in the ring (also from outside the loop: start, stop)."""
+        if state is not None:
+            self.state = state
+        if self._next_status_s == -math.inf:  # the first: the loop's next one a period later
+            self._next_status_s = time.monotonic() + self.status_period_s
+        loop = self.loop
+        snap = snapshot(loop, state=self.state, observe=self.observe, extra=self.status_extra())
+        snap["publisher"] = {"snapshots_waited": self.snapshots_waited, "messages_dropped": self.outbox.dropped,
+                             "snapshot_cost_us": round(self.snapshot_cost_s * 1e6, 1)}
+        buckets = lateness_buckets(loop.stats, LATENESS_BOUNDS_US)
+        self.outbox.put(("status", snap, buckets))
+        self.snapshots += 1
+
+    def row(self, row: tuple[float, ...]) -> None:
+        """A data-log row (LogObserver, on the cycle)."""
+        self.outbox.put(("row", row))
+
+    def model_state(self, state: dict[str, Any]) -> None:
+        """The model's state after a step (Loop.on_model_state, on the cycle)."""
+        self.outbox.put(("model_state", state))
+
+    def adapt_state(self, axes: dict[str, Any]) -> None:
+        """The adapter's state after a probe (Adapter.on_state, on the cycle)."""
+        self.outbox.put(("adapt_state", axes, time.time()))
+
+    def flush_events(self) -> None:
+        """Events not yet handed over (outside the loop: the loop has stopped)."""
+        self.after_cycle(0.0)
+
+    # ------------------------------------------------------------ helpers
+    def _put_events(self, events: list[tuple[float, str, str, str]]) -> None:
+        out = []
+        for t, subject, event, reason in events:
+            cause = None
+            if event == "bad" and reason in ("comms_lost", "no_data", "stale"):
+                cause = sensor_cause(self.loop.sources, subject)
+            out.append((float(t), subject, event, reason, cause))
+        self.outbox.put(("events", out))
+
+    def _take_probes(self, ring: MessageRing) -> None:
+        adapter = self.loop.adapter
+        for msg in ring.take():
+            if adapter is None:
+                continue
+            probe = msg if isinstance(msg, Probe) else Probe(**msg)
+            if math.isnan(probe.t_s):  # sent without a time: it was measured now
+                probe = dataclasses.replace(probe, t_s=float(self.loop.now_s))
+            adapter.inbox.append(probe)
