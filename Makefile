@@ -44,8 +44,8 @@ accept: $(TEST_STAMP) sysdeps
 
 bench: $(TEST_STAMP) sysdeps
 	$(PY) -m pytest -q -s -m bench tests/bench
-	$(VENV)/bin/compd bench --json bench.json
-	$(VENV)/bin/compd bench --scheduler fifo --json bench_fifo.json
+	$(VENV)/bin/compd bench --cycles 20000 --json bench.json
+	$(VENV)/bin/compd bench --cycles 20000 --scheduler fifo --json bench_fifo.json
 
 # installs the service: venv under /opt/compd, systemd units, /etc/compd/compd.yaml, user compd.
 # DESTDIR=/some/dir stages instead (no user, no systemctl); PREFIX=... moves the venv.

@@ -19,6 +19,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from compd.clock import WallClock
 from compd.errors import BadInput
 from hil_sim.plants import PLANTS
 from hil_sim.scenario import SCENARIOS, Scenario
@@ -191,7 +193,12 @@ def _compd_config(
         "model": {"kind": "lvr", "file": str(model_path)},
         "guard": {"max_slew_um_per_s": 20.0, "stale_after_s": 1.0},
         "sink": {"kind": "fanuc_pmc", "mode": "word", "host": "127.0.0.1", "port": ports["pmc"]},
-        "status": {"period_s": 1.0},
+        # what a daemon in service runs beside its cycle: the status file, the data log, the
+        # model state, the metrics endpoint (scraped every second by the bench)
+        "status": {"period_s": 1.0, "path": str(work / "status.json")},
+        "log": {"path": str(work / "data.csv"), "period_s": 1.0, "flush_s": 1.0},
+        "state": {"path": str(work / "state.json")},
+        "metrics": {"enabled": True, "port": 0},
     }
     path = work / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
@@ -269,14 +276,76 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     }
 
 
-def run_compd_loop_child(config: Path, cycles: int, late_us: float, out: Path) -> dict[str, Any]:
-    """rig.bench_loop in a child process (compd only in its interpreter); its JSON."""
+def run_compd_loop_child(
+    config: Path, cycles: int, late_us: float, out: Path, trace: Path | None = None, scheduler: str = "other",
+) -> dict[str, Any]:
+    """rig.bench_loop in a child process (compd only in its interpreter), its metrics endpoint
+    scraped every second meanwhile; its JSON. `trace`: run it under perf (rig.late_trace),
+    the kernel's record kept in that file."""
+    from rig import late_trace
+
+    prefix = late_trace.record_command(trace, cycle_cpu() if scheduler == "fifo" else None) if trace else []
+    scraper = Scraper(config.parent / "status.json")
+    try:
+        r = subprocess.run(
+            [*prefix, sys.executable, "-m", "rig.bench_loop", str(config), str(cycles), str(late_us), str(out),
+             *(["trace"] if trace else [])],
+            cwd=Path(__file__).resolve().parent.parent, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            text=True,
+        )
+    finally:
+        scraper.stop()
+    if r.returncode != 0:
+        raise RuntimeError("compd's loop failed: " + (r.stderr.strip().splitlines() or ["?"])[-1])
+    result = json.loads(out.read_text())
+    result.pop("_tids", None)
+    result["scrapes"] = scraper.scrapes
+    if trace:
+        result["trace"] = late_trace.analyse(trace, result, margin_s=WallClock().spin_margin_s)
+    return result
+
+
+class Scraper:
+    """Scrapes the daemon's metrics endpoint every `period_s` (its URL from the status
+    file), as a Prometheus server would, from the bench's process."""
+
+    def __init__(self, status: Path, period_s: float = 1.0) -> None:
+        self.status = status
+        self.period_s = period_s
+        self.scrapes = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="bench-scraper", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import urllib.request
+
+        url = None
+        while not self._stop.wait(self.period_s):
+            try:
+                if url is None:
+                    url = json.loads(self.status.read_text())["metrics_url"]
+                with urllib.request.urlopen(url, timeout=2.0) as r:
+                    r.read()
+                self.scrapes += 1
+            except (OSError, ValueError, KeyError, TypeError):
+                continue
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+
+def run_bare_loop(cycles: int, period_s: float, scheduler: str, out: Path) -> dict[str, Any]:
+    """rig.bench_bare in a child process: the machine's limit, with the loop's real-time options."""
+    cpu = cycle_cpu()
     r = subprocess.run(
-        [sys.executable, "-m", "rig.bench_loop", str(config), str(cycles), str(late_us), str(out)],
+        [sys.executable, "-m", "rig.bench_bare", str(cycles), repr(period_s), scheduler,
+         "-" if cpu is None else str(cpu), str(out)],
         cwd=Path(__file__).resolve().parent.parent, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )
     if r.returncode != 0:
-        raise RuntimeError("compd's loop failed: " + (r.stderr.strip().splitlines() or ["?"])[-1])
+        raise RuntimeError("the bare loop failed: " + (r.stderr.strip().splitlines() or ["?"])[-1])
     return json.loads(out.read_text())
 
 
@@ -304,19 +373,25 @@ def run_bench(
     load: int = 0,
     late_us: float = 200.0,
     io: str = "process",
+    bare_cycles: int | None = None,
+    trace: str | None = None,
 ) -> dict[str, Any]:
     """The whole benchmark; returns the JSON of docs/formats.md (plus baseline, ratio, memory).
 
     `load`: CPU-bound processes started beside both loops (and stopped after). `late_us`:
     cycles later than this are matched against the spans of the other threads' work
     (compd.activity) and counted per thread in `late_attribution`. `io`: loop.io of
-    compd's config (device I/O in processes of its own, or threads)."""
+    compd's config (device I/O and the service in processes of their own, or threads).
+    `bare_cycles` (default: as many as compd's): the bare loop's cycles, the machine's limit.
+    `trace`: a JSON file for the causes of compd's late and slow cycles (rig.late_trace, perf)."""
     from compd.models.bench import model_eval_us
 
     if cycles < 1:
         raise BadInput("--cycles must be at least 1", path="--cycles")
     if naive_cycles is None:
         naive_cycles = min(cycles, 5000)
+    if bare_cycles is None:
+        bare_cycles = cycles
     with tempfile.TemporaryDirectory(prefix="compd-bench-") as tmp:
         work = Path(tmp)
         model_path, sensors = _fit_gantry_model(work)
@@ -325,8 +400,10 @@ def run_bench(
         hogs = start_load(load)
         try:
             cfg = _compd_config(work, model_path, sensors, devices.ports, scheduler, period_s, io)
-            compd = run_compd_loop_child(cfg, cycles, late_us, work / "loop.json")
+            compd = run_compd_loop_child(cfg, cycles, late_us, work / "loop.json",
+                                         work / "perf.data" if trace else None, scheduler)
             attribution = compd["late_attribution"]
+            bare = run_bare_loop(bare_cycles, period_s, scheduler, work / "bare.json") if bare_cycles else None
             naive = run_naive_loop(model_path, sensors, devices.ports, naive_cycles, period_s)
         finally:
             stop_load(hogs)
@@ -356,34 +433,53 @@ def run_bench(
         "io": io,
         "io_processes": compd["io_processes"],
         "late_attribution": attribution,
+        "trace": compd["trace"]["summary"] if trace else None,
+        "service": compd["service"],
+        "metrics_scrapes": compd["scrapes"],
         "naive": naive,
+        "bare": bare,
     }
+    if trace:
+        Path(trace).write_text(json.dumps(compd["trace"], indent=1))
     miss_rate = compd["misses"] / max(compd["cycles"], 1)
     naive_rate = naive["misses"] / max(naive["cycles"], 1)
     result["ratio_naive_to_compd"] = {
         "miss_rate": naive_rate / miss_rate if miss_rate > 0 else None,
         "p99_lateness": naive["lateness_us"]["p99"] / max(compd["lateness_us"]["p99"], 1.0),
     }
+    if bare is not None:  # what compd adds to the machine's own lateness
+        result["ratio_compd_to_bare"] = {
+            key: compd["lateness_us"][key] / max(bare["lateness_us"][key], 1.0) for key in ("p99", "p999", "max")
+        }
     return result
 
 
 def format_table(r: dict[str, Any]) -> str:
     """The human table `compd bench` prints."""
     c, n = r, r["naive"]
+    b = r.get("bare") or {"cycles": 0, "misses": 0, "lateness_us": dict.fromkeys(("p50", "p99", "p999", "max"), 0.0)}
+
+    def rate(x: dict[str, Any]) -> float:
+        return 100 * x["misses"] / max(x["cycles"], 1)
+
     lines = [
         f"compd bench: {r['cycles']} cycles at {r['period_ms']:g} ms, scheduler {r['scheduler']}"
         f" ({'; '.join(r['realtime']) or 'no real-time options'}), {r.get('load_processes', 0)} CPU-bound"
         " processes beside it",
-        f"{'':24}{'compd loop':>14}{'naive loop':>14}",
-        f"{'cycles':24}{c['cycles']:>14}{n['cycles']:>14}",
-        f"{'misses':24}{c['misses']:>14}{n['misses']:>14}",
-        f"{'miss rate %':24}{100 * c['misses'] / max(c['cycles'], 1):>14.4f}{100 * n['misses'] / max(n['cycles'], 1):>14.2f}",
+        f"{'':24}{'compd loop':>14}{'bare loop':>14}{'naive loop':>14}",
+        f"{'cycles':24}{c['cycles']:>14}{b['cycles']:>14}{n['cycles']:>14}",
+        f"{'misses':24}{c['misses']:>14}{b['misses']:>14}{n['misses']:>14}",
+        f"{'miss rate %':24}{rate(c):>14.4f}{rate(b):>14.4f}{rate(n):>14.2f}",
     ]
     for key in ("p50", "p99", "p999", "max"):
-        lines.append(f"{'lateness ' + key + ' us':24}{c['lateness_us'][key]:>14.0f}{n['lateness_us'][key]:>14.0f}")
+        lines.append(
+            f"{'lateness ' + key + ' us':24}{c['lateness_us'][key]:>14.0f}{b['lateness_us'][key]:>14.0f}"
+            f"{n['lateness_us'][key]:>14.0f}"
+        )
     for key in ("p50", "p99", "max"):
         lines.append(
-            f"{'cycle compute ' + key + ' us':24}{c['cycle_compute_us'][key]:>14.0f}{n['cycle_compute_us'][key]:>14.0f}"
+            f"{'cycle compute ' + key + ' us':24}{c['cycle_compute_us'][key]:>14.0f}{'-':>14}"
+            f"{n['cycle_compute_us'][key]:>14.0f}"
         )
     rss = r["rss_kb"]
     lines.append(
@@ -393,12 +489,19 @@ def format_table(r: dict[str, Any]) -> str:
     procs = r.get("io_processes") or []
     if procs:
         lines.append(
-            f"device I/O: {len(procs)} processes beside the loop's ({', '.join(p['name'] for p in procs)}),"
+            f"device I/O and service: {len(procs)} processes beside the loop's ({', '.join(p['name'] for p in procs)}),"
             f" {sum(p['pss_kb'] for p in procs)} kB proportional set size together"
             f" ({sum(p['rss_kb'] for p in procs)} kB resident, counting pages shared with the loop's)"
         )
     else:
-        lines.append("device I/O: threads of the loop's process")
+        lines.append("device I/O and service: threads of the loop's process")
+    sv = r.get("service") or {}
+    log_st = sv.get("log") or {}
+    lines.append(
+        f"service: {sv.get('status_writes', 0)} status files, {log_st.get('rows_written', 0)} data-log rows"
+        f" ({log_st.get('rows_dropped', 0)} dropped), {r.get('metrics_scrapes', 0)} metrics scrapes;"
+        f" {sv.get('snapshots_waited', 0)} cycles a due snapshot waited for room"
+    )
     io = r["io_us"]
     for key, what in (("read", "poll (8 regs)"), ("write", "PMC write"), ("output_latency", "queued->acked")):
         if io.get(key):
@@ -421,6 +524,10 @@ def format_table(r: dict[str, Any]) -> str:
             f"cycles late by > {la['threshold_us']:.0f} us: {la['late_cycles']}; their wait overlapped the work of: {who};"
             f" of no other thread: {la['overlapping_none']}"
         )
+    if r.get("trace"):
+        from rig.late_trace import summary_line
+
+        lines.append(summary_line(r["trace"]))
     lines.append("model evaluate, median us: " + ", ".join(f"{k} {v:.2f}" for k, v in r["model_eval_us"].items()))
     lines.append(
         f"naive loop: start-to-start interval p50 {n['period_us']['p50']:.0f} us, p99 {n['period_us']['p99']:.0f} us"
@@ -429,6 +536,13 @@ def format_table(r: dict[str, Any]) -> str:
     ratio = r["ratio_naive_to_compd"]
     mr = "n/a (compd missed none)" if ratio["miss_rate"] is None else f"{ratio['miss_rate']:.0f}x"
     lines.append(f"naive / compd: miss rate {mr}, p99 lateness {ratio['p99_lateness']:.0f}x")
+    cb = r.get("ratio_compd_to_bare")
+    if cb:
+        lines.append(
+            "compd / bare (what compd adds to the machine's own lateness): "
+            + ", ".join(f"{k} {v:.1f}x" for k, v in cb.items())
+            + f"; bare loop cycles later than 200 us: {b.get('late_200us', 0)}"
+        )
     return "\n".join(lines)
 
 
@@ -443,7 +557,7 @@ def main(args: Any) -> int:
 
     result = run_bench(
         args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles,
-        load=args.load, late_us=args.late_us, io=args.io,
+        load=args.load, late_us=args.late_us, io=args.io, bare_cycles=args.bare_cycles, trace=args.trace,
     )
     print(format_table(result))
     if args.json:

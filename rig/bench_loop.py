@@ -72,8 +72,8 @@ def memory_of_kb(pid: int) -> dict[str, int]:
 
 
 def io_processes(app: Any) -> list[dict[str, Any]]:
-    """The device I/O workers that run in processes of their own: name, pid, resident and
-    proportional size (kB)."""
+    """The device I/O workers and the service that run in processes of their own: name, pid,
+    resident and proportional size (kB)."""
     from compd.sinks.modbus_link import ModbusLink
     from compd.sources.base import PolledSource
 
@@ -82,6 +82,9 @@ def io_processes(app: Any) -> list[dict[str, Any]]:
     link = app.sink.link
     if isinstance(link, ModbusLink):
         statuses.append(("sink", link.get_status()))
+    service_pid = app.service.pid
+    if service_pid is not None:
+        statuses.append(("service", {"pid": service_pid}))
     for name, st in statuses:
         pid = st.get("pid")
         if pid is not None and pid != os.getpid():
@@ -146,10 +149,13 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
         steal0, sw0 = host_steal_ms(), thread_switches(tid)
         app.loop.run(max_cycles=cycles)
         steal1, sw1 = host_steal_ms(), thread_switches(tid)
+        tids = [int(t) for t in os.listdir("/proc/self/task")]  # the loop's process's threads, while running
         io = io_stats(app)  # before close: closing the sink drops its link
         procs = io_processes(app)
     finally:
         app.close()
+    service = app.service.counts()
+    service["snapshots_waited"] = app.service.publisher.snapshots_waited
     rss["end_kb"] = rss_kb()
     base = rss.get("after_warmup_kb", rss["end_kb"])
     rss["growth_kb"] = rss["end_kb"] - base
@@ -162,6 +168,8 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     out["rss"] = rss
     out["io_us"] = io
     out["io_processes"] = procs
+    out["service"] = service
+    out["_tids"] = tids
     # what the OS and the hypervisor did to the cycle thread during the run
     out["host"] = {
         "steal_ms": round(steal1 - steal0, 1),
@@ -175,13 +183,17 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
 
 
 def main(argv: list[str]) -> int:
-    config, cycles, late_us, out = argv
+    config, cycles, late_us, out, *flags = argv
     from compd import activity
 
     activity.enable(float(late_us))
     try:
         result = run_compd_loop(Path(config), int(cycles))
         result["late_attribution"] = activity.attribute()
+        if "trace" in flags:  # for rig.late_trace: the marked cycles and who is who in the kernel's trace
+            result["spans_ns"] = {"late": activity.spans(activity.LATE), "slow": activity.spans(activity.SLOW)}
+            result["cycle_tid"] = threading.get_native_id()
+            result["process_tids"] = [int(t) for t in os.listdir("/proc/self/task")] + result.pop("_tids", [])
     finally:
         activity.disable()
     result["modules"] = sorted({m.split(".")[0] for m in sys.modules if not m.startswith("_")})
