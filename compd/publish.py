@@ -14,7 +14,8 @@ the next deadline:
   sensor event with its source's last error as the cause;
 * every `status.period_s` of wall time, a snapshot of the loop (compd/status.py),
   only when the time left holds it with room to spare (its cost is measured each
-  time): a snapshot never makes a cycle late, it waits for a cycle with room;
+  time, and averaged): a snapshot does not make a cycle late, it waits for a cycle
+  with room;
 * probes that arrived for the adapter (`compd probe` through the service, a CNC's
   probe block through its source's worker) go into the adapter's inbox.
 
@@ -38,6 +39,8 @@ from compd.status import lateness_buckets, snapshot
 
 ROOM_FACTOR = 1.5  # a snapshot is taken only when the time left is this many times its cost ...
 ROOM_EXTRA_S = 100e-6  # ... plus this
+COST_WEIGHT = 0.25  # the cost estimate: an average of the snapshots' costs with this weight on the newest
+WAIT_DECAY = 0.99  # ... and it shrinks by this for every cycle a due snapshot waits for room
 
 
 class Tail:
@@ -120,13 +123,14 @@ class Publisher:
         if time.monotonic() >= self._next_status_s:
             if room_s < ROOM_FACTOR * self.snapshot_cost_s + ROOM_EXTRA_S:
                 self.snapshots_waited += 1
+                # one snapshot the host slowed down must not hold the next ones back for good
+                self.snapshot_cost_s *= WAIT_DECAY
                 return
             t0 = time.perf_counter()
             self.publish_status()
             cost = time.perf_counter() - t0
             self._next_status_s = time.monotonic() + self.status_period_s
-            # the estimate follows a slower snapshot at once and a faster one slowly
-            self.snapshot_cost_s = cost if cost > self.snapshot_cost_s else 0.9 * self.snapshot_cost_s + 0.1 * cost
+            self.snapshot_cost_s = (1.0 - COST_WEIGHT) * self.snapshot_cost_s + COST_WEIGHT * cost
 
     def watch_probes(self, sources: list[Any]) -> None:
         """Take probes from these sources' rings (a CNC's probe block) besides the inbox."""

@@ -1,11 +1,13 @@
-"""The limit of this machine for `compd bench`: a bare Python loop that sleeps, spins to each deadline and does nothing else.
+"""The limit of this machine for `compd bench`: a bare Python loop that sleeps, spins to each deadline and does a fixed work.
 
 `python -m rig.bench_bare CYCLES PERIOD_S SCHEDULER CPU OUT.json` runs CYCLES deadlines
 on the same absolute schedule as compd's loop, with the same real-time options (SCHED_FIFO
-priority 50, pinned to CPU, memory locked) when SCHEDULER is `fifo`: how late a cycle
-can be on this machine when the cycle itself costs nothing. Run in the same `compd bench`
-as compd's loop, under the same load, it separates what compd adds from what the
-kernel and the hypervisor do.
+priority 50, pinned to CPU, memory locked) when SCHEDULER is `fifo`, and in each cycle
+the same fixed work (`work`: small numpy operations and Python, some tens of µs, no
+I/O, nothing allocated that lives on): how late a cycle can be on this machine, and how
+much longer the same work takes in its worst cycle than in its typical one. Run in the
+same `compd bench` as compd's loop, under the same load, it separates what compd adds
+from what the kernel and the hypervisor do.
 """
 
 from __future__ import annotations
@@ -22,6 +24,19 @@ import numpy as np
 SPIN_MARGIN_S = 0.0002  # as compd's wall clock
 
 
+def work(x: np.ndarray, y: np.ndarray, m: np.ndarray) -> float:
+    """A fixed cycle's work: the kind of small-array numpy and Python a cycle does."""
+    acc = 0.0
+    for _ in range(8):
+        np.multiply(x, 1.0001, out=y)
+        np.less(y, 50.0, out=m)
+        np.logical_and(m, m, out=m)
+        acc += float(y[3])
+    for i in range(150):
+        acc += i * 0.5
+    return acc
+
+
 def run(cycles: int, period_s: float, scheduler: str, cpu: int | None) -> dict[str, object]:
     if scheduler == "fifo":
         if cpu is not None:
@@ -29,6 +44,9 @@ def run(cycles: int, period_s: float, scheduler: str, cpu: int | None) -> dict[s
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
         ctypes.CDLL(None).mlockall(1 | 2 | 4)
     late = np.zeros(cycles)
+    compute = np.zeros(cycles)
+    x, y, m = np.full(19, 20.0), np.zeros(19), np.zeros(19, dtype=bool)
+    perf = time.perf_counter_ns
     mono = time.monotonic
     t0 = mono() + 0.01
     for k in range(cycles):
@@ -39,7 +57,11 @@ def run(cycles: int, period_s: float, scheduler: str, cpu: int | None) -> dict[s
         while mono() < deadline:
             pass
         late[k] = mono() - deadline
+        c0 = perf()
+        work(x, y, m)
+        compute[k] = perf() - c0
     us = late * 1e6
+    cu = compute / 1000.0
     return {
         "cycles": cycles,
         "misses": int(np.count_nonzero(late > period_s / 2)),
@@ -48,6 +70,8 @@ def run(cycles: int, period_s: float, scheduler: str, cpu: int | None) -> dict[s
             "p50": float(np.percentile(us, 50)), "p99": float(np.percentile(us, 99)),
             "p999": float(np.percentile(us, 99.9)), "max": float(us.max()),
         },
+        "cycle_compute_us": {"p50": float(np.percentile(cu, 50)), "p99": float(np.percentile(cu, 99)),
+                             "max": float(cu.max())},
     }
 
 
