@@ -27,6 +27,7 @@ makes them (a few µs: pickling a tuple). A full ring drops the message and coun
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -36,6 +37,8 @@ from compd.adapt import Probe
 from compd.io.ring import MessageRing
 from compd.metrics import LATENESS_BOUNDS_US
 from compd.status import lateness_buckets, snapshot
+
+log = logging.getLogger("compd.service")
 
 ROOM_FACTOR = 1.5  # a snapshot is taken only when the time left is this many times its cost ...
 ROOM_EXTRA_S = 100e-6  # ... plus this
@@ -91,6 +94,7 @@ class Publisher:
         status_extra: Callable[[], dict[str, Any]],
         observe: bool,
         probe_rings: list[MessageRing] = (),  # type: ignore[assignment]
+        service_alive: Callable[[], bool] | None = None,
     ) -> None:
         self.loop = loop
         self.outbox = outbox
@@ -106,6 +110,9 @@ class Publisher:
         self.snapshot_cost_s = 300e-6  # the estimate a snapshot needs room for (measured from the first)
         self.snapshots = 0
         self.snapshots_waited = 0  # cycles a due snapshot waited for room
+        self.rows_dropped = 0  # data-log rows the ring had no room for
+        self.service_alive = service_alive  # whether the service (a process of its own) still runs
+        self.service_lost: str | None = None
 
     # ------------------------------------------------------------ the cycle's thread
     def after_cycle(self, room_s: float) -> None:
@@ -121,6 +128,8 @@ class Publisher:
             if pe:
                 self.outbox.put(("probe_events", pe))
         if time.monotonic() >= self._next_status_s:
+            if self.service_lost is None and self.service_alive is not None and not self.service_alive():
+                self._lost_service()
             if room_s < ROOM_FACTOR * self.snapshot_cost_s + ROOM_EXTRA_S:
                 self.snapshots_waited += 1
                 # one snapshot the host slowed down must not hold the next ones back for good
@@ -145,6 +154,7 @@ class Publisher:
         loop = self.loop
         snap = snapshot(loop, state=self.state, observe=self.observe, extra=self.status_extra())
         snap["publisher"] = {"snapshots_waited": self.snapshots_waited, "messages_dropped": self.outbox.dropped,
+                             "rows_dropped": self.rows_dropped,
                              "snapshot_cost_us": round(self.snapshot_cost_s * 1e6, 1)}
         buckets = lateness_buckets(loop.stats, LATENESS_BOUNDS_US)
         self.outbox.put(("status", snap, buckets))
@@ -152,7 +162,8 @@ class Publisher:
 
     def row(self, row: tuple[float, ...]) -> None:
         """A data-log row (LogObserver, on the cycle)."""
-        self.outbox.put(("row", row))
+        if not self.outbox.put(("row", row)):
+            self.rows_dropped += 1
 
     def model_state(self, state: dict[str, Any]) -> None:
         """The model's state after a step (Loop.on_model_state, on the cycle)."""
@@ -167,6 +178,15 @@ class Publisher:
         self.after_cycle(0.0)
 
     # ------------------------------------------------------------ helpers
+    def _lost_service(self) -> None:
+        """The service process has died: say so once, from here (nothing else will)."""
+        self.service_lost = "the service process has exited"
+        log.error(
+            "%s: no more status file, metrics, event lines or data-log rows; compensation goes on."
+            " Restart compd to get them back", self.service_lost,
+            extra={"event": "service_lost", "reason": self.service_lost},
+        )
+
     def _put_events(self, events: list[tuple[float, str, str, str]]) -> None:
         out = []
         for t, subject, event, reason in events:

@@ -574,6 +574,8 @@ class Service:
         host = _ServiceHost(work, process=loop.io_process and loop.clock.fork_safe, avoid_cpus=loop.cycle_cpus)
         host.start(paused=self._previous is not None)
         self._host = host
+        if host.child is not None:
+            self.publisher.service_alive = host.child.alive
         self.notifier = Notifier.from_env()
         if self.notifier is not None:
             wd = watchdog_interval_s()
@@ -634,9 +636,12 @@ class Service:
         )
 
     def counts(self) -> dict[str, Any]:
-        """The service's counts: rows of the data log written and dropped, status and state
-        writes and errors (the final ones once it stopped)."""
-        return self._host.counts() if self._host is not None else {}
+        """The service's counts: rows of the data log written and dropped (there, or for want
+        of room on the way), status and state writes and errors (the final ones once it stopped)."""
+        counts = dict(self._host.counts()) if self._host is not None else {}
+        if counts.get("log") is not None:
+            counts["log"] = {**counts["log"], "rows_dropped": counts["log"]["rows_dropped"] + self.publisher.rows_dropped}
+        return counts
 
     def _extra(self) -> dict[str, Any]:
         return {

@@ -160,3 +160,14 @@ def test_a_reload_hands_the_files_and_sockets_to_the_new_service_without_losing_
     # every 0.05 s a row (and one at each change of the word): no gap but the reload's own pause
     assert np.count_nonzero(gaps > 0.5) <= 1, gaps.max()
     assert "level=error" not in err.read_text()
+
+
+def test_a_service_that_dies_is_reported_once_and_the_cycle_goes_on(tmp_path: Path) -> None:
+    tx = Pt100Transmitter([SENSOR], [24.0])
+    with _daemon(tmp_path, tx) as (proc, _, err, _):
+        st = _wait(_running(tmp_path / "status.json", 20), "a running status")
+        os.kill(st["service_pid"], signal.SIGKILL)  # as the OOM killer would
+        _wait(lambda: "event=service_lost" in err.read_text(), "the service_lost line")
+        assert proc.poll() is None  # compensation goes on; SIGTERM still ends it with exit 0
+    text = err.read_text()
+    assert text.count("event=service_lost") == 1 and "event=stop" in text
