@@ -223,7 +223,10 @@ def load_yaml(
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or e.context_mark
         line = mark.line + 1 if mark is not None else None
-        raise ConfigError(f"YAML syntax: {e.problem or e}", file=file, line=line) from None
+        problem = str(e.problem or e)
+        if "nesting" in problem:  # some libyaml builds stop at their own depth before MAX_DEPTH
+            problem = f"nested deeper than the YAML parser allows ({problem})"
+        raise ConfigError(f"YAML syntax: {problem}", file=file, line=line) from None
     except yaml.YAMLError as e:
         raise ConfigError(f"YAML: {e}", file=file) from None
     finally:

@@ -126,3 +126,20 @@ def test_replay_source_on_a_device_is_refused(tmp_path: Path) -> None:
         "sink: {kind: pci1756}\n"
     )
     assert_refused(check_config(cfg), "/dev/zero", "not a regular file")
+
+
+def test_a_parser_depth_limit_reads_as_nesting(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Some libyaml builds stop deep nesting in the parser itself, before compd's MAX_DEPTH:
+    the one-line error still says the document is nested too deep, with its line."""
+    import yaml
+
+    import compd.config as config
+
+    class DepthLimitedLoader(yaml.SafeLoader):
+        def get_event(self) -> yaml.Event:
+            raise yaml.parser.ParserError(None, None, "exceeded maximum nesting depth", yaml.Mark("f", 0, 0, 0, None, None))
+
+    monkeypatch.setattr(config, "_Loader", DepthLimitedLoader)
+    with pytest.raises(ConfigError) as e:
+        load_yaml("deep.yaml", text="[[[[\n")
+    assert "nested deeper" in str(e.value) and "deep.yaml:1" in str(e.value)
