@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import mmap
 from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
+
+from compd.io.mailbox import shared_buffer
 
 
 def bin_percentiles(bins: Any, qs: Sequence[float]) -> list[float]:
@@ -30,7 +31,7 @@ class DurationHist:
     """
 
     def __init__(self, max_us: int = 20000) -> None:
-        self._buf = mmap.mmap(-1, 8 * (max_us + 2), flags=mmap.MAP_SHARED | mmap.MAP_ANONYMOUS)
+        self._buf = shared_buffer(8 * (max_us + 2))
         self._words = memoryview(self._buf).cast("q")  # count, max ns, then the bins
         self.bins = np.frombuffer(self._buf, dtype=np.int64, offset=16)
 
