@@ -233,6 +233,7 @@ class ServiceWork:
         self._stop = threading.Event()
         self._lock = threading.Lock()  # one taker of the ring at a time (the thread, finish)
         self._thread: threading.Thread | None = None
+        self._final: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ life
     def start(self, paused: bool) -> None:
@@ -262,7 +263,9 @@ class ServiceWork:
 
     def finish(self) -> dict[str, Any]:
         """Take what is left, close the files (the last rows and state written), stop serving
-        (the sockets stay bound: the daemon owns them); the final counts."""
+        (the sockets stay bound: the daemon owns them); the final counts. Once."""
+        if self._final is not None:
+            return self._final
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=STOP_TIMEOUT_S)
@@ -277,7 +280,8 @@ class ServiceWork:
             self.log_writer.close()
         if self.state_writer is not None:
             self.state_writer.close()
-        return self.counts()
+        self._final = self.counts()
+        return self._final
 
     def counts(self) -> dict[str, Any]:
         return {
@@ -312,7 +316,12 @@ class ServiceWork:
         with self._lock:
             msgs = self.outbox.take()
             for msg in msgs:
-                self._handle(msg)
+                try:
+                    self._handle(msg)
+                except Exception:  # one message that fails never stops the others, nor the daemon
+                    self.status_errors += 1
+                    if self.status_errors <= 3:
+                        log.exception("service: %s failed", msg[0], extra={"event": "status_error"})
             self.messages += len(msgs)
             return len(msgs)
 
