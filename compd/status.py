@@ -368,4 +368,20 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
             lines.append(f"  t={_num(e.get('t_s'), '.1f')} s {e.get('subject')} {e.get('event')} ({e.get('reason')})")
     if data.get("metrics_url"):
         lines.append(f"metrics: {data['metrics_url']}")
+    lines.extend(_process_lines(data))
     return "\n".join(lines)
+
+
+def _process_lines(data: dict[str, Any]) -> list[str]:
+    """Which process does what: the cycle's (and its threads of Python), the service's, each
+    device's I/O (docs/architecture.md, "Processes")."""
+    pid, service = data.get("pid"), data.get("service_pid")
+    if pid is None or service is None:
+        return []
+    threads = data.get("threads") or []
+    line = f"processes: cycle {pid} ({len(threads)} thread{'s' if len(threads) != 1 else ''} of Python)"
+    line += ", service " + ("in it" if service == pid else str(service))
+    io = [f"{s.get('name')} {s['io_pid']}" for s in data.get("sources") or [] if s.get("io_pid") not in (None, pid)]
+    if io:
+        line += ", device I/O: " + ", ".join(io)
+    return [line]
