@@ -14,10 +14,11 @@ marked window gets the causes the trace shows in it:
 | `preempted` | the cycle thread was switched out still runnable: another task took its CPU |
 | `page_faults` | the cycle thread faulted pages in (first touch, or copy-on-write after a fork) |
 | `timer_late` | the wake-up before the deadline came more than 100 µs after it was due: the timer interrupt reached a CPU that was not running (the hypervisor had it) |
-| `host` | none of these: the thread was on its CPU and runnable the whole time, and still did not get on; the hypervisor ran something else on the CPU |
+| `host` | (late) none of these: the thread was on its CPU, spinning to its deadline, and still started late: the hypervisor ran something else on the CPU |
+| `cpu` | (slow) none of these: the thread was on its CPU the whole time; its own work took that long, or the hypervisor took the CPU meanwhile (the kernel cannot tell: the bare loop's fixed work shows how far the machine stretches the same work) |
 
-The first four are compd's (or its machine's configuration's) to fix; the last two are
-the host's, and the bare loop of the same bench run shows them too.
+The first four are compd's (or its machine's configuration's) to fix; `timer_late` and
+`host` are the host's, and the bare loop of the same bench run shows them too.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from compd.errors import BadInput
 
 EVENTS = ("sched:sched_switch", "sched:sched_waking", "exceptions:page_fault_user", "irq_vectors:local_timer_entry")
 TIMER_SLACK_S = 100e-6  # a wake-up this much later than due counts as a late timer
-CAUSES = ("gil", "blocked", "preempted", "page_faults", "timer_late", "host")
+CAUSES = ("gil", "blocked", "preempted", "page_faults", "timer_late", "host", "cpu")
 
 _LINE = re.compile(r"\s*(?P<comm>.+?)\s+(?P<tid>\d+)\s+\[(?P<cpu>\d+)\]\s+(?P<t>[\d.]+):\s+(?P<name>[\w:]+):\s*(?P<rest>.*)")
 _KV = re.compile(r"(\w+)=(\S+)")
@@ -111,7 +112,7 @@ def classify(
             seen["page_faults"] += 1
     if seen["page_faults"]:
         detail.append(f"{seen['page_faults']} page faults")
-    causes = [c for c in CAUSES if seen[c]] or ["host"]
+    causes = [c for c in CAUSES if seen[c]] or ["host" if kind == "late" else "cpu"]
     return {"kind": kind, "start_s": start, "us": round(1e6 * (end - start), 1), "causes": causes,
             "detail": detail[:6]}
 

@@ -56,3 +56,7 @@ def test_the_clock_s_own_sleep_before_the_deadline_is_not_a_cause() -> None:
     lines = [_switch(deadline - 0.0015, "S"), _waking(deadline - MARGIN_S + 0.00001, 0, "swapper/1"),
              _fault(deadline - 0.0015)]
     assert _causes(lines, ("late", deadline, deadline + 0.0003)) == ["host"]
+
+
+def test_a_slow_cycle_the_kernel_saw_nothing_of_was_on_its_cpu() -> None:
+    assert _causes([], ("slow", 50.0, 50.001)) == ["cpu"]
