@@ -23,6 +23,7 @@ import yaml
 
 from compd import control
 from compd.log import read_log
+from compd.status import render
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.pt100 import Pt100Transmitter
 from hil_sim.devices.pt100_modbus import Pt100ModbusDevice
@@ -112,6 +113,9 @@ def test_the_cycle_s_process_runs_no_other_python_and_the_service_does_the_rest(
         assert st["threads"] == ["MainThread"]  # the cycle's thread is its process's only Python
         assert _comm(service) == "compd:service" and os.getppid() != service
         assert _comm(st["sources"][0]["io_pid"]) == "compd:poll-pt"
+        shown = render(st, True, "running")  # what `compd status` prints
+        assert f"processes: cycle {daemon} (1 thread of Python), service {service}" in shown
+        assert f"device I/O: pt {st['sources'][0]['io_pid']}" in shown
         # the metrics endpoint the daemon bound is served by the service
         with urllib.request.urlopen(st["metrics_url"], timeout=10) as r:
             assert b"compd_cycles_total" in r.read()
