@@ -421,6 +421,8 @@ def run_bench(
         "skipped": compd["skipped"],
         "gc_runs": compd["gc_runs"],
         "gc_max_us": compd["gc_max_us"],
+        "between_max_us": compd["between_max_us"],
+        "between_overruns": compd["between_overruns"],
         "late_max_cycle": compd["late_max_cycle"],
         "stages": compd["stages"],
         "rss_kb": compd["rss"],
@@ -505,8 +507,13 @@ def format_table(r: dict[str, Any]) -> str:
     lines.append(
         f"service: {sv.get('status_writes', 0)} status files, {log_st.get('rows_written', 0)} data-log rows"
         f" ({log_st.get('rows_dropped', 0)} dropped), {r.get('metrics_scrapes', 0)} metrics scrapes;"
-        f" {sv.get('snapshots_waited', 0)} cycles a due snapshot waited for room"
+        f" {sv.get('snapshots_waited', 0)} cycles a snapshot's due step waited for room"
     )
+    if "between_max_us" in r:
+        lines.append(
+            f"between cycles (the service's share, collection): max {r['between_max_us']:.0f} us,"
+            f" {r['between_overruns']} times past the next deadline (that cycle late)"
+        )
     io = r["io_us"]
     for key, what in (("read", "poll (8 regs)"), ("write", "PMC write"), ("output_latency", "queued->acked")):
         if io.get(key):
