@@ -13,9 +13,10 @@ the next deadline:
 * the guard's new events and the adapter's new probe events (few, cheap), each
   sensor event with its source's last error as the cause;
 * every `status.period_s` of wall time, a snapshot of the loop (compd/status.py),
-  only when the time left holds it with room to spare (its cost is measured each
-  time, and averaged): a snapshot does not make a cycle late, it waits for a cycle
-  with room;
+  one section a cycle (`snapshot_steps`: axes, signals, timing, model, each source),
+  then handed over whole; each step only when the time left holds it with room to
+  spare (each step's cost is measured each time, and averaged): a snapshot does not
+  make a cycle late, its next step waits for a cycle with room;
 * probes that arrived for the adapter (`compd probe` through the service, a CNC's
   probe block through its source's worker) go into the adapter's inbox.
 
@@ -36,14 +37,15 @@ from typing import Any
 from compd.adapt import Probe
 from compd.io.ring import MessageRing
 from compd.metrics import LATENESS_BOUNDS_US
-from compd.status import lateness_buckets, snapshot
+from compd.status import lateness_buckets, snapshot, snapshot_steps
 
 log = logging.getLogger("compd.service")
 
-ROOM_FACTOR = 1.5  # a snapshot is taken only when the time left is this many times its cost ...
+ROOM_FACTOR = 1.5  # a snapshot's step is taken only when the time left is this many times its cost ...
 ROOM_EXTRA_S = 100e-6  # ... plus this
-COST_WEIGHT = 0.25  # the cost estimate: an average of the snapshots' costs with this weight on the newest
-WAIT_DECAY = 0.99  # ... and it shrinks by this for every cycle a due snapshot waits for room
+COST_WEIGHT = 0.25  # a step's cost estimate: an average of its costs with this weight on the newest
+WAIT_DECAY = 0.99  # ... and it shrinks by this for every cycle the step waits for room
+FIRST_COST_S = 100e-6  # a step's estimate before it was first measured
 
 
 class Tail:
@@ -107,9 +109,12 @@ class Publisher:
         self._guard_events = Tail(lambda: loop.guard.events)
         self._probe_events = Tail(lambda: loop.adapter.events) if loop.adapter is not None else None
         self._next_status_s = -math.inf  # wall (monotonic) time of the next snapshot
-        self.snapshot_cost_s = 300e-6  # the estimate a snapshot needs room for (measured from the first)
+        self._steps: Any = None  # the snapshot being taken (snapshot_steps), or None
+        self._step = 0  # its next step's index; the last one hands the snapshot over
+        self._snap: dict[str, Any] | None = None  # the snapshot taken, not yet handed over
+        self.step_cost_s: list[float] = []  # per step, the estimate it needs room for
         self.snapshots = 0
-        self.snapshots_waited = 0  # cycles a due snapshot waited for room
+        self.snapshots_waited = 0  # cycles a snapshot's due step waited for room
         self.rows_dropped = 0  # data-log rows the ring had no room for
         self.service_alive = service_alive  # whether the service (a process of its own) still runs
         self.service_lost: str | None = None
@@ -127,19 +132,32 @@ class Publisher:
             pe = self._probe_events.new()
             if pe:
                 self.outbox.put(("probe_events", pe))
-        if time.monotonic() >= self._next_status_s:
+        if self._steps is None and self._snap is None:
+            if time.monotonic() < self._next_status_s:
+                return
             if self.service_lost is None and self.service_alive is not None and not self.service_alive():
                 self._lost_service()
-            if room_s < ROOM_FACTOR * self.snapshot_cost_s + ROOM_EXTRA_S:
-                self.snapshots_waited += 1
-                # one snapshot the host slowed down must not hold the next ones back for good
-                self.snapshot_cost_s *= WAIT_DECAY
-                return
-            t0 = time.perf_counter()
-            self.publish_status()
-            cost = time.perf_counter() - t0
+            self._steps = snapshot_steps(self.loop, state=self.state, observe=self.observe, extra=self.status_extra())
+            self._step = 0
+        costs, i = self.step_cost_s, self._step
+        if i == len(costs):
+            costs.append(FIRST_COST_S)
+        if room_s < ROOM_FACTOR * costs[i] + ROOM_EXTRA_S:
+            self.snapshots_waited += 1
+            costs[i] *= WAIT_DECAY  # one step the host slowed down must not hold the next ones back for good
+            return
+        t0 = time.perf_counter()
+        if self._snap is not None:  # the last step: hand it over
+            self._hand_over(self._snap)
+            self._snap = None
             self._next_status_s = time.monotonic() + self.status_period_s
-            self.snapshot_cost_s = (1.0 - COST_WEIGHT) * self.snapshot_cost_s + COST_WEIGHT * cost
+        else:
+            try:
+                next(self._steps)
+            except StopIteration as done:
+                self._snap, self._steps = done.value, None
+        costs[i] = (1.0 - COST_WEIGHT) * costs[i] + COST_WEIGHT * (time.perf_counter() - t0)
+        self._step = i + 1
 
     def watch_probes(self, sources: list[Any]) -> None:
         """Take probes from these sources' rings (a CNC's probe block) besides the inbox."""
@@ -151,12 +169,14 @@ class Publisher:
             self.state = state
         if self._next_status_s == -math.inf:  # the first: the loop's next one a period later
             self._next_status_s = time.monotonic() + self.status_period_s
-        loop = self.loop
-        snap = snapshot(loop, state=self.state, observe=self.observe, extra=self.status_extra())
+        self._hand_over(snapshot(self.loop, state=self.state, observe=self.observe, extra=self.status_extra()))
+
+    def _hand_over(self, snap: dict[str, Any]) -> None:
         snap["publisher"] = {"snapshots_waited": self.snapshots_waited, "messages_dropped": self.outbox.dropped,
                              "rows_dropped": self.rows_dropped,
-                             "snapshot_cost_us": round(self.snapshot_cost_s * 1e6, 1)}
-        buckets = lateness_buckets(loop.stats, LATENESS_BOUNDS_US)
+                             "snapshot_cost_us": round(sum(self.step_cost_s) * 1e6, 1),
+                             "snapshot_step_max_us": round(max(self.step_cost_s, default=0.0) * 1e6, 1)}
+        buckets = lateness_buckets(self.loop.stats, LATENESS_BOUNDS_US)
         self.outbox.put(("status", snap, buckets))
         self.snapshots += 1
 

@@ -1,7 +1,7 @@
 """Live status of a running daemon: a JSON snapshot written atomically, and `compd status`.
 
-The cycle's thread takes a `snapshot` of the loop about once a second, between two
-cycles when there is room (compd/publish.py), and the service (compd/service.py, a
+The cycle's thread takes a `snapshot` of the loop about once a second, a section at a
+time between two cycles when there is room (`snapshot_steps`, compd/publish.py), and the service (compd/service.py, a
 process of its own on the wall clock) makes it JSON (`jsonable`) and writes it with
 `write_atomic` (temp file + rename, so a reader never sees half a file). `compd status` reads it back with
 `read_status`, judges whether the daemon is alive (`liveness`) and prints it
@@ -15,6 +15,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +68,21 @@ def lateness_buckets(
 def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """A plain picture of the loop: per axis, per signal, loop timing, model, sink (`jsonable`
     makes it JSON: NaN → None, numpy scalars → numbers)."""
+    steps = snapshot_steps(loop, state=state, observe=observe, extra=extra)
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
+def snapshot_steps(
+    loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None
+) -> Generator[None, None, dict[str, Any]]:
+    """`snapshot` in sections, one per step (each ≈ 20–100 µs): the cycle's thread takes one
+    step between two cycles (compd/publish.py), so no gap between cycles holds the whole
+    picture. Each section is read in one go, from one cycle's state; sections of one
+    snapshot may be a few cycles apart. The snapshot is the generator's return value."""
     now = loop.now_s
     guard = loop.guard
     axes = guard.get_status()
@@ -88,7 +104,7 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
         {"t_s": float(t), "subject": subj, "event": ev, "reason": why}
         for t, subj, ev, why in list(guard.events)[-20:]
     ]
-    snap = {
+    snap: dict[str, Any] = {
         "schema": SCHEMA,
         "version": version(),
         "pid": os.getpid(),
@@ -99,18 +115,28 @@ def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | No
         "loop_time_s": float(now),
         "word": f"0x{loop.word:04X}",
         "axes": axes,
-        "signals": loop.frame.snapshot(now),
-        "loop": timing(loop.stats),
-        "model": loop.model.get_status(),
+        "signals": None,
+        "loop": None,
+        "model": None,
         "sink": sink,
-        "sources": [s.get_status() for s in loop.sources],
+        "sources": [],
         "faults": dict(guard.faults),
         "saturations": int(enc.saturations),
         "events": events,
         # the threads of Python in the cycle's process (on the wall clock: the cycle's alone)
         "threads": sorted(t.name for t in threading.enumerate()),
     }
+    yield
+    snap["signals"] = loop.frame.snapshot(loop.now_s)
+    yield
+    snap["loop"] = timing(loop.stats)
+    yield
+    snap["model"] = loop.model.get_status()
+    for src in loop.sources:
+        yield
+        snap["sources"].append(src.get_status())
     if loop.adapter is not None:  # the probe-updated estimate per axis (compd.adapt)
+        yield
         snap["adapt"] = loop.adapter.get_status()
     if extra:
         snap.update(extra)

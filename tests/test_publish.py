@@ -1,4 +1,4 @@
-"""The cycle's side of the service: a snapshot only in a cycle that leaves room for it, events and rows as
+"""The cycle's side of the service: a snapshot a section a cycle, each only in a cycle that leaves room for it, events and rows as
 they come, probes from the service stamped by the cycle; and the pages a fork shares copied before the first
 cycle."""
 
@@ -21,21 +21,33 @@ def _app(tmp_path):  # noqa: ANN001, ANN202
     return App(load_config(sim_config(tmp_path, "adapt: {}\nstatus: {path: st.json, period_s: 0.05}")))
 
 
-def test_a_due_snapshot_waits_for_a_cycle_with_room_for_it(tmp_path) -> None:
+def _take_snapshot(pub, room_s: float, most: int = 50) -> int:  # noqa: ANN001
+    """Steps after cycles with `room_s` left until a snapshot is handed over; how many."""
+    for n in range(1, most + 1):
+        pub.after_cycle(room_s)
+        if pub.outbox.pending():
+            return n
+    raise AssertionError(f"no snapshot after {most} cycles")
+
+
+def test_a_due_snapshot_is_taken_a_section_a_cycle_each_waiting_for_room(tmp_path) -> None:
     app = _app(tmp_path)
     pub = app.service.publisher
-    pub.snapshot_cost_s = 400e-6
-    pub.after_cycle(0.5e-3)  # 0.5 ms left: 1.5 × 0.4 ms + 0.1 ms does not fit
-    assert pub.snapshots == 0 and pub.snapshots_waited == 1 and not pub.outbox.pending()
-    pub.after_cycle(1.0e-3)
+    steps = _take_snapshot(pub, math.inf)
+    # axes, signals, timing, model, the source, the adapter: six sections, then the hand-over
+    assert steps == 7 and len(pub.step_cost_s) == 7 and all(0 < c < 1.0 for c in pub.step_cost_s)
     (msg,) = pub.outbox.take()
-    assert msg[0] == "status" and pub.snapshots == 1 and msg[1]["publisher"]["snapshots_waited"] == 1
-    assert 0 < pub.snapshot_cost_s < 1.0  # measured now
+    assert msg[0] == "status" and set(msg[1]) >= {"axes", "signals", "loop", "model", "sources", "adapt"}
+    assert msg[1]["sources"][0]["name"] and msg[1]["loop"]["cycles"] == app.loop.stats.cycles
     pub.after_cycle(math.inf)  # not due again before status.period_s has passed
     assert not pub.outbox.pending()
     time.sleep(0.06)
-    pub.after_cycle(math.inf)
-    assert [m[0] for m in pub.outbox.take()] == ["status"]
+    pub.step_cost_s[:] = [400e-6] * 7
+    pub.after_cycle(0.5e-3)  # 0.5 ms left: 1.5 × 0.4 ms + 0.1 ms does not fit
+    assert pub.snapshots_waited == 1 and pub._step == 0 and pub.step_cost_s[0] < 400e-6  # shrinks waiting
+    assert _take_snapshot(pub, 1.0e-3) == 7  # each step fits in 1 ms
+    (msg,) = pub.outbox.take()
+    assert msg[1]["publisher"]["snapshots_waited"] == 1 and pub.snapshots == 2
 
 
 def test_events_rows_and_state_go_as_they_come_and_probes_come_back_stamped(tmp_path) -> None:
