@@ -362,6 +362,8 @@ class ServiceWork:
             log.warning("%d late cycles (%d in all)", misses - self._misses, misses,
                         extra={"event": "late_cycles", "new": misses - self._misses, "misses": misses})
         self._misses = misses
+        if self.metrics is not None:  # first: whoever sees this status file finds these metrics
+            self.metrics.update_buckets(snap, buckets)
         path = self.spec.status_path
         if path is not None:
             try:
@@ -371,8 +373,6 @@ class ServiceWork:
                 self.status_errors += 1
                 if self.status_errors <= 3:
                     log.warning("cannot write status %s: %s", path, e.strerror or e, extra={"event": "status_error"})
-        if self.metrics is not None:
-            self.metrics.update_buckets(snap, buckets)
         if self.status_line is not None and snap["state"] == "running" and snap["loop"]["cycles"] > 0:
             states = " ".join(f"{a}={s['state']}" for a, s in snap["axes"].items())
             mode = "observe" if snap["observe"] else "compensating"
