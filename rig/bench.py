@@ -463,11 +463,15 @@ def run_bench(
 def format_table(r: dict[str, Any]) -> str:
     """The human table `compd bench` prints."""
     c, n = r, r["naive"]
-    b = r.get("bare") or {"cycles": 0, "misses": 0, "lateness_us": dict.fromkeys(("p50", "p99", "p999", "max"), 0.0),
-                          "cycle_compute_us": dict.fromkeys(("p50", "p99", "max"), 0.0)}
+    nothing: Any = None  # no bare loop this run (--bare-cycles 0): its column shows "-"
+    b = r.get("bare") or {"cycles": 0, "misses": nothing, "lateness_us": dict.fromkeys(("p50", "p99", "p999", "max")),
+                          "cycle_compute_us": dict.fromkeys(("p50", "p99", "max"))}
 
-    def rate(x: dict[str, Any]) -> float:
-        return 100 * x["misses"] / max(x["cycles"], 1)
+    def rate(x: dict[str, Any]) -> float | None:
+        return None if x["misses"] is None else 100 * x["misses"] / max(x["cycles"], 1)
+
+    def cell(v: Any, fmt: str) -> str:
+        return f"{'-' if v is None else format(v, fmt):>14}"
 
     lines = [
         f"compd bench: {r['cycles']} cycles at {r['period_ms']:g} ms, scheduler {r['scheduler']}"
@@ -475,18 +479,18 @@ def format_table(r: dict[str, Any]) -> str:
         " processes beside it",
         f"{'':24}{'compd loop':>14}{'bare loop':>14}{'naive loop':>14}",
         f"{'cycles':24}{c['cycles']:>14}{b['cycles']:>14}{n['cycles']:>14}",
-        f"{'misses':24}{c['misses']:>14}{b['misses']:>14}{n['misses']:>14}",
-        f"{'miss rate %':24}{rate(c):>14.4f}{rate(b):>14.4f}{rate(n):>14.2f}",
+        f"{'misses':24}{c['misses']:>14}{cell(b['misses'], '')}{n['misses']:>14}",
+        f"{'miss rate %':24}{rate(c):>14.4f}{cell(rate(b), '.4f')}{rate(n):>14.2f}",
     ]
     for key in ("p50", "p99", "p999", "max"):
         lines.append(
-            f"{'lateness ' + key + ' us':24}{c['lateness_us'][key]:>14.0f}{b['lateness_us'][key]:>14.0f}"
+            f"{'lateness ' + key + ' us':24}{c['lateness_us'][key]:>14.0f}{cell(b['lateness_us'][key], '.0f')}"
             f"{n['lateness_us'][key]:>14.0f}"
         )
     for key in ("p50", "p99", "max"):
         lines.append(
             f"{'cycle compute ' + key + ' us':24}{c['cycle_compute_us'][key]:>14.0f}"
-            f"{b['cycle_compute_us'][key]:>14.0f}{n['cycle_compute_us'][key]:>14.0f}"
+            f"{cell(b['cycle_compute_us'][key], '.0f')}{n['cycle_compute_us'][key]:>14.0f}"
         )
     rss = r["rss_kb"]
     lines.append(

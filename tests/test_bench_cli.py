@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from rig.bench import format_table
+
 
 def test_bench_writes_contract_json(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
@@ -28,6 +30,12 @@ def test_bench_writes_contract_json(tmp_path: Path) -> None:
     # the naive loop sleeps a whole period after its work, so it can only fall behind
     assert b["naive"]["lateness_us"]["max"] > b["naive"]["lateness_us"]["p50"] >= 0
     assert b["rss_kb"]["end_kb"] > 0
+    # the work between cycles is measured; the bare loop ran beside compd, and without it
+    # (--bare-cycles 0) its column says so instead of showing zeros
+    assert b["between_max_us"] > 0 and 0 <= b["between_overruns"] <= 400
+    assert b["bare"]["cycles"] == 400 and "bare loop" in r.stdout
+    table = format_table({**b, "bare": None})
+    assert [ln.split()[-2] for ln in table.splitlines() if ln.startswith(("misses", "lateness max"))] == ["-", "-"]
     # compd's I/O threads are timed: every poll of the three modules and every PMC write
     io = b["io_us"]
     assert io["read"]["count"] >= 3 and 0 < io["read"]["p50"] <= io["read"]["p99"] <= io["read"]["max"] + 1
