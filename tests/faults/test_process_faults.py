@@ -29,6 +29,7 @@ from tests.faults.harness import SENSOR, SLEW_UM_PER_S, Measured, modbus_tcp_sou
 LOG_PERIOD_S = 0.05
 PERIOD_S = 0.01
 FLUSH_S = 0.2
+T_RESOLUTION_S = 1e-4  # the log's t_s: four decimals
 ALPHA_L_UM_PER_K = 13.6e-6 * 165.0 * 1000.0
 
 
@@ -70,11 +71,15 @@ def _wait(pred, timeout_s: float = 20.0) -> None:  # noqa: ANN001
 
 
 def _steps(data: np.ndarray, corr: int) -> tuple[float, float]:
-    """Largest change of the correction between log rows, and the largest ratio to slew × Δt."""
+    """Largest change of the correction between log rows, and the largest ratio to slew × Δt.
+
+    The log keeps t_s to 0.1 ms, so a Δt read from it is short by up to that much (two
+    roundings of 0.05 ms); rows come at every change of the word, one cycle (10 ms) apart at
+    the least, where 0.1 ms is 1 %: Δt gets its resolution back before the ratio is taken."""
     d = np.abs(np.diff(data[:, corr]))
     dt = np.diff(data[:, 0])
     ok = dt > 0
-    ratio = float(np.max(d[ok] / (SLEW_UM_PER_S * dt[ok]), initial=0.0))
+    ratio = float(np.max(d[ok] / (SLEW_UM_PER_S * (dt[ok] + T_RESOLUTION_S)), initial=0.0))
     return float(d.max(initial=0.0)), ratio
 
 
