@@ -1,11 +1,11 @@
 """Live status of a running daemon: a JSON snapshot written atomically, and `compd status`.
 
 The cycle's thread takes a `snapshot` of the loop about once a second, a section at a
-time between two cycles when there is room (`snapshot_steps`, compd/publish.py), and the service (compd/service.py, a
-process of its own on the wall clock) makes it JSON (`jsonable`) and writes it with
-`write_atomic` (temp file + rename, so a reader never sees half a file). `compd status` reads it back with
-`read_status`, judges whether the daemon is alive (`liveness`) and prints it
-(`render`) or passes the JSON through.
+time between two cycles when there is room (`snapshot_steps`, compd/publish.py), and
+the service (compd/service.py, a process of its own on the wall clock) makes it JSON
+(`jsonable`) and writes it with `write_atomic` (temp file + rename, so a reader never
+sees half a file). `compd status` reads it back with `read_status`, judges whether the
+daemon is alive (`liveness`) and prints it (`render`) or passes the JSON through.
 """
 
 from __future__ import annotations

@@ -463,8 +463,8 @@ def run_bench(
 def format_table(r: dict[str, Any]) -> str:
     """The human table `compd bench` prints."""
     c, n = r, r["naive"]
-    nothing: Any = None  # no bare loop this run (--bare-cycles 0): its column shows "-"
-    b = r.get("bare") or {"cycles": 0, "misses": nothing, "lateness_us": dict.fromkeys(("p50", "p99", "p999", "max")),
+    # no bare loop this run (--bare-cycles 0): its column shows "-"
+    b = r.get("bare") or {"cycles": 0, "misses": None, "lateness_us": dict.fromkeys(("p50", "p99", "p999", "max")),
                           "cycle_compute_us": dict.fromkeys(("p50", "p99", "max"))}
 
     def rate(x: dict[str, Any]) -> float | None:
