@@ -6,15 +6,15 @@ PY := $(VENV)/bin/python
 BASE_STAMP := $(VENV)/.base-installed
 TEST_STAMP := $(VENV)/.test-installed
 # Debian packages the tests need (serial ptys, an independent Modbus client, the systemd units'
-# verify and security checks, headless Chromium for compd report's page); COMMAND:PACKAGE where the command is not named like its package.
-APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell
+# verify and security checks, headless Chromium for compd report's page, the MQTT broker of the plant tests); COMMAND:PACKAGE where the command is not named like its package.
+APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell mosquitto
 
 .PHONY: venv demo test accept bench lint sysdeps clean install docs reliability
 
 $(BASE_STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[plot,metrics]'
+	$(PY) -m pip install -q -e '.[plot,metrics,plant]'
 	touch $@
 
 $(TEST_STAMP): pyproject.toml $(BASE_STAMP)
@@ -38,9 +38,13 @@ test: $(TEST_STAMP) sysdeps
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -m "not accept and not bench"
 
-# closed loop on every machine's unseen day (issue 5): hil_sim serve + compd run over Modbus TCP
+# closed loop on every machine's unseen day (issue 5): hil_sim serve + compd run over Modbus TCP;
+# then 200 telemetry publishers into one mosquitto for 10 min, and with the broker killed for 60 s (issue 20)
 accept: $(TEST_STAMP) sysdeps
 	$(PY) scripts/accept.py --json build/accept/results.json
+	$(PY) scripts/plant_scale.py --json build/accept/plant.json
+	$(PY) scripts/plant_scale.py --duration-s 300 --outage-at-s 120 --outage-s 60 \
+	  --workdir build/accept/plant_outage --json build/accept/plant_outage.json
 
 bench: $(TEST_STAMP) sysdeps
 	$(PY) -m pytest -q -s -m bench tests/bench

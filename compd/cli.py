@@ -598,6 +598,48 @@ def cmd_probe(args: argparse.Namespace) -> int:
     return 0
 
 
+@command("arm-model")
+def cmd_arm_model(args: argparse.Namespace) -> int:
+    from compd.config import load_config
+    from compd.control import NoDaemon, send_probe, sock_beside, socket_path
+    from compd.service import daemon_status_path
+
+    cfg = load_config(args.config)
+    tel = cfg.top.telemetry
+    if tel is None or not tel.remote_models.allow:
+        raise BadInput("its daemon takes no remote models (set telemetry.remote_models.allow: true)",
+                       file=args.config, path="telemetry.remote_models.allow")
+    path = str(socket_path(cfg, env={}) or sock_beside(daemon_status_path(cfg)))
+    try:
+        answer = send_probe(path, {"op": "arm_model", "window_s": args.seconds})
+    except NoDaemon as e:
+        print(f"compd: {e}", file=sys.stderr)
+        return 1
+    if not answer.get("ok"):
+        raise BadInput(f"the daemon refused: {answer.get('error', 'refused')}")
+    print(f"compd: armed for {answer['armed_s']:.0f} s: the next model from the command topic is applied"
+          f" (once) if it validates (pid {answer.get('pid')})")
+    return 0
+
+
+@command("opcua-cert")
+def cmd_opcua_cert(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    try:
+        from compd.plant.opcua import generate_certificate
+    except ImportError:
+        raise BadInput("needs the plant extra: pip install 'compd[plant]'") from None
+    for path, key in ((args.cert, "--cert"), (args.key, "--key")):
+        check_output(path, key)
+        if Path(path).exists():
+            raise BadInput(f"{path} exists: compd never overwrites a certificate or a key", path=key)
+    generate_certificate(Path(args.cert), Path(args.key), common_name=args.name, application_uri=args.uri,
+                         hosts=args.host or ["127.0.0.1"])
+    print(f"compd: wrote {args.cert} and {args.key} (key 0600) for {args.uri}")
+    return 0
+
+
 @command("docs")
 def cmd_docs(args: argparse.Namespace) -> int:
     from compd.docgen import generate
@@ -743,6 +785,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="E is the deviation that remains on the compensated machine (the daemon adds back"
                    " the correction applied at that moment)")
     s.add_argument("--config", default=None, help="the daemon's config (finds its probe socket)")
+
+    s = sub.add_parser("arm-model", help="let the running daemon apply the next model from the plant",
+                       description="Arm the running daemon of CONFIG to apply the next model published to its Sparkplug command topic (once, within --seconds); needs telemetry.remote_models.allow. Exit 1 when no daemon runs.",
+                       epilog="example:\n  compd arm-model /etc/compd/compd.yaml --seconds 300")
+    s.add_argument("config")
+    s.add_argument("--seconds", type=positive, default=None, metavar="S",
+                   help="how long it stays armed (default: telemetry.remote_models.arm_window_s)")
+
+    s = sub.add_parser("opcua-cert", help="write a self-signed certificate and key for the OPC UA server",
+                       description="Write a self-signed OPC UA application certificate (RSA 2048, SHA-256, the application URI and hosts in its SubjectAltName) and its key (0600) for the opcua section; never overwrites.",
+                       epilog="example:\n  compd opcua-cert --cert opcua/server.pem --key opcua/server.key --host cell3-compd --host 10.0.3.17")
+    s.add_argument("--cert", required=True, metavar="FILE", help="the certificate to write (PEM)")
+    s.add_argument("--key", required=True, metavar="FILE", help="its private key to write (PEM, 0600)")
+    s.add_argument("--uri", default="urn:compd:server", help="the application URI (default urn:compd:server)")
+    s.add_argument("--name", default="compd", help="the certificate's common name (default compd)")
+    s.add_argument("--host", action="append", default=[], metavar="HOST",
+                   help="a DNS name or IP address clients use to reach it (repeat; default 127.0.0.1)")
 
     s = sub.add_parser("docs", help="generate docs/configuration.md from the config schema",
                        description="Generate the configuration reference (docs/configuration.md) from the config schema, or with --metrics the metrics reference (docs/metrics.md); --check tells whether FILE is up to date.",

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import importlib.util
 import os
 import stat
 import types
@@ -687,6 +688,98 @@ class LoggingConfig(Strict):
     )
 
 
+SPARKPLUG_ID = r"^[^/+#]+$"  # a Sparkplug group, edge node or device id: no topic separators or wildcards
+
+
+class TlsConfig(Strict):
+    """TLS to the broker: the CA that signed its certificate, and this machine's own when the broker asks for one."""
+
+    ca_file: str = Field(description="PEM file of the CA(s) that signed the broker's certificate (relative to the config)")
+    cert_file: str | None = Field(None, description="this machine's client certificate, PEM; none = no client certificate")
+    key_file: str | None = Field(None, description="the client certificate's private key, PEM")
+    check_hostname: bool = Field(True, description="the broker's certificate must name `host`")
+
+    @model_validator(mode="after")
+    def _pair(self) -> TlsConfig:
+        if (self.cert_file is None) != (self.key_file is None):
+            raise ValueError("give both cert_file and key_file, or neither")
+        return self
+
+
+class RemoteModelsConfig(Strict):
+    """Models published to the machine's command topic (NCMD/DCMD): applied only when allowed here and armed."""
+
+    allow: bool = Field(False, description="accept a model from the command topic at all")
+    arm_signal: str | None = Field(
+        None, description="a signal (a PMC/NC bit) that arms while its value is ≥ 0.5; none = only `compd arm-model`"
+    )
+    arm_window_s: float = Field(
+        600.0, gt=0, le=86400, description="`compd arm-model` arms for this long, for one model"
+    )
+    max_bytes: int = Field(1 << 20, ge=1024, le=16 << 20, description="a longer model text is refused")
+
+
+class TelemetryBufferConfig(Strict):
+    """The store-and-forward buffer: samples wait here (on disk) while the broker is unreachable."""
+
+    path: str | None = Field(
+        None,
+        description="SQLite file (relative to the config); none = $STATE_DIRECTORY/<config name>.telemetry.sqlite"
+        " under systemd, else next to the config",
+    )
+    max_mb: float = Field(64.0, gt=0, le=65536, description="at most this much data; when full the oldest is dropped and counted")
+
+
+class TelemetryConfig(Strict):
+    """MQTT Sparkplug B telemetry to the plant's broker (needs the `plant` extra: paho-mqtt, protobuf)."""
+
+    host: str = Field("127.0.0.1", min_length=1, description="the broker's address")
+    port: int | None = Field(None, ge=1, le=65535, description="the broker's port; none = 1883, 8883 with tls")
+    client_id: str | None = Field(None, description="MQTT client id; none = <group_id>-<edge_node_id>")
+    username: str | None = Field(None, min_length=1, description="MQTT user name")
+    password_file: str | None = Field(
+        None, description="a file holding the MQTT password (relative to the config; keep it 0600)"
+    )
+    tls: TlsConfig | None = Field(None, description="TLS to the broker; none = plain TCP")
+    group_id: str = Field(pattern=SPARKPLUG_ID, description="Sparkplug group id (the plant, a hall, a line)")
+    edge_node_id: str = Field(pattern=SPARKPLUG_ID, description="Sparkplug edge node id: this compd")
+    device_id: str = Field("machine", pattern=SPARKPLUG_ID, description="Sparkplug device id: the machine it compensates")
+    primary_host_id: str | None = Field(
+        None, pattern=SPARKPLUG_ID,
+        description="a Sparkplug primary host (the historian's ingest): data waits on disk while its STATE is not online",
+    )
+    period_s: float = Field(1.0, ge=0.1, le=3600, description="one NDATA/DDATA sample per this much wall time")
+    keepalive_s: int = Field(30, ge=5, le=3600, description="MQTT keep-alive")
+    reconnect_max_s: float = Field(30.0, ge=0.5, le=3600, description="longest wait between two connection attempts")
+    buffer: TelemetryBufferConfig = Field(TelemetryBufferConfig(), description="store and forward")
+    remote_models: RemoteModelsConfig = Field(RemoteModelsConfig(), description="models from the command topic")
+
+
+class OpcUaUserConfig(Strict):
+    """One user name the OPC UA server accepts."""
+
+    password_file: str = Field(description="a file holding the password (relative to the config)")
+
+
+class OpcUaConfig(Strict):
+    """A read-only OPC UA server (needs the `plant` extra: asyncua)."""
+
+    bind: str = Field("127.0.0.1", min_length=1, description="address to listen on")
+    port: int = Field(4840, ge=0, le=65535, description="TCP port; 0 = any free port")
+    certificate: str = Field(description="the server's certificate, PEM or DER (relative to the config)")
+    private_key: str = Field(description="its private key, PEM")
+    trusted_clients: str | None = Field(
+        None, description="folder of client certificates to trust; none = trust any client certificate (still encrypted)"
+    )
+    security: list[Literal["Basic256Sha256_SignAndEncrypt", "Basic256Sha256_Sign", "None"]] = Field(
+        ["Basic256Sha256_SignAndEncrypt"], min_length=1, description="security policies offered"
+    )
+    anonymous: bool = Field(False, description="let clients in without a user name")
+    users: dict[str, OpcUaUserConfig] = Field({}, description="user names and their password files")
+    namespace_uri: str = Field("urn:compd", min_length=1, description="the namespace of compd's nodes")
+    period_s: float = Field(1.0, ge=0.1, le=3600, description="how often the values are refreshed")
+
+
 class ConfigModel(Strict):
     """The whole file."""
 
@@ -715,6 +808,10 @@ class ConfigModel(Strict):
     inhibit: InhibitConfig | None = Field(
         None, description="the machine's inhibit and axis-referenced signals; none = never held off"
     )
+    telemetry: TelemetryConfig | None = Field(
+        None, description="MQTT Sparkplug B to the plant's broker (docs/plant.md); none = no telemetry"
+    )
+    opcua: OpcUaConfig | None = Field(None, description="read-only OPC UA server (docs/plant.md); none = none")
 
 
 # ---------------------------------------------------------------- plugin sections
@@ -904,6 +1001,8 @@ def _check_timings(top: ConfigModel, doc: Document) -> None:
 # imports and the extra of pyproject.toml that installs that module.
 OPTIONAL_MODULES: dict[PathT, tuple[str, str]] = {
     ("metrics", "enabled"): ("prometheus_client", "metrics"),
+    ("telemetry",): ("paho.mqtt.client", "plant"),
+    ("opcua",): ("asyncua", "plant"),
 }
 
 
@@ -916,8 +1015,10 @@ def _check_optional(top: ConfigModel, doc: Document) -> None:
         if not value:
             continue
         try:
-            importlib.import_module(module)
+            found = importlib.util.find_spec(module) is not None  # found, not imported: the loop process stays lean
         except ImportError:
+            found = False
+        if not found:
             raise doc.error(
                 f"needs the Python module {module}, which is not installed: pip install 'compd[{extra}]'",
                 path,

@@ -58,9 +58,10 @@ def socket_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
     from compd.service import status_path
 
     ad = cfg.top.adapt
-    if ad is None:
+    tel = cfg.top.telemetry
+    if ad is None and (tel is None or not tel.remote_models.allow):
         return None
-    if ad.socket_path:
+    if ad is not None and ad.socket_path:
         return cfg.resolve_path(ad.socket_path)
     status = status_path(cfg, env)
     return None if status is None else sock_beside(status)
@@ -111,6 +112,10 @@ class ProbeLink(ABC):
     @abstractmethod
     def outcome(self, tag: str) -> dict[str, Any] | None:
         """The adapter's newest event for the probe sent with source `tag`, or None yet."""
+
+    @abstractmethod
+    def arm_model(self, window_s: float | None) -> dict[str, Any]:
+        """`compd arm-model`: arm the remote model handler; the answer."""
 
 
 class ControlServer:
@@ -223,8 +228,16 @@ class ControlServer:
         self.served += 1
 
     def handle(self, req: Any) -> dict[str, Any]:
-        """Send one probe to the cycle and wait (bounded) for its verdict on it."""
+        """Send one probe to the cycle and wait (bounded) for its verdict on it; or arm the
+        remote model handler (`{"op": "arm_model", "window_s": null}`)."""
         link = self.link
+        if isinstance(req, dict) and req.get("op") == "arm_model":
+            if link is None:
+                return {"ok": False, "error": "the daemon is starting"}
+            w = req.get("window_s")
+            if w is not None and not _finite(w):
+                return {"ok": False, "error": f"window_s must be a number, got {w!r}"}
+            return link.arm_model(w)
         if link is None or link.axes is None:
             return {"ok": False, "error": "this daemon has no adapt section"}
         why = check_request(req, link.axes)

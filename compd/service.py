@@ -180,6 +180,9 @@ class ServiceSpec:
     log: LogSpec | None = None
     state: StateSpec | None = None
     adapt_axes: list[str] | None = None
+    telemetry: Any = None  # compd.plant.spec.TelemetrySpec: MQTT Sparkplug B (config `telemetry`)
+    opcua: Any = None  # compd.plant.spec.OpcUaSpec: the OPC UA server (config `opcua`)
+    reload: bool = False  # this pipeline replaces another (a reload), not a start
 
 
 class _RingLink(ProbeLink):
@@ -191,10 +194,16 @@ class _RingLink(ProbeLink):
         self._axes = axes
         self._lock = threading.Lock()  # the socket's thread sends, the service's thread ... too
         self.events: deque[dict[str, Any]] = deque(maxlen=200)
+        self.remote: Any = None  # compd.plant.remote_model.RemoteModels, when remote models are allowed
 
     @property
     def axes(self) -> list[str] | None:
         return self._axes
+
+    def arm_model(self, window_s: float | None) -> dict[str, Any]:
+        if self.remote is None:
+            return {"ok": False, "error": "this daemon takes no remote models (telemetry.remote_models.allow)"}
+        return self.remote.arm(window_s)
 
     def send(self, probe: Probe) -> None:
         with self._lock:
@@ -234,6 +243,11 @@ class ServiceWork:
         self._lock = threading.Lock()  # one taker of the ring at a time (the thread, finish)
         self._thread: threading.Thread | None = None
         self._final: dict[str, Any] | None = None
+        self.telemetry: Any = None  # compd.plant.telemetry.Telemetry
+        self.remote: Any = None  # compd.plant.remote_model.RemoteModels
+        self.opcua: Any = None  # compd.plant.opcua.OpcUaServer, started on the first snapshot
+        self.opcua_error: str | None = None
+        self._opcua_next_s = 0.0
 
     # ------------------------------------------------------------------ life
     def start(self, paused: bool) -> None:
@@ -257,9 +271,34 @@ class ServiceWork:
             self.state_writer = StateWriter(st.path, st.kind, st.inputs, st.outputs, params_sha256=st.params_sha256)
         if self.metrics is not None:
             self.metrics.serve()
+        if spec.telemetry is not None:
+            self._start_telemetry(spec.telemetry)
         if self.control is not None:
             self.control.serve(self.link)
         self._going.set()
+
+    def _start_telemetry(self, tspec: Any) -> None:
+        """The MQTT client (its own thread) and, when allowed, the remote model handler."""
+        from compd.plant.telemetry import Telemetry
+
+        if tspec.remote is not None:
+            from compd.plant.remote_model import RemoteModels
+
+            self.remote = self.link.remote = RemoteModels(tspec.remote)
+        remote = self.remote
+        self.telemetry = Telemetry(tspec, commands=remote.handle if remote is not None else None,
+                                   armed=remote.armed if remote is not None else None)
+        try:
+            self.telemetry.start()
+        except BadInput as e:
+            log.error("telemetry off: %s", e, extra={"event": "telemetry_error", "reason": str(e)})
+            self.telemetry = None
+            return
+        self.telemetry.event("reloaded" if self.spec.reload else "started", self.spec.config, "")
+        if remote is not None:
+            answer = remote.started()
+            if answer is not None:
+                self.telemetry.answer(answer)
 
     def finish(self) -> dict[str, Any]:
         """Take what is left, close the files (the last rows and state written), stop serving
@@ -276,6 +315,11 @@ class ServiceWork:
             self.control.stop_serving()
         if self.metrics is not None:
             self.metrics.stop_serving()
+        if self.telemetry is not None:
+            self.telemetry.event("stopping", self.spec.config, "")
+            self.telemetry.stop()
+        if self.opcua is not None:
+            self.opcua.stop()
         if self.log_writer is not None:
             self.log_writer.close()
         if self.state_writer is not None:
@@ -293,6 +337,8 @@ class ServiceWork:
             "state_error": self.state_writer.error if self.state_writer is not None else None,
             "state_writes": self.state_writer.writes if self.state_writer is not None else 0,
             "probes_served": self.control.served if self.control is not None else 0,
+            "telemetry": self.telemetry.get_status() if self.telemetry is not None else None,
+            "opcua": self.opcua.get_status() if self.opcua is not None else None,
         }
 
     # ------------------------------------------------------------- the thread
@@ -332,6 +378,10 @@ class ServiceWork:
         elif what == "events":
             for ev in value:
                 log_guard_event(*ev)
+                if self.telemetry is not None:
+                    _t, subject, event, reason, cause = ev
+                    self.telemetry.event(_EVENT_NAME.get(event, event), subject,
+                                         reason if cause is None else f"{reason} ({cause})")
         elif what == "probe_events":
             for ev in value:
                 self.link.events.append(ev)
@@ -356,6 +406,7 @@ class ServiceWork:
     def _status(self, raw: dict[str, Any], buckets: Any) -> None:
         snap = status_mod.jsonable(raw)
         snap["service_pid"] = os.getpid()  # the daemon's pid when the service is a thread of it
+        self._plant(snap)
         self.last_snapshot = snap
         misses = int(snap["loop"]["misses"])
         if misses > self._misses:
@@ -380,6 +431,43 @@ class ServiceWork:
                 mode += f" (sink link {snap['sink']['link']}: output not reaching the machine)"
             line = f"{mode}: word {snap['word']}, {states}, {snap['loop']['misses']} missed"
             self.status_line.publish(line.encode("utf-8")[: self.status_line.capacity])
+
+
+    def _plant(self, snap: dict[str, Any]) -> None:
+        """The snapshot to the plant: a telemetry sample when one is due, the OPC UA values;
+        their own status into the snapshot (the status file shows it)."""
+        tel = self.telemetry
+        if tel is not None:
+            if self.remote is not None:
+                late = self.remote.observe(snap)
+                if late is not None:
+                    tel.answer(late)
+            tel.sample(snap)
+            snap["telemetry"] = tel.get_status()
+        ua = self.spec.opcua
+        if ua is not None and time.monotonic() >= self._opcua_next_s:
+            self._opcua_next_s = time.monotonic() + ua.cfg.period_s * 0.9
+            self._opcua(ua, snap)
+        if ua is not None:
+            snap["opcua"] = self.opcua.get_status() if self.opcua is not None else {"error": self.opcua_error}
+
+    def _opcua(self, ua: Any, snap: dict[str, Any]) -> None:
+        if self.opcua is not None:
+            self.opcua.update(snap)
+            return
+        if self.opcua_error is not None:
+            return
+        from compd.plant.opcua import OpcUaServer
+
+        server = OpcUaServer(ua.cfg, ua.base_dir)
+        try:
+            url = server.start(snap)
+        except BadInput as e:
+            self.opcua_error = str(e)
+            log.error("OPC UA server off: %s", e, extra={"event": "opcua_error", "reason": str(e)})
+            return
+        self.opcua = server
+        log.info("OPC UA on %s", url, extra={"event": "opcua", "url": url})
 
 
 class _ServiceHost:
@@ -465,13 +553,25 @@ class Service:
         top = app.cfg.top
         self.observe = observe
         self.period_s = top.status.period_s
+        # the plant's (config telemetry, opcua): files read and checked now, so check-config finds what is wrong
+        self.telemetry_spec: Any = None
+        self.opcua_spec: Any = None
+        if top.telemetry is not None or top.opcua is not None:
+            from compd.plant import spec as plant_spec
+
+            self.period_s = min(self.period_s, *(sec.period_s for sec in (top.telemetry, top.opcua) if sec is not None))
+            if top.telemetry is not None:
+                self.telemetry_spec = plant_spec.telemetry_spec(app.cfg, list(app.frame.names),
+                                                                list(app.model.outputs), self.period_s)
+            if top.opcua is not None:
+                self.opcua_spec = plant_spec.opcua_spec(app.cfg)
         self.path = status_path(app.cfg)
         self.metrics = MetricsServer(top.metrics.bind, top.metrics.port) if top.metrics.enabled else None
         self.metrics_url: str | None = None
         self._metrics_cfg = (top.metrics.bind, top.metrics.port) if top.metrics.enabled else None
         self._metrics_adopted = False
         self.realtime = top.loop.realtime
-        spath = socket_path(app.cfg) if self.loop.adapter is not None else None
+        spath = socket_path(app.cfg)
         self.control = ControlServer(spath) if spath is not None else None
         self._control_adopted = False
         self.notifier: Notifier | None = None
@@ -572,12 +672,14 @@ class Service:
         )
         if self.metrics is not None and self.metrics_url is None:
             self.open_metrics()
-        if self.control is None and loop.adapter is not None:
+        if self.control is None and (loop.adapter is not None or (
+                self.telemetry_spec is not None and self.telemetry_spec.remote is not None)):
             log.warning("no probe socket: `compd probe` cannot reach this daemon (set adapt.socket_path or status.path)",
                         extra={"event": "probe_socket", "path": None})
         spec = ServiceSpec(
             config=app.cfg.file, observe=self.observe, status_path=self.path, log=self.log_spec,
             state=self.state_spec, adapt_axes=list(loop.adapter.axes) if loop.adapter is not None else None,
+            telemetry=self.telemetry_spec, opcua=self.opcua_spec, reload=self._previous is not None,
         )
         work = ServiceWork(spec, self.outbox, self.inbox, self.metrics, self.control, self.status_line)
         host = _ServiceHost(work, process=loop.io_process and loop.clock.fork_safe, avoid_cpus=loop.cycle_cpus)

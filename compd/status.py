@@ -311,6 +311,20 @@ def _model_lines(model: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _plant_lines(data: dict[str, Any]) -> list[str]:
+    """The telemetry and OPC UA lines (docs/plant.md), when the config has them."""
+    out = []
+    tel = data.get("telemetry")
+    if isinstance(tel, dict):
+        state = "connected" if tel.get("connected") else f"NOT CONNECTED ({tel.get('last_error') or 'connecting'})"
+        out.append(f"telemetry: {tel.get('broker')} {state}; {tel.get('acknowledged', 0)} acknowledged,"
+                   f" {tel.get('buffered', 0)} buffered, {tel.get('dropped', 0)} dropped")
+    ua = data.get("opcua")
+    if isinstance(ua, dict):
+        out.append(f"opcua: {ua.get('endpoint')}" if ua.get("endpoint") else f"opcua: OFF ({ua.get('error')})")
+    return out
+
+
 def render(data: dict[str, Any], alive: bool, why: str) -> str:
     """The human view of a status snapshot."""
     lines = []
@@ -394,6 +408,7 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
             lines.append(f"  t={_num(e.get('t_s'), '.1f')} s {e.get('subject')} {e.get('event')} ({e.get('reason')})")
     if data.get("metrics_url"):
         lines.append(f"metrics: {data['metrics_url']}")
+    lines.extend(_plant_lines(data))
     lines.extend(_process_lines(data))
     return "\n".join(lines)
 

@@ -1,0 +1,180 @@
+"""The `telemetry` and `opcua` sections resolved to plain specs: files read, paths made absolute, every problem a config error.
+
+Built when the pipeline is built (so `compd check-config` finds a missing password
+file or an unknown arming signal), used by the service process. Imports nothing
+heavy: paho-mqtt, protobuf and asyncua load in the service process only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from compd import version
+
+MAX_SECRET_BYTES = 4096
+
+
+def read_secret(cfg: Any, rel: str, key: tuple[str | int, ...]) -> str:
+    """A password from its file (relative to the config), the trailing newline stripped; a config error naming `key`."""
+    path = cfg.resolve_path(rel)
+    try:
+        data = path.read_bytes()[: MAX_SECRET_BYTES + 1]
+    except OSError as e:
+        raise cfg.doc.error(f"cannot read {path}: {e.strerror or e}", key) from None
+    if len(data) > MAX_SECRET_BYTES:
+        raise cfg.doc.error(f"{path} is longer than a password ({MAX_SECRET_BYTES} bytes)", key)
+    try:
+        text = data.decode("utf-8").rstrip("\r\n")
+    except UnicodeDecodeError:
+        raise cfg.doc.error(f"{path} is not UTF-8 text", key) from None
+    if not text:
+        raise cfg.doc.error(f"{path} is empty", key)
+    return text
+
+
+def readable_file(cfg: Any, rel: str, key: tuple[str | int, ...]) -> str:
+    """The absolute path of a file the config names, which must be readable now."""
+    path = cfg.resolve_path(rel)
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as e:
+        raise cfg.doc.error(f"cannot read {path}: {e.strerror or e}", key) from None
+    return str(path)
+
+
+def buffer_path(cfg: Any, env: dict[str, str] | None = None) -> Path:
+    """`telemetry.buffer.path`, else $STATE_DIRECTORY/<config name>.telemetry.sqlite, else next to the config."""
+    env = dict(os.environ) if env is None else env
+    tel = cfg.top.telemetry
+    if tel.buffer.path:
+        return cfg.resolve_path(tel.buffer.path)
+    stem = Path(cfg.file).stem
+    state_dir = env.get("STATE_DIRECTORY", "").split(":")[0]
+    return (Path(state_dir) if state_dir else Path(cfg.file).parent) / f"{stem}.telemetry.sqlite"
+
+
+@dataclass
+class RemoteSpec:
+    """What the remote model handler needs (`telemetry.remote_models` with `allow: true`)."""
+
+    config: str
+    model_file: Path
+    model_sha256: str
+    outputs: list[str]
+    arm_signal: str | None
+    arm_window_s: float
+    max_bytes: int
+    daemon_pid: int
+    pending_path: Path
+
+
+@dataclass
+class TelemetrySpec:
+    """Everything a Telemetry needs, resolved from the config (plain data: it crosses a fork)."""
+
+    host: str
+    port: int
+    client_id: str
+    group_id: str
+    edge_node_id: str
+    device_id: str
+    buffer_path: Path
+    buffer_max_bytes: int
+    period_s: float = 1.0
+    keepalive_s: int = 30
+    reconnect_max_s: float = 30.0
+    username: str | None = None
+    password: str | None = None
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    check_hostname: bool = True
+    properties: dict[str, str] = field(default_factory=dict)  # NBIRTH's Properties/… (version, config)
+    poll_s: float = 0.05  # the thread's wait for the network between two looks at its inbox
+    slack_s: float = 0.0  # a snapshot this much before a sample is due is taken for it (half the snapshots' period)
+    remote: RemoteSpec | None = None  # remote models allowed: what applying one needs
+    primary_host_id: str | None = None  # data flows only while this Sparkplug host is online
+
+
+def file_sha256(path: Path) -> str:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return ""
+
+
+def telemetry_spec(cfg: Any, signals: list[str], outputs: list[str], snapshot_period_s: float) -> TelemetrySpec:
+    """The telemetry section as a TelemetrySpec; a config error for a file that cannot be read,
+    an arming signal no source gives, or remote models without a writable model file."""
+    tel = cfg.top.telemetry
+    key = ("telemetry",)
+    password = None
+    if tel.password_file is not None:
+        if tel.username is None:
+            raise cfg.doc.error("a password needs a username", (*key, "password_file"))
+        password = read_secret(cfg, tel.password_file, (*key, "password_file"))
+    ca = cert = keyf = None
+    if tel.tls is not None:
+        ca = readable_file(cfg, tel.tls.ca_file, (*key, "tls", "ca_file"))
+        if tel.tls.cert_file is not None and tel.tls.key_file is not None:
+            cert = readable_file(cfg, tel.tls.cert_file, (*key, "tls", "cert_file"))
+            keyf = readable_file(cfg, tel.tls.key_file, (*key, "tls", "key_file"))
+    bpath = buffer_path(cfg)
+    if not bpath.parent.is_dir():
+        raise cfg.doc.error(f"folder {bpath.parent} does not exist", (*key, "buffer", "path"))
+    remote = None
+    rm = tel.remote_models
+    if rm.arm_signal is not None and rm.arm_signal not in signals:
+        raise cfg.doc.error(f"no source gives a signal {rm.arm_signal!r}", (*key, "remote_models", "arm_signal"))
+    if rm.allow:
+        if cfg.model.file is None:
+            raise cfg.doc.error("remote models replace the model file: give model.file, not inline params",
+                                (*key, "remote_models", "allow"))
+        mfile = Path(cfg.model.file)
+        if not os.access(mfile.parent, os.W_OK):
+            raise cfg.doc.error(f"remote models replace {mfile}, but its folder is not writable",
+                                (*key, "remote_models", "allow"))
+        remote = RemoteSpec(
+            config=str(Path(cfg.file).resolve()), model_file=mfile, model_sha256=file_sha256(mfile),
+            outputs=list(outputs), arm_signal=rm.arm_signal, arm_window_s=rm.arm_window_s, max_bytes=rm.max_bytes,
+            daemon_pid=os.getpid(), pending_path=Path(f"{bpath}.model-pending.json"),
+        )
+    return TelemetrySpec(
+        host=tel.host,
+        port=tel.port or (8883 if tel.tls is not None else 1883),
+        client_id=tel.client_id or f"{tel.group_id}-{tel.edge_node_id}",
+        group_id=tel.group_id, edge_node_id=tel.edge_node_id, device_id=tel.device_id,
+        buffer_path=bpath, buffer_max_bytes=int(tel.buffer.max_mb * 1e6),
+        period_s=tel.period_s, keepalive_s=tel.keepalive_s, reconnect_max_s=tel.reconnect_max_s,
+        username=tel.username, password=password, ca_file=ca, cert_file=cert, key_file=keyf,
+        check_hostname=tel.tls.check_hostname if tel.tls is not None else True,
+        properties={"compd version": version(), "config": str(Path(cfg.file).resolve())},
+        slack_s=snapshot_period_s / 2, remote=remote, primary_host_id=tel.primary_host_id,
+    )
+
+
+@dataclass
+class OpcUaSpec:
+    """The opcua section and the folder its paths are relative to."""
+
+    cfg: Any
+    base_dir: Path
+
+
+def opcua_spec(cfg: Any) -> OpcUaSpec:
+    """The opcua section, its files checked readable (a config error naming the key)."""
+    ua = cfg.top.opcua
+    if not ua.anonymous and not ua.users:
+        raise cfg.doc.error("no one could log in: give users, or anonymous: true", ("opcua", "users"))
+    readable_file(cfg, ua.certificate, ("opcua", "certificate"))
+    readable_file(cfg, ua.private_key, ("opcua", "private_key"))
+    for name, user in ua.users.items():
+        read_secret(cfg, user.password_file, ("opcua", "users", name, "password_file"))
+    if ua.trusted_clients is not None and not cfg.resolve_path(ua.trusted_clients).is_dir():
+        raise cfg.doc.error(f"{cfg.resolve_path(ua.trusted_clients)} is not a folder", ("opcua", "trusted_clients"))
+    return OpcUaSpec(ua, Path(cfg.file).parent)

@@ -1,0 +1,578 @@
+"""MQTT Sparkplug B telemetry: birth and death certificates, a sample per period, events, store and forward, commands.
+
+One `Telemetry` is one Sparkplug edge node (this compd) with one device (the machine
+it compensates). It runs on a thread of its own ("compd-telemetry") in the service
+process (compd/service.py), never on the cycle: the service hands it each status
+snapshot (`sample`) and each event (`event`) and returns at once.
+
+Every sample and event goes first into the store-and-forward buffer (an SQLite file,
+compd/plant/buffer.py) and is deleted from it only when the broker has acknowledged it
+(QoS 1). So while the broker is unreachable samples pile up on disk, bounded by
+`telemetry.buffer.max_mb` (full: the oldest are dropped, counted in `Telemetry/dropped`
+and the status file), and when it returns they are sent in the order they were taken,
+marked historical, before the live ones. A sample that the broker received but whose
+acknowledgement was lost with the connection is sent again: each carries its number
+(`Sample`, never reused, kept across restarts), so a consumer drops the repeat.
+
+Sparkplug B as compd speaks it (docs/plant.md):
+
+* with `primary_host_id`, nothing but the connection until that host's STATE says it is
+  online (Sparkplug 3.0: a host that is not there would miss the data, so it waits on
+  disk), and again when it goes offline;
+* on every connection, a new `bdSeq`; the last will is the NDEATH with it; then NBIRTH
+  (node metrics) and DBIRTH (the machine's metrics with their types, units and current
+  values), `seq` 0, 1, … 255, 0 … over every message of the session;
+* a DDATA per sample (the metrics that changed are not picked out: every metric is in
+  every sample, which is what a historian replaying gaps wants), a DDATA with the
+  `Event/*` metrics per event, an NDATA when the node's own metrics change;
+* NCMD `Node Control/Rebirth` → births again; NCMD `Node Control/Model` or DCMD
+  `Model/apply` (a model file's text) → `commands` (compd/plant/remote_model.py), whose
+  answer goes out as NDATA `Model/result`;
+* data is published with QoS 1, not the QoS 0 the specification asks for, so that the
+  broker acknowledges each sample and the buffer knows what it may forget.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import random
+import ssl
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from compd.plant.buffer import StoreAndForward
+from compd.plant.sparkplug import (
+    NAMESPACE,
+    DataType,
+    MetricDef,
+    SparkplugError,
+    decode,
+    encode,
+    topic,
+)
+from compd.plant.spec import TelemetrySpec
+
+log = logging.getLogger("compd.telemetry")
+
+WINDOW = 32  # samples in flight (sent, not yet acknowledged) at a time
+
+CONNECT_TIMEOUT_S = 5.0
+RECONNECT_MIN_S = 0.5
+DRAIN_S = 3.0  # at stop, how long the samples still buffered may take to go out
+MAX_INBOX = 10_000  # samples and events waiting for the thread (it writes them to disk in ms)
+MAX_COMMAND_BYTES = 16 << 20  # an NCMD/DCMD longer than this is not even decoded
+
+NODE_REBIRTH = "Node Control/Rebirth"
+NODE_MODEL = "Node Control/Model"
+DEVICE_MODEL = "Model/apply"
+
+# the units of a signal, by the end of its name (compd's names carry their units); T_… is °C
+_SUFFIX_UNITS = (("_um", "µm"), ("_mm", "mm"), ("_rpm", "rpm"), ("_c", "°C"), ("_k", "K"), ("_s", "s"),
+                 ("_a", "A"), ("_v", "V"), ("_pct", "%"), ("_bar", "bar"), ("_hz", "Hz"))
+
+
+def signal_unit(name: str) -> str | None:
+    """The unit a signal's name says (`err_z_um` → µm, `T_xi` → °C), or None."""
+    low = name.lower()
+    for suffix, unit in _SUFFIX_UNITS:
+        if low.endswith(suffix):
+            return unit
+    return "°C" if name.startswith("T_") else None
+
+
+def _num(value: Any) -> float | None:
+    """A finite float, or None (Sparkplug's is_null) for NaN, None or anything not a number."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
+def _count(value: Any) -> int | None:
+    return int(value) if isinstance(value, int | float) and not isinstance(value, bool) and value >= 0 else None
+
+
+def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
+    """The machine's metrics and their values in one status snapshot (compd/status.py).
+
+    A section missing from the snapshot (a log replayed into telemetry has no loop
+    timing) leaves its metrics out; a value that is not a finite number is null."""
+    D = DataType
+    out: list[tuple[MetricDef, Any]] = [
+        (MetricDef("State", D.String), str(snap.get("state", ""))),
+        (MetricDef("Observe", D.Boolean), bool(snap.get("observe", False))),
+    ]
+    word = snap.get("word")
+    if isinstance(word, str):
+        try:
+            out.append((MetricDef("Word", D.UInt16), int(word, 16) & 0xFFFF))
+        except ValueError:
+            out.append((MetricDef("Word", D.UInt16), None))
+    for axis, a in sorted((snap.get("axes") or {}).items()):
+        p = f"Axis/{axis}/"
+        out += [
+            (MetricDef(p + "correction_um", D.Double, "µm"), _num(a.get("correction_um"))),
+            (MetricDef(p + "target_um", D.Double, "µm"), _num(a.get("target_um"))),
+            (MetricDef(p + "prediction_um", D.Double, "µm"), _num(a.get("prediction_um"))),
+            (MetricDef(p + "enable", D.Boolean), bool(a.get("enable", False))),
+            (MetricDef(p + "state", D.String), str(a.get("state", ""))),
+        ]
+    for name, s in sorted((snap.get("signals") or {}).items()):
+        p = f"Signal/{name}/"
+        out += [
+            (MetricDef(p + "value", D.Double, signal_unit(name)), _num(s.get("value"))),
+            (MetricDef(p + "quality", D.String), str(s.get("quality", ""))),
+        ]
+    lp = snap.get("loop")
+    if isinstance(lp, dict):
+        late, comp = lp.get("lateness_us") or {}, lp.get("cycle_compute_us") or {}
+        out += [
+            (MetricDef("Loop/period_ms", D.Double, "ms"), _num(lp.get("period_ms"))),
+            (MetricDef("Loop/cycles", D.UInt64), _count(lp.get("cycles"))),
+            (MetricDef("Loop/misses", D.UInt64), _count(lp.get("misses"))),
+            (MetricDef("Loop/lateness_p99_us", D.Double, "µs"), _num(late.get("p99"))),
+            (MetricDef("Loop/lateness_max_us", D.Double, "µs"), _num(late.get("max"))),
+            (MetricDef("Loop/compute_p99_us", D.Double, "µs"), _num(comp.get("p99"))),
+        ]
+    model = snap.get("model")
+    if isinstance(model, dict):
+        fit = model.get("fit") or {}
+        out += [
+            (MetricDef("Model/kind", D.String), str(model.get("kind", ""))),
+            (MetricDef("Model/fitted_at", D.String), str(fit.get("fitted_at") or "")),
+            (MetricDef("Model/file", D.String), str(model.get("file") or "")),
+        ]
+    return out
+
+
+EVENT_METRICS = (MetricDef("Event/kind", DataType.String), MetricDef("Event/subject", DataType.String),
+                 MetricDef("Event/reason", DataType.String))
+SAMPLE_METRIC = MetricDef("Sample", DataType.UInt64)
+
+
+class Telemetry:
+    """One Sparkplug edge node and its device (see the module). `start`, then `sample` and
+    `event` from any thread (they never wait), `stop` at the end."""
+
+    def __init__(
+        self,
+        spec: TelemetrySpec,
+        commands: Callable[[str, str], dict[str, Any]] | None = None,
+        armed: Callable[[], bool] | None = None,
+    ) -> None:
+        self.spec = spec
+        self.commands = commands  # (model text, request id) → the answer, on this thread
+        self.armed = armed or (lambda: False)
+        self.buffer: StoreAndForward | None = None
+        self._inbox: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._next_sample_s = -math.inf  # wall time the next sample is due
+        self._defs: dict[str, MetricDef] = {}  # the device's metrics as the last DBIRTH announced them
+        self._latest: list[tuple[MetricDef, Any]] | None = None  # the newest sample (the births' values)
+        self._latest_t_ms = 0
+        self._birth_due = False  # a new device metric set: births again
+        self._client: Any = None
+        self._connected = False  # CONNACK accepted
+        self._session = False  # births out: data may flow
+        self._host_online = spec.primary_host_id is None  # the primary host's STATE (always, without one)
+        self._seq = 0
+        self._bdseq = 0
+        self._inflight: dict[int, int] = {}  # MQTT mid → buffer record id
+        self._cursor = 0  # the newest record id handed to the client in this session
+        self._historical_upto = 0  # records up to this id were taken before this session's births
+        self._attempts = 0
+        self._new_connection = False  # connected, births not yet sent on this connection
+        self._sample_names: list[str] = []  # the metrics of the newest sample
+        self._last_put_id = 0  # the newest record put in the buffer (births come after the first)
+        self._next_try_s = 0.0
+        self._down_since: float | None = None
+        self._result = ""  # the last command's answer (NDATA Model/result)
+        self._node_dirty = False
+        self.sent = 0
+        self.acked = 0
+        self.connects = 0
+        self.commands_seen = 0
+        self.last_error: str | None = None
+        self.inbox_dropped = 0  # samples and events handed over while the thread lagged MAX_INBOX behind
+        self.dropped_unknown = 0  # buffered metrics no birth of this session announced (a reload changed the set)
+
+    # ------------------------------------------------------------------ any thread
+    def start(self) -> None:
+        """Open the buffer (BadInput if it cannot) and start the thread."""
+        spec = self.spec
+        self.buffer = StoreAndForward(spec.buffer_path, spec.buffer_max_bytes)
+        self._client = self._make_client()
+        self._thread = threading.Thread(target=self._run, name="compd-telemetry", daemon=True)
+        self._thread.start()
+
+    def sample(self, snap: dict[str, Any], t_unix_s: float | None = None) -> bool:
+        """Take a sample from this status snapshot if one is due (one per `period_s` of wall
+        time); True if it did. Never waits."""
+        now = time.time() if t_unix_s is None else t_unix_s
+        if now < self._next_sample_s - self.spec.slack_s or not self._taking():
+            return False
+        period = self.spec.period_s
+        # on the period's grid: a snapshot a little late or early does not shift the next ones
+        due = self._next_sample_s
+        self._next_sample_s = due + period if abs(now - due) < period else now + period
+        self._inbox.put(("sample", int(now * 1000), device_metrics(snap)))
+        return True
+
+    def event(self, kind: str, subject: str, reason: str, t_unix_s: float | None = None) -> None:
+        """An event (a fault, a sensor lost, a reload, …), sent as it happens."""
+        t = time.time() if t_unix_s is None else t_unix_s
+        if self._taking():
+            self._inbox.put(("event", int(t * 1000), [kind, subject, reason]))
+
+    def _taking(self) -> bool:
+        """Whether the thread runs and keeps up: else what is handed over is not kept in memory."""
+        if self._thread is None or not self._thread.is_alive():
+            return False
+        if self._inbox.qsize() >= MAX_INBOX:
+            self.inbox_dropped += 1
+            return False
+        return True
+
+    def stop(self, drain_s: float = DRAIN_S) -> dict[str, Any]:
+        """Send what the buffer holds (at most `drain_s`, if connected), the NDEATH, disconnect,
+        close the buffer; the final status. Idempotent."""
+        if self._thread is not None:
+            self._drain_s = drain_s
+            self._stop.set()
+            self._thread.join(timeout=drain_s + CONNECT_TIMEOUT_S + 5.0)
+            self._thread = None
+        status = self.get_status()
+        if self.buffer is not None:
+            self.buffer.close()
+            self.buffer = None
+        return status
+
+    def get_status(self) -> dict[str, Any]:
+        buf = self.buffer.get_status() if self.buffer is not None else {}
+        return {
+            "broker": f"{self.spec.host}:{self.spec.port}",
+            "connected": self._session,
+            "connects": self.connects,
+            "sent": self.sent,
+            "acknowledged": self.acked,
+            "buffered": buf.get("records", 0),
+            "buffered_bytes": buf.get("bytes", 0),
+            "dropped": buf.get("dropped", 0) + self.inbox_dropped,
+            "bdseq": self._bdseq,
+            "commands": self.commands_seen,
+            "last_error": self.last_error,
+        }
+
+    # ------------------------------------------------------------------ the thread
+    def _make_client(self) -> Any:
+        import paho.mqtt.client as mqtt
+
+        spec = self.spec
+        client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=spec.client_id, clean_session=True,
+                             reconnect_on_failure=False)
+        client.connect_timeout = CONNECT_TIMEOUT_S
+        if spec.username is not None:
+            client.username_pw_set(spec.username, spec.password)
+        if spec.ca_file is not None:
+            client.tls_set(ca_certs=spec.ca_file, certfile=spec.cert_file, keyfile=spec.key_file,
+                           cert_reqs=ssl.CERT_REQUIRED, tls_version=ssl.PROTOCOL_TLS_CLIENT)
+            client.tls_insecure_set(not spec.check_hostname)
+        client.on_connect = self._on_connect
+        client.on_disconnect = self._on_disconnect
+        client.on_publish = self._on_publish
+        client.on_message = self._on_message
+        client.suppress_exceptions = False
+        return client
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                self._take_inbox()
+                if self._client.is_connected() or self._connected:
+                    self._client.loop(timeout=self.spec.poll_s)
+                    if self._session:
+                        if self._birth_due:
+                            self._births(new_session=False)
+                        self._send()
+                else:
+                    if self._latest is not None and time.monotonic() >= self._next_try_s:
+                        self._connect()
+                    if not self._client.is_connected():
+                        self._stop.wait(self.spec.poll_s)
+            self._finish()
+        except Exception as e:  # the telemetry must never take the service down: say so and end
+            self.last_error = f"{type(e).__name__}: {e}"
+            log.exception("telemetry stopped: %s", self.last_error, extra={"event": "telemetry_error"})
+
+    def _take_inbox(self) -> None:
+        buf = self.buffer
+        assert buf is not None
+        while True:
+            try:
+                what, t_ms, values = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            if what == "answer":
+                self._answer(values)
+            elif what == "sample":
+                names = [d.name for d, _ in values]
+                if names != self._sample_names:  # a new set of metrics: births again
+                    self._sample_names = names
+                    self._birth_due = self._session
+                number = buf.get_meta("sample") + 1
+                buf.set_meta("sample", number)
+                self._latest = [(SAMPLE_METRIC, number), *values]
+                self._latest_t_ms = t_ms
+                body = [["Sample", number], *([d.name, v] for d, v in values)]
+                self._put(t_ms, "D", body)
+            else:
+                self._put(t_ms, "D", [[d.name, v] for d, v in zip(EVENT_METRICS, values, strict=True)])
+
+    def _put(self, t_ms: int, kind: str, body: list[Any]) -> None:
+        buf = self.buffer
+        assert buf is not None
+        before = buf.dropped
+        self._last_put_id = buf.put(t_ms, kind, json.dumps(body, ensure_ascii=False, allow_nan=False).encode("utf-8"))
+        if buf.dropped != before:
+            self._node_dirty = True
+            if buf.dropped == 1 or buf.dropped % 1000 == 0:
+                log.warning("telemetry buffer full (%s): the oldest samples dropped, %d so far",
+                            buf.path, buf.dropped, extra={"event": "telemetry_dropped", "dropped": buf.dropped})
+
+    def _connect(self) -> None:
+        spec = self.spec
+        buf = self.buffer
+        assert buf is not None
+        bdseq = (buf.get_meta("bdseq", -1) + 1) % 256  # one more per CONNECT packet sent (Sparkplug 3.0)
+        death = encode([(MetricDef("bdSeq", DataType.UInt64), bdseq)], timestamp_ms=int(time.time() * 1000),
+                       seq=None)
+        self._client.will_set(topic(spec.group_id, "NDEATH", spec.edge_node_id), death, qos=1, retain=False)
+        self._attempts += 1
+        try:
+            self._client.connect(spec.host, spec.port, keepalive=spec.keepalive_s)
+        except (OSError, ssl.SSLError, ValueError) as e:
+            self._connection_failed(f"cannot connect to {spec.host}:{spec.port}: {getattr(e, 'strerror', None) or e}")
+            return  # no CONNECT went out: the same bdSeq next time
+        self._bdseq = bdseq
+        buf.set_meta("bdseq", bdseq)
+        self._connected = True
+        self._new_connection = True
+
+    def _connection_failed(self, why: str) -> None:
+        self._connected = False
+        self._session = False
+        self._inflight.clear()
+        if self._down_since is None:
+            self._down_since = time.monotonic()
+        if why != self.last_error:
+            log.warning("telemetry: %s; samples are kept on disk until it answers", why,
+                        extra={"event": "telemetry_down", "reason": why})
+        self.last_error = why
+        wait = min(self.spec.reconnect_max_s, RECONNECT_MIN_S * 2 ** min(self._attempts, 10))
+        self._next_try_s = time.monotonic() + wait * random.uniform(0.5, 1.0)  # a plant's nodes do not all return at once
+
+    def _on_connect(self, client: Any, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+        if reason.is_failure:
+            self._connection_failed(f"the broker refused the connection: {reason}")
+            client.disconnect()
+            return
+        spec = self.spec
+        subs = [(topic(spec.group_id, "NCMD", spec.edge_node_id), 1),
+                (topic(spec.group_id, "DCMD", spec.edge_node_id, spec.device_id), 1)]
+        if spec.primary_host_id is not None:
+            subs.append((f"{NAMESPACE}/STATE/{spec.primary_host_id}", 1))
+            self._host_online = False  # until its STATE (retained) says otherwise
+        client.subscribe(subs)
+        self._attempts = 0
+        self.connects += 1
+        if self._down_since is not None or self.last_error is not None:
+            log.info("telemetry: connected to %s:%d; %d samples to send", spec.host, spec.port,
+                     len(self.buffer or ()), extra={"event": "telemetry_up"})
+        self._down_since = None
+        self.last_error = None
+        self._new_connection = True
+        if self._host_online:
+            self._session = True
+            self._births(new_session=True)
+
+    def _on_disconnect(self, client: Any, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+        if not self._connected:  # after a refused CONNACK (said then), or at stop
+            return
+        self._connection_failed(f"connection to {self.spec.host}:{self.spec.port} lost: {reason}")
+
+    def _on_publish(self, client: Any, userdata: Any, mid: int, reason: Any, properties: Any) -> None:
+        rid = self._inflight.pop(mid, None)
+        if rid is not None and self.buffer is not None:
+            self.buffer.ack([rid])
+            self.acked += 1
+
+    def _births(self, new_session: bool) -> None:
+        """NBIRTH and DBIRTH with the newest values; on a new connection, what is buffered up to
+        now is historical and goes out first (what was in flight on the lost one again)."""
+        spec = self.spec
+        buf = self.buffer
+        assert buf is not None and self._latest is not None
+        self._birth_due = False
+        self._seq = 0
+        self._defs = {d.name: d for d, _ in self._latest}
+        now_ms = int(time.time() * 1000)
+        self._publish_raw("NBIRTH", None, encode(self._node_metrics(birth=True), timestamp_ms=now_ms,
+                                                 seq=self._next_seq(), with_properties=True), qos=0)
+        self._publish_raw("DBIRTH", spec.device_id, encode(self._latest, timestamp_ms=self._latest_t_ms,
+                                                           seq=self._next_seq(), with_properties=True), qos=0)
+        self._node_dirty = False
+        self._historical_upto = self._last_put_id  # what waited goes out first, historical
+        if new_session:  # what was in flight on a lost connection goes again
+            self._new_connection = False
+            self._cursor = 0
+            self._inflight.clear()
+
+    def _node_metrics(self, birth: bool) -> list[tuple[MetricDef, Any]]:
+        D = DataType
+        st = self.buffer.get_status() if self.buffer is not None else {}
+        out: list[tuple[MetricDef, Any]] = []
+        if birth:
+            out += [(MetricDef("bdSeq", D.UInt64), self._bdseq), (MetricDef(NODE_REBIRTH, D.Boolean), False),
+                    (MetricDef(NODE_MODEL, D.String), "")]
+            out += [(MetricDef(f"Properties/{k}", D.String), v) for k, v in sorted(self.spec.properties.items())]
+        out += [
+            (MetricDef("Telemetry/buffered", D.UInt64), int(st.get("records", 0))),
+            (MetricDef("Telemetry/dropped", D.UInt64), int(st.get("dropped", 0))),
+            (MetricDef("Model/armed", D.Boolean), bool(self.armed())),
+            (MetricDef("Model/result", D.String), self._result),
+        ]
+        return out
+
+    def _next_seq(self) -> int:
+        seq = self._seq
+        self._seq = (seq + 1) % 256
+        return seq
+
+    def _publish_raw(self, kind: str, device: str | None, payload: bytes, qos: int) -> Any:
+        spec = self.spec
+        info = self._client.publish(topic(spec.group_id, kind, spec.edge_node_id, device), payload, qos=qos)
+        self.sent += 1
+        return info
+
+    def _send(self) -> None:
+        """Hand the client the buffered records after the cursor, WINDOW at a time."""
+        buf = self.buffer
+        assert buf is not None
+        if self._node_dirty:
+            self._node_dirty = False
+            self._publish_raw("NDATA", None, encode(self._node_metrics(birth=False), timestamp_ms=int(time.time() * 1000),
+                                                    seq=self._next_seq()), qos=0)
+        room = WINDOW - len(self._inflight)
+        if room <= 0:
+            return
+        for rec in buf.pending(room, after_id=self._cursor):
+            values = []
+            for name, value in json.loads(rec.body):
+                d = SAMPLE_METRIC if name == "Sample" else self._defs.get(name) or _EVENT_DEFS.get(name)
+                if d is None:
+                    self.dropped_unknown += 1
+                    continue
+                values.append((d, value))
+            payload = encode(values, timestamp_ms=rec.t_ms, seq=self._next_seq(),
+                             historical=rec.id <= self._historical_upto, metric_timestamp_ms=rec.t_ms)
+            info = self._publish_raw("DDATA", self.spec.device_id, payload, qos=1)
+            self._cursor = rec.id
+            if info.rc != 0:  # not connected after all: on_disconnect follows
+                return
+            self._inflight[info.mid] = rec.id
+            if info.is_published():  # acknowledged already (cannot happen at QoS 1, but never keep it twice)
+                self._on_publish(self._client, None, info.mid, None, None)
+
+    def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
+        """A command (NCMD/DCMD), or the primary host's STATE: nothing in it is trusted before it is decoded and checked."""
+        if msg.topic.startswith(f"{NAMESPACE}/STATE/"):
+            self._host_state(msg.payload)
+            return
+        self.commands_seen += 1
+        if len(msg.payload) > MAX_COMMAND_BYTES:
+            self._answer({"result": "refused", "reason": f"command of {len(msg.payload)} bytes is too long"})
+            return
+        try:
+            payload = decode(msg.payload)
+        except SparkplugError as e:
+            log.warning("telemetry: a command on %s that is not Sparkplug B: %s", msg.topic, e,
+                        extra={"event": "telemetry_command_bad", "reason": str(e)})
+            self._answer({"result": "refused", "reason": f"not a Sparkplug B payload: {e}"})
+            return
+        for m in payload.metrics:
+            if m.name == NODE_REBIRTH and m.value is True:
+                log.info("telemetry: rebirth requested", extra={"event": "telemetry_rebirth"})
+                self._birth_due = True
+            elif m.name in (NODE_MODEL, DEVICE_MODEL):
+                request = str(payload.uuid or payload.timestamp_ms or "")
+                if not isinstance(m.value, str) or m.datatype not in (DataType.String, DataType.Text):
+                    self._answer({"request": request, "result": "refused", "reason": f"{m.name} must be a String"})
+                elif self.commands is None:
+                    self._answer({"request": request, "result": "refused",
+                                  "reason": "this compd takes no remote models (telemetry.remote_models.allow)"})
+                else:
+                    self._answer({"request": request, **self.commands(m.value, request)})
+            else:
+                log.warning("telemetry: unknown command metric %r ignored", m.name,
+                            extra={"event": "telemetry_command_bad", "reason": f"unknown metric {m.name!r}"})
+
+    def _host_state(self, payload: bytes) -> None:
+        """The primary host's STATE (Sparkplug 3.0: JSON {"online": bool, "timestamp": ms})."""
+        try:
+            state = json.loads(payload[:4096].decode("utf-8")) if payload else {}
+        except (UnicodeDecodeError, ValueError):
+            state = {}
+        online = isinstance(state, dict) and state.get("online") is True
+        if online == self._host_online:
+            return
+        self._host_online = online
+        log.info("telemetry: primary host %s %s", self.spec.primary_host_id, "online" if online else "offline",
+                 extra={"event": "telemetry_host", "online": online})
+        if not online:
+            self._session = False  # data waits on disk until the host is back
+            return
+        self._session = True
+        self._births(new_session=self._new_connection)
+
+    def answer(self, result: dict[str, Any]) -> None:
+        """Publish a command's late answer (a model applied after the reload it asked for)."""
+        self._inbox.put(("answer", 0, result))
+
+    def _answer(self, result: dict[str, Any]) -> None:
+        self._result = json.dumps(result, ensure_ascii=False, sort_keys=True)
+        self._node_dirty = True
+        log.info("telemetry: command answered: %s", self._result, extra={"event": "telemetry_command", **{
+            k: v for k, v in result.items() if k in ("request", "result", "reason")}})
+
+    def _finish(self) -> None:
+        """At stop: the inbox into the buffer, what can go out in DRAIN_S, the NDEATH, disconnect."""
+        self._take_inbox()
+        client = self._client
+        if self._session:
+            deadline = time.monotonic() + getattr(self, "_drain_s", DRAIN_S)
+            while self._session and time.monotonic() < deadline and (self._inflight or len(self.buffer or ())):
+                self._send()
+                client.loop(timeout=self.spec.poll_s)
+            spec = self.spec
+            death = encode([(MetricDef("bdSeq", DataType.UInt64), self._bdseq)], timestamp_ms=int(time.time() * 1000),
+                           seq=None)
+            info = client.publish(topic(spec.group_id, "NDEATH", spec.edge_node_id), death, qos=1)
+            deadline = time.monotonic() + 1.0
+            while self._session and not info.is_published() and time.monotonic() < deadline:
+                client.loop(timeout=self.spec.poll_s)
+        self._connected = False
+        self._session = False
+        if client.is_connected():
+            client.disconnect()
+            client.loop(timeout=0.1)
+        # the connection's socket, and paho's wake-up socket pair (else closed only when the
+        # client is garbage-collected)
+        client._reset_sockets()
+
+
+_EVENT_DEFS = {d.name: d for d in EVENT_METRICS}
