@@ -113,9 +113,9 @@ class ProbeLink(ABC):
     def outcome(self, tag: str) -> dict[str, Any] | None:
         """The adapter's newest event for the probe sent with source `tag`, or None yet."""
 
-    @abstractmethod
     def arm_model(self, window_s: float | None) -> dict[str, Any]:
-        """`compd arm-model`: arm the remote model handler; the answer."""
+        """`compd arm-model`: arm the remote model handler; the answer (a pipeline without one refuses)."""
+        return {"ok": False, "error": "this daemon takes no remote models (telemetry.remote_models.allow)"}
 
 
 class ControlServer:

@@ -202,7 +202,7 @@ class _RingLink(ProbeLink):
 
     def arm_model(self, window_s: float | None) -> dict[str, Any]:
         if self.remote is None:
-            return {"ok": False, "error": "this daemon takes no remote models (telemetry.remote_models.allow)"}
+            return super().arm_model(window_s)
         return self.remote.arm(window_s)
 
     def send(self, probe: Probe) -> None:
