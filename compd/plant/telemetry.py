@@ -294,10 +294,12 @@ class Telemetry:
             while not self._stop.is_set():
                 self._take_inbox()
                 if self._client.is_connected() or self._connected:
-                    self._client.loop(timeout=self.spec.poll_s)
-                    if self._session:
+                    if self._session:  # what came in goes out now, not after the wait below
                         if self._birth_due:
                             self._births(new_session=False)
+                        self._send()
+                    self._client.loop(timeout=self.spec.poll_s)
+                    if self._session:  # the acknowledgements that came in freed the window
                         self._send()
                 else:
                     if self._latest is not None and time.monotonic() >= self._next_try_s:
