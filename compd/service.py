@@ -406,7 +406,12 @@ class ServiceWork:
     def _status(self, raw: dict[str, Any], buckets: Any) -> None:
         snap = status_mod.jsonable(raw)
         snap["service_pid"] = os.getpid()  # the daemon's pid when the service is a thread of it
-        self._plant(snap)
+        try:
+            self._plant(snap)
+        except Exception:  # the plant's side never costs the status file, metrics or STATUS= line
+            self.status_errors += 1
+            if self.status_errors <= 3:
+                log.exception("service: telemetry/OPC UA failed", extra={"event": "status_error"})
         self.last_snapshot = snap
         misses = int(snap["loop"]["misses"])
         if misses > self._misses:
@@ -431,7 +436,6 @@ class ServiceWork:
                 mode += f" (sink link {snap['sink']['link']}: output not reaching the machine)"
             line = f"{mode}: word {snap['word']}, {states}, {snap['loop']['misses']} missed"
             self.status_line.publish(line.encode("utf-8")[: self.status_line.capacity])
-
 
     def _plant(self, snap: dict[str, Any]) -> None:
         """The snapshot to the plant: a telemetry sample when one is due, the OPC UA values;
