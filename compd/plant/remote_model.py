@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from compd.errors import BadInput
-from compd.plant.spec import RemoteSpec, file_sha256
+from compd.plant.spec import RemoteSpec
 
 log = logging.getLogger("compd.telemetry")
 
@@ -195,4 +195,4 @@ def validate(spec: RemoteSpec, candidate: Path) -> str | None:
     return None
 
 
-__all__ = ["RemoteModels", "file_sha256", "validate"]
+__all__ = ["RemoteModels", "validate"]

@@ -171,6 +171,7 @@ class Telemetry:
         self._inbox: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._drain_s = DRAIN_S  # at stop, how long what is buffered may take to go out
         self._next_sample_s = -math.inf  # wall time the next sample is due
         self._defs: dict[str, MetricDef] = {}  # the device's metrics as the last DBIRTH announced them
         self._latest: list[tuple[MetricDef, Any]] | None = None  # the newest sample (the births' values)
@@ -351,9 +352,7 @@ class Telemetry:
         buf = self.buffer
         assert buf is not None
         bdseq = (buf.get_meta("bdseq", -1) + 1) % 256  # one more per CONNECT packet sent (Sparkplug 3.0)
-        death = encode([(MetricDef("bdSeq", DataType.UInt64), bdseq)], timestamp_ms=int(time.time() * 1000),
-                       seq=None)
-        self._client.will_set(topic(spec.group_id, "NDEATH", spec.edge_node_id), death, qos=1, retain=False)
+        self._client.will_set(topic(spec.group_id, "NDEATH", spec.edge_node_id), _death(bdseq), qos=1, retain=False)
         self._attempts += 1
         try:
             self._client.connect(spec.host, spec.port, keepalive=spec.keepalive_s)
@@ -487,8 +486,6 @@ class Telemetry:
             if info.rc != 0:  # not connected after all: on_disconnect follows
                 return
             self._inflight[info.mid] = rec.id
-            if info.is_published():  # acknowledged already (cannot happen at QoS 1, but never keep it twice)
-                self._on_publish(self._client, None, info.mid, None, None)
 
     def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
         """A command (NCMD/DCMD), or the primary host's STATE: nothing in it is trusted before it is decoded and checked."""
@@ -556,14 +553,11 @@ class Telemetry:
         self._take_inbox()
         client = self._client
         if self._session:
-            deadline = time.monotonic() + getattr(self, "_drain_s", DRAIN_S)
+            deadline = time.monotonic() + self._drain_s
             while self._session and time.monotonic() < deadline and (self._inflight or len(self.buffer or ())):
                 self._send()
                 client.loop(timeout=self.spec.poll_s)
-            spec = self.spec
-            death = encode([(MetricDef("bdSeq", DataType.UInt64), self._bdseq)], timestamp_ms=int(time.time() * 1000),
-                           seq=None)
-            info = client.publish(topic(spec.group_id, "NDEATH", spec.edge_node_id), death, qos=1)
+            info = self._publish_raw("NDEATH", None, _death(self._bdseq), qos=1)
             deadline = time.monotonic() + 1.0
             while self._session and not info.is_published() and time.monotonic() < deadline:
                 client.loop(timeout=self.spec.poll_s)
@@ -578,3 +572,8 @@ class Telemetry:
 
 
 _EVENT_DEFS = {d.name: d for d in EVENT_METRICS}
+
+
+def _death(bdseq: int) -> bytes:
+    """The NDEATH payload: the bdSeq of the connection it ends (the last will, and a clean stop)."""
+    return encode([(MetricDef("bdSeq", DataType.UInt64), bdseq)], timestamp_ms=int(time.time() * 1000), seq=None)

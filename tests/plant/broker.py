@@ -30,6 +30,16 @@ from cryptography.x509.oid import NameOID
 
 from compd.plant.sparkplug import Payload, decode
 
+# the start of a daemon's config (str.format-escaped): the sim spindle at wall-clock pace
+SIM_SPINDLE = """\
+loop: {{clock: sim, period_s: 0.05, speedup: 1}}
+sources:
+  - kind: sim
+    name: spindle
+    plant: spindle
+    scenario: {{seed: 3, segments: [{{duration_s: 86400, speed_rpm: 10000}}]}}
+"""
+
 MOSQUITTO = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None)
 MOSQUITTO_PASSWD = shutil.which("mosquitto_passwd") or (
     "/usr/bin/mosquitto_passwd" if Path("/usr/bin/mosquitto_passwd").exists() else None)
@@ -267,3 +277,8 @@ def daemon(cfg: Path, err_path: Path) -> Iterator[subprocess.Popen[bytes]]:
                 if proc.poll() is None:
                     proc.kill()
                     proc.wait()
+
+
+def compd(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """`compd ARGS` in `cwd`, its output captured."""
+    return subprocess.run([sys.executable, "-m", "compd", *args], cwd=cwd, capture_output=True, text=True, timeout=60)

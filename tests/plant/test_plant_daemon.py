@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -14,16 +12,10 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
 from compd.status import render
 
-from .broker import Listener, Mosquitto, daemon, free_port, metric
+from .broker import SIM_SPINDLE, Listener, Mosquitto, compd, daemon, free_port, metric
 from .test_opcua import PASSWORD, Pki
 
-CONFIG = """\
-loop: {{clock: sim, period_s: 0.05, speedup: 1}}
-sources:
-  - kind: sim
-    name: spindle
-    plant: spindle
-    scenario: {{seed: 3, segments: [{{duration_s: 86400, speed_rpm: 10000}}]}}
+CONFIG = SIM_SPINDLE + """\
 model: {{kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {{alpha_per_k: 13.6e-6, length_mm: 165.0}}}}
 sink: {{kind: pci1756}}
 status: {{path: status.json, period_s: 0.5}}
@@ -41,10 +33,6 @@ opcua:
   users: {{alice: {{password_file: pki/alice.password}}}}
   namespace_uri: urn:compd:test
 """
-
-
-def compd(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "compd", *args], cwd=cwd, capture_output=True, text=True, timeout=60)
 
 
 async def read_nodes(url: str, pki: Pki, names: list[str]) -> dict[str, object]:

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 from compd.plant.sparkplug import DataType, MetricDef, encode, topic
 
-from .broker import Listener, Mosquitto, daemon
+from .broker import SIM_SPINDLE, Listener, Mosquitto, compd, daemon
 
 MODEL = """kind: xi_spindle
 inputs: [T_xi]
@@ -19,13 +17,7 @@ params: {{alpha_per_k: 13.6e-6, length_mm: {length_mm}}}
 fit: {{fitted_at: "{fitted_at}"}}
 """
 
-CONFIG = """\
-loop: {{clock: sim, period_s: 0.05, speedup: 1}}
-sources:
-  - kind: sim
-    name: spindle
-    plant: spindle
-    scenario: {{seed: 3, segments: [{{duration_s: 86400, speed_rpm: 10000}}]}}
+CONFIG = SIM_SPINDLE + """\
 model: {{kind: xi_spindle, file: model.yaml}}
 guard: {{max_abs_um: 40, max_slew_um_per_s: 2.0}}
 sink: {{kind: pci1756}}
@@ -59,10 +51,6 @@ def send_model(listener: Listener, text: str, uuid: str) -> None:
     payload = encode([(MetricDef("Node Control/Model", DataType.String), text)], timestamp_ms=int(time.time() * 1000),
                      seq=None)
     listener.client.publish(topic("plant", "NCMD", "e1"), payload, qos=1).wait_for_publish(10)
-
-
-def compd(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "compd", *args], cwd=cwd, capture_output=True, text=True, timeout=60)
 
 
 def test_a_remote_model_is_applied_only_when_armed(tmp_path: Path) -> None:
