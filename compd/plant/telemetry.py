@@ -352,8 +352,12 @@ class Telemetry:
         buf = self.buffer
         assert buf is not None
         bdseq = (buf.get_meta("bdseq", -1) + 1) % 256  # one more per CONNECT packet sent (Sparkplug 3.0)
-        self._client.will_set(topic(spec.group_id, "NDEATH", spec.edge_node_id), _death(bdseq), qos=1, retain=False)
         self._attempts += 1
+        # a client of its own for every connection: paho would send again by itself what the last
+        # one left unacknowledged, and this thread does that (from the buffer): twice
+        self._client._reset_sockets()
+        self._client = self._make_client()
+        self._client.will_set(topic(spec.group_id, "NDEATH", spec.edge_node_id), _death(bdseq), qos=1, retain=False)
         try:
             self._client.connect(spec.host, spec.port, keepalive=spec.keepalive_s)
         except (OSError, ssl.SSLError, ValueError) as e:
