@@ -120,9 +120,20 @@ def test_slew_limit_never_exceeded(tmp_path: Path) -> None:
     assert last[0] < 0  # it did move (toward minus the growth)
 
 
+def _cycles(status: Path) -> int:
+    try:
+        return int(json.loads(status.read_text())["loop"]["cycles"])
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
 def test_sigterm_emits_safe_output_and_exits_0(tmp_path: Path) -> None:
     p = tmp_path / "c.yaml"
-    p.write_text(CONFIG.format(clock="wall", period=0.002, slew=1000.0))
+    status = tmp_path / "status.json"
+    p.write_text(
+        CONFIG.format(clock="wall", period=0.002, slew=1000.0)
+        + f"status:\n  path: {status}\n  period_s: 0.05\n"
+    )
     out = tmp_path / "summary.json"
     proc = subprocess.Popen(
         [sys.executable, "-m", "compd", "run", str(p), "--json", str(out)],
@@ -132,7 +143,11 @@ def test_sigterm_emits_safe_output_and_exits_0(tmp_path: Path) -> None:
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     try:
-        time.sleep(2.0)
+        # signal once the loop has run (the status file says so), however slow the machine
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and _cycles(status) <= 100:
+            assert proc.poll() is None, proc.communicate()[1]
+            time.sleep(0.05)
         proc.send_signal(signal.SIGTERM)
         stdout, stderr = proc.communicate(timeout=20)
     finally:
