@@ -258,6 +258,7 @@ class Loop:
         k = 0
         half = period * 0.5
         jump_s = max(20.0 * period, 0.5)
+        prev_now = t0
         next_gc = t0 + self.gc_period_s
         simulated = clock.simulated
         margin = clock.spin_margin_s
@@ -272,8 +273,12 @@ class Loop:
                 clock.wait_until(deadline)
                 now = clock.now()
                 lateness = now - deadline
-                if lateness > jump_s:  # clock jump or stall: the output never steps for it
+                # clock jump or stall: the output never steps for it. Late for this deadline,
+                # or far from the last cycle (a jump during the last cycle's work is absorbed
+                # by the skip below, which then waits for a deadline in the new time)
+                if lateness > jump_s or now - prev_now > jump_s:
                     self.guard.clock_jump(now, period)
+                prev_now = now
                 c0 = perf()
                 if late_spans is not None and lateness * 1e9 > late_ns:
                     late_spans.mark(c0 - int(lateness * 1e9), c0)

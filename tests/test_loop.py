@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from compd.app import App
 from compd.clock import Clock
@@ -197,3 +198,26 @@ def test_word_walks_one_lsb_at_the_slew_pace(tmp_path: Path) -> None:
     assert max(abs(q - c) for _, q, c in trace) <= 3.0 + 2 * 2.0 * 0.01 + 1e-9
     word = app.sink.card.read_do_word(0)
     assert word == 0  # safe output after the run
+
+
+def test_a_clock_jump_during_a_cycle_is_seen_and_licenses_no_slew(tmp_path: Path) -> None:
+    """The clock jumps 60 s while a cycle works: the skip to the next deadline must not hide
+    it, and the next cycle licenses one period of slew, not 60 s of it."""
+    app = make_app(tmp_path, slew=2.0)
+    clock = ScriptedClock([])
+    app.loop.clock = clock
+    dts: list[float] = []
+
+    def jump_in_cycle_5(loop, now):  # noqa: ANN001
+        dts.append(loop.guard.dt_s)
+        if len(dts) == 5:
+            clock.t += 60.0
+
+    app.loop.observers.append(jump_in_cycle_5)
+    app.open()
+    stats = app.loop.run(max_cycles=10)
+    app.close()
+    jumps = [e for e in app.guard.events if e[1:3] == ("clock", "jump")]
+    assert len(jumps) == 1 and "+60.0" in jumps[0][3], app.guard.events
+    assert max(dts) == pytest.approx(0.1)
+    assert stats.skipped > 500  # the loop went on from the new time
