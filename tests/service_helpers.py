@@ -1,7 +1,11 @@
-"""Small configs for the service tests: the sim spindle and a replay log with a sensor fault."""
+"""Small configs for the service tests (the sim spindle, a replay log with a sensor fault) and a
+wait for a daemon's status file."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -53,3 +57,21 @@ sink: {{kind: pci1756}}
         encoding="utf-8",
     )
     return path
+
+
+def wait_running(
+    status_file: Path, proc: subprocess.Popen, timeout_s: float = 120, *, after_cycles: int = 0
+) -> dict:
+    """The daemon's status once it says running with more than `after_cycles` cycles; the
+    process must stay alive meanwhile."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        assert proc.poll() is None, proc.communicate()
+        try:
+            data = json.loads(status_file.read_text())
+            if data["state"] == "running" and data["loop"]["cycles"] > after_cycles:
+                return data
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.02)
+    raise AssertionError(f"the daemon never reported running in {status_file}")

@@ -30,6 +30,8 @@ from typing import Any
 import pytest
 import yaml
 
+from tests.service_helpers import wait_running
+
 ROOT = Path(__file__).resolve().parent.parent
 GUIDE = ROOT / "docs" / "commissioning.md"
 README = ROOT / "README.md"
@@ -117,20 +119,6 @@ def read_csv(path: Path) -> dict[str, list[float]]:
     with open(path, newline="") as fh:
         rows = list(csv.reader(fh))
     return {name: [float(r[i]) for r in rows[1:]] for i, name in enumerate(rows[0])}
-
-
-def wait_running(status_file: Path, proc: subprocess.Popen, timeout_s: float = 120) -> dict:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        assert proc.poll() is None, proc.communicate()
-        try:
-            data = json.loads(status_file.read_text())
-            if data["state"] == "running" and data["loop"]["cycles"] > 0:
-                return data
-        except (OSError, ValueError, KeyError):
-            pass
-        time.sleep(0.02)
-    raise AssertionError(f"the daemon never reported running in {status_file}")
 
 
 # What the walk checks beyond the output the page shows, by the command's start.

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +16,7 @@ from compd.app import App
 from compd.clock import Clock
 from compd.codec import decode
 from compd.config import load_config
+from tests.service_helpers import wait_running
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -121,13 +121,6 @@ def test_slew_limit_never_exceeded(tmp_path: Path) -> None:
     assert last[0] < 0  # it did move (toward minus the growth)
 
 
-def _cycles(status: Path) -> int:
-    try:
-        return int(json.loads(status.read_text())["loop"]["cycles"])
-    except (OSError, ValueError, KeyError):
-        return 0
-
-
 def test_sigterm_emits_safe_output_and_exits_0(tmp_path: Path) -> None:
     p = tmp_path / "c.yaml"
     status = tmp_path / "status.json"
@@ -145,10 +138,7 @@ def test_sigterm_emits_safe_output_and_exits_0(tmp_path: Path) -> None:
     )
     try:
         # signal once the loop has run (the status file says so), however slow the machine
-        deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline and _cycles(status) <= 100:
-            assert proc.poll() is None, proc.communicate()[1]
-            time.sleep(0.05)
+        wait_running(status, proc, 60.0, after_cycles=100)
         proc.send_signal(signal.SIGTERM)
         stdout, stderr = proc.communicate(timeout=20)
     finally:
