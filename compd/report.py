@@ -88,7 +88,10 @@ def _influence(ax: Any, outcome: Any) -> None:
 
 
 def _curves(ax: Any, outcome: Any, log: Log, e: np.ndarray) -> None:
-    """E(y) along the stroke at several heating times, with the measured points near them."""
+    """E(y) along the stroke at four heating times: the model's profile at that instant (line), and
+    for the rows logged within ±`window` of it the measured error (dots) beside the model's
+    prediction at those same rows (crosses): like with like, a misfit shows as dots off their
+    crosses, not as dots from another time off a line of this one."""
     from compd.fitting import clone
     from compd.models.feed_axis import error_profile_um
 
@@ -96,7 +99,11 @@ def _curves(ax: Any, outcome: Any, log: Log, e: np.ndarray) -> None:
     X = log.matrix(model.inputs)
     t_rel, q = model.heating(X, log.t_s)
     pos = X[:, model._i_pos]
+    pred = outcome.pred[:, 0]
     span = max(float(t_rel[-1]), 1.0)
+    steps = np.diff(log.t_s)
+    step = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 1.0
+    window = max(2.0 * step, 120.0)  # thermal states hardly change in two minutes; strokes cover the axis
     p = model.params
     for frac in (0.25, 0.5, 0.75, 1.0):
         tt = frac * span
@@ -106,10 +113,14 @@ def _curves(ax: Any, outcome: Any, log: Log, e: np.ndarray) -> None:
             curve = model.field_profile_um(X, row, y)
         else:
             y, curve = error_profile_um(tt, float(np.interp(tt, t_rel, q)), p)
-        line = ax.plot(y, curve, "-", label=f"t = {tt / 60:.0f} min")[0]
-        near = np.abs(t_rel - tt) <= 0.05 * span
-        ax.plot(pos[near], e[near], ".", ms=3, color=line.get_color())
+        line = ax.plot(y, curve, "-", lw=1.0, label=f"t = {tt / 60:.0f} min")[0]
+        near = np.abs(t_rel - tt) <= window
+        ax.plot(pos[near], e[near], ".", ms=4, color=line.get_color())
+        ax.plot(pos[near], pred[near], "x", ms=4, color=line.get_color())
+    ax.plot([], [], "k.", label="measured")
+    ax.plot([], [], "kx", label="model, same rows")
     ax.set_xlabel("position / mm")
     ax.set_ylabel("E / µm")
-    ax.set_title("E(t, y) along the stroke (lines: model, dots: measured)")
-    ax.legend(fontsize=8)
+    ax.set_title(f"E(t, y) along the stroke: lines the model at t; dots measured and crosses the model on the"
+                 f" rows within ±{window:.0f} s", fontsize=9)
+    ax.legend(fontsize=8, ncol=2)

@@ -20,24 +20,41 @@ KINDS = ("feed_axis", "lvr", "xi_spindle", "ar1", "mlr")
 
 FITS = Registry("model", {kind: (f"compd.identify.{kind}", "fit") for kind in KINDS})
 OPTIONS = Registry("model", {kind: (f"compd.identify.{kind}", "Options") for kind in KINDS})
+CHOICES = Registry("model", {kind: (f"compd.identify.{kind}", "choices") for kind in KINDS})
+# the fit option every kind takes: the inputs' sensor lag (compd.identify.lag); the MLR baseline
+# stays the papers' model unless asked
+COMMON_OPTIONS = {"lag": "the inputs' sensor lag: auto (chosen held out; off where it does not help), off,"
+                         " seconds for every temperature input, or {input: seconds}; default auto (mlr: off)"}
+
+
+def default_lag(kind: str) -> str:
+    """The `lag` option when none is given: auto, but off for mlr (the papers' baseline)."""
+    return "off" if kind == "mlr" else "auto"
 
 
 def identify(
     kind: str, log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any
 ) -> FitResult:
-    """Fit a model of `kind` to a log (`compd fit`).
+    """Fit a model of `kind` to a log (`compd fit`), with its inputs' sensor lag (compd.identify.lag).
 
     `inputs`/`targets` None means the kind's defaults (every temperature column, every
-    `err_*_um` column); `options` are validated against the kind's `Options`. The report
-    holds what is specific to the kind (Q², Ljung–Box, convergence); compd.fitting adds the
-    common figures (rows, RMSE, max error, fit time).
+    `err_*_um` column); `options` are validated against the kind's `Options` (plus `lag`). The
+    report holds what is specific to the kind (Q², Ljung–Box, convergence, the lag); compd.fitting
+    adds the common figures (rows, RMSE, max error, fit time).
     """
-    return FITS.get(kind, path="--kind")(log, inputs, targets, **options)
+    from compd.identify.lag import fit_with_lag
+
+    fit = FITS.get(kind, path="--kind")
+    options = dict(options)
+    lag = options.pop("lag", default_lag(kind))
+    return fit_with_lag(
+        log, targets, lambda lg, opts: fit(lg, inputs, targets, **opts), options, lag, CHOICES.get(kind)
+    )
 
 
 def option_names(kind: str) -> set[str]:
     """The fit options `kind` takes."""
-    return set(OPTIONS.get(kind).model_fields)
+    return set(OPTIONS.get(kind).model_fields) | set(COMMON_OPTIONS)
 
 
 def options_help(width: int = 100) -> str:
@@ -46,6 +63,8 @@ def options_help(width: int = 100) -> str:
     import textwrap
 
     lines = ["fit options per kind (--option KEY=VALUE, the value read as YAML):"]
+    for name, text in COMMON_OPTIONS.items():
+        lines += textwrap.wrap(f"every kind: {name}: {text}", width, initial_indent="  ", subsequent_indent="      ")
     for kind in KINDS:
         fields = OPTIONS.get(kind).model_fields
         lines.append(f"  {kind}:" + ("" if fields else " none"))

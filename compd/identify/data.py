@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import math
+import re
 import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -13,6 +13,7 @@ from pydantic import ValidationError
 
 from compd.config import Strict
 from compd.errors import BadInput
+from compd.identify import holdout
 from compd.log import Log, error_axis
 
 if TYPE_CHECKING:
@@ -56,6 +57,14 @@ def default_inputs(log: Log, inputs: Sequence[str] | None) -> list[str]:
     return names
 
 
+AMBIENT_NAME = re.compile(r"amb|room|air", re.IGNORECASE)
+
+
+def ambient_columns(log: Log) -> list[str]:
+    """The temperature columns whose names say they read the room's air (amb, room, air)."""
+    return [c for c in log.temperature_columns() if AMBIENT_NAME.search(c)]
+
+
 def default_targets(log: Log, targets: Sequence[str] | None) -> list[str]:
     """The named targets, or every `err_<axis>_um` column of the log."""
     names = list(targets) if targets else log.error_columns()
@@ -86,6 +95,30 @@ def columns(log: Log, names: Sequence[str]) -> np.ndarray:
     return X
 
 
+def target_columns(log: Log, names: Sequence[str]) -> np.ndarray:
+    """Target columns (n × k), NaN where the error was not measured (or a held-out fold hides it).
+
+    A fit takes its loss over the rows whose targets are all finite (`measured_rows`) while its
+    inputs run through every row, so a model with memory (the AR(1) state, a sensor's lag) is
+    simulated through the rows it does not fit. An infinite cell, or a target never measured, is
+    BadInput naming the column."""
+    Y = log.matrix(names)
+    bad = np.isinf(Y)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise BadInput("infinite cell in a target column", file=log.file, line=int(row) + 2, path=names[int(col)])
+    for j, name in enumerate(names):
+        if not np.isfinite(Y[:, j]).any():
+            raise BadInput("the target column has no measured error", file=log.file, path=name)
+    return Y
+
+
+def measured_rows(Y: np.ndarray) -> np.ndarray:
+    """Rows where every target (column of Y) is finite: the rows a fit's loss counts."""
+    Y = np.asarray(Y, dtype=float)
+    return np.isfinite(Y).all(axis=1) if Y.ndim == 2 else np.isfinite(Y)
+
+
 def require_rows(log: Log, n: int, need: int, why: str) -> None:
     """BadInput unless `n` ≥ `need` rows."""
     if n < need:
@@ -110,59 +143,13 @@ def progress(iterable: Iterable[Any], desc: str, total: int | None = None) -> It
     return tqdm(iterable, desc=desc, total=total, delay=1.0, leave=False, file=sys.stderr)
 
 
-HOLDOUT_BLOCKS = 3  # the log in three contiguous time blocks: two forward-chained folds
-HELD_OUT_METHOD = (
-    f"forward-chained blocks: the log in {HOLDOUT_BLOCKS} time blocks, each block after the first"
-    " predicted by a fit on the blocks before it"
-)
-
-
-def holdout_edges(n: int) -> np.ndarray:
-    """Row indices bounding the HOLDOUT_BLOCKS time blocks of an n-row log (block k is edges[k]:edges[k+1])."""
-    return np.linspace(0, n, HOLDOUT_BLOCKS + 1).astype(int)
-
-
-def forward_fold_errors(
-    log: Log, targets: Sequence[str], fit_on: Callable[[Log], FitResult]
-) -> list[tuple[np.ndarray, np.ndarray] | str]:
-    """Per forward-chained fold, (sum of squared errors µm², rows) per target, or why the fold could not be fitted.
-
-    Fold k fits on the blocks before block k (a contiguous stretch from the log's start, so a
-    model with memory starts as it would on the machine), predicts the whole log and is scored
-    on block k only. Scoring rows next to training rows would flatter a model that follows the
-    temperatures closely; predicting forward does not.
-    """
-    edges = holdout_edges(len(log))
-    Y = columns(log, targets)
-    folds: list[tuple[np.ndarray, np.ndarray] | str] = []
-    for k in range(1, HOLDOUT_BLOCKS):
-        try:
-            model = fit_on(Log(log.file, log.columns, log.data[: edges[k]])).model
-        except (BadInput, ValidationError, ValueError, np.linalg.LinAlgError) as exc:
-            folds.append(f"block {k + 1}: {exc}")
-            continue
-        pred = model.predict(log.matrix(model.inputs), log.t_s)
-        out = [model.outputs.index(a) if a in model.outputs else 0 for a in map(error_axis, targets)]
-        r = (Y - pred[:, out])[edges[k]: edges[k + 1]]
-        ok = np.isfinite(r)
-        folds.append(((np.where(ok, r, 0.0) ** 2).sum(axis=0), ok.sum(axis=0)))
-    return folds
+# every held-out figure of a fit or a report: compd.identify.holdout (folds at days or duty changes)
+HELD_OUT_METHOD = holdout.METHOD
 
 
 def compare_forms(
     log: Log, target: str, forms: dict[str, Callable[[Log], FitResult]]
 ) -> tuple[dict[str, float | str], list[int]]:
-    """Held-out RMSE (µm) of each form over the forward-chained folds that every form could be fitted on.
-
-    Returns ({form: RMSE, or why it could not be scored}, the folds used, 1-based blocks)."""
-    folds = {name: forward_fold_errors(log, [target], fit_on) for name, fit_on in forms.items()}
-    usable = [k for k in range(HOLDOUT_BLOCKS - 1) if all(not isinstance(f[k], str) for f in folds.values())]
-    out: dict[str, float | str] = {}
-    for name, f in folds.items():
-        scored = [f[k] for k in usable]
-        count = sum(int(c[0]) for _, c in scored)  # type: ignore[misc]
-        if count:
-            out[name] = math.sqrt(sum(float(sq[0]) for sq, _ in scored) / count)  # type: ignore[misc]
-        else:
-            out[name] = "; ".join(x for x in f if isinstance(x, str)) or "no held-out rows"
-    return out, [k + 2 for k in usable]
+    """Held-out RMSE (µm) of each form over the folds every form could be fitted on
+    (compd.identify.holdout.compare). Returns ({form: RMSE or why not}, the folds used, 1-based)."""
+    return holdout.compare(log, target, forms)

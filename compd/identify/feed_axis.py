@@ -39,14 +39,17 @@ from scipy import optimize, special
 from compd.config import Strict
 from compd.errors import BadInput
 from compd.identify.data import (
+    AMBIENT_NAME,
     HELD_OUT_METHOD,
     FitResult,
     axis_names,
     columns,
     compare_forms,
     default_targets,
+    measured_rows,
     progress,
     require_rows,
+    target_columns,
     validate_options,
 )
 from compd.log import Log
@@ -147,12 +150,20 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
                       " log carries of field, analytic, position_poly",
             "held_out_rmse_um": held,
         })
-    best = min(scored, key=scored.__getitem__)
+    # the fewest coefficients whose held-out RMSE is within 5 % of the best: the analytic form's few,
+    # the field's gains, then the position regression's sensors × powers
+    lowest = min(scored.values())
+    best = next(k for k in SIMPLEST_FIRST if k in scored and scored[k] * FORM_MARGIN <= lowest)
     return _named(forms[best](log), best, {
-        "method": HELD_OUT_METHOD + "; the form with the smaller RMSE is kept",
+        "method": HELD_OUT_METHOD + f"; the form with the fewest coefficients within {1 / FORM_MARGIN - 1:.0%} of"
+                  " the smallest RMSE is kept (analytic, field, position_poly1, position_poly2)",
         "held_out_blocks": blocks,
         "held_out_rmse_um": held,
     })
+
+
+SIMPLEST_FIRST = ("analytic", "field", "position_poly1", "position_poly2", "position_poly3")
+FORM_MARGIN = 0.95  # a form with more coefficients must cut the held-out RMSE by 5 % to be kept
 
 
 def _named(result: FitResult, form: str, selection: dict[str, Any]) -> FitResult:
@@ -176,9 +187,10 @@ def _fit_poly(log: Log, targets: list[str], axis: str, opt: Options, temps: list
     pos_col = opt.position or f"pos_{axis}_mm"
     names = [pos_col, *temps]
     X = columns(log, names)
-    E = columns(log, targets)[:, 0]
+    E = target_columns(log, targets)[:, 0]
+    ok = measured_rows(E)
     n_coef = len(temps) * (degree + 1)
-    require_rows(log, X.shape[0], n_coef + 3, f"feed_axis position_poly form ({n_coef} coefficients)")
+    require_rows(log, int(ok.sum()), n_coef + 3, f"feed_axis position_poly form ({n_coef} coefficients)")
     if np.ptp(X[:, 0]) <= 0:
         raise BadInput("the axis never moves: E(t, y) needs several positions", file=log.file, path=pos_col)
     length = opt.length_mm or float(np.max(X[:, 0]) - opt.stroke_start_mm)
@@ -187,7 +199,7 @@ def _fit_poly(log: Log, targets: list[str], axis: str, opt: Options, temps: list
     u = np.clip(X[:, 0] - opt.stroke_start_mm, 0.0, length) / length
     R = X[:, 1:] - X[0, 1:]
     A = (R[:, :, None] * (u[:, None, None] ** np.arange(degree + 1))).reshape(len(E), -1)
-    coef, *_ = np.linalg.lstsq(A, E, rcond=None)
+    coef, *_ = np.linalg.lstsq(A[ok], E[ok], rcond=None)
     B = coef.reshape(len(temps), degree + 1)
     params = FeedAxisParams(
         length_mm=length, segments=opt.segments, stroke_start_mm=opt.stroke_start_mm, alpha_per_k=opt.alpha_per_k,
@@ -199,7 +211,6 @@ def _fit_poly(log: Log, targets: list[str], axis: str, opt: Options, temps: list
 
 
 _NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<mm>\d+(?:\.\d+)?)(?:_?mm)?$", re.IGNORECASE)
-_AMBIENT = re.compile(r"amb|room", re.IGNORECASE)
 
 
 def _field_layout(log: Log, temps: list[str], opt: Options, pos_col: str) -> dict[str, Any] | None:
@@ -219,7 +230,7 @@ def _field_layout(log: Log, temps: list[str], opt: Options, pos_col: str) -> dic
     names = [c for c, _ in slide]
     ambient = opt.ambient
     if ambient is None:
-        amb = [c for c in temps if _AMBIENT.search(c) and c not in names]
+        amb = [c for c in temps if AMBIENT_NAME.search(c) and c not in names]
         ambient = amb[0] if len(amb) == 1 else None
     elif ambient not in log.columns:
         raise BadInput(f"the log has no ambient column {ambient}", file=log.file, path="--ambient")
@@ -270,9 +281,10 @@ def _fit_field(log: Log, targets: list[str], axis: str, opt: Options, layout: di
     names = [pos_col] + [c for c, _ in slide] + ([amb] if amb else []) + offs
     roles = ["position"] + ["slide"] * len(slide) + (["ambient"] if amb else []) + ["offset"] * len(offs)
     X = columns(log, names)
-    E = columns(log, targets)[:, 0]
-    n_coef = 2 + bool(amb) + len(offs)
-    require_rows(log, X.shape[0], n_coef + 3, f"feed_axis field form ({n_coef} coefficients)")
+    E = target_columns(log, targets)[:, 0]
+    ok = measured_rows(E)
+    n_coef = 3 + bool(amb) + len(offs)
+    require_rows(log, int(ok.sum()), n_coef + 3, f"feed_axis field form ({n_coef} coefficients)")
     if np.ptp(X[:, 0]) <= 0:
         raise BadInput("the axis never moves: E(t, y) needs several positions", file=log.file, path=pos_col)
     length = layout["length_mm"]
@@ -287,13 +299,13 @@ def _fit_field(log: Log, targets: list[str], axis: str, opt: Options, layout: di
         slide_mm=[m for _, m in slide], gain_integral=1.0, offset_um_per_k=[0.0] * len(offs)))
     rise = X - X[0]
     F = field_terms(rise[:, 1:1 + k], X[:, 0] - opt.stroke_start_mm, rise[:, 1 + k] if amb else None, probe)
-    A = np.column_stack([F[:, 0], F[:, 1]] + ([F[:, 2]] if amb else []) + [rise[:, 1 + k + bool(amb) + j]
-                                                                           for j in range(len(offs))])
-    coef, *_ = np.linalg.lstsq(A, E, rcond=None)
-    g_amb = float(coef[2]) if amb else 0.0
+    A = np.column_stack([F[:, 0], F[:, 1], F[:, 3]] + ([F[:, 2]] if amb else [])
+                        + [rise[:, 1 + k + bool(amb) + j] for j in range(len(offs))])
+    coef, *_ = np.linalg.lstsq(A[ok], E[ok], rcond=None)
+    g_amb = float(coef[3]) if amb else 0.0
     params = FeedAxisParams(**geometry, field=SlideField(
         slide_mm=[m for _, m in slide], gain_integral=float(coef[0]), gain_restraint=float(coef[1]),
-        gain_ambient=g_amb, offset_um_per_k=[float(v) for v in coef[2 + bool(amb):]],
+        gain_constant=float(coef[2]), gain_ambient=g_amb, offset_um_per_k=[float(v) for v in coef[3 + bool(amb):]],
     ))
     model = FeedAxis(params, names, [axis])
     report = {
@@ -301,7 +313,7 @@ def _fit_field(log: Log, targets: list[str], axis: str, opt: Options, layout: di
         "slide_sensors_from": layout["found"],
         "ambient": amb,
         "offsets": offs,
-        "note": "the field form: E = g_I α∫ΔT̂ + g_R α(y/L)∫_0^L ΔT̂ + g_A α y ΔT_amb + Σ b_o ΔT_o,"
+        "note": "the field form: E = g_I α∫ΔT̂ + g_R α(y/L)∫_0^L ΔT̂ + g_C α∫_0^L ΔT̂ + g_A α y ΔT_amb + Σ b_o ΔT_o,"
                 " rises from the readings at start",
     }
     return FitResult(model, report)
@@ -311,8 +323,8 @@ def _fit_analytic(log: Log, targets: list[str], axis: str, opt: Options) -> FitR
     """Bounded nonlinear least squares of (η, U1, U2, χ[, a, τ]) against the logged error."""
     names, roles, cur_col = _inputs_and_roles(log, opt, axis)
     X = columns(log, names)
-    E = columns(log, targets)[:, 0]
-    require_rows(log, X.shape[0], 8, "feed_axis (4 to 5 coefficients)")
+    E = target_columns(log, targets)[:, 0]
+    require_rows(log, int(measured_rows(E).sum()), 8, "feed_axis (4 to 5 coefficients)")
     t = log.t_s - log.t_s[0]
     pos = X[:, 0]
     if np.ptp(pos) <= 0:
@@ -346,6 +358,7 @@ def _fit_analytic(log: Log, targets: list[str], axis: str, opt: Options) -> FitR
     model = FeedAxis(params, names, [axis])
     report = {
         "converged": bool(res.success),
+        "at_bounds": shape.at_bounds,
         "optimizer": res.message,
         "nfev": int(res.nfev),
         "xi_fixed": opt.xi,
@@ -387,7 +400,10 @@ class _Shape:
         self, opt: Options, t: np.ndarray, pw: np.ndarray, pos: np.ndarray, E: np.ndarray,
         probe: FeedAxisParams, length_mm: float,
     ) -> None:
-        self.opt, self.t, self.pw, self.pos, self.E, self.probe, self.length_mm = opt, t, pw, pos, E, probe, length_mm
+        self.opt, self.t, self.pw, self.pos, self.probe, self.length_mm = opt, t, pw, pos, probe, length_mm
+        # the field runs through every row (its heat is a memory); the residuals count the measured ones
+        self.ok = measured_rows(E)
+        self.E = E[self.ok]
         self.heat = functools.lru_cache(maxsize=64)(self._heat)
         self.a0 = opt.diffusivity_m2_s
         self.free_chi = opt.chi_per_m is None
@@ -397,7 +413,9 @@ class _Shape:
         return leaky_heat_j(self.t, self.pw, tau)
 
     def basis(self, chi: float, a: float, tau: float | None) -> np.ndarray:
-        return self.opt.xi * error_basis(self.t, self.heat(tau), self.pos, self.probe, chi, a, tau, special.erf)
+        """The error's basis (U1, U2, η columns) at the measured rows."""
+        full = error_basis(self.t, self.heat(tau), self.pos, self.probe, chi, a, tau, special.erf)
+        return self.opt.xi * full[self.ok]
 
     def linear(self, chi: float, a: float, tau: float | None) -> tuple[float, np.ndarray]:
         """(sum of squared errors, (U1, U2, η)) by linear least squares at this shape."""
@@ -457,6 +475,14 @@ class _Shape:
             hi.append(math.log(30 * 86400.0))
         x0 = np.clip(x0, np.array(lo) + 1e-12, np.array(hi) - 1e-12)
         res = optimize.least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", max_nfev=2000)
+        names = ["η", "U1", "U2"] + (["χ"] if free_chi else []) + (["a"] if opt.fit_diffusivity else []) + (
+            ["τ"] if free_tau else [])
+        span = np.array(hi) - np.array(lo)
+        self.at_bounds = [
+            f"{name} is at the {'lower' if abs(v - a) <= abs(v - b) else 'upper'} bound of its search range"
+            for name, v, a, b, w in zip(names, res.x, lo, hi, span, strict=True)
+            if min(abs(v - a), abs(v - b)) <= 1e-6 * max(w, 1.0)
+        ]
         return res, unpack(res.x)
 
 
@@ -467,3 +493,9 @@ def _reductions(t: np.ndarray, q: np.ndarray, params: FeedAxisParams) -> dict[st
         k0, tb, p0 = linear_reduction(tt, float(np.interp(tt, t, q)), params)
         reductions[f"{tt:g}"] = {"k0_um": k0, "tan_beta_um_per_mm": tb, "p0_mm": p0}
     return reductions
+
+
+def choices(result: FitResult) -> dict[str, Any]:
+    """What this fit chose beyond its coefficients, as options (compd.identify.lag holds them): the form."""
+    form = result.report["form"]
+    return {"form": form, **({"poly_degree": result.report["degree"]} if form == "position_poly" else {})}

@@ -41,7 +41,8 @@ from pydantic import Field
 
 from compd.config import Strict
 from compd.errors import BadInput
-from compd.identify.data import FitResult, axis_names, require_rows, validate_options
+from compd.identify import holdout
+from compd.identify.data import FitResult, axis_names, measured_rows, require_rows, validate_options
 from compd.identify.mlr import linear_data, rise_stats, rises
 from compd.log import Log
 from compd.models.lvr import LVR, LVRParams
@@ -158,12 +159,20 @@ def coef_path(model: PLSModel) -> tuple[np.ndarray, np.ndarray]:
     return coefs, intercepts
 
 
+Block = tuple[int, int] | list[tuple[int, int]]  # (first, end) rows, or several such ranges (a duty level)
+
+
+def _block_ranges(block: Block) -> list[tuple[int, int]]:
+    return [block] if isinstance(block, tuple) else list(block)  # type: ignore[list-item]
+
+
 def blocked_press(
-    X: np.ndarray, Y: np.ndarray, max_components: int, blocks: list[tuple[int, int]], guard_rows: int
+    X: np.ndarray, Y: np.ndarray, max_components: int, blocks: list[Block], guard_rows: int
 ) -> np.ndarray:
     """PRESS of each held-out block, K × (h + 1), in full-data standardised Y units.
 
-    Block k is rows `blocks[k]` = (first, end) of X and Y, contiguous in time. It is
+    Block k is rows `blocks[k]` = (first, end) of X and Y, contiguous in time, or a list of
+    such ranges (a duty level's runs, compd.identify.holdout.level_folds). It is
     predicted by a fit on the rows outside it less `guard_rows` rows on each side of it
     (they share its noise: `guard_rows_from_residuals`), standardised on those rows as
     a fit on them alone is. Column 0 is the model without components (the training
@@ -175,16 +184,20 @@ def blocked_press(
     y_std_full = Y.std(axis=0, ddof=1)
     y_std_full[y_std_full == 0.0] = 1.0
     press = np.zeros((len(blocks), A + 1))
-    rows = np.arange(n)
-    for k, (lo, hi) in enumerate(blocks):
-        train = (rows < lo - guard_rows) | (rows >= hi + guard_rows)
+    for k, block in enumerate(blocks):
+        held = np.zeros(n, dtype=bool)
+        train = np.ones(n, dtype=bool)
+        for lo, hi in _block_ranges(block):
+            held[lo:hi] = True
+            train[max(lo - guard_rows, 0):hi + guard_rows] = False
         n_train = int(train.sum())
         if n_train < rows_needed(A):
+            first, last = int(np.argmax(held)), n - 1 - int(np.argmax(held[::-1]))
             raise ValueError(
-                f"holding out rows {lo}..{hi - 1} leaves {n_train} rows to fit, {A} components need {rows_needed(A)}"
+                f"holding out rows {first}..{last} leaves {n_train} rows to fit, {A} components need {rows_needed(A)}"
             )
         Xt, Yt = X[train], Y[train]
-        Xv, Yv = X[lo:hi], Y[lo:hi]
+        Xv, Yv = X[held], Y[held]
         res0 = (Yv - Yt.mean(axis=0)) / y_std_full
         press[k, 0] = float(np.sum(res0 * res0))
         coefs, intercepts = coef_path(fit_pls(Xt, Yt, A))
@@ -361,9 +374,15 @@ def stretches(t_s: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(edges[:-1], edges[1:], strict=True))
 
 
-def train_rows(n: int, blocks: list[tuple[int, int]], guard_rows: int) -> np.ndarray:
-    """Rows each block leaves to fit: n less the block and `guard_rows` rows on each side of it."""
-    return np.array([n - (hi - lo) - min(guard_rows, lo) - min(guard_rows, n - hi) for lo, hi in blocks])
+def train_rows(n: int, blocks: list[Block], guard_rows: int) -> np.ndarray:
+    """Rows each block leaves to fit: n less the block and `guard_rows` rows on each side of its ranges."""
+    out = []
+    for block in blocks:
+        train = np.ones(n, dtype=bool)
+        for lo, hi in _block_ranges(block):
+            train[max(lo - guard_rows, 0):hi + guard_rows] = False
+        out.append(int(train.sum()))
+    return np.array(out)
 
 
 def held_out_blocks(t_s: np.ndarray, n_blocks: int, need: int) -> tuple[list[tuple[int, int]], str]:
@@ -474,7 +493,8 @@ class BlockedDesign:
 
 
 def blocked_design(
-    t_s: np.ndarray, R: np.ndarray, Y: np.ndarray, n_fit: int, n_components: int, opt: Options, file: str
+    t_s: np.ndarray, R: np.ndarray, Y: np.ndarray, n_fit: int, n_components: int, opt: Options, file: str,
+    levels: list[list[tuple[int, int]]] | None = None,
 ) -> BlockedDesign:
     """Blocks and guard band for a fit on the first `n_fit` rows' times (the log's rows or its library's).
 
@@ -488,6 +508,10 @@ def blocked_design(
     (their neighbours lie across the gap), only the span.
     """
     need = rows_needed(n_components)
+    if levels and opt.library_span is None and opt.cv_guard_rows is None and train_rows(n_fit, levels, 0).min() >= need:
+        # the log runs at two or more duty levels: each level held out whole, as an unseen day's duty
+        # (compd.identify.holdout.level_folds); their runs are hours long and end in pauses: no guard band
+        return BlockedDesign(list(levels), "levels", 0, "none")
     blocks, split = held_out_blocks(t_s[:n_fit], opt.cv_blocks, need)
     span = opt.library_span or 0
     if opt.cv_guard_rows is not None:
@@ -544,7 +568,8 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     """Fit PLS on rises (optionally on the sample library), components chosen by blocked CV or LOO Q²."""
     opt = validate_options("lvr", Options, options)
     inputs, targets, X, Y = linear_data(log, inputs, targets)
-    R = rises(X)
+    ok = measured_rows(Y)  # PLS has no memory: the rows without a measured error simply drop out
+    R, Y, t_s = rises(X)[ok], Y[ok], log.t_s[ok]
     p = len(inputs)
     want = opt.n_components or opt.max_components
     if want > p:
@@ -572,7 +597,8 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     design = None
     try:
         if blocked:
-            design = blocked_design(log.t_s, R, Y, R_fit.shape[0], want, opt, log.file)
+            levels = [holdout.on_rows(f, ok) for f in holdout.level_folds(log)] or None
+            design = blocked_design(t_s, R, Y, R_fit.shape[0], want, opt, log.file, levels)
             n_comp, q2, press = select_blocked(R_fit, Y_fit, want, design.blocks, design.guard_rows, opt.q2_limit)
             press_h = press[1:].tolist()
         else:
@@ -605,7 +631,8 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     if design is not None:
         report["cv"] = {
             "split": design.split,
-            "blocks": [[lo, hi - 1] for lo, hi in design.blocks],
+            "blocks": [[[lo, hi - 1] for lo, hi in _block_ranges(b)] if isinstance(b, list) else [b[0], b[1] - 1]
+                       for b in design.blocks],
             "guard_rows": design.guard_rows,
             "guard": design.guard,
             "press_0": float(press[0]),
@@ -619,9 +646,19 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
             for j, name in enumerate(inputs)
         },
     }
+    report["at_bounds"] = []
+    if opt.n_components is None and n_comp == want < p:
+        report["at_bounds"].append(
+            f"{n_comp} components, the most tried (max_components): more might predict better"
+        )
     if q2 and q2[0] < opt.q2_limit:
         report["warning"] = (
             f"even the first component has Q² {q2[0]:.3f} < {opt.q2_limit}: "
             "the inputs predict the error poorly"
         )
     return FitResult(model, report)
+
+
+def choices(result: FitResult) -> dict[str, Any]:
+    """What this fit chose beyond its coefficients, as options (compd.identify.lag holds them): the components."""
+    return {"n_components": int(result.model.params.n_components)}

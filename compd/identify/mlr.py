@@ -14,7 +14,9 @@ from compd.identify.data import (
     columns,
     default_inputs,
     default_targets,
+    measured_rows,
     require_rows,
+    target_columns,
     validate_options,
 )
 from compd.log import Log
@@ -35,11 +37,12 @@ def rises(X: np.ndarray) -> np.ndarray:
 def linear_data(
     log: Log, inputs: list[str] | None, targets: list[str] | None
 ) -> tuple[list[str], list[str], np.ndarray, np.ndarray]:
-    """Inputs, targets, X (raw readings) and Y for a rise model; NaN and constant inputs refused."""
+    """Inputs, targets, X (raw readings) and Y for a rise model; NaN and constant inputs refused,
+    Y NaN where the error was not measured (compd.identify.data.target_columns)."""
     inputs = default_inputs(log, inputs)
     targets = default_targets(log, targets)
     X = columns(log, inputs)
-    Y = columns(log, targets)
+    Y = target_columns(log, targets)
     check_not_constant(log, X, inputs)
     return inputs, targets, X, Y
 
@@ -49,20 +52,28 @@ class Options(Strict):
 
 
 def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any) -> FitResult:
-    """Ordinary least squares of E on [1, T − T(first row)]."""
+    """Ordinary least squares of E on [1, T − T(first row)], over the rows with the error measured."""
     validate_options("mlr", Options, options)
     inputs, targets, X, Y = linear_data(log, inputs, targets)
-    require_rows(log, X.shape[0], len(inputs) + 2, f"mlr with {len(inputs)} inputs")
+    ok = measured_rows(Y)
+    require_rows(log, int(ok.sum()), len(inputs) + 2, f"mlr with {len(inputs)} inputs")
     model = fit_mlr_model(inputs, axis_names(targets), X, Y)
-    return FitResult(model, {"rank": int(np.linalg.matrix_rank(rises(X)))})
+    return FitResult(model, {"rank": int(np.linalg.matrix_rank(rises(X)[ok]))})
 
 
 def fit_mlr_model(inputs: list[str], axes: list[str], X: np.ndarray, Y: np.ndarray) -> MLR:
-    """The MLR model of Y on the rises of X (used as the baseline by every report)."""
-    R = rises(X)
+    """The MLR model of Y on the rises of X from its first row (used as the baseline by every
+    report); rows where a target is NaN do not enter the least squares."""
+    ok = measured_rows(Y)
+    R = rises(X)[ok]
     A = np.hstack([np.ones((R.shape[0], 1)), R])
-    sol, *_ = np.linalg.lstsq(A, Y, rcond=None)
+    sol, *_ = np.linalg.lstsq(A, Y[ok], rcond=None)
     params = RiseLinearParams(
         coef_um_per_k=sol[1:].tolist(), intercept_um=sol[0].tolist(), t0_c=None, **rise_stats(R)
     )
     return MLR(params, inputs, axes)
+
+
+def choices(result: FitResult) -> dict[str, Any]:
+    """Nothing beyond its coefficients."""
+    return {}

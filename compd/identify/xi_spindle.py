@@ -15,7 +15,9 @@ from compd.identify.data import (
     axis_names,
     columns,
     default_targets,
+    measured_rows,
     require_rows,
+    target_columns,
     validate_options,
 )
 from compd.log import Log
@@ -96,19 +98,24 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
             path="--target",
         )
     radial = len(targets) == 2
+    chosen = None
+    if not inputs and not radial and len(log.temperature_columns()) > 1:
+        inputs, chosen = _xi_sensor(log, targets, opt)
     inputs = _inputs(log, opt, inputs, radial)
     speed = opt.speed_input if opt.speed_input in inputs else None
     temps = [c for c in inputs if c != speed]
     X = columns(log, temps)
-    E = columns(log, targets)
-    gain, length = _axial_gain(log, opt, X[:, 0], E[:, 0], temps[0])
+    E = target_columns(log, targets)
+    ok = measured_rows(E)  # the loss counts the rows with every target measured
+    rise = X[:, 0] - X[0, 0]  # from the reading at start, as the model's T0
+    gain, length = _axial_gain(log, opt, rise[ok], E[ok, 0], temps[0])
     report: dict[str, Any] = {}
     lift = None
     if speed is not None:
         n2 = columns(log, [speed])[:, 0] ** 2
-        if not np.any(n2 > 0):
+        if not np.any(n2[ok] > 0):
             raise BadInput("the speed input is 0 throughout: the lift k cannot be fitted", file=log.file, path=speed)
-        gain, k = _fit_gain_and_lift(X[:, 0] - X[0, 0], n2, E[:, 0], gain, LIFT_SHARE)
+        gain, k = _fit_gain_and_lift(rise[ok], n2[ok], E[ok, 0], gain, LIFT_SHARE)
         length = _length_mm(log, opt, gain, temps[0])
         lift = LiftParams(k_um_per_rpm2=k, speed_input=speed, preload_share=LIFT_SHARE)
         report["k_um_per_rpm2"] = k
@@ -120,11 +127,13 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
             preload_share=LIFT_SHARE, **given,
         )
         if opt.ring_gains:
-            g_out, g_in = _ring_gains(log, temps, targets, opt, length, rad, E[:, 1])
+            g_out, g_in = _ring_gains(log, temps, targets, opt, length, rad, E[:, 1], ok)
             rad = rad.model_copy(update={"outer_gain": g_out, "inner_gain": g_in})
             report["outer_gain"], report["inner_gain"] = g_out, g_in
         report["radial_form"] = "ring_gains" if opt.ring_gains else "paper"
     report = {"gain_um_per_k": gain, "length_mm": length, **report}
+    if chosen is not None:
+        report["inputs_chosen"] = chosen
     params = XiSpindleParams(
         alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, lift=lift, radial=rad
     )
@@ -138,7 +147,7 @@ LIFT_SHARE = 0.8
 
 def _ring_gains(
     log: Log, temps: list[str], targets: list[str], opt: Options, length_mm: float, rad: RadialParams,
-    e_um: np.ndarray,
+    e_um: np.ndarray, ok: np.ndarray,
 ) -> tuple[float, float]:
     """(g_C, g_B) ≥ 0 minimising Σ (e − g_C u_C + g_B u_B − c)², u and c as the model computes them.
 
@@ -155,13 +164,13 @@ def _ring_gains(
     u_c = term(inner_gain=0.0, outer_gain=1.0, clearance=False)
     u_b = -term(inner_gain=1.0, outer_gain=0.0, clearance=False)
     c = term(inner_gain=0.0, outer_gain=0.0) if rad.clearance else np.zeros_like(u_c)
-    A = np.column_stack([u_c, -u_b])
+    A = np.column_stack([u_c, -u_b])[ok]
     if not np.any(A):
         raise BadInput(
             "the ring sensors never change: the ring gains cannot be fitted (--option ring_gains=false)",
             file=log.file, path="--inputs",
         )
-    g, _ = optimize.nnls(A, e_um - c)
+    g, _ = optimize.nnls(A, (e_um - c)[ok])
     if np.any(g > 10.0):
         raise BadInput(
             f"the ring gains come out at {g[0]:.3g} (outer), {g[1]:.3g} (inner), beyond 10: the radial error"
@@ -169,6 +178,29 @@ def _ring_gains(
             file=log.file, path="--inputs",
         )
     return float(g[0]), float(g[1])
+
+
+def _xi_sensor(log: Log, targets: list[str], opt: Options) -> tuple[list[str], dict[str, Any]]:
+    """The ξ sensor when --inputs names none and the log has several temperatures: the one whose
+    axial model (with the lift where the log has the speed) predicts the held-out folds best
+    (compd.identify.holdout). Returns (inputs, what the report says)."""
+    from compd.identify import holdout
+
+    speed = [opt.speed_input] if opt.speed_input in log.columns else []
+    tried: dict[str, float | str] = {}
+    for c in log.temperature_columns():
+        try:
+            rmse = holdout.held_out_rmse(log, targets, lambda lg, c=c: fit(lg, [c, *speed], targets, **opt.model_dump()))
+            tried[c] = float(rmse[0])
+        except (BadInput, ValueError) as e:
+            tried[c] = str(e)
+    scored = {c: v for c, v in tried.items() if isinstance(v, float)}
+    if not scored:
+        raise BadInput("no temperature column of the log works as the ξ sensor: name it with --inputs",
+                       file=log.file, path="--inputs")
+    best = min(scored, key=scored.__getitem__)
+    return [best, *speed], {"inputs": [best, *speed], "method": holdout.METHOD + "; the ξ sensor with the"
+                            " smallest held-out RMSE", "held_out_rmse_um": tried}
 
 
 def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> list[str]:
@@ -203,10 +235,9 @@ def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> l
     return list(inputs)
 
 
-def _axial_gain(log: Log, opt: Options, x: np.ndarray, e: np.ndarray, name: str) -> tuple[float, float]:
+def _axial_gain(log: Log, opt: Options, rise: np.ndarray, e: np.ndarray, name: str) -> tuple[float, float]:
     """(gain α L µm/K, L mm): the gain by least squares through the origin of the error on the ξ sensor's rise."""
-    require_rows(log, x.size, 3, "xi_spindle")
-    rise = x - x[0]
+    require_rows(log, rise.size, 3, "xi_spindle")
     ss = float(rise @ rise)
     if ss == 0.0:
         raise BadInput("the ξ sensor never changes", file=log.file, path=name)
@@ -296,3 +327,8 @@ def _argmin_piecewise(
     p = np.where(ok, p, 0.0)
     sse = np.where(ok, q * p * p - 2.0 * b * p + c, np.inf)
     return float(p[int(np.argmin(sse))])
+
+
+def choices(result: FitResult) -> dict[str, Any]:
+    """Nothing beyond its coefficients: the ξ fit has no form to choose."""
+    return {}

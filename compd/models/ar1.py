@@ -1,14 +1,17 @@
 """AR(1) spindle elongation model with speed-dependent C2, bed term and ambient input (paper 001).
 
 Every Δτ the spindle growth steps as S(k) = C1 S(k−1) + C2(n_k) + C3 ΔT_amb(k) (eq. 12 of
-paper 001 with the ambient as exogenous input; C3 = 0 is the paper), starting as eq. 17 does
+paper 001 with the ambient as exogenous input; C3 = 0 is the paper), plus Σ_x C_x ΔT_x(k)
+for the temperatures the spindle exchanges heat with besides the air (compd's form: the
+housing its bearings sit in, `exchange_um_per_k`; the rod model with a boundary that warms), starting as eq. 17 does
 from S(0) = 0 at the first step after a cold start (`recursion_start: zero`); model files
 written before that rule have no `recursion_start` and keep theirs, S(0) = C2(n_0) (`c2`,
 see `AR1Params.upgrade`). The error is
 E(k) = Σ_j g_j ΔT_j(k) + s·S(k): for the paper's lathe Z axis the bed sensors enter
 with g = α_bed L_bed and the spindle with s = −1 (error = bed growth − spindle growth).
-C2(n) is piecewise linear in the spindle speed n through (0, 0) and the fitted levels,
-held at the last level above it. The state S is the model's memory.
+C2(n) is piecewise linear in the spindle speed n between the fitted levels; outside them,
+compd's fits write the power law C2(level)·(n/level)^e (`c2_exponent`, 1 by default:
+proportional), files before it the line through (0, 0) below and the last level held above. The state S is the model's memory.
 
 compd's speed-dependent form (`c1_table`): C1 = e^(−b Δτ) with b = 2h/(ρcR), and a turning
 spindle's convection h grows with its speed, so b is fitted at standstill and at each
@@ -31,8 +34,8 @@ from compd.models.base import (
     MAX_SPEED_RPM,
     TEMP_MAX_C,
     TEMP_MIN_C,
+    LeadParams,
     Model,
-    ModelParams,
     check_length,
     step_rows,
 )
@@ -57,13 +60,18 @@ def coefficients_from_physics(
 SpeedRpm = Annotated[float, Field(gt=0, le=MAX_SPEED_RPM)]
 
 
-class AR1Params(ModelParams):
-    """AR(1) model params. Inputs: [speed, *bed sensors, ambient (when c3_um_per_k is set)]."""
+class AR1Params(LeadParams):
+    """AR(1) model params. Inputs: [speed, *bed sensors, ambient (when c3_um_per_k is set), *exchange sensors]."""
 
     dt_s: float = Field(gt=0, le=86400, description="Δτ, the model step (paper: 30–60 s), at most a day")
     c1: float = Field(gt=0, lt=1, description="C1 = e^(−b Δτ) (at standstill when c1_table is set)")
     c2_table: list[tuple[SpeedRpm, Annotated[float, Field(ge=0, le=MAX_ERROR_UM)]]] = Field(
         default_factory=list, description="(speed rpm, C2 µm ≥ 0) nodes; C2(0) = 0 is implied"
+    )
+    c2_exponent: float | None = Field(
+        None, ge=0.5, le=3.0,
+        description="C2 at speeds outside the table: C2(nearest node)·(n/node)^e (bearing friction heat ∝ n^e);"
+        " none = linear from (0, 0) below the first node and constant past the last (files before the key)",
     )
     c3_um_per_k: float | None = Field(
         None, ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K,
@@ -76,6 +84,11 @@ class AR1Params(ModelParams):
     )
     bed_gain_um_per_k: list[Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]] = Field(
         default_factory=list, description="one gain per bed sensor (α_bed L_bed, µm/K)"
+    )
+    exchange_um_per_k: list[Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]] = Field(
+        default_factory=list,
+        description="one gain per exchange sensor (inputs after the ambient): the temperatures the spindle"
+        " exchanges heat with (its housing), entering the recursion as C3 does, µm per K of rise per step",
     )
     spindle_sign: Literal[1, -1] = Field(1, description="+1: error = spindle growth; −1: bed − spindle")
     t0_c: list[Annotated[float, Field(ge=TEMP_MIN_C, le=TEMP_MAX_C)]] | None = Field(
@@ -105,9 +118,19 @@ class AR1Params(ModelParams):
         return self
 
 
-def c2_of_speed(speed_rpm: float, rpm: list[float], c2: list[float], at_zero: float = 0.0) -> float:
-    """C2(n): linear through (0, at_zero) and the table nodes, constant past the last node."""
+def c2_of_speed(
+    speed_rpm: float, rpm: list[float], c2: list[float], at_zero: float = 0.0, exponent: float | None = None
+) -> float:
+    """C2(n): linear between the table nodes; outside them linear through (0, at_zero) below the
+    first and constant past the last, or with `exponent` e the power law C2(node)·(n/node)^e from
+    the nearest node (the bearings' friction heat grows as n^(5/3), Palmgren's moment ∝ n^(2/3)
+    times ω, and the rotor's convection with n as well: compd's fits write e = 1)."""
     n = abs(speed_rpm)
+    if exponent is not None and rpm:
+        if n <= rpm[0]:
+            return c2[0] * (n / rpm[0]) ** exponent
+        if n >= rpm[-1]:
+            return c2[-1] * (n / rpm[-1]) ** exponent
     lo_n, lo_c = 0.0, at_zero
     for hi_n, hi_c in zip(rpm, c2, strict=True):
         if n <= hi_n:
@@ -135,7 +158,8 @@ class AR1(Model):
     """AR(1) spindle growth stepped every Δτ, plus linear bed terms (paper 001)."""
 
     kind = "ar1"
-    summary_keys = ("c1", "c2_table", "c3_um_per_k", "c1_table", "bed_gain_um_per_k", "spindle_sign", "dt_s")
+    summary_keys = ("c1", "c2_table", "c3_um_per_k", "c1_table", "bed_gain_um_per_k", "exchange_um_per_k",
+                    "spindle_sign", "dt_s")
     Params = AR1Params
 
     def __init__(self, params: AR1Params, inputs: list[str], outputs: list[str], fit=None):
@@ -143,6 +167,7 @@ class AR1(Model):
         self.update_period_s = params.dt_s
         self._rpm = [float(n) for n, _ in params.c2_table]
         self._c2 = [float(c) for _, c in params.c2_table]
+        self._c2_exp = params.c2_exponent
         self._nb = len(params.bed_gain_um_per_k)
         self._gain = np.asarray(params.bed_gain_um_per_k, dtype=float)
         self._c3 = params.c3_um_per_k
@@ -150,6 +175,10 @@ class AR1(Model):
         self._b1 = [-math.log(c) for _, c in params.c1_table]  # b Δτ at each node
         self._b0 = -math.log(params.c1)
         self._amb = 1 + self._nb if self._c3 is not None else -1
+        # the exchange sensors: inputs ix … ix + nx − 1 (their references x0[ix − 1 …])
+        self._ix = 1 + self._nb + (self._c3 is not None)
+        self._xgain = [float(v) for v in params.exchange_um_per_k]
+        self._xgain_arr = np.asarray(self._xgain, dtype=float)
         self._sign = float(params.spindle_sign)
         self.x0 = np.asarray(params.t0_c, dtype=float) if params.t0_c is not None else None
         self.s_um = 0.0
@@ -160,11 +189,13 @@ class AR1(Model):
     @classmethod
     def check_wiring(cls, params, inputs, outputs) -> None:
         super().check_wiring(params, inputs, outputs)
-        need = 1 + len(params.bed_gain_um_per_k) + (params.c3_um_per_k is not None)
+        nx = len(params.exchange_um_per_k)
+        need = 1 + len(params.bed_gain_um_per_k) + (params.c3_um_per_k is not None) + nx
         if len(inputs) != need:
             raise BadInput(
                 f"ar1 takes {need} inputs (speed, {len(params.bed_gain_um_per_k)} bed sensors"
-                f"{', ambient' if params.c3_um_per_k is not None else ''}), got {len(inputs)}",
+                f"{', ambient' if params.c3_um_per_k is not None else ''}"
+                f"{f', {nx} exchange sensors' if nx else ''}), got {len(inputs)}",
                 path=("inputs",),
             )
         if len(outputs) != 1:
@@ -177,13 +208,17 @@ class AR1(Model):
             self.x0 = np.array(x[1:], dtype=float)
 
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
-        """One Δτ step: S = C1 S + C2(n) + C3 ΔT_amb (S(0) = 0 at a cold start); E = Σ g ΔT_bed + s S (µm)."""
+        """One Δτ step: S = C1 S + C2(n) + C3 ΔT_amb + Σ C_x ΔT_x (S(0) = 0 at a cold start);
+        E = Σ g ΔT_bed + s S (µm)."""
         if self._fresh:
             self._fresh = False  # ΔL(0) = 0 (eq. 17): the first step adds nothing
         else:
-            u = c2_of_speed(x[0], self._rpm, self._c2)
+            u = c2_of_speed(x[0], self._rpm, self._c2, 0.0, self._c2_exp)
             if self._amb > 0:
                 u += self._c3 * (x[self._amb] - self.x0[self._amb - 1])
+            ix = self._ix
+            for j, g in enumerate(self._xgain):
+                u += g * (x[ix + j] - self.x0[ix - 1 + j])
             self.s_um = self.c1_at(x[0]) * self.s_um + u
         e = self._sign * self.s_um
         if self._nb:
@@ -197,7 +232,7 @@ class AR1(Model):
             return self.params.c1
         return math.exp(-c2_of_speed(speed_rpm, self._rpm1, self._b1, self._b0))
 
-    def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    def predict_rows(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         """Vectorised batch prediction, stepping every Δτ and holding between steps."""
         n = X.shape[0]
         out = np.zeros((n, 1))
@@ -217,9 +252,12 @@ class AR1(Model):
         return np.array([self.c1_at(v) for v in speed_rpm])
 
     def _response(self, Xs: np.ndarray, c1: float | np.ndarray, s0: float = 0.0) -> np.ndarray:
-        u = np.array([c2_of_speed(v, self._rpm, self._c2) for v in Xs[:, 0]])
+        u = np.array([c2_of_speed(v, self._rpm, self._c2, 0.0, self._c2_exp) for v in Xs[:, 0]])
         if self._amb > 0:
             u += self._c3 * (Xs[:, self._amb] - self.x0[self._amb - 1])
+        if self._xgain:
+            ix = self._ix
+            u += (Xs[:, ix:] - self.x0[ix - 1:]) @ self._xgain_arr
         if self._fresh and u.size:
             # ΔL(0) = 0 (eq. 17): the first row keeps S; only a cold start has _fresh, so S = s0 = 0
             u[0] = 0.0

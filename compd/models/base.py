@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 
 import numpy as np
-from pydantic import ConfigDict
+from pydantic import ConfigDict, Field, model_validator
 
 from compd.config import Strict
 from compd.errors import BadInput
+from compd.models.lead import InputLead
 
 if TYPE_CHECKING:
     from compd.identify.data import FitResult
@@ -30,6 +31,35 @@ MAX_GAIN_UM_PER_K = 1e4  # α ≤ 1e-3 /K times a structure ≤ 10 m: µm of err
 MAX_ERROR_UM = 1e4  # 10 mm: no thermal error of a machine tool comes near
 MAX_LENGTH_MM = 1e5  # 100 m: longer than any machine axis or spindle
 MAX_SPEED_RPM = 2e5  # faster than any machine spindle
+MAX_LEAD_S = 3600.0  # a sensor that lags its structure by more than an hour measures something else
+
+
+LeadS = Annotated[float, Field(ge=0, le=MAX_LEAD_S)]
+
+
+class LeadParams(ModelParams):
+    """What every kind's params share: the lead that compensates each input's sensor lag
+    (compd.models.lead; compd's form, beyond the papers). Lists in input order; 0 = not led."""
+
+    lead_s: list[LeadS] | None = Field(
+        None, description="τ per input: the sensor's lag the lead undoes (0 = none; ≤ 3600 s)"
+    )
+    lead_filter_s: list[LeadS] | None = Field(
+        None, description="τ_f per input: the low-pass the lead's derivative is taken through (> 0 where led)"
+    )
+
+    @model_validator(mode="after")
+    def _lead(self) -> LeadParams:
+        lead, filt = self.lead_s, self.lead_filter_s
+        if (lead is None) != (filt is None):
+            raise ValueError("lead_s and lead_filter_s go together (one value per input each)")
+        if lead is not None and filt is not None:
+            if len(lead) != len(filt):
+                raise ValueError(f"lead_s has {len(lead)} values, lead_filter_s {len(filt)}: one per input each")
+            for i, (a, b) in enumerate(zip(lead, filt, strict=True)):
+                if a > 0 and not b > 0:
+                    raise ValueError(f"lead_filter_s[{i}] must be > 0 where lead_s[{i}] leads the input")
+        return self
 
 
 def check_length(values: list[Any], n: int, key: str, what: str) -> None:
@@ -99,6 +129,10 @@ class Model(ABC):
         self.outputs = list(outputs)
         self.fit_info = dict(fit or {})
         self.file: str | None = None  # the model file it was loaded from (set by the pipeline)
+        # the inputs' sensor lag compensated before every evaluation (None: no input is led)
+        self.lead: InputLead | None = None
+        if isinstance(params, LeadParams) and params.lead_s and any(v > 0 for v in params.lead_s):
+            self.lead = InputLead(params.lead_s, params.lead_filter_s or [])
 
     @classmethod
     def check_wiring(cls, params: Strict, inputs: list[str], outputs: list[str]) -> None:
@@ -113,13 +147,28 @@ class Model(ABC):
             raise BadInput("the model's inputs name a signal twice", path=("inputs",))
         if len(set(outputs)) != len(outputs):
             raise BadInput("the model's outputs name an axis twice", path=("outputs",))
+        if isinstance(params, LeadParams) and params.lead_s is not None and len(params.lead_s) != len(inputs):
+            raise BadInput(f"has {len(params.lead_s)} values, expected {len(inputs)} (one per input)",
+                           path=("params", "lead_s"))
 
     def start(self, x: np.ndarray, t_s: float) -> None:
         """Called once with the first good input vector (capture references such as T0)."""
 
     @abstractmethod
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
-        """Write the predicted thermal error (µm) per output axis into `out`."""
+        """Write the predicted thermal error (µm) per output axis into `out` (from inputs already led)."""
+
+    def run(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
+        """The loop's call: lead the inputs (their sensors' lag, `lead_s`), then `evaluate`."""
+        if self.lead is not None:
+            x = self.lead.step(x, t_s)
+        self.evaluate(x, t_s, out)
+
+    def run_degraded(self, x: np.ndarray, good: np.ndarray, t_s: float, out: np.ndarray) -> None:
+        """`run` with some inputs bad: the good ones led, then `evaluate_degraded`."""
+        if self.lead is not None:
+            x = self.lead.step(x, t_s, good)
+        self.evaluate_degraded(x, good, t_s, out)
 
     @property
     def supports_degraded(self) -> bool:
@@ -138,7 +187,19 @@ class Model(ABC):
         return None
 
     def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-        """Batch prediction over a log: X (n × inputs) → (n × outputs), µm.
+        """Batch prediction over a log: X (n × inputs) → (n × outputs), µm, as the loop's `run`
+        row by row would give it: the inputs led at the rows the model evaluates (every row, or
+        every update_period_s), then `predict_rows`."""
+        X = np.asarray(X, dtype=float)
+        if self.lead is not None and X.shape[0]:
+            t = np.asarray(t_s, dtype=float)
+            rows = step_rows(t, self.update_period_s)
+            X = X.copy()
+            X[rows] = self.lead.filter(X[rows], t[rows])
+        return self.predict_rows(X, t_s)
+
+    def predict_rows(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        """Batch prediction from inputs already led: X (n × inputs) → (n × outputs), µm.
 
         The default steps `evaluate` through the rows (honouring update_period_s),
         starting the model on the first row.
@@ -161,10 +222,11 @@ class Model(ABC):
     def fit(
         cls, log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any
     ) -> FitResult:
-        """Identify a model of this kind from a log: compd.identify.identify, imported only here."""
-        from compd.identify import identify
+        """Identify a model of this kind from a log with the kind's own fit (compd.identify.<kind>,
+        imported only here); `compd fit` adds the inputs' sensor lag around it (compd.identify.identify)."""
+        from compd.identify import FITS
 
-        return identify(cls.kind, log, inputs, targets, **options)
+        return FITS.get(cls.kind)(log, inputs, targets, **options)
 
     def get_state(self) -> dict[str, Any]:
         """The model's memory (for persistence); plain JSON types."""
@@ -174,12 +236,17 @@ class Model(ABC):
         """Restore memory saved `elapsed_s` ago."""
 
     def to_dict(self) -> dict[str, Any]:
-        """The model file (docs/formats.md): kind, inputs, outputs, params, fit."""
+        """The model file (docs/formats.md): kind, inputs, outputs, params, fit (a model without a
+        lead writes no lead keys, as files before them)."""
+        params = self.params.model_dump(mode="json")
+        for key in ("lead_s", "lead_filter_s"):
+            if params.get(key, 0) is None:
+                del params[key]
         return {
             "kind": self.kind,
             "inputs": list(self.inputs),
             "outputs": list(self.outputs),
-            "params": self.params.model_dump(mode="json"),
+            "params": params,
             "fit": self.fit_info,
         }
 

@@ -35,10 +35,13 @@ and L the stroke:
     I(y)    = α ∫_0^y ΔT̂ dy'                      the segment sum of eq. 21 on the measured field
     R(y)    = α (y/L) ∫_0^L ΔT̂ dy'                the end supports' restraint (the reversal)
     A(y)    = α y ΔT_a                             a scale or a guide that follows the room
-    E(t, y) = g_I I + g_R R + g_A A + Σ_o b_o ΔT_o   µm
+    C       = α ∫_0^L ΔT̂ dy'                      the same everywhere on the stroke
+    E(t, y) = g_I I + g_R R + g_A A + g_C C + Σ_o b_o ΔT_o   µm
 
 g_I plays ξ's part (the expansion's correction factor), g_R < 0 pulls the error back
-towards the far end as the fixed supports do, and every term is linear in its
+towards the far end as the fixed supports do, g_C takes what moves the whole stroke (the
+base before the stroke's start grows with it, the supports' pull has a part that does not
+depend on y), and every term is linear in its
 coefficient, so the fit is a least-squares solve. Heat that enters where the coil
 travels shows in the sensors there, so partial strokes are seen, and the slide's
 response to the room is measured rather than modelled. T_k0 are the readings at start
@@ -68,7 +71,7 @@ import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from compd.errors import BadInput
-from compd.models.base import MAX_GAIN_UM_PER_K, MAX_LENGTH_MM, Model, ModelParams
+from compd.models.base import MAX_GAIN_UM_PER_K, MAX_LENGTH_MM, LeadParams, Model, ModelParams
 from compd.models.erf import erf, erf_inplace
 
 ErfFn = Callable[[np.ndarray], np.ndarray]
@@ -90,6 +93,11 @@ class SlideField(ModelParams):
     )
     gain_integral: float = Field(ge=-100, le=100, description="g_I on α ∫_0^y ΔT̂ (≈ ξ)")
     gain_restraint: float = Field(0.0, ge=-100, le=100, description="g_R on α (y/L) ∫_0^L ΔT̂ (the end supports)")
+    gain_constant: float = Field(
+        0.0, ge=-100, le=100,
+        description="g_C on α ∫_0^L ΔT̂, the same everywhere on the stroke: the base before the stroke's start and"
+        " the supports' pull on it (0: files before the key)",
+    )
     gain_ambient: float = Field(0.0, ge=-100, le=100, description="g_A on α y ΔT_ambient (needs an `ambient` input)")
     offset_um_per_k: list[Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]] = Field(
         default_factory=list, description="b_o per `offset` input, in input order (µm/K)"
@@ -123,7 +131,7 @@ class PositionPoly(ModelParams):
                 raise ValueError(f"coef_um_per_k[{i}] has {len(row)} gains for degree {self.degree} ({self.degree + 1})")
         return self
 
-class FeedAxisParams(ModelParams):
+class FeedAxisParams(LeadParams):
     """Fixed physics and fitted coefficients of the feed-axis model (paper 000).
 
     Ranges: lengths in (0, 100 m]; α in (0, 1e-3) /K; ρc of a solid in [1e5, 1e8] J/(m³ K)
@@ -394,7 +402,7 @@ def _cumulative_at(nodes: np.ndarray, cum: np.ndarray, rn: np.ndarray, y: np.nda
 
 
 def field_terms(rises_k: np.ndarray, y_mm: np.ndarray, ambient_k: np.ndarray | None, p: FeedAxisParams) -> np.ndarray:
-    """(I, R, A) of the field form in µm, n × 3, at positions y from the stroke start (mm).
+    """(I, R, A, C) of the field form in µm, n × 4, at positions y from the stroke start (mm).
 
     `rises_k`: n × K rises of the slide sensors; `ambient_k`: n rises of the ambient (None: A = 0)."""
     nodes, src = field_nodes(p)
@@ -407,7 +415,7 @@ def field_terms(rises_k: np.ndarray, y_mm: np.ndarray, ambient_k: np.ndarray | N
     total = _cumulative_at(nodes, cum, rn, np.full_like(y, p.length_mm)) - start
     um_per_k_mm = p.alpha_per_k * 1000.0
     amb = np.zeros_like(y) if ambient_k is None else np.asarray(ambient_k, float) * y
-    return um_per_k_mm * np.column_stack([integral, total * y / p.length_mm, amb])
+    return um_per_k_mm * np.column_stack([integral, total * y / p.length_mm, amb, total])
 
 
 class _Measured:
@@ -455,7 +463,7 @@ class _FieldForm(_Measured):
         self.nodes, self.src = field_nodes(p)
         self.node_list = [float(v) for v in self.nodes]
         self.half_dy = 0.5 * np.diff(self.nodes)
-        self.gain = np.array([f.gain_integral, f.gain_restraint, f.gain_ambient])
+        self.gain = np.array([f.gain_integral, f.gain_restraint, f.gain_ambient, f.gain_constant])
         self.b_off = np.asarray(f.offset_um_per_k, float)
         self.um_per_k_mm = p.alpha_per_k * 1000.0
         self.rn = np.zeros(self.nodes.size)
@@ -511,7 +519,8 @@ class _FieldForm(_Measured):
         at_y, at_0, at_l = self._c(y), self._c(0.0), self._c(p.length_mm)
         g = self.gain
         s = self.um_per_k_mm
-        return s * (g[0] * (at_y - at_0) + g[1] * (at_l - at_0) * y / p.length_mm + g[2] * amb * y) + off
+        total = at_l - at_0
+        return s * (g[0] * (at_y - at_0) + g[1] * total * y / p.length_mm + g[2] * amb * y + g[3] * total) + off
 
     def _c(self, y: float) -> float:
         """∫ from the first node to y of the field held in rn, cum."""
@@ -715,7 +724,7 @@ class FeedAxis(Model):
             return None
         return [(self.slope_um_per_mm, float(self.params.linear_p0_mm or 0.0))]
 
-    def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    def predict_rows(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         """Vectorised over rows (E at each row's position, also with linear_p0_mm): heat by the trapezoid rule, then eq. 21 at each row."""
         n = X.shape[0]
         if n == 0:

@@ -17,8 +17,8 @@ from compd.models.base import (
     MAX_RISE_K,
     TEMP_MAX_C,
     TEMP_MIN_C,
+    LeadParams,
     Model,
-    ModelParams,
     check_length,
     check_matrix,
 )
@@ -29,7 +29,7 @@ RiseK = Annotated[float, Field(ge=-MAX_RISE_K, le=MAX_RISE_K)]
 RiseK2 = Annotated[float, Field(ge=-MAX_RISE_K**2, le=MAX_RISE_K**2)]
 
 
-class RiseLinearParams(ModelParams):
+class RiseLinearParams(LeadParams):
     """A linear model on temperature rises: coefficients per input (rows) and axis (columns)."""
 
     coef_um_per_k: list[list[GainUmPerK]] = Field(
@@ -141,7 +141,7 @@ class RiseLinear(Model):
         np.dot(self._rise, self.B, out=out)
         out += self.b0
 
-    def predict(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    def predict_rows(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         if X.shape[0] == 0:
             return np.zeros((0, len(self.outputs)))
         if self.x0 is None:

@@ -18,7 +18,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from compd.errors import BadInput
-from compd.models.base import MAX_LENGTH_MM, TEMP_MAX_C, TEMP_MIN_C, Model, ModelParams
+from compd.models.base import MAX_LENGTH_MM, TEMP_MAX_C, TEMP_MIN_C, LeadParams, Model, ModelParams
 
 
 def axial_growth_um(t_xi_c: float | np.ndarray, t0_c: float, alpha_per_k: float, length_mm: float):
@@ -169,7 +169,7 @@ class LiftParams(ModelParams):
     )
 
 
-class XiSpindleParams(ModelParams):
+class XiSpindleParams(LeadParams):
     """Parameters of the axial ξ-point model (α in (0, 1e-3) /K, lengths in (0, 100 m])."""
 
     alpha_per_k: float = Field(gt=0, lt=1e-3, description="linear expansion coefficient, 1/K")

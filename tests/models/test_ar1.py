@@ -144,8 +144,10 @@ def _drifting_rod_log():
 def test_ambient_aware_form_beats_paper_form_on_drifting_shop():
     log = _drifting_rod_log()
     e = log.col("err_z_um")
-    pure = AR1.fit(log, None, None)
-    aware = AR1.fit(log, None, None, ambient="T_amb")
+    with pytest.raises(BadInput, match="spindle_sign=1"):  # a spindle alone: no bed sensor to find
+        AR1.fit(log, None, None, ambient="none")
+    pure = AR1.fit(log, None, None, spindle_sign=1, exchange="none", ambient="none")  # the paper's recursion
+    aware = AR1.fit(log, None, None, ambient="T_amb", spindle_sign=1)
     assert pure.model.params.c3_um_per_k is None
     assert aware.model.inputs == ["speed_rpm", "T_amb"]
     rmse = {k: float(np.sqrt(np.mean((predict_log(r.model, log)[:, 0] - e) ** 2))) for k, r in
@@ -371,3 +373,30 @@ def test_report_names_linear_c2_when_the_rises_are_missing():
     with pytest.raises(BadInput, match="not both"):
         AR1.fit(train, ["T3"], None, rise_sensor="T2", c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46,
                                                                "rises_c": {1000: 3.02}})
+
+
+def test_c2_outside_the_levels_follows_the_bearings_friction_and_exchange_enters_the_recursion():
+    """C2 beyond the fitted speeds ∝ n^e (`c2_exponent`; null: the older linear rule), and the exchange
+    sensors' rises step the recursion as C3 does: `evaluate` and `predict` agree."""
+    from compd.models.ar1 import c2_of_speed
+
+    assert c2_of_speed(1000.0, [2000.0], [0.3], 0.0, 5 / 3) == pytest.approx(0.3 * 0.5 ** (5 / 3))
+    assert c2_of_speed(3000.0, [2000.0], [0.3], 0.0, 5 / 3) == pytest.approx(0.3 * 1.5 ** (5 / 3))
+    assert c2_of_speed(1000.0, [2000.0], [0.3]) == pytest.approx(0.15)  # the older rule: linear from 0
+    assert c2_of_speed(3000.0, [2000.0], [0.3]) == pytest.approx(0.3)  # ... and held past the last level
+    params = AR1Params(dt_s=60, c1=0.99, c2_table=[(2000.0, 0.2)], c2_exponent=5 / 3, c3_um_per_k=0.05,
+                       bed_gain_um_per_k=[10.0], exchange_um_per_k=[0.02], spindle_sign=-1)
+    t = np.arange(0, 6 * 3600, 60.0)
+    X = np.column_stack([np.where(t < 3 * 3600, 3000.0, 1000.0), 20 + t / 7200, 20 + 0.1 * np.sin(t / 3000),
+                         20 + t / 3600])
+    batch = AR1(params, ["n", "bed", "amb", "head"], ["z"]).predict(X, t)[:, 0]
+    m = AR1(params, ["n", "bed", "amb", "head"], ["z"])
+    m.start(X[0], 0.0)
+    out = np.zeros(1)
+    stepped = []
+    for x, tt in zip(X, t, strict=True):
+        m.evaluate(x, tt, out)
+        stepped.append(out[0])
+    np.testing.assert_allclose(batch, stepped, rtol=0, atol=1e-9)
+    with pytest.raises(BadInput, match="exchange"):
+        AR1(params, ["n", "bed", "amb"], ["z"])  # the exchange sensor missing from the inputs

@@ -21,6 +21,7 @@ ALPHA = 11.5e-6
 L_MM = 600.0
 SENSORS_MM = (0.0, 150.0, 300.0, 450.0, 600.0)
 G_I, G_R, G_A, B_TABLE = 1.3, -1.1, 0.4, 0.9
+G_C = 0.25  # the base before the stroke's start: the same growth at every position
 
 
 def _truth_integral_um(rises: np.ndarray, y_mm: float) -> tuple[float, float]:
@@ -50,7 +51,7 @@ def _field_log(hours: float = 8.0, seed: int = 0, noise_um: float = 0.0) -> Log:
         table = 1.5 * heat / 3.0 + 0.2 * np.sin(h)
         y = (k * 37.0) % L_MM
         part, whole = _truth_integral_um(base, y)
-        e = G_I * part + G_R * whole * y / L_MM + G_A * ALPHA * 1e3 * y * (amb - 20.0) + B_TABLE * table
+        e = G_I * part + G_R * whole * y / L_MM + G_C * whole + G_A * ALPHA * 1e3 * y * (amb - 20.0) + B_TABLE * table
         rows.append([ts, *(20.0 + base), amb, 20.0 + table, y, e + rng.normal(0.0, noise_um)])
     cols = ["t_s", *[f"T_base_{int(s):03d}" for s in SENSORS_MM], "T_amb", "T_table", "pos_y_mm", "err_y_um"]
     return Log("field.csv", cols, np.asarray(rows))
@@ -64,6 +65,7 @@ def test_field_fit_recovers_gains_and_finds_the_sensors_by_name():
     assert res.report["ambient"] == "T_amb" and res.report["offsets"] == ["T_table"]
     assert f.gain_integral == pytest.approx(G_I, rel=1e-3)
     assert f.gain_restraint == pytest.approx(G_R, rel=1e-3)
+    assert f.gain_constant == pytest.approx(G_C, rel=1e-3)
     assert f.gain_ambient == pytest.approx(G_A, rel=1e-3)
     assert f.offset_um_per_k == pytest.approx([B_TABLE], rel=1e-3)
 

@@ -480,4 +480,5 @@ def test_compd_fit_with_the_speed_compares_with_mlr_on_the_temperatures() -> Non
     oc = fitting.fit_model("xi_spindle", log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"], {})
     base = oc.report["baseline_mlr"]
     assert base["inputs"] == ["T_xi", "T_brg_front"]
-    assert base["axes"]["z"]["held_out_rmse_um"] < 1e-3  # the exact law, forward in time
+    # the exact law, each speed predicted by a fit that never saw it (k from the other speeds)
+    assert base["axes"]["z"]["held_out_rmse_um"] < 0.01 * base["axes"]["z"]["mlr_held_out_rmse_um"]
