@@ -13,9 +13,17 @@ On an axis whose error depends on where it stands (a feed axis), `slope_position
 slope m over the position y (m from `slope_ref_mm`): ê = p + b + g p + m y, H = (1, p, y).
 A probe z at prediction p is the measurement z = p + H s + v, H = (1, p), v ~ N(0, σ²):
 
-    ν = z − (p + H s),  S = H P Hᵀ + σ²
+    ν = z − (p + H s),  S = H P Hᵀ + σ² + σ_m²
     |ν| > k √S      → rejected (innovation gate, `gate_sigma` k): logged, never applied
-    K = P Hᵀ / S,  s ← s + K ν,  P ← (I − K H) P (I − K H)ᵀ + K σ² Kᵀ   (Joseph form)
+    K = P Hᵀ / S,  s ← s + K ν,  P ← (I − K H) P (I − K H)ᵀ + K (σ² + σ_m²) Kᵀ   (Joseph form)
+
+σ_m is the model's own error at the probe (`model_sigma_um`, by default the held-out RMSE of
+its fit): a model that is right on average is still off by that much at any moment, and one
+probe cannot tell that from an offset, so it moves the estimate only as far as it outweighs
+it. Probes never hurt: what reaches the prediction is each estimated term only as far as it
+stands out from its own uncertainty where the axis is: c·max(0, 1 − k² var(c)/c²), c = H s and
+var(c) = H P Hᵀ for this cycle's H (`apply_above_sigma` k): where the evidence does not say the
+model is off by more than the noise, the model runs as fitted.
 
 An update changes ê at once, but the correction still reaches the machine through the
 guard, whose slew limit moves it, never steps it. An estimate without a probe for
@@ -38,6 +46,7 @@ import numpy as np
 from compd.config import AdaptConfig
 from compd.errors import BadInput
 
+PRIOR_PROBES = 2.0  # the fit's held-out σ_m counts as this many probes' worth of scatter
 HISTORY = 4096  # cycles of (position, prediction, correction sent) kept per slope axis (8 s at 2 ms)
 POSITION_MATCH_MM = 0.5  # the axis stood "at" the probe's position within this
 
@@ -61,8 +70,19 @@ class Probe:
 class AxisEstimate:
     """The Kalman filter of one axis: state (b, g) or (b,) and its covariance."""
 
-    def __init__(self, cfg: AdaptConfig, slope: bool = False) -> None:
+    def __init__(
+        self, cfg: AdaptConfig, slope: bool = False, model_sigma_um: float = 0.0, learn_sigma: bool = False
+    ) -> None:
         self.cfg = cfg
+        self.model_var_um2 = model_sigma_um * model_sigma_um
+        # σ_m learnt from the probes themselves: how much the model's miss changes from one probe to the
+        # next beyond the probes' σ and the offset's drift (an offset that stays cancels in the change,
+        # a miss that comes and goes does not), with the fit's figure as a prior worth PRIOR_PROBES
+        self.learn_sigma = learn_sigma
+        self._prior_var_um2 = self.model_var_um2
+        self._last_miss: tuple[float, float, float] | None = None  # (t, miss z − p, probe σ²)
+        self._change_sum_um2 = 0.0
+        self._change_n = 0
         self.i_gain = 1 if cfg.gain else -1
         self.i_slope = (2 if cfg.gain else 1) if slope else -1
         self.n = 1 + cfg.gain + slope
@@ -110,13 +130,29 @@ class AxisEstimate:
             self.P[self.i_slope, self.i_slope] += self.cfg.slope_drift_um_per_m_sqrt_h**2 * h
 
     def correction_um(self, pred_um: float, pos_m: float = 0.0) -> float:
-        """b + g p + m y: what the estimate adds to the model's prediction at position y (m)."""
-        c = float(self.s[0])
+        """What the estimate adds to the model's prediction at position y (m): c = b + g p + m y
+        only as far as it stands out from its own uncertainty there, c·max(0, 1 − k² var(c)/c²)
+        with var(c) = H P Hᵀ, H = (1, p, y) (`apply_above_sigma` k; 0 applies c as estimated)."""
+        s, P = self.s, self.P
+        h1 = pred_um if self.i_gain > 0 else 0.0
+        h2 = pos_m if self.i_slope > 0 else 0.0
+        c = float(s[0])
+        var = float(P[0, 0])
         if self.i_gain > 0:
-            c += float(self.s[self.i_gain]) * pred_um
+            g = self.i_gain
+            c += float(s[g]) * h1
+            var += h1 * h1 * float(P[g, g]) + 2.0 * h1 * float(P[0, g])
         if self.i_slope > 0:
-            c += float(self.s[self.i_slope]) * pos_m
-        return c
+            m = self.i_slope
+            c += float(s[m]) * h2
+            var += h2 * h2 * float(P[m, m]) + 2.0 * h2 * float(P[0, m])
+            if self.i_gain > 0:
+                var += 2.0 * h1 * h2 * float(P[self.i_gain, m])
+        k = self.cfg.apply_above_sigma
+        if k <= 0.0 or c == 0.0:
+            return c
+        shrink = 1.0 - k * k * max(var, 0.0) / (c * c)
+        return c * shrink if shrink > 0.0 else 0.0
 
     def update(
         self, pred_um: float, z_um: float, sigma_um: float, t_s: float, pos_m: float = 0.0
@@ -130,7 +166,8 @@ class AxisEstimate:
         if self.i_slope > 0:
             H[self.i_slope] = pos_m
         nu = z_um - (pred_um + float(H @ self.s))
-        S = float(H @ self.P @ H) + sigma_um * sigma_um
+        r = sigma_um * sigma_um + self.model_var_um2  # the probe's noise and the model's own error now
+        S = float(H @ self.P @ H) + r
         sd = math.sqrt(S)
         self.last_innovation_um = nu
         if not math.isfinite(nu) or abs(nu) > self.cfg.gate_sigma * sd:
@@ -140,11 +177,28 @@ class AxisEstimate:
         K = (self.P @ H) / S
         self.s += K * nu
         A = np.eye(self.n) - np.outer(K, H)
-        self.P = A @ self.P @ A.T + np.outer(K, K) * sigma_um * sigma_um
+        self.P = A @ self.P @ A.T + np.outer(K, K) * r
+        if self.learn_sigma:  # from accepted probes only: an outlier teaches nothing
+            self._learn_sigma(t_s, z_um - pred_um, sigma_um * sigma_um)
         self.accepted += 1
         self.rejected_in_a_row = 0
         self.t_probe_s = t_s
         return True, nu, sd
+
+    def _learn_sigma(self, t_s: float, miss_um: float, probe_var_um2: float) -> None:
+        """σ_m² from the change of the model's miss between consecutive probes: E[(Δmiss)²] =
+        2 σ_m² + σ_k² + σ_(k−1)² + q Δt for misses of independent model error on a drifting offset."""
+        last = self._last_miss
+        self._last_miss = (t_s, miss_um, probe_var_um2)
+        if last is None or miss_um != miss_um:
+            return
+        dt_h = max(t_s - last[0], 0.0) / 3600.0
+        drift = self.cfg.offset_drift_um_per_sqrt_h ** 2 * dt_h
+        change = miss_um - last[1]
+        self._change_sum_um2 += 0.5 * (change * change - probe_var_um2 - last[2] - drift)
+        self._change_n += 1
+        learnt = (PRIOR_PROBES * self._prior_var_um2 + self._change_sum_um2) / (PRIOR_PROBES + self._change_n)
+        self.model_var_um2 = max(self._prior_var_um2, learnt)
 
     def get_state(self) -> dict[str, Any]:
         age = None if self.t_probe_s is None or self.t_s is None else self.t_s - self.t_probe_s
@@ -179,10 +233,17 @@ class Adapter:
     append Probe objects, the cycle pops them, so it never waits on them.
     """
 
-    def __init__(self, cfg: AdaptConfig, axes: list[str]) -> None:
+    def __init__(self, cfg: AdaptConfig, axes: list[str], model_sigma_um: dict[str, float] | None = None) -> None:
+        """`model_sigma_um`: per axis the model's own error (its fit's held-out RMSE), used where
+        the config's `model_sigma_um` is none."""
         self.cfg = cfg
         self.axes = list(axes)
-        self.est = [AxisEstimate(cfg, slope=a in cfg.slope_position) for a in axes]
+        fitted = model_sigma_um or {}
+        self.model_sigma_um = [cfg.model_sigma_um if cfg.model_sigma_um is not None else float(fitted.get(a, 0.0))
+                               for a in axes]
+        learn = cfg.model_sigma_um is None
+        self.est = [AxisEstimate(cfg, slope=a in cfg.slope_position, model_sigma_um=m, learn_sigma=learn)
+                    for a, m in zip(axes, self.model_sigma_um, strict=True)]
         # per axis: the signal its slope term reads (the axis position, mm), or None
         self.position_signal = [cfg.slope_position.get(a) for a in axes]
         self.pos_m = np.zeros(len(axes))  # the positions of this cycle (m from slope_ref_mm)
@@ -256,17 +317,21 @@ class Adapter:
             e.t_probe_s = None
 
     def apply(
-        self, pred_um: np.ndarray, now_s: float, out_um: np.ndarray, applied_um: np.ndarray | None = None
+        self, pred_um: np.ndarray, now_s: float, out_um: np.ndarray, applied_um: np.ndarray | None = None,
+        terms: list[tuple[float, float]] | None = None,
     ) -> None:
         """out = pred + b + g pred per axis (pred if `apply` is off), after taking the inbox's probes.
 
-        `applied_um`: the correction the machine applies now, per axis (for residual probes)."""
+        `applied_um`: the correction the machine applies now, per axis (for residual probes).
+        `terms`: the model's linear terms (slope µm/mm, P0 mm per axis, `Model.linear_terms`) when
+        its outputs are the error at P0 and the CNC applies the slope (Siemens tanβ): a probe at
+        position y is then compared with pred + slope·(y − P0), the error the model predicts there."""
         if self._probed:
             self.probe_um.fill(math.nan)
             self.probe_pos_mm.fill(math.nan)
             self._probed = False
         while self.inbox:
-            self._take(self.inbox.popleft(), pred_um, applied_um)
+            self._take(self.inbox.popleft(), pred_um, applied_um, terms)
         for a, e in enumerate(self.est):
             e.advance(now_s)
             p = float(pred_um[a])
@@ -274,7 +339,10 @@ class Adapter:
             self.offset_um[a] = c
             out_um[a] = p + c if self.cfg.apply else p
 
-    def _take(self, probe: Probe, pred_um: np.ndarray, applied_um: np.ndarray | None) -> None:
+    def _take(
+        self, probe: Probe, pred_um: np.ndarray, applied_um: np.ndarray | None,
+        terms: list[tuple[float, float]] | None = None,
+    ) -> None:
         if probe.axis not in self.axes:
             self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "unknown_axis",
                                 "source": probe.source})
@@ -289,6 +357,13 @@ class Adapter:
             then = self.at_position(a, probe.position_mm)
         if then is not None:
             p = then[0]
+        # a model whose output is the error at P0 with a slope the CNC applies (Siemens tanβ):
+        # at the probe's position it predicts p + slope·(y − P0), and the CNC applied c − that
+        shift = 0.0
+        if terms is not None and a < len(terms) and probe.position_mm is not None and math.isfinite(probe.position_mm):
+            slope_um_per_mm, p0_mm = terms[a]
+            shift = slope_um_per_mm * (probe.position_mm - p0_mm)
+        p += shift
         if probe.residual:  # deviation with the correction in place: the whole error is d − c
             c = then[1] if then is not None else None
             if c is None and applied_um is not None and math.isfinite(float(applied_um[a])):
@@ -297,7 +372,7 @@ class Adapter:
                 self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_correction_known",
                                     "source": probe.source})
                 return
-            z = probe.error_um - c
+            z = probe.error_um - (c - shift)
         if not math.isfinite(p):  # no prediction to compare with: the probe cannot be used
             self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_prediction",
                                 "error_um": probe.error_um, "source": probe.source})
@@ -338,6 +413,7 @@ class Adapter:
         for axis, e in zip(self.axes, self.est, strict=True):
             out[axis] = {
                 "offset_um": float(e.s[0]), "offset_sigma_um": math.sqrt(max(e.P[0, 0], 0.0)),
+                "model_sigma_um": math.sqrt(e.model_var_um2),
                 "gain": float(e.s[e.i_gain]) if e.i_gain > 0 else None,
                 "slope_um_per_m": float(e.s[e.i_slope]) if e.i_slope > 0 else None,
                 "accepted": e.accepted, "rejected": e.rejected, "last_probe_s": e.t_probe_s,

@@ -585,10 +585,21 @@ class AdaptConfig(Strict):
     gate_sigma: float = Field(
         4.0, ge=1, le=100, description="reject a probe whose innovation exceeds this many of its σ"
     )
+    model_sigma_um: float | None = Field(
+        None, ge=0, le=1000,
+        description="σ of the model's own error at a probe (it moves from probe to probe, a probe cannot tell it"
+        " from an offset), µm; none = the model's held-out RMSE from its fit (its file's fit.held_out_rmse_um),"
+        " 0 when the file has none",
+    )
+    apply_above_sigma: float = Field(
+        1.0, ge=0, le=100,
+        description="apply the estimate's correction c only as far as it stands out from its own σ where the axis"
+        " is: c·max(0, 1 − (k σ_c/c)²) with this k (0 = apply the estimate as it is)",
+    )
     initial_offset_sigma_um: float = Field(5.0, gt=0, le=1000, description="σ of the offset before the first probe")
     initial_gain_sigma: float = Field(0.2, gt=0, le=10, description="σ of the gain error before the first probe")
     offset_drift_um_per_sqrt_h: float = Field(
-        1.0, ge=0, le=1000, description="random walk of the offset between probes, µm per √h"
+        0.3, ge=0, le=1000, description="random walk of the offset between probes, µm per √h"
     )
     gain_drift_per_sqrt_h: float = Field(0.02, ge=0, le=10, description="random walk of the gain error, per √h")
     slope_position: dict[str, str] = Field(

@@ -54,6 +54,24 @@ def build_clock(lp: LoopConfig, sources: Sequence[Source]) -> Clock:
     return WallClock(lp.spin_margin_s)
 
 
+IN_SAMPLE_FACTOR = 2.0  # a file without a held-out figure: its in-sample RMSE, doubled (rows it saw flatter it)
+
+
+def held_out_sigma_um(model: Model) -> dict[str, float]:
+    """Per axis how far the model is off at any moment on days it was not fitted to (the probe adapter's
+    σ_m): its fit's held-out RMSE (the file's fit.held_out_rmse_um), else twice its in-sample `rmse_um`
+    (files written before the held-out figure); nothing for a model without either."""
+    out: dict[str, float] = {}
+    for key, factor in (("rmse_um", IN_SAMPLE_FACTOR), ("held_out_rmse_um", 1.0)):
+        figures = model.fit_info.get(key)
+        if not isinstance(figures, dict):
+            continue
+        for axis, v in figures.items():
+            if isinstance(axis, str) and isinstance(v, int | float) and not isinstance(v, bool) and 0 <= v < 1e4:
+                out[axis] = factor * float(v)
+    return out
+
+
 @dataclass
 class Pipeline:
     """The wired stages and the loop that runs them."""
@@ -128,7 +146,7 @@ def build_pipeline(
         encoder=encoder,
         sink=sink,
         word_axes=word_axes,
-        adapter=Adapter(adapt_cfg, list(model.outputs)) if adapt_cfg is not None else None,
+        adapter=Adapter(adapt_cfg, list(model.outputs), held_out_sigma_um(model)) if adapt_cfg is not None else None,
         inhibit=inhibit,
     )
     if loop.adapter is not None:

@@ -75,7 +75,7 @@ def test_observe_keeps_the_estimate_but_not_the_output():
 
 def test_a_stale_estimate_decays_or_holds():
     for policy, expect in (("decay", math.exp(-2.0)), ("hold", 1.0)):
-        ad = Adapter(AdaptConfig(stale_after_s=3600.0, stale_policy=policy, decay_tau_s=1800.0,
+        ad = Adapter(AdaptConfig(apply_above_sigma=0.0, stale_after_s=3600.0, stale_policy=policy, decay_tau_s=1800.0,
                                  initial_offset_sigma_um=100.0), ["z"])
         ad.inbox.append(Probe(0.0, "z", 5.0, sigma_um=0.01))
         b0 = _run(ad, 0.0, 0.0)
@@ -141,7 +141,8 @@ def test_a_moving_axis_adds_back_the_correction_sent_where_it_measured():
 
 
 def test_a_slope_over_the_position_is_learnt_from_probes_at_several_positions():
-    cfg = AdaptConfig(slope_position={"y": "pos_y_mm"}, slope_ref_mm=300.0, initial_offset_sigma_um=10.0)
+    cfg = AdaptConfig(slope_position={"y": "pos_y_mm"}, slope_ref_mm=300.0, initial_offset_sigma_um=10.0,
+                      apply_above_sigma=0.0)  # the estimator alone: applied as estimated
     ad = Adapter(cfg, ["y"])
     ad.bind({"pos_y_mm": 0})
     rng = np.random.default_rng(3)
@@ -166,3 +167,53 @@ def test_slope_position_must_name_a_signal_and_an_axis():
         Adapter(AdaptConfig(slope_position={"y": "pos_q_mm"}), ["y"]).bind({"pos_y_mm": 0})
     with pytest.raises(BadInput, match="not an output"):
         Adapter(AdaptConfig(slope_position={"q": "pos_y_mm"}), ["y"]).bind({"pos_y_mm": 0})
+
+
+def test_probes_never_hurt_a_model_that_is_right_and_correct_one_that_is_off():
+    """The model's own error σ_m (its held-out RMSE) moves between probes; an estimate that does not
+    stand out from its uncertainty stays off the prediction, a real offset comes through."""
+
+    DAYS = 10  # noqa: N806 - enough days that one day's luck does not decide
+
+    def run(offset_um: float, cfg: AdaptConfig) -> tuple[float, float]:
+        rng = np.random.default_rng(7)  # the same days for every setting
+        ad = Adapter(cfg, ["z"], model_sigma_um={"z": 1.0})
+        sq_with = sq_without = 0.0
+        out = np.zeros(1)
+        wander = 0.0
+        for k in range(DAYS * 24 * 60):  # minutes; the model's own error wanders by ~1 µm
+            t = 60.0 * k
+            wander = 0.98 * wander + rng.normal(0.0, 0.2)
+            truth = 10.0 + offset_um + wander  # the machine's error; the model predicts 10
+            if k % 120 == 60:  # a probe every 2 h, σ 0.3 µm
+                ad.inbox.append(Probe(t, "z", truth + rng.normal(0.0, 0.3)))
+            ad.apply(np.array([10.0]), t, out)
+            sq_with += (truth - out[0]) ** 2
+            sq_without += (truth - 10.0) ** 2
+        return math.sqrt(sq_with / (DAYS * 1440)), math.sqrt(sq_without / (DAYS * 1440))
+
+    right = run(0.0, AdaptConfig())
+    assert right[0] <= right[1] * 1.02  # no offset: the probes change (almost) nothing
+    naive = run(0.0, AdaptConfig(apply_above_sigma=0.0, model_sigma_um=0.0))
+    assert naive[0] > right[0]  # taking each probe at its word chases the model's own error
+    off = run(4.0, AdaptConfig())
+    assert off[0] < 0.5 * off[1]  # a real 4 µm offset is corrected
+
+
+def test_the_model_sigma_comes_from_the_fit_unless_configured():
+    assert Adapter(AdaptConfig(), ["z"], model_sigma_um={"z": 0.8}).model_sigma_um == [0.8]
+    assert Adapter(AdaptConfig(model_sigma_um=0.2), ["z"], model_sigma_um={"z": 0.8}).model_sigma_um == [0.2]
+    assert Adapter(AdaptConfig(), ["z"]).model_sigma_um == [0.0]
+
+
+def test_a_probe_on_a_model_at_p0_is_compared_with_its_slope_where_it_measured():
+    """A model whose output is the error at P0 and whose slope the CNC applies (Siemens tanβ): a
+    probe at y = P0 + 200 mm measures K0 + slope·200 mm; compared with K0 alone it would teach a
+    false offset of the slope's share."""
+    ad = Adapter(AdaptConfig(apply_above_sigma=0.0), ["y"])
+    out = np.zeros(1)
+    # K0 = 4 µm at P0 = 300 mm, slope 0.01 µm/mm: the error at 500 mm is 6 µm, and the probe reads it
+    ad.inbox.append(Probe(0.0, "y", 6.0, sigma_um=0.05, position_mm=500.0))
+    ad.apply(np.array([4.0]), 0.0, out, terms=[(0.01, 300.0)])
+    assert ad.events[-1]["innovation_um"] == pytest.approx(0.0, abs=1e-9)
+    assert out[0] == pytest.approx(4.0, abs=1e-6)  # no offset learnt: the model was right there
