@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
+
 DIR_BIT = 0x80
 ENABLE_BIT = 0x40
 MAG_MASK = 0x3F
@@ -136,8 +138,9 @@ class Encoder:
 
     The walk spends a budget that refills at slew/LSB per second (the time the guard
     licensed, so never more than the guard itself moved) and moves the word one LSB a
-    cycle at most (several only when the loop's period is longer than LSB/slew, as in
-    a replay at one row per second). A settled word banks at most one LSB plus one
+    cycle at most (several only when the loop's period is longer than LSB/slew; a
+    replay, whose rows stand for many of the daemon's cycles, sets an infinite period:
+    a row after dt walks what the slew licensed in dt). A settled word banks at most one LSB plus one
     cycle's refill; after a stall, which licenses more than one LSB in one cycle, the
     word catches up one LSB a cycle. Since the guard slews the correction at the same
     rate, the word stays within T of it, plus what c moves in two cycles, plus what a
@@ -177,7 +180,8 @@ class Encoder:
     def set_slew(self, max_slew_um_per_s: list[float], period_s: float = 0.0) -> None:
         """The slew limit of the high byte's and the low byte's axis, µm/s (one value: both),
         and the loop's period: while a period is shorter than LSB/slew the word moves at
-        most one LSB a cycle (also in the cycles after a stall, which licensed more)."""
+        most one LSB a cycle (also in the cycles after a stall, which licensed more).
+        `math.inf` (a replay): no cap per call, only the budget the time licensed."""
         slew = list(max_slew_um_per_s) * (2 if len(max_slew_um_per_s) == 1 else 1)
         if len(slew) != 2 or not all(s > 0 for s in slew):
             raise ValueError(f"max_slew_um_per_s must be one or two values > 0, got {max_slew_um_per_s}")
@@ -252,6 +256,82 @@ class Encoder:
                 self._moving[i] = False
             self.codes[i] = q
         self._budget[i] = b
+
+    def update_rows(
+        self,
+        c1_um: np.ndarray,
+        c2_um: np.ndarray,
+        en1: np.ndarray,
+        en2: np.ndarray,
+        dt_s: np.ndarray,
+        words: np.ndarray,
+        changed: np.ndarray,
+    ) -> None:
+        """`update` at every row of a replay (row i: c1_um[i], c2_um[i], en1[i], en2[i],
+        dt_s[i]); each row's word and whether it changed into `words[i]`, `changed[i]`.
+
+        A row in which both axes stay settled — enabled with the correction within the
+        band of its code (or at a goal it holds), or disabled with the code 0 — only
+        refills the budgets, with `_axis`'s arithmetic in plain floats; any other row
+        calls `update` itself."""
+        c1, c2, e1, e2, dts = c1_um.tolist(), c2_um.tolist(), en1.tolist(), en2.tolist(), dt_s.tolist()
+        cs = (c1, c2)
+        # per axis and row: enabled with a finite correction (else the byte is 0x00, no budget)
+        ons = ((en1 & np.isfinite(c1_um)).tolist(), (en2 & np.isfinite(c2_um)).tolist())
+        lsb, band = self.lsb_um, self.band_um
+        rate = self._rate_lsb_per_s
+        codes, moving, budget = self.codes, self._moving, self._budget
+        words_out: list[int] = [0] * len(dts)
+        changed_out = [False] * len(dts)
+        word = self.word
+        for i, dt in enumerate(dts):
+            quiet = self.words_emitted > 0
+            if quiet:
+                for a in (0, 1):
+                    if ons[a][i]:
+                        c = cs[a][i]
+                        # moving, or far enough from its code to move (unless it holds its goal)
+                        if moving[a] or (abs(c - codes[a] * lsb) >= band and self._goal(c) != codes[a]):
+                            quiet = False
+                            break
+                    elif codes[a]:
+                        quiet = False
+                        break
+            if not quiet:
+                changed_out[i] = self.update(c1[i], c2[i], e1[i], e2[i], dt)
+                words_out[i] = word = self.word
+                continue
+            for a in (0, 1):
+                if not ons[a][i]:
+                    moving[a] = False
+                    budget[a] = 0.0
+                    continue
+                # _axis's refill of a settled axis
+                gain = rate[a] * dt if dt > 0 else 0.0
+                gain = gain if gain < 2 * MAX_MAG else 2.0 * MAX_MAG
+                b = budget[a] + gain
+                if b > 1.0 + gain:
+                    b = 1.0 + gain
+                budget[a] = b if b < 4.0 * MAX_MAG else 4.0 * MAX_MAG
+            words_out[i] = word
+        if words_out:  # the flags `_axis` leaves, as of the last row
+            for a in (0, 1):
+                c = cs[a][-1]
+                if ons[a][-1] and abs(c) > self.deadband_um:
+                    r = abs(c) / lsb
+                    self.saturated[a] = (math.floor(r + 0.5) if r < MAX_MAG + 1 else MAX_MAG + 1) > MAX_MAG
+                else:
+                    self.saturated[a] = False
+        words[:] = words_out
+        changed[:] = changed_out
+
+    def _goal(self, c_um: float) -> int:
+        """The code `_axis` walks toward for the correction c (enabled, finite)."""
+        if abs(c_um) <= self.deadband_um:
+            return 0
+        r = abs(c_um) / self.lsb_um
+        m = math.floor(r + 0.5) if r < MAX_MAG + 1 else MAX_MAG + 1
+        return min(m, MAX_MAG) * (1 if c_um > 0 else -1)
 
     def update(
         self, c1_um: float, c2_um: float, en1: bool = True, en2: bool = True, dt_s: float = math.inf

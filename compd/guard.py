@@ -213,6 +213,35 @@ class Guard:
         self.bad_input = -1 if ok else int(np.argmax(tmp))
         return ok
 
+    def plain_rows(self, values: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        """Replay: the rows (of the model inputs `values`, rows × inputs, stamped `t_s`) that
+        pass every check whatever came before, provided the row before passed them all:
+        finite, in range, within the rate limit of the row before (`check_inputs`'s
+        arithmetic), and stamped later than the row before and earlier than the next (a
+        repeated stamp is a sample seen twice). None when a frozen-input limit is set:
+        that check looks further back than one row."""
+        n = len(t_s)
+        if self._has_frozen or not bool((self._stale >= 0).all()):
+            return np.zeros(n, dtype=bool)
+        good = np.isfinite(values) & ~np.less(values, self._min) & ~np.greater(values, self._max)
+        if self._has_rate and n > 1:
+            lim = np.add(np.multiply(self._rate, np.subtract(t_s[1:], t_s[:-1])[:, None]), self._rate_allow)
+            good[1:] &= ~np.greater(np.abs(np.subtract(values[1:], values[:-1])), lim)
+        plain = good.all(axis=1)
+        rises = np.diff(t_s) > 0
+        plain[1:] &= rises
+        plain[:-1] &= rises
+        return plain
+
+    def passed(self, values: np.ndarray, t_s: float) -> None:
+        """Replay: a row of `plain_rows` that ran without `check_inputs`, after rows that all
+        passed: the guard as `check_inputs` would have left it (that row the last sample of
+        every input, every input good)."""
+        self._prev_val[:] = values
+        self._prev_t[:] = t_s
+        self.inputs_ok = True
+        self.bad_input = -1
+
     def _check_waiting(self, q: np.ndarray, good: np.ndarray, now_s: float) -> None:
         """Start-up only: an input stops waiting at its first good sample, at any quality but
         no_data, or when it has had none for its staleness limit since the first check."""
@@ -318,6 +347,100 @@ class Guard:
                     self.enable[a] = False
                 # hold: out unchanged
             self.out_um[a] = out
+
+    def update_rows(
+        self,
+        pred_um: np.ndarray,
+        inputs_ok: np.ndarray,
+        t_s: np.ndarray,
+        degraded: np.ndarray,
+        hold: np.ndarray | None,
+        out_um: np.ndarray,
+        enable: np.ndarray,
+        state: np.ndarray,
+        dt_s: np.ndarray,
+    ) -> None:
+        """`update` at every row of a replay: row i is `hold` ← hold[i] (None: never held),
+        then update(pred_um[i], inputs_ok[i], t_s[i], degraded[i]); the results (out_um,
+        enable, state, dt_s) into row i of the arrays given.
+
+        A row in which every axis is NORMAL and stays so (inputs good, a finite prediction,
+        not held, the degraded flag as it was) takes a float-only path with `update`'s
+        arithmetic; any other row calls `update` itself."""
+        n_axes = self._n_axes
+        lim, slew, max_dt = self._max_abs, self._slew, self.max_dt_s
+        pred, degs, ts = pred_um.tolist(), degraded.tolist(), t_s.tolist()
+        holds = hold.tolist() if hold is not None else None
+        # the rows the float path may take, as far as the row alone says: inputs good, every
+        # prediction finite, nothing held
+        plain = np.logical_and(inputs_ok, np.isfinite(pred_um).all(axis=1))
+        if hold is not None:
+            np.logical_and(plain, ~hold.any(axis=1), out=plain)
+        plains = plain.tolist()
+        cols: list[list[float]] = [[0.0] * len(ts) for _ in range(n_axes)]
+        dts = [0.0] * len(ts)
+        enable[:] = True  # what a NORMAL axis has; the rows `update` runs are written below
+        state[:] = NORMAL
+        out = self.out_um.tolist()
+        target = self.target_um.tolist()
+        last_t, dt = self._last_t, self.dt_s
+        was_degraded = self.degraded
+        normal = self._all_normal()
+        axes = range(n_axes)
+        for i, now in enumerate(ts):
+            if normal and plains[i] and degs[i] == was_degraded:
+                p = pred[i]
+                # update's arithmetic for axes in NORMAL: the licensed time, then the slew
+                dt = now - last_t if last_t == last_t else 0.0
+                if dt < 0:
+                    dt = 0.0
+                elif dt > max_dt:
+                    dt = max_dt
+                last_t = now
+                for a in axes:
+                    tg = -p[a]
+                    m = lim[a]
+                    tg = m if tg > m else (-m if tg < -m else tg)
+                    target[a] = tg
+                    step = slew[a] * dt
+                    o = out[a]
+                    d = tg - o
+                    o = o + (step if d > step else (-step if d < -step else d))
+                    out[a] = o
+                    cols[a][i] = o
+                dts[i] = dt
+                continue
+            # anything else: `update` itself, on the state the float path left
+            self.out_um[:] = out
+            self.target_um[:] = target
+            if normal:
+                self.enable[:] = True
+            self._last_t, self.dt_s = last_t, dt
+            if holds is not None:
+                self.hold[:] = holds[i]
+            self.update(pred_um[i], bool(inputs_ok[i]), now, degraded=degs[i])
+            out = self.out_um.tolist()
+            target = self.target_um.tolist()
+            last_t, dt = self._last_t, self.dt_s
+            was_degraded = self.degraded
+            normal = self._all_normal()
+            for a in range(n_axes):
+                cols[a][i] = out[a]
+            dts[i] = dt
+            enable[i] = self.enable
+            state[i] = self.state
+        self.out_um[:] = out
+        self.target_um[:] = target
+        if normal:
+            self.enable[:] = True
+        self._last_t, self.dt_s = last_t, dt
+        for a in range(n_axes):
+            out_um[:, a] = cols[a]
+        dt_s[:] = dts
+
+    def _all_normal(self) -> bool:
+        """Every axis NORMAL and none held off (what the float path of `update_rows` needs)."""
+        return bool((self.state == NORMAL).all()) and not self._held.any()
 
     def _hold_event(self, now_s: float, a: int, hold: int, was: int) -> None:
         if hold:

@@ -338,31 +338,13 @@ class Loop:
         ok = self.guard.check_inputs(frame, now)
         if now >= self._next_model_s:
             np.take(frame.values, self.guard.input_idx, out=self.x)
-            if ok:
-                if not self.model_started:
-                    self.model.start(self.x, now)
-                    self.model_started = True
-                    if self.on_model_state is not None:
-                        self.on_model_state(self.model.get_state())
-                self.model.evaluate(self.x, now, self.pred_um)
-                ups = self.model.update_period_s
-                if ups > 0:
-                    self._next_model_s = now + ups
-                    if self.on_model_state is not None:
-                        self.on_model_state(self.model.get_state())
-            elif self.model_started and self.model.supports_degraded:
-                # some inputs bad: predict from the others where they carry the information
-                np.equal(frame.quality[self.guard.input_idx], 0, out=self._good)
-                self.model.evaluate_degraded(self.x, self._good, now, self.pred_um)
-                self.degraded = True
-            else:
-                self.pred_um.fill(math.nan)
-            if ok:
-                self.degraded = False
+            self.model_step(ok, now)
         pred = self.pred_um
         if self.adapter is not None:  # the sink's applied correction only when a probe waits
             self.adapter.read_positions(frame.values)
-            self.adapter.apply(pred, now, self.pred_adapted_um, self.applied() if self.adapter.inbox else None)
+            waiting = bool(self.adapter.inbox)  # what a probe needs (allocates) only when one waits
+            self.adapter.apply(pred, now, self.pred_adapted_um, self.applied() if waiting else None,
+                               self.model.linear_terms() if waiting else None)
             pred = self.pred_adapted_um
         t2 = perf()
         if self.inhibit is not None:
@@ -390,6 +372,33 @@ class Loop:
         st.stage(4, t5 - t4)
         for obs in self.observers:
             obs(self, now)
+
+    def model_step(self, ok: bool, now: float) -> None:
+        """The cycle's model stage, when the model is due, on `x` (this cycle's inputs; `ok`:
+        all good): start on the first good inputs, run, and hold until update_period_s has
+        passed; with some inputs bad, predict from the others where the model can, else NaN.
+        The prediction in `pred_um`. (A replay calls it for the rows it steps the model on.)"""
+        if ok:
+            if not self.model_started:
+                self.model.start(self.x, now)
+                self.model_started = True
+                if self.on_model_state is not None:
+                    self.on_model_state(self.model.get_state())
+            self.model.run(self.x, now, self.pred_um)
+            ups = self.model.update_period_s
+            if ups > 0:
+                self._next_model_s = now + ups
+                if self.on_model_state is not None:
+                    self.on_model_state(self.model.get_state())
+        elif self.model_started and self.model.supports_degraded:
+            # some inputs bad: predict from the others where they carry the information
+            np.equal(self.frame.quality[self.guard.input_idx], 0, out=self._good)
+            self.model.run_degraded(self.x, self._good, now, self.pred_um)
+            self.degraded = True
+        else:
+            self.pred_um.fill(math.nan)
+        if ok:
+            self.degraded = False
 
     def applied(self) -> np.ndarray:
         """What the machine applies per model output (µm), from the sink."""

@@ -36,6 +36,11 @@ class Trend:
     fault: np.ndarray | None = None  # bool: the guard had the axis in fault (or recovering)
     fault_label: str = "guard fault or recovering"
     probe_um: np.ndarray | None = None  # probe measurements of the whole thermal error, NaN between
+    # what the device was commanded (the word's correction, the NC's target); None: the word
+    # decoded on the word's axes. Against `applied_um` it shows the device trailing.
+    commanded_um: np.ndarray | None = None
+    commanded_label: str = "commanded (word)"
+    resolution_um: float | None = None  # the device's smallest step (a difference below it is no trailing)
     scores: dict[str, Any] = field(default_factory=dict)  # per axis: the replay report's figures
     title: str = ""
     notes: list[str] = field(default_factory=list)  # one-line remarks under the title
@@ -83,10 +88,17 @@ def _time_axis(t_s: np.ndarray) -> tuple[np.ndarray, str]:
     return rel, "s"
 
 
-def _legend(ax: Any) -> None:
-    handles, labels = ax.get_legend_handles_labels()
+LEGEND_ROWS = 8  # entries per legend column: a panel's legend never runs down past the panel
+
+
+def _legend(ax: Any, handles: list[Any] | None = None, labels: list[str] | None = None, x: float = 1.01) -> None:
+    """The panel's legend to its right, in as many columns as keep it within the panel's height."""
+    if handles is None or labels is None:
+        handles, labels = ax.get_legend_handles_labels()
     if handles:
-        ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+        ncol = -(-len(handles) // LEGEND_ROWS)
+        ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(x, 1.0), fontsize=8 if ncol == 1 else 7,
+                  frameon=False, ncol=ncol, columnspacing=0.8, handlelength=1.5)
 
 
 def pyplot() -> Any:
@@ -109,6 +121,7 @@ def write_trend(trend: Trend, path: str | Path, dpi: int = 100) -> None:
         raise BadInput("nothing to plot: no rows", file=str(path))
     x, unit = _time_axis(trend.t_s)
     word_um, word_en = decode_words(trend.word, trend.lsb_um)
+    commanded = commanded_matrix(trend, word_um)
     has_err = trend.error_um is not None and bool(np.isfinite(trend.error_um).any())
     rows: list[tuple[str, int]] = [("inputs", -1)]
     for a in range(len(trend.axes)):
@@ -117,15 +130,21 @@ def write_trend(trend: Trend, path: str | Path, dpi: int = 100) -> None:
         ):
             rows.append(("error", a))
         rows.append(("correction", a))
-    fig, panels = plt.subplots(len(rows), 1, figsize=(12, 2.5 * len(rows) + 0.6), sharex=True, squeeze=False)
+        if np.isfinite(commanded[:, a]).any():
+            rows.append(("trailing", a))
+    heights = [0.6 if kind == "trailing" else 1.0 for kind, _ in rows]
+    fig, panels = plt.subplots(len(rows), 1, figsize=(12, 2.5 * sum(heights) + 0.6), sharex=True, squeeze=False,
+                               gridspec_kw={"height_ratios": heights})
     panels = panels[:, 0]
     for ax, (kind, a) in zip(panels, rows, strict=True):
         if kind == "inputs":
             _inputs_panel(ax, x, trend)
         elif kind == "error":
             _error_panel(ax, x, trend, a)
+        elif kind == "trailing":
+            _trailing_panel(ax, x, trend, a, commanded[:, a])
         else:
-            _correction_panel(ax, x, trend, a, word_um, word_en)
+            _correction_panel(ax, x, trend, a, commanded[:, a], word_en)
         ax.grid(True, color="0.92", lw=0.6)
         if kind != "inputs":  # the inputs panel places its own (it may have a right axis)
             _legend(ax)
@@ -166,7 +185,7 @@ def _inputs_panel(ax: Any, x: np.ndarray, trend: Trend) -> None:
     twin.set_ylabel(" / ".join(dict.fromkeys(u for u in units if u)) or "other inputs", fontsize=9)
     h1, l1 = ax.get_legend_handles_labels()
     h2, l2 = twin.get_legend_handles_labels()
-    ax.legend(h1 + h2, l1 + l2, loc="upper left", bbox_to_anchor=(1.07, 1.0), fontsize=8, frameon=False)
+    _legend(ax, h1 + h2, l1 + l2, x=1.07)
 
 
 def _error_panel(ax: Any, x: np.ndarray, trend: Trend, a: int) -> None:
@@ -189,15 +208,32 @@ def _error_panel(ax: Any, x: np.ndarray, trend: Trend, a: int) -> None:
     ax.set_title(head, fontsize=9, loc="left")
 
 
-def _correction_panel(ax: Any, x: np.ndarray, trend: Trend, a: int, word_um: np.ndarray, word_en: np.ndarray) -> None:
+def commanded_matrix(trend: Trend, word_um: np.ndarray | None = None) -> np.ndarray:
+    """What the device was commanded per row and axis (µm): the trend's `commanded_um`, else
+    the word decoded on the word's axes; NaN where neither says."""
+    if trend.commanded_um is not None:
+        return np.asarray(trend.commanded_um, dtype=float)
+    if word_um is None:
+        word_um, _ = decode_words(trend.word, trend.lsb_um)
+    out = np.full((len(trend.t_s), len(trend.axes)), np.nan)
+    for slot, axis in enumerate(trend.word_axes[:2]):
+        if axis in trend.axes:
+            out[:, trend.axes.index(axis)] = word_um[:, slot]
+    return out
+
+
+def _correction_panel(ax: Any, x: np.ndarray, trend: Trend, a: int, commanded: np.ndarray, word_en: np.ndarray) -> None:
     axis = trend.axes[a]
     on_word = axis in trend.word_axes
     if trend.corr_um is not None:
         ax.plot(x, trend.corr_um[:, a], lw=0.8, color=C_GUARD, label="guard's correction")
+    if np.isfinite(commanded).any():
+        label = trend.commanded_label
+        if on_word and trend.commanded_um is None:
+            label += f", {'high' if trend.word_axes.index(axis) == 0 else 'low'} byte"
+        ax.step(x, commanded, where="post", lw=2.2, alpha=0.55, color=C_WORD, label=label)
     if on_word:
         slot = trend.word_axes.index(axis)
-        ax.step(x, word_um[:, slot], where="post", lw=2.2, alpha=0.55, color=C_WORD,
-                label=f"commanded (word, {'high' if slot == 0 else 'low'} byte)")
         _band(ax, x, ~word_en[:, slot], C_DISABLED, 1.0, "disabled (enable bit off)")
     ax.step(x, trend.applied_um[:, a], where="post", lw=1, ls=(0, (4, 2)), color=C_APPLIED, label="applied (device)")
     if trend.fault is not None:
@@ -206,6 +242,38 @@ def _correction_panel(ax: Any, x: np.ndarray, trend: Trend, a: int, word_um: np.
     ax.set_ylabel(f"{axis} correction / µm")
     where = "" if on_word else " (not on the word)"
     ax.set_title(f"axis {axis}: correction{where}, LSB {trend.lsb_um:g} µm", fontsize=9, loc="left")
+
+
+def trailing_um(trend: Trend, a: int, commanded: np.ndarray | None = None) -> np.ndarray:
+    """Per row, applied − commanded on axis `a` (µm): how far the device trails its command."""
+    if commanded is None:
+        commanded = commanded_matrix(trend)[:, a]
+    return np.asarray(trend.applied_um[:, a], dtype=float) - commanded
+
+
+def _trailing_panel(ax: Any, x: np.ndarray, trend: Trend, a: int, commanded: np.ndarray) -> None:
+    """applied − commanded on its own scale: the device trailing its command (a PMC stepping at
+    its rate, an NC ramping) shows however briefly it lasts or small it is beside the correction."""
+    axis = trend.axes[a]
+    d = trailing_um(trend, a, commanded)
+    ok = np.isfinite(d)
+    ax.fill_between(x, np.where(ok, d, 0.0), step="post", color=C_APPLIED, alpha=0.3, lw=0)
+    ax.step(x, d, where="post", lw=0.9, color=C_APPLIED, label="applied − commanded")
+    ax.axhline(0.0, color="0.6", lw=0.5)
+    res = trend.resolution_um
+    tol = 0.5 * res if res else 1e-6  # below half the device's step: the device's rounding, not trailing
+    worst = float(np.max(np.abs(d[ok]))) if ok.any() else 0.0
+    if worst <= tol:
+        ax.set_ylim(-max(res or 1.0, 1e-3), max(res or 1.0, 1e-3))
+        head = f"axis {axis}: applied − commanded — the device applied its command at every row"
+    else:
+        off = np.abs(d[ok]) > tol
+        share = 100.0 * float(np.sum(np.diff(trend.t_s, append=trend.t_s[-1])[ok][off]))
+        share /= max(float(trend.t_s[-1] - trend.t_s[0]), 1e-9)
+        head = (f"axis {axis}: applied − commanded — the device trailing its command by up to {worst:.2f} µm,"
+                f" {share:.1f} % of the time")
+    ax.set_ylabel("trailing / µm")
+    ax.set_title(head, fontsize=9, loc="left")
 
 
 # ------------------------------------------------------------- trends from a data log
@@ -236,10 +304,12 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
     word_axes = axes[:2]
     inputs: list[str] | None = None
     notes = []
+    k0_sink = False  # the config's sink sends the guard's correction (K0), not the word
     if config is not None:
         from compd.config import load_config
 
         cfg = load_config(config)
+        k0_sink = cfg.sink[1].kind == "siemens"
         lsb_um = cfg.codec.lsb_um
         inputs = list(cfg.model.inputs)
         word_axes = list(cfg.codec.axes or cfg.model.outputs[:2])
@@ -272,11 +342,15 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
     applied = np.nan_to_num(block("applied"), nan=0.0)
     if not applied.any() and w.any():
         notes.append("applied is 0 throughout: observe mode, or a device that applies nothing")
+    commanded = None
+    if k0_sink:  # the NC is sent the guard's correction; without it logged nothing says what it was
+        commanded = corr if corr is not None else np.full((len(log), len(axes)), np.nan)
     return Trend(
         t_s=log.t_s.copy(), axes=axes, signals=signals, word=w.astype(np.int64), word_axes=word_axes,
         lsb_um=lsb_um, applied_um=applied, error_um=err, pred_um=pred, corr_um=corr, fault=fault,
         fault_label="no prediction (guard fault)", title=f"compd trend of {Path(log.file).name}", notes=notes,
-        probe_um=probe,
+        probe_um=probe, commanded_um=commanded,
+        commanded_label="commanded (K0, the guard's correction)" if k0_sink else "commanded (word)",
     )
 
 
@@ -303,10 +377,13 @@ def trend_from_replay(result: Any) -> Trend:
              f" {rep.get('codes_sent', 0)} codes sent, {rep.get('saturated', 0)} saturated words,"
              f" guard events: {', '.join(f'{k} {v}' for k, v in faults.items()) or 'none'}"]
     name = Path(str(ex.get("log", ""))).name
+    limits = rep.get("device_limits") or {}
     return Trend(
         t_s=result.t_s, axes=list(result.axes), signals=dict(ex.get("signals", {})), word=result.word,
         word_axes=list(ex.get("word_axes", result.axes[:2])), lsb_um=float(ex.get("lsb_um", 1.0)),
         applied_um=result.applied_um, error_um=result.error_um, pred_um=ex.get("pred_um"),
         corr_um=ex.get("corr_um"), fault=fault, scores=dict(rep.get("axes", {})),
         title=f"compd replay of {name}" if name else "compd replay", notes=notes, probe_um=ex.get("probe_um"),
+        commanded_um=ex.get("commanded_um"), commanded_label="commanded (the device's target)",
+        resolution_um=limits.get("resolution_um"),
     )

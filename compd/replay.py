@@ -1,13 +1,27 @@
 """`compd replay`: a log's signals through model, guard and codec into the configured sink's virtual device.
 
 The loop runs on simulated time, one cycle per log row (the clock jumps from row to
-row, so a day of 1 Hz log is 86 400 cycles, not 43 million); the guard's slew limit,
-the sink's update rate and the PMC's scans all follow that simulated time. After
-each cycle the device is given time to act (the PMC two scans, the NC its IPO
-cycles), and what it then reports as applied is what the report counts: residual =
-logged error + applied correction. A config replays through its own sink's device of
-the software PLC (FANUC PMC, Siemens NC data, PCI-1756 card), with that device's
-resolution and limits; a bare model file through the FANUC PMC, and the report says so.
+row, so a day of 1 Hz log is 86 400 cycles, not 43 million), and each row stands for the
+time since the row before: the guard's slew, the codec's walk, the sink's update rate
+and the device's scans, steps and ramps all follow that simulated time, not the number
+of rows (a row after dt does what the daemon's cycles would have done in dt: the word
+walks what the slew licensed, the PMC takes as many steps as `min_update_s` allows, each
+two scans after the one before, the NC ramps toward K0 over dt; compd.sinks.device_time).
+After each row the device has acted (the PMC two scans past its last write, the NC its
+IPO cycles up to the row), and what it then reports as applied is what the report
+counts: residual = logged error + applied correction. A config replays through its own
+sink's device of the software PLC (FANUC PMC, Siemens NC data, PCI-1756 card), with that
+device's resolution and limits; a bare model file through the FANUC PMC, and the report
+says so.
+
+The rows run stage by stage rather than cycle by cycle, with the cycle-by-cycle result
+(`replay_log(..., per_row=True)` runs the loop itself, and the tests hold the two
+equal): the guard's input checks are vectorised and run for real only on rows whose
+inputs could fail them (and the first); the model is evaluated over the log at once
+(`Model.predict`) up to the first such row and stepped row by row after it; the guard
+(`Guard.update_rows`), the codec (`Encoder.update_rows`) and the sink
+(`Sink.write_rows`) step row by row on plain floats, calling their cycle's methods on
+the rows where more than the plain path happens.
 """
 
 from __future__ import annotations
@@ -24,14 +38,25 @@ from compd.clock import SimClock
 from compd.config import AdaptConfig, CodecConfig, Document, GuardConfig, InhibitConfig
 from compd.errors import BadInput
 from compd.log import Log, read_log
-from compd.models.base import Model
+from compd.models.base import Model, step_rows
 from compd.pipeline import build_model, build_pipeline
 from compd.scoring import score_applied
 from compd.sinks.base import Sink
 from compd.sources.replay import ReplayConfig, ReplaySource
 
 if TYPE_CHECKING:
+    from compd.loop import Loop
     from compd.sinks.fanuc_pmc import FanucPmcSink
+
+# the model classes whose `predict` over a log equals stepping `evaluate` row by row
+# from its first row (tests/test_replay.py checks each on a day of its machine); others
+# (a kind from another package) are stepped. A model with linear terms is stepped too:
+# the Siemens sink sends the terms of the row it writes, and feed_axis's `predict` gives
+# the error at each row's position, not at P0.
+BATCH_MODELS = frozenset({
+    "compd.models.ar1.AR1", "compd.models.xi_spindle.XiSpindle", "compd.models.lvr.LVR",
+    "compd.models.mlr.MLR", "compd.models.feed_axis.FeedAxis",
+})
 
 
 @dataclass
@@ -45,6 +70,25 @@ class ReplayResult:
     applied_um: np.ndarray  # rows × axes, what the PLC applied after each row
     word: np.ndarray  # rows
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class _Rows:
+    """What each row of a replay leaves (rows × the model's outputs unless said otherwise)."""
+
+    pred: np.ndarray  # the model's prediction
+    corr: np.ndarray  # the guard's correction
+    enable: np.ndarray  # the guard's enable flags
+    state: np.ndarray  # the guard's axis states
+    words: np.ndarray  # rows: the word
+    applied: np.ndarray  # what the device applied (0 off the word)
+    commanded: np.ndarray  # what the device was commanded (NaN off the word)
+
+    @classmethod
+    def empty(cls, n: int, n_out: int) -> _Rows:
+        return cls(np.zeros((n, n_out)), np.zeros((n, n_out)), np.zeros((n, n_out), dtype=bool),
+                   np.zeros((n, n_out), dtype=np.uint8), np.zeros(n, dtype=np.int64), np.zeros((n, n_out)),
+                   np.full((n, n_out), np.nan))
 
 
 def probe_columns(log: Log, axes: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
@@ -67,6 +111,7 @@ def replay_log(
     adapt_cfg: AdaptConfig | None = None,
     use_probes: bool = True,
     inhibit_cfg: InhibitConfig | None = None,
+    per_row: bool = False,
 ) -> ReplayResult:
     """Run every row of `log` through model → guard → codec → sink (the PLC).
 
@@ -74,7 +119,8 @@ def replay_log(
     running daemon's probe source would (`adapt_cfg`, or the defaults when the config has
     none); the report then also gives each axis `without_adaptation`: the same replay with
     the probes ignored (the model alone). With `inhibit_cfg` the log's inhibit and
-    referenced columns hold the axes off as they held the machine's."""
+    referenced columns hold the axes off as they held the machine's. `per_row`: run the
+    loop cycle by cycle (the reference the staged run equals)."""
     if len(log) == 0:
         raise BadInput("the log has no rows", file=log.file)
     probes = probe_columns(log, list(model.outputs)) if use_probes else {}
@@ -84,7 +130,7 @@ def replay_log(
     if probes:  # the model alone, on a fresh sink of the same kind: the report's without_adaptation
         fresh = type(sink)(sink.cfg, sink.base_dir)
         plain = replay_log(log, copy_model(model), fresh, guard_cfg, codec_cfg, None, use_probes=False,
-                           inhibit_cfg=inhibit_cfg)
+                           inhibit_cfg=inhibit_cfg, per_row=per_row)
     source = ReplaySource(ReplayConfig(kind="replay", name="log", path=log.file), log=log)
     clock = SimClock(float(log.t_s[0]))
     try:
@@ -95,47 +141,30 @@ def replay_log(
         ).loop
     except BadInput as e:
         raise BadInput(e.message, file=log.file, path=e.keys) from None
+    # a row stands for the daemon's many cycles in the time since the row before: the word
+    # may walk what the slew licensed in that time, not one LSB per row
+    loop.encoder.set_slew([float(loop.guard.slew_um_per_s[a]) for a in loop.word_axes], math.inf)
     n, n_out = len(log), len(model.outputs)
-    applied = np.zeros((n, n_out))
-    pred = np.zeros((n, n_out))
-    corr = np.zeros((n, n_out))
-    state = np.zeros((n, n_out), dtype=np.uint8)
-    words = np.zeros(n, dtype=np.int64)
+    rows = _Rows.empty(n, n_out)
     t = log.t_s
-    codes_sent = 0
-    prev_word = 0
     loop.open()
     try:
-        inbox = loop.adapter.inbox if loop.adapter is not None else None
-        for i in range(n):
-            now = float(t[i])
-            clock.set(now)
-            if inbox is not None:
-                for axis, (z, pos) in probes.items():
-                    if math.isfinite(z[i]):
-                        inbox.append(Probe(now, axis, float(z[i]), None,
-                                           None if pos is None else float(pos[i]), "log"))
-            loop.step(now)
-            sink.settle(now)
-            applied[i] = loop.applied()
-            pred[i] = loop.pred_um
-            corr[i] = loop.guard.out_um
-            state[i] = loop.guard.state
-            w = loop.word
-            words[i] = w
-            if w != prev_word:
-                codes_sent += 1
-                prev_word = w
+        if per_row:
+            _run_cycles(loop, clock, probes, log, rows)
+        else:
+            _run_stages(loop, source, log, probes, rows)
         sink_status = sink.get_status()
     finally:
         loop.close()
+    words = rows.words
+    codes_sent = int(np.count_nonzero(np.diff(words, prepend=0)))
     err = np.full((n, n_out), np.nan)
     axes_rep: dict[str, Any] = {}
     for a, axis in enumerate(model.outputs):
         col = f"err_{axis}_um"
         if col in log.columns:
             err[:, a] = log.col(col)
-            axes_rep[axis] = score_applied(err[:, a], applied[:, a])
+            axes_rep[axis] = score_applied(err[:, a], rows.applied[:, a])
     faults = dict(loop.guard.faults)
     alarms = sink_status.get("alarm_count")
     if alarms and sum(alarms):
@@ -166,7 +195,8 @@ def replay_log(
     if probes:
         report["adaptation"] = adaptation
     extra = {
-        "pred_um": pred, "corr_um": corr, "guard_state": state, "lsb_um": loop.encoder.lsb_um,
+        "pred_um": rows.pred, "corr_um": rows.corr, "guard_state": rows.state, "lsb_um": loop.encoder.lsb_um,
+        "commanded_um": rows.commanded, "enable": rows.enable,
         "word_axes": [model.outputs[a] for a in loop.word_axes],
         "signals": {name: log.col(name) for name in model.inputs if name in log.columns},
         "log": log.file,
@@ -175,7 +205,184 @@ def replay_log(
         from compd.plots import probe_matrix
 
         extra["probe_um"] = probe_matrix(log, list(model.outputs))
-    return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, applied, words, extra)
+    return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, rows.applied, words, extra)
+
+
+def _log_probes(loop: Loop, probes: dict[str, tuple[np.ndarray, np.ndarray | None]], i: int, now: float) -> None:
+    """Row i's probes into the adapter's inbox, as a probe source hands them over."""
+    assert loop.adapter is not None
+    for axis, (z, pos) in probes.items():
+        if math.isfinite(z[i]):
+            loop.adapter.inbox.append(Probe(now, axis, float(z[i]), None,
+                                            None if pos is None else float(pos[i]), "log"))
+
+
+def positions_mm(log: Log, axes: list[str]) -> np.ndarray | None:
+    """Where each axis stood at each row (the log's pos_<axis>_mm; NaN for an axis without one),
+    rows × axes; None when the log has no position of any of them."""
+    cols = [f"pos_{a}_mm" for a in axes]
+    if not any(c in log.columns for c in cols):
+        return None
+    return np.column_stack([log.col(c) if c in log.columns else np.full(len(log), np.nan) for c in cols])
+
+
+def _run_cycles(
+    loop: Loop, clock: SimClock, probes: dict[str, tuple[np.ndarray, np.ndarray | None]], log: Log, rows: _Rows
+) -> None:
+    """The reference: the loop's own cycle at every row, then the device given its time to act."""
+    sink = loop.sink
+    commanded = np.zeros(2)
+    wa = loop.word_axes
+    where = positions_mm(log, list(loop.model.outputs))
+    for i, now in enumerate(log.t_s.tolist()):
+        clock.set(now)
+        if loop.adapter is not None:
+            _log_probes(loop, probes, i, now)
+        if where is not None:  # the device knows where its axes stand, as on the machine
+            sink.set_positions(where[i])
+        loop.step(now)
+        sink.settle(now)
+        rows.applied[i] = loop.applied()
+        sink.commanded_um(commanded)
+        for slot, axis in enumerate(wa):
+            rows.commanded[i, axis] = commanded[slot]
+        rows.pred[i] = loop.pred_um
+        rows.corr[i] = loop.guard.out_um
+        rows.enable[i] = loop.guard.enable
+        rows.state[i] = loop.guard.state
+        rows.words[i] = loop.word
+
+
+def _run_stages(
+    loop: Loop, source: ReplaySource, log: Log, probes: dict[str, tuple[np.ndarray, np.ndarray | None]], rows: _Rows
+) -> None:
+    """The replay stage by stage, each over every row, with `_run_cycles`'s result."""
+    t = np.asarray(log.t_s, dtype=float)
+    n = len(t)
+    ok, degraded, hold, terms = _inputs_and_model(loop, source, log, rows.pred)
+    guard = loop.guard
+    dt = np.zeros(n)
+    if loop.adapter is None:
+        guard.update_rows(rows.pred, ok, t, degraded, hold, rows.corr, rows.enable, rows.state, dt)
+    else:
+        _adapt_and_guard(loop, log, probes, ok, degraded, hold, rows, dt, terms)
+    wa = loop.word_axes
+    changed = np.zeros(n, dtype=bool)
+    c2 = rows.corr[:, wa[1]] if len(wa) == 2 else np.zeros(n)
+    en2 = rows.enable[:, wa[1]] if len(wa) == 2 else np.zeros(n, dtype=bool)
+    loop.encoder.update_rows(rows.corr[:, wa[0]], c2, rows.enable[:, wa[0]], en2, dt, rows.words, changed)
+    loop.word = loop.encoder.word
+    applied = np.zeros((n, 2))
+    commanded = np.zeros((n, 2))
+    loop.sink.write_rows(t, rows.words, changed, rows.corr, rows.enable, applied, commanded, terms,
+                         positions_mm(log, list(loop.model.outputs)))
+    for slot, axis in enumerate(wa):
+        rows.applied[:, axis] = applied[:, slot]
+        rows.commanded[:, axis] = commanded[:, slot]
+
+
+def _inputs_and_model(
+    loop: Loop, source: ReplaySource, log: Log, pred: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, list[Any] | None]:
+    """The read, check and model stages of every row: the prediction into `pred`; per row the
+    guard's `inputs_ok` (the loop's ok, or degraded), the degraded flag, the hold reasons
+    (None without an inhibit section) and the model's linear terms (None unless the sink
+    sends them and the model has them)."""
+    guard, model, frame, inhibit = loop.guard, loop.model, loop.frame, loop.inhibit
+    t = np.asarray(log.t_s, dtype=float)
+    tl = t.tolist()
+    n, n_out = len(t), len(model.outputs)
+    X = log.matrix(model.inputs) if model.inputs else np.zeros((n, 0))
+    plain = guard.plain_rows(X, t)
+    # the model's linear terms of every row: for a sink that sends them, and for the adapter (a
+    # probe at position y is compared with the error the model predicts there)
+    uses_terms = (loop.sink.sends_linear_terms or loop.adapter is not None) and model.linear_terms() is not None
+    # rows [0, e) pass every check: the model is evaluated over them at once where that
+    # equals stepping it (its `predict` leads the inputs as `run` does, compd.models.lead)
+    batch = (bool(plain[0]) and model.linear_terms() is None
+             and (type(model).predict is Model.predict
+                  or f"{type(model).__module__}.{type(model).__qualname__}" in BATCH_MODELS))
+    e = (n if plain.all() else int(np.argmin(plain))) if batch else 0
+    ok_rows = np.zeros(n, dtype=bool)
+    deg_rows = np.zeros(n, dtype=bool)
+    hold_rows = np.zeros((n, n_out), dtype=np.uint8) if inhibit is not None else None
+    terms: list[Any] | None = [None] * n if uses_terms else None
+    if e:  # what the loop's model stage leaves after row e − 1
+        pred[:e] = model.predict(X[:e], t[:e])
+        ok_rows[:e] = True
+        loop.model_started = True
+        loop.pred_um[:] = pred[e - 1]
+        ups = model.update_period_s
+        if ups > 0:
+            loop._next_model_s = float(t[step_rows(t[:e], ups)[-1]]) + ups
+    moved = None
+    if inhibit is not None:  # its signals' rows: the hold reasons change only where they do
+        S = log.matrix(inhibit_signals(inhibit.cfg))
+        same = (S[1:] == S[:-1]) | (np.isnan(S[1:]) & np.isnan(S[:-1]))
+        moved = np.r_[True, ~same.all(axis=1)].tolist()
+    x = loop.x
+    ok = False  # the last check passed every input
+    framed_before = False  # the frame held the row before (its checks ran)
+    for i in range(n):
+        now = tl[i]
+        if 0 < i < e and moved is None:
+            framed_before = False
+            continue  # checked, and modelled in the batch
+        if i > 0 and plain[i] and ok:
+            framed = False
+        else:
+            if i > 0 and not framed_before:  # the rows before passed without the guard
+                guard.passed(X[i - 1], tl[i - 1])
+            source.read(frame, now)
+            ok = guard.check_inputs(frame, now)
+            framed = True
+        if i >= e:
+            if now >= loop._next_model_s:
+                if framed:
+                    np.take(frame.values, guard.input_idx, out=x)
+                else:
+                    np.copyto(x, X[i])
+                loop.model_step(ok, now)
+            pred[i] = loop.pred_um
+            ok_rows[i] = ok or loop.degraded
+            deg_rows[i] = loop.degraded
+            if terms is not None:
+                terms[i] = model.linear_terms()
+        if moved is not None and hold_rows is not None:
+            if moved[i] or framed or framed_before:
+                if not framed:
+                    source.read(frame, now)
+                inhibit.evaluate(frame, now, guard.hold)
+            hold_rows[i] = guard.hold
+        framed_before = framed
+    if not framed_before:  # the guard as the last row left it
+        guard.passed(X[n - 1], tl[n - 1])
+    return ok_rows, deg_rows, hold_rows, terms
+
+
+def _adapt_and_guard(
+    loop: Loop, log: Log, probes: dict[str, tuple[np.ndarray, np.ndarray | None]], ok: np.ndarray,
+    degraded: np.ndarray, hold: np.ndarray | None, rows: _Rows, dt: np.ndarray, terms: list[Any] | None,
+) -> None:
+    """With probes: the adapter and the guard, row by row as the loop runs them."""
+    adapter, guard = loop.adapter, loop.guard
+    assert adapter is not None
+    values = log.matrix(loop.frame.names) if any(adapter.position_signal) else None
+    pa = loop.pred_adapted_um
+    for i, now in enumerate(log.t_s.tolist()):
+        _log_probes(loop, probes, i, now)
+        if values is not None:
+            adapter.read_positions(values[i])
+        # a probe from the log is the whole error (not residual): the adapter needs no applied correction
+        adapter.apply(rows.pred[i], now, pa, None, terms[i] if terms is not None else None)
+        if hold is not None:
+            guard.hold[:] = hold[i]
+        guard.update(pa, bool(ok[i]), now, degraded=bool(degraded[i]))
+        adapter.record(rows.pred[i], guard.out_um)
+        rows.corr[i] = guard.out_um
+        rows.enable[i] = guard.enable
+        rows.state[i] = guard.state
+        dt[i] = guard.dt_s
 
 
 def device_report(sink: Sink) -> dict[str, Any]:

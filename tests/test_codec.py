@@ -244,3 +244,42 @@ def test_tiny_lsb_saturates_instead_of_overflowing():
 
     word, s1, s2 = encode_ex(5.0, -5.0, lsb_um=1e-320, deadband_um=0.0)
     assert word == 0xFF7F and s1 and s2
+
+
+def test_update_rows_equals_update_row_by_row() -> None:
+    """The replay's `update_rows` gives the words, changes and state that `update` gives row by
+    row: walks, dead-band, saturation, disabled axes, NaN, no time or much time per row."""
+    import numpy as np
+
+    rng = np.random.default_rng(11)
+    n = 5000
+    c = np.cumsum(rng.normal(0.0, 0.8, (n, 2)), axis=0)
+    c[3000:3200, 0] = 80.0  # saturated
+    c[rng.random((n, 2)) < 0.005] = np.nan
+    en = rng.random((n, 2)) > 0.01
+    en[4000:4050, 1] = False
+    dt = rng.choice([0.0, 0.002, 0.5, 1.0, 10.0, 1e9], n, p=[0.02, 0.3, 0.2, 0.35, 0.12, 0.01])
+    for period in (0.002, math.inf):
+        ref = codec.Encoder(0.5, 1.0, 4.0, period_s=period)
+        words, changed = np.zeros(n, np.int64), np.zeros(n, bool)
+        for i in range(n):
+            changed[i] = ref.update(c[i, 0], c[i, 1], bool(en[i, 0]), bool(en[i, 1]), float(dt[i]))
+            words[i] = ref.word
+        got = codec.Encoder(0.5, 1.0, 4.0, period_s=period)
+        w2, ch2 = np.zeros(n, np.int64), np.zeros(n, bool)
+        got.update_rows(c[:, 0], c[:, 1], en[:, 0], en[:, 1], dt, w2, ch2)
+        np.testing.assert_array_equal(w2, words)
+        np.testing.assert_array_equal(ch2, changed)
+        assert (got.codes, got.saturated, got.saturations, got.words_emitted) == (
+            ref.codes, ref.saturated, ref.saturations, ref.words_emitted)
+        assert got._budget == ref._budget and got._moving == ref._moving
+
+
+def test_an_infinite_period_walks_what_the_time_licensed() -> None:
+    """A replay sets an infinite period: a row 10 s after the last walks 10 s of slew (0.5 µm/s:
+    5 LSB; the first also spends the LSB a settled word banks), where a loop period of 1 s at
+    that slew would move it one LSB a row."""
+    enc = codec.Encoder(1.0, 1.0, 0.5, period_s=math.inf)
+    assert _walk(enc, [0.0, 20.0, 20.0], 10.0) == [0, 6, 11]
+    per_cycle = codec.Encoder(1.0, 1.0, 0.5, period_s=1.0)
+    assert _walk(per_cycle, [0.0, 20.0, 20.0], 10.0) == [0, 1, 2]

@@ -143,3 +143,78 @@ def test_an_input_without_a_rate_limit_beside_one_with_raises_no_warning() -> No
             assert g.check_inputs(frame, t)
         frame.set(0, 40.0, Quality.GOOD, 0.3)  # +15 °C in 0.1 s: implausible
         assert not g.check_inputs(frame, 0.4)
+
+
+@pytest.mark.parametrize("policy", ["hold", "ramp_to_zero", "disable"])
+def test_update_rows_equals_update_row_by_row(policy: str) -> None:
+    """The replay's `update_rows` gives what `update` gives row by row, whatever comes: NaN
+    predictions, bad and degraded rows, holds, clamps, time that repeats or runs backwards."""
+    rng = np.random.default_rng({"hold": 1, "ramp_to_zero": 2, "disable": 3}[policy])
+    n = 3000
+    t = np.cumsum(rng.choice([0.0, 0.002, 0.5, 1.0, 10.0, 60.0], n, p=[0.02, 0.1, 0.3, 0.4, 0.15, 0.03]))
+    t[rng.integers(0, n, 10)] -= 5.0  # a clock that goes back now and then
+    pred = np.cumsum(rng.normal(0.0, 2.0, (n, 2)), axis=0)
+    pred[rng.random((n, 2)) < 0.01] = np.nan
+    ok = rng.random(n) > 0.02
+    ok[1500:1600] = False
+    degraded = np.zeros(n, dtype=bool)
+    degraded[2000:2100] = True
+    hold = np.zeros((n, 2), dtype=np.uint8)
+    hold[700:900, 0] = 1
+    hold[2500:2600, 1] = 2
+
+    def fresh() -> Guard:
+        frame = Frame(["T"])
+        cfg = GuardConfig(fault_policy=policy, max_slew_um_per_s=3.0, max_abs_um=50.0, recovery_s=20.0,
+                          ramp_um_per_s=1.0)
+        return Guard(cfg, ["x1", "x2"], frame, ["T"])
+
+    ref = fresh()
+    out, en, st, dts = np.zeros((n, 2)), np.zeros((n, 2), bool), np.zeros((n, 2), np.uint8), np.zeros(n)
+    for i in range(n):
+        ref.hold[:] = hold[i]
+        ref.update(pred[i], bool(ok[i]), float(t[i]), degraded=bool(degraded[i]))
+        out[i], en[i], st[i], dts[i] = ref.out_um, ref.enable, ref.state, ref.dt_s
+    got = fresh()
+    out2, en2, st2, dts2 = np.zeros((n, 2)), np.zeros((n, 2), bool), np.zeros((n, 2), np.uint8), np.zeros(n)
+    got.update_rows(pred, ok, t, degraded, hold, out2, en2, st2, dts2)
+    np.testing.assert_array_equal(out2, out)
+    np.testing.assert_array_equal(en2, en)
+    np.testing.assert_array_equal(st2, st)
+    np.testing.assert_array_equal(dts2, dts)
+    assert got.faults == ref.faults and got.events == ref.events
+    for name in ("out_um", "enable", "target_um", "state", "hold"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+    assert (got._last_t, got.dt_s, got.degraded) == (ref._last_t, ref.dt_s, ref.degraded)
+    assert (st == 1).mean() > 0.5  # mostly the float path's NORMAL rows
+
+
+def test_plain_rows_pass_check_inputs_after_rows_that_passed() -> None:
+    """A row `plain_rows` marks, after a row that passed every check, passes them too (and
+    leaves the guard as `passed` says); the rows it does not mark are those that can fail."""
+    rng = np.random.default_rng(7)
+    n = 400
+    t = np.cumsum(rng.choice([0.0, 1.0, 2.0], n, p=[0.03, 0.8, 0.17]))
+    X = 20.0 + np.cumsum(rng.normal(0.0, 0.2, (n, 2)), axis=0)
+    X[rng.random((n, 2)) < 0.02] = np.nan
+    X[50, 1] = 95.0  # out of range
+    X[80, 0] += 10.0  # too fast
+    frame = Frame(["A", "B"])
+    cfg = GuardConfig(signals={"A": SignalLimits(max_rate_per_s=1.0), "B": SignalLimits(min=0.0, max=80.0)})
+    g = Guard(cfg, ["z"], frame, ["A", "B"])
+    plain = g.plain_rows(X, t)
+    assert not plain[50] and not plain[80] and not plain[81] and plain.sum() > n // 2
+    last_ok = False
+    for i in range(n):
+        frame.values[:] = X[i]
+        frame.quality[:] = np.where(np.isnan(X[i]), Quality.NO_DATA, Quality.GOOD)
+        frame.stamp_s[:] = t[i]
+        ok = g.check_inputs(frame, float(t[i]))
+        if plain[i] and last_ok:
+            assert ok, i
+        last_ok = ok
+    shadow = Guard(cfg, ["z"], Frame(["A", "B"]), ["A", "B"])
+    shadow.passed(X[-1], float(t[-1]))
+    if last_ok:
+        np.testing.assert_array_equal(shadow._prev_val, g._prev_val)
+        np.testing.assert_array_equal(shadow._prev_t, g._prev_t)

@@ -184,3 +184,57 @@ def test_trend_from_log_marks_the_probes(tmp_path):
     assert "probe_pos_x1_mm" not in trend.signals and "probe_x1_um" not in trend.signals
     write_trend(trend, tmp_path / "p.png")
     assert (tmp_path / "p.png").read_bytes()[:8] == PNG
+
+
+def test_replay_trend_shows_the_device_trailing_its_command(tmp_path):
+    """A PMC allowed 1 µm every 30 s trails the word after each jump of the error: the trend's
+    commanded line is the device's target (here the word's correction) and applied − commanded,
+    the trailing panel's trace, shows by how much and how long; the PCI-1756 card (no rate of
+    its own) applies its command at every row."""
+    from compd.plots import trailing_um, trend_from_replay
+    from compd.replay import replay_config, write_plot
+
+    t = np.arange(0.0, 7200.0, 10.0)
+    err = 2.0 * np.floor(t / 1200.0)  # +2 µm every 20 min: 2 LSB, 60 s for the slow PMC to follow
+    temp = 20.0 + err / 3.0
+    write_log(tmp_path / "day.csv", ["t_s", "T1", "err_x1_um"], np.column_stack([t, temp, err]))
+    head = ("loop: {clock: sim, period_s: 1.0}\n"
+            "sources:\n  - {kind: replay, name: log, path: day.csv}\n"
+            "model: {kind: mlr, inputs: [T1], outputs: [x1], params: {coef_um_per_k: [[3.0]], intercept_um: [0.0]}}\n"
+            "guard: {max_slew_um_per_s: 10.0}\n")
+    (tmp_path / "slow.yaml").write_text(head + "sink: {kind: fanuc_pmc, max_step_um: 1, min_update_s: 30}\n")
+    (tmp_path / "card.yaml").write_text(head + "sink: {kind: pci1756}\n")
+    slow = trend_from_replay(replay_config(tmp_path / "slow.yaml", tmp_path / "day.csv"))
+    um, _ = decode_words(slow.word, slow.lsb_um)
+    np.testing.assert_array_equal(slow.commanded_um[:, 0], um[:, 0])  # the PMC's target is the word
+    lag = trailing_um(slow, 0)
+    # each 2 µm jump: the first 1 µm step in its own row (the PMC idle long enough), the second
+    # 30 s after it, two rows later: 1 µm behind for two rows, after each of the 5 jumps
+    assert lag.max() == 1.0 and lag.min() == 0.0
+    assert (lag > 0).sum() == 2 * 5
+    card = trend_from_replay(replay_config(tmp_path / "card.yaml", tmp_path / "day.csv"))
+    assert not trailing_um(card, 0).any()
+    for name, tr in (("slow", slow), ("card", card)):
+        write_trend(tr, tmp_path / f"{name}.png")
+        assert (tmp_path / f"{name}.png").read_bytes()[:8] == PNG
+    write_plot(replay_config(tmp_path / "slow.yaml", tmp_path / "day.csv"), tmp_path / "r.png")
+    assert (tmp_path / "r.png").read_bytes()[:8] == PNG
+
+
+def test_a_siemens_daemon_log_commands_the_guards_correction(tmp_path):
+    """`compd plot` of a daemon whose sink is the Siemens NC: the NC is sent the guard's
+    correction (K0), so that is the commanded line (and the trailing is applied − correction)."""
+    data = daemon_log(tmp_path / "log.csv")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        "loop: {clock: sim, period_s: 1.0}\n"
+        "sources:\n  - {kind: replay, name: log, path: log.csv}\n"
+        "model: {kind: mlr, inputs: [T1], outputs: [x1, x2],"
+        " params: {coef_um_per_k: [[2.0, -0.5]], intercept_um: [0.0, 0.0]}}\n"
+        "sink: {kind: siemens}\n"
+    )
+    trend = trend_from_log(read_log(tmp_path / "log.csv", allow_nan=True), cfg)
+    np.testing.assert_allclose(trend.commanded_um, data[:, 7:9], rtol=0, atol=1e-9)
+    assert "K0" in trend.commanded_label
+    write_trend(trend, tmp_path / "t.png")
+    assert (tmp_path / "t.png").read_bytes()[:8] == PNG

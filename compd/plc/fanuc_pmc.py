@@ -37,7 +37,7 @@ from __future__ import annotations
 import threading
 from typing import Any
 
-from compd.plc.link import VirtualDevice
+from compd.plc.link import VirtualDevice, last_due
 from compd.plc.probe_block import PROBE_COUNT, ProbeBlock
 
 X_BASE, Y_BASE, R_BASE, D_BASE, S_BASE, PROBE_BASE = 0, 100, 200, 300, 400, 500
@@ -86,6 +86,13 @@ class FanucPmc(VirtualDevice):
         self.t_s = 0.0
         self.next_scan_s = 0.0
         self.scans = 0
+        # scan k is due at start + k·scan_s: the same times however the sink's calls fall
+        # (a replay that reads the PMC every row and one that skips the idle rows agree)
+        self._t0_s = 0.0
+        self._k = 0
+        # the last scan changed nothing and no register was written since: later scans
+        # cannot change anything either (without a card, inputs change only by writes)
+        self._quiet = False
         self._last_strobe = 0
         self._lock = threading.Lock()
 
@@ -109,6 +116,7 @@ class FanucPmc(VirtualDevice):
             mem, base = (self.probe.regs, PROBE_BASE) if address >= PROBE_BASE else (self.mem, 0)
             for k, v in enumerate(values):
                 mem[address - base + k] = v & 0xFFFF
+            self._quiet = False
         return True
 
     def publish_probe(
@@ -159,28 +167,37 @@ class FanucPmc(VirtualDevice):
             self.scans += 1
             m[SCAN_LO], m[SCAN_HI] = self.scans & 0xFFFF, (self.scans >> 16) & 0xFFFF
             after = m[Y_BASE : Y_BASE + N_Y] + m[R_BASE : R_BASE + N_R] + m[S_BASE + 2 : S_BASE + N_S]
-            return after != before
+            changed = after != before
+            self._quiet = not changed
+            return changed
 
     def start_at(self, t_s: float) -> None:
-        self.next_scan_s = self.t_s = t_s
+        self.next_scan_s = self.t_s = self._t0_s = t_s
+        self._k = 0
+
+    def _due_s(self, k: int) -> float:
+        return self._t0_s + k * self.scan_s
 
     def advance_to(self, t_s: float) -> None:
-        """Run every scan due up to `t_s` (simulated time).
+        """Run every scan due up to `t_s` (simulated time); scan k is due at start + k·scan_s.
 
-        Once a scan changes nothing and no card is wired, later scans until `t_s`
-        cannot change anything either (inputs only change between calls), so they
-        are counted without being run: a day of replay costs a few scans per row.
+        Once a scan changes nothing and no card is wired, later scans cannot change
+        anything either until a register is written (inputs only change between calls,
+        through `write_registers`), so they are counted without being run: a day of
+        replay costs a few scans per write.
         """
-        while self.next_scan_s <= t_s:
-            changed = self.scan()
-            self.next_scan_s += self.scan_s
-            if not changed and self.card is None and self.next_scan_s <= t_s:
-                n = int((t_s - self.next_scan_s) / self.scan_s) + 1
+        k_last = last_due(self._t0_s, self.scan_s, t_s)
+        while self._k <= k_last:
+            if self._quiet and self.card is None:
                 with self._lock:
-                    self.scans += n
+                    self.scans += k_last - self._k + 1
                     self.mem[SCAN_LO] = self.scans & 0xFFFF
                     self.mem[SCAN_HI] = (self.scans >> 16) & 0xFFFF
-                self.next_scan_s += n * self.scan_s
+                self._k = k_last + 1
+                break
+            self.scan()
+            self._k += 1
+        self.next_scan_s = self._due_s(self._k)
         self.t_s = t_s
 
     # ------------------------------------------------------------- convenience

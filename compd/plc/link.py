@@ -11,11 +11,23 @@ every access it runs whatever its clock has due by then.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from typing import Any
 
 from compd.histogram import DurationHist
 from compd.sinks.device_time import DeviceTime
+
+
+def last_due(t0_s: float, period_s: float, t_s: float) -> int:
+    """The last k with t0 + k·period ≤ t (−1 when none): the last tick of an absolute
+    schedule due by `t_s`, the same comparison the schedule's ticks are run with."""
+    k = int(math.floor((t_s - t0_s) / period_s))
+    while t0_s + (k + 1) * period_s <= t_s:
+        k += 1
+    while k >= 0 and t0_s + k * period_s > t_s:
+        k -= 1
+    return max(k, -1)
 
 
 class VirtualDevice(ABC):

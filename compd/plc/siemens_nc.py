@@ -25,12 +25,13 @@ from __future__ import annotations
 import struct
 import threading
 
-from compd.plc.link import VirtualDevice
+from compd.plc.link import VirtualDevice, last_due
 from compd.plc.probe_block import PROBE_COUNT, ProbeBlock
 
 K0, SLOPE, P0, TYPE, VELO_FACTOR, POSITION, APPLIED, TARGET, IPO = 0, 2, 4, 6, 7, 9, 11, 13, 15
 BLOCK = 16
 READ_ONLY = (APPLIED, APPLIED + 1, TARGET, TARGET + 1, IPO)
+_F32 = struct.Struct(">f")
 PROBE_BASE = 1000  # above the axis blocks of up to 62 axes
 MAX_AXES = PROBE_BASE // BLOCK
 
@@ -39,6 +40,11 @@ def f32_regs(v: float) -> list[int]:
     """float32 as two registers, high word first (IEEE 754 big-endian)."""
     b = struct.pack(">f", v)
     return [int.from_bytes(b[0:2], "big"), int.from_bytes(b[2:4], "big")]
+
+
+def _f32(v: float) -> float:
+    """`v` as a float32 holds it (what two registers store and give back)."""
+    return _F32.unpack(_F32.pack(v))[0]
 
 
 def regs_f32(hi: int, lo: int) -> float:
@@ -71,6 +77,9 @@ class SiemensNc(VirtualDevice):
             self.mem[BLOCK * a + TYPE] = comp_type
         self.t_s = 0.0
         self.next_ipo_s = 0.0
+        # IPO cycle k is due at start + k·ipo_s: the same times however the sink's calls fall
+        self._t0_s = 0.0
+        self._k = 0
         self.cycles = 0
         self._lock = threading.Lock()
 
@@ -112,36 +121,77 @@ class SiemensNc(VirtualDevice):
         return self._get(a, VELO_FACTOR) * self.max_velo_mm_min / 60.0 * self.ipo_s
 
     def ipo(self) -> None:
+        """One IPO cycle."""
+        self._cycles(1)
+
+    def _cycles(self, due: int) -> int:
+        """Run IPO cycles (their inputs, K0, tanβ, P0, P, do not change in between) until every
+        axis sits on its target, at least one and at most `due`; how many ran. Per axis the
+        applied ΔK moves toward the target by at most the cap per cycle and is stored as a
+        float32 each cycle, as the registers hold it; once on its target it stays there."""
         with self._lock:
+            axes = []
             for a in range(self.n):
-                typ = self.mem[BLOCK * a + TYPE]
-                target = 0.0
-                if typ & 1:
-                    target += self._get(a, K0)
-                if typ & 2:
-                    target += self._get(a, SLOPE) * (self._get(a, POSITION) - self._get(a, P0))
-                applied = self._get(a, APPLIED)
-                cap = self.cap_mm(a)
-                d = target - applied
-                applied += cap if d > cap else (-cap if d < -cap else d)
+                target = self._target(a)
+                axes.append((target, _f32(target), self._get(a, APPLIED), self.cap_mm(a)))
+            pack, unpack = _F32.pack, _F32.unpack
+            run = 1
+            ramps = []
+            for target, stored, applied, cap in axes:
+                k = 0
+                while k < due:  # the cycles this axis needs to reach its target (or all that are due)
+                    d = target - applied
+                    applied = unpack(pack(applied + (cap if d > cap else (-cap if d < -cap else d))))[0]
+                    k += 1
+                    if applied == stored:
+                        break
+                ramps.append((k, applied))
+                run = max(run, k)
+            for a, ((target, _, _, cap), (k, applied)) in enumerate(zip(axes, ramps, strict=True)):
+                for _ in range(run - k):  # the cycles it runs after reaching its target (as a float32 rounds)
+                    d = target - applied
+                    applied = unpack(pack(applied + (cap if d > cap else (-cap if d < -cap else d))))[0]
                 self._set(a, APPLIED, applied)
                 self._set(a, TARGET, target)
-                self.mem[BLOCK * a + IPO] = (self.mem[BLOCK * a + IPO] + 1) & 0xFFFF
-            self.cycles += 1
+                self.mem[BLOCK * a + IPO] = (self.mem[BLOCK * a + IPO] + run) & 0xFFFF
+            self.cycles += run
+            return run
 
     def start_at(self, t_s: float) -> None:
-        self.next_ipo_s = self.t_s = t_s
+        self.next_ipo_s = self.t_s = self._t0_s = t_s
+        self._k = 0
+
+    def _target(self, a: int) -> float:
+        """ΔK = K0 + tanβ·(P − P0) of axis `a` from its registers now, as the IPO cycle computes it."""
+        typ = self.mem[BLOCK * a + TYPE]
+        target = 0.0
+        if typ & 1:
+            target += self._get(a, K0)
+        if typ & 2:
+            target += self._get(a, SLOPE) * (self._get(a, POSITION) - self._get(a, P0))
+        return target
+
+    def settled(self) -> bool:
+        """Every axis applies the target its registers give now and holds it there: IPO cycles
+        change nothing until the next write."""
+        with self._lock:
+            return all(self._get(a, APPLIED) == _f32(t) == self._get(a, TARGET)
+                       for a, t in ((a, self._target(a)) for a in range(self.n)))
 
     def advance_to(self, t_s: float) -> None:
-        """Run the IPO cycles due up to `t_s`; once every axis sits on its target the
-        rest are counted without being run (nothing can change between writes)."""
-        while self.next_ipo_s <= t_s:
-            self.ipo()
-            self.next_ipo_s += self.ipo_s
-            if all(self._get(a, APPLIED) == self._get(a, TARGET) for a in range(self.n)):
-                n = int((t_s - self.next_ipo_s) / self.ipo_s) + 1 if self.next_ipo_s <= t_s else 0
-                self.cycles += n
-                self.next_ipo_s += n * self.ipo_s
+        """Run the IPO cycles due up to `t_s` (cycle k at start + k·ipo_s); once every axis
+        sits on its target the rest are counted without being run (nothing can change
+        between writes)."""
+        due = last_due(self._t0_s, self.ipo_s, t_s) - self._k + 1
+        if due > 0:
+            run = self._cycles(due)
+            if due > run:  # counted, not run: every axis's IPO counter too
+                with self._lock:
+                    self.cycles += due - run
+                    for a in range(self.n):
+                        self.mem[BLOCK * a + IPO] = (self.mem[BLOCK * a + IPO] + due - run) & 0xFFFF
+            self._k += due
+        self.next_ipo_s = self._t0_s + self._k * self.ipo_s
         self.t_s = t_s
 
     def applied_mm(self) -> list[float]:

@@ -37,6 +37,8 @@ class Sink(ABC):
     """
 
     Config: ClassVar[type[SinkConfig]] = SinkConfig
+    # the sink sends the model's linear terms (`Model.linear_terms`) with each write
+    sends_linear_terms: ClassVar[bool] = False
 
     def __init__(self, cfg: SinkConfig, base_dir: str = ".") -> None:
         self.cfg = cfg
@@ -90,6 +92,50 @@ class Sink(ABC):
     @abstractmethod
     def applied_um(self, out: np.ndarray) -> None:
         """Write what the machine applies now, per axis (µm), into `out`."""
+
+    def set_positions(self, positions_mm: np.ndarray) -> None:
+        """Replay: where each of the model's output axes stands now (mm, NaN unknown), for a device of
+        the software PLC in this process that applies a correction depending on it (the Siemens
+        NC's tanβ·(P − P0)); a real device knows its axes' positions. Default: nothing to tell."""
+
+    def commanded_um(self, out: np.ndarray) -> None:
+        """Write what the machine is commanded to apply now, per axis of the word (µm): the
+        word's correction, or the device's target; NaN where the sink cannot say. Beside
+        `applied_um` it shows the device trailing its command."""
+        out[:] = np.nan
+
+    def write_rows(
+        self,
+        t_s: np.ndarray,
+        words: np.ndarray,
+        changed: np.ndarray,
+        corr_um: np.ndarray,
+        enable: np.ndarray,
+        applied_um: np.ndarray,
+        commanded_um: np.ndarray,
+        terms: list[list[tuple[float, float]] | None] | None = None,
+        positions_mm: np.ndarray | None = None,
+    ) -> None:
+        """Replay: at each row i, `write` row i's output (word, per-axis corrections and enable
+        flags of the model's outputs) at loop time t_s[i], `settle`, and read what the machine
+        applies and is commanded into row i of `applied_um` and `commanded_um` (rows × the
+        word's axes). `terms`: the model's linear terms at each row, for a sink that sends them;
+        `positions_mm`: where each of the model's output axes stood at each row (rows × outputs,
+        NaN unknown), told to the device first (`set_positions`).
+
+        This is the reference; a sink whose device is in this process may skip the rows in
+        which nothing can change, with the same result."""
+        applied = np.zeros(applied_um.shape[1])
+        commanded = np.zeros(commanded_um.shape[1])
+        for i, now in enumerate(t_s.tolist()):
+            if positions_mm is not None:
+                self.set_positions(positions_mm[i])
+            self.write(int(words[i]), corr_um[i], enable[i], bool(changed[i]), now)
+            self.settle(now)
+            self.applied_um(applied)
+            self.commanded_um(commanded)
+            applied_um[i] = applied
+            commanded_um[i] = commanded
 
     def flush(self, timeout_s: float) -> bool:
         """Wait until every write so far has been acknowledged by the device (lockstep runs:

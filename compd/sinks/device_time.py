@@ -6,6 +6,12 @@ time never runs backwards (after a wait it may be ahead of the loop's for a whil
 elsewhere keeps its own clock, so waiting is sleeping; a device of the software PLC in
 this process runs on the loop's time, so waiting moves that time on at once — a
 replay of a day never sleeps.
+
+`catch_up` says which: a device on the loop's time is where the sink's last call (or wait)
+left it, so a call at loop time t after dt may act in that dt as the device's rates allow
+(several PMC steps, a K0 the NC ramps to over dt), the device running its scans between.
+A replay's row stands for many of the daemon's cycles; a device on its own clock is
+written once per call, as the live daemon's cycle never waits.
 """
 
 from __future__ import annotations
@@ -17,6 +23,10 @@ from abc import ABC, abstractmethod
 
 class DeviceTime(ABC):
     """The device's time as the sink knows it, s."""
+
+    # True: the device runs on the loop's time (waiting costs nothing), and a call may do
+    # what the time since the device's last call allows
+    catch_up: bool = False
 
     def __init__(self) -> None:
         self.now_s = -math.inf  # until the sink opens
@@ -40,6 +50,8 @@ class WallTime(DeviceTime):
 
 class LoopTime(DeviceTime):
     """A device that runs on the loop's time (the software PLC in process): waiting moves it on at once."""
+
+    catch_up = True
 
     def wait(self, dt_s: float) -> None:
         self.now_s += dt_s

@@ -5,7 +5,10 @@ than the PMC's limit raises an alarm, so this sink never changes an axis by more
 than `max_step_um` per update, and updates no faster than `min_update_s` (at least
 two PMC scans, so the ladder sees every strobe edge). What the machine should apply
 is the codec's word (dead-band and saturation included); the sink walks its output
-toward it in steps.
+toward it in steps: one per call on a PMC with its own clock (the daemon's cycle never
+waits), and on the PMC in process (which runs on the loop's time) every step the time
+since the PMC's last call allows, each two scans after the one before — a replay's row
+after 10 s may move the shift as far as the daemon's cycles would have in those 10 s.
 
 `mode: word` writes X(word), X(word)+1 (low byte first) and toggles the strobe bit;
 `mode: shift` writes the commanded shift per axis (signed µm) into R registers.
@@ -105,6 +108,7 @@ class FanucPmcSink(Sink):
         self.updates = 0
         self._dirty = False
         self._max_step_lsb = 1
+        self._scans_at_delivery: int | None = None
 
     def bind(self, axes: list[str], lsb_um: float) -> None:
         super().bind(axes, lsb_um)
@@ -165,35 +169,74 @@ class FanucPmcSink(Sink):
         self.updates += 1
         self._dirty = True
         self._next_update_s = now_s + cfg.min_update_s
+        if self.time.catch_up:  # in process: the scan counter as the step lands, to count scans from
+            self._scans_at_delivery = self._scans()
 
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
     ) -> None:
-        self.time.set(now_s)
         if changed or self.writes == 0:
             self.target_lsb = list(codes_from_word(word))
         self.writes += 1
         if self.sent_lsb != self.target_lsb and now_s >= self._next_update_s:
+            if self.time.catch_up:
+                self._catch_up(now_s)
+            else:  # a PMC on its own clock: one step per call, the cycle never waits
+                self.time.set(now_s)
+                self.sent_lsb = step_toward(self.sent_lsb, self.target_lsb, self._max_step_lsb)
+                self._deliver(now_s)
+        self.time.set(now_s)
+
+    def _catch_up(self, now_s: float) -> None:
+        """The PMC on the loop's time: every step the time since its last call allows, from
+        where its time stands up to `now_s`: each at most `max_step_um`, one per
+        `min_update_s`, and two PMC scans after the one before (a replay's row after dt
+        moves the shift as far as the daemon's cycles in that dt would have)."""
+        t = self.time
+        while self.sent_lsb != self.target_lsb:
+            due = max(t.now_s, self._next_update_s)
+            if due > now_s:
+                break
+            t.wait(due - t.now_s)
+            if self.updates:  # a step only once the PMC has scanned twice since the last
+                self._wait_scans(self._scans_at_delivery, 2)
+                if t.now_s > now_s:
+                    break
             self.sent_lsb = step_toward(self.sent_lsb, self.target_lsb, self._max_step_lsb)
-            self._deliver(now_s)
+            self._deliver(t.now_s)
+
+    def _scans(self) -> int | None:
+        """The PMC's scan counter now (None when it does not answer)."""
+        assert self.link is not None
+        regs = self.link.read_now(self.cfg.status_address, 2)
+        return None if regs is None else regs[0] | regs[1] << 16
+
+    def _wait_scans(self, since: int | None, scans: int) -> list[int] | None:
+        """Let the PMC's time pass until it has scanned `scans` times since the counter read
+        `since` (at most 2 s of wall time over Modbus); its status registers then, or None."""
+        assert self.link is not None
+        addr = self.cfg.status_address
+        deadline = time.monotonic() + 2.0
+        while since is not None and time.monotonic() < deadline:
+            regs = self.link.read_now(addr, 8)
+            if regs is not None and (regs[0] | regs[1] << 16) >= since + scans:
+                return regs
+            self.time.wait(POLL_S)
+        return None
 
     def settle(self, now_s: float) -> None:
         """Let the PMC act on what was written (replay): once every write is acknowledged,
-        wait until the PMC has scanned twice and take its status from then (in process the
-        wait runs its scans on the loop's time; over Modbus it polls the scan counter)."""
+        wait until the PMC has scanned twice since the last write (in process: since it was
+        delivered, on the loop's time; over Modbus: from now, polling the scan counter) and
+        take its status from then."""
         self.time.set(now_s)
         if self.link is None or not self._dirty:
             return
         self.link.flush()
-        addr = self.cfg.status_address
-        first = self.link.read_now(addr, 8)
-        deadline = time.monotonic() + 2.0
-        while first is not None and time.monotonic() < deadline:
-            regs = self.link.read_now(addr, 8)
-            if regs is not None and (regs[0] | regs[1] << 16) >= (first[0] | first[1] << 16) + 2:
-                self.link.status = regs
-                break
-            self.time.wait(POLL_S)
+        since = self._scans_at_delivery if self.time.catch_up else self._scans()
+        regs = self._wait_scans(since, 2)
+        if regs is not None:
+            self.link.status = regs
         self._dirty = False
 
     def safe(self) -> None:
@@ -223,6 +266,61 @@ class FanucPmcSink(Sink):
         for a in range(min(2, out.shape[0])):
             v = regs[4 + a]
             out[a] = float(v - 0x10000 if v & 0x8000 else v)
+
+    def commanded_um(self, out: np.ndarray) -> None:
+        """The shift the codec's word commands (the target the sink steps toward), µm."""
+        for a in range(min(2, out.shape[0])):
+            out[a] = self.target_lsb[a] * self.lsb_um
+
+    def write_rows(
+        self,
+        t_s: np.ndarray,
+        words: np.ndarray,
+        changed: np.ndarray,
+        corr_um: np.ndarray,
+        enable: np.ndarray,
+        applied_um: np.ndarray,
+        commanded_um: np.ndarray,
+        terms: list[list[tuple[float, float]] | None] | None = None,
+        positions_mm: np.ndarray | None = None,
+    ) -> None:
+        """`Sink.write_rows`; with the PMC in process only the rows in which something can
+        change are run: a new word, a step still to make. In the others the PMC, two scans
+        past its last write, applies what it applied the row before."""
+        # over Modbus every row, as the PMC keeps its own time; and every row for a subclass
+        # whose `write` does more (it may tell the device something every row)
+        if self.pmc is None or type(self).write is not FanucPmcSink.write:
+            super().write_rows(t_s, words, changed, corr_um, enable, applied_um, commanded_um, terms,
+                               positions_mm)
+            return
+        tl, wl, cl = t_s.tolist(), words.tolist(), changed.tolist()
+        n = len(tl)
+        if n == 0:
+            return
+        applied = np.zeros(applied_um.shape[1])
+        commanded = np.zeros(commanded_um.shape[1])
+        ran = np.zeros(n, dtype=bool)
+        skipped = False
+        for i in range(n):
+            if not (cl[i] or self.writes == 0 or self._dirty or self.sent_lsb != self.target_lsb):
+                self.writes += 1
+                skipped = True
+                continue
+            if skipped:  # the PMC's time where the skipped rows' calls would have left it
+                self.time.set(tl[i - 1])
+                skipped = False
+            now = tl[i]
+            self.write(wl[i], corr_um[i], enable[i], cl[i], now)
+            self.settle(now)
+            self.applied_um(applied)
+            self.commanded_um(commanded)
+            applied_um[i] = applied
+            commanded_um[i] = commanded
+            ran[i] = True
+        self.time.set(tl[-1])
+        last = np.maximum.accumulate(np.where(ran, np.arange(n), 0))
+        applied_um[:] = applied_um[last]
+        commanded_um[:] = commanded_um[last]
 
     def flush(self, timeout_s: float) -> bool:
         return self.link is None or self.link.drain(timeout_s)

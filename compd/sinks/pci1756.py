@@ -8,7 +8,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.codec import word_to_um
+from compd.codec import byte_to_um, word_to_um
 from compd.config import SinkConfig
 from compd.sinks.base import LinkState, Sink
 
@@ -177,6 +177,53 @@ class Pci1756Sink(Sink):
         out[0] = c1
         if out.shape[0] > 1:
             out[1] = c2
+
+    def commanded_um(self, out: np.ndarray) -> None:
+        """The word last written, decoded (the card's lines hold it as soon as it is written)."""
+        c1, c2 = word_to_um(self.word, self.lsb_um)
+        out[0] = c1
+        if out.shape[0] > 1:
+            out[1] = c2
+
+    def write_rows(
+        self,
+        t_s: np.ndarray,
+        words: np.ndarray,
+        changed: np.ndarray,
+        corr_um: np.ndarray,
+        enable: np.ndarray,
+        applied_um: np.ndarray,
+        commanded_um: np.ndarray,
+        terms: list[list[tuple[float, float]] | None] | None = None,
+        positions_mm: np.ndarray | None = None,
+    ) -> None:
+        """`Sink.write_rows`; on the software PLC's card only the rows with a new word are
+        written (the heartbeat then toggled as often as the rows between would have): the
+        card's lines hold each word from its row on, and the word is what they apply."""
+        from compd.plc.pci1756 import Pci1756Card
+
+        n = len(t_s)
+        if not isinstance(self.card, Pci1756Card) or type(self).write is not Pci1756Sink.write or n == 0:
+            super().write_rows(t_s, words, changed, corr_um, enable, applied_um, commanded_um, terms,
+                               positions_mm)
+            return
+        rows = np.flatnonzero(changed)
+        if self.writes == 0 and (rows.size == 0 or rows[0] != 0):
+            rows = np.r_[0, rows]
+        for r in rows.tolist():
+            self.write(int(words[r]), corr_um[r], enable[r], bool(changed[r]), float(t_s[r]))
+        rest = n - rows.size
+        self.writes += rest
+        if self.cfg.heartbeat_bit is not None and rest % 2:
+            self._heartbeat = not self._heartbeat
+            self.card.write_do_bit(self.cfg.heartbeat_bit, self._heartbeat)
+        written = np.zeros(n, dtype=bool)
+        written[rows] = True
+        held = np.asarray(words, dtype=np.int64)[np.maximum.accumulate(np.where(written, np.arange(n), 0))]
+        table = np.array([byte_to_um(b, self.lsb_um) for b in range(256)])
+        um = np.column_stack([table[held >> 8], table[held & 0xFF]])
+        applied_um[:] = um[:, : applied_um.shape[1]]
+        commanded_um[:] = um[:, : commanded_um.shape[1]]
 
     @classmethod
     def in_process_config(cls, cfg: SinkConfig) -> SinkConfig:

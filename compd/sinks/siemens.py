@@ -8,7 +8,9 @@ writes SD43910 tanβ = −slope/1000 and SD43920 P0 too, and sets MD32750 bit 1
 (position dependent) as well as bit 0. Writes go out when a value moved by
 `min_change_um` and no faster than `min_update_s`. With `host` the NC's data is reached
 over Modbus TCP; without, it is the software PLC's NC (compd.plc), in process on the
-loop's clock. Both through the same link interface: the sink has one code path.
+loop's clock. Both through the same link interface: the sink has one code path. In
+process a write lands where the NC's time stands (the last call's), so the NC ramps
+toward it over the time up to the call (a replay's row after dt: not one row late).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 from pydantic import Field
 
 from compd.config import SinkConfig
-from compd.plc.siemens_nc import APPLIED, BLOCK, K0, TYPE, f32_regs, regs_f32
+from compd.plc.siemens_nc import APPLIED, BLOCK, K0, TARGET, TYPE, f32_regs, regs_f32
 from compd.sinks.base import LinkState, Sink
 from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
@@ -50,6 +52,7 @@ class SiemensSink(Sink):
     """K0 (and tanβ, P0 for position-dependent models) per axis."""
 
     Config = SiemensConfig
+    sends_linear_terms = True
 
     def __init__(self, cfg: SiemensConfig, base_dir: str = ".", nc: SiemensNc | None = None) -> None:
         super().__init__(cfg, base_dir)
@@ -69,6 +72,7 @@ class SiemensSink(Sink):
         self.sent_k0_um: np.ndarray = np.zeros(0)
         self._next_s = -math.inf
         self.updates = 0
+        self._row_terms: list[tuple[float, float]] | None = None
 
     def bind_model(self, model: Model) -> None:
         """The model (for its output names and its linear terms, where it has them)."""
@@ -109,11 +113,20 @@ class SiemensSink(Sink):
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
     ) -> None:
-        self.time.set(now_s)
+        t = self.time
+        if not t.catch_up:
+            t.set(now_s)
         self.writes += 1
         if now_s < self._next_s or not self.outputs or self.link is None:
+            t.set(now_s)
             return
-        terms = self.model.linear_terms()
+        if t.catch_up:
+            # the NC on the loop's time: the values go out where its time stands (the last
+            # call's), or as soon after as min_update_s allows, and the NC's IPO cycles ramp
+            # toward them over the time up to now (a replay's row after dt: what the daemon's
+            # cycles in that dt would have sent, the NC following at its own rate)
+            t.wait(max(0.0, self._next_s - t.now_s))
+        terms = self._linear_terms()
         sent = False
         for i, ax in enumerate(self.nc_axis):
             if ax < 0:
@@ -130,7 +143,26 @@ class SiemensSink(Sink):
             sent = True
         if sent:
             self.updates += 1
-            self._next_s = now_s + self.cfg.min_update_s
+            self._next_s = (t.now_s if t.catch_up else now_s) + self.cfg.min_update_s
+        t.set(now_s)
+
+    def set_positions(self, positions_mm: np.ndarray) -> None:
+        """The NC in this process told where its axes stand (the model's outputs' positions, mm):
+        the position-dependent term tanβ·(P − P0) is taken there, as on the machine."""
+        if self.nc is None:
+            return
+        for i, ax in enumerate(self.nc_axis):
+            if ax >= 0 and i < len(positions_mm):
+                p = float(positions_mm[i])
+                if p == p:
+                    self.nc.set_position(ax, p)
+
+    def _linear_terms(self) -> list[tuple[float, float]] | None:
+        """The model's linear terms now (in `write_rows`: those of the row being written)."""
+        if self._row_terms is not None:
+            return self._row_terms
+        assert self.model is not None
+        return self.model.linear_terms()
 
     def settle(self, now_s: float) -> None:
         """Every write acknowledged; the NC's IPO cycles up to `now_s` (in process) have run
@@ -150,15 +182,93 @@ class SiemensSink(Sink):
 
     def applied_um(self, out: np.ndarray) -> None:
         """ΔK the NC applies now, for the word's axes (high byte first), µm."""
-        regs = self.link.status if self.link is not None else None
+        self._status_um(out, APPLIED)
+
+    def commanded_um(self, out: np.ndarray) -> None:
+        """The ΔK the NC ramps toward (K0 + tanβ·(P − P0), its target), for the word's axes, µm."""
+        self._status_um(out, TARGET)
+
+    def _status_um(self, out: np.ndarray, off: int, regs: list[int] | None = None) -> None:
+        """A float32 of each word axis's block in the NC's status (mm; `regs`, else read now),
+        in µm; NaN where none."""
+        if regs is None:
+            regs = self.link.status if self.link is not None else None
         out[:] = np.nan
         if regs is None:
             return
         for slot, name in enumerate(self.axes[: out.shape[0]]):
             if name in self.outputs:
                 ax = self.nc_axis[self.outputs.index(name)]
-                if ax >= 0 and BLOCK * ax + APPLIED + 1 < len(regs):
-                    out[slot] = 1000.0 * regs_f32(regs[BLOCK * ax + APPLIED], regs[BLOCK * ax + APPLIED + 1])
+                if ax >= 0 and BLOCK * ax + off + 1 < len(regs):
+                    out[slot] = 1000.0 * regs_f32(regs[BLOCK * ax + off], regs[BLOCK * ax + off + 1])
+
+    def write_rows(
+        self,
+        t_s: np.ndarray,
+        words: np.ndarray,
+        changed: np.ndarray,
+        corr_um: np.ndarray,
+        enable: np.ndarray,
+        applied_um: np.ndarray,
+        commanded_um: np.ndarray,
+        terms: list[list[tuple[float, float]] | None] | None = None,
+        positions_mm: np.ndarray | None = None,
+    ) -> None:
+        """`Sink.write_rows`, each write with its row's linear terms (`terms`). With the NC in
+        process only the rows in which something can change are run: a K0 that moved by
+        `min_change_um` when an update is due, an NC still ramping. In the others the NC,
+        on its target, applies what it applied the row before."""
+        tl = t_s.tolist()
+        n = len(tl)
+        if n == 0:
+            return
+        axes = [(i, ax) for i, ax in enumerate(self.nc_axis) if ax >= 0]
+        corr, en = corr_um.tolist(), enable.tolist()
+        applied = np.zeros(applied_um.shape[1])
+        commanded = np.zeros(commanded_um.shape[1])
+        ran = np.zeros(n, dtype=bool)
+        min_change = self.cfg.min_change_um
+        # only with the NC in process may rows be skipped; a subclass whose `write` does more
+        # (e.g. tells the NC the axis position of each row) gets every row
+        skip = self.nc is not None and type(self).write is SiemensSink.write
+        if positions_mm is not None:  # a moving axis moves the NC's target: every row runs
+            skip = False
+        settled = False  # the NC on its target after the last row run
+        skipped = False
+        sent: list[float] = []
+        try:
+            for r in range(n):
+                now = tl[r]
+                if settled and self.writes:
+                    due = now >= self._next_s and any(
+                        not abs((corr[r][i] if en[r][i] else 0.0) - sent[i]) < min_change for i, _ in axes
+                    )
+                    if not due:  # what `write` would skip, on an NC that stays on its target
+                        self.writes += 1
+                        skipped = True
+                        continue
+                if skipped:  # the NC's time where the skipped rows' calls would have left it
+                    self.time.set(tl[r - 1])
+                    skipped = False
+                self._row_terms = terms[r] if terms is not None else None
+                if positions_mm is not None:
+                    self.set_positions(positions_mm[r])
+                self.write(int(words[r]), corr_um[r], enable[r], bool(changed[r]), now)
+                self.settle(now)
+                regs = self.link.status if self.link is not None else None
+                self._status_um(applied, APPLIED, regs)
+                self._status_um(commanded, TARGET, regs)
+                applied_um[r] = applied
+                commanded_um[r] = commanded
+                ran[r] = True
+                settled = skip and self.nc is not None and self.nc.settled()
+                sent = self.sent_k0_um.tolist()
+        finally:
+            self._row_terms = None
+        self.time.set(tl[-1])
+        last = np.maximum.accumulate(np.where(ran, np.arange(n), 0))
+        applied_um[:] = applied_um[last]
+        commanded_um[:] = commanded_um[last]
 
     def flush(self, timeout_s: float) -> bool:
         return self.link is None or self.link.drain(timeout_s)

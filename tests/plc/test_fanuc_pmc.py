@@ -88,3 +88,22 @@ def test_invalid_addresses_rejected():
     pmc = FanucPmc()
     assert pmc.read_registers(50, 1) is None
     assert not pmc.write_registers(15, [0, 0])  # runs past X15
+
+
+def test_scans_fall_on_an_absolute_schedule_however_the_calls_fall():
+    """Scan k is due at start + k·scan_s: run in one call or many, the PMC scans as often and
+    applies the same; a write after quiet scans still gets its scan."""
+    a, b = FanucPmc(scan_s=0.008), FanucPmc(scan_s=0.008)
+    a.start_at(100.0)
+    b.start_at(100.0)
+    t = 100.0
+    for _ in range(997):
+        t += 0.0037
+        a.advance_to(t)
+    b.advance_to(t)
+    assert a.scans == b.scans == int((t - 100.0) / 0.008) + 1
+    for pmc in (a, b):
+        _strobe_word(pmc, 0xC543, 1)
+        pmc.advance_to(t + 0.008)
+    assert a.applied_um() == b.applied_um() == [5.0, -3.0]
+    assert a.mem == b.mem

@@ -36,3 +36,25 @@ def test_word_on_configured_port_and_heartbeat_toggles() -> None:
 def test_heartbeat_may_not_overlap_the_word() -> None:
     with pytest.raises(ValueError, match="heartbeat"):
         Pci1756Config(kind="pci1756", word_port=1, heartbeat_bit=12)
+
+
+def test_write_rows_equals_writing_row_by_row() -> None:
+    """`write_rows` writes only the rows with a new word (and the heartbeat as often as every row
+    would have): the applied and commanded word and the card's lines as writing every row."""
+    from compd.codec import word_from_codes
+    from compd.sinks.base import Sink
+
+    rng = np.random.default_rng(5)
+    n = 1001
+    codes = np.clip(np.cumsum(rng.choice([0, 0, 0, 1, -1], (n, 2)), axis=0), -63, 63)
+    words = np.array([word_from_codes(int(a), int(b)) for a, b in codes])
+    changed = np.r_[True, words[1:] != words[:-1]]
+    t = np.arange(n, dtype=float)
+    corr, en = np.zeros((n, 2)), np.ones((n, 2), dtype=bool)
+    ref, got = make_sink(strobe_bit=20), make_sink(strobe_bit=20)
+    a1, c1, a2, c2 = (np.zeros((n, 2)) for _ in range(4))
+    Sink.write_rows(ref, t, words, changed, corr, en, a1, c1)
+    got.write_rows(t, words, changed, corr, en, a2, c2)
+    np.testing.assert_array_equal(a2, a1)
+    np.testing.assert_array_equal(c2, a1)
+    assert got.card.read_do() == ref.card.read_do() and got.writes == ref.writes == n
