@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from compd.errors import BadInput
 
@@ -15,12 +16,20 @@ def _serve(args: argparse.Namespace) -> int:
     return serve_main(args)
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with compd's error form: one line on stderr, exit 2 (`--help` shows the usage)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: {' '.join(message.split())}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m hil_sim", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    from hil_sim import logcmd
+    parser = OneLineParser(prog="python -m hil_sim", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
+    from hil_sim import family, logcmd
 
     logcmd.add_parser(sub)
+    family.add_parser(sub)
     s = sub.add_parser("serve", help="start the devices a YAML file describes, until Ctrl-C")
     s.add_argument("--config", required=True, metavar="FILE")
     s.set_defaults(func=_serve)

@@ -43,3 +43,26 @@ class Pt100Bank:
         if self.resolution_c > 0:
             v = np.round(v / self.resolution_c) * self.resolution_c
         return v
+
+
+class SensorLag:
+    """First-order lag of each sensor element behind the structure it measures.
+
+    T_s' = (T − T_s)/τ_s, stepped exactly for an input held over the step:
+    T_s ← T_s + (1 − e^(−dt/τ_s)) (T − T_s), so a step of T reaches 63 % at τ_s whatever
+    the step. An element with τ_s = 0 is not lagged: the plant reads its point directly.
+    """
+
+    def __init__(self, lag_s: np.ndarray, dt_s: float, start_c: np.ndarray) -> None:
+        lag = np.asarray(lag_s, float)
+        if np.any(~np.isfinite(lag)) or np.any(lag < 0):
+            raise ValueError("sensor lags must be finite and >= 0 s")
+        self.lag_s = lag
+        self.lagged = lag > 0
+        # the share of the gap closed per step (1 where there is no lag)
+        self.gain = np.where(lag > 0, -np.expm1(-dt_s / np.where(lag > 0, lag, 1.0)), 1.0)
+        self.state_c = np.array(start_c, float)
+
+    def step(self, target_c: np.ndarray) -> None:
+        """One plant step with the element's surroundings at `target_c`."""
+        self.state_c += self.gain * (target_c - self.state_c)

@@ -51,11 +51,18 @@ class Segment:
         return self.load * self.axis_load.get(axis, 1.0)
 
 
+HVAC_SHAPES = ("sine", "square", "triangle")
+
+
 @dataclass
 class Ambient:
-    """Ambient temperature: start value, linear drift, a daily sine and piecewise-linear offsets.
+    """Ambient temperature: start value, linear drift, a daily sine, piecewise-linear offsets
+    and the HVAC's cycle.
 
-    `points` are [hour, offset °C] pairs interpolated linearly (held flat outside).
+    `points` are [hour, offset °C] pairs interpolated linearly (held flat outside). The HVAC
+    term (off at `hvac_amplitude_c` 0, the default) swings ± `hvac_amplitude_c` with period
+    `hvac_period_s`: `sine`, `square` (the supply air switched on and off) or `triangle` (the
+    room's ramp between an on/off controller's switching points), starting at `hvac_phase_s`.
     """
 
     start_c: float = 20.0
@@ -63,6 +70,10 @@ class Ambient:
     daily_amplitude_c: float = 0.0
     daily_phase_h: float = 0.0
     points: list[tuple[float, float]] = field(default_factory=list)
+    hvac_amplitude_c: float = 0.0
+    hvac_period_s: float = 1800.0
+    hvac_phase_s: float = 0.0
+    hvac_shape: str = "sine"
 
     def __post_init__(self) -> None:
         pts = [tuple(map(float, p)) for p in self.points]
@@ -72,6 +83,10 @@ class Ambient:
         self.points = sorted(pts)  # type: ignore[arg-type]
         self._ph = [p[0] * 3600.0 for p in self.points]
         self._pc = [p[1] for p in self.points]
+        if self.hvac_shape not in HVAC_SHAPES:
+            raise ValueError(f"ambient.hvac_shape: one of {', '.join(HVAC_SHAPES)}, got {self.hvac_shape!r}")
+        if not self.hvac_period_s > 0:
+            raise ValueError("ambient.hvac_period_s: must be > 0")
 
     def at(self, t_s: float) -> float:
         v = (
@@ -82,7 +97,30 @@ class Ambient:
         )
         if self._ph:
             v += _interp(t_s, self._ph, self._pc)
+        if self.hvac_amplitude_c:  # skipped when off: today's files stay bit for bit
+            v += self.hvac_amplitude_c * self._hvac_unit(t_s)
         return v
+
+    def _hvac_unit(self, t_s: float) -> float:
+        """The HVAC cycle at `t_s` on a unit amplitude (−1 … 1)."""
+        frac = ((t_s - self.hvac_phase_s) / self.hvac_period_s) % 1.0
+        if self.hvac_shape == "sine":
+            return math.sin(2 * math.pi * frac)
+        if self.hvac_shape == "square":
+            return 1.0 if frac < 0.5 else -1.0
+        return 4.0 * abs(frac - 0.5) - 1.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """The mapping `Scenario.from_dict` reads back (keys at their defaults left out)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "points":
+                if v:
+                    out["points"] = [[float(h), float(c)] for h, c in v]
+            elif v != f.default:
+                out[f.name] = v if isinstance(v, str) else float(v)
+        return out
 
 
 def _interp(x: float, xs: list[float], ys: list[float]) -> float:
@@ -127,6 +165,19 @@ class Scenario:
     def boundaries(self) -> np.ndarray:
         return np.cumsum([0.0] + [s.duration_s for s in self.segments])
 
+    def to_dict(self) -> dict[str, Any]:
+        """The mapping `from_dict` reads back: a scenario file's content (segment keys at
+        their defaults left out)."""
+        out: dict[str, Any] = {}
+        if self.machine is not None:
+            out["machine"] = self.machine
+        if self.params:
+            out["params"] = dict(self.params)
+        out["seed"] = int(self.seed)
+        out["ambient"] = self.ambient.to_dict()
+        out["segments"] = [segment_dict(s) for s in self.segments]
+        return out
+
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Scenario:
         """Build from a mapping; errors are ValueError naming the key path."""
@@ -146,7 +197,10 @@ class Scenario:
         for k, v in amb_data.items():
             if k not in amb_known:
                 raise ValueError(f"ambient.{k}: unknown key (known: {', '.join(sorted(amb_known))})")
-            if k != "points":
+            if k == "hvac_shape":
+                if v not in HVAC_SHAPES:
+                    raise ValueError(f"ambient.hvac_shape: one of {', '.join(HVAC_SHAPES)}, got {v!r}")
+            elif k != "points":
                 _number(v, f"ambient.{k}")
         amb = Ambient(**amb_data)
         machine = data.get("machine")
@@ -180,6 +234,25 @@ class Scenario:
 
 
 _SEG_KEYS = {f.name for f in fields(Segment)}
+
+
+def segment_dict(seg: Segment) -> dict[str, Any]:
+    """One segment as a scenario file writes it (keys at their defaults left out)."""
+    out: dict[str, Any] = {"duration_s": float(seg.duration_s)}
+    for f in fields(Segment):
+        v = getattr(seg, f.name)
+        if f.name == "duration_s" or v is None or (f.name == "axis_load" and not v):
+            continue
+        if f.name == "coolant":
+            if v:
+                out["coolant"] = True
+        elif f.name == "stroke_mm":
+            out["stroke_mm"] = [float(v[0]), float(v[1])]
+        elif f.name == "axis_load":
+            out["axis_load"] = {str(a): float(x) for a, x in v.items()}
+        elif v != f.default:
+            out[f.name] = float(v)
+    return out
 
 
 def _number(v: Any, path: str) -> float:

@@ -454,7 +454,7 @@ def prepare_model(
     m = MACHINES[machine]
     args = (m.paper_args if kind == m.paper_kind else m.mlr_args) + tuple(more)
     inputs, targets, options = fit_args_options(args)
-    oc = fitting.fit_model(kind, fitting.read_fit_log(train), inputs, targets, options, baseline=False)
+    oc = fitting.fit_model(kind, fitting.read_fit_log(train), inputs, targets, options)  # as `compd fit`: held out too
     out = workdir / f"{machine}_{tag or kind}.yaml"
     fitting.write_model(oc.model, out)
     return out

@@ -131,7 +131,8 @@ def test_the_cycle_s_process_runs_no_other_python_and_the_service_does_the_rest(
         st = _wait(_running(tmp_path / "status.json", st["loop"]["cycles"] + 20), "a newer status")
         assert st["publisher"]["messages_dropped"] == 0
     text = err.read_text()
-    assert "sensor=T_xi reason=burnout" in text and "event=probe_" in text and "event=stop" in text
+    for line in ("sensor=T_xi reason=burnout", "event=probe_", "event=stop"):
+        assert line in text, f"no {line!r} in the event log:\n{text}"
     final = _status(tmp_path / "status.json")
     assert final is not None and final["state"] == "stopped" and final["threads"] == ["MainThread"]
     for pid in (service, st["sources"][0]["io_pid"]):

@@ -221,7 +221,7 @@ class PlantDevice:
 
     def _publish(self) -> None:
         p = self.plant
-        meas = p.sensors.read(p.true_temperatures_c(), p.t_s)
+        meas = p.sensors.read(p.sensor_temperatures_c(), p.t_s)
         vals = np.concatenate([meas, p.extras(), p.true_error_um()])
         ms = int(round(p.t_s * 1000.0)) & 0xFFFFFFFF
         regs = [(ms >> 16) & 0xFFFF, ms & 0xFFFF]

@@ -22,7 +22,10 @@ BASE_SENSORS_MM = (0.0, 150.0, 300.0, 450.0, 600.0)
 class FeedAxisPlant(Plant):
     """One axis `y` over 0–600 mm. Sensors: primary coil `T_motor`, table `T_table`,
     read head `T_head`, a carriage block `T_block`, the base at 0/150/300/450/600 mm of
-    the stroke (`T_base_000`…), and `T_amb`. Extras: `pos_y_mm`, `current_y_a`.
+    the stroke (`T_base_000`…; `base_sensors_mm` on the stroke, those outside it dropped),
+    and `T_amb`. A base sensor's name gives its nominal stroke position; it sits
+    `base_sensor_shift_mm` (one shift per sensor, default none) from there, along the base.
+    Extras: `pos_y_mm`, `current_y_a`.
     """
 
     name = "feed_axis"
@@ -30,6 +33,8 @@ class FeedAxisPlant(Plant):
     DEFAULTS: dict[str, Any] = {
         **AXIS_DEFAULTS,
         "profile_step_mm": 20.0,
+        "base_sensors_mm": list(BASE_SENSORS_MM),
+        "base_sensor_shift_mm": None,
         "drift_sensor": "T_base_450",
     }
 
@@ -43,14 +48,22 @@ class FeedAxisPlant(Plant):
         if not step > 0:
             raise ValueError("feed_axis plant param profile_step_mm: must be > 0")
         self.profile_mm = np.arange(lo, hi + 1e-9, step)
-        base_x = [self.p["stroke_offset_mm"] + y for y in BASE_SENSORS_MM if lo <= y <= hi]
+        nominal = [float(y) for y in self.p["base_sensors_mm"]]
+        shift = self.p["base_sensor_shift_mm"]
+        shift = [0.0] * len(nominal) if shift is None else [float(v) for v in shift]
+        if len(shift) != len(nominal):
+            raise ValueError("feed_axis plant param base_sensor_shift_mm: one shift per base sensor")
+        on = [k for k, y in enumerate(nominal) if lo <= y <= hi]
+        base_x = [self.p["stroke_offset_mm"] + nominal[k] + shift[k] for k in on]
+        if any(not 0.0 <= x <= self.p["base_length_mm"] for x in base_x):
+            raise ValueError("feed_axis plant param base_sensor_shift_mm: a base sensor off the base")
         ax, n = self.axis, self.net.n
         # readout: T at the fixed sensors = S @ T
         rows = [np.eye(n)[i] for i in (ax.motor, ax.table[0], ax.head, ax.blocks[0])]
         rows += [self.net.probe("y.base", x / 1000.0) for x in base_x]
         self._S = np.array(rows)
         self.sensor_names = ["T_motor", "T_table", "T_head", "T_block"] + [
-            f"T_base_{int(y):03d}" for y in BASE_SENSORS_MM if lo <= y <= hi
+            f"T_base_{int(nominal[k]):03d}" for k in on
         ] + ["T_amb"]
         self.extra_names = ["pos_y_mm", "current_y_a"]
 

@@ -8,6 +8,11 @@ per side i: primary coil `Ti0`, read head `Ti1`, table `Ti2`, `Ti3`, guide surfa
 where the table stands `Ti4` (infrared), carriage blocks `TiA`…`TiD`.
 Errors `err_x1_um`, `err_x2_um` where the gantry stands; `error_profile_um()` at
 `profile_mm` (paper: X = 20, 40, 60, 80 mm).
+
+Optionally (`column_cap_j_k` > 0; 0, the default, builds none) each side carries an
+unmeasured column, the upright between its table and the beam: a lumped mass linked to
+the table and the beam that convects like the beam; its growth α_c · lever · ΔT_column
+along X adds to that side's error, and no sensor sees it.
 """
 
 from __future__ import annotations
@@ -48,6 +53,12 @@ class GantryPlant(Plant):
         "beam_surface_m2": 1.5,
         "beam_table_g_w_k": 3.0,
         "profile_mm": [20.0, 40.0, 60.0, 80.0],
+        "column_cap_j_k": 0.0,  # 0: no column
+        "column_surface_m2": 1.0,
+        "column_table_g_w_k": 2.0,
+        "column_beam_g_w_k": 1.0,
+        "column_alpha_per_k": 11.5e-6,
+        "column_lever_mm": 200.0,  # the column's extent along X between table and tool
         "drift_sensor": "T1C",
     }
 
@@ -58,7 +69,15 @@ class GantryPlant(Plant):
         self.beam = net.add_mass("beam", p["beam_cap_j_k"], p["beam_surface_m2"])
         for side in self.sides:
             net.link(self.beam, side.table[0], p["beam_table_g_w_k"])
+        self.columns: list[int] = []
+        if p["column_cap_j_k"] > 0:
+            for side in self.sides:
+                c = net.add_mass(f"{side.name}.column", p["column_cap_j_k"], p["column_surface_m2"])
+                net.link(c, side.table[0], p["column_table_g_w_k"])
+                net.link(c, self.beam, p["column_beam_g_w_k"])
+                self.columns.append(c)
         net.freeze()
+        self._column_um_per_k = p["column_alpha_per_k"] * p["column_lever_mm"] * 1e3
         for side in self.sides:
             side.load_factor = float(p[f"load_{side.name}"])
         self.profile_mm = np.asarray(p["profile_mm"], float)
@@ -82,6 +101,8 @@ class GantryPlant(Plant):
             side.g_ambient(g)
         h = self.p["h_w_m2k"] + self.p["h_speed_w_m2k_per_m_s"] * self.sides[0].speed_m_min / 60.0
         g[self.beam, 0] = h * self.net.surface_m2[self.beam]
+        for c in self.columns:
+            g[c, 0] = h * self.net.surface_m2[c]
         return g
 
     def _step(self, seg: Segment, t_amb_c: float) -> None:
@@ -104,10 +125,17 @@ class GantryPlant(Plant):
         return np.array([a.pos_mm, b.pos_mm, a.current_a, b.current_a])
 
     def true_error_um(self) -> np.ndarray:
-        return np.array([side.error_here_um() for side in self.sides])
+        err = np.array([side.error_here_um() for side in self.sides])
+        if self.columns:
+            err += self._column_um_per_k * (self.net.T[self.columns] - self.net.T_init[self.columns])
+        return err
 
     def error_profile_um(self, y_mm: np.ndarray | None = None) -> np.ndarray:
         """E at positions `y_mm` (default `profile_mm`) for each side: shape (2, positions), µm."""
         y = self.profile_mm if y_mm is None else np.asarray(y_mm, float)
-        return np.array([side.error_um(y) for side in self.sides])
+        prof = np.array([side.error_um(y) for side in self.sides])
+        if self.columns:
+            rise = self.net.T[self.columns] - self.net.T_init[self.columns]
+            prof += (self._column_um_per_k * rise)[:, None]
+        return prof
 
