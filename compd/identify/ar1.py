@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -183,6 +184,26 @@ def ambient_sensor(
     return name, {**info, "ambient": name}
 
 
+def forward_select(
+    candidates: list[str], score: Callable[[list[str]], float], most: int, start_um: float = math.inf
+) -> tuple[list[str], list[dict[str, float]]]:
+    """Forward selection: each step adds the candidate whose set scores best (held-out RMSE, µm), kept
+    while it beats the set before clearly (holdout.clearly_better, AUTO_MARGIN), at most `most`; the
+    first is always taken when `start_um` is inf. Returns (the chosen, every step's scores)."""
+    chosen: list[str] = []
+    steps: list[dict[str, float]] = [] if math.isinf(start_um) else [{"": start_um}]
+    best = start_um
+    while len(chosen) < min(most, len(candidates)):
+        tried = {c: score([*chosen, c]) for c in candidates if c not in chosen}
+        steps.append(tried)
+        name = min(tried, key=tried.__getitem__)
+        if not math.isinf(best) and not holdout.clearly_better(tried[name], best, AUTO_MARGIN):
+            break
+        chosen.append(name)
+        best = tried[name]
+    return chosen, steps
+
+
 EXCHANGE_MAX = 2  # exchange sensors the auto choice takes at most
 
 
@@ -204,19 +225,7 @@ def exchange_sensors(
         except ValueError:
             return math.inf
 
-    chosen: list[str] = []
-    best = score([])
-    steps: list[dict[str, float]] = [{"": best}]
-    while candidates and len(chosen) < EXCHANGE_MAX:
-        tried = {c: score([*chosen, c]) for c in candidates if c not in chosen}
-        if not tried:
-            break
-        steps.append(tried)
-        name = min(tried, key=tried.__getitem__)
-        if not holdout.clearly_better(tried[name], best, AUTO_MARGIN):
-            break
-        chosen.append(name)
-        best = tried[name]
+    chosen, steps = forward_select(candidates, score, EXCHANGE_MAX, score([]))
     return chosen, {
         "exchange": chosen,
         "method": HELD_OUT_METHOD + f"; forward selection from none among the temperature columns that are neither"
@@ -252,17 +261,7 @@ def structure_sensors(log: Log, targets: list[str] | None, opt: Options) -> tupl
         except ValueError:
             return math.inf
 
-    chosen: list[str] = []
-    steps: list[dict[str, float]] = []
-    best = math.inf
-    while len(chosen) < min(STRUCTURE_MAX, len(candidates)):
-        tried = {c: score([*chosen, c]) for c in candidates if c not in chosen}
-        steps.append(tried)
-        name = min(tried, key=tried.__getitem__)
-        if chosen and not holdout.clearly_better(tried[name], best, AUTO_MARGIN):
-            break
-        chosen.append(name)
-        best = tried[name]
+    chosen, steps = forward_select(candidates, score, STRUCTURE_MAX)
     return chosen, {
         "inputs": chosen,
         "method": HELD_OUT_METHOD + f"; forward selection among the temperature columns, each sensor kept while"
