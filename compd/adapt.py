@@ -20,7 +20,8 @@ A probe z at prediction p is the measurement z = p + H s + v, H = (1, p), v ~ N(
 σ_m is the model's own error at the probe (`model_sigma_um`, by default the held-out RMSE of
 its fit): a model that is right on average is still off by that much at any moment, and one
 probe cannot tell that from an offset, so it moves the estimate only as far as it outweighs
-it. Probes never hurt: what reaches the prediction is each estimated term only as far as it
+it; before the first probe the offset's own σ is σ_m too (`initial_offset_sigma_um`): a model
+fitted on a day is not off by more on the next. Probes never hurt: what reaches the prediction is each estimated term only as far as it
 stands out from its own uncertainty where the axis is: c·max(0, 1 − k² var(c)/c²), c = H s and
 var(c) = H P Hᵀ for this cycle's H (`apply_above_sigma` k): where the evidence does not say the
 model is off by more than the noise, the model runs as fitted.
@@ -46,6 +47,7 @@ import numpy as np
 from compd.config import AdaptConfig
 from compd.errors import BadInput
 
+OFFSET_PRIOR_UM = 5.0  # σ of the offset before the first probe when the model's own error is not known
 PRIOR_PROBES = 2.0  # the fit's held-out σ_m counts as this many probes' worth of scatter
 HISTORY = 4096  # cycles of (position, prediction, correction sent) kept per slope axis (8 s at 2 ms)
 POSITION_MATCH_MM = 0.5  # the axis stood "at" the probe's position within this
@@ -80,6 +82,12 @@ class AxisEstimate:
         # a miss that comes and goes does not), with the fit's figure as a prior worth PRIOR_PROBES
         self.learn_sigma = learn_sigma
         self._prior_var_um2 = self.model_var_um2
+        # the offset before any probe: a fitted model is off on a new day by about its own error (σ_m),
+        # not by more; without a figure for σ_m, OFFSET_PRIOR_UM
+        self.initial_offset_sigma_um = (
+            cfg.initial_offset_sigma_um if cfg.initial_offset_sigma_um is not None
+            else model_sigma_um if model_sigma_um > 0.0 else OFFSET_PRIOR_UM
+        )
         self._last_miss: tuple[float, float, float] | None = None  # (t, miss z − p, probe σ²)
         self._change_sum_um2 = 0.0
         self._change_n = 0
@@ -100,7 +108,7 @@ class AxisEstimate:
         """Forget: zero offset and gain with the initial uncertainty (a new model)."""
         self.s[:] = 0.0
         self.P[:] = 0.0
-        self.P[0, 0] = self.cfg.initial_offset_sigma_um**2
+        self.P[0, 0] = self.initial_offset_sigma_um**2
         if self.i_gain > 0:
             self.P[self.i_gain, self.i_gain] = self.cfg.initial_gain_sigma**2
         if self.i_slope > 0:

@@ -592,11 +592,14 @@ class AdaptConfig(Strict):
         " 0 when the file has none",
     )
     apply_above_sigma: float = Field(
-        1.0, ge=0, le=100,
+        1.5, ge=0, le=100,
         description="apply the estimate's correction c only as far as it stands out from its own σ where the axis"
         " is: c·max(0, 1 − (k σ_c/c)²) with this k (0 = apply the estimate as it is)",
     )
-    initial_offset_sigma_um: float = Field(5.0, gt=0, le=1000, description="σ of the offset before the first probe")
+    initial_offset_sigma_um: float | None = Field(
+        None, gt=0, le=1000,
+        description="σ of the offset before the first probe, µm; none = the model's own error σ_m (5 when it is 0)",
+    )
     initial_gain_sigma: float = Field(0.2, gt=0, le=10, description="σ of the gain error before the first probe")
     offset_drift_um_per_sqrt_h: float = Field(
         0.3, ge=0, le=1000, description="random walk of the offset between probes, µm per √h"

@@ -217,3 +217,19 @@ def test_a_probe_on_a_model_at_p0_is_compared_with_its_slope_where_it_measured()
     ad.apply(np.array([4.0]), 0.0, out, terms=[(0.01, 300.0)])
     assert ad.events[-1]["innovation_um"] == pytest.approx(0.0, abs=1e-9)
     assert out[0] == pytest.approx(4.0, abs=1e-6)  # no offset learnt: the model was right there
+
+
+def test_the_offset_starts_within_the_models_own_error():
+    """Before the first probe a fitted model is off by about its own error σ_m, not by an arbitrary
+    5 µm: one probe that shows a momentary miss moves it only as far as that prior allows."""
+    assert Adapter(AdaptConfig(), ["z"], model_sigma_um={"z": 0.8}).est[0].P[0, 0] == pytest.approx(0.64)
+    assert Adapter(AdaptConfig(), ["z"]).est[0].P[0, 0] == pytest.approx(25.0)  # σ_m unknown
+    assert Adapter(AdaptConfig(initial_offset_sigma_um=2.0), ["z"], model_sigma_um={"z": 0.8}).est[0].P[0, 0] \
+        == pytest.approx(4.0)
+    out = np.zeros(1)
+    wide = Adapter(AdaptConfig(initial_offset_sigma_um=5.0), ["z"], model_sigma_um={"z": 0.8})
+    tight = Adapter(AdaptConfig(), ["z"], model_sigma_um={"z": 0.8})
+    for ad in (wide, tight):
+        ad.inbox.append(Probe(0.0, "z", 12.0))  # the model says 10; one probe sees 2 µm more
+        ad.apply(np.array([10.0]), 0.0, out)
+    assert tight.est[0].s[0] < 0.5 * wide.est[0].s[0]
