@@ -592,7 +592,7 @@ class AdaptConfig(Strict):
         " 0 when the file has none",
     )
     apply_above_sigma: float = Field(
-        1.5, ge=0, le=100,
+        2.0, ge=0, le=100,
         description="apply the estimate's correction c only as far as it stands out from its own σ where the axis"
         " is: c·max(0, 1 − (k σ_c/c)²) with this k (0 = apply the estimate as it is)",
     )
