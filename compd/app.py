@@ -11,28 +11,16 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from compd.clock import Clock, PlantClock, SimClock
+from compd.clock import PlantClock, SimClock
 from compd.config import Config
 from compd.errors import BadInput
 from compd.loop import Loop
-from compd.pipeline import build_clock, build_model, build_pipeline
+from compd.pipeline import from_config
 from compd.scoring import RunningScore
 from compd.service import LogSpec, Service, StateSpec
 from compd.state import load_saved, params_digest
 
 log = logging.getLogger("compd")
-
-
-def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
-    """A source or sink from its section; its own BadInput names the config file and key."""
-    try:
-        built = cls(section, base_dir=base)
-    except BadInput as e:
-        if e.file:
-            raise
-        raise cfg.doc.error(e.message, path) from None
-    built.config_path = path
-    return built
 
 
 class LogObserver:
@@ -172,27 +160,8 @@ class App:
         self.out = out
         top = cfg.top
         lp = top.loop
-        base = str(Path(cfg.file).parent)
-        sources = [_built(cfg, path, cls, scfg, base) for cls, scfg, path in cfg.sources]
-        sink_cls, sink_cfg, sink_path = cfg.sink
-        sink = _built(cfg, sink_path, sink_cls, sink_cfg, base)
         self.observe = top.observe if observe is None else observe
-        self.clock: Clock = build_clock(lp, sources)
-        try:
-            p = build_pipeline(
-                sources=sources,
-                model=build_model(cfg.model),
-                sink=sink,
-                clock=self.clock,
-                period_s=lp.period_s,
-                guard_cfg=top.guard,
-                codec_cfg=top.codec,
-                observe=self.observe,
-                adapt_cfg=top.adapt,
-                inhibit_cfg=top.inhibit,
-            )
-        except BadInput as e:
-            raise cfg.doc.error(e.message, e.keys) from None
+        p, self.clock = from_config(cfg, observe=self.observe)
         self.sources, self.frame, self.model, self.guard = p.sources, p.frame, p.model, p.guard
         self.encoder, self.sink, self.loop = p.encoder, p.sink, p.loop
         self.loop.gil_switch_interval_s = lp.gil_switch_interval_s
@@ -439,6 +408,8 @@ class App:
             "realtime": self.service.realtime_result,
             "state_error": counts.get("state_error"),
             "observe": self.observe,
+            # the sink's device acknowledged the safe output at the stop (None: not stopped, or handed over)
+            "safe_delivered": self.loop.safe_delivered,
             # the probe adapter's estimate per axis (accepted and rejected probes), when configured
             "adaptation": self.loop.adapter.get_status() if self.loop.adapter is not None else None,
         }

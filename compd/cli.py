@@ -164,12 +164,13 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 @command("check-config")
 def cmd_check_config(args: argparse.Namespace) -> int:
-    from compd.app import App
+    from compd import pipeline
     from compd.config import load_config
+    from compd.service import check_status_free
 
     cfg = load_config(args.config)
-    app = App(cfg, out=sys.stderr)  # wiring is checked by building the pipeline (opens no device)
-    app.service.check_status_free()  # no other running compd writes its status file
+    pipeline.check(cfg)  # the wiring, by building the pipeline (opens no device)
+    check_status_free(cfg)  # no other running compd writes its status file
     print("ok")
     return 0
 
@@ -287,9 +288,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     loop = result["loop"]
     if result.get("observe"):
         print("compd: observe mode: the output was held disabled (no correction reached the machine)")
+    from compd.histogram import percentile_text
+    from compd.loop import HIST_US
+
+    late, comp_us = loop["lateness_us"]["p99"], loop["cycle_compute_us"]["p99"]
     print(
         f"compd: {loop['cycles']} cycles, {loop['misses']} missed, lateness p99"
-        f" {loop['lateness_us']['p99']:.0f} us, compute p99 {loop['cycle_compute_us']['p99']:.0f} us"
+        f" {percentile_text(late, late >= HIST_US, '.0f')}, compute p99 {percentile_text(comp_us, comp_us >= HIST_US, '.0f')}"
     )
     for axis, r in comp.items():
         print(
@@ -303,6 +308,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.json:
         with writing(args.json, "--json"), open(args.json, "w", encoding="utf-8") as fh:
             json.dump(result, fh, indent=2)
+    if result.get("safe_delivered") is False:
+        print("compd: the safe output did not reach the sink's device: the last correction may still be applied",
+              file=sys.stderr)
+        return 1
     return 0
 
 

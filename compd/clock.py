@@ -45,6 +45,11 @@ class Clock(ABC):
     def wait_until(self, deadline_s: float) -> None:
         """Return at (or as soon as possible after) loop time `deadline_s`."""
 
+    def elapsed_s(self) -> float:
+        """Elapsed time (s, monotonic, any origin) beside the loop clock: the loop tells a
+        stall (the clock moved as elapsed time did) from a step of the clock by it."""
+        return time.monotonic()
+
     def start(self) -> None:
         """Called once before the loop opens anything (a clock read from elsewhere connects)."""
 

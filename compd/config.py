@@ -12,6 +12,7 @@ import difflib
 import importlib
 import importlib.util
 import os
+import platform
 import stat
 import types
 import typing
@@ -20,7 +21,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from compd.errors import BadInput, ConfigError, format_path
 
@@ -396,6 +397,12 @@ class PlantClockConfig(Strict):
     )
 
 
+def stores_in_order() -> bool:
+    """Whether this CPU makes stores visible to other CPUs in program order (x86-64), which the
+    seqlocks of compd.io.mailbox rely on between processes."""
+    return platform.machine().lower() in ("x86_64", "amd64")
+
+
 class LoopConfig(Strict):
     """The fixed-period cycle."""
 
@@ -424,10 +431,11 @@ class LoopConfig(Strict):
         description="wall clock: how soon a thread holding the GIL must hand it to the waking cycle",
     )
     io: Literal["process", "thread"] = Field(
-        "process",
+        default_factory=lambda: "process" if stores_in_order() else "thread",
         description="wall clock: where device I/O and the service (status, metrics, logs) run — a process"
         " of its own each (their Python never holds the GIL the cycle needs) or threads of the daemon"
-        " (other clocks: always threads)",
+        " (other clocks: always threads). process needs x86-64 (its shared-memory mailboxes rely on its"
+        " store order); elsewhere the default is thread",
     )
     realtime: RealtimeConfig = Field(RealtimeConfig(), description="real-time options")
 
@@ -436,6 +444,14 @@ class LoopConfig(Strict):
         if self.clock == "plant" and self.plant_clock is None:
             raise ValueError("clock: plant needs a plant_clock section")
         return self
+
+    @field_validator("io")
+    @classmethod
+    def _io_on_this_cpu(cls, io: str) -> str:
+        if io == "process" and not stores_in_order():
+            raise ValueError(f"process needs an x86-64 CPU (the mailboxes between processes rely on its store"
+                             f" order); this one is {platform.machine() or 'unknown'}: set io: thread")
+        return io
 
 
 class SignalLimits(Strict):

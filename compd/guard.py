@@ -260,15 +260,45 @@ class Guard:
         return any(k != j and self._moved_t[k] > since_s for k in range(n))
 
     def clock_jump(self, now_s: float, period_s: float) -> None:
-        """The loop woke far too late (clock jump, suspend, stall): the next cycle may
-        move the output by one period's slew, not by the whole gap."""
+        """The loop clock stepped: it moved by something other than elapsed time (a simulated
+        or plant clock set ahead, time going backwards; `clock_stepped`). Event `jump` of
+        subject `clock` (logged `clock_jump`); the next cycle may move the output by one
+        period's slew, not by the whole gap."""
         gap = now_s - self._last_t
         if gap == gap:
             self._event(now_s, "clock", "jump", f"{gap:+.3f} s since the last cycle")
         self._last_t = now_s - period_s
 
-    def _event(self, t: float, subject: str, event: str, reason: str) -> None:
-        key = f"{event}:{reason}"
+    def stall(self, now_s: float, period_s: float, late_s: float, gap_s: float) -> None:
+        """The loop did not run for a while (an overloaded machine, a stopped process) on a
+        clock that did not step: it woke `late_s` late, or `gap_s` after the cycle before (a
+        stall during that cycle's work). Event `stall` of subject `loop` (logged `loop_stall`,
+        counted in `faults` as `stall:loop`); as after a clock jump, the next cycle may move the
+        output by one period's slew, not by the whole gap."""
+        why = f"woke {late_s:.3f} s late" if late_s > 0.5 * gap_s else f"{gap_s:.3f} s since the last cycle"
+        self._event(now_s, "loop", "stall", why, key="stall:loop")
+        self._last_t = now_s - period_s
+
+    @staticmethod
+    def clock_stepped(gap_s: float, elapsed_s: float, rate: float, simulated: bool, jump_s: float) -> bool:
+        """Whether a gap of `gap_s` on the loop clock between two cycles, over `elapsed_s` of
+        elapsed (monotonic) time, was a step of the clock rather than a stall of the loop.
+
+        A stall (the process did not run) moves a clock that follows elapsed time as far as
+        elapsed time moved: `rate` × `elapsed_s` (`rate`: loop-clock seconds per elapsed
+        second, 1 on the wall clock, a plant's speed-up on a plant's clock). A step moves it
+        by something else: time going backwards, or a gap elapsed time does not explain (off
+        by more than `jump_s` plus a quarter of the advance expected). A simulated clock's
+        time does not elapse by itself (its wait sets it to the deadline): any gap on it is
+        a step."""
+        if simulated or gap_s < 0.0:
+            return True
+        expected_s = max(rate, 0.0) * elapsed_s
+        return abs(gap_s - expected_s) > jump_s + 0.25 * expected_s
+
+    def _event(self, t: float, subject: str, event: str, reason: str, key: str | None = None) -> None:
+        """Record an event; `faults` counts it under `key` (default "event:reason")."""
+        key = f"{event}:{reason}" if key is None else key
         self.faults[key] = self.faults.get(key, 0) + 1
         self.events.append((t, subject, event, reason))
         if len(self.events) > 1000:

@@ -13,14 +13,43 @@ from compd.io.mailbox import shared_buffer
 def bin_percentiles(bins: Any, qs: Sequence[float]) -> list[float]:
     """Bin indices (µs) at which the cumulative count first reaches q·total; 0 when empty.
 
-    `bins` is an int64 array (array("q") or numpy); numpy keeps a 20 000-bin pass ≈ 50 µs.
+    The last bin holds everything above the range (it overflows): a quantile that falls in
+    it is not a measurement, and is reported as the range limit, len(bins) µs (the true
+    value is at least that; `over_range` tells). `bins` is an int64 array (array("q") or
+    numpy); numpy keeps a 20 000-bin pass ≈ 50 µs.
     """
     counts = bins if isinstance(bins, np.ndarray) else np.frombuffer(bins, dtype=np.int64)
     cum = np.cumsum(counts)
     total = cum[-1] if cum.size else 0
     if total == 0:
         return [0.0 for _ in qs]
-    return [float(np.searchsorted(cum, q * total, side="left")) for q in qs]
+    last = cum.size - 1  # the overflow bin
+    out = []
+    for q in qs:
+        i = int(np.searchsorted(cum, q * total, side="left"))
+        out.append(float(i) if i < last else float(cum.size))
+    return out
+
+
+def range_limit_us(bins: Any) -> float:
+    """The range limit (µs) of a histogram of 1 µs bins: its bin count (the last bin overflows)."""
+    return float(len(bins))
+
+
+def over_range(values: dict[str, Any], limit_us: float, keys: Sequence[str] = ("p50", "p99", "p999")) -> list[str]:
+    """The keys of `values` (percentiles, µs) that are at the histogram's range limit: their
+    quantile fell in the overflow bin, so the value stands for "above `limit_us`"."""
+    return [k for k in keys if isinstance(values.get(k), int | float) and values[k] >= limit_us]
+
+
+def percentile_text(value_us: Any, over: bool, fmt: str = "g") -> str:
+    """A percentile (µs) for people: `>20 ms` when it is over the histogram's range (`value_us`
+    is then the range limit), else the number as `fmt` with ` us`; `nan` for none."""
+    if not isinstance(value_us, int | float):
+        return "nan"
+    if over:
+        return f">{value_us / 1000:g} ms"
+    return f"{format(value_us, fmt)} us"
 
 
 class DurationHist:
@@ -53,18 +82,21 @@ class DurationHist:
             w[1] = d_ns
 
     def percentile_us(self, q: float) -> float:
-        """The bin (µs) holding the q-quantile; 0 when empty."""
+        """The bin (µs) holding the q-quantile; 0 when empty; `max_us` when over the range."""
         return bin_percentiles(self.bins, (q,))[0]
 
-    def summary(self) -> dict[str, float]:
-        """count, p50, p99 and max in µs."""
+    def summary(self) -> dict[str, Any]:
+        """count, p50, p99 and max in µs, and `over_range`: the percentiles over the range
+        (their value is then the range limit, `max_us`)."""
         p50, p99 = bin_percentiles(self.bins, (0.5, 0.99))
-        return {
+        out: dict[str, Any] = {
             "count": self.count,
             "p50": p50,
             "p99": p99,
             "max": round(self.max_ns / 1000, 1),
         }
+        out["over_range"] = over_range(out, range_limit_us(self.bins), ("p50", "p99"))
+        return out
 
     @classmethod
     def merged(cls, hists: Iterable[DurationHist]) -> DurationHist:

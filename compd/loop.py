@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import logging
 import math
 import sys
 import time
@@ -34,6 +35,8 @@ from compd.io.child import hosting
 from compd.models.base import Model
 from compd.sinks.base import Sink
 from compd.sources.base import Source
+
+log = logging.getLogger("compd.loop")
 
 STAGES = ("read", "model", "guard", "codec", "sink")
 HIST_US = 20000  # lateness histogram: 1 µs bins up to 20 ms, last bin = overflow
@@ -170,6 +173,7 @@ class Loop:
         self.gc_period_s = 1.0
         self.gil_switch_interval_s = 0.0001
         self.primed = False
+        self.safe_delivered: bool | None = None  # whether the device acknowledged the safe output (close)
         # device I/O workers in processes of their own (on a clock a child can read), kept
         # off the CPUs the cycle is pinned to
         self.io_process = False
@@ -213,7 +217,10 @@ class Loop:
         try:
             if not keep_sink:
                 self.guard.safe()
-                self.sink.safe()
+                self.safe_delivered = self.sink.safe()
+                if not self.safe_delivered:
+                    log.error("the safe output was not acknowledged by the sink's device: the last correction"
+                              " may still be applied at the machine", extra={"event": "safe_not_delivered"})
         finally:
             if not keep_sink:
                 self.sink.close()
@@ -259,6 +266,11 @@ class Loop:
         half = period * 0.5
         jump_s = max(20.0 * period, 0.5)
         prev_now = t0
+        # elapsed time beside the loop clock, to tell a stall (the clock moved as elapsed time
+        # did) from a clock step (Clock.elapsed_s)
+        elapsed = clock.elapsed_s
+        e0 = prev_e = elapsed()
+        stepped = 0.0  # loop-clock time the clock stepped by: kept out of its rate
         next_gc = t0 + self.gc_period_s
         simulated = clock.simulated
         margin = clock.spin_margin_s
@@ -272,13 +284,24 @@ class Loop:
                     break
                 clock.wait_until(deadline)
                 now = clock.now()
+                now_e = elapsed()
                 lateness = now - deadline
-                # clock jump or stall: the output never steps for it. Late for this deadline,
-                # or far from the last cycle (a jump during the last cycle's work is absorbed
-                # by the skip below, which then waits for a deadline in the new time)
-                if lateness > jump_s or now - prev_now > jump_s:
-                    self.guard.clock_jump(now, period)
+                # a stall or a clock step: the output never steps for either. Late for this
+                # deadline, far from the last cycle (a jump or a stall during the last cycle's
+                # work is absorbed by the skip below, which then waits for a deadline in the new
+                # time), or time went backwards. A stall moved the loop clock as far as elapsed
+                # time (× the clock's rate so far); a step moved it by something else
+                gap = now - prev_now
+                if lateness > jump_s or gap > jump_s or gap < 0.0:
+                    ran = prev_e - e0
+                    rate = (prev_now - t0 - stepped) / ran if ran >= 0.1 else 1.0
+                    if Guard.clock_stepped(gap, now_e - prev_e, rate, simulated, jump_s):
+                        stepped += gap - max(rate, 0.0) * (now_e - prev_e)
+                        self.guard.clock_jump(now, period)
+                    else:
+                        self.guard.stall(now, period, lateness, gap)
                 prev_now = now
+                prev_e = now_e
                 c0 = perf()
                 if late_spans is not None and lateness * 1e9 > late_ns:
                     late_spans.mark(c0 - int(lateness * 1e9), c0)

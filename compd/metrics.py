@@ -80,7 +80,9 @@ class SnapshotCollector:
         corr = GaugeMetricFamily("compd_correction_micrometres", "Guarded correction per axis", labels=["axis"])
         pred = GaugeMetricFamily("compd_prediction_micrometres", "Predicted thermal error per axis", labels=["axis"])
         en = GaugeMetricFamily(
-            "compd_axis_enabled", "1 when the axis's enable bit is on and the sink reaches the machine", labels=["axis"]
+            "compd_axis_enabled",
+            "1 when the axis is enabled at the machine: its enable bit on, the sink reaching the machine, not observe mode",
+            labels=["axis"],
         )
         sat = GaugeMetricFamily("compd_axis_saturated", "1 when the axis's word byte is clamped at 63 LSB", labels=["axis"])
         st = GaugeMetricFamily("compd_axis_state", "1 for the axis's current guard state", labels=["axis", "state"])
@@ -91,7 +93,7 @@ class SnapshotCollector:
         for axis, a in snap["axes"].items():
             corr.add_metric([axis], _f(a["correction_um"]))
             pred.add_metric([axis], _f(a.get("prediction_um")))
-            en.add_metric([axis], 1.0 if a["enable"] else 0.0)
+            en.add_metric([axis], 1.0 if a["enable"] and not snap["observe"] else 0.0)  # observe: word 0
             sat.add_metric([axis], 1.0 if a.get("saturated") else 0.0)
             for state in ("starting", "normal", "fault", "recovering"):
                 st.add_metric([axis, state], 1.0 if a["state"] == state else 0.0)

@@ -97,6 +97,7 @@ class WatchdogObserver:
         clock: Callable[[], float] = time.monotonic,
         status_line: SharedBlob | None = None,
         status_every_s: float = 1.0,
+        healthy: Callable[[], bool] | None = None,
     ) -> None:
         self.notifier = notifier
         self.clock = clock
@@ -109,6 +110,8 @@ class WatchdogObserver:
         self._next_s = -math.inf
         self._next_status_s = math.inf if status_line is None else -math.inf
         self._line_version = 0
+        self.healthy = healthy  # False: the supervisor gave up on a child; no more pings
+        self.starved = False
 
     def __call__(self, loop: Any, now_s: float) -> None:
         t = self.clock()
@@ -126,6 +129,9 @@ class WatchdogObserver:
         if not self.ready:
             self.ready = True
             self.notifier.send(READY=1, STATUS=self.status)
-        else:
+        elif self.healthy is None or self.healthy():
             self.notifier.send(WATCHDOG=1)
             self.pings += 1
+        elif not self.starved:
+            self.starved = True
+            self.notifier.send(STATUS="I/O processes keep dying: watchdog no longer fed")

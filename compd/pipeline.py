@@ -12,12 +12,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from compd.adapt import Adapter
 from compd.clock import Clock, LockstepPlantClock, PlantClock, SimClock, WallClock
 from compd.codec import Encoder
-from compd.config import AdaptConfig, CodecConfig, GuardConfig, InhibitConfig, LoopConfig
+from compd.config import AdaptConfig, CodecConfig, Config, GuardConfig, InhibitConfig, LoopConfig
 from compd.errors import BadInput
 from compd.frame import Frame
 from compd.guard import Guard
@@ -154,3 +155,54 @@ def build_pipeline(
         for s in sources:
             s.bind_probes(loop.adapter.inbox)
     return Pipeline(sources, frame, model, guard, encoder, sink, loop, word_names)
+
+
+def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
+    """A source or sink from its section; its own BadInput names the config file and key."""
+    try:
+        built = cls(section, base_dir=base)
+    except BadInput as e:
+        if e.file:
+            raise
+        raise cfg.doc.error(e.message, path) from None
+    built.config_path = path
+    return built
+
+
+def from_config(cfg: Config, *, observe: bool | None = None) -> tuple[Pipeline, Clock]:
+    """The pipeline a config describes and its clock, built and wired, nothing opened (no
+    device, no socket, no file): what `compd run` opens, and what `check` validates. A wiring
+    mistake is BadInput naming the config file, line and key."""
+    top = cfg.top
+    lp = top.loop
+    base = str(Path(cfg.file).parent)
+    sources = [_built(cfg, path, cls, scfg, base) for cls, scfg, path in cfg.sources]
+    sink_cls, sink_cfg, sink_path = cfg.sink
+    sink = _built(cfg, sink_path, sink_cls, sink_cfg, base)
+    clock = build_clock(lp, sources)
+    try:
+        p = build_pipeline(
+            sources=sources, model=build_model(cfg.model), sink=sink, clock=clock, period_s=lp.period_s,
+            guard_cfg=top.guard, codec_cfg=top.codec, observe=top.observe if observe is None else observe,
+            adapt_cfg=top.adapt, inhibit_cfg=top.inhibit,
+        )
+    except BadInput as e:
+        raise cfg.doc.error(e.message, e.keys) from None
+    return p, clock
+
+
+def check(cfg: Config) -> None:
+    """Validate a config as far as it can be without running it (`compd check-config`, a model
+    the plant sends): every stage built and wired (`from_config`), the plant's telemetry and
+    OPC UA sections read and checked against the signals and axes. Opens nothing; BadInput
+    names the file, line and key of the first problem."""
+    p, _ = from_config(cfg)
+    top = cfg.top
+    if top.telemetry is not None or top.opcua is not None:
+        from compd.plant import spec as plant_spec
+
+        period_s = min(top.status.period_s, *(sec.period_s for sec in (top.telemetry, top.opcua) if sec is not None))
+        if top.telemetry is not None:
+            plant_spec.telemetry_spec(cfg, list(p.frame.names), list(p.model.outputs), period_s)
+        if top.opcua is not None:
+            plant_spec.opcua_spec(cfg)

@@ -36,6 +36,8 @@ from typing import Any
 
 from compd.adapt import Probe
 from compd.io.ring import MessageRing
+from compd.io.supervisor import Supervised, Supervisor
+from compd.io.worker import started_workers
 from compd.metrics import LATENESS_BOUNDS_US
 from compd.status import lateness_buckets, snapshot, snapshot_steps
 
@@ -83,6 +85,18 @@ def sensor_cause(sources: list[Any], signal: str) -> str | None:
     return None
 
 
+def with_causes(events: list[tuple[float, str, str, str]], sources: list[Any]) -> list[tuple[float, str, str, str, str | None]]:
+    """The guard's events as handed to the service: each sensor event that is a lost link, no
+    data or staleness with its source's last error as the cause (`sensor_cause`)."""
+    out = []
+    for t, subject, event, reason in events:
+        cause = None
+        if event == "bad" and reason in ("comms_lost", "no_data", "stale"):
+            cause = sensor_cause(sources, subject)
+        out.append((float(t), subject, event, reason, cause))
+    return out
+
+
 class Publisher:
     """Feeds the service from the cycle's thread (see the module); one per pipeline."""
 
@@ -96,7 +110,6 @@ class Publisher:
         status_extra: Callable[[], dict[str, Any]],
         observe: bool,
         probe_rings: list[MessageRing] = (),  # type: ignore[assignment]
-        service_alive: Callable[[], bool] | None = None,
     ) -> None:
         self.loop = loop
         self.outbox = outbox
@@ -116,12 +129,14 @@ class Publisher:
         self.snapshots = 0
         self.snapshots_waited = 0  # cycles a snapshot's due step waited for room
         self.rows_dropped = 0  # data-log rows the ring had no room for
-        self.service_alive = service_alive  # whether the service (a process of its own) still runs
-        self.service_lost: str | None = None
+        # the I/O workers' processes and the service's (compd/io/supervisor.py), watched between cycles
+        self.supervised: list[Supervised] = []
+        self.supervisor = Supervisor(workers=lambda: [*started_workers(), *self.supervised])
 
     # ------------------------------------------------------------ the cycle's thread
     def after_cycle(self, room_s: float) -> None:
         """After a cycle, with `room_s` before the next deadline (inf: no real-time schedule)."""
+        self.supervisor.check()
         for ring in self.probe_rings:
             if ring.pending():
                 self._take_probes(ring)
@@ -135,8 +150,6 @@ class Publisher:
         if self._steps is None and self._snap is None:
             if time.monotonic() < self._next_status_s:
                 return
-            if self.service_lost is None and self.service_alive is not None and not self.service_alive():
-                self._lost_service()
             self._steps = snapshot_steps(self.loop, state=self.state, observe=self.observe, extra=self.status_extra())
             self._step = 0
         costs, i = self.step_cost_s, self._step
@@ -198,23 +211,8 @@ class Publisher:
         self.after_cycle(0.0)
 
     # ------------------------------------------------------------ helpers
-    def _lost_service(self) -> None:
-        """The service process has died: say so once, from here (nothing else will)."""
-        self.service_lost = "the service process has exited"
-        log.error(
-            "%s: no more status file, metrics, event lines or data-log rows; compensation goes on."
-            " Restart compd to get them back", self.service_lost,
-            extra={"event": "service_lost", "reason": self.service_lost},
-        )
-
     def _put_events(self, events: list[tuple[float, str, str, str]]) -> None:
-        out = []
-        for t, subject, event, reason in events:
-            cause = None
-            if event == "bad" and reason in ("comms_lost", "no_data", "stale"):
-                cause = sensor_cause(self.loop.sources, subject)
-            out.append((float(t), subject, event, reason, cause))
-        self.outbox.put(("events", out))
+        self.outbox.put(("events", with_causes(events, self.loop.sources)))
 
     def _take_probes(self, ring: MessageRing) -> None:
         adapter = self.loop.adapter

@@ -37,6 +37,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from compd import (
     activity,
     logsetup,  # noqa: F401  (installs the library's NullHandler)
@@ -46,24 +48,27 @@ from compd.adapt import Probe
 from compd.control import ControlServer, ProbeLink, socket_path
 from compd.errors import BadInput
 from compd.io.child import Child, ChildGone
+from compd.io.mailbox import shared_buffer
 from compd.io.ring import MessageRing, SharedBlob
+from compd.io.worker import exit_text
 from compd.log import LogWriter
 from compd.metrics import MetricsServer
 from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
-from compd.publish import Publisher, Tail, sensor_cause
+from compd.publish import Publisher
 from compd.realtime import apply_realtime, unshare_pages
 from compd.state import StateWriter
 
 log = logging.getLogger("compd.service")
 
-_EVENT_LEVEL = {"bad": logging.WARNING, "fault": logging.WARNING, "jump": logging.WARNING}
+_EVENT_LEVEL = {"bad": logging.WARNING, "fault": logging.WARNING, "jump": logging.WARNING, "stall": logging.WARNING}
 _EVENT_NAME = {
     "bad": "sensor_bad",
     "good": "sensor_good",
     "fault": "axis_fault",
     "recovering": "axis_recovering",
     "normal": "axis_normal",
-    "jump": "clock_jump",
+    "jump": "clock_jump",  # the loop clock stepped (compd.guard.Guard.clock_jump)
+    "stall": "loop_stall",  # the loop did not run for a while: woke late on a clock that did not step
     "held": "axis_held",  # the machine inhibits the axis, or it waits for its reference
     "released": "axis_released",
 }
@@ -72,6 +77,7 @@ POLL_S = 0.02  # how often the service takes what the cycle handed over
 OUTBOX_BYTES = 2 << 20  # cycle → service: ~5000 log rows (a stalled service; it takes them every 20 ms)
 INBOX_BYTES = 64 << 10  # service → cycle: probes
 STOP_TIMEOUT_S = 15.0  # a service that has not written its last rows by then is killed
+SERVICE_STALL_S = 10.0  # a service process that has not taken a turn of its loop this long has stalled
 
 
 def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
@@ -96,7 +102,7 @@ def daemon_status_path(cfg: Any) -> Path:
 
 def log_guard_event(t: float, subject: str, event: str, reason: str, cause: str | None = None) -> None:
     """One guard event as a log line: "T_xi bad: comms_lost (source adam: connect: …)"."""
-    kind = "sensor" if event in ("bad", "good") else ("clock" if event == "jump" else "axis")
+    kind = "sensor" if event in ("bad", "good") else {"jump": "clock", "stall": "loop"}.get(event, "axis")
     extra = {"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t}
     if cause is not None:
         extra["cause"] = cause
@@ -127,24 +133,24 @@ def log_probe_event(ev: dict[str, Any]) -> None:
         log.warning("probe %s ignored: %s", axis, kind, extra=extra)
 
 
-class EventLogger:
-    """Logs the guard's new events (since the last call), each sensor event with its source's
-    last error as the cause."""
-
-    def __init__(self, guard: Any, sources: Any = ()) -> None:
-        self._tail = Tail(lambda: guard.events)
-        self.sources = list(sources)
-        self.logged = 0
-
-    def flush(self) -> int:
-        new = self._tail.new()
-        for t, subject, event, reason in new:
-            cause = None
-            if event == "bad" and reason in ("comms_lost", "no_data", "stale"):
-                cause = sensor_cause(self.sources, subject)
-            log_guard_event(t, subject, event, reason, cause)
-        self.logged += len(new)
-        return len(new)
+def check_status_free(cfg: Any) -> None:
+    """BadInput when another compd that is alive writes the status file of `cfg`: two instances
+    on one file overwrite each other's state (and `compd status` shows either)."""
+    path = status_path(cfg)
+    if path is None:
+        return
+    try:
+        data = status_mod.read_status(path)
+    except BadInput:
+        return  # none yet, or not a status file: this daemon overwrites it
+    pid = data.get("pid")
+    if pid == os.getpid() or not status_mod.liveness(data)[0]:
+        return  # a reload of this daemon, or one that has stopped
+    msg = (f"{path} is the status file of a running compd (pid {pid}, config {data.get('config')});"
+           " give each config its own status.path")
+    if cfg.top.status.path:
+        raise cfg.doc.error(msg, ("status", "path"))
+    raise BadInput(msg, file=str(path))
 
 
 @dataclass
@@ -248,6 +254,7 @@ class ServiceWork:
         self.opcua: Any = None  # compd.plant.opcua.OpcUaServer, started on the first snapshot
         self.opcua_error: str | None = None
         self._opcua_next_s = 0.0
+        self.beat = np.zeros(1, dtype=np.int64)  # counted at every turn of the loop (shared with the daemon)
 
     # ------------------------------------------------------------------ life
     def start(self, paused: bool) -> None:
@@ -345,6 +352,7 @@ class ServiceWork:
     def _run(self) -> None:
         spans = activity.ring("compd-service")  # None unless the bench records who runs when (a thread)
         while not self._stop.is_set():
+            self.beat[0] += 1
             if self._going.is_set():
                 t0 = time.perf_counter_ns()
                 try:
@@ -434,7 +442,8 @@ class ServiceWork:
             mode = "observe" if snap["observe"] else "compensating"
             if snap["sink"]["link"] != "up":
                 mode += f" (sink link {snap['sink']['link']}: output not reaching the machine)"
-            line = f"{mode}: word {snap['word']}, {states}, {snap['loop']['misses']} missed"
+            word = f"word {snap['word']} held back, 0x0000 at the machine" if snap["observe"] else f"word {snap['word']}"
+            line = f"{mode}: {word}, {states}, {snap['loop']['misses']} missed"
             self.status_line.publish(line.encode("utf-8")[: self.status_line.capacity])
 
     def _plant(self, snap: dict[str, Any]) -> None:
@@ -475,7 +484,17 @@ class ServiceWork:
 
 
 class _ServiceHost:
-    """Where a `ServiceWork` runs: a child process (`process`) or a thread of the daemon."""
+    """Where a `ServiceWork` runs: a child process (`process`) or a thread of the daemon.
+
+    A child is watched by the daemon's supervisor (compd/io/supervisor.py) like an I/O
+    worker: its heartbeat (a turn of its loop, every `POLL_S`) and its process; a service
+    that died or stalled is reported (`service_lost`), killed and started again
+    (`service_restarted`). The ring the cycle writes to is the daemon's: what was handed
+    over while no service ran is taken by the new one (up to the ring's room)."""
+
+    name = "service"
+    lost_event = "service_lost"
+    restarted_event = "service_restarted"
 
     def __init__(self, work: ServiceWork, process: bool, avoid_cpus: frozenset[int]) -> None:
         self.work = work
@@ -483,11 +502,55 @@ class _ServiceHost:
         self.avoid_cpus = avoid_cpus
         self.child: Child | None = None
         self.final: dict[str, Any] | None = None
+        self._beat_buf = shared_buffer(8)
+        work.beat = np.frombuffer(self._beat_buf, dtype=np.int64, count=1)
+        self._wanted = False
+        self._beat_seen = -1
+        self._beat_seen_s = 0.0
+        self.lost: str | None = None
 
+    # ------------------------------------------------------------ the supervisor's
+    @property
+    def pid(self) -> int | None:
+        return self.child.pid if self.child is not None else None
+
+    @property
+    def wanted(self) -> bool:
+        return self._wanted
+
+    def health(self, now_s: float) -> str | None:
+        """None while the service's process runs and beats (a thread: always)."""
+        child = self.child
+        if not self._wanted or child is None:
+            return None
+        beat = int(self.work.beat[0])
+        if beat != self._beat_seen:
+            self._beat_seen, self._beat_seen_s = beat, now_s
+        if not child.alive():
+            return exit_text(child.exit_code)
+        if now_s - self._beat_seen_s > SERVICE_STALL_S:
+            return f"stopped beating for {now_s - self._beat_seen_s:.1f} s"
+        return None
+
+    def abandon(self, reason: str) -> None:
+        child, self.child = self.child, None
+        if child is not None:
+            child.stop(0.0)  # kills what is left, reaps it
+        self.lost = reason
+
+    def restart(self) -> None:
+        self._fork(paused=False)
+        self.lost = None
+
+    # ------------------------------------------------------------ life
     def start(self, paused: bool) -> None:
         if not self.process:
             self.work.start(paused)
             return
+        self._fork(paused)
+        self._wanted = True
+
+    def _fork(self, paused: bool) -> None:
         work = self.work
         keep = [fd for fd in (work.metrics.fileno() if work.metrics else None,
                               work.control.fileno() if work.control else None) if fd is not None]
@@ -511,10 +574,12 @@ class _ServiceHost:
 
         child.start(serve, self.avoid_cpus, keep_fds=keep)
         self.child = child
+        self._beat_seen, self._beat_seen_s = -1, time.monotonic()
 
     def go(self) -> None:
         if self.child is None:
-            self.work.go()
+            if not self.process:
+                self.work.go()
             return
         with contextlib.suppress(ChildGone):
             self.child.call("go", timeout_s=STOP_TIMEOUT_S)
@@ -523,7 +588,7 @@ class _ServiceHost:
         if self.final is not None:
             return self.final
         if self.child is None:
-            return self.work.counts()
+            return self.work.counts() if not self.process else {"error": f"the service process was lost: {self.lost}"}
         try:
             return dict(self.child.call("counts", timeout_s=5.0))
         except ChildGone as e:
@@ -532,6 +597,13 @@ class _ServiceHost:
     def finish(self) -> dict[str, Any]:
         if self.final is not None:
             return self.final
+        self._wanted = False
+        if self.process and self.child is None:  # lost, not yet back: a new one writes what waits in the ring
+            try:
+                self._fork(paused=False)
+            except Exception as e:
+                self.final = {"error": f"the service process was lost ({self.lost}) and could not be started: {e}"}
+                return self.final
         child = self.child
         if child is None:
             self.final = self.work.finish()
@@ -632,22 +704,9 @@ class Service:
             self.metrics.stop()
 
     def check_status_free(self) -> None:
-        """BadInput when another compd that is alive writes this status file: two instances on
-        one file overwrite each other's state (and `compd status` shows either)."""
-        if self.path is None:
-            return
-        try:
-            data = status_mod.read_status(self.path)
-        except BadInput:
-            return  # none yet, or not a status file: this daemon overwrites it
-        pid = data.get("pid")
-        if pid == os.getpid() or not status_mod.liveness(data)[0]:
-            return  # a reload of this daemon, or one that has stopped
-        msg = (f"{self.path} is the status file of a running compd (pid {pid}, config {data.get('config')});"
-               " give each config its own status.path")
-        if self.app.cfg.top.status.path:
-            raise self.app.cfg.doc.error(msg, ("status", "path"))
-        raise BadInput(msg, file=str(self.path))
+        """BadInput when another compd that is alive writes this status file (the module's
+        `check_status_free`)."""
+        check_status_free(self.app.cfg)
 
     @property
     def in_process(self) -> bool:
@@ -690,12 +749,14 @@ class Service:
         host.start(paused=self._previous is not None)
         self._host = host
         if host.child is not None:
-            self.publisher.service_alive = host.child.alive
+            self.publisher.supervised.append(host)
         self.notifier = Notifier.from_env()
         if self.notifier is not None:
             wd = watchdog_interval_s()
             status = "observe mode: output held disabled" if self.observe else "compensating"
-            self.watchdog = WatchdogObserver(self.notifier, wd, status, status_line=self.status_line)
+            sup = self.publisher.supervisor
+            self.watchdog = WatchdogObserver(self.notifier, wd, status, status_line=self.status_line,
+                                             healthy=lambda: not sup.escalated)
             loop.observers.append(self.watchdog)
         # the probes a source reads (its worker puts them in a ring of its own), and compd probe's
         self.publisher.watch_probes(loop.sources)

@@ -54,12 +54,6 @@ class Saved:
     adapt: dict[str, Any] | None  # the adapter's part: params_sha256, saved_unix_s, axes; None if none
 
 
-def load_state(path: Path, model_kind: str, inputs: list[str], outputs: list[str]) -> tuple[dict[str, Any], float] | None:
-    """The saved model state and the seconds elapsed since it was saved, or None (see load_saved)."""
-    saved = load_saved(path, model_kind, inputs, outputs)
-    return None if saved is None else (saved.state, saved.elapsed_s)
-
-
 def load_saved(path: Path, model_kind: str, inputs: list[str], outputs: list[str]) -> Saved | None:
     """The saved model state, the seconds elapsed since it was saved and the adapter's part, or None.
 

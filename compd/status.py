@@ -24,25 +24,44 @@ import numpy as np
 from compd import version
 from compd.codec import word_bytes
 from compd.errors import BadInput
-from compd.histogram import bin_percentiles
+from compd.histogram import bin_percentiles, over_range, percentile_text, range_limit_us
 
 SCHEMA = 1
 DEFAULT_PATH = "/run/compd/status.json"
 
 
 def timing(stats: Any) -> dict[str, Any]:
-    """The loop's timing figures (the names of the bench JSON), with numpy percentiles (≈ 50 µs)."""
+    """The loop's timing figures (the names of the bench JSON), with numpy percentiles (≈ 50 µs).
+
+    `over_range`: per percentile group, the keys whose quantile fell in the histogram's
+    overflow bin; their value is the range limit (20000 µs), the true one is above it."""
     p50, p99, p999 = bin_percentiles(stats.hist, (0.5, 0.99, 0.999))
     c50, c99 = bin_percentiles(stats.compute_hist, (0.5, 0.99))
+    late = {"p50": p50, "p99": p99, "p999": p999, "max": round(stats.late_max_s * 1e6, 1)}
+    compute = {"p50": c50, "p99": c99, "max": round(stats.compute_max_ns / 1000, 1)}
     return {
         "period_ms": stats.period_s * 1000.0,
         "cycles": int(stats.cycles),
         "misses": int(stats.misses),
         "skipped": int(stats.skipped),
-        "lateness_us": {"p50": p50, "p99": p99, "p999": p999, "max": round(stats.late_max_s * 1e6, 1)},
-        "cycle_compute_us": {"p50": c50, "p99": c99, "max": round(stats.compute_max_ns / 1000, 1)},
+        "lateness_us": late,
+        "cycle_compute_us": compute,
+        "over_range": timing_over_range(late, compute, range_limit_us(stats.hist)),
         "stages": stats.stages(),
     }
+
+
+def timing_over_range(late: dict[str, Any], compute: dict[str, Any], limit_us: float) -> dict[str, list[str]]:
+    """`over_range` of the loop's timing: the percentiles of `lateness_us` and `cycle_compute_us`
+    at the histogram's range limit `limit_us` (not measurements: the true value is above)."""
+    return {"lateness_us": over_range(late, limit_us), "cycle_compute_us": over_range(compute, limit_us)}
+
+
+def _over(loop: dict[str, Any], group: str, key: str) -> bool:
+    """Whether percentile `key` of `group` (`lateness_us`, `cycle_compute_us`) of a status's
+    `loop` is over the histogram's range (a status without `over_range`: not known, False)."""
+    over = loop.get("over_range")
+    return isinstance(over, dict) and key in (over.get(group) or ())
 
 
 def lateness_buckets(
@@ -88,6 +107,10 @@ def snapshot_steps(
     axes = guard.get_status()
     sink = loop.sink.get_status()
     reaches = sink["link"] == "up"  # else nothing the loop computes reaches the machine
+    # observe mode: the sink (compd/sinks/observe.py) writes the word 0, every axis disabled
+    held = bool(observe or sink.get("observe"))
+    # the word the sink writes (its own report if it has one), known at the machine only with the link up
+    written = "0x0000" if held else sink.get("word", f"0x{loop.word:04X}")
     enc = loop.encoder
     slot_of = {axis: slot for slot, axis in enumerate(loop.word_axes)}
     for i, name in enumerate(loop.model.outputs):
@@ -97,9 +120,10 @@ def snapshot_steps(
         a["word_byte"] = ("high", "low")[slot] if slot is not None else None
         a["byte"] = f"0x{word_bytes(loop.word)[slot]:02X}" if slot is not None else None
         a["saturated"] = bool(enc.saturated[slot]) if slot is not None else False
-        # `enable`: on at the machine (the guard's bit, and a sink that reaches it)
+        # `enable`: on at the machine (the guard's bit, a sink that reaches it, and not observe
+        # mode, whose word 0 has every enable bit off); `guard_enable`: the guard's bit alone
         a["guard_enable"] = a["enable"]
-        a["enable"] = bool(a["enable"] and reaches)
+        a["enable"] = bool(a["enable"] and reaches and not held)
     events = [
         {"t_s": float(t), "subject": subj, "event": ev, "reason": why}
         for t, subj, ev, why in list(guard.events)[-20:]
@@ -113,7 +137,8 @@ def snapshot_steps(
         "written_unix_s": time.time(),
         "uptime_s": float(now - loop.t_start_s) if loop.stats.cycles else 0.0,
         "loop_time_s": float(now),
-        "word": f"0x{loop.word:04X}",
+        "word": f"0x{loop.word:04X}",  # the word the loop computed
+        "word_at_machine": written if reaches else None,  # what the sink writes; null: link not up
         "axes": axes,
         "signals": None,
         "loop": None,
@@ -194,6 +219,7 @@ _NUMBER = (int, float)
 _SHAPE: dict[str, tuple[type, ...]] = {
     "pid": (int,), "state": (str,), "observe": (bool,), "written_unix_s": _NUMBER,
     "status_period_s": _NUMBER, "uptime_s": _NUMBER, "loop_time_s": _NUMBER, "word": (str,),
+    "word_at_machine": (str,),
     "config": (str,), "metrics_url": (str,), "version": (str,), "axes": (dict,), "signals": (dict,), "loop": (dict,),
     "model": (dict,), "sink": (dict,), "faults": (dict,), "events": (list,), "adapt": (dict,),
     "sources": (list,),
@@ -338,11 +364,14 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
         lines.append(f"config: {data['config']}")
     lp = data.get("loop", {})
     lt = lp.get("lateness_us", {})
+
+    def late(key: str) -> str:  # `>20 ms` for a percentile over the histogram's range
+        return percentile_text(lt.get(key, 0), _over(lp, "lateness_us", key))
+
     lines.append(
         f"loop: period {lp.get('period_ms', 0):g} ms, {lp.get('cycles', 0)} cycles,"
         f" {lp.get('misses', 0)} missed, {lp.get('skipped', 0)} skipped;"
-        f" lateness p50 {lt.get('p50', 0):g} p99 {lt.get('p99', 0):g}"
-        f" p99.9 {lt.get('p999', 0):g} max {lt.get('max', 0):g} us"
+        f" lateness p50 {late('p50')}, p99 {late('p99')}, p99.9 {late('p999')}, max {lt.get('max', 0):g} us"
     )
     model = data.get("model", {})
     lines.append(
@@ -351,10 +380,14 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
     )
     lines.extend(_model_lines(model))
     sink = data.get("sink", {})
-    sink_word = sink.get("word")
-    word = f"word: {data.get('word')}"
-    if sink_word is not None and sink_word != data.get("word"):
-        word += f" (on the output: {sink_word})"
+    computed = data.get("word")
+    at_machine = data.get("word_at_machine", sink.get("word"))  # a status without it: the sink's own
+    if data.get("observe"):  # the computed word is held back: never shown as if the machine had it
+        word = f"word: {computed} computed, held back by observe mode (on the output: {at_machine or '0x0000'})"
+    else:
+        word = f"word: {computed}"
+        if at_machine is not None and at_machine != computed:
+            word += f" (on the output: {at_machine})"
     link = sink.get("link")
     lines.append(
         f"{word}; sink {sink.get('kind')}, link {link if link in (None, 'up') else str(link).upper()},"

@@ -67,20 +67,12 @@ class Rod:
         self._M = np.linalg.inv(np.eye(n) - dt * A)
         self._node_heat_k_per_j = 1.0 / (self.rho_c * self.area_m2 * dx)
 
-    def set_h(self, h_w_m2k: float) -> None:
-        if h_w_m2k != self.h:
-            self.h = h_w_m2k
-            self._build()
-
     def step(self, t_amb_c: float, heat_w: np.ndarray | None = None) -> None:
         """Advance one dt with ambient `t_amb_c` and `heat_w` (W into each node)."""
         rhs = self.T + self.dt_s * self.b_per_s * t_amb_c
         if heat_w is not None:
             rhs = rhs + self.dt_s * heat_w * self._node_heat_k_per_j
         self.T = self._M @ rhs
-
-    def temperature_at(self, x_m: float) -> float:
-        return float(np.interp(x_m, self.x_m, self.T))
 
     def growth_um(self, alpha_per_k: float) -> float:
         """Thermal growth α ∫ (T − T_init) dx, µm."""

@@ -29,6 +29,8 @@ import yaml
 
 from compd.clock import WallClock
 from compd.errors import BadInput
+from compd.histogram import percentile_text
+from compd.identify import FITS
 from hil_sim.plants import PLANTS
 from hil_sim.scenario import SCENARIOS, Scenario
 
@@ -52,7 +54,7 @@ def _fit_gantry_model(work: Path) -> tuple[Path, list[str]]:
     write_log(log_path, ["t_s", *plant.signal_names], np.array(rows))
     log = read_log(log_path)
     temps = log.temperature_columns()[:N_SENSORS]
-    model = LVR.fit(log, temps, None).model
+    model = FITS.get(LVR.kind)(log, temps, None).model
     path = work / "gantry_lvr.yaml"
     path.write_text(yaml.safe_dump(model.to_dict(), sort_keys=False))
     return path, temps
@@ -415,6 +417,7 @@ def run_bench(
         "lateness_us": compd["lateness_us"],
         "misses": compd["misses"],
         "cycle_compute_us": compd["cycle_compute_us"],
+        "over_range": compd["over_range"],
         "model_eval_us": evals,
         "scheduler": scheduler,
         "realtime": compd["realtime"],
@@ -473,6 +476,13 @@ def format_table(r: dict[str, Any]) -> str:
     def cell(v: Any, fmt: str) -> str:
         return f"{'-' if v is None else format(v, fmt):>14}"
 
+    over = r.get("over_range") or {}
+
+    def compd_cell(group: str, key: str) -> str:  # compd's histogram: `>20 ms` over its range
+        if key in (over.get(group) or ()):
+            return f"{percentile_text(c[group][key], True):>14}"
+        return f"{c[group][key]:>14.0f}"
+
     lines = [
         f"compd bench: {r['cycles']} cycles at {r['period_ms']:g} ms, scheduler {r['scheduler']}"
         f" ({'; '.join(r['realtime']) or 'no real-time options'}), {r.get('load_processes', 0)} CPU-bound"
@@ -484,12 +494,12 @@ def format_table(r: dict[str, Any]) -> str:
     ]
     for key in ("p50", "p99", "p999", "max"):
         lines.append(
-            f"{'lateness ' + key + ' us':24}{c['lateness_us'][key]:>14.0f}{cell(b['lateness_us'][key], '.0f')}"
+            f"{'lateness ' + key + ' us':24}{compd_cell('lateness_us', key)}{cell(b['lateness_us'][key], '.0f')}"
             f"{n['lateness_us'][key]:>14.0f}"
         )
     for key in ("p50", "p99", "max"):
         lines.append(
-            f"{'cycle compute ' + key + ' us':24}{c['cycle_compute_us'][key]:>14.0f}"
+            f"{'cycle compute ' + key + ' us':24}{compd_cell('cycle_compute_us', key)}"
             f"{cell(b['cycle_compute_us'][key], '.0f')}{n['cycle_compute_us'][key]:>14.0f}"
         )
     rss = r["rss_kb"]
@@ -522,9 +532,10 @@ def format_table(r: dict[str, Any]) -> str:
     for key, what in (("read", "poll (8 regs)"), ("write", "PMC write"), ("output_latency", "queued->acked")):
         if io.get(key):
             h = io[key]
+            io_over = h.get("over_range") or ()
             lines.append(
-                f"I/O {what}: {h['count']} round trips, p50 {h['p50']:.0f} us, p99 {h['p99']:.0f} us,"
-                f" max {h['max']:.0f} us"
+                f"I/O {what}: {h['count']} round trips, p50 {percentile_text(h['p50'], 'p50' in io_over, '.0f')},"
+                f" p99 {percentile_text(h['p99'], 'p99' in io_over, '.0f')}, max {h['max']:.0f} us"
             )
     lines.append(f"words sent to the PMC: {r['words_sent']} (plant at {r['plant_speedup']:.0f}x)")
     h = r["host"]

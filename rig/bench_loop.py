@@ -165,6 +165,11 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     rss["samples"] = len(samples)
     stats = app.loop.stats
     out = stats.as_dict()
+    from compd.histogram import range_limit_us
+    from compd.status import timing_over_range
+
+    # the percentiles over the histogram's range (their value is its limit, not a measurement)
+    out["over_range"] = timing_over_range(out["lateness_us"], out["cycle_compute_us"], range_limit_us(stats.hist))
     out["rss"] = rss
     out["io_us"] = io
     out["io_processes"] = procs

@@ -32,7 +32,8 @@ def _guard_with_hold(slew: float = SLEW) -> Guard:
 
 
 def test_guard_ramps_a_held_axis_to_zero_at_the_slew_and_back(caplog):
-    from compd.service import EventLogger
+    from compd.publish import with_causes
+    from compd.service import log_guard_event
 
     g = _guard_with_hold()
     pred = np.array([20.0])  # target −20 µm
@@ -53,7 +54,8 @@ def test_guard_ramps_a_held_axis_to_zero_at_the_slew_and_back(caplog):
     assert [e[2:] for e in g.events] == [("held", "inhibited"), ("released", "inhibited")]
     assert g.get_status()["z"]["inhibit"] is None
     with caplog.at_level("INFO", logger="compd"):
-        EventLogger(g).flush()
+        for ev in with_causes(g.events, []):
+            log_guard_event(*ev)
     assert [r.event for r in caplog.records] == ["axis_held", "axis_released"]
     assert caplog.records[0].getMessage() == "z held: inhibited"
 

@@ -130,3 +130,27 @@ def test_observer_sends_the_service_s_status_line_from_the_main_process_when_it_
         assert sock.recv(4096).endswith(b"0xC600, z=normal, 0 missed") and n.sent == 3
     finally:
         n.close()
+
+
+def test_the_watchdog_is_no_longer_fed_once_the_supervisor_gave_up(listener):
+    """Too many lost child processes (compd.io.supervisor escalated): the cycle stops pinging,
+    says why once in STATUS=, and systemd's watchdog restarts the daemon."""
+    sock, path = listener
+    n = Notifier(path)
+    t = [0.0]
+    healthy = [True]
+    obs = WatchdogObserver(n, 2.0, status="compensating", clock=lambda: t[0], healthy=lambda: healthy[0])
+    try:
+        obs(None, 0.0)
+        assert sock.recv(4096) == b"READY=1\nSTATUS=compensating"
+        t[0] += 1.1
+        obs(None, 0.0)
+        assert sock.recv(4096) == b"WATCHDOG=1"
+        healthy[0] = False
+        for _ in range(3):
+            t[0] += 1.1
+            obs(None, 0.0)
+        assert sock.recv(4096).startswith(b"STATUS=I/O processes keep dying")
+        assert obs.pings == 1 and obs.starved and n.sent == 3
+    finally:
+        n.close()

@@ -61,8 +61,8 @@ def _spy(monkeypatch: pytest.MonkeyPatch, module: str) -> list[dict]:
 
 
 def test_run_and_replay_wire_the_same_stages(config: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    run_calls = _spy(monkeypatch, "compd.app")
     replay_calls = _spy(monkeypatch, "compd.replay")
+    run_calls = _spy(monkeypatch, "compd.pipeline")  # App builds through pipeline.from_config
     cfg = load_config(config)
     app = App(cfg)
     result = replay_config(config, config.parent / "day.csv")

@@ -13,8 +13,9 @@ import numpy as np
 from compd.app import App
 from compd.config import RealtimeConfig, load_config
 from compd.logsetup import KeyValueFormatter
+from compd.publish import Tail
 from compd.realtime import apply_realtime
-from compd.service import EventLogger, status_path
+from compd.service import status_path
 from tests.service_helpers import fault_config, sim_config
 
 
@@ -136,20 +137,17 @@ def test_guard_events_become_one_log_line_each_and_no_line_per_cycle(tmp_path):
     assert "\n" not in line and "level=warning event=sensor_bad" in line and "sensor=T_xi" in line
 
 
-def test_event_logger_survives_the_guards_trimming():
-    class Guard:
-        events: list = []
-
-    g = Guard()
-    g.events = [(float(i), "T", "bad", "stale") for i in range(3)]
-    el = EventLogger(g)
-    assert el.flush() == 3
-    assert el.flush() == 0
-    g.events.append((3.0, "T", "good", "recovered"))
-    del g.events[:2]  # the guard trims old events
-    assert el.flush() == 1
-    g.events = [(9.0, "z", "fault", "input bad")]  # everything seen was trimmed away
-    assert el.flush() == 1
+def test_the_publishers_tail_of_the_guards_events_survives_the_guards_trimming():
+    events = [(float(i), "T", "bad", "stale") for i in range(3)]
+    box = [events]
+    tail = Tail(lambda: box[0])
+    assert len(tail.new()) == 3
+    assert tail.new() == []
+    events.append((3.0, "T", "good", "recovered"))
+    del events[:2]  # the guard trims old events
+    assert tail.new() == [(3.0, "T", "good", "recovered")]
+    box[0] = [(9.0, "z", "fault", "input bad")]  # everything seen was trimmed away
+    assert tail.new() == [(9.0, "z", "fault", "input bad")]
 
 
 def test_realtime_options_apply_to_the_calling_thread_only():

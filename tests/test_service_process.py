@@ -19,6 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 from compd import control
@@ -82,6 +83,14 @@ def _start(cfg: Path, err: Path) -> subprocess.Popen:
     with open(err, "a") as fh:
         return subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], cwd=cfg.parent,
                                 stdout=subprocess.DEVNULL, stderr=fh, env=env)
+
+
+def _rows(path: Path) -> int:
+    """Rows of the data log so far (0 while it is missing or its last line is half written)."""
+    try:
+        return len(read_log(path, allow_nan=True))
+    except Exception:
+        return 0
 
 
 def _comm(pid: int) -> str:
@@ -167,12 +176,28 @@ def test_a_reload_hands_the_files_and_sockets_to_the_new_service_without_losing_
     assert "level=error" not in err.read_text()
 
 
-def test_a_service_that_dies_is_reported_once_and_the_cycle_goes_on(tmp_path: Path) -> None:
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP])
+def test_a_service_that_dies_or_stalls_is_reported_once_restarted_and_the_cycle_goes_on(
+    tmp_path: Path, how: signal.Signals,
+) -> None:
     tx = Pt100Transmitter([SENSOR], [24.0])
+    status = tmp_path / "status.json"
     with _daemon(tmp_path, tx) as (proc, _, err, _):
-        st = _wait(_running(tmp_path / "status.json", 20), "a running status")
-        os.kill(st["service_pid"], signal.SIGKILL)  # as the OOM killer would
+        st = _wait(_running(status, 20), "a running status")
+        old = st["service_pid"]
+        os.kill(old, how)  # as the OOM killer would; or a service that hangs
         _wait(lambda: "event=service_lost" in err.read_text(), "the service_lost line")
+        _wait(lambda: "event=service_restarted" in err.read_text(), "the service_restarted line")
         assert proc.poll() is None  # compensation goes on; SIGTERM still ends it with exit 0
+        # the new service writes the status file again, and the data log goes on
+        st = _wait(lambda: (s := _status(status)) and s["service_pid"] not in (None, old) and s, "a status from the new service")
+        with pytest.raises(ProcessLookupError):
+            os.kill(old, 0)
+        rows = _rows(tmp_path / "run.csv")
+        _wait(lambda: _rows(tmp_path / "run.csv") > rows, "data-log rows from the new service")
+    # the rows the cycle handed over while no service ran were written by the new one: no gap
+    t = read_log(tmp_path / "run.csv", allow_nan=True).t_s
+    assert len(t) > 10 and float(np.max(np.diff(t))) < 1.0
     text = err.read_text()
-    assert text.count("event=service_lost") == 1 and "event=stop" in text
+    assert text.count("event=service_lost") == 1 and text.count("event=service_restarted") == 1
+    assert "event=stop" in text

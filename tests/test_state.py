@@ -8,7 +8,7 @@ from pathlib import Path
 
 from compd.app import App
 from compd.config import load_config
-from compd.state import StateWriter, load_state, write_atomic
+from compd.state import StateWriter, load_saved, write_atomic
 
 CONFIG = """\
 loop: {clock: sim, period_s: 1.0}
@@ -37,20 +37,20 @@ def test_write_atomic_leaves_no_temp(tmp_path: Path) -> None:
 
 def test_load_state_checks(tmp_path: Path) -> None:
     p = tmp_path / "state.json"
-    assert load_state(p, "xi_spindle", ["T"], ["z"]) is None
+    assert load_saved(p, "xi_spindle", ["T"], ["z"]) is None
     w = StateWriter(p, "xi_spindle", ["T"], ["z"])
     w.submit({"t0_c": 21.5})
     w.close()
-    state, elapsed = load_state(p, "xi_spindle", ["T"], ["z"])
-    assert state == {"t0_c": 21.5} and 0 <= elapsed < 5
-    assert load_state(p, "ar1", ["T"], ["z"]) is None  # another model
-    assert load_state(p, "xi_spindle", ["T2"], ["z"]) is None
+    saved = load_saved(p, "xi_spindle", ["T"], ["z"])
+    assert saved is not None and saved.state == {"t0_c": 21.5} and 0 <= saved.elapsed_s < 5
+    assert load_saved(p, "ar1", ["T"], ["z"]) is None  # another model
+    assert load_saved(p, "xi_spindle", ["T2"], ["z"]) is None
     raw = json.loads(p.read_text())
     raw["saved_unix_s"] = time.time() + 3600  # clock jumped back since
     p.write_text(json.dumps(raw))
-    assert load_state(p, "xi_spindle", ["T"], ["z"]) is None
+    assert load_saved(p, "xi_spindle", ["T"], ["z"]) is None
     p.write_text("{not json")
-    assert load_state(p, "xi_spindle", ["T"], ["z"]) is None
+    assert load_saved(p, "xi_spindle", ["T"], ["z"]) is None
 
 
 def test_reference_survives_restart(tmp_path: Path) -> None:

@@ -20,6 +20,11 @@ and `close`. The worker owns the rest:
 * accounts: `state` (closed, connecting, up, down), `rounds`, `errors`, `connects`,
   the work's `last_error` and counters (`get_status`), and `round_hist`, the duration
   of every round (µs).
+* the heartbeat: the thread counts `beats` in the shared accounts at every turn of its
+  loop, at least every `BEAT_EVERY_S` while no device call hangs. `health` (the daemon's
+  supervisor, compd.io.supervisor, between cycles) tells from it and from the process
+  whether the worker still runs; `abandon` and `restart` are what the supervisor does
+  when it does not.
 * the log: the first failure of the device and every change of its error are logged
   (warning, logger `compd.io`, event `device_error`) with the reason as the work set it
   (the OS's text: "could not open port /dev/ttyUSB9: [Errno 2] No such file or
@@ -60,6 +65,7 @@ import json
 import logging
 import os
 import select
+import signal
 import threading
 import time
 import weakref
@@ -84,6 +90,37 @@ WORKER_STATES = ("closed", "connecting", "up", "down")
 RECOVERED_AFTER_S = 5.0
 STATUS_BYTES = 4096  # a worker's status as JSON, at most
 STATUS_EVERY_S = 0.1  # how often a worker refreshes its published status (and at every change of state or error)
+BEAT_EVERY_S = 0.05  # a running worker's thread beats at least this often (its idle waits are capped to it) ...
+STALL_AFTER_S = 2.0  # ... and one that has not beaten for this long has stalled (a device call that hangs, SIGSTOP)
+
+
+
+def stall_after(timeout_s: float, calls: int = 4) -> float:
+    """The silence after which a worker whose device calls wait up to `timeout_s` has
+    stalled: `calls` of them in a row and a second more, never under `STALL_AFTER_S`."""
+    return max(STALL_AFTER_S, calls * timeout_s + 1.0)
+
+
+# the workers started here and not stopped: what the daemon's supervisor watches (compd.io.supervisor)
+_started: weakref.WeakSet[IoWorker] = weakref.WeakSet()
+
+
+def started_workers() -> list[IoWorker]:
+    """The I/O workers started in this process and not stopped since (their thread or child
+    may have died: that is what the supervisor looks for)."""
+    return list(_started)
+
+
+def exit_text(code: int | None) -> str:
+    """A reaped child's end in words: "exited with code 1", "killed by SIGKILL"."""
+    if code is None:
+        return "ended"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exited with code {code}"
 
 
 class LinkDown(Exception):
@@ -155,6 +192,9 @@ class _Account:
 class IoWorker:
     """Runs one `DeviceWork` on a thread of its own, named `name`: see the module."""
 
+    lost_event = "io_process_lost"  # the supervisor's events (compd.io.supervisor)
+    restarted_event = "io_process_restarted"
+
     def __init__(
         self,
         work: DeviceWork,
@@ -166,6 +206,7 @@ class IoWorker:
         join_timeout_s: float = 5.0,
         round_hist: DurationHist | None = None,
         recovered_after_s: float = RECOVERED_AFTER_S,
+        stall_after_s: float = STALL_AFTER_S,
     ) -> None:
         if reconnect_max_s < reconnect_min_s:
             raise ValueError("reconnect_max_s is below reconnect_min_s")
@@ -176,10 +217,18 @@ class IoWorker:
         self.join_timeout_s = join_timeout_s
         self.round_hist = round_hist if round_hist is not None else DurationHist()
         # the accounts, in memory shared with a child the worker may run in: state (an
-        # index of WORKER_STATES), rounds, errors, connects, wakes asked; the retry wait (s)
-        self._acct_buf = shared_buffer(48)
+        # index of WORKER_STATES), rounds, errors, connects, wakes asked; the retry wait (s);
+        # the heartbeat (the thread counts it at every turn of its loop)
+        self._acct_buf = shared_buffer(56)
         self._acct = np.frombuffer(self._acct_buf, dtype=np.int64, count=5)
         self._retry = np.frombuffer(self._acct_buf, dtype=np.float64, count=1, offset=40)
+        self._beat = np.frombuffer(self._acct_buf, dtype=np.int64, count=1, offset=48)
+        self.stall_after_s = stall_after_s
+        self._start_args: tuple[bool, Callable[[], float] | None, bool, frozenset[int]] | None = None
+        self.lost: str | None = None  # why the worker's thread or process is gone (None: it runs, or was stopped)
+        self.lost_pid: int | None = None
+        self._beat_seen = -1  # the supervisor's: the beat last seen, and when (monotonic s)
+        self._beat_seen_s = 0.0
         self.reported_error: str | None = None  # the error the log last said the device has (None: fine)
         # `get_status()` as JSON, refreshed by the worker's thread: read from shared memory
         # when the worker runs in a child, so that asking never waits on the child
@@ -240,6 +289,70 @@ class IoWorker:
         """Whether the worker runs in a child process of its own."""
         return self._child is not None
 
+    @property
+    def pid(self) -> int | None:
+        """The process the worker runs in (None: stopped or gone)."""
+        if self._child is not None:
+            return self._child.pid
+        return os.getpid() if self._thread is not None else None
+
+    @property
+    def wanted(self) -> bool:
+        """Started and not stopped since: the worker should be running."""
+        return self._start_args is not None
+
+    @property
+    def beats(self) -> int:
+        """The heartbeat: counted by the worker's thread at every turn of its loop (at
+        least every `BEAT_EVERY_S` while it runs and no device call hangs)."""
+        return int(self._beat[0])
+
+    def health(self, now_s: float) -> str | None:
+        """Between cycles (the supervisor, a few µs): None while the worker's thread or
+        process runs and beats; else why not ("exited with code 1", "killed by SIGKILL",
+        "stopped beating for 2.1 s"). A stopped worker is healthy (nothing to run)."""
+        if self._start_args is None:
+            return None
+        beat = int(self._beat[0])
+        if beat != self._beat_seen:
+            self._beat_seen, self._beat_seen_s = beat, now_s
+        child = self._child
+        if child is not None:
+            if not child.alive():
+                return exit_text(child.exit_code)
+        else:
+            th = self._thread
+            if th is None or not th.is_alive():
+                return "its thread has ended"
+        silent_s = now_s - self._beat_seen_s
+        if silent_s > self.stall_after_s:
+            return f"stopped beating for {silent_s:.1f} s"
+        return None
+
+    def abandon(self, reason: str) -> None:
+        """The worker's process or thread is lost (`health` said why): kill the process if it
+        still exists (a stalled one must never wake and write), reap it, mark the link down
+        and keep `reason` as its error until `restart`."""
+        child = self._child
+        self.lost_pid = self.pid
+        if child is not None:
+            self._child = None
+            child.stop(0.0)  # kills what is left (SIGKILL works on a stopped process) and reaps
+        self._thread = None
+        self.lost = reason
+        self.state = "down"
+
+    def restart(self) -> None:
+        """Start the worker again as it was started last (after `abandon`); raises what
+        `start` raises. The queued writes a lost process had not had acknowledged are sent
+        by the new one."""
+        if self._start_args is None:
+            raise RuntimeError(f"I/O worker {self.name} was never started")
+        paced, clock, process, avoid = self._start_args
+        self.work.last_error = None
+        self.start(paced=paced, clock=clock, process=process, avoid_cpus=avoid)
+        self.lost = None
+
     def start(
         self, *, paced: bool = True, clock: Callable[[], float] | None = None, process: bool = False,
         avoid_cpus: frozenset[int] = frozenset(),
@@ -253,6 +366,7 @@ class IoWorker:
         self._last_status = None
         if not process:
             self._start_thread(paced, clock)
+            self._started(paced, clock, process, avoid_cpus)
             return
         child = Child(self.name)
 
@@ -285,6 +399,12 @@ class IoWorker:
             self.state = "closed"
             raise
         self._child = child
+        self._started(paced, clock, process, avoid_cpus)
+
+    def _started(self, paced: bool, clock: Callable[[], float] | None, process: bool, avoid: frozenset[int]) -> None:
+        self._start_args = (paced, clock, process, avoid)
+        self._beat_seen, self._beat_seen_s = -1, time.monotonic()
+        _started.add(self)
 
     def _start_thread(self, paced: bool, clock: Callable[[], float] | None) -> None:
         if clock is not None:
@@ -312,6 +432,9 @@ class IoWorker:
         when it is still in a device call (it ends, and closes the device, by itself; a
         child process that does not end is killed)."""
         timeout = self.join_timeout_s if timeout_s is None else timeout_s
+        _started.discard(self)
+        self._start_args = None
+        self.lost = None
         child = self._child
         if child is not None:
             self._child = None
@@ -397,6 +520,11 @@ class IoWorker:
         """state, rounds, errors, connects, last_error, pid and the work's counters. When the
         worker runs in a child, what its thread last published in shared memory (at most
         `STATUS_EVERY_S` old; the counts are live): asking never waits on the child."""
+        if self.lost is not None:  # the counts the lost process last published, and why it is gone
+            raw = self._status_blob.read()
+            last: dict[str, Any] = json.loads(raw) if raw else self._own_status()
+            return {**last, **self._accounts(), "last_error": f"{self.name}: {self.lost}", "pid": self.lost_pid,
+                    "lost": self.lost}
         if self._child is not None:
             raw = self._status_blob.read()
             # nothing published yet: the counts as they were when the child was forked
@@ -440,11 +568,12 @@ class IoWorker:
             os.eventfd_read(self._fd)
 
     def _idle(self, deadline: float | None) -> None:
-        """Until `deadline` (monotonic; None: no limit), a wake, a request or stop."""
+        """Until `deadline` (monotonic; None: no limit), a wake, a request or stop, and never
+        longer than `BEAT_EVERY_S`: the thread beats at every turn of its loop."""
         if deadline is None:
-            timeout = None
+            timeout = BEAT_EVERY_S
         else:
-            timeout = deadline - time.monotonic()
+            timeout = min(deadline - time.monotonic(), BEAT_EVERY_S)
             if timeout <= 0:
                 return
         ready, _, _ = select.select([self._fd], [], [], timeout)
@@ -509,6 +638,7 @@ class IoWorker:
         up = False
         published: tuple[str, str | None] = ("", None)
         while not self._stop:
+            self._beat[0] += 1
             req = self._next_request()
             wakes = self._wakes
             woken = wakes != self._wakes_seen

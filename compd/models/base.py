@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 from pydantic import ConfigDict, Field, model_validator
@@ -11,10 +11,6 @@ from pydantic import ConfigDict, Field, model_validator
 from compd.config import Strict
 from compd.errors import BadInput
 from compd.models.lead import InputLead
-
-if TYPE_CHECKING:
-    from compd.identify.data import FitResult
-    from compd.log import Log
 
 
 class ModelParams(Strict):
@@ -217,16 +213,6 @@ class Model(ABC):
                 next_t = t_s[i] + self.update_period_s if self.update_period_s > 0 else -np.inf
             out[i] = row
         return out
-
-    @classmethod
-    def fit(
-        cls, log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any
-    ) -> FitResult:
-        """Identify a model of this kind from a log with the kind's own fit (compd.identify.<kind>,
-        imported only here); `compd fit` adds the inputs' sensor lag around it (compd.identify.identify)."""
-        from compd.identify import FITS
-
-        return FITS.get(cls.kind)(log, inputs, targets, **options)
 
     def get_state(self) -> dict[str, Any]:
         """The model's memory (for persistence); plain JSON types."""

@@ -11,12 +11,14 @@ the folder `z` in the folder `Axes` in `compd`.
 
 * `compd.State` (String), `compd.Observe` (Boolean): the daemon's state, observe mode;
 * `compd.Axes.<axis>.` CorrectionUm, TargetUm, PredictionUm (Double, µm), Word (UInt16:
-  the 16-bit word that carries the axis), Enable (Boolean), State (String), ModelKind
+  the 16-bit word that carries the axis), Enable (Boolean: on at the machine, so false in
+  observe mode and while the sink's link is not up), State (String), ModelKind
   (String), FitDate (String: the model's `fit.fitted_at`, or empty);
 * `compd.Signals.<signal>.` Value (Double, its StatusCode from the signal's quality,
   see `QUALITY_STATUS`), Quality (String);
 * `compd.Loop.` PeriodMs (Double, ms), Cycles and Misses (UInt64), LatenessP99Us,
-  LatenessMaxUs, ComputeP99Us (Double, µs).
+  LatenessMaxUs, ComputeP99Us (Double, µs; a p99 over the histogram's range is its limit,
+  20000 µs, with Uncertain_EngineeringUnitsExceeded: `OVER_RANGE_STATUS`).
 
 A Double with a unit has an `EngineeringUnits` property (EUInformation, UNECE code).
 The axes and signals are those of the first snapshot: a reload builds a new server.
@@ -103,6 +105,8 @@ QUALITY_STATUS = {
 }
 OTHER_QUALITY_STATUS = "BadSensorFailure"  # burnout, implausible, frozen, and any quality not above
 NO_VALUE_STATUS = "BadNoData"  # compd has no value (None, NaN) or the snapshot lacks it
+# a percentile whose quantile fell in the histogram's overflow bin: the value is the range limit
+OVER_RANGE_STATUS = "UncertainEngineeringUnitsExceeded"
 
 Reader = Callable[[dict[str, Any]], tuple[Any, str]]  # snapshot → (raw value, StatusCode name)
 
@@ -123,6 +127,18 @@ def _good(get: Callable[[dict[str, Any]], Any]) -> Reader:
 
 def _fit_date(snap: dict[str, Any]) -> Any:
     return (snap["model"].get("fit") or {}).get("fitted_at") or ""
+
+
+def _percentile(group: str, key: str) -> Reader:
+    """A loop percentile (`group`: lateness_us, cycle_compute_us); one over the histogram's range
+    (the loop's `over_range`) is its range limit with Uncertain_EngineeringUnitsExceeded."""
+    def read(snap: dict[str, Any]) -> tuple[Any, str]:
+        lp = snap["loop"]
+        over = lp.get("over_range")
+        flagged = isinstance(over, dict) and key in (over.get(group) or ())
+        return lp[group][key], OVER_RANGE_STATUS if flagged else "Good"
+
+    return read
 
 
 def _signal_value(name: str) -> Reader:
@@ -152,7 +168,9 @@ def address_space(snap: dict[str, Any]) -> list[Variable]:
             Variable(p + "TargetUm", "Double", um, field("target_um")),
             Variable(p + "PredictionUm", "Double", um, field("prediction_um")),
             Variable(p + "Word", "UInt16", None, _good(lambda s: int(s["word"], 16))),
-            Variable(p + "Enable", "Boolean", None, field("enable")),
+            # on at the machine (compd/status.py): never in observe mode, whose word is 0
+            Variable(p + "Enable", "Boolean", None,
+                     _good(lambda s, axis=axis: s["axes"][axis]["enable"] and not s.get("observe"))),
             Variable(p + "State", "String", None, field("state")),
             Variable(p + "ModelKind", "String", None, _good(lambda s: s["model"]["kind"])),
             Variable(p + "FitDate", "String", None, _good(_fit_date)),
@@ -168,12 +186,10 @@ def address_space(snap: dict[str, Any]) -> list[Variable]:
         Variable("compd.Loop.PeriodMs", "Double", MILLISECOND, _good(lambda s: s["loop"]["period_ms"])),
         Variable("compd.Loop.Cycles", "UInt64", None, _good(lambda s: s["loop"]["cycles"])),
         Variable("compd.Loop.Misses", "UInt64", None, _good(lambda s: s["loop"]["misses"])),
-        Variable("compd.Loop.LatenessP99Us", "Double", MICROSECOND,
-                 _good(lambda s: s["loop"]["lateness_us"]["p99"])),
+        Variable("compd.Loop.LatenessP99Us", "Double", MICROSECOND, _percentile("lateness_us", "p99")),
         Variable("compd.Loop.LatenessMaxUs", "Double", MICROSECOND,
                  _good(lambda s: s["loop"]["lateness_us"]["max"])),
-        Variable("compd.Loop.ComputeP99Us", "Double", MICROSECOND,
-                 _good(lambda s: s["loop"]["cycle_compute_us"]["p99"])),
+        Variable("compd.Loop.ComputeP99Us", "Double", MICROSECOND, _percentile("cycle_compute_us", "p99")),
     ]
     return out
 

@@ -176,7 +176,7 @@ class RemoteModels:
 def validate(spec: RemoteSpec, candidate: Path) -> str | None:
     """Why the model file `candidate` cannot replace the running one (None: it can), checked as
     a reload would: the config read again with its model section pointing at `candidate`."""
-    from compd.app import App
+    from compd import pipeline
     from compd.config import load_config, resolve_model
 
     try:
@@ -189,7 +189,7 @@ def validate(spec: RemoteSpec, candidate: Path) -> str | None:
     if list(model.outputs) != list(spec.outputs):
         return f"its axes {model.outputs} are not the running model's {spec.outputs}"
     try:
-        App(dataclasses.replace(cfg, model=model))  # the pipeline builds: wiring, signals (opens no device)
+        pipeline.check(dataclasses.replace(cfg, model=model))  # wiring, signals (opens no device)
     except BadInput as e:
         return str(e).replace(str(candidate), "the model sent")
     return None

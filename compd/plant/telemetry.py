@@ -112,13 +112,14 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
             out.append((MetricDef("Word", D.UInt16), int(word, 16) & 0xFFFF))
         except ValueError:
             out.append((MetricDef("Word", D.UInt16), None))
+    held = bool(snap.get("observe", False))  # observe mode: the machine has the word 0, every axis off
     for axis, a in sorted((snap.get("axes") or {}).items()):
         p = f"Axis/{axis}/"
         out += [
             (MetricDef(p + "correction_um", D.Double, "µm"), _num(a.get("correction_um"))),
             (MetricDef(p + "target_um", D.Double, "µm"), _num(a.get("target_um"))),
             (MetricDef(p + "prediction_um", D.Double, "µm"), _num(a.get("prediction_um"))),
-            (MetricDef(p + "enable", D.Boolean), bool(a.get("enable", False))),
+            (MetricDef(p + "enable", D.Boolean), bool(a.get("enable", False)) and not held),
             (MetricDef(p + "state", D.String), str(a.get("state", ""))),
         ]
     for name, s in sorted((snap.get("signals") or {}).items()):
@@ -130,13 +131,17 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
     lp = snap.get("loop")
     if isinstance(lp, dict):
         late, comp = lp.get("lateness_us") or {}, lp.get("cycle_compute_us") or {}
+        # a p99 over the histogram's range is its limit (20000 µs) and flagged: not a measurement
+        over = lp.get("over_range") if isinstance(lp.get("over_range"), dict) else {}
         out += [
             (MetricDef("Loop/period_ms", D.Double, "ms"), _num(lp.get("period_ms"))),
             (MetricDef("Loop/cycles", D.UInt64), _count(lp.get("cycles"))),
             (MetricDef("Loop/misses", D.UInt64), _count(lp.get("misses"))),
             (MetricDef("Loop/lateness_p99_us", D.Double, "µs"), _num(late.get("p99"))),
+            (MetricDef("Loop/lateness_p99_over_range", D.Boolean), "p99" in (over.get("lateness_us") or ())),
             (MetricDef("Loop/lateness_max_us", D.Double, "µs"), _num(late.get("max"))),
             (MetricDef("Loop/compute_p99_us", D.Double, "µs"), _num(comp.get("p99"))),
+            (MetricDef("Loop/compute_p99_over_range", D.Boolean), "p99" in (over.get("cycle_compute_us") or ())),
         ]
     model = snap.get("model")
     if isinstance(model, dict):

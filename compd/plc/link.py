@@ -107,6 +107,10 @@ class VirtualLink:
     def drain(self, timeout_s: float) -> bool:
         return self.flush(timeout_s)
 
+    def ensure_serving(self, timeout_s: float = 0.5) -> bool:
+        """In process there is no worker to lose: always serving."""
+        return True
+
     def read_now(self, address: int, count: int) -> list[int] | None:
         self._run_clock()
         return self.device.read_registers(address, count)

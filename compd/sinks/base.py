@@ -22,6 +22,7 @@ if TYPE_CHECKING:
 #   closed      not open
 LinkState = Literal["up", "connecting", "down", "closed"]
 LINK_STATES: tuple[LinkState, ...] = ("up", "connecting", "down", "closed")
+SAFE_TIMEOUT_S = 2.0  # how long the safe output waits for each write to be acknowledged
 
 
 class Sink(ABC):
@@ -86,8 +87,10 @@ class Sink(ABC):
         whose device acts at once have nothing to wait for."""
 
     @abstractmethod
-    def safe(self) -> None:
-        """Emit the safe output (enable bits off)."""
+    def safe(self) -> bool:
+        """Emit the safe output (enable bits off, the correction walked back to zero where
+        the device asks for steps), through a fresh link when the running one's worker is
+        gone; True when the device acknowledged it (within `SAFE_TIMEOUT_S` per write)."""
 
     @abstractmethod
     def applied_um(self, out: np.ndarray) -> None:

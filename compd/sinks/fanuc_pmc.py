@@ -29,7 +29,7 @@ from pydantic import Field, model_validator
 
 from compd.codec import codes_from_word, word_bytes, word_from_codes
 from compd.config import SinkConfig
-from compd.sinks.base import LinkState, Sink
+from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
 from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
@@ -181,6 +181,8 @@ class FanucPmcSink(Sink):
         if self.sent_lsb != self.target_lsb and now_s >= self._next_update_s:
             if self.time.catch_up:
                 self._catch_up(now_s)
+            elif self.link is not None and (self.link.state != "up" or self.link.pending()):
+                pass  # the last step not yet acknowledged: no further step (the PMC never gets a jump)
             else:  # a PMC on its own clock: one step per call, the cycle never waits
                 self.time.set(now_s)
                 self.sent_lsb = step_toward(self.sent_lsb, self.target_lsb, self._max_step_lsb)
@@ -239,20 +241,23 @@ class FanucPmcSink(Sink):
             self.link.status = regs
         self._dirty = False
 
-    def safe(self) -> None:
+    def safe(self) -> bool:
         """Walk the shift back to zero in allowed steps (the PMC would alarm on one jump),
-        one step per `min_update_s` of the PMC's time."""
+        one step per `min_update_s` of the PMC's time; True when every step was acknowledged."""
         self.target_lsb = [0, 0]
         if self.link is None:
-            return
+            return True
+        self.link.ensure_serving()
+        ok = True
         for _ in range(10_000):
             if self.sent_lsb == [0, 0]:
                 break
             self.sent_lsb = step_toward(self.sent_lsb, [0, 0], self._max_step_lsb)
             self._deliver(self.time.now_s)
-            self.link.flush()
+            ok = self.link.flush(SAFE_TIMEOUT_S) and ok
             self.time.wait(self.cfg.min_update_s)
         self.time.wait(2 * self.cfg.scan_s)  # the last step's two scans
+        return ok
 
     def status_registers(self) -> list[int] | None:
         """scan lo, scan hi, alarm, reset, applied 1, applied 2, alarm count 1, 2."""

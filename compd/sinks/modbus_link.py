@@ -14,6 +14,7 @@ yet), up, down (connect or I/O failed), closed.
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
@@ -21,7 +22,9 @@ from compd.histogram import DurationHist
 from compd.io.child import hosting_now
 from compd.io.mailbox import SharedRegisters, WriteQueue
 from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault, OverModbus
-from compd.io.worker import DeviceWork, IoWorker, LinkDown
+from compd.io.worker import DeviceWork, IoWorker, LinkDown, stall_after
+
+log = logging.getLogger("compd.io")
 
 
 class LinkWork(OverModbus, DeviceWork):
@@ -136,7 +139,7 @@ class ModbusLink:
         )
         self._worker = IoWorker(
             self._work, name=f"modbus-link-{name}", period_s=status_period_s,
-            reconnect_min_s=reconnect_min_s, reconnect_max_s=reconnect_max_s,
+            reconnect_min_s=reconnect_min_s, reconnect_max_s=reconnect_max_s, stall_after_s=stall_after(timeout_s),
         )
         self._queue.wake = self._worker.wake
         self.write_hist = self._work.write_hist
@@ -215,6 +218,28 @@ class ModbusLink:
         between two cycles); False after `timeout_s`."""
         self._worker.wake()
         return self._queue.wait_empty(timeout_s)
+
+    def ensure_serving(self, timeout_s: float = 0.5) -> bool:
+        """Before the safe output: make sure a live worker will send it. A worker whose
+        process has died, or that does not beat within `timeout_s` (stopped, hung), is
+        abandoned and replaced by a fresh link on a thread of this process (the daemon is
+        stopping: nothing is left to keep off the cycle). True when the old one served."""
+        w = self._worker
+        if w.running:
+            beat = w.beats
+            if w.wait_for(lambda: w.beats != beat, timeout_s):
+                return True
+            reason = f"stopped beating for {timeout_s:.1f} s"
+        else:
+            reason = w.lost or "its process has ended"
+        if w.wanted or w.lost is not None:
+            log.error("%s (pid %s) %s: the safe output goes through a fresh link", w.name, w.pid or w.lost_pid,
+                      reason, extra={"event": "io_process_lost", "worker": w.name, "pid": w.pid or w.lost_pid,
+                                     "reason": reason})
+            w.abandon(reason)
+        w.start(process=False)
+        w.lost = None
+        return False
 
     def read_now(self, address: int, count: int) -> list[int] | None:
         """Registers read now (after what is queued is sent), waiting for them (tests, settle);

@@ -59,8 +59,8 @@ class ObserveSink(Sink):
     def flush(self, timeout_s: float) -> bool:
         return self.inner.flush(timeout_s)
 
-    def safe(self) -> None:
-        self.inner.safe()
+    def safe(self) -> bool:
+        return self.inner.safe()
 
     def applied_um(self, out: np.ndarray) -> None:
         self.inner.applied_um(out)
@@ -72,4 +72,7 @@ class ObserveSink(Sink):
         return self.inner.device_info()
 
     def get_status(self) -> dict[str, Any]:
-        return {**self.inner.get_status(), "observe": True, "would_write": f"0x{self.would_write:04X}"}
+        """The inner sink's status; `word` is what it writes (always 0x0000), `would_write` the
+        word the loop computed and held back."""
+        return {**self.inner.get_status(), "observe": True, "word": "0x0000",
+                "would_write": f"0x{self.would_write:04X}"}

@@ -10,7 +10,7 @@ from pydantic import Field, model_validator
 
 from compd.codec import byte_to_um, word_to_um
 from compd.config import SinkConfig
-from compd.sinks.base import LinkState, Sink
+from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
 
 
 class DoCard(ABC):
@@ -26,6 +26,11 @@ class DoCard(ABC):
 
     def flush(self, timeout_s: float) -> bool:
         """Wait until every write so far has reached the lines (in process: at once)."""
+        return True
+
+    def ensure_serving(self) -> bool:
+        """Before the safe output: a card reached through a worker gets a fresh one when its
+        worker is gone (see ModbusLink.ensure_serving); in process: nothing to do."""
         return True
 
     @abstractmethod
@@ -113,6 +118,9 @@ class ModbusDoCard(DoCard):
     def flush(self, timeout_s: float) -> bool:
         return self.link.drain(timeout_s)
 
+    def ensure_serving(self) -> bool:
+        return self.link.ensure_serving()
+
     def close(self) -> None:
         self.link.stop()
 
@@ -159,12 +167,14 @@ class Pci1756Sink(Sink):
             self._heartbeat = not self._heartbeat
             self.card.write_do_bit(self.cfg.heartbeat_bit, self._heartbeat)
 
-    def safe(self) -> None:
+    def safe(self) -> bool:
+        self.card.ensure_serving()
         self.card.write_do_word(self.cfg.word_port, 0)
         self.word = 0
         if self.cfg.strobe_bit is not None:
             self._strobe = not self._strobe
             self.card.write_do_bit(self.cfg.strobe_bit, self._strobe)
+        return self.card.flush(SAFE_TIMEOUT_S)
 
     def flush(self, timeout_s: float) -> bool:
         return self.card.flush(timeout_s)

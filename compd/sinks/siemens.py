@@ -23,7 +23,7 @@ from pydantic import Field
 
 from compd.config import SinkConfig
 from compd.plc.siemens_nc import APPLIED, BLOCK, K0, TARGET, TYPE, f32_regs, regs_f32
-from compd.sinks.base import LinkState, Sink
+from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
 from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
@@ -171,14 +171,15 @@ class SiemensSink(Sink):
         if self.link is not None:
             self.link.flush()
 
-    def safe(self) -> None:
+    def safe(self) -> bool:
         """K0 = 0 (and tanβ = 0): the NC ramps ΔK away at its own MD32760 rate."""
         if self.link is None:
-            return
+            return True
+        self.link.ensure_serving()
         for ax in self.nc_axis:
             if ax >= 0:
                 self.link.submit(BLOCK * ax + K0, f32_regs(0.0) + f32_regs(0.0))
-        self.link.flush()
+        return self.link.flush(SAFE_TIMEOUT_S)
 
     def applied_um(self, out: np.ndarray) -> None:
         """ΔK the NC applies now, for the word's axes (high byte first), µm."""

@@ -15,7 +15,7 @@ from compd.histogram import DurationHist
 from compd.io.child import hosting_now
 from compd.io.mailbox import Snapshot
 from compd.io.ring import MessageRing
-from compd.io.worker import DeviceWork, IoWorker, LinkDown
+from compd.io.worker import STALL_AFTER_S, DeviceWork, IoWorker, LinkDown
 
 if TYPE_CHECKING:
     from collections import deque
@@ -168,6 +168,7 @@ class PolledSource(Source):
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 10.0
     poll_timeout_s: float = 60.0  # how long `poll_now` waits for its poll to end
+    stall_after_s: float = STALL_AFTER_S  # silence of the worker's thread that is a stall (compd.io.supervisor)
     # the poller may run in a child process (it hands the cycle nothing but its Snapshot)
     forkable: bool = True
 
@@ -188,7 +189,7 @@ class PolledSource(Source):
             self._worker = IoWorker(
                 self.make_poller(self._snapshot), name=f"poll-{self.name}", period_s=self.poll_period_s,
                 reconnect_min_s=self.reconnect_min_s, reconnect_max_s=self.reconnect_max_s,
-                round_hist=self.poll_hist,
+                round_hist=self.poll_hist, stall_after_s=self.stall_after_s,
             )
         return self._worker
 

@@ -25,7 +25,7 @@ from pydantic import Field, model_validator
 from compd.config import SourceConfig
 from compd.frame import Quality
 from compd.io.mailbox import Snapshot
-from compd.io.worker import LinkDown
+from compd.io.worker import LinkDown, stall_after
 from compd.sources.base import PolledSource, Poller, check_serial_port
 
 _FIELD = re.compile(rb"[+-][0-9.]+")
@@ -98,6 +98,7 @@ class DconSource(PolledSource):
     reconnect_max_s = 1.0
 
     def __init__(self, cfg: DconConfig, base_dir: str = ".") -> None:
+        self.stall_after_s = stall_after(cfg.timeout_s)
         self._slots = [(i, n) for i, n in enumerate(cfg.channels) if n]
         super().__init__(cfg, base_dir)
         self.cfg: DconConfig = cfg

@@ -37,7 +37,7 @@ from compd.io.modbus_client import (
     NoConnection,
     OverModbus,
 )
-from compd.io.worker import LinkDown
+from compd.io.worker import LinkDown, stall_after
 from compd.sources.base import PolledSource, Poller, check_serial_port
 
 log = logging.getLogger("compd.sources.modbus")
@@ -217,6 +217,7 @@ class ModbusSource(PolledSource):
     Config = ModbusConfig
 
     def __init__(self, cfg: ModbusConfig, base_dir: str = ".") -> None:
+        self.stall_after_s = stall_after(cfg.timeout_s)
         self._channels = _resolve(cfg)
         super().__init__(cfg, base_dir)
         self.cfg: ModbusConfig = cfg

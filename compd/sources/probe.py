@@ -36,7 +36,7 @@ from compd.io.modbus_client import (
     OverModbus,
 )
 from compd.io.ring import MessageRing
-from compd.io.worker import DeviceWork, LinkDown
+from compd.io.worker import DeviceWork, LinkDown, stall_after
 from compd.plc.probe_block import PROBE_COUNT, decode_result
 from compd.sources.base import PolledSource
 
@@ -82,6 +82,7 @@ class ProbeSource(PolledSource):
     Config = ProbeConfig
 
     def __init__(self, cfg: ProbeConfig, base_dir: str = ".") -> None:
+        self.stall_after_s = stall_after(cfg.timeout_s)
         super().__init__(cfg, base_dir)
         self.cfg: ProbeConfig = cfg
         self.poll_period_s = cfg.poll_period_s

@@ -71,7 +71,7 @@ MATRIX: dict[str, Row] = {
         "input bad (comms_lost); axis holds; back when frames return",
     ),
     "clock_jump": Row(
-        "loop clock jumps +60 s (suspend, stall)", "Modbus TCP", "hold",
+        "loop clock steps +60 s (a clock set ahead)", "Modbus TCP", "hold",
         "clock_jump event; no step: the cycle after the jump moves one period's slew at most",
     ),
     "disk_full": Row(

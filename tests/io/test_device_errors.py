@@ -158,7 +158,8 @@ def test_each_change_of_the_error_is_logged_and_a_flapping_one_only_once(caplog)
 
 
 def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
-    from compd.service import EventLogger
+    from compd.publish import with_causes
+    from compd.service import log_guard_event
 
     class Guard:
         events = [(1.0, "T_xi", "bad", "comms_lost"), (2.0, "T_amb", "bad", "out_of_range"),
@@ -174,7 +175,10 @@ def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
             return {"last_error": "open: could not open port /dev/ttyUSB9: [Errno 2] No such file or directory"}
 
     caplog.set_level(logging.DEBUG, logger="compd.service")
-    assert EventLogger(Guard(), [Src()]).flush() == 3
+    events = with_causes(Guard.events, [Src()])
+    for ev in events:
+        log_guard_event(*ev)
+    assert len(events) == 3
     lines = [r.getMessage() for r in caplog.records]
     assert lines[0] == ("T_xi bad: comms_lost (source adam: open: could not open port /dev/ttyUSB9:"
                         " [Errno 2] No such file or directory)")

@@ -9,6 +9,7 @@ from statsmodels.stats.diagnostic import acorr_ljungbox
 
 from compd.errors import BadInput
 from compd.fitting import predict_log
+from compd.identify import FITS
 from compd.identify.ar1 import ljung_box, scale_c2_by_rise
 from compd.log import Log
 from compd.models.ar1 import (
@@ -88,7 +89,7 @@ def _eq17_log(c1=0.9955, c2_um=0.22, bed_um_per_k=12.0):
 def test_fit_recovers_eq17_exactly():
     """The recursion starts as the paper's does: a noise-free eq. 17 log fits back C1 and C2
     (before the fix the shifted start gave C2 = 0.2189)."""
-    res = AR1.fit(_eq17_log(), ["T3"], None)
+    res = FITS.get(AR1.kind)(_eq17_log(), ["T3"], None)
     p = res.model.params
     assert p.recursion_start == "zero"
     assert p.c1 == pytest.approx(0.9955, rel=1e-6)
@@ -102,7 +103,7 @@ def test_fit_recovers_eq17_exactly():
 
 
 def test_fit_recovers_lathe_coefficients():
-    res = AR1.fit(_lathe(), ["T3"], None)
+    res = FITS.get(AR1.kind)(_lathe(), ["T3"], None)
     p = res.model.params
     assert p.spindle_sign == -1 and p.dt_s == 60.0
     assert p.c1 == pytest.approx(0.9955, abs=0.001)
@@ -115,7 +116,7 @@ def test_fit_recovers_lathe_coefficients():
 
 
 def test_fit_with_rise_scaling_adds_speeds():
-    res = AR1.fit(
+    res = FITS.get(AR1.kind)(
         _lathe(), ["T3"], None,
         c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1500: 4.11}},
     )
@@ -145,9 +146,9 @@ def test_ambient_aware_form_beats_paper_form_on_drifting_shop():
     log = _drifting_rod_log()
     e = log.col("err_z_um")
     with pytest.raises(BadInput, match="spindle_sign=1"):  # a spindle alone: no bed sensor to find
-        AR1.fit(log, None, None, ambient="none")
-    pure = AR1.fit(log, None, None, spindle_sign=1, exchange="none", ambient="none")  # the paper's recursion
-    aware = AR1.fit(log, None, None, ambient="T_amb", spindle_sign=1)
+        FITS.get(AR1.kind)(log, None, None, ambient="none")
+    pure = FITS.get(AR1.kind)(log, None, None, spindle_sign=1, exchange="none", ambient="none")  # the paper's recursion
+    aware = FITS.get(AR1.kind)(log, None, None, ambient="T_amb", spindle_sign=1)
     assert pure.model.params.c3_um_per_k is None
     assert aware.model.inputs == ["speed_rpm", "T_amb"]
     rmse = {k: float(np.sqrt(np.mean((predict_log(r.model, log)[:, 0] - e) ** 2))) for k, r in
@@ -207,8 +208,8 @@ def _speed_dependent_lathe(noise_um=0.1, seed=1):
 
 def test_c1_by_speed_recovers_both_time_constants():
     log = _speed_dependent_lathe()
-    one = AR1.fit(log, ["T3"], None, c1_by_speed=False)
-    res = AR1.fit(log, ["T3"], None, c1_by_speed=True)
+    one = FITS.get(AR1.kind)(log, ["T3"], None, c1_by_speed=False)
+    res = FITS.get(AR1.kind)(log, ["T3"], None, c1_by_speed=True)
     p = res.model.params
     assert -60.0 / np.log(p.c1) == pytest.approx(3 * 3600, rel=0.03)
     (rpm, c1_run), = p.c1_table
@@ -223,7 +224,7 @@ def test_c1_by_speed_recovers_both_time_constants():
 def test_auto_keeps_c1_by_speed_only_where_it_predicts_clearly_better():
     # the truth's C1 depends on speed: the default (auto) picks compd's form, held out
     log = _speed_dependent_lathe()
-    auto = AR1.fit(log, ["T3"], None)
+    auto = FITS.get(AR1.kind)(log, ["T3"], None)
     form = auto.report["c1_form"]
     assert form["chosen"] == "by_speed" and auto.model.params.c1_table
     assert form["held_out_rmse_um"]["by_speed"] < 0.95 * form["held_out_rmse_um"]["constant"]
@@ -237,7 +238,7 @@ def test_auto_keeps_c1_by_speed_only_where_it_predicts_clearly_better():
         s = np.exp(-60.0 / (3 * 3600)) * s + 0.25 * speed[k] / 2000.0
         e[k] = 8.0 * (log.col("T3")[k] - log.col("T3")[0]) - s
     const = Log("lathe.csv", log.columns, np.column_stack([t, speed, log.col("T3"), e + rng.normal(0, 0.05, t.size)]))
-    res = AR1.fit(const, ["T3"], None)
+    res = FITS.get(AR1.kind)(const, ["T3"], None)
     p = res.model.params
     for c1 in [p.c1] + [c for _, c in p.c1_table]:
         assert -60.0 / np.log(c1) == pytest.approx(3 * 3600, rel=0.03)
@@ -266,7 +267,7 @@ def test_c1_by_speed_checks():
     log = _speed_dependent_lathe()
     running = Log("run.csv", log.columns, log.data[:600])  # the first 10 h: never stops
     with pytest.raises(BadInput, match="stand still"):
-        AR1.fit(running, ["T3"], None, c1_by_speed=True)
+        FITS.get(AR1.kind)(running, ["T3"], None, c1_by_speed=True)
     with pytest.raises(ValueError, match=r"c1_table\.0\.1\n.*less than 1"):
         AR1Params(dt_s=60, c1=0.99, c1_table=[(1000.0, 1.0)])
     with pytest.raises(ValueError, match=r"c1_table\.0\.0\n.*greater than 0"):
@@ -338,7 +339,7 @@ def test_c2_at_unseen_speeds_from_temperature_rise(tmp_path):
     speed = np.select([t < 3 * 3600, (t >= 10 * 3600) & (t < 13 * 3600)], [1000.0, 1500.0], 0.0)
     runs = tmp_path / "runs.csv"
     write_log(runs, ["t_s", "speed_rpm", "T2"], np.column_stack([t, speed, _headstock_c(t, speed, PAPER_RISES_C)]))
-    res = AR1.fit(train, ["T3"], None, rise_sensor="T2", rise_log=str(runs))
+    res = FITS.get(AR1.kind)(train, ["T3"], None, rise_sensor="T2", rise_log=str(runs))
     table = dict(res.model.params.c2_table)
     assert round(table[1000.0], 3) == 0.089 and round(table[1500.0], 3) == 0.121
     assert table[2000.0] == pytest.approx(0.22, rel=1e-6)
@@ -357,21 +358,21 @@ def test_report_names_linear_c2_when_the_rises_are_missing():
     train = _eq17_log()
     T2 = _headstock_c(train.t_s, train.col("speed_rpm"), PAPER_RISES_C)
     train = Log("eq17.csv", [*train.columns, "T2"], np.column_stack([train.data, T2]))
-    plain = AR1.fit(train, ["T3"], None)
+    plain = FITS.get(AR1.kind)(train, ["T3"], None)
     how = plain.report["c2_at_unseen_speeds"]
     assert how["method"] == "linear" and "no rise_sensor" in how["reason"]
     m = plain.model
     assert c2_of_speed(1000.0, m._rpm, m._c2) == pytest.approx(0.110, rel=1e-5)
-    sensed = AR1.fit(train, ["T3"], None, rise_sensor="T2")  # only the 2000 rpm run in the log
+    sensed = FITS.get(AR1.kind)(train, ["T3"], None, rise_sensor="T2")  # only the 2000 rpm run in the log
     how = sensed.report["c2_at_unseen_speeds"]
     assert how["method"] == "linear" and "without a fitted C2" in how["reason"]
     assert how["rises_c"] == pytest.approx({"2000": 7.46})
     assert dict(sensed.model.params.c2_table) == dict(m.params.c2_table)
-    given = AR1.fit(train, ["T3"], None, c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1000: 3.02}})
+    given = FITS.get(AR1.kind)(train, ["T3"], None, c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1000: 3.02}})
     assert given.report["c2_at_unseen_speeds"]["method"] == "temperature_rise"
     assert round(dict(given.model.params.c2_table)[1000.0], 3) == 0.089
     with pytest.raises(BadInput, match="not both"):
-        AR1.fit(train, ["T3"], None, rise_sensor="T2", c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46,
+        FITS.get(AR1.kind)(train, ["T3"], None, rise_sensor="T2", c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46,
                                                                "rises_c": {1000: 3.02}})
 
 

@@ -9,6 +9,7 @@ import yaml
 
 from compd.app import App
 from compd.config import load_config
+from compd.identify import FITS
 from compd.log import Log
 from compd.models.lvr import LVR
 from compd.models.mlr import MLR
@@ -33,7 +34,7 @@ def test_mlr_and_lvr_predict_from_the_remaining_sensors() -> None:
     X = log.matrix(log.temperature_columns())
     y = log.col("err_x_um")
     for cls in (MLR, LVR):
-        model = cls.fit(log).model
+        model = FITS.get(cls.kind)(log).model
         assert model.supports_degraded
         full = model.predict(X, log.t_s)[:, 0]
         out = np.zeros(1)
@@ -61,7 +62,7 @@ def test_mlr_and_lvr_predict_from_the_remaining_sensors() -> None:
 
 def test_loop_keeps_compensating_with_a_dead_sensor(tmp_path: Path) -> None:
     log = synthetic_log()
-    model = LVR.fit(log).model
+    model = FITS.get(LVR.kind)(log).model
     (tmp_path / "m.yaml").write_text(yaml.safe_dump(model.to_dict()))
     data = log.data.copy()
     dead = (data[:, 0] > 30000) & (data[:, 0] < 60000)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from compd.identify import FITS
 from compd.log import Log
 from compd.models.feed_axis import (
     FeedAxis,
@@ -49,7 +50,7 @@ def test_profile_shows_end_of_stroke_reversal():
 
 def test_fit_recovers_known_coefficients():
     log, _ = _paper_runs()
-    res = FeedAxis.fit(log, None, None, r_cu_ohm=R_CU, length_mm=600)
+    res = FITS.get(FeedAxis.kind)(log, None, None, r_cu_ohm=R_CU, length_mm=600)
     p = res.model.params
     assert res.report["converged"]
     assert p.eta == pytest.approx(0.2, rel=1e-3)
@@ -61,7 +62,7 @@ def test_fit_recovers_known_coefficients():
 
 def test_noisy_fit_follows_reversal_within_half_micron():
     log, e_true = _paper_runs(noise_um=0.1, seed=3)
-    m = FeedAxis.fit(log, None, None, r_cu_ohm=R_CU, length_mm=600).model
+    m = FITS.get(FeedAxis.kind)(log, None, None, r_cu_ohm=R_CU, length_mm=600).model
     pred = m.predict(log.matrix(m.inputs), log.t_s)[:, 0]
     rmse = float(np.sqrt(np.mean((pred - log.col("err_x_um")) ** 2)))
     assert rmse < 0.5
@@ -110,4 +111,4 @@ def test_needs_a_motor_loss():
     from compd.errors import BadInput
 
     with pytest.raises(BadInput, match="power_w"):
-        FeedAxis.fit(no_current, None, None)
+        FITS.get(FeedAxis.kind)(no_current, None, None)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from compd.identify import FITS
 from compd.log import Log
 from compd.models.feed_axis import FeedAxis, FeedAxisParams, copper_loss_w, error_um, leaky_heat_j
 
@@ -84,11 +85,11 @@ def test_outage_cools_the_saved_heat() -> None:
 
 
 def test_fit_recovers_cooling_time() -> None:
-    res = FeedAxis.fit(_day(DUTY, seed=1), None, None, r_cu_ohm=R_CU, length_mm=600, duty_cycle=True)
+    res = FITS.get(FeedAxis.kind)(_day(DUTY, seed=1), None, None, r_cu_ohm=R_CU, length_mm=600, duty_cycle=True)
     p = res.model.params
     assert p.cooling_time_s == pytest.approx(5400.0, rel=0.05)
     assert p.ref_power_w == pytest.approx(P_40A)
-    paper = FeedAxis.fit(_day(DUTY, seed=1), None, None, r_cu_ohm=R_CU, length_mm=600).model
+    paper = FITS.get(FeedAxis.kind)(_day(DUTY, seed=1), None, None, r_cu_ohm=R_CU, length_mm=600).model
     log = _day(DUTY, seed=1)
     e = log.col("err_x_um")
     rms = {

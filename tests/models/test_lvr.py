@@ -8,6 +8,7 @@ from scipy.signal import lfilter
 from sklearn.cross_decomposition import PLSRegression
 
 from compd.errors import BadInput
+from compd.identify import FITS
 from compd.identify.lvr import (
     Q2_LIMIT,
     blocked_press,
@@ -136,7 +137,7 @@ def _log(n=200, seed=2):
 
 def test_lvr_fit_and_evaluate_agree():
     log = _log()
-    res = LVR.fit(log, None, None)
+    res = FITS.get(LVR.kind)(log, None, None)
     m = res.model
     assert m.outputs == ["x1", "x2"] and res.report["n_components"] >= 1
     assert len(res.report["q2"]) == 4 and set(res.report["influence"]) == {"T1", "T2", "T3", "T4"}
@@ -152,7 +153,7 @@ def test_lvr_fit_and_evaluate_agree():
 
 
 def test_lvr_library_fit_keeps_s_minus_span_rows():
-    res = LVR.fit(_log(), None, None, library_span=20, seed=1)
+    res = FITS.get(LVR.kind)(_log(), None, None, library_span=20, seed=1)
     assert res.report["fit_rows"] == 200 - 20 and res.report["library_span"] == 20
     assert res.report["n_components"] >= 1
 
@@ -161,19 +162,19 @@ def test_lvr_library_span_leaving_too_few_rows_is_refused():
     log = _log()  # 200 rows, 4 inputs: Q² selection tries 4 components, which need 7 rows
     loo = {"selection": "loo"}  # the paper's limits: what its leave-one-out needs
     assert rows_needed(4) == 7
-    res = LVR.fit(log, None, None, library_span=193, **loo)  # keeps 7 rows: enough
+    res = FITS.get(LVR.kind)(log, None, None, library_span=193, **loo)  # keeps 7 rows: enough
     assert res.report["fit_rows"] == 7
     with pytest.raises(BadInput, match=r"--option library_span: span 194 keeps 6 .* at least 7"):
-        LVR.fit(log, None, None, library_span=194, **loo)
+        FITS.get(LVR.kind)(log, None, None, library_span=194, **loo)
     with pytest.raises(BadInput, match="library_span: span 250 keeps 0"):
-        LVR.fit(log, None, None, library_span=250, **loo)
+        FITS.get(LVR.kind)(log, None, None, library_span=250, **loo)
     # the rule counts the components asked for: 2 of them need only 5 rows
-    assert LVR.fit(log, None, None, library_span=195, n_components=2, **loo).report["fit_rows"] == 5
+    assert FITS.get(LVR.kind)(log, None, None, library_span=195, n_components=2, **loo).report["fit_rows"] == 5
     with pytest.raises(BadInput, match="library_span"):
-        LVR.fit(log, None, None, library_span=196, n_components=2, **loo)
+        FITS.get(LVR.kind)(log, None, None, library_span=196, n_components=2, **loo)
     short = Log("s.csv", log.columns, log.data[:7])  # a library keeps at most s − 1 rows
     with pytest.raises(BadInput, match="s.csv: 7 rows are too few: a sample library"):
-        LVR.fit(short, None, None, library_span=1, **loo)
+        FITS.get(LVR.kind)(short, None, None, library_span=1, **loo)
 
 
 def test_lvr_library_span_limit_of_blocked_selection():
@@ -181,9 +182,9 @@ def test_lvr_library_span_limit_of_blocked_selection():
     # so 9 rows (blocks of 2, 2, 1, 2, 2); the message names the blocks
     log = _log()
     assert rows_needed(4, 5) == 9 and rows_needed(4, 2) == 14
-    assert LVR.fit(log, None, None, library_span=191).report["fit_rows"] == 9
+    assert FITS.get(LVR.kind)(log, None, None, library_span=191).report["fit_rows"] == 9
     with pytest.raises(BadInput, match=r"span 192 keeps 8 .* 4 components and 5 cross-validation blocks needs at least 9"):
-        LVR.fit(log, None, None, library_span=192)
+        FITS.get(LVR.kind)(log, None, None, library_span=192)
 
 
 def test_lvr_bad_inputs():
@@ -191,11 +192,11 @@ def test_lvr_bad_inputs():
     const = Log("c.csv", log.columns, log.data.copy())
     const.data[:, 2] = 21.0
     with pytest.raises(BadInput, match="T2.*constant|constant"):
-        LVR.fit(const, None, None)
+        FITS.get(LVR.kind)(const, None, None)
     with pytest.raises(BadInput, match="too few"):
-        LVR.fit(Log("s.csv", log.columns, log.data[:5]), None, None, n_components=4)
+        FITS.get(LVR.kind)(Log("s.csv", log.columns, log.data[:5]), None, None, n_components=4)
     with pytest.raises(BadInput, match="unknown fit option"):
-        LVR.fit(log, None, None, components=3)
+        FITS.get(LVR.kind)(log, None, None, components=3)
 
 
 # --- selection: blocked cross-validation (compd's default) against the paper's LOO ---------------
@@ -227,7 +228,7 @@ def test_blocked_selects_the_one_latent_component_loo_overselects():
     for seed in range(6):
         log = _one_latent_log(seed)
         train = Log(log.file, log.columns, log.data[:fit_rows])
-        fits = {sel: LVR.fit(train, None, None, selection=sel, max_components=6) for sel in rms}
+        fits = {sel: FITS.get(LVR.kind)(train, None, None, selection=sel, max_components=6) for sel in rms}
         loo, blocked = fits["loo"].report, fits["blocked"].report
         assert blocked["selection"] == "blocked" and loo["selection"] == "loo"
         # LOO: each left-out row's neighbours, with nearly its noise, stay in the fit
@@ -319,7 +320,7 @@ def test_lvr_fit_by_day_reports_the_days_as_blocks():
     days = [log.data.copy() for _ in range(3)]
     for d, data in enumerate(days):
         data[:, 0] += d * 43200.0
-    res = LVR.fit(Log("days.csv", log.columns, np.vstack(days)), None, None)
+    res = FITS.get(LVR.kind)(Log("days.csv", log.columns, np.vstack(days)), None, None)
     cv = res.report["cv"]
     assert cv["split"] == "gaps" and cv["blocks"] == [[0, 199], [200, 399], [400, 599]]
     assert cv["guard_rows"] == 0 and cv["guard"] == "none"
@@ -328,7 +329,7 @@ def test_lvr_fit_by_day_reports_the_days_as_blocks():
 
 def test_selection_loo_is_the_papers():
     log = _log()
-    res = LVR.fit(log, None, None, selection="loo")
+    res = FITS.get(LVR.kind)(log, None, None, selection="loo")
     R = log.matrix(["T1", "T2", "T3", "T4"])
     R = R - R[0]
     Y = log.matrix(["err_x1_um", "err_x2_um"])
@@ -341,7 +342,7 @@ def test_selection_loo_is_the_papers():
 
 
 def test_forced_components_report_the_blocked_cross_validation():
-    res = LVR.fit(_log(), None, None, n_components=3)
+    res = FITS.get(LVR.kind)(_log(), None, None, n_components=3)
     assert res.report["n_components"] == 3 and res.model.params.n_components == 3
     assert res.report["selection"] == "blocked" and len(res.report["q2"]) == 3
 
@@ -362,5 +363,5 @@ def test_forced_components_report_the_blocked_cross_validation():
 )
 def test_bad_selection_options(option, match):
     with pytest.raises(BadInput, match=match) as e:
-        LVR.fit(_log(), None, None, **option)
+        FITS.get(LVR.kind)(_log(), None, None, **option)
     assert "\n" not in str(e.value)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from compd.identify import FITS
 from compd.log import Log
 from compd.models.mlr import MLR
 
@@ -15,7 +16,7 @@ def test_mlr_recovers_coefficients():
     B = np.array([[1.5], [-0.7], [3.0]])
     E = 0.4 + (T - T[0]) @ B
     log = Log("m.csv", ["t_s", "A", "B", "C", "err_z_um"], np.column_stack([np.arange(n), T, E]))
-    m = MLR.fit(log, None, None).model
+    m = FITS.get(MLR.kind)(log, None, None).model
     np.testing.assert_allclose(m.params.coef_um_per_k, B, atol=1e-9)
     np.testing.assert_allclose(m.params.intercept_um, [0.4], atol=1e-9)
     P = MLR(m.params, m.inputs, m.outputs).predict(T, np.arange(n))

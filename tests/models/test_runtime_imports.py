@@ -31,7 +31,7 @@ for file in sys.argv[1:]:
     p = Path(file)
     doc, data = load_model_file(p)
     spec = resolve_model({{"kind": data["kind"], "file": str(p)}}, doc, (), p.parent)
-    model = compd.app.build_model(spec)
+    model = compd.pipeline.build_model(spec)
     x = np.linspace(20.0, 21.0, len(model.inputs))
     out = np.zeros(len(model.outputs))
     model.start(x, 0.0)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from compd.errors import BadInput
+from compd.identify import FITS
 from compd.identify.xi_spindle import find_xi
 from compd.log import Log
 from compd.models.xi_spindle import (
@@ -88,7 +89,7 @@ def test_fit_axial_length():
     T = 22.5 + 8 * (1 - np.exp(-t / 30))
     e = 13.6e-6 * 165e3 * (T - T[0])
     log = Log("x.csv", ["t_s", "T_xi", "err_z_um"], np.column_stack([t, T, e]))
-    m = XiSpindle.fit(log, None, None).model
+    m = FITS.get(XiSpindle.kind)(log, None, None).model
     assert m.params.length_mm == pytest.approx(165.0)
 
 
@@ -192,7 +193,7 @@ def test_inner_ring_at_the_xi_sensor() -> None:
 
 def test_fit_radial_recovers_the_lift() -> None:
     log, truth = _radial_log(8e-9)
-    fit = XiSpindle.fit(
+    fit = FITS.get(XiSpindle.kind)(
         log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"]
     )
     m = fit.model
@@ -214,7 +215,7 @@ def test_fit_radial_recovers_the_lift() -> None:
 
 def test_fit_radial_without_speed_has_no_lift() -> None:
     log, _ = _radial_log(None)
-    m = XiSpindle.fit(log, ["T_xi", "T_brg_front"], ["err_z_um", "err_radial_um"]).model
+    m = FITS.get(XiSpindle.kind)(log, ["T_xi", "T_brg_front"], ["err_z_um", "err_radial_um"]).model
     assert m.params.lift is None
     assert m.params.radial.k_um_per_rpm2 is None
     assert m.inputs == ["T_xi", "T_brg_front"]
@@ -223,15 +224,15 @@ def test_fit_radial_without_speed_has_no_lift() -> None:
 def test_fit_radial_checks_its_inputs() -> None:
     log, _ = _radial_log(8e-9)
     with pytest.raises(BadInput, match="a radial fit takes"):
-        XiSpindle.fit(log, ["T_xi"], ["err_z_um", "err_radial_um"])
+        FITS.get(XiSpindle.kind)(log, ["T_xi"], ["err_z_um", "err_radial_um"])
     with pytest.raises(BadInput, match="a radial fit takes"):
-        XiSpindle.fit(log, ["T_xi", "speed_rpm"], ["err_z_um", "err_radial_um"])
+        FITS.get(XiSpindle.kind)(log, ["T_xi", "speed_rpm"], ["err_z_um", "err_radial_um"])
     with pytest.raises(BadInput, match="ring sensors"):
-        XiSpindle.fit(log, None, ["err_z_um", "err_radial_um"])
+        FITS.get(XiSpindle.kind)(log, None, ["err_z_um", "err_radial_um"])
     with pytest.raises(BadInput, match="axial and radial"):
-        XiSpindle.fit(log, ["T_xi"], ["err_z_um", "err_radial_um", "err_z_um"])
+        FITS.get(XiSpindle.kind)(log, ["T_xi"], ["err_z_um", "err_radial_um", "err_z_um"])
     with pytest.raises(BadInput, match="name the ξ sensor first"):
-        XiSpindle.fit(log, ["speed_rpm"], ["err_z_um"])
+        FITS.get(XiSpindle.kind)(log, ["speed_rpm"], ["err_z_um"])
 
 
 # --- the ring gains: compd's form of the radial output (the paper's: both 1) ---
@@ -259,14 +260,14 @@ def test_ring_gains_scale_each_ring_term() -> None:
 def test_fit_recovers_the_ring_gains_and_the_paper_form_fits_none() -> None:
     log, truth = _radial_log(8e-9, outer_gain=0.72, inner_gain=0.61)
     inputs, targets = ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"]
-    fit = XiSpindle.fit(log, inputs, targets)
+    fit = FITS.get(XiSpindle.kind)(log, inputs, targets)
     rad = fit.model.params.radial
     assert rad.outer_gain == pytest.approx(0.72, abs=1e-6)
     assert rad.inner_gain == pytest.approx(0.61, abs=1e-6)
     assert fit.report["radial_form"] == "ring_gains"
     X, t = log.data[:, 1:4], log.t_s
     np.testing.assert_allclose(fit.model.predict(X, t)[:, 1], truth.predict(X, t)[:, 1], atol=1e-6)
-    paper = XiSpindle.fit(log, inputs, targets, ring_gains=False)
+    paper = FITS.get(XiSpindle.kind)(log, inputs, targets, ring_gains=False)
     assert (paper.model.params.radial.outer_gain, paper.model.params.radial.inner_gain) == (1.0, 1.0)
     assert paper.report["radial_form"] == "paper"
     # the truth is not the paper's form, so the unfitted rings miss by what the gains say
@@ -280,7 +281,7 @@ def test_ring_gains_are_never_negative() -> None:
     data = log.data.copy()
     data[:, 5] -= 0.3 * (data[:, 2] - data[0, 2])  # the radial error falls with T_brg_front
     bent = Log(log.file, log.columns, data)
-    rad = XiSpindle.fit(bent, ["T_xi", "T_brg_front"], ["err_z_um", "err_radial_um"]).model.params.radial
+    rad = FITS.get(XiSpindle.kind)(bent, ["T_xi", "T_brg_front"], ["err_z_um", "err_radial_um"]).model.params.radial
     assert rad.outer_gain == 0.0
     assert rad.inner_gain > 0.0
 
@@ -419,7 +420,7 @@ def test_fit_axial_only_with_the_speed_fits_the_lift() -> None:
     """--inputs T_xi speed_rpm with one target: the lift is fitted, no radial output needed."""
     log, truth = _radial_log(1e-7)
     axial = Log(log.file, log.columns[:5], log.data[:, :5])
-    fit = XiSpindle.fit(axial, ["T_xi", "speed_rpm"], ["err_z_um"])
+    fit = FITS.get(XiSpindle.kind)(axial, ["T_xi", "speed_rpm"], ["err_z_um"])
     m = fit.model
     assert m.outputs == ["z"] and m.params.radial is None
     assert m.inputs == ["T_xi", "speed_rpm"]
@@ -429,13 +430,13 @@ def test_fit_axial_only_with_the_speed_fits_the_lift() -> None:
     np.testing.assert_allclose(m.predict(X, axial.t_s)[:, 0], axial.data[:, 4], atol=1e-8)
     # the speed named otherwise: --option speed_input=COL
     renamed = Log(axial.file, ["t_s", "T_xi", "T_brg_front", "S1", "err_z_um"], axial.data)
-    m2 = XiSpindle.fit(renamed, ["T_xi", "S1"], ["err_z_um"], speed_input="S1").model
+    m2 = FITS.get(XiSpindle.kind)(renamed, ["T_xi", "S1"], ["err_z_um"], speed_input="S1").model
     assert m2.params.lift.speed_input == "S1"
     assert m2.params.lift.k_um_per_rpm2 == pytest.approx(1e-7, rel=1e-6)
     with pytest.raises(BadInput, match="speed_input=COL"):
-        XiSpindle.fit(renamed, ["T_xi", "S1"], ["err_z_um"])
+        FITS.get(XiSpindle.kind)(renamed, ["T_xi", "S1"], ["err_z_um"])
     # without the speed, no lift: the axial fit alone, as before
-    assert XiSpindle.fit(axial, ["T_xi"], ["err_z_um"]).model.params.lift is None
+    assert FITS.get(XiSpindle.kind)(axial, ["T_xi"], ["err_z_um"]).model.params.lift is None
 
 
 def test_model_file_round_trip_keeps_the_lift() -> None:
@@ -451,7 +452,7 @@ def test_fit_recovers_k_where_the_cap_binds() -> None:
     log, truth = _radial_log(1e-7)
     X = log.data[:, 1:4]
     dl = 13.6e-6 * 160.0 * 1000.0 * (X[:, 0] - X[0, 0])  # the truth's thermal growth
-    fit = XiSpindle.fit(log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"])
+    fit = FITS.get(XiSpindle.kind)(log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"])
     assert fit.report["k_um_per_rpm2"] == pytest.approx(1e-7, rel=1e-6)
     assert fit.model.params.length_mm == pytest.approx(160.0, rel=1e-9)
     capped = 1e-7 * X[:, 2] ** 2 > 0.8 * dl  # rows where the truth's lift is its cap
