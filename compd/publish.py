@@ -129,6 +129,8 @@ class Publisher:
         self.snapshots = 0
         self.snapshots_waited = 0  # cycles a snapshot's due step waited for room
         self.rows_dropped = 0  # data-log rows the ring had no room for
+        self.status_failures = 0  # snapshots dropped because one of their steps raised
+        self._failures_logged: set[str] = set()
         # the I/O workers' processes and the service's (compd/io/supervisor.py), watched between cycles
         self.supervised: list[Supervised] = []
         self.supervisor = Supervisor(workers=lambda: [*started_workers(), *self.supervised])
@@ -169,6 +171,9 @@ class Publisher:
                 next(self._steps)
             except StopIteration as done:
                 self._snap, self._steps = done.value, None
+            except Exception as e:  # a status that cannot be built never stops the cycle: this one is dropped
+                self._status_failed(e)
+                return
         costs[i] = (1.0 - COST_WEIGHT) * costs[i] + COST_WEIGHT * (time.perf_counter() - t0)
         self._step = i + 1
 
@@ -211,6 +216,18 @@ class Publisher:
         self.after_cycle(0.0)
 
     # ------------------------------------------------------------ helpers
+    def _status_failed(self, e: Exception) -> None:
+        """A snapshot's step raised: drop the snapshot, try again a period later, log the first
+        failure of each kind (the cycle goes on compensating)."""
+        self._steps, self._snap, self._step = None, None, 0
+        self._next_status_s = time.monotonic() + self.status_period_s
+        self.status_failures += 1
+        reason = f"{type(e).__name__}: {e}"
+        if reason not in self._failures_logged:
+            self._failures_logged.add(reason)
+            log.error("status snapshot failed (compensation goes on; the status is not refreshed): %s", reason,
+                      extra={"event": "status_error", "reason": reason})
+
     def _put_events(self, events: list[tuple[float, str, str, str]]) -> None:
         self.outbox.put(("events", with_causes(events, self.loop.sources)))
 

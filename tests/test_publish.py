@@ -86,3 +86,32 @@ def test_the_pages_a_fork_shares_are_copied_once_and_nothing_else_is_allocated()
     finally:
         os.close(w)
         os.waitpid(pid, 0)
+
+
+def test_a_status_that_cannot_be_built_is_dropped_and_logged_once_the_cycle_goes_on(tmp_path, caplog) -> None:  # noqa: ANN001
+    """A bug in a source's status (a key missing, say) must never stop compensation: the snapshot
+    is dropped, the failure logged once, the next snapshot tried a period later."""
+    import logging
+
+    app = _app(tmp_path)
+    pub = app.service.publisher
+    src = app.loop.sources[0]
+    broken = {"on": True}
+    real = src.get_status
+
+    def get_status():  # noqa: ANN202
+        if broken["on"]:
+            raise KeyError("client_connects")
+        return real()
+
+    src.get_status = get_status
+    caplog.set_level(logging.INFO, logger="compd.service")
+    for _ in range(3):
+        for _ in range(20):
+            pub.after_cycle(math.inf)
+        pub._next_status_s = 0.0  # due again at once
+    assert pub.status_failures == 3 and not pub.outbox.pending()
+    lines = [r for r in caplog.records if getattr(r, "event", None) == "status_error"]
+    assert len(lines) == 1 and "KeyError" in lines[0].reason
+    broken["on"] = False
+    assert _take_snapshot(pub, math.inf) > 0  # and snapshots come again once it can be built

@@ -93,6 +93,15 @@ def _rows(path: Path) -> int:
         return 0
 
 
+def _first_t(path: Path) -> list[float] | None:
+    """[the data log's first row's time], or None while it has no complete row."""
+    try:
+        t = read_log(path, allow_nan=True).t_s
+    except Exception:
+        return None
+    return [float(t[0])] if len(t) else None
+
+
 def _comm(pid: int) -> str:
     return Path(f"/proc/{pid}/comm").read_text().strip()
 
@@ -184,6 +193,7 @@ def test_a_service_that_dies_or_stalls_is_reported_once_restarted_and_the_cycle_
     status = tmp_path / "status.json"
     with _daemon(tmp_path, tx) as (proc, _, err, _):
         st = _wait(_running(status, 20), "a running status")
+        first_t = _wait(lambda: _first_t(tmp_path / "run.csv"), "the first data-log rows")[0]
         old = st["service_pid"]
         os.kill(old, how)  # as the OOM killer would; or a service that hangs
         _wait(lambda: "event=service_lost" in err.read_text(), "the service_lost line")
@@ -198,6 +208,7 @@ def test_a_service_that_dies_or_stalls_is_reported_once_restarted_and_the_cycle_
     # the rows the cycle handed over while no service ran were written by the new one: no gap
     t = read_log(tmp_path / "run.csv", allow_nan=True).t_s
     assert len(t) > 10 and float(np.max(np.diff(t))) < 1.0
+    assert t[0] == first_t  # the rows from before the loss are still there (the log is appended to)
     text = err.read_text()
     assert text.count("event=service_lost") == 1 and text.count("event=service_restarted") == 1
     assert "event=stop" in text

@@ -310,7 +310,8 @@ class IoWorker:
     def health(self, now_s: float) -> str | None:
         """Between cycles (the supervisor, a few µs): None while the worker's thread or
         process runs and beats; else why not ("exited with code 1", "killed by SIGKILL",
-        "stopped beating for 2.1 s"). A stopped worker is healthy (nothing to run)."""
+        "stopped beating for 2.1 s"; a thread only when it has ended: it cannot be killed).
+        A stopped worker is healthy (nothing to run)."""
         if self._start_args is None:
             return None
         beat = int(self._beat[0])
@@ -324,6 +325,7 @@ class IoWorker:
             th = self._thread
             if th is None or not th.is_alive():
                 return "its thread has ended"
+            return None  # a thread cannot be killed: one stuck in a device call is waited for, never doubled
         silent_s = now_s - self._beat_seen_s
         if silent_s > self.stall_after_s:
             return f"stopped beating for {silent_s:.1f} s"
