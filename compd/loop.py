@@ -345,7 +345,8 @@ class Loop:
         return stats
 
     def step(self, now_s: float) -> None:
-        """One cycle at loop time `now_s`, outside the schedule (replay drives the clock)."""
+        """One cycle at loop time `now_s`, outside the schedule, for a caller that paces the
+        cycle itself (replay drives the clock; `compd output-test` its ramp)."""
         c0 = time.perf_counter_ns()
         self._cycle(now_s, time.perf_counter_ns)
         self.stats.record(0.0, time.perf_counter_ns() - c0)

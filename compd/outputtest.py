@@ -4,9 +4,10 @@ The sign check before enabling the output: the correction walks up to `um` at th
 axis's slew limit (the config's guard, never faster than one period's slew per cycle,
 however late a cycle runs), is held for `hold_s`, what the device reports as applied
 is read back, and the correction walks back to zero at the same slew before the sink
-is put in its safe state. The stages are the daemon's own: the guard (clamp, slew),
-the codec's word, the configured sink and its device; only the model is replaced by
-the fixed correction. A device of the software PLC in process runs on simulated time,
+is put in its safe state. The stages are the daemon's own, wired by the one pipeline
+builder (compd/pipeline.py) and stepped by the loop's own cycle: the guard (clamp,
+slew), the codec's word, the configured sink and its device; only the model is
+replaced by the fixed correction (`FixedCorrection`) and there are no sources. A device of the software PLC in process runs on simulated time,
 one over the network on the wall clock.
 """
 
@@ -16,17 +17,15 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
 from compd.clock import Clock, SimClock, WallClock
-from compd.codec import Encoder
-from compd.config import Config
+from compd.config import Config, Strict
 from compd.errors import BadInput
-from compd.frame import Frame
-from compd.guard import Guard
 from compd.models.base import Model
+from compd.pipeline import build_pipeline
 from compd.sinks.base import Sink
 
 SETTLE_CYCLES = 3  # cycles run after a ramp reached its goal, so the sink delivers the last step
@@ -39,14 +38,19 @@ class DeviceUnreachable(Exception):
     """The sink's device did not answer: the test wrote nothing (exit 1)."""
 
 
-class _FixedOffsets:
-    """What a sink needs of a model here: the output names, no position-dependent terms."""
+class FixedCorrection(Model):
+    """The model of an output test: no inputs, and the prediction the test sets (`pred_um`,
+    NaN for the axes it does not drive: the guard holds those at their fault policy)."""
+
+    kind = "output_test"
+    Params = Strict
 
     def __init__(self, outputs: list[str]) -> None:
-        self.outputs = list(outputs)
+        super().__init__(Strict(), [], outputs)
+        self.pred_um = np.full(len(outputs), math.nan)
 
-    def linear_terms(self) -> None:
-        return None
+    def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
+        out[:] = self.pred_um
 
 
 @dataclass
@@ -97,15 +101,13 @@ def axis_limits(cfg: Config, axis: str) -> tuple[float, float]:
 
 
 def build_sink(cfg: Config) -> tuple[Sink, list[str], list[str]]:
-    """The configured sink bound to the word's axes and the model's outputs (not opened)."""
+    """The configured sink (not opened, not yet bound: the pipeline binds it), the model's
+    outputs and the word's axes."""
     sink_cls, sink_cfg, path = cfg.sink
     sink: Sink = sink_cls(sink_cfg, base_dir=str(Path(cfg.file).parent))
     sink.config_path = path
     outputs = list(cfg.model.outputs)
-    word_axes = list(cfg.codec.axes or outputs[:2])
-    sink.bind(word_axes, cfg.codec.lsb_um)
-    sink.bind_model(cast(Model, _FixedOffsets(outputs)))
-    return sink, outputs, word_axes
+    return sink, outputs, list(cfg.codec.axes or outputs[:2])
 
 
 def check_request(cfg: Config, sink: Sink, word_axes: list[str], axis: str, um: float) -> None:
@@ -160,19 +162,20 @@ def run_output_test(
     `clock`: default simulated time for a device of the software PLC in process, the
     wall clock for one over the network."""
     sink, outputs, word_axes = build_sink(cfg)
-    check_request(cfg, sink, word_axes, axis, um)
     period_s = cfg.loop.period_s
     if clock is None:
         clock = SimClock(0.0) if sink.device_key() is None else WallClock(cfg.loop.spin_margin_s)
+    model = FixedCorrection(outputs)
+    # the daemon's pipeline, its model replaced by the fixed correction (no sources: no signals to check)
+    p = build_pipeline(sources=[], model=model, sink=sink, clock=clock, period_s=period_s,
+                       guard_cfg=cfg.guard.model_copy(update={"signals": {}}), codec_cfg=cfg.codec)
+    loop, guard, encoder = p.loop, p.guard, p.encoder
+    check_request(cfg, sink, word_axes, axis, um)
     a = outputs.index(axis)
     slot = word_axes.index(axis)
-    frame = Frame([])
-    guard = Guard(cfg.guard, outputs, frame, [])
     guard.max_dt_s = period_s  # a late cycle never licenses more than one period's slew
     _, slew = axis_limits(cfg, axis)
-    encoder = Encoder(cfg.codec.lsb_um, cfg.codec.deadband_um)
-    encoder.set_slew([float(guard.slew_um_per_s[outputs.index(n)]) for n in word_axes], period_s)
-    pred = np.full(len(outputs), math.nan)
+    pred = model.pred_um
     dev_um = np.zeros(2)
     info = sink.device_info()
     res = OutputTestResult(axis, info["device"], um, math.nan, math.nan, slew, period_s, 0,
@@ -185,12 +188,7 @@ def run_output_test(
         clock.wait_until(state["next"])
         now = clock.now()
         state["next"] = max(state["next"] + period_s, now)
-        guard.update(pred, True, now)
-        hi, lo = (word_axes + [""])[:2]
-        c = [guard.out_um[outputs.index(n)] if n else 0.0 for n in (hi, lo)]
-        en = [bool(guard.enable[outputs.index(n)]) if n else False for n in (hi, lo)]
-        changed = encoder.update(c[0], c[1], en[0], en[1], guard.dt_s)
-        sink.write(encoder.word, guard.out_um, guard.enable, changed, now)
+        loop.step(now)  # model (the fixed correction), guard, codec, sink: the daemon's cycle
         sink.applied_um(dev_um)
         res.t_s.append(now)
         res.correction_um.append(float(guard.out_um[a]))

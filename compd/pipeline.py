@@ -1,7 +1,7 @@
 """The one pipeline builder: sources → frame → model → guard → codec → sink on a loop.
 
-`compd run` (and its observe mode and reloads), `compd replay` and `compd bench` all
-wire their stages here, so the daemon a user runs and the replay a user trusts
+`compd run` (and its observe mode and reloads), `compd check-config`, `compd replay`,
+`compd output-test` and `compd bench` all wire their stages here, so the daemon a user runs and the replay a user trusts
 before it are the same pipeline. The caller supplies what differs: where the
 signals come from (configured sources, or one log), the clock, the sink.
 Wiring mistakes are `BadInput` with the config key they concern (`keys`), for the
