@@ -109,6 +109,14 @@ class SnapshotCollector:
         for state in LINK_STATES:
             ls.add_metric([state], 1.0 if link == state else 0.0)
         yield from (link_up, ls)
+        pup = GaugeMetricFamily("compd_process_up", "1 while compd's own process (a device worker, the service) runs;"
+                                " 0 while it is lost and not yet restarted", labels=["process"])
+        prs = CounterMetricFamily("compd_process_restarts", "Restarts of compd's own process after it died or hung",
+                                  labels=["process"])
+        for p in snap.get("processes") or []:
+            pup.add_metric([p["name"]], 1.0 if p["up"] else 0.0)
+            prs.add_metric([p["name"]], p["restarts"])
+        yield from (pup, prs)
         yield CounterMetricFamily("compd_saturations", "Words with a clamped axis byte", value=snap["saturations"])
         val = GaugeMetricFamily("compd_signal_value", "Last value of a signal", labels=["signal"])
         good = GaugeMetricFamily("compd_signal_good", "1 when the signal's quality is good", labels=["signal"])
@@ -158,6 +166,7 @@ EXAMPLE_SNAPSHOT: dict[str, Any] = {
     "axes": {"z": {"correction_um": 0.0, "prediction_um": 0.0, "enable": True, "saturated": False,
                    "state": "normal"}},
     "sink": {"link": "up"}, "saturations": 0,
+    "processes": [{"name": "modbus-link-fanuc_pmc", "pid": 1, "up": True, "restarts": 0, "lost": None}],
     "signals": {"T_xi": {"value": 20.0, "quality": "good", "age_s": 0.0}},
     "faults": {"bad:stale": 1},
     "adapt": {"z": {"offset_um": 0.0, "offset_sigma_um": 1.0, "accepted": 0, "rejected": 0, "slope_um_per_m": 0.0}},

@@ -825,4 +825,6 @@ class Service:
             "status_period_s": self.period_s,
             "wall_uptime_s": time.monotonic() - self._t0,
             "metrics_url": self.metrics_url,
+            # compd's own processes as the supervisor sees them (compd/io/supervisor.py)
+            "processes": self.publisher.supervisor.processes(),
         }

@@ -458,4 +458,12 @@ def _process_lines(data: dict[str, Any]) -> list[str]:
     io = [f"{s.get('name')} {s['io_pid']}" for s in data.get("sources") or [] if s.get("io_pid") not in (None, pid)]
     if io:
         line += ", device I/O: " + ", ".join(io)
-    return [line]
+    out = [line]
+    # what the supervisor says of each (compd/io/supervisor.py): lost ones and restarts
+    for p in data.get("processes") or []:
+        if not p.get("up"):
+            out.append(f"PROCESS LOST: {p.get('name')} (pid {p.get('pid')}) {p.get('lost')}: restarting")
+        elif p.get("restarts"):
+            n = p["restarts"]
+            out.append(f"process {p.get('name')} restarted {n} time{'s' if n != 1 else ''} (last lost: {p.get('lost')})")
+    return out

@@ -162,9 +162,14 @@ def test_a_lost_child_is_reported_restarted_and_the_pmc_follows_again(tmp_path: 
         assert lost["reason"] == "killed by SIGKILL" if how == "kill" else lost["reason"].startswith("stopped beating")
         restarted = _wait(lambda: _events(err, "io_process_restarted"), "the restart")[0]
         assert restarted["old_pid"] == str(pid) and restarted["pid"] != str(pid)
-        _wait(_settled(status, ports["pmc"]), "the PMC following the status again")
+        st = _wait(_settled(status, ports["pmc"]), "the PMC following the status again")
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
+        # the status says it too: the process, its new pid, one restart and why
+        name = restarted["worker"]
+        proc_st = _wait(lambda: next((p for p in (_status(status) or {}).get("processes") or []
+                                      if p["name"] == name and p["restarts"] == 1), None), "the restart in the status")
+        assert proc_st["up"] and proc_st["pid"] == int(restarted["pid"]) and proc_st["lost"] == lost["reason"]
 
 
 def test_sigterm_with_a_stopped_link_delivers_the_safe_state_through_a_fresh_one(tmp_path: Path) -> None:

@@ -38,7 +38,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 from compd.io.worker import started_workers
 
@@ -91,8 +91,10 @@ class Supervisor:
     restarts: int = 0
     _lost: dict[Supervised, _Lost] = field(default_factory=dict)
     _losses_of: dict[str, collections.deque[float]] = field(default_factory=dict)
+    _restarts_of: dict[str, int] = field(default_factory=dict)
     _history: collections.deque[float] = field(default_factory=collections.deque)
     _next_s: float = 0.0
+    _last_reason: dict[str, str] = field(default_factory=dict)
 
     def check(self) -> None:
         """Between cycles: look at the workers (at most every `check_every_s`), report and
@@ -117,11 +119,22 @@ class Supervisor:
         """The workers lost and not yet back: name → why."""
         return {w.name: lost.reason for w, lost in self._lost.items()}
 
+    def processes(self) -> list[dict[str, Any]]:
+        """What the status says of each watched worker and service: name, pid, up (False while
+        lost), restarts so far, and why it was last lost (None: never)."""
+        out = []
+        for w in self.workers():
+            lost = self._lost.get(w)
+            out.append({"name": w.name, "pid": w.pid if lost is None else lost.pid, "up": lost is None,
+                        "restarts": self._restarts_of.get(w.name, 0), "lost": self._last_reason.get(w.name)})
+        return out
+
     def _lose(self, w: Supervised, reason: str, now: float) -> None:
         pid = w.pid
         w.abandon(reason)
         wait = self._wait(w.name, now)
         self._lost[w] = _Lost(reason, pid, now + wait)
+        self._last_reason[w.name] = reason
         self.losses += 1
         log.error("%s (pid %s) %s; not served until it is restarted in %.1f s",
                   w.name, pid, reason, wait,
@@ -158,6 +171,7 @@ class Supervisor:
             return
         del self._lost[w]
         self.restarts += 1
+        self._restarts_of[w.name] = self._restarts_of.get(w.name, 0) + 1
         log.warning("%s restarted (pid %s; was pid %s: %s)", w.name, w.pid, lost.pid, lost.reason,
                     extra={"event": w.restarted_event, "worker": w.name, "pid": w.pid,
                            "old_pid": lost.pid, "reason": lost.reason})

@@ -111,6 +111,7 @@ def test_a_lost_workers_status_names_the_loss() -> None:
         st = w.get_status()
         assert st["state"] == "down" and "killed by SIGKILL" in st["last_error"] and st["pid"] == pid
         assert sup.lost() == {"echo": "killed by SIGKILL"}
+        assert sup.processes() == [{"name": "echo", "pid": pid, "up": False, "restarts": 0, "lost": "killed by SIGKILL"}]
     finally:
         w.stop()
     sup.check()
@@ -160,3 +161,21 @@ def test_a_thread_hosted_worker_that_ended_is_restarted(caplog) -> None:  # noqa
         _until(sup, lambda: snap.sample()[0][1] >= 4, "rounds after the restart")
     finally:
         w.stop()
+
+
+def test_a_lost_process_shows_in_the_metrics_and_in_compd_status() -> None:
+    from compd.metrics import EXAMPLE_SNAPSHOT, SnapshotCollector
+    from compd.status import render
+
+    snap = {**EXAMPLE_SNAPSHOT, "processes": [
+        {"name": "poll-pt", "pid": 41, "up": False, "restarts": 2, "lost": "killed by SIGKILL"},
+        {"name": "service", "pid": 42, "up": True, "restarts": 1, "lost": "stopped beating for 10.2 s"}]}
+    c = SnapshotCollector()
+    c.update(snap, [], 0, 0.0)
+    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value for f in c.collect() for s in f.samples}
+    assert samples[("compd_process_up", (("process", "poll-pt"),))] == 0.0
+    assert samples[("compd_process_up", (("process", "service"),))] == 1.0
+    assert samples[("compd_process_restarts_total", (("process", "poll-pt"),))] == 2.0
+    text = render({**snap, "pid": 40, "service_pid": 42, "threads": ["MainThread"], "state": "running"}, True, "")
+    assert "PROCESS LOST: poll-pt (pid 41) killed by SIGKILL: restarting" in text
+    assert "process service restarted 1 time (last lost: stopped beating for 10.2 s)" in text
