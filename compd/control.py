@@ -38,6 +38,7 @@ from typing import Any
 
 from compd.adapt import Probe
 from compd.errors import BadInput
+from compd.servicethread import ServiceThread
 
 log = logging.getLogger("compd.control")
 
@@ -131,7 +132,7 @@ class ControlServer:
         self._ino: int | None = None
         self._n = 0
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._thread: ServiceThread | None = None
 
     # ------------------------------------------------------------------ life
     def open(self) -> None:
@@ -173,14 +174,14 @@ class ControlServer:
         if self._sock is None or self._thread is not None:
             return
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="compd-control", daemon=True)
+        self._thread = ServiceThread("compd-control", self._run)
         self._thread.start()
 
     def stop_serving(self) -> None:
         """End this process's serving thread; the socket stays bound (another takes over)."""
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout=5)
+            self._thread.join(5.0)
             self._thread = None
 
     def close(self) -> None:

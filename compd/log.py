@@ -8,7 +8,6 @@ import logging
 import math
 import os
 import queue
-import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import BinaryIO
 import numpy as np
 
 from compd.errors import BadInput
+from compd.servicethread import ServiceThread
 
 # |t_s| and the span of a log stay below this (≈ 317 years; Unix time is 1.8e9 s): float
 # time keeps 2 µs resolution there, so every cycle and PLC scan still advances the clock.
@@ -538,7 +538,7 @@ class LogWriter:
         self._size = 0
         self._opened_s = 0.0
         self._open()
-        self._thread = threading.Thread(target=self._run, name="compd-log", daemon=True)
+        self._thread = ServiceThread("compd-log", self._run)
         self._thread.start()
 
     def push(self, row: tuple[float, ...]) -> None:
@@ -694,7 +694,7 @@ class LogWriter:
 
     def close(self) -> None:
         self._q.put(None)
-        self._thread.join(timeout=10)
+        self._thread.join(10.0)
         if self._fd is not None:
             try:
                 os.close(self._fd)

@@ -13,6 +13,7 @@ import threading
 from typing import Any
 
 from compd.errors import BadInput
+from compd.servicethread import ServiceThread
 
 # cycle lateness histogram bounds, µs (a 2 ms cycle: "late" starts around 1000)
 LATENESS_BOUNDS_US = (10.0, 25.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 5000.0, 10000.0)
@@ -301,7 +302,7 @@ class MetricsServer:
         self.max_connections = max_connections
         self.collector = SnapshotCollector()
         self._httpd: Any = None
-        self._thread: threading.Thread | None = None
+        self._thread: ServiceThread | None = None
 
     def start(self) -> str:
         """Bind and serve /metrics here; returns its URL."""
@@ -338,9 +339,7 @@ class MetricsServer:
         """Serve the bound socket from a thread of this process (once)."""
         if self._httpd is None or self._thread is not None:
             return
-        self._thread = threading.Thread(
-            target=self._httpd.serve_forever, kwargs={"poll_interval": 0.1}, name="compd-metrics", daemon=True
-        )
+        self._thread = ServiceThread("compd-metrics", self._httpd.serve_forever, 0.1)  # poll_interval 0.1 s
         self._thread.start()
 
     def stop_serving(self) -> None:
@@ -348,7 +347,7 @@ class MetricsServer:
         if self._thread is not None:
             if self._httpd is not None:
                 self._httpd.shutdown()
-            self._thread.join(timeout=5)
+            self._thread.join(5.0)
             self._thread = None
 
     def update(self, snap: dict[str, Any], stats: Any) -> None:

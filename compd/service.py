@@ -56,6 +56,7 @@ from compd.metrics import MetricsServer
 from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
 from compd.publish import Publisher
 from compd.realtime import apply_realtime, unshare_pages
+from compd.servicethread import ServiceThread
 from compd.state import StateWriter
 
 log = logging.getLogger("compd.service")
@@ -247,7 +248,7 @@ class ServiceWork:
         self._going = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()  # one taker of the ring at a time (the thread, finish)
-        self._thread: threading.Thread | None = None
+        self._thread: ServiceThread | None = None
         self._final: dict[str, Any] | None = None
         self.telemetry: Any = None  # compd.plant.telemetry.Telemetry
         self.remote: Any = None  # compd.plant.remote_model.RemoteModels
@@ -259,7 +260,7 @@ class ServiceWork:
     # ------------------------------------------------------------------ life
     def start(self, paused: bool) -> None:
         """Start taking messages on a thread; `paused`: only after `go`."""
-        self._thread = threading.Thread(target=self._run, name="compd-service", daemon=True)
+        self._thread = ServiceThread("compd-service", self._run)
         self._thread.start()
         if not paused:
             self.go()
@@ -314,7 +315,7 @@ class ServiceWork:
             return self._final
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout=STOP_TIMEOUT_S)
+            self._thread.join(STOP_TIMEOUT_S)
             self._thread = None
         if self._going.is_set():
             self.step()

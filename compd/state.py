@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from compd.servicethread import ServiceThread
+
 log = logging.getLogger("compd.state")
 
 FORMAT = 1
@@ -112,7 +114,7 @@ class StateWriter:
         self._adapt: dict[str, Any] | None = None  # the adapter's newest state, with its time
         self._closing = False
         self._cv = threading.Condition()
-        self._thread = threading.Thread(target=self._run, name="compd-state", daemon=True)
+        self._thread = ServiceThread("compd-state", self._run)
         self._thread.start()
 
     def submit(self, state: dict[str, Any]) -> None:
@@ -161,4 +163,4 @@ class StateWriter:
         with self._cv:
             self._closing = True
             self._cv.notify()
-        self._thread.join(timeout=10)
+        self._thread.join(10.0)

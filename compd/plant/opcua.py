@@ -57,6 +57,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from compd import version
 from compd.errors import BadInput
 from compd.plant.spec import MAX_SECRET_BYTES
+from compd.servicethread import ServiceThread
 
 if TYPE_CHECKING:
     from compd.config import OpcUaConfig
@@ -465,7 +466,7 @@ class OpcUaServer:
         self.cfg = cfg
         self.base_dir = Path(base_dir)
         self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
+        self._thread: ServiceThread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None  # the server thread's, while it runs
         self._wake: asyncio.Event | None = None
         self._pending: list[Any] | None = None  # the newest values not yet written
@@ -494,9 +495,7 @@ class OpcUaServer:
         values, problems = data_values(self._variables, snap)
         self._count(problems)
         ready: concurrent.futures.Future[str] = concurrent.futures.Future()
-        self._thread = threading.Thread(
-            target=self._run, args=(material, values, ready), name="compd-opcua", daemon=True
-        )
+        self._thread = ServiceThread("compd-opcua", self._run, material, values, ready)
         self._thread.start()
         try:
             self._endpoint = ready.result(timeout=START_TIMEOUT_S)
@@ -529,10 +528,8 @@ class OpcUaServer:
             if self._loop is not None:
                 self._loop.call_soon_threadsafe(self._wake.set)  # type: ignore[union-attr]
         thread = self._thread
-        if thread is not None and thread is not threading.current_thread():
+        if thread is not None and not thread.is_current():
             thread.join(STOP_TIMEOUT_S)
-            if thread.is_alive():
-                log.error("the OPC UA server thread did not stop within %g s", STOP_TIMEOUT_S)
 
     def get_status(self) -> dict[str, Any]:
         """The endpoint, the snapshots written, the snapshots that had a problem and the last one."""

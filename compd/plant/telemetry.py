@@ -56,6 +56,7 @@ from compd.plant.sparkplug import (
     topic,
 )
 from compd.plant.spec import TelemetrySpec
+from compd.servicethread import ServiceThread
 
 log = logging.getLogger("compd.telemetry")
 
@@ -175,7 +176,7 @@ class Telemetry:
         self.buffer: StoreAndForward | None = None
         self._inbox: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._thread: ServiceThread | None = None
         self._drain_s = DRAIN_S  # at stop, how long what is buffered may take to go out
         self._next_sample_s = -math.inf  # wall time the next sample is due
         self._defs: dict[str, MetricDef] = {}  # the device's metrics as the last DBIRTH announced them
@@ -213,7 +214,7 @@ class Telemetry:
         spec = self.spec
         self.buffer = StoreAndForward(spec.buffer_path, spec.buffer_max_bytes)
         self._client = self._make_client()
-        self._thread = threading.Thread(target=self._run, name="compd-telemetry", daemon=True)
+        self._thread = ServiceThread("compd-telemetry", self._run)
         self._thread.start()
 
     def sample(self, snap: dict[str, Any], t_unix_s: float | None = None) -> bool:
@@ -237,7 +238,7 @@ class Telemetry:
 
     def _taking(self) -> bool:
         """Whether the thread runs and keeps up: else what is handed over is not kept in memory."""
-        if self._thread is None or not self._thread.is_alive():
+        if self._thread is None or not self._thread.alive:
             return False
         if self._inbox.qsize() >= MAX_INBOX:
             self.inbox_dropped += 1
@@ -250,7 +251,7 @@ class Telemetry:
         if self._thread is not None:
             self._drain_s = drain_s
             self._stop.set()
-            self._thread.join(timeout=drain_s + CONNECT_TIMEOUT_S + 5.0)
+            self._thread.join(drain_s + CONNECT_TIMEOUT_S + 5.0)
             self._thread = None
         status = self.get_status()
         if self.buffer is not None:
