@@ -47,10 +47,9 @@ from compd import status as status_mod
 from compd.adapt import Probe
 from compd.control import ControlServer, ProbeLink, socket_path
 from compd.errors import BadInput
-from compd.io.child import Child, ChildGone
+from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import MessageRing, SharedBlob
-from compd.io.worker import exit_text
 from compd.log import LogWriter
 from compd.metrics import MetricsServer
 from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
@@ -505,9 +504,8 @@ class _ServiceHost:
         self.final: dict[str, Any] | None = None
         self._beat_buf = shared_buffer(8)
         work.beat = np.frombuffer(self._beat_buf, dtype=np.int64, count=1)
+        self._heartbeat = Heartbeat(work.beat, SERVICE_STALL_S)
         self._wanted = False
-        self._beat_seen = -1
-        self._beat_seen_s = 0.0
         self.lost: str | None = None
 
     # ------------------------------------------------------------ the supervisor's
@@ -521,17 +519,9 @@ class _ServiceHost:
 
     def health(self, now_s: float) -> str | None:
         """None while the service's process runs and beats (a thread: always)."""
-        child = self.child
-        if not self._wanted or child is None:
+        if not self._wanted or self.child is None:
             return None
-        beat = int(self.work.beat[0])
-        if beat != self._beat_seen:
-            self._beat_seen, self._beat_seen_s = beat, now_s
-        if not child.alive():
-            return exit_text(child.exit_code)
-        if now_s - self._beat_seen_s > SERVICE_STALL_S:
-            return f"stopped beating for {now_s - self._beat_seen_s:.1f} s"
-        return None
+        return self._heartbeat.health(self.child, now_s)
 
     def abandon(self, reason: str) -> None:
         child, self.child = self.child, None
@@ -575,7 +565,7 @@ class _ServiceHost:
 
         child.start(serve, self.avoid_cpus, keep_fds=keep)
         self.child = child
-        self._beat_seen, self._beat_seen_s = -1, time.monotonic()
+        self._heartbeat.reset(time.monotonic())
 
     def go(self) -> None:
         if self.child is None:

@@ -120,6 +120,45 @@ def _normal_scheduling(avoid: frozenset[int]) -> None:
         os.sched_setaffinity(0, cpus)
 
 
+def exit_text(code: int | None) -> str:
+    """A reaped child's end in words: "exited with code 1", "killed by SIGKILL"."""
+    if code is None:
+        return "ended"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+class Heartbeat:
+    """A child's heartbeat as its parent watches it (compd.io.supervisor): `beat`, a counter
+    in memory shared with the child, which bumps it at every turn of its loop; silent for
+    longer than `stall_after_s`, the child has stalled (stopped, or hung in a call)."""
+
+    def __init__(self, beat: Any, stall_after_s: float) -> None:
+        self.beat = beat  # a one-element int64 array in shared memory
+        self.stall_after_s = stall_after_s
+        self._seen = -1  # the count last seen, and when (monotonic s)
+        self._seen_s = 0.0
+
+    def reset(self, now_s: float) -> None:
+        """A child (re)started now: its silence counts from here."""
+        self._seen, self._seen_s = -1, now_s
+
+    def health(self, child: Child, now_s: float) -> str | None:
+        """None while `child` runs and beats; else why not: "killed by SIGKILL", "exited with
+        code 1", "stopped beating for 2.1 s" (reaps a child that ended)."""
+        beat = int(self.beat[0])
+        if beat != self._seen:
+            self._seen, self._seen_s = beat, now_s
+        if not child.alive():
+            return exit_text(child.exit_code)
+        silent_s = now_s - self._seen_s
+        return f"stopped beating for {silent_s:.1f} s" if silent_s > self.stall_after_s else None
+
+
 class Child:
     """A forked child running `serve(child)` (see the module). In the parent: `start`,
     `call`, `alive`, `stop`; in the child: `send` (replies, sent by `serve_calls`)."""

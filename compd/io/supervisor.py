@@ -140,10 +140,7 @@ class Supervisor:
                   w.name, pid, reason, wait,
                   extra={"event": w.lost_event, "worker": w.name, "pid": pid, "reason": reason,
                          "restart_in_s": wait})
-        self._history.append(now)
-        while self._history and self._history[0] < now - self.window_s:
-            self._history.popleft()
-        if len(self._history) > self.max_restarts and not self.escalated:
+        if self._in_window(self._history, now) > self.max_restarts and not self.escalated:
             self.escalated = True
             log.critical("%d I/O processes lost within %.0f s: compd stops feeding the watchdog"
                          " (systemd restarts it when it has one)", len(self._history), self.window_s,
@@ -153,11 +150,15 @@ class Supervisor:
     def _wait(self, name: str, now: float) -> float:
         """The back-off before the next restart of `name`: `restart_min_s`, doubled for every
         other loss or failed restart of it within `window_s`, at most `restart_max_s`."""
-        times = self._losses_of.setdefault(name, collections.deque())
+        n = self._in_window(self._losses_of.setdefault(name, collections.deque()), now)
+        return min(self.restart_min_s * 2.0 ** (n - 1), self.restart_max_s)
+
+    def _in_window(self, times: collections.deque[float], now: float) -> int:
+        """Add `now` to `times` and forget those older than `window_s`; how many are left."""
         times.append(now)
         while times[0] < now - self.window_s:
             times.popleft()
-        return min(self.restart_min_s * 2.0 ** (len(times) - 1), self.restart_max_s)
+        return len(times)
 
     def _restart(self, w: Supervised, lost: _Lost, now: float) -> None:
         try:

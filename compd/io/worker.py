@@ -65,7 +65,6 @@ import json
 import logging
 import os
 import select
-import signal
 import threading
 import time
 import weakref
@@ -77,7 +76,7 @@ import numpy as np
 
 from compd import activity
 from compd.histogram import DurationHist
-from compd.io.child import Child, ChildGone
+from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import SharedBlob
 
@@ -94,7 +93,6 @@ BEAT_EVERY_S = 0.05  # a running worker's thread beats at least this often (its 
 STALL_AFTER_S = 2.0  # ... and one that has not beaten for this long has stalled (a device call that hangs, SIGSTOP)
 
 
-
 def stall_after(timeout_s: float, calls: int = 4) -> float:
     """The silence after which a worker whose device calls wait up to `timeout_s` has
     stalled: `calls` of them in a row and a second more, never under `STALL_AFTER_S`."""
@@ -109,18 +107,6 @@ def started_workers() -> list[IoWorker]:
     """The I/O workers started in this process and not stopped since (their thread or child
     may have died: that is what the supervisor looks for)."""
     return list(_started)
-
-
-def exit_text(code: int | None) -> str:
-    """A reaped child's end in words: "exited with code 1", "killed by SIGKILL"."""
-    if code is None:
-        return "ended"
-    if code < 0:
-        try:
-            return f"killed by {signal.Signals(-code).name}"
-        except ValueError:
-            return f"killed by signal {-code}"
-    return f"exited with code {code}"
 
 
 class LinkDown(Exception):
@@ -223,12 +209,10 @@ class IoWorker:
         self._acct = np.frombuffer(self._acct_buf, dtype=np.int64, count=5)
         self._retry = np.frombuffer(self._acct_buf, dtype=np.float64, count=1, offset=40)
         self._beat = np.frombuffer(self._acct_buf, dtype=np.int64, count=1, offset=48)
-        self.stall_after_s = stall_after_s
+        self._heartbeat = Heartbeat(self._beat, stall_after_s)  # the supervisor's watch on a child
         self._start_args: tuple[bool, Callable[[], float] | None, bool, frozenset[int]] | None = None
         self.lost: str | None = None  # why the worker's thread or process is gone (None: it runs, or was stopped)
         self.lost_pid: int | None = None
-        self._beat_seen = -1  # the supervisor's: the beat last seen, and when (monotonic s)
-        self._beat_seen_s = 0.0
         self.reported_error: str | None = None  # the error the log last said the device has (None: fine)
         # `get_status()` as JSON, refreshed by the worker's thread: read from shared memory
         # when the worker runs in a child, so that asking never waits on the child
@@ -314,22 +298,12 @@ class IoWorker:
         A stopped worker is healthy (nothing to run)."""
         if self._start_args is None:
             return None
-        beat = int(self._beat[0])
-        if beat != self._beat_seen:
-            self._beat_seen, self._beat_seen_s = beat, now_s
-        child = self._child
-        if child is not None:
-            if not child.alive():
-                return exit_text(child.exit_code)
-        else:
-            th = self._thread
-            if th is None or not th.is_alive():
-                return "its thread has ended"
-            return None  # a thread cannot be killed: one stuck in a device call is waited for, never doubled
-        silent_s = now_s - self._beat_seen_s
-        if silent_s > self.stall_after_s:
-            return f"stopped beating for {silent_s:.1f} s"
-        return None
+        if self._child is not None:
+            return self._heartbeat.health(self._child, now_s)
+        th = self._thread
+        if th is None or not th.is_alive():
+            return "its thread has ended"
+        return None  # a thread cannot be killed: one stuck in a device call is waited for, never doubled
 
     def abandon(self, reason: str) -> None:
         """The worker's process or thread is lost (`health` said why): kill the process if it
@@ -405,7 +379,7 @@ class IoWorker:
 
     def _started(self, paced: bool, clock: Callable[[], float] | None, process: bool, avoid: frozenset[int]) -> None:
         self._start_args = (paced, clock, process, avoid)
-        self._beat_seen, self._beat_seen_s = -1, time.monotonic()
+        self._heartbeat.reset(time.monotonic())
         _started.add(self)
 
     def _start_thread(self, paced: bool, clock: Callable[[], float] | None) -> None:
