@@ -17,7 +17,6 @@ import logging
 import math
 import sys
 import time
-from array import array
 from collections.abc import Callable
 from typing import Any
 
@@ -32,6 +31,7 @@ from compd.guard import Guard
 from compd.histogram import bin_percentiles
 from compd.inhibit import Inhibit
 from compd.io.child import hosting
+from compd.io.mailbox import shared_buffer
 from compd.models.base import Model
 from compd.sinks.base import Sink
 from compd.sources.base import Source
@@ -47,15 +47,20 @@ class TimingStats:
 
     def __init__(self, period_s: float) -> None:
         self.period_s = period_s
-        self.hist = array("q", bytes(8 * HIST_US))
+        # the histograms and stage times in memory shared with the service's process, which
+        # reads them beside the cycle's status record (compd.statusblock)
+        n = len(STAGES)
+        self._buf = shared_buffer(8 * (2 * HIST_US + 3 * n))
+        words = memoryview(self._buf).cast("q")
+        self.hist = words[:HIST_US]
         self.cycles = 0
         self.misses = 0
         self.skipped = 0
         self.late_max_s = 0.0
-        self.stage_last_ns = array("q", [0] * len(STAGES))
-        self.stage_max_ns = array("q", [0] * len(STAGES))
-        self.stage_sum_ns = array("q", [0] * len(STAGES))
-        self.compute_hist = array("q", bytes(8 * HIST_US))
+        self.compute_hist = words[HIST_US: 2 * HIST_US]
+        self.stage_last_ns = words[2 * HIST_US: 2 * HIST_US + n]
+        self.stage_max_ns = words[2 * HIST_US + n: 2 * HIST_US + 2 * n]
+        self.stage_sum_ns = words[2 * HIST_US + 2 * n:]
         self.compute_max_ns = 0
         self.gc_runs = 0
         self.gc_max_ns = 0

@@ -3,26 +3,28 @@
 The service work (status file, metrics, event log lines, the data log, model state,
 the probe socket) runs beside the loop, in a process of its own on the wall clock
 (compd/service.py). It never reads the pipeline's objects: the cycle's thread hands
-it what it needs, as plain values in a `MessageRing` (compd/io/ring.py), so there is
-never a second thread of Python in the cycle's interpreter and nothing the cycle
-writes is read half-written.
+it what it needs, in shared memory, so there is never a second thread of Python in
+the cycle's interpreter and nothing the cycle writes is read half-written.
 
 After every cycle the loop calls `Publisher.after_cycle` with the time left before
 the next deadline:
 
+* the cycle's status record (compd/statusblock.py): per axis, per signal and for the
+  loop, a fixed-layout write under a seqlock (a few µs), from which the service
+  composes status.json, metrics, Sparkplug and OPC UA whenever it wants;
+* the supervisor's look at the child processes (compd/io/supervisor.py);
 * the guard's new events and the adapter's new probe events (few, cheap), each
   sensor event with its source's last error as the cause;
-* every `status.period_s` of wall time, a snapshot of the loop (compd/status.py),
-  one section a cycle (`snapshot_steps`: axes, signals, timing, model, each source),
-  then handed over whole; each step only when the time left holds it with room to
-  spare (each step's cost is measured each time, and averaged): a snapshot does not
-  make a cycle late, its next step waits for a cycle with room;
+* once a `status.period_s` of wall time, the devices' own accounts (each source's and
+  the sink's status, the adapter, fault counts, the processes): one message, sent only
+  when the time left holds it with room to spare (its cost is measured each time);
 * probes that arrived for the adapter (`compd probe` through the service, a CNC's
   probe block through its source's worker) go into the adapter's inbox.
 
-Model and adapter state and the data log's rows are put in the ring when the cycle
-makes them (a few µs: pickling a tuple). A full ring drops the message and counts it
-(the service is gone or far behind); the cycle never waits for room.
+Model and adapter state and the data log's rows go through a `MessageRing`
+(compd/io/ring.py) when the cycle makes them (a few µs: pickling a tuple). A full ring
+drops the message and counts it (the service is gone or far behind); the cycle never
+waits for room.
 """
 
 from __future__ import annotations
@@ -38,16 +40,15 @@ from compd.adapt import Probe
 from compd.io.ring import MessageRing
 from compd.io.supervisor import Supervised, Supervisor
 from compd.io.worker import started_workers
-from compd.metrics import LATENESS_BOUNDS_US
-from compd.status import lateness_buckets, snapshot, snapshot_steps
+from compd.statusblock import StatusBlock, describe_devices
 
 log = logging.getLogger("compd.service")
 
-ROOM_FACTOR = 1.5  # a snapshot's step is taken only when the time left is this many times its cost ...
+ROOM_FACTOR = 1.5  # the devices' accounts are taken only when the time left is this many times their cost ...
 ROOM_EXTRA_S = 100e-6  # ... plus this
-COST_WEIGHT = 0.25  # a step's cost estimate: an average of its costs with this weight on the newest
-WAIT_DECAY = 0.99  # ... and it shrinks by this for every cycle the step waits for room
-FIRST_COST_S = 100e-6  # a step's estimate before it was first measured
+COST_WEIGHT = 0.25  # their cost estimate: an average of the costs with this weight on the newest
+WAIT_DECAY = 0.99  # ... and it shrinks by this for every cycle they wait for room
+FIRST_COST_S = 100e-6  # the estimate before it was first measured
 
 
 class Tail:
@@ -107,7 +108,6 @@ class Publisher:
         inbox: MessageRing,
         *,
         status_period_s: float,
-        status_extra: Callable[[], dict[str, Any]],
         observe: bool,
         probe_rings: list[MessageRing] = (),  # type: ignore[assignment]
     ) -> None:
@@ -115,29 +115,35 @@ class Publisher:
         self.outbox = outbox
         self.inbox = inbox
         self.status_period_s = status_period_s
-        self.status_extra = status_extra
         self.observe = observe
-        self.state = "starting"
+        self.block = StatusBlock(loop)  # made before the service's fork: shared with it
+        self.block.messages_dropped = lambda: outbox.dropped
         self.probe_rings = [inbox, *probe_rings]
         self._guard_events = Tail(lambda: loop.guard.events)
         self._probe_events = Tail(lambda: loop.adapter.events) if loop.adapter is not None else None
-        self._next_status_s = -math.inf  # wall (monotonic) time of the next snapshot
-        self._steps: Any = None  # the snapshot being taken (snapshot_steps), or None
-        self._step = 0  # its next step's index; the last one hands the snapshot over
-        self._snap: dict[str, Any] | None = None  # the snapshot taken, not yet handed over
-        self.step_cost_s: list[float] = []  # per step, the estimate it needs room for
-        self.snapshots = 0
-        self.snapshots_waited = 0  # cycles a snapshot's due step waited for room
-        self.rows_dropped = 0  # data-log rows the ring had no room for
-        self.status_failures = 0  # snapshots dropped because one of their steps raised
+        self._next_devices_s = -math.inf  # wall (monotonic) time the devices' accounts are next due
+        self.devices_cost_s = FIRST_COST_S  # the estimate they need room for
+        self.devices_sent = 0
+        self.devices_waited = 0  # cycles the devices' accounts waited for room
+        self.status_failures = 0  # devices' accounts that could not be taken (one raised)
         self._failures_logged: set[str] = set()
         # the I/O workers' processes and the service's (compd/io/supervisor.py), watched between cycles
         self.supervised: list[Supervised] = []
         self.supervisor = Supervisor(workers=lambda: [*started_workers(), *self.supervised])
 
+    @property
+    def state(self) -> str:
+        return self.block.state
+
+    @property
+    def rows_dropped(self) -> int:
+        """Data-log rows the ring had no room for."""
+        return self.block.rows_dropped
+
     # ------------------------------------------------------------ the cycle's thread
     def after_cycle(self, room_s: float) -> None:
         """After a cycle, with `room_s` before the next deadline (inf: no real-time schedule)."""
+        self.block.write()
         self.supervisor.check()
         for ring in self.probe_rings:
             if ring.pending():
@@ -149,59 +155,47 @@ class Publisher:
             pe = self._probe_events.new()
             if pe:
                 self.outbox.put(("probe_events", pe))
-        if self._steps is None and self._snap is None:
-            if time.monotonic() < self._next_status_s:
-                return
-            self._steps = snapshot_steps(self.loop, state=self.state, observe=self.observe, extra=self.status_extra())
-            self._step = 0
-        costs, i = self.step_cost_s, self._step
-        if i == len(costs):
-            costs.append(FIRST_COST_S)
-        if room_s < ROOM_FACTOR * costs[i] + ROOM_EXTRA_S:
-            self.snapshots_waited += 1
-            costs[i] *= WAIT_DECAY  # one step the host slowed down must not hold the next ones back for good
+        if time.monotonic() < self._next_devices_s:
+            return
+        if room_s < ROOM_FACTOR * self.devices_cost_s + ROOM_EXTRA_S:
+            self.devices_waited += 1
+            self.devices_cost_s *= WAIT_DECAY  # one slow take must not hold the next ones back for good
             return
         t0 = time.perf_counter()
-        if self._snap is not None:  # the last step: hand it over
-            self._hand_over(self._snap)
-            self._snap = None
-            self._next_status_s = time.monotonic() + self.status_period_s
-        else:
-            try:
-                next(self._steps)
-            except StopIteration as done:
-                self._snap, self._steps = done.value, None
-            except Exception as e:  # a status that cannot be built never stops the cycle: this one is dropped
-                self._status_failed(e)
-                return
-        costs[i] = (1.0 - COST_WEIGHT) * costs[i] + COST_WEIGHT * (time.perf_counter() - t0)
-        self._step = i + 1
+        self._send_devices()
+        self.devices_cost_s = (1.0 - COST_WEIGHT) * self.devices_cost_s + COST_WEIGHT * (time.perf_counter() - t0)
 
     def watch_probes(self, sources: list[Any]) -> None:
         """Take probes from these sources' rings (a CNC's probe block) besides the inbox."""
         self.probe_rings = [self.inbox, *(r for s in sources if (r := s.probe_ring()) is not None)]
 
     def publish_status(self, state: str | None = None) -> None:
-        """Put a snapshot of the loop in the ring (also from outside the loop: start, stop)."""
+        """The record and the devices' accounts now, and the service asked to write the status
+        at once (also from outside the loop: start, stop)."""
         if state is not None:
-            self.state = state
-        if self._next_status_s == -math.inf:  # the first: the loop's next one a period later
-            self._next_status_s = time.monotonic() + self.status_period_s
-        self._hand_over(snapshot(self.loop, state=self.state, observe=self.observe, extra=self.status_extra()))
+            self.block.state = state
+        self.block.write()
+        self._send_devices()
+        self.outbox.put(("status_now",))
 
-    def _hand_over(self, snap: dict[str, Any]) -> None:
-        snap["publisher"] = {"snapshots_waited": self.snapshots_waited, "messages_dropped": self.outbox.dropped,
-                             "rows_dropped": self.rows_dropped,
-                             "snapshot_cost_us": round(sum(self.step_cost_s) * 1e6, 1),
-                             "snapshot_step_max_us": round(max(self.step_cost_s, default=0.0) * 1e6, 1)}
-        buckets = lateness_buckets(self.loop.stats, LATENESS_BOUNDS_US)
-        self.outbox.put(("status", snap, buckets))
-        self.snapshots += 1
+    def _send_devices(self) -> None:
+        """The devices' accounts to the service (`describe_devices`); the next a period later."""
+        self._next_devices_s = time.monotonic() + self.status_period_s
+        try:
+            devices = describe_devices(self.loop, self.supervisor.processes())
+            devices["model_state"] = self.loop.model.get_state()
+        except Exception as e:  # accounts that cannot be taken never stop the cycle: these are dropped
+            self._status_failed(e)
+            return
+        devices["publisher"] = {"devices_waited": self.devices_waited,
+                                "devices_cost_us": round(self.devices_cost_s * 1e6, 1)}
+        self.outbox.put(("devices", devices))
+        self.devices_sent += 1
 
     def row(self, row: tuple[float, ...]) -> None:
         """A data-log row (LogObserver, on the cycle)."""
         if not self.outbox.put(("row", row)):
-            self.rows_dropped += 1
+            self.block.rows_dropped += 1
 
     def model_state(self, state: dict[str, Any]) -> None:
         """The model's state after a step (Loop.on_model_state, on the cycle)."""
@@ -217,16 +211,14 @@ class Publisher:
 
     # ------------------------------------------------------------ helpers
     def _status_failed(self, e: Exception) -> None:
-        """A snapshot's step raised: drop the snapshot, try again a period later, log the first
-        failure of each kind (the cycle goes on compensating)."""
-        self._steps, self._snap, self._step = None, None, 0
-        self._next_status_s = time.monotonic() + self.status_period_s
+        """The devices' accounts raised: drop them, try again a period later, log the first
+        failure of each kind (the cycle goes on compensating; the record is still written)."""
         self.status_failures += 1
         reason = f"{type(e).__name__}: {e}"
         if reason not in self._failures_logged:
             self._failures_logged.add(reason)
-            log.error("status snapshot failed (compensation goes on; the status is not refreshed): %s", reason,
-                      extra={"event": "status_error", "reason": reason})
+            log.error("status of the devices failed (compensation goes on; the status shows the last one): %s",
+                      reason, extra={"event": "status_error", "reason": reason})
 
     def _put_events(self, events: list[tuple[float, str, str, str]]) -> None:
         self.outbox.put(("events", with_causes(events, self.loop.sources)))

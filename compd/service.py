@@ -2,11 +2,13 @@
 
 Two halves, so that the cycle's interpreter runs no Python but the cycle's own:
 
-* the cycle's side, `compd.publish.Publisher`: between cycles the loop's thread hands
-  over, as plain values in a shared-memory ring, what the rest needs (a snapshot of
-  the loop every `status.period_s`, the guard's and the adapter's events, the data
-  log's rows, the model's and the adapter's state) and takes the probes that came in;
-* the service, `ServiceWork`: writes the status file, serves and feeds the metrics,
+* the cycle's side, `compd.publish.Publisher`: after every cycle the loop's thread writes
+  its status record (compd/statusblock.py, shared memory) and hands over, as plain
+  values in a shared-memory ring, the rest (the devices' accounts once a
+  `status.period_s`, the guard's and the adapter's events, the data log's rows, the
+  model's and the adapter's state) and takes the probes that came in;
+* the service, `ServiceWork`: composes the status from the record every
+  `status.period_s` and writes the status file, serves and feeds the metrics,
   logs the events and late cycles, writes the data log and the model state, serves the
   probe socket, composes the STATUS= line for systemd. On the wall clock (`loop.io: process`, the
   default) it runs in a process of its own (`compd.io.child`), so none of this ever
@@ -51,12 +53,14 @@ from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import MessageRing, SharedBlob
 from compd.log import LogWriter
-from compd.metrics import MetricsServer
+from compd.metrics import LATENESS_BOUNDS_US, MetricsServer
 from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
 from compd.publish import Publisher
 from compd.realtime import apply_realtime, unshare_pages
 from compd.servicethread import ServiceThread
 from compd.state import StateWriter
+from compd.status import lateness_buckets
+from compd.statusblock import Description, compose, describe_static
 
 log = logging.getLogger("compd.service")
 
@@ -189,6 +193,11 @@ class ServiceSpec:
     telemetry: Any = None  # compd.plant.spec.TelemetrySpec: MQTT Sparkplug B (config `telemetry`)
     opcua: Any = None  # compd.plant.spec.OpcUaSpec: the OPC UA server (config `opcua`)
     reload: bool = False  # this pipeline replaces another (a reload), not a start
+    block: Any = None  # compd.statusblock.StatusBlock: the cycle's status record (shared memory)
+    description: Any = None  # compd.statusblock.Description: what the record does not hold, at the start
+    status_period_s: float = 1.0
+    extra: dict[str, Any] | None = None  # into every status: config, status_period_s, metrics_url
+    t0_s: float = 0.0  # monotonic time the daemon's service began (wall_uptime_s)
 
 
 class _RingLink(ProbeLink):
@@ -255,6 +264,8 @@ class ServiceWork:
         self.opcua_error: str | None = None
         self._opcua_next_s = 0.0
         self.beat = np.zeros(1, dtype=np.int64)  # counted at every turn of the loop (shared with the daemon)
+        self.description = spec.description
+        self._next_status_s = -1.0  # monotonic time the next status is due (-1: on `status_now` only)
 
     # ------------------------------------------------------------------ life
     def start(self, paused: bool) -> None:
@@ -357,6 +368,8 @@ class ServiceWork:
                 t0 = time.perf_counter_ns()
                 try:
                     self.step()
+                    if 0.0 <= self._next_status_s <= time.monotonic():
+                        self.publish()
                 except Exception:  # the service must never take the daemon down
                     self.status_errors += 1
                     if self.status_errors <= 3:
@@ -380,10 +393,19 @@ class ServiceWork:
             return len(msgs)
 
     def _handle(self, msg: tuple[Any, ...]) -> None:
-        what, value = msg[0], msg[1]
-        if what == "status":
-            self._status(value, msg[2])
+        what = msg[0]
+        if what == "status_now":
+            self.publish()
+            return
+        value = msg[1]
+        if what == "devices":
+            if self.description is not None:
+                self.description.devices = value
+                if value.get("model_state") is not None:
+                    self.description.model = {**self.description.model, "state": value["model_state"]}
         elif what == "events":
+            if self.description is not None:
+                self.description.add_events(value)
             for ev in value:
                 log_guard_event(*ev)
                 if self.telemetry is not None:
@@ -410,6 +432,21 @@ class ServiceWork:
             sw.submit(value)
         elif what == "adapt_state":
             sw.submit_adapt(value)
+
+    def publish(self) -> None:
+        """Compose the status from the cycle's record now (compd.statusblock) and write it
+        out: status file, metrics, STATUS= line, the plant; the next a period later."""
+        spec = self.spec
+        if spec.block is None:
+            return
+        self._next_status_s = time.monotonic() + spec.status_period_s
+        reading = spec.block.read()
+        if reading is None:  # the cycle has not written it yet
+            return
+        snap = compose(reading, self.description)
+        snap.update(spec.extra or {})
+        snap["wall_uptime_s"] = time.monotonic() - spec.t0_s
+        self._status(snap, lateness_buckets(reading, LATENESS_BOUNDS_US))
 
     def _status(self, raw: dict[str, Any], buckets: Any) -> None:
         snap = status_mod.jsonable(raw)
@@ -651,8 +688,7 @@ class Service:
         self.inbox = MessageRing(INBOX_BYTES)
         self.status_line = SharedBlob(512)  # the service's STATUS= line, sent by the cycle
         self.publisher = Publisher(
-            self.loop, self.outbox, self.inbox, status_period_s=self.period_s, status_extra=self._extra,
-            observe=observe,
+            self.loop, self.outbox, self.inbox, status_period_s=self.period_s, observe=observe,
         )
         self.log_spec: LogSpec | None = None
         self.state_spec: StateSpec | None = None
@@ -734,6 +770,9 @@ class Service:
             config=app.cfg.file, observe=self.observe, status_path=self.path, log=self.log_spec,
             state=self.state_spec, adapt_axes=list(loop.adapter.axes) if loop.adapter is not None else None,
             telemetry=self.telemetry_spec, opcua=self.opcua_spec, reload=self._previous is not None,
+            block=self.publisher.block, status_period_s=self.period_s, t0_s=self._t0,
+            description=Description(describe_static(loop, self.observe), loop.model.get_status()),
+            extra={"config": app.cfg.file, "status_period_s": self.period_s, "metrics_url": self.metrics_url},
         )
         work = ServiceWork(spec, self.outbox, self.inbox, self.metrics, self.control, self.status_line)
         host = _ServiceHost(work, process=loop.io_process and loop.clock.fork_safe, avoid_cpus=loop.cycle_cpus)
@@ -809,13 +848,3 @@ class Service:
         if counts.get("log") is not None:
             counts["log"] = {**counts["log"], "rows_dropped": counts["log"]["rows_dropped"] + self.publisher.rows_dropped}
         return counts
-
-    def _extra(self) -> dict[str, Any]:
-        return {
-            "config": self.app.cfg.file,
-            "status_period_s": self.period_s,
-            "wall_uptime_s": time.monotonic() - self._t0,
-            "metrics_url": self.metrics_url,
-            # compd's own processes as the supervisor sees them (compd/io/supervisor.py)
-            "processes": self.publisher.supervisor.processes(),
-        }

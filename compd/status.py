@@ -1,11 +1,11 @@
 """Live status of a running daemon: a JSON snapshot written atomically, and `compd status`.
 
-The cycle's thread takes a `snapshot` of the loop about once a second, a section at a
-time between two cycles when there is room (`snapshot_steps`, compd/publish.py), and
-the service (compd/service.py, a process of its own on the wall clock) makes it JSON
-(`jsonable`) and writes it with `write_atomic` (temp file + rename, so a reader never
-sees half a file). `compd status` reads it back with `read_status`, judges whether the
-daemon is alive (`liveness`) and prints it (`render`) or passes the JSON through.
+The cycle writes its status record every cycle (compd/statusblock.py); the service
+(compd/service.py, a process of its own on the wall clock) composes the snapshot from
+it about once a second and writes it with `write_atomic` (temp file + rename, so a
+reader never sees half a file). `snapshot` composes one in process, through the same
+record. `compd status` reads it back with `read_status`, judges whether the daemon is
+alive (`liveness`) and prints it (`render`) or passes the JSON through.
 """
 
 from __future__ import annotations
@@ -13,16 +13,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import threading
 import time
-from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from compd import version
-from compd.codec import word_bytes
 from compd.errors import BadInput
 from compd.histogram import bin_percentiles, over_range, percentile_text, range_limit_us
 
@@ -85,86 +81,17 @@ def lateness_buckets(
 
 
 def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """A plain picture of the loop: per axis, per signal, loop timing, model, sink (`jsonable`
-    makes it JSON: NaN → None, numpy scalars → numbers)."""
-    steps = snapshot_steps(loop, state=state, observe=observe, extra=extra)
-    while True:
-        try:
-            next(steps)
-        except StopIteration as done:
-            return done.value
+    """The status of `loop` now, composed in this process the way the service composes it
+    (a record written and read back, the devices described from the pipeline's objects)."""
+    from compd.statusblock import StatusBlock, compose, describe
 
-
-def snapshot_steps(
-    loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None
-) -> Generator[None, None, dict[str, Any]]:
-    """`snapshot` in sections, one per step (each ≈ 20–100 µs): the cycle's thread takes one
-    step between two cycles (compd/publish.py), so no gap between cycles holds the whole
-    picture. Each section is read in one go, from one cycle's state; sections of one
-    snapshot may be a few cycles apart. The snapshot is the generator's return value."""
-    now = loop.now_s
-    guard = loop.guard
-    axes = guard.get_status()
-    sink = loop.sink.get_status()
-    reaches = sink["link"] == "up"  # else nothing the loop computes reaches the machine
-    # observe mode: the sink (compd/sinks/observe.py) writes the word 0, every axis disabled
-    held = bool(observe or sink.get("observe"))
-    # the word the sink writes (its own report if it has one), known at the machine only with the link up
-    written = "0x0000" if held else sink.get("word", f"0x{loop.word:04X}")
-    enc = loop.encoder
-    slot_of = {axis: slot for slot, axis in enumerate(loop.word_axes)}
-    for i, name in enumerate(loop.model.outputs):
-        a = axes[name]
-        a["prediction_um"] = float(loop.pred_um[i])
-        slot = slot_of.get(i)
-        a["word_byte"] = ("high", "low")[slot] if slot is not None else None
-        a["byte"] = f"0x{word_bytes(loop.word)[slot]:02X}" if slot is not None else None
-        a["saturated"] = bool(enc.saturated[slot]) if slot is not None else False
-        # `enable`: on at the machine (the guard's bit, a sink that reaches it, and not observe
-        # mode, whose word 0 has every enable bit off); `guard_enable`: the guard's bit alone
-        a["guard_enable"] = a["enable"]
-        a["enable"] = bool(a["enable"] and reaches and not held)
-    events = [
-        {"t_s": float(t), "subject": subj, "event": ev, "reason": why}
-        for t, subj, ev, why in list(guard.events)[-20:]
-    ]
-    snap: dict[str, Any] = {
-        "schema": SCHEMA,
-        "version": version(),
-        "pid": os.getpid(),
-        "state": state,
-        "observe": observe,
-        "written_unix_s": time.time(),
-        "uptime_s": float(now - loop.t_start_s) if loop.stats.cycles else 0.0,
-        "loop_time_s": float(now),
-        "word": f"0x{loop.word:04X}",  # the word the loop computed
-        "word_at_machine": written if reaches else None,  # what the sink writes; null: link not up
-        "axes": axes,
-        "signals": None,
-        "loop": None,
-        "model": None,
-        "sink": sink,
-        "sources": [],
-        "faults": dict(guard.faults),
-        "saturations": int(enc.saturations),
-        "events": events,
-        # the threads of Python in the cycle's process (on the wall clock: the cycle's alone)
-        "threads": sorted(t.name for t in threading.enumerate()),
-    }
-    yield
-    snap["signals"] = loop.frame.snapshot(loop.now_s)
-    yield
-    snap["loop"] = timing(loop.stats)
-    yield
-    snap["model"] = loop.model.get_status()
-    for src in loop.sources:
-        yield
-        snap["sources"].append(src.get_status())
-    if loop.adapter is not None:  # the probe-updated estimate per axis (compd.adapt)
-        yield
-        snap["adapt"] = loop.adapter.get_status()
-    if extra:
-        snap.update(extra)
+    block = StatusBlock(loop)
+    block.state = state
+    block.write()
+    reading = block.read()
+    assert reading is not None  # written just now, by this thread
+    snap = compose(reading, describe(loop, observe))
+    snap.update(extra or {})
     return snap
 
 
@@ -286,6 +213,11 @@ def _hms(seconds: float | None) -> str:
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
+def _enabled(value: Any) -> str:
+    """An axis's `enable` at the machine: yes, no, or `unknown` (null: the link is not up)."""
+    return "unknown" if value is None else "yes" if value else "no"
+
+
 def _num(value: Any, fmt: str) -> str:
     return "nan" if value is None else format(value, fmt)
 
@@ -403,7 +335,7 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
         lines.append(
             f"{name:<8} {_num(a.get('prediction_um'), '10.2f')} {_num(a.get('correction_um'), '11.2f')}"
             f" {_num(a.get('target_um'), '9.2f')} {a.get('byte') or '-':>5}"
-            f" {('yes' if a.get('enable') else 'no'):>8}"
+            f" {_enabled(a.get('enable')):>8}"
             f" {str(a.get('inhibit') or a.get('state', '?')):<11} {a.get('policy', '?'):<13}"
             f" {'yes' if a.get('saturated') else 'no'}"
         )

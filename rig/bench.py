@@ -521,7 +521,8 @@ def format_table(r: dict[str, Any]) -> str:
     lines.append(
         f"service: {sv.get('status_writes', 0)} status files, {log_st.get('rows_written', 0)} data-log rows"
         f" ({log_st.get('rows_dropped', 0)} dropped), {r.get('metrics_scrapes', 0)} metrics scrapes;"
-        f" {sv.get('snapshots_waited', 0)} cycles a snapshot's due step waited for room"
+        f" status record written every cycle (longest write {sv.get('status_write_max_us', 0):g} us),"
+        f" devices' accounts waited {sv.get('devices_waited', 0)} cycles for room"
     )
     if "between_max_us" in r:
         lines.append(

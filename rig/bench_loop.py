@@ -155,7 +155,9 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     finally:
         app.close()
     service = app.service.counts()
-    service["snapshots_waited"] = app.service.publisher.snapshots_waited
+    pub = app.service.publisher
+    service["devices_waited"] = pub.devices_waited  # cycles the devices' accounts waited for room
+    service["status_write_max_us"] = round(pub.block.read().get("write_max_ns") / 1000, 1)
     rss["end_kb"] = rss_kb()
     base = rss.get("after_warmup_kb", rss["end_kb"])
     rss["growth_kb"] = rss["end_kb"] - base

@@ -139,17 +139,17 @@ def test_a_sink_whose_link_is_down_is_not_enabled_and_confirms_no_word(tmp_path:
 
     def take(loop: Any, now: float) -> None:
         if loop.stats.cycles == CYCLE:
-            real = loop.sink.get_status
-            loop.sink.get_status = lambda: {**real(), "link": "down"}  # the card unreachable
+            real = loop.sink.link_state
+            loop.sink.link_state = lambda: "down"  # the card unreachable
             try:
                 taken["snap"] = snapshot(loop, state="running", observe=False)
             finally:
-                loop.sink.get_status = real
+                loop.sink.link_state = real
 
     app.loop.observers.append(take)
     app.run()
     snap = taken["snap"]
-    assert snap["axes"]["z"]["guard_enable"] is True and snap["axes"]["z"]["enable"] is False
+    assert snap["axes"]["z"]["guard_enable"] is True and snap["axes"]["z"]["enable"] is None  # not confirmed
     assert snap["word_at_machine"] is None  # nothing is confirmed at the machine
     text = render(jsonable(snap), True, "running")
     assert "OUTPUT NOT REACHING THE MACHINE" in text

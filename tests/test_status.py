@@ -170,11 +170,12 @@ def test_a_sink_that_cannot_reach_the_machine_is_shown_down_and_not_enabled(tmp_
     assert guard_enable  # the guard did enable the axis …
     assert snap["sink"]["link"] == "down"
     z = snap["axes"]["z"]
-    assert z["enable"] is False and z["guard_enable"] is True  # … but it does not reach the machine
+    # … but it is not confirmed at the machine: neither on nor off, and nothing read back counts
+    assert z["enable"] is None and z["guard_enable"] is True and z["applied_um"] is None
     text = render(snap, True, "running")
     assert "link DOWN" in text and "NOT REACHING THE MACHINE" in text
     line = next(ln for ln in text.splitlines() if ln.startswith("z "))
-    assert " no " in line
+    assert " unknown " in line
     col = SnapshotCollector()
     col.update(snap, [], 0, 0.0)
     fams = {f.name: f for f in col.collect()}

@@ -120,7 +120,9 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
             (MetricDef(p + "correction_um", D.Double, "µm"), _num(a.get("correction_um"))),
             (MetricDef(p + "target_um", D.Double, "µm"), _num(a.get("target_um"))),
             (MetricDef(p + "prediction_um", D.Double, "µm"), _num(a.get("prediction_um"))),
-            (MetricDef(p + "enable", D.Boolean), bool(a.get("enable", False)) and not held),
+            # on at the machine; null (not confirmed) while the sink's link is not up
+            (MetricDef(p + "enable", D.Boolean), False if held else None if a.get("enable") is None
+             else bool(a["enable"])),
             (MetricDef(p + "state", D.String), str(a.get("state", ""))),
         ]
     for name, s in sorted((snap.get("signals") or {}).items()):
