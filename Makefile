@@ -62,7 +62,7 @@ install: $(BASE_STAMP)
 	PYTHON="$(abspath $(PY))" scripts/install.sh
 
 # regenerates the configuration reference from the config schema and the metrics reference
-# from compd/metrics.py (tests check both are current)
+# from compd/service/metrics.py (tests check both are current)
 docs: $(BASE_STAMP)
 	$(VENV)/bin/compd docs --out docs/configuration.md
 	$(VENV)/bin/compd docs --metrics --out docs/metrics.md
@@ -71,7 +71,7 @@ docs: $(BASE_STAMP)
 reliability: $(TEST_STAMP) sysdeps
 	rm -rf build/faults
 	COMPD_FAULTS_OUT=build/faults $(PY) -m pytest -q tests/faults --ignore=tests/faults/test_reliability_doc.py
-	$(PY) -m compd.faultdoc build/faults --doc docs/reliability.md
+	$(PY) -m compd.commissioning.faultdoc build/faults --doc docs/reliability.md
 	$(PY) scripts/degraded_table.py --doc docs/reliability.md
 
 lint: $(TEST_STAMP)

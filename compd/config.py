@@ -558,7 +558,7 @@ class CodecConfig(Strict):
 
     @model_validator(mode="after")
     def _deadband_below_full_scale(self) -> CodecConfig:
-        from compd.codec import MAX_MAG
+        from compd.cycle.codec import MAX_MAG
 
         if not self.deadband_um < MAX_MAG * self.lsb_um:
             raise ValueError(
@@ -593,7 +593,7 @@ class ConsoleConfig(Strict):
 
 
 class AdaptConfig(Strict):
-    """Probe-updated compensation (compd.adapt): a Kalman filter per axis on the model's offset (and gain)."""
+    """Probe-updated compensation (compd.cycle.adapt): a Kalman filter per axis on the model's offset (and gain)."""
 
     apply: bool = Field(True, description="add the estimate to the prediction; false = estimate and show only")
     gain: bool = Field(False, description="also estimate a gain error g on the prediction (ê = p + b + g p)")
@@ -833,7 +833,7 @@ class ConfigModel(Strict):
     metrics: MetricsConfig = Field(MetricsConfig(), description="Prometheus metrics endpoint")
     logging: LoggingConfig = Field(LoggingConfig(), description="event log lines")
     adapt: AdaptConfig | None = Field(
-        None, description="probe-updated compensation (compd.adapt, the section adapt); none = the model alone"
+        None, description="probe-updated compensation (compd.cycle.adapt, the section adapt); none = the model alone"
     )
     inhibit: InhibitConfig | None = Field(
         None, description="the machine's inhibit and axis-referenced signals; none = never held off"

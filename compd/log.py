@@ -16,14 +16,14 @@ from typing import BinaryIO
 import numpy as np
 
 from compd.errors import BadInput
-from compd.servicethread import ServiceThread
+from compd.service.threads import ServiceThread
 
 # |t_s| and the span of a log stay below this (≈ 317 years; Unix time is 1.8e9 s): float
 # time keeps 2 µs resolution there, so every cycle and PLC scan still advances the clock.
 MAX_T_S = 1e10
 RESERVED_PREFIXES = ("err_", "pos_", "current_")
 RESERVED_NAMES = ("t_s", "speed_rpm")
-# Columns the loop itself writes into its log (compd.app.LogObserver): never inputs.
+# Columns the loop itself writes into its log (compd.daemon.app.LogObserver): never inputs.
 OUTPUT_PREFIXES = ("pred_", "corr_", "applied_", "probe_")
 OUTPUT_NAMES = ("word",)
 
@@ -618,8 +618,7 @@ class LogWriter:
     def _run(self) -> None:
         import time
 
-        from compd import activity
-
+        from compd.cycle import activity
         spans = activity.ring("compd-log")  # None unless the bench records who runs when
         last_flush = time.monotonic()
         while True:

@@ -14,8 +14,8 @@ import numpy as np
 from pydantic import Field
 
 from compd.config import SourceConfig
+from compd.cycle.frame import Frame, Quality
 from compd.errors import BadInput
-from compd.frame import Frame, Quality
 from compd.sources.base import Source
 from hil_sim.plants import PLANTS
 from hil_sim.scenario import Scenario

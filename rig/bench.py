@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from compd.clock import WallClock
+from compd.cycle.clock import WallClock
+from compd.cycle.histogram import percentile_text
 from compd.errors import BadInput
-from compd.histogram import percentile_text
 from compd.identify import FITS
 from hil_sim.plants import PLANTS
 from hil_sim.scenario import SCENARIOS, Scenario
@@ -211,8 +211,8 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     """The loop a user writes by hand: one request per register, predict, write, sleep(period)."""
     from pymodbus.client import ModbusTcpClient
 
-    from compd.codec import encode, word_bytes
-    from compd.fitting import load_model
+    from compd.commissioning.fitting import load_model
+    from compd.cycle.codec import encode, word_bytes
 
     model = load_model(str(model_path))
     clients = {}
@@ -382,7 +382,7 @@ def run_bench(
 
     `load`: CPU-bound processes started beside both loops (and stopped after). `late_us`:
     cycles later than this are matched against the spans of the other threads' work
-    (compd.activity) and counted per thread in `late_attribution`. `io`: loop.io of
+    (compd.cycle.activity) and counted per thread in `late_attribution`. `io`: loop.io of
     compd's config (device I/O and the service in processes of their own, or threads).
     `bare_cycles` (default: as many as compd's): the bare loop's cycles, the machine's limit.
     `trace`: a JSON file for the causes of compd's late and slow cycles (rig.late_trace, perf)."""

@@ -5,7 +5,7 @@ simulator): none of that belongs in the resident size or the interpreter of the 
 it measures. `python -m rig.bench_loop CONFIG CYCLES LATE_US OUT.json` runs compd's
 loop for CYCLES cycles against the devices the config names and writes its timing,
 resident size, I/O round trips, host figures and the late cycles' attribution
-(compd.activity) as JSON.
+(compd.cycle.activity) as JSON.
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def io_stats(app: Any) -> dict[str, dict[str, float]]:
     """Modbus TCP round trips of compd's I/O threads: every poll of the PT100 modules
     (8 registers in one request), every write to the PMC, and the output latency from
     the cycle queueing a word to the PMC acknowledging it."""
-    from compd.histogram import DurationHist
+    from compd.cycle.histogram import DurationHist
 
     polls = [s.poll_hist for s in app.sources if s.poll_hist is not None]
     link = app.sink.link
@@ -109,8 +109,8 @@ def io_stats(app: Any) -> dict[str, dict[str, float]]:
 
 def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     """compd's loop for `cycles` cycles; timing stats and resident size."""
-    from compd.app import App
     from compd.config import load_config
+    from compd.daemon.app import App
 
     app = App(load_config(config))
     rss: dict[str, int] = {}
@@ -167,8 +167,8 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     rss["samples"] = len(samples)
     stats = app.loop.stats
     out = stats.as_dict()
-    from compd.histogram import range_limit_us
-    from compd.status import timing_over_range
+    from compd.cycle.histogram import range_limit_us
+    from compd.service.status import timing_over_range
 
     # the percentiles over the histogram's range (their value is its limit, not a measurement)
     out["over_range"] = timing_over_range(out["lateness_us"], out["cycle_compute_us"], range_limit_us(stats.hist))
@@ -191,8 +191,7 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
 
 def main(argv: list[str]) -> int:
     config, cycles, late_us, out, *flags = argv
-    from compd import activity
-
+    from compd.cycle import activity
     activity.enable(float(late_us))
     try:
         result = run_compd_loop(Path(config), int(cycles))

@@ -361,7 +361,7 @@ def word_floor_pct(residual_log: Path, machine: Machine) -> dict[str, float]:
     no-chatter band, which no model can remove. An axis with small errors (the spindle's
     radial, ~3 µm RMS) cannot reach 85 % through a 1 µm word.
     """
-    from compd.codec import Encoder
+    from compd.cycle.codec import Encoder
     from compd.log import read_log
 
     log = read_log(residual_log)
@@ -416,7 +416,7 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 def fit_args_options(args: tuple[str, ...]) -> tuple[list[str] | None, list[str] | None, dict[str, Any]]:
     """(inputs, targets, options) from `compd fit` arguments (the few MACHINES uses)."""
-    from compd.fitting import parse_options
+    from compd.commissioning.fitting import parse_options
 
     inputs: list[str] | None = None
     targets: list[str] | None = None
@@ -444,7 +444,7 @@ def prepare_model(
 
     `more`: further `compd fit` arguments (a variant's); the file is `<machine>_<tag or kind>.yaml`.
     """
-    from compd import fitting
+    from compd.commissioning import fitting
     from hil_sim.logcmd import load_plant, run_log
 
     workdir.mkdir(parents=True, exist_ok=True)

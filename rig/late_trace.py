@@ -4,7 +4,7 @@
 wake-ups, the cycle thread's page faults, the local timer interrupt; CLOCK_MONOTONIC
 time stamps, the clock of `time.perf_counter_ns`). The loop marks every cycle that woke
 more than `--late-us` after its deadline (from the deadline to the cycle's first
-bytecode) and every cycle whose own work took longer than that (compd.activity). Each
+bytecode) and every cycle whose own work took longer than that (compd.cycle.activity). Each
 marked window gets the causes the trace shows in it:
 
 | cause | what the trace shows |

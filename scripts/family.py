@@ -9,7 +9,7 @@ For each kind and seed, hil_sim.family draws one machine (its physics, sensors a
 hil_sim/README.md "Randomized families") and logs its training and its unseen day (lathe
 every 60 s, spindle 10 s, gantry 30 s, feed axis 10 s; the logs and machine files are kept
 in --workdir and reused while the drawn machine is the same, unless --fresh). On the
-training day it fits, through compd.fitting.fit_model with compd's default options,
+training day it fits, through compd.commissioning.fitting.fit_model with compd's default options,
 
   lathe      ar1 on the bed sensors T3 T4 T5
   spindle    xi_spindle on T_xi and speed_rpm, target err_z_um only
@@ -17,7 +17,7 @@ training day it fits, through compd.fitting.fit_model with compd's default optio
   feed_axis  feed_axis, with linear_p0_mm at mid-stroke and length_mm the drawn stroke
 
 and the baseline mlr on every temperature column (same targets). Each model is replayed on
-the machine's unseen day by compd.replay.replay_log, in process, into the machine's sink
+the machine's unseen day by compd.commissioning.replay.replay_log, in process, into the machine's sink
 wired as rig/closedloop.py's MACHINES are (lathe and feed axis: Siemens NC, spindle: FANUC
 PMC word, gantry: PCI-1756 card; the guard's slew 0.2 µm/s as there); the replay tells the
 Siemens NC the logged axis position of each row, as the live plant does in the closed loop.
@@ -140,9 +140,9 @@ def make_sink(kind: str, axes: list[str]) -> Any:
 
 def replay(kind: str, model: Any, log: Any) -> dict[str, Any]:
     """compd's replay of `log` through `model` into the machine's sink: the report."""
+    from compd.commissioning.fitting import clone
+    from compd.commissioning.replay import replay_log
     from compd.config import CodecConfig, GuardConfig
-    from compd.fitting import clone
-    from compd.replay import replay_log
 
     axes = list(model.outputs)
     guard = GuardConfig(max_slew_um_per_s=SLEW_UM_PER_S, stale_after_s=STALE_AFTER_S)
@@ -190,7 +190,7 @@ def _why(stage: str, e: BaseException) -> str:
 def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: float, day_h: float) -> dict[str, Any]:
     """Log, fit, replay one machine: its figures (and the reasons of what failed)."""
     os.environ["TQDM_DISABLE"] = "1"  # no progress bars from parallel fits
-    from compd import fitting
+    from compd.commissioning import fitting
     from compd.log import read_log
 
     t0 = time.monotonic()

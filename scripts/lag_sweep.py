@@ -8,7 +8,7 @@ for the paper's own) is logged with the ξ sensor T_xi lagging its point of the 
 (the plant's `sensor_lag_s`); `compd fit --kind xi_spindle --inputs T_xi speed_rpm --target
 err_z_um` fits the training day with the lead chosen held out (`lag: auto`, the default) and
 without it (`lag: off`, the paper's single gain); each model is replayed on the unseen day
-into the FANUC PMC's word in process (compd.replay, as `compd replay --model`). The table
+into the FANUC PMC's word in process (compd.commissioning.replay, as `compd replay --model`). The table
 gives the RMS reduction of the axial error and the lead the fit kept. The issue's goal: 90 %
 with a lag of 200 s.
 """
@@ -47,9 +47,9 @@ def day_log(day: str, lag_s: float, rate_s: float, out: Path, plant: dict | None
 
 def sweep(lags_s: list[float], rate_s: float, work: Path, plant: dict | None = None) -> list[dict]:
     """Per lag: the reduction with the lead (`lag: auto`) and without (`lag: off`), and the lead kept."""
-    from compd import fitting
+    from compd.commissioning import fitting
+    from compd.commissioning.replay import _pmc_sink, replay_log
     from compd.log import read_log
-    from compd.replay import _pmc_sink, replay_log
 
     rows = []
     for lag in lags_s:

@@ -1,5 +1,5 @@
 """The daemon's log lines as a test sees them, from every process of it: the service and the device I/O write
-their own lines (compd/service.py, compd/io/child.py), so a test reads stderr at the descriptor, as the journal
+their own lines (compd/service/host.py, compd/io/child.py), so a test reads stderr at the descriptor, as the journal
 would, and parses the key=value lines back into records."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import tempfile
 from collections.abc import Iterator
 from types import SimpleNamespace
 
-from compd.logsetup import KeyValueFormatter
+from compd.service.logsetup import KeyValueFormatter
 
 _PAIR = re.compile(r'(\w+)=("(?:[^"\\]|\\.)*"|\S*)')
 

@@ -1,10 +1,10 @@
-"""compd.activity: late cycles matched with the spans of other threads' work (the bench's attribution)."""
+"""compd.cycle.activity: late cycles matched with the spans of other threads' work (the bench's attribution)."""
 
 from __future__ import annotations
 
 import pytest
 
-from compd import activity
+from compd.cycle import activity
 
 
 @pytest.fixture()

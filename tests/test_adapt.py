@@ -1,4 +1,4 @@
-"""Probe adaptation (compd.adapt): the Kalman estimate converges, gates outliers, never touches
+"""Probe adaptation (compd.cycle.adapt): the Kalman estimate converges, gates outliers, never touches
 the prediction without probes, decays when stale, persists; replay applies a log's probes."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from compd.adapt import Adapter, Probe
 from compd.config import AdaptConfig
+from compd.cycle.adapt import Adapter, Probe
 
 
 def _run(adapter: Adapter, pred: float, t_s: float) -> float:

@@ -6,8 +6,8 @@ import threading
 
 import yaml
 
-from compd.app import App
 from compd.config import load_config
+from compd.daemon.app import App
 from compd.plc.fanuc_pmc import FanucPmc
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.pt100 import Pt100Transmitter

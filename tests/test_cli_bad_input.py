@@ -205,8 +205,8 @@ def test_can_open_errors_name_the_key(monkeypatch, tmp_path, exc, key):
     here has no SocketCAN, so the device case is driven through can.Bus)."""
     import can
 
-    from compd.app import App
     from compd.config import load_config
+    from compd.daemon.app import App
     from compd.errors import BadInput
 
     def no_bus(**kw):

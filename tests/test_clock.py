@@ -11,10 +11,10 @@ import time
 import numpy as np
 import pytest
 
-from compd.clock import LockstepPlantClock, PlantClock
-from compd.frame import Frame
+from compd.cycle.frame import Frame
 from compd.sources.modbus import ModbusConfig, ModbusSource
 from hil_sim.devices.modbus_server import ModbusServerThread
+from hil_sim.plant_clock import LockstepPlantClock, PlantClock
 
 WAIT_S = 20.0
 

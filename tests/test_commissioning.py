@@ -139,8 +139,7 @@ def _fit(r: subprocess.CompletedProcess, work: Path) -> None:
     assert report["axes"]["z"]["rmse_um"] == pytest.approx(model["fit"]["rmse_um"]["z"])
     assert "baseline_mlr" in report
     # the page's figure for the fit without the speed (no lift)
-    from compd import fitting
-
+    from compd.commissioning import fitting
     quoted = re.search(r"without it, ([\d.]+) µm here", " ".join(GUIDE.read_text(encoding="utf-8").split()))
     oc = fitting.fit_model("xi_spindle", fitting.read_fit_log(work / "warmup.csv"), ["T_xi"], ["err_z_um"], {},
                            baseline=False)

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from compd.app import CompensationSummary
+from compd.daemon.app import CompensationSummary
 
 
 def test_nan_true_error_is_skipped_not_propagated() -> None:

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from compd.app import App
 from compd.cli import main
 from compd.config import load_config
+from compd.daemon.app import App
 from compd.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent

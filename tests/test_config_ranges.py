@@ -21,10 +21,10 @@ from hypothesis import strategies as st
 from pydantic import BaseModel
 
 from compd import config as c
-from compd.app import App
 from compd.cli import main
-from compd.codec import MAX_MAG
 from compd.config import load_config
+from compd.cycle.codec import MAX_MAG
+from compd.daemon.app import App
 from compd.errors import ConfigError
 from compd.log import read_log
 from compd.sinks import SINKS

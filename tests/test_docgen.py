@@ -7,7 +7,7 @@ import typing
 from pydantic import BaseModel
 
 from compd import config as c
-from compd.docgen import generate, unit_of
+from compd.commissioning.docgen import generate, unit_of
 
 
 def test_committed_reference_is_current(root):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import compd.fitting as fitting
+import compd.commissioning.fitting as fitting
 import compd.identify as identify_pkg
 from compd.identify import holdout
 from compd.log import Log

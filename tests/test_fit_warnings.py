@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from compd import fitting
 from compd.cli import main
+from compd.commissioning import fitting
 from compd.log import Log, write_log
 
 

@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from compd.cli import main
+from compd.commissioning.fitting import load_model
 from compd.config import load_config
-from compd.fitting import load_model
 from compd.log import is_temperature_column, read_log, write_log
 
 

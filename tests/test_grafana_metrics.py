@@ -6,7 +6,7 @@ import json
 import re
 from typing import Any
 
-from compd.metrics import families, metrics_markdown, sample_names, unit_of
+from compd.service.metrics import families, metrics_markdown, sample_names, unit_of
 
 NAME = re.compile(r"\bcompd_[a-z0-9_]+")
 
@@ -37,7 +37,7 @@ def test_every_query_names_an_exported_metric_and_every_family_has_a_panel(root)
     scraped = set().union(*exported.values())
     queried = {n for e in _exprs(dash) for n in NAME.findall(e)}
     assert queried, "no query names a compd metric"
-    assert queried <= scraped, f"not exported by compd/metrics.py: {sorted(queried - scraped)}"
+    assert queried <= scraped, f"not exported by compd/service/metrics.py: {sorted(queried - scraped)}"
     panel_exprs = [t["expr"] for p in dash["panels"] for t in p.get("targets", [])]
     for fam, names in exported.items():
         assert any(n in NAME.findall(e) for e in panel_exprs for n in names), f"no panel shows {fam}"

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from compd.config import GuardConfig, SignalLimits
-from compd.frame import Frame, Quality
-from compd.guard import Guard
+from compd.cycle.frame import Frame, Quality
+from compd.cycle.guard import Guard
 
 
 def run(guard: Guard, frame: Frame, preds, dt=0.1, t0=0.0, bad_from=None, bad_to=None):  # noqa: ANN001

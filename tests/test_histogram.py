@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from compd.histogram import DurationHist, percentile_text
-from compd.loop import TimingStats
-from compd.status import render, timing
+from compd.cycle.histogram import DurationHist, percentile_text
+from compd.cycle.loop import TimingStats
+from compd.service.status import render, timing
 
 
 def test_percentiles_and_max() -> None:

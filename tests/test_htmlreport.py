@@ -77,7 +77,7 @@ def test_report_is_one_self_contained_page(reports, capsys):
 
 
 def test_report_embeds_given_pngs(reports):
-    from compd.plots import Trend, write_trend
+    from compd.commissioning.plots import Trend, write_trend
 
     png = reports / "mine.png"
     t = np.arange(10.0)

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import yaml
 
-from compd.app import App
 from compd.config import GuardConfig, InhibitConfig, load_config
+from compd.cycle.frame import Frame, Quality
+from compd.cycle.guard import Guard
+from compd.cycle.inhibit import INHIBITED, NONE, WAITING, Inhibit
+from compd.daemon.app import App
 from compd.errors import BadInput
-from compd.frame import Frame, Quality
-from compd.guard import Guard
-from compd.inhibit import INHIBITED, NONE, WAITING, Inhibit
 from compd.plc.fanuc_pmc import FanucPmc
-from compd.status import render, snapshot
+from compd.service.status import render, snapshot
 from hil_sim.devices.modbus_server import ModbusServerThread
 
 SLEW = 10.0  # µm/s
@@ -32,8 +32,8 @@ def _guard_with_hold(slew: float = SLEW) -> Guard:
 
 
 def test_guard_ramps_a_held_axis_to_zero_at_the_slew_and_back(caplog):
-    from compd.publish import with_causes
-    from compd.service import log_guard_event
+    from compd.cycle.publish import with_causes
+    from compd.service.host import log_guard_event
 
     g = _guard_with_hold()
     pred = np.array([20.0])  # target −20 µm
@@ -203,8 +203,8 @@ def test_check_config_names_an_unknown_inhibit_signal(tmp_path: Path, capsys):
 def test_replay_holds_off_where_the_log_says_the_machine_did(tmp_path: Path):
     """A log with the inhibit column: the replay ramps the correction to 0 at the slew where
     the machine inhibited it and back after; a log without it is replayed never held off."""
+    from compd.commissioning.replay import replay_config
     from compd.log import write_log
-    from compd.replay import replay_config
 
     n = 400
     t = np.arange(n, dtype=float)

@@ -6,11 +6,11 @@ import logging
 import os
 import sys
 
-from compd.logsetup import KeyValueFormatter, setup_logging, stderr_is_journal
+from compd.service.logsetup import KeyValueFormatter, setup_logging, stderr_is_journal
 
 
 def _record(msg: str, level: int = logging.WARNING, **extra) -> logging.LogRecord:
-    rec = logging.LogRecord("compd.service", level, __file__, 1, msg, (), None)
+    rec = logging.LogRecord("compd.service.host", level, __file__, 1, msg, (), None)
     for k, v in extra.items():
         setattr(rec, k, v)
     return rec

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from compd.app import App
-from compd.clock import Clock
-from compd.codec import decode
 from compd.config import load_config
+from compd.cycle.clock import Clock
+from compd.cycle.codec import decode
+from compd.daemon.app import App
 from tests.service_helpers import wait_running
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -6,11 +6,11 @@ import urllib.request
 
 import pytest
 
-from compd.app import App
 from compd.config import load_config
+from compd.daemon.app import App
 from compd.errors import BadInput
-from compd.metrics import MetricsServer
-from compd.status import snapshot
+from compd.service.metrics import MetricsServer
+from compd.service.status import snapshot
 from tests.service_helpers import sim_config
 
 pytest.importorskip("prometheus_client")  # the `metrics` extra; the `test` extra installs it
@@ -72,7 +72,7 @@ def test_metrics_endpoint(tmp_path):
 def test_an_axis_the_machine_holds_off(tmp_path):
     app = App(load_config(sim_config(tmp_path, duration_s=60)))
     app.run()
-    app.loop.guard.hold[0] = 2  # compd.inhibit.WAITING: the axis waits for its reference
+    app.loop.guard.hold[0] = 2  # compd.cycle.inhibit.WAITING: the axis waits for its reference
     m = _served(app, "running")
     assert m['compd_axis_held{axis="z",reason="waiting for reference"}'] == 1.0
     assert m['compd_axis_held{axis="z",reason="inhibited"}'] == 0.0
@@ -162,7 +162,7 @@ def test_connections_beyond_the_cap_are_closed_not_queued():
 
 
 def test_the_adaptation_estimate_and_probe_counts(tmp_path):
-    from compd.adapt import Probe
+    from compd.cycle.adapt import Probe
 
     app = App(load_config(sim_config(tmp_path, "adapt: {}", duration_s=600)))
     app.run()

@@ -7,7 +7,7 @@ import socket
 
 import pytest
 
-from compd.notify import Notifier, WatchdogObserver, socket_address, watchdog_interval_s
+from compd.service.notify import Notifier, WatchdogObserver, socket_address, watchdog_interval_s
 
 
 @pytest.fixture

@@ -14,11 +14,11 @@ from typing import Any
 
 import pytest
 
-from compd.app import App
 from compd.config import load_config
+from compd.daemon.app import App
 from compd.plant.telemetry import device_metrics
+from compd.service.status import jsonable, render, snapshot
 from compd.sinks.observe import ObserveSink
-from compd.status import jsonable, render, snapshot
 from tests.service_helpers import sim_config
 
 CYCLE = 3000  # the sim spindle is warm and the axis normal by then (tests/test_status.py)
@@ -88,7 +88,7 @@ def test_status_text_in_observe_mode(observed: dict[str, Any]) -> None:
 
 def test_metrics_say_disabled_in_observe_mode(observed: dict[str, Any]) -> None:
     pytest.importorskip("prometheus_client")  # the `metrics` extra; the `test` extra installs it
-    from compd.metrics import SnapshotCollector
+    from compd.service.metrics import SnapshotCollector
 
     c = SnapshotCollector()
     c.update(observed["snap"], [], 0, 0.0)

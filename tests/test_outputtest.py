@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from compd.cli import main
+from compd.commissioning.outputtest import run_output_test
 from compd.config import load_config
-from compd.outputtest import run_output_test
 from compd.plc.fanuc_pmc import FanucPmc
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.scan import PmcScanThread
@@ -127,9 +127,9 @@ def test_cli_output_test_bad_input_is_one_line_exit_2(tmp_path, capsys, argv, ne
 def test_a_device_that_does_not_answer_gets_nothing_written(tmp_path, capsys, monkeypatch):
     import socket
 
-    import compd.outputtest
+    import compd.commissioning.outputtest
 
-    monkeypatch.setattr(compd.outputtest, "LINK_WAIT_S", 0.3)
+    monkeypatch.setattr(compd.commissioning.outputtest, "LINK_WAIT_S", 0.3)
     with socket.socket() as s:  # a port nothing listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -144,7 +144,7 @@ def test_refuses_beside_a_running_daemon_of_the_config(tmp_path, capsys):
     import time
 
     path = _config(tmp_path, {"kind": "fanuc_pmc"})
-    from compd.status import SCHEMA
+    from compd.service.status import SCHEMA
 
     with open(path, encoding="utf-8") as fh:
         doc = yaml.safe_load(fh)

@@ -12,9 +12,9 @@ from typing import Any
 
 import pytest
 
-from compd.loop import HIST_US, TimingStats
+from compd.cycle.loop import HIST_US, TimingStats
 from compd.plant.telemetry import device_metrics
-from compd.status import jsonable, render, timing
+from compd.service.status import jsonable, render, timing
 
 
 def _stalled_stats() -> TimingStats:

@@ -1,4 +1,4 @@
-"""One pipeline builder: run, replay and observe mode wire their stages through compd.pipeline."""
+"""One pipeline builder: run, replay and observe mode wire their stages through compd.cycle.pipeline."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import compd.pipeline
-from compd.app import App
-from compd.clock import SimClock
+import compd.cycle.pipeline
+from compd.commissioning.replay import replay_config
 from compd.config import CodecConfig, GuardConfig, load_config
+from compd.cycle.clock import SimClock
+from compd.cycle.pipeline import build_model, build_pipeline
+from compd.daemon.app import App
 from compd.errors import BadInput
 from compd.log import write_log
-from compd.pipeline import build_model, build_pipeline
-from compd.replay import replay_config
 from compd.sinks.observe import ObserveSink
 from compd.sources.replay import ReplayConfig, ReplaySource
 
@@ -50,7 +50,7 @@ def config(tmp_path: Path) -> Path:
 
 def _spy(monkeypatch: pytest.MonkeyPatch, module: str) -> list[dict]:
     calls: list[dict] = []
-    real = compd.pipeline.build_pipeline
+    real = compd.cycle.pipeline.build_pipeline
 
     def spy(**kw):
         calls.append(kw)
@@ -61,8 +61,8 @@ def _spy(monkeypatch: pytest.MonkeyPatch, module: str) -> list[dict]:
 
 
 def test_run_and_replay_wire_the_same_stages(config: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    replay_calls = _spy(monkeypatch, "compd.replay")
-    run_calls = _spy(monkeypatch, "compd.pipeline")  # App builds through pipeline.from_config
+    replay_calls = _spy(monkeypatch, "compd.commissioning.replay")
+    run_calls = _spy(monkeypatch, "compd.cycle.pipeline")  # App builds through pipeline.from_config
     cfg = load_config(config)
     app = App(cfg)
     result = replay_config(config, config.parent / "day.csv")

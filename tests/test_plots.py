@@ -1,4 +1,4 @@
-"""compd.plots and `compd plot`: the word decoded with the codec, bands from the log, bad logs exit 2."""
+"""compd.commissioning.plots and `compd plot`: the word decoded with the codec, bands from the log, bad logs exit 2."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from compd.cli import main
-from compd.codec import decode, encode
+from compd.commissioning.plots import _runs, decode_words, trend_from_log, write_trend
+from compd.cycle.codec import decode, encode
 from compd.log import read_log, write_log
-from compd.plots import _runs, decode_words, trend_from_log, write_trend
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -136,9 +136,9 @@ def test_cli_plot_bad_arguments_are_exit_2(tmp_path, capsys):
 def test_replay_trend_has_the_guards_fault_spans_and_the_words_bytes(tmp_path):
     """A replay through a config whose guard faults the axis on an out-of-range input: the
     trend's fault mask is the guard's state, and the commanded line is the word decoded."""
-    from compd.guard import FAULT, RECOVERING
-    from compd.plots import trend_from_replay
-    from compd.replay import replay_config, write_plot
+    from compd.commissioning.plots import trend_from_replay
+    from compd.commissioning.replay import replay_config, write_plot
+    from compd.cycle.guard import FAULT, RECOVERING
 
     n = 200
     t = np.arange(n) * 10.0
@@ -191,8 +191,8 @@ def test_replay_trend_shows_the_device_trailing_its_command(tmp_path):
     commanded line is the device's target (here the word's correction) and applied − commanded,
     the trailing panel's trace, shows by how much and how long; the PCI-1756 card (no rate of
     its own) applies its command at every row."""
-    from compd.plots import trailing_um, trend_from_replay
-    from compd.replay import replay_config, write_plot
+    from compd.commissioning.plots import trailing_um, trend_from_replay
+    from compd.commissioning.replay import replay_config, write_plot
 
     t = np.arange(0.0, 7200.0, 10.0)
     err = 2.0 * np.floor(t / 1200.0)  # +2 µm every 20 min: 2 LSB, 60 s for the slow PMC to follow

@@ -1,4 +1,4 @@
-"""`compd probe` and the daemon's probe socket (compd/control.py), with the daemon as a real process."""
+"""`compd probe` and the daemon's probe socket (compd/service/control.py), with the daemon as a real process."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from compd import control
 from compd.errors import BadInput
+from compd.service import control
 from tests.service_helpers import sim_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -144,7 +144,7 @@ def test_the_estimate_is_restored_for_the_same_model_and_reset_for_a_refit_one(t
         "state": {"t0_c": 19.8, "ref_c": None},
     }
     from compd.config import load_config
-    from compd.state import params_digest
+    from compd.service.state import params_digest
 
     digest = params_digest(load_config(cfg).model.params)
     axes = {"z": {"s": [2.5], "P": [[0.04]], "t_probe_s": 10.0, "accepted": 4, "rejected": 1, "probe_age_s": 30.0}}
@@ -240,9 +240,9 @@ def test_a_path_that_is_not_a_socket_is_refused(tmp_path):
 
 
 def test_a_reload_keeps_the_socket_and_the_estimate(tmp_path):
-    from compd.adapt import Probe
-    from compd.app import App
     from compd.config import load_config
+    from compd.cycle.adapt import Probe
+    from compd.daemon.app import App
 
     cfg = sim_config(tmp_path, EXTRA.format(), duration_s=600)
     old = App(load_config(cfg))

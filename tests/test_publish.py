@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 
-from compd.adapt import Probe
-from compd.app import App
 from compd.config import load_config
-from compd.realtime import unshare_pages
+from compd.cycle.adapt import Probe
+from compd.cycle.realtime import unshare_pages
+from compd.daemon.app import App
 from tests.service_helpers import sim_config
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from compd import fitting
+from compd.commissioning import fitting
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -8,7 +8,7 @@ import sys
 
 SCRIPT = """
 import json, numpy
-from compd.realtime import _mlockall
+from compd.cycle.realtime import _mlockall
 def rss():
     for line in open('/proc/self/status'):
         if line.startswith('VmRSS'):

@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from compd.cli import main
+from compd.commissioning.replay import replay_model
 from compd.log import read_log, write_log
 from compd.plc.fanuc_pmc import FanucPmc
-from compd.replay import replay_model
 from hil_sim.plants.spindle import SpindlePlant
 from hil_sim.scenario import Scenario
 
@@ -140,8 +140,8 @@ def test_replay_missing_input_column_is_exit_2(tmp_path, log_and_model, capsys):
 def test_config_replay_against_pmc_over_modbus(tmp_path):
     """A config whose fanuc_pmc sink names an address: the replay drives a PMC scanning
     on its own over Modbus TCP, and agrees with the in-process PMC."""
+    from compd.commissioning.replay import replay_config
     from compd.plc.fanuc_pmc import FanucPmc
-    from compd.replay import replay_config
     from hil_sim.devices.modbus_server import ModbusServerThread
     from hil_sim.devices.scan import PmcScanThread
 
@@ -212,7 +212,7 @@ def test_config_replay_drives_the_siemens_nc_with_its_resolution_and_no_word_cla
     """configs/modbus_rtu_siemens.yaml's sink (an NC gateway at an address) replays through the
     software PLC's Siemens NC in process: K0 moves in fine steps, not the word's 1 µm LSB, and
     past the word's ±63 µm when the guard allows it; the report names the NC."""
-    from compd.replay import replay_config
+    from compd.commissioning.replay import replay_config
 
     src = yaml.safe_load(Path("configs/modbus_rtu_siemens.yaml").read_text(encoding="utf-8"))
     src["guard"]["max_abs_um"] = 200.0
@@ -245,7 +245,7 @@ def test_model_replay_says_it_uses_the_default_pmc(log_and_model, capsys):
 
 
 def test_config_replay_of_a_pci1756_over_modbus_uses_the_card_in_process(tmp_path):
-    from compd.replay import replay_config
+    from compd.commissioning.replay import replay_config
 
     doc = {
         "sources": [{"kind": "replay", "name": "log", "path": "big.csv"}],
@@ -337,7 +337,7 @@ def machines(tmp_path_factory):
 
 
 def _model(d, name):
-    from compd.fitting import load_model
+    from compd.commissioning.fitting import load_model
 
     return load_model(d / f"{name}.yaml")
 
@@ -360,7 +360,7 @@ def _both(log, make_model, sink_kind, **kw):
     """The replay cycle by cycle (the loop's own `step`) and staged: every trace and the report equal
     (the prediction and correction to 1e-9 µm: a linear model's batch matrix product rounds in
     another order than its row by row dot product)."""
-    from compd.replay import replay_log
+    from compd.commissioning.replay import replay_log
 
     ref = replay_log(log, make_model(), _sink(sink_kind), per_row=True, **kw)
     got = replay_log(log, make_model(), _sink(sink_kind), **kw)
@@ -389,9 +389,9 @@ def _stepped(model, X, t):
 
 
 def test_predict_equals_stepping_for_every_kind_the_replay_batches(machines):
-    """compd.replay.BATCH_MODELS: each class's `predict` over a day equals the loop stepping it,
+    """compd.commissioning.replay.BATCH_MODELS: each class's `predict` over a day equals the loop stepping it,
     and leaves the model where stepping does (the rows after continue alike)."""
-    from compd.replay import BATCH_MODELS
+    from compd.commissioning.replay import BATCH_MODELS
 
     d, logs = machines
     seen = set()
@@ -486,7 +486,7 @@ def test_staged_replay_equals_the_loops_cycles_with_frozen_limits(machines):
 
 def test_staged_replay_equals_the_loops_cycles_with_probes(machines, tmp_path):
     """The probe adapter between model and guard, and the replay without it for the report."""
-    from compd.fitting import load_model
+    from compd.commissioning.fitting import load_model
     from compd.log import Log
 
     d, logs = machines
@@ -548,7 +548,7 @@ def test_rows_1_s_or_10_s_apart_give_the_same_applied_correction(tmp_path, sink)
     the guard's correction is the same (its slew does not bind) and so is what the device
     applied, to the device's resolution — the FANUC sink moves its shift as far in a 10 s
     row as in ten 1 s rows, the NC ramps over the row's time."""
-    from compd.replay import replay_config
+    from compd.commissioning.replay import replay_config
 
     cfg = tmp_path / "c.yaml"
     cfg.write_text(yaml.safe_dump({**XI_CONFIG, "sink": sink}))
@@ -588,9 +588,9 @@ def test_fanuc_replay_of_10_s_rows_is_not_limited_to_one_step_per_row(tmp_path):
     steps of at most max_step_um, each two PMC scans or more after the one before, never an
     alarm; the machine applies at every row what the word commands, as the PCI-1756 card
     does, so both score the same."""
+    from compd.commissioning.fitting import load_model
+    from compd.commissioning.replay import replay_log
     from compd.config import CodecConfig, GuardConfig
-    from compd.fitting import load_model
-    from compd.replay import replay_log
     from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink
     from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
 
@@ -619,7 +619,7 @@ def test_fanuc_replay_of_10_s_rows_is_not_limited_to_one_step_per_row(tmp_path):
 def test_the_guards_slew_holds_per_second_of_simulated_time(tmp_path, spacing):
     """A 40 µm step in the error: the guard's correction, and what the PMC applies, move at
     most max_slew_um_per_s × the time between rows (the applied within the word's LSB)."""
-    from compd.replay import replay_config
+    from compd.commissioning.replay import replay_config
 
     rng = np.random.default_rng(5)
     if spacing == "irregular":
@@ -643,8 +643,8 @@ def test_the_siemens_nc_applies_its_slope_where_the_log_says_the_axis_stood(mach
     """A position-dependent model through the Siemens sink: the NC in process is told each row's
     pos_<axis>_mm, as the machine's NC knows its axis, so ΔK = K0 + tanβ·(P − P0) is taken there
     (before, P stayed 0 in a replay)."""
+    from compd.commissioning.replay import replay_log
     from compd.log import Log
-    from compd.replay import replay_log
 
     d, logs = machines
     log = logs["feed_axis"]

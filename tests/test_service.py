@@ -10,12 +10,12 @@ import time
 
 import numpy as np
 
-from compd.app import App
 from compd.config import RealtimeConfig, load_config
-from compd.logsetup import KeyValueFormatter
-from compd.publish import Tail
-from compd.realtime import apply_realtime
-from compd.service import status_path
+from compd.cycle.publish import Tail
+from compd.cycle.realtime import apply_realtime
+from compd.daemon.app import App
+from compd.service.host import status_path
+from compd.service.logsetup import KeyValueFormatter
 from tests.service_helpers import fault_config, sim_config
 
 

@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 import yaml
 
-from compd import control
 from compd.log import read_log
-from compd.status import render
+from compd.service import control
+from compd.service.status import render
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.pt100 import Pt100Transmitter
 from hil_sim.devices.pt100_modbus import Pt100ModbusDevice

@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 import threading
 
-from compd.servicethread import ServiceThread
+from compd.service.threads import ServiceThread
 
 
 def test_a_failing_thread_is_logged_once_and_seen_ended(caplog) -> None:  # noqa: ANN001
@@ -41,7 +41,7 @@ def test_the_services_threads_are_service_threads(tmp_path) -> None:  # noqa: AN
     from pathlib import Path
 
     from compd.log import LogWriter
-    from compd.state import StateWriter
+    from compd.service.state import StateWriter
 
     lw = LogWriter(Path(tmp_path) / "a.csv", ["t_s", "x"], 0.05)
     sw = StateWriter(Path(tmp_path) / "s.json", "ar1", ["T"], ["z"])

@@ -11,12 +11,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from compd.app import App
-from compd.clock import Clock
 from compd.config import load_config
-from compd.frame import Quality
-from compd.guard import Guard
-from compd.service import log_guard_event
+from compd.cycle.clock import Clock
+from compd.cycle.frame import Quality
+from compd.cycle.guard import Guard
+from compd.daemon.app import App
+from compd.service.host import log_guard_event
 from tests.test_guard import make, run
 from tests.test_loop import CONFIG, ScriptedClock
 

@@ -11,8 +11,8 @@ import pytest
 
 from compd.cli import main
 from compd.config import GuardConfig
-from compd.frame import Frame, Quality
-from compd.guard import Guard
+from compd.cycle.frame import Frame, Quality
+from compd.cycle.guard import Guard
 from compd.log import write_log
 
 CONFIG = """\

@@ -6,9 +6,9 @@ import json
 import time
 from pathlib import Path
 
-from compd.app import App
 from compd.config import load_config
-from compd.state import StateWriter, load_saved, write_atomic
+from compd.daemon.app import App
+from compd.service.state import StateWriter, load_saved, write_atomic
 
 CONFIG = """\
 loop: {clock: sim, period_s: 1.0}

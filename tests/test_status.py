@@ -11,12 +11,12 @@ import time
 import numpy as np
 import pytest
 
-from compd.app import App
 from compd.cli import main
 from compd.config import load_config
+from compd.cycle.loop import TimingStats
+from compd.daemon.app import App
 from compd.errors import BadInput
-from compd.loop import TimingStats
-from compd.status import liveness, read_status, render, snapshot, timing, write_atomic
+from compd.service.status import liveness, read_status, render, snapshot, timing, write_atomic
 from tests.service_helpers import sim_config
 
 
@@ -69,7 +69,7 @@ def test_numpy_percentiles_match_the_loops_own():
 
 
 def test_nan_becomes_null_and_an_empty_histogram_reads_zero():
-    from compd.status import jsonable
+    from compd.service.status import jsonable
 
     lt = timing(TimingStats(0.002))["lateness_us"]
     assert lt == {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
@@ -145,7 +145,7 @@ def test_a_sink_that_cannot_reach_the_machine_is_shown_down_and_not_enabled(tmp_
     but status, render and metrics say the link is down and the axis is not enabled."""
     import socket
 
-    from compd.metrics import SnapshotCollector
+    from compd.service.metrics import SnapshotCollector
 
     with socket.socket() as s:  # a free port, closed again: connections are refused
         s.bind(("127.0.0.1", 0))

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from compd import status as status_mod
 from compd.cli import main
+from compd.service import status as status_mod
 from tests.test_config import GOOD
 
 CONFIG = GOOD + "status: {path: shared.json}\n"

@@ -14,12 +14,12 @@ import numpy as np
 import yaml
 
 from compd import version
-from compd.app import App
 from compd.cli import main
+from compd.commissioning.fitting import load_model
 from compd.config import load_config
-from compd.fitting import load_model
+from compd.daemon.app import App
 from compd.log import write_log
-from compd.status import render, snapshot, write_atomic
+from compd.service.status import render, snapshot, write_atomic
 
 
 def _log(path, n=200):

@@ -9,10 +9,18 @@ from pathlib import Path
 
 import numpy as np
 
-from compd.app import App
 from compd.config import load_config
+from compd.cycle.statusblock import (
+    AXIS,
+    LOOP,
+    SIGNAL,
+    StatusBlock,
+    compose,
+    describe,
+    fields_markdown,
+)
+from compd.daemon.app import App
 from compd.io.mailbox import shared_buffer
-from compd.statusblock import AXIS, LOOP, SIGNAL, StatusBlock, compose, describe, fields_markdown
 from tests.service_helpers import sim_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -105,6 +113,6 @@ def test_a_reader_in_another_process_never_sees_a_half_written_record(tmp_path: 
 
 def test_the_status_fields_page_is_generated_from_the_schema() -> None:
     page = (ROOT / "docs" / "status-fields.md").read_text(encoding="utf-8")
-    assert page == fields_markdown(), "docs/status-fields.md is stale: python -m compd.statusblock > docs/status-fields.md"
+    assert page == fields_markdown(), "docs/status-fields.md is stale: python -m compd.cycle.statusblock > docs/status-fields.md"
     for f in (*AXIS, *SIGNAL, *LOOP):
         assert f"`{f.key}`" in page and f.meaning

@@ -7,12 +7,12 @@ import time
 
 import pytest
 
-from compd import watch as watch_mod
-from compd.app import App
 from compd.cli import main
 from compd.config import load_config
-from compd.status import snapshot, write_atomic
-from compd.watch import watch
+from compd.daemon.app import App
+from compd.service import watch as watch_mod
+from compd.service.status import snapshot, write_atomic
+from compd.service.watch import watch
 from tests.service_helpers import sim_config
 
 

@@ -2,7 +2,7 @@
 
 One module per kind (`fit(log, inputs, targets, **options) -> FitResult` and its `Options`),
 found by YAML `kind` like the run-time models; compd.identify.data is the shared data
-preparation. Only `compd fit` (compd.fitting) and the offline tools import this package:
+preparation. Only `compd fit` (compd.commissioning.fitting) and the offline tools import this package:
 the daemon evaluates models without it (and without scipy or tqdm).
 """
 
@@ -39,7 +39,7 @@ def identify(
 
     `inputs`/`targets` None means the kind's defaults (every temperature column, every
     `err_*_um` column); `options` are validated against the kind's `Options` (plus `lag`). The
-    report holds what is specific to the kind (Q², Ljung–Box, convergence, the lag); compd.fitting
+    report holds what is specific to the kind (Q², Ljung–Box, convergence, the lag); compd.commissioning.fitting
     adds the common figures (rows, RMSE, max error, fit time).
     """
     from compd.identify.lag import fit_with_lag

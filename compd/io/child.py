@@ -35,7 +35,7 @@ The parent has threads when it forks (a simulated clock's workers): the child us
 its own objects, and Python re-creates the import and logging locks after a fork. Pages
 the parent writes after a fork are copied on the first write (a fault each), so
 children are forked at start-up and at a reload, never while cycles run, and a
-memory-locked daemon copies its pages before the first cycle (`compd.realtime.unshare_pages`).
+memory-locked daemon copies its pages before the first cycle (`compd.cycle.realtime.unshare_pages`).
 """
 
 from __future__ import annotations
@@ -305,8 +305,7 @@ class Child:
         _normal_scheduling(avoid_cpus)
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
-        from compd import activity
-
+        from compd.cycle import activity
         activity.disable()
 
     def send(self, msg: Any) -> None:

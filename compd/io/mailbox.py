@@ -28,7 +28,7 @@ from typing import Generic, TypeVar
 
 import numpy as np
 
-from compd.frame import Frame, Quality
+from compd.cycle.frame import Frame, Quality
 
 T = TypeVar("T")
 

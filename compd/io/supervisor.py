@@ -4,7 +4,7 @@ Every device worker (compd.io.worker: a polled source, the CAN reader, a sink's 
 link) runs a thread of its own, in a child process when the daemon hosts I/O so
 (`loop.io: process`). Such a child can die (a crash, the OOM killer, `kill -9`) or stop
 (SIGSTOP, a device call that never returns). `Supervisor.check` runs on the cycle's
-thread between two cycles (compd/publish.py) and looks at every worker at most every
+thread between two cycles (compd/cycle/publish.py) and looks at every worker at most every
 `check_every_s`: its heartbeat (a counter in shared memory the worker's thread bumps at
 least every 50 ms) and, for a child, whether the process still exists (`waitpid` with
 WNOHANG: the cycle's process reaps its children here). A worker that is gone or silent
@@ -22,7 +22,7 @@ for its `stall_after_s` (2 s) is
   next writes; a poller publishes fresh samples.
 
 More than `max_restarts` losses within `window_s` escalate (event `io_restarts_exhausted`,
-critical): the daemon stops feeding systemd's watchdog (compd/notify.py), so systemd
+critical): the daemon stops feeding systemd's watchdog (compd/service/notify.py), so systemd
 restarts the whole daemon, the way its unit file asks (`Restart=on-failure`,
 `WatchdogSec=`); restarts of the worker go on meanwhile. Without a watchdog the line is
 all that happens.
@@ -47,7 +47,7 @@ log = logging.getLogger("compd.io")
 
 class Supervised(Protocol):
     """What the supervisor watches: an I/O worker (compd.io.worker.IoWorker) or the service's
-    process (compd.service)."""
+    process (compd.service.host)."""
 
     name: str
     lost_event: str  # the event of its loss (io_process_lost, service_lost) ...

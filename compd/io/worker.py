@@ -74,8 +74,8 @@ from typing import Any
 
 import numpy as np
 
-from compd import activity
-from compd.histogram import DurationHist
+from compd.cycle import activity
+from compd.cycle.histogram import DurationHist
 from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import SharedBlob

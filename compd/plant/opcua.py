@@ -1,7 +1,7 @@
 """A read-only OPC UA server (asyncua) that shows compd's live status to the plant, secured with Basic256Sha256.
 
-The service process (compd/service.py) starts an `OpcUaServer` on its first status
-snapshot (compd/status.py) and hands it each later one; the server runs on a thread of
+The service process (compd/service/host.py) starts an `OpcUaServer` on its first status
+snapshot (compd/service/status.py) and hands it each later one; the server runs on a thread of
 its own ("compd-opcua") with its own asyncio loop, never on the cycle.
 
 The address space (docs/plant.md, "OPC UA"): under Objects, a folder `compd` in the
@@ -10,9 +10,10 @@ browse path: `ns=<idx>;s=compd.Axes.z.CorrectionUm` is the variable `CorrectionU
 the folder `z` in the folder `Axes` in `compd`.
 
 * `compd.State` (String), `compd.Observe` (Boolean): the daemon's state, observe mode;
-* `compd.Axes.<axis>.` CorrectionUm, TargetUm, PredictionUm (Double, µm), Word (UInt16:
-  the 16-bit word that carries the axis), Enable (Boolean: on at the machine, so false in
-  observe mode and while the sink's link is not up), State (String), ModelKind
+* `compd.Axes.<axis>.` CorrectionUm, TargetUm, PredictionUm, AppliedUm (Double, µm: what
+  the device acknowledged or reads back), Word (UInt16: the 16-bit word that carries the
+  axis), Enable (Boolean: on at the machine, so false in observe mode; Bad, not confirmed,
+  while the sink's link is not up), State (String), ModelKind
   (String), FitDate (String: the model's `fit.fitted_at`, or empty);
 * `compd.Signals.<signal>.` Value (Double, its StatusCode from the signal's quality,
   see `QUALITY_STATUS`), Quality (String);
@@ -57,7 +58,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from compd import version
 from compd.errors import BadInput
 from compd.plant.spec import MAX_SECRET_BYTES
-from compd.servicethread import ServiceThread
+from compd.service.threads import ServiceThread
 
 if TYPE_CHECKING:
     from compd.config import OpcUaConfig
@@ -96,7 +97,7 @@ MICROMETRE = Unit("µm", "4H", "micrometre (micron)")
 MILLISECOND = Unit("ms", "C26", "millisecond")
 MICROSECOND = Unit("µs", "B98", "microsecond")
 
-# a signal's quality (compd/frame.py) → the StatusCode of its Value; any other → BadSensorFailure
+# a signal's quality (compd/cycle/frame.py) → the StatusCode of its Value; any other → BadSensorFailure
 QUALITY_STATUS = {
     "good": "Good",
     "stale": "UncertainLastUsableValue",
@@ -168,10 +169,12 @@ def address_space(snap: dict[str, Any]) -> list[Variable]:
             Variable(p + "CorrectionUm", "Double", um, field("correction_um")),
             Variable(p + "TargetUm", "Double", um, field("target_um")),
             Variable(p + "PredictionUm", "Double", um, field("prediction_um")),
+            # what the device acknowledged or reads back (Bad: not known, e.g. the sink's link not up)
+            Variable(p + "AppliedUm", "Double", um, field("applied_um")),
             Variable(p + "Word", "UInt16", None, _good(lambda s: int(s["word"], 16))),
-            # on at the machine (compd/status.py): never in observe mode, whose word is 0
-            Variable(p + "Enable", "Boolean", None,
-                     _good(lambda s, axis=axis: s["axes"][axis]["enable"] and not s.get("observe"))),
+            # on at the machine (compd/service/status.py): never in observe mode, whose word is 0
+            Variable(p + "Enable", "Boolean", None,  # None (Bad): not confirmed while the link is not up
+                     _good(lambda s, axis=axis: False if s.get("observe") else s["axes"][axis]["enable"])),
             Variable(p + "State", "String", None, field("state")),
             Variable(p + "ModelKind", "String", None, _good(lambda s: s["model"]["kind"])),
             Variable(p + "FitDate", "String", None, _good(_fit_date)),

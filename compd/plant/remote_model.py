@@ -176,8 +176,8 @@ class RemoteModels:
 def validate(spec: RemoteSpec, candidate: Path) -> str | None:
     """Why the model file `candidate` cannot replace the running one (None: it can), checked as
     a reload would: the config read again with its model section pointing at `candidate`."""
-    from compd import pipeline
     from compd.config import load_config, resolve_model
+    from compd.cycle import pipeline
 
     try:
         cfg = load_config(spec.config)

@@ -2,7 +2,7 @@
 
 One `Telemetry` is one Sparkplug edge node (this compd) with one device (the machine
 it compensates). It runs on a thread of its own ("compd-telemetry") in the service
-process (compd/service.py), never on the cycle: the service hands it each status
+process (compd/service/host.py), never on the cycle: the service hands it each status
 snapshot (`sample`) and each event (`event`) and returns at once.
 
 Every sample and event goes first into the store-and-forward buffer (an SQLite file,
@@ -56,7 +56,7 @@ from compd.plant.sparkplug import (
     topic,
 )
 from compd.plant.spec import TelemetrySpec
-from compd.servicethread import ServiceThread
+from compd.service.threads import ServiceThread
 
 log = logging.getLogger("compd.telemetry")
 
@@ -98,7 +98,7 @@ def _count(value: Any) -> int | None:
 
 
 def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
-    """The machine's metrics and their values in one status snapshot (compd/status.py).
+    """The machine's metrics and their values in one status snapshot (compd/service/status.py).
 
     A section missing from the snapshot (a log replayed into telemetry has no loop
     timing) leaves its metrics out; a value that is not a finite number is null."""
@@ -120,6 +120,7 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
             (MetricDef(p + "correction_um", D.Double, "µm"), _num(a.get("correction_um"))),
             (MetricDef(p + "target_um", D.Double, "µm"), _num(a.get("target_um"))),
             (MetricDef(p + "prediction_um", D.Double, "µm"), _num(a.get("prediction_um"))),
+            (MetricDef(p + "applied_um", D.Double, "µm"), _num(a.get("applied_um"))),
             # on at the machine; null (not confirmed) while the sink's link is not up
             (MetricDef(p + "enable", D.Boolean), False if held else None if a.get("enable") is None
              else bool(a["enable"])),

@@ -15,7 +15,7 @@ import math
 from abc import ABC, abstractmethod
 from typing import Any
 
-from compd.histogram import DurationHist
+from compd.cycle.histogram import DurationHist
 from compd.sinks.device_time import DeviceTime
 
 

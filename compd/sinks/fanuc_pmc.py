@@ -27,8 +27,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.codec import codes_from_word, word_bytes, word_from_codes
 from compd.config import SinkConfig
+from compd.cycle.codec import codes_from_word, word_bytes, word_from_codes
 from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
 from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
@@ -333,7 +333,7 @@ class FanucPmcSink(Sink):
     def device_info(self) -> dict[str, Any]:
         """The word's LSB (the shift registers hold whole µm), its full scale 63 LSB, and
         the step rate: `max_step_um` per `min_update_s`."""
-        from compd.codec import MAX_MAG
+        from compd.cycle.codec import MAX_MAG
 
         cfg = self.cfg
         where = "in process" if cfg.host is None else f"at {cfg.host}:{cfg.port}"

@@ -18,7 +18,7 @@ import logging
 import time
 from typing import Any
 
-from compd.histogram import DurationHist
+from compd.cycle.histogram import DurationHist
 from compd.io.child import hosting_now
 from compd.io.mailbox import SharedRegisters, WriteQueue
 from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault, OverModbus

@@ -8,8 +8,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.codec import byte_to_um, word_to_um
 from compd.config import SinkConfig
+from compd.cycle.codec import byte_to_um, word_to_um
 from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
 
 
@@ -242,7 +242,7 @@ class Pci1756Sink(Sink):
 
     def device_info(self) -> dict[str, Any]:
         """The word on the DO lines: the codec's LSB, full scale 63 LSB, no rate limit of its own."""
-        from compd.codec import MAX_MAG
+        from compd.cycle.codec import MAX_MAG
 
         cfg = self.cfg
         where = "in process" if cfg.device == "emulated" else f"over modbus at {cfg.host}:{cfg.port}"

@@ -7,11 +7,11 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from compd.clock import Clock
 from compd.config import SourceConfig
+from compd.cycle.clock import Clock
+from compd.cycle.frame import Frame, Quality
+from compd.cycle.histogram import DurationHist
 from compd.errors import BadInput
-from compd.frame import Frame, Quality
-from compd.histogram import DurationHist
 from compd.io.child import hosting_now
 from compd.io.mailbox import Snapshot
 from compd.io.ring import MessageRing
@@ -20,7 +20,7 @@ from compd.io.worker import STALL_AFTER_S, DeviceWork, IoWorker, LinkDown
 if TYPE_CHECKING:
     from collections import deque
 
-    from compd.adapt import Probe
+    from compd.cycle.adapt import Probe
 
 
 def check_serial_port(port: str, config_path: tuple[str | int, ...], key: str = "serial_port") -> None:
@@ -63,7 +63,7 @@ class Source(ABC):
 
     def bind_probes(self, inbox: deque[Probe]) -> None:
         """The config has an `adapt` section whose inbox takes probe measurements
-        (compd.adapt.Probe); other sources ignore it. A source that reads them (a CNC's
+        (compd.cycle.adapt.Probe); other sources ignore it. A source that reads them (a CNC's
         probing cycle) puts them in its `probe_ring`, which the cycle takes between cycles."""
 
     def probe_ring(self) -> MessageRing | None:

@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from compd.config import SourceConfig
-from compd.frame import Quality
+from compd.cycle.frame import Quality
 from compd.io.mailbox import Snapshot
 from compd.io.worker import LinkDown, stall_after
 from compd.sources.base import PolledSource, Poller, check_serial_port

@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from compd.config import SourceConfig, Strict
-from compd.frame import Quality
+from compd.cycle.frame import Quality
 from compd.io.mailbox import Snapshot
 from compd.io.modbus_client import (
     BadReply,

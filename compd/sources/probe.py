@@ -24,9 +24,9 @@ from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
-from compd.adapt import Probe
 from compd.config import SourceConfig
-from compd.frame import Frame
+from compd.cycle.adapt import Probe
+from compd.cycle.frame import Frame
 from compd.io.modbus_client import (
     BadReply,
     ExceptionReply,

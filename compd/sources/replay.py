@@ -8,8 +8,8 @@ import numpy as np
 from pydantic import Field
 
 from compd.config import SourceConfig
+from compd.cycle.frame import Frame, Quality
 from compd.errors import BadInput
-from compd.frame import Frame, Quality
 from compd.log import Log, read_log
 from compd.sources.base import Source
 

@@ -5,7 +5,7 @@ A run is short and on the wall clock (the devices answer in real time): warm-up 
 correction has settled, the fault from `FAULT_S`, optionally cleared at `CLEAR_S`, end at
 `duration_s`. Per cycle the harness records the guard's output, enable bit and axis state,
 and the word on the (emulated) PCI-1756 card. `FaultRun.run()` returns the measurements the
-matrix table shows; `record()` writes them as JSON for `python -m compd.faultdoc`.
+matrix table shows; `record()` writes them as JSON for `python -m compd.commissioning.faultdoc`.
 """
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ from typing import Any
 
 import yaml
 
-from compd.app import App
-from compd.clock import WallClock
-from compd.codec import decode
 from compd.config import load_config
-from compd.guard import AxisState
+from compd.cycle.clock import WallClock
+from compd.cycle.codec import decode
+from compd.cycle.guard import AxisState
+from compd.daemon.app import App
 from tests.faults.matrix import MATRIX
 from tests.logcapture import log_lines
 

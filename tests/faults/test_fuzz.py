@@ -14,11 +14,11 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from compd.app import App
 from compd.cli import main
 from compd.config import load_config
+from compd.cycle.frame import Quality
+from compd.daemon.app import App
 from compd.errors import BadInput
-from compd.frame import Quality
 from compd.io.mailbox import Snapshot
 from compd.sources.can import CanConfig, CanSource
 from compd.sources.dcon import DconConfig, DconSource, parse_reply

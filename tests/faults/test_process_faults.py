@@ -284,7 +284,7 @@ def test_reload_to_an_unopenable_config(tmp_path: Path) -> None:
 
 def test_reload_to_an_unreachable_sink(tmp_path: Path) -> None:
     """A reload to a FANUC PMC nothing answers for: status says link down, axis not enabled."""
-    from compd.status import read_status, render
+    from compd.service.status import read_status, render
 
     tx = Pt100Transmitter([SENSOR], [22.0])
     with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from compd.faultdoc import COLUMNS, read_block, render_matrix, replace_block, table_rows
+from compd.commissioning.faultdoc import (
+    COLUMNS,
+    read_block,
+    render_matrix,
+    replace_block,
+    table_rows,
+)
 from tests.conftest import ROOT
 from tests.faults.matrix import MATRIX
 

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from compd.clock import LockstepPlantClock
 from compd.plc.fanuc_pmc import APPLIED, COMMAND, FanucPmc
 from compd.sinks.modbus_link import ModbusLink
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.plant import PlantDevice
 from hil_sim.logcmd import load_plant
+from hil_sim.plant_clock import LockstepPlantClock
 from hil_sim.scenario import SCENARIOS
 
 

@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
-from compd.clock import WallClock
-from compd.frame import Frame
+from compd.cycle.clock import WallClock
+from compd.cycle.frame import Frame
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 from compd.sources.dcon import DconConfig, DconSource
 from compd.sources.modbus import ModbusConfig, ModbusSource
@@ -158,8 +158,8 @@ def test_each_change_of_the_error_is_logged_and_a_flapping_one_only_once(caplog)
 
 
 def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
-    from compd.publish import with_causes
-    from compd.service import log_guard_event
+    from compd.cycle.publish import with_causes
+    from compd.service.host import log_guard_event
 
     class Guard:
         events = [(1.0, "T_xi", "bad", "comms_lost"), (2.0, "T_amb", "bad", "out_of_range"),

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from compd.cycle.frame import Frame, Quality
 from compd.errors import BadInput
-from compd.frame import Frame, Quality
 from compd.io.mailbox import Snapshot, WriteQueue
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
@@ -71,7 +71,7 @@ def _worker(fail_open: bool = False) -> tuple[IoWorker, Snapshot, WriteQueue, Sn
 def test_a_worker_in_its_own_process_publishes_answers_and_logs_its_own_lines(
     capfd: pytest.CaptureFixture[str],
 ) -> None:
-    from compd.logsetup import setup_logging
+    from compd.service.logsetup import setup_logging
 
     setup_logging("info", journal=False)
     w, snap, writes, echo = _worker()
@@ -195,8 +195,8 @@ def test_a_daemon_on_the_wall_clock_polls_its_devices_from_processes_of_their_ow
     loop compensates from its samples; `loop.io: thread`: in the daemon's process."""
     import yaml
 
-    from compd.app import App
     from compd.config import load_config
+    from compd.daemon.app import App
     from hil_sim.devices.modbus_server import ModbusServerThread
     from hil_sim.devices.pt100 import Pt100Transmitter
     from hil_sim.devices.pt100_modbus import Pt100ModbusDevice

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from compd.frame import Quality
+from compd.cycle.frame import Quality
 from compd.io.mailbox import Snapshot, WriteQueue
 from compd.io.supervisor import Supervisor
 from compd.io.worker import DeviceWork, IoWorker
@@ -164,8 +164,8 @@ def test_a_thread_hosted_worker_that_ended_is_restarted(caplog) -> None:  # noqa
 
 
 def test_a_lost_process_shows_in_the_metrics_and_in_compd_status() -> None:
-    from compd.metrics import EXAMPLE_SNAPSHOT, SnapshotCollector
-    from compd.status import render
+    from compd.service.metrics import EXAMPLE_SNAPSHOT, SnapshotCollector
+    from compd.service.status import render
 
     snap = {**EXAMPLE_SNAPSHOT, "processes": [
         {"name": "poll-pt", "pid": 41, "up": False, "restarts": 2, "lost": "killed by SIGKILL"},

@@ -7,8 +7,8 @@ import pytest
 import yaml
 from statsmodels.stats.diagnostic import acorr_ljungbox
 
+from compd.commissioning.fitting import predict_log
 from compd.errors import BadInput
-from compd.fitting import predict_log
 from compd.identify import FITS
 from compd.identify.ar1 import ljung_box, scale_c2_by_rise
 from compd.log import Log
@@ -279,7 +279,7 @@ def test_c1_by_speed_checks():
 def test_files_before_recursion_start_keep_their_rule(tmp_path):
     """A model file written before `recursion_start` existed was fitted with S(0) = C2(n_0): it loads
     as `c2` and evaluates as before; a file with the key (every fit now) keeps the paper's start."""
-    from compd.fitting import load_model, write_model
+    from compd.commissioning.fitting import load_model, write_model
 
     params = AR1Params(dt_s=60, c1=0.99, c2_table=[(2000.0, 0.3)])
     new = tmp_path / "new.yaml"

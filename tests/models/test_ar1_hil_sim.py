@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from compd import fitting
+from compd.commissioning import fitting
 from hil_sim.logcmd import run_log
 from hil_sim.plants import PLANTS
 from hil_sim.scenario import Scenario

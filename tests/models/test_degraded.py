@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from compd.app import App
 from compd.config import load_config
+from compd.daemon.app import App
 from compd.identify import FITS
 from compd.log import Log
 from compd.models.lvr import LVR

@@ -206,7 +206,7 @@ def test_params_check_the_field_wiring():
 
 
 def test_field_model_file_round_trips_and_a_config_accepts_it(tmp_path):
-    from compd.fitting import load_model, write_model
+    from compd.commissioning.fitting import load_model, write_model
 
     log = _field_log(hours=2.0)
     model = fit_fa.fit(log, None, None, form="field", length_mm=L_MM, linear_p0_mm=300.0).model

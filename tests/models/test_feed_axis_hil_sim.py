@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from compd import fitting
+from compd.commissioning import fitting
 from hil_sim.logcmd import load_plant, run_log
 
 SCEN = Path(__file__).resolve().parents[2] / "hil_sim" / "scenarios"

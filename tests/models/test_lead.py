@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from compd import fitting
+from compd.commissioning import fitting
 from compd.errors import BadInput
 from compd.log import Log
 from compd.models.lead import InputLead

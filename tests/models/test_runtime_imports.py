@@ -1,4 +1,4 @@
-"""The daemon's side stays light: importing compd.app and building and stepping every model kind
+"""The daemon's side stays light: importing compd.daemon.app and building and stepping every model kind
 from its model file loads none of the fit/plot libraries (scipy, matplotlib, tqdm, sklearn, statsmodels)."""
 
 from __future__ import annotations
@@ -22,16 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-import compd.app
+import compd.daemon.app
 from compd.config import load_model_file, resolve_model
 
 heavy = {HEAVY!r}
-seen = {{"import compd.app": sorted({{m for m in sys.modules if m.split(".")[0] in heavy}})}}
+seen = {{"import compd.daemon.app": sorted({{m for m in sys.modules if m.split(".")[0] in heavy}})}}
 for file in sys.argv[1:]:
     p = Path(file)
     doc, data = load_model_file(p)
     spec = resolve_model({{"kind": data["kind"], "file": str(p)}}, doc, (), p.parent)
-    model = compd.pipeline.build_model(spec)
+    model = compd.cycle.pipeline.build_model(spec)
     x = np.linspace(20.0, 21.0, len(model.inputs))
     out = np.zeros(len(model.outputs))
     model.start(x, 0.0)
@@ -60,5 +60,5 @@ def test_daemon_imports_no_fit_or_plot_library(tmp_path: Path) -> None:
     )
     assert p.returncode == 0, p.stderr
     seen = json.loads(p.stdout)
-    assert set(seen) == {"import compd.app", *BUILDERS}
+    assert set(seen) == {"import compd.daemon.app", *BUILDERS}
     assert seen == {k: [] for k in seen}, seen

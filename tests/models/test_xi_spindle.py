@@ -387,7 +387,7 @@ def test_lift_wiring_and_params_are_checked() -> None:
 def test_older_model_file_keeps_its_radial_lift(tmp_path) -> None:
     """A model file as `compd fit` wrote it before the `lift` section: k under radial, no gains,
     the speed last. It loads, means k n² uncapped on the radial output, and writes back as it was."""
-    from compd.fitting import load_model
+    from compd.commissioning.fitting import load_model
 
     f = tmp_path / "old.yaml"
     f.write_text(
@@ -473,8 +473,7 @@ def test_fit_of_an_uncapped_k_would_be_worse() -> None:
 def test_compd_fit_with_the_speed_compares_with_mlr_on_the_temperatures() -> None:
     """`compd fit --kind all` keeps xi_spindle when the inputs are the ξ sensor and the speed,
     and the held-out MLR baseline regresses on the temperature rises only (SPEC §3.5)."""
-    from compd import fitting
-
+    from compd.commissioning import fitting
     log, _ = _radial_log(1e-7)
     assert fitting.applicable("xi_spindle", log, ["T_xi", "speed_rpm"], {}) is None
     assert fitting.applicable("xi_spindle", log, ["T_xi", "T_brg_front"], {}) is not None

@@ -10,7 +10,7 @@ from pathlib import Path
 from asyncua import Client, ua
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
-from compd.status import render
+from compd.service.status import render
 
 from .broker import SIM_SPINDLE, Listener, Mosquitto, compd, daemon, free_port, metric
 from .test_opcua import PASSWORD, Pki

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from compd.codec import encode, word_from_codes
+from compd.cycle.codec import encode, word_from_codes
 from compd.plc.fanuc_pmc import FanucPmc
 from compd.sinks.base import Sink
 from compd.sinks.device_time import DeviceTime

@@ -197,7 +197,7 @@ def test_a_result_published_while_the_link_was_down_is_skipped_then_new_ones_cou
 
 
 def test_a_reload_that_keeps_the_probe_source_hands_its_probes_to_the_new_adapter(tmp_path):
-    from compd.app import App
+    from compd.daemon.app import App
 
     text = """\
 loop: {{period_s: 0.1}}
@@ -213,7 +213,7 @@ adapt: {{sigma_um: {sigma}}}
         p = tmp_path / f"c{k}.yaml"
         p.write_text(text.format(sigma=sigma))
         paths.append(p)
-    from compd.adapt import Probe
+    from compd.cycle.adapt import Probe
 
     old, new = App(load_config(paths[0])), App(load_config(paths[1]))
     src = old.sources[1]

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from compd.config import SourceConfig  # noqa: F401  (import check)
-from compd.frame import Frame, Quality
+from compd.cycle.frame import Frame, Quality
 from compd.sources.replay import ReplayConfig, ReplaySource
 
 

@@ -92,7 +92,7 @@ def _curves(ax: Any, outcome: Any, log: Log, e: np.ndarray) -> None:
     for the rows logged within ±`window` of it the measured error (dots) beside the model's
     prediction at those same rows (crosses): like with like, a misfit shows as dots off their
     crosses, not as dots from another time off a line of this one."""
-    from compd.fitting import clone
+    from compd.commissioning.fitting import clone
     from compd.models.feed_axis import error_profile_um
 
     model = clone(outcome.model)

@@ -4,7 +4,7 @@ Every cycle, before the guard, each axis gets a hold reason from the frame: `INH
 when the global or the axis's inhibit signal is on (or not good: comms lost, stale),
 `WAITING` when the axis has a referenced signal that is off (or not good), else `NONE`.
 The guard ramps a held axis's correction to zero at its slew limit and back once
-released (compd.guard). The signals are ordinary frame signals: a Modbus register bit
+released (compd.cycle.guard). The signals are ordinary frame signals: a Modbus register bit
 (`bit` of a modbus source's channel), a CAN bit, any source's value; not 0 is on.
 """
 
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from compd.config import InhibitConfig
+from compd.cycle.frame import Frame, Quality
 from compd.errors import BadInput
-from compd.frame import Frame, Quality
 
 NONE, INHIBITED, WAITING = 0, 1, 2
 HOLD_NAMES = {NONE: None, INHIBITED: "inhibited", WAITING: "waiting for reference"}

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from typing import Any, TextIO
 
 from compd.errors import BadInput
-from compd.status import liveness, read_status, render
+from compd.service.status import liveness, read_status, render
 
 CLEAR = "\x1b[H\x1b[2J"  # cursor home, clear the screen
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from compd.servicethread import ServiceThread
+from compd.service.threads import ServiceThread
 
 log = logging.getLogger("compd.state")
 

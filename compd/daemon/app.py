@@ -11,21 +11,21 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from compd.clock import PlantClock, SimClock
+from compd.commissioning.scoring import RunningScore
 from compd.config import Config
+from compd.cycle.clock import SimClock
+from compd.cycle.loop import Loop
+from compd.cycle.pipeline import from_config
 from compd.errors import BadInput
-from compd.loop import Loop
-from compd.pipeline import from_config
-from compd.scoring import RunningScore
-from compd.service import LogSpec, Service, StateSpec
-from compd.state import load_saved, params_digest
+from compd.service.host import LogSpec, Service, StateSpec
+from compd.service.state import load_saved, params_digest
 
 log = logging.getLogger("compd")
 
 
 class LogObserver:
     """Hands a log row to `push` every `period_s` of loop time and on every change of the
-    word (the service's data log writes it: compd/service.py)."""
+    word (the service's data log writes it: compd/service/host.py)."""
 
     def __init__(self, loop: Loop, push: Callable[[tuple[float, ...]], Any], period_s: float) -> None:
         self.columns = self.columns_of(loop)
@@ -77,7 +77,7 @@ class LogObserver:
 
 
 class CompensationSummary:
-    """The run's before/after score (compd.scoring), fed every cycle.
+    """The run's before/after score (compd.commissioning.scoring), fed every cycle.
 
     Only where the sources publish the true error `err_<axis>_um` (simulator,
     replay of a measured log); residual = error + applied correction.
@@ -248,7 +248,7 @@ class App:
         self._previous = previous
         if self.clock.simulated and previous.clock.simulated:  # time goes on where it was
             self.clock = self.loop.clock = SimClock(previous.clock.now(), self.cfg.loop.speedup)
-        elif isinstance(previous.clock, PlantClock) and isinstance(self.clock, PlantClock) and (
+        elif previous.clock.kept_across_reload and type(self.clock) is type(previous.clock) and (
             self.cfg.loop.plant_clock == previous.cfg.loop.plant_clock
         ):
             self.clock = self.loop.clock = previous.clock

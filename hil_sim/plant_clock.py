@@ -1,113 +1,24 @@
-"""Clocks injected into the loop: wall time (sleep then spin), simulated time, or a plant's clock over
-Modbus, followed in real time or in lockstep."""
+"""The clock of a simulated plant, read over Modbus from its clock device, followed in real time or in lockstep: compd's `loop.clock: plant` (entry point `compd.clocks`)."""
 
 from __future__ import annotations
 
 import time
-from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any
 
+from compd.config import PlantClockConfig
+from compd.cycle.clock import Clock
 from compd.io.mailbox import Latest
 from compd.io.modbus_client import LinkFault, ModbusClient, ModbusFault, OverModbus
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
 
-class Clock(ABC):
-    """What the loop needs of a clock: the time now (s), a wait until a deadline, and
-    `start`/`stop` around a run (a clock read from elsewhere connects there).
-
-    `simulated` is True when the clock's time is not wall time (the loop then keeps
-    the interpreter's thread switch interval as it is, and no real-time option applies).
-    """
-
-    simulated: bool = False
-    # whether `now` reads the same time in a forked child (an I/O worker's process)
-    fork_safe: bool = False
-    # `wait_until` spins through this much before a deadline (the loop keeps it free)
-    spin_margin_s: float = 0.0
-
-    @abstractmethod
-    def now(self) -> float:
-        """Loop time, s."""
-
-    def bind(self, sink: Any, sources: list[Any]) -> None:
-        """The pipeline's sink and sources, for a clock that drives their I/O between cycles
-        (a lockstep plant clock); others ignore them."""
-
-    def adopt_poller(self, source: Any) -> bool:
-        """A polled source asks whether the clock drives its polls (a lockstep plant clock
-        polls every source once per cycle at the plant time). False: its I/O worker polls at
-        its own pace."""
-        return False
-
-    @abstractmethod
-    def wait_until(self, deadline_s: float) -> None:
-        """Return at (or as soon as possible after) loop time `deadline_s`."""
-
-    def elapsed_s(self) -> float:
-        """Elapsed time (s, monotonic, any origin) beside the loop clock: the loop tells a
-        stall (the clock moved as elapsed time did) from a step of the clock by it."""
-        return time.monotonic()
-
-    def start(self) -> None:
-        """Called once before the loop opens anything (a clock read from elsewhere connects)."""
-
-    def stop(self) -> None:
-        """Release what `start` took; called after the loop closed."""
-
-
-class WallClock(Clock):
-    """Monotonic wall time. `wait_until` sleeps until `spin_margin_s` before the
-    deadline, then spins, which cuts lateness from ~0.1 ms to a few µs."""
-
-    simulated = False
-    fork_safe = True
-
-    def __init__(self, spin_margin_s: float = 0.0002) -> None:
-        self.spin_margin_s = spin_margin_s
-
-    def now(self) -> float:
-        return time.monotonic()
-
-    def wait_until(self, deadline_s: float) -> None:
-        rest = deadline_s - time.monotonic() - self.spin_margin_s
-        if rest > 0:
-            time.sleep(rest)
-        while time.monotonic() < deadline_s:
-            pass
-
-
-class SimClock(Clock):
-    """Simulated time: `wait_until` jumps to the deadline at once.
-
-    With `speedup` > 0 the clock also paces itself against wall time, so that
-    `speedup` simulated seconds pass per wall second (the demo uses that).
-    """
-
-    simulated = True
-
-    def __init__(self, start_s: float = 0.0, speedup: float = 0.0) -> None:
-        self.t_s = float(start_s)
-        self.speedup = speedup
-        self._wall0 = time.monotonic()
-        self._sim0 = self.t_s
-
-    def now(self) -> float:
-        return self.t_s
-
-    def wait_until(self, deadline_s: float) -> None:
-        if deadline_s > self.t_s:
-            self.t_s = deadline_s
-        if self.speedup > 0:
-            wall_due = self._wall0 + (self.t_s - self._sim0) / self.speedup
-            rest = wall_due - time.monotonic()
-            if rest > 0:
-                time.sleep(rest)
-
-    def set(self, t_s: float) -> None:
-        """Jump (replay: to the next row's time)."""
-        self.t_s = t_s
+def from_config(pc: PlantClockConfig) -> Clock:
+    """The clock `loop.plant_clock` describes: in lockstep with the plant, or following it."""
+    if pc.lockstep:
+        return LockstepPlantClock(pc.host, pc.port, device_id=pc.device_id, address=pc.address)
+    return PlantClock(pc.host, pc.port, device_id=pc.device_id, address=pc.address,
+                      poll_period_s=pc.poll_period_s, stall_s=pc.stall_s)
 
 
 class PlantTimeWork(OverModbus, DeviceWork):
@@ -185,6 +96,7 @@ class PlantClock(Clock):
     """
 
     simulated = False
+    kept_across_reload = True  # its connection and the plant's time go on through a reload
 
     def __init__(
         self,

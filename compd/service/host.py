@@ -2,8 +2,8 @@
 
 Two halves, so that the cycle's interpreter runs no Python but the cycle's own:
 
-* the cycle's side, `compd.publish.Publisher`: after every cycle the loop's thread writes
-  its status record (compd/statusblock.py, shared memory) and hands over, as plain
+* the cycle's side, `compd.cycle.publish.Publisher`: after every cycle the loop's thread writes
+  its status record (compd/cycle/statusblock.py, shared memory) and hands over, as plain
   values in a shared-memory ring, the rest (the devices' accounts once a
   `status.period_s`, the guard's and the adapter's events, the data log's rows, the
   model's and the adapter's state) and takes the probes that came in;
@@ -41,26 +41,24 @@ from typing import Any
 
 import numpy as np
 
-from compd import (
-    activity,
-    logsetup,  # noqa: F401  (installs the library's NullHandler)
-)
-from compd import status as status_mod
-from compd.adapt import Probe
-from compd.control import ControlServer, ProbeLink, socket_path
+from compd.cycle import activity
+from compd.cycle.adapt import Probe
+from compd.cycle.publish import Publisher
+from compd.cycle.realtime import apply_realtime, unshare_pages
+from compd.cycle.statusblock import Description, compose, describe_static
 from compd.errors import BadInput
 from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import MessageRing, SharedBlob
 from compd.log import LogWriter
-from compd.metrics import LATENESS_BOUNDS_US, MetricsServer
-from compd.notify import Notifier, WatchdogObserver, watchdog_interval_s
-from compd.publish import Publisher
-from compd.realtime import apply_realtime, unshare_pages
-from compd.servicethread import ServiceThread
-from compd.state import StateWriter
-from compd.status import lateness_buckets
-from compd.statusblock import Description, compose, describe_static
+from compd.service import logsetup  # noqa: F401  (installs the library's NullHandler)
+from compd.service import status as status_mod
+from compd.service.control import ControlServer, ProbeLink, socket_path
+from compd.service.metrics import LATENESS_BOUNDS_US, MetricsServer
+from compd.service.notify import Notifier, WatchdogObserver, watchdog_interval_s
+from compd.service.state import StateWriter
+from compd.service.status import lateness_buckets
+from compd.service.threads import ServiceThread
 
 log = logging.getLogger("compd.service")
 
@@ -71,7 +69,7 @@ _EVENT_NAME = {
     "fault": "axis_fault",
     "recovering": "axis_recovering",
     "normal": "axis_normal",
-    "jump": "clock_jump",  # the loop clock stepped (compd.guard.Guard.clock_jump)
+    "jump": "clock_jump",  # the loop clock stepped (compd.cycle.guard.Guard.clock_jump)
     "stall": "loop_stall",  # the loop did not run for a while: woke late on a clock that did not step
     "held": "axis_held",  # the machine inhibits the axis, or it waits for its reference
     "released": "axis_released",
@@ -193,8 +191,8 @@ class ServiceSpec:
     telemetry: Any = None  # compd.plant.spec.TelemetrySpec: MQTT Sparkplug B (config `telemetry`)
     opcua: Any = None  # compd.plant.spec.OpcUaSpec: the OPC UA server (config `opcua`)
     reload: bool = False  # this pipeline replaces another (a reload), not a start
-    block: Any = None  # compd.statusblock.StatusBlock: the cycle's status record (shared memory)
-    description: Any = None  # compd.statusblock.Description: what the record does not hold, at the start
+    block: Any = None  # compd.cycle.statusblock.StatusBlock: the cycle's status record (shared memory)
+    description: Any = None  # compd.cycle.statusblock.Description: what the record does not hold, at the start
     status_period_s: float = 1.0
     extra: dict[str, Any] | None = None  # into every status: config, status_period_s, metrics_url
     t0_s: float = 0.0  # monotonic time the daemon's service began (wall_uptime_s)
@@ -434,7 +432,7 @@ class ServiceWork:
             sw.submit_adapt(value)
 
     def publish(self) -> None:
-        """Compose the status from the cycle's record now (compd.statusblock) and write it
+        """Compose the status from the cycle's record now (compd.cycle.statusblock) and write it
         out: status file, metrics, STATUS= line, the plant; the next a period later."""
         spec = self.spec
         if spec.block is None:

@@ -3,7 +3,7 @@
 Every key of compd/config.py's models and of the `Config`/`Params` model of every
 kind in the source, model and sink registries: its type, unit (from the key's
 name suffix, STYLE: units in names), default, allowed range and description
-(`Field(description=...)`). `python -m compd.docgen` or `compd docs --out FILE`.
+(`Field(description=...)`). `python -m compd.commissioning.docgen` or `compd docs --out FILE`.
 """
 
 from __future__ import annotations
@@ -277,7 +277,7 @@ def generate() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m compd.docgen [FILE]`: write the reference (stdout without FILE)."""
+    """`python -m compd.commissioning.docgen [FILE]`: write the reference (stdout without FILE)."""
     argv = sys.argv[1:] if argv is None else argv
     text = generate()
     if argv:

@@ -1,7 +1,7 @@
 """docs/reliability.md from a fault-matrix run: one table row per tests/faults JSON result.
 
     COMPD_FAULTS_OUT=build/faults pytest tests/faults
-    python -m compd.faultdoc build/faults --doc docs/reliability.md
+    python -m compd.commissioning.faultdoc build/faults --doc docs/reliability.md
 
 Only the block between the `faults` markers is rewritten; the rest of the page is prose.
 """
@@ -102,7 +102,7 @@ def load_results(folder: Path) -> list[dict[str, Any]]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m compd.faultdoc", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m compd.commissioning.faultdoc", description=__doc__.splitlines()[0])
     ap.add_argument("results", type=Path, help="folder of the rows' JSON files")
     ap.add_argument("--doc", type=Path, default=Path("docs/reliability.md"))
     args = ap.parse_args(argv)

@@ -1,7 +1,7 @@
 """Live status of a running daemon: a JSON snapshot written atomically, and `compd status`.
 
-The cycle writes its status record every cycle (compd/statusblock.py); the service
-(compd/service.py, a process of its own on the wall clock) composes the snapshot from
+The cycle writes its status record every cycle (compd/cycle/statusblock.py); the service
+(compd/service/host.py, a process of its own on the wall clock) composes the snapshot from
 it about once a second and writes it with `write_atomic` (temp file + rename, so a
 reader never sees half a file). `snapshot` composes one in process, through the same
 record. `compd status` reads it back with `read_status`, judges whether the daemon is
@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from compd.cycle.histogram import bin_percentiles, over_range, percentile_text, range_limit_us
 from compd.errors import BadInput
-from compd.histogram import bin_percentiles, over_range, percentile_text, range_limit_us
 
 SCHEMA = 1
 DEFAULT_PATH = "/run/compd/status.json"
@@ -83,7 +83,7 @@ def lateness_buckets(
 def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The status of `loop` now, composed in this process the way the service composes it
     (a record written and read back, the devices described from the pipeline's objects)."""
-    from compd.statusblock import StatusBlock, compose, describe
+    from compd.cycle.statusblock import StatusBlock, compose, describe
 
     block = StatusBlock(loop)
     block.state = state

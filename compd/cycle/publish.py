@@ -2,14 +2,14 @@
 
 The service work (status file, metrics, event log lines, the data log, model state,
 the probe socket) runs beside the loop, in a process of its own on the wall clock
-(compd/service.py). It never reads the pipeline's objects: the cycle's thread hands
+(compd/service/host.py). It never reads the pipeline's objects: the cycle's thread hands
 it what it needs, in shared memory, so there is never a second thread of Python in
 the cycle's interpreter and nothing the cycle writes is read half-written.
 
 After every cycle the loop calls `Publisher.after_cycle` with the time left before
 the next deadline:
 
-* the cycle's status record (compd/statusblock.py): per axis, per signal and for the
+* the cycle's status record (compd/cycle/statusblock.py): per axis, per signal and for the
   loop, a fixed-layout write under a seqlock (a few µs), from which the service
   composes status.json, metrics, Sparkplug and OPC UA whenever it wants;
 * the supervisor's look at the child processes (compd/io/supervisor.py);
@@ -36,11 +36,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from compd.adapt import Probe
+from compd.cycle.adapt import Probe
+from compd.cycle.statusblock import StatusBlock, describe_devices
 from compd.io.ring import MessageRing
 from compd.io.supervisor import Supervised, Supervisor
 from compd.io.worker import started_workers
-from compd.statusblock import StatusBlock, describe_devices
 
 log = logging.getLogger("compd.service")
 

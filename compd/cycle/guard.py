@@ -7,7 +7,7 @@ faster than the slew limit, or — when an input the axis needs is bad — appli
 axis's fault policy: `hold` the last correction, `ramp_to_zero` at a set rate, or
 `disable` (enable bit off). Recovery waits until the inputs have been good for
 `recovery_s` and then slews from wherever the output is, so nothing ever steps.
-An axis the machine holds off (`hold`, set each cycle by compd.inhibit: inhibited, or
+An axis the machine holds off (`hold`, set each cycle by compd.cycle.inhibit: inhibited, or
 waiting for its reference) targets zero at its slew limit, whatever its state, and
 slews back to its target once released.
 """
@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from compd.config import GuardConfig
-from compd.frame import QUALITY_NAMES, Frame, Quality
-from compd.inhibit import HOLD_NAMES
+from compd.cycle.frame import QUALITY_NAMES, Frame, Quality
+from compd.cycle.inhibit import HOLD_NAMES
 
 GOOD = int(Quality.GOOD)
 STALE = int(Quality.STALE)
@@ -70,7 +70,7 @@ class Guard:
         self.enable = np.zeros(n, dtype=bool)
         self.target_um = np.zeros(n)
         self.state = np.full(n, STARTING, dtype=np.uint8)
-        # why the machine holds an axis off this cycle (compd.inhibit: 0 none, 1 inhibited,
+        # why the machine holds an axis off this cycle (compd.cycle.inhibit: 0 none, 1 inhibited,
         # 2 waiting for reference); written before `update`, which ramps a held axis to 0
         self.hold = np.zeros(n, dtype=np.uint8)
         self._held = np.zeros(n, dtype=np.uint8)

@@ -33,19 +33,19 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from compd.adapt import Probe
-from compd.clock import SimClock
+from compd.commissioning.scoring import score_applied
 from compd.config import AdaptConfig, CodecConfig, Document, GuardConfig, InhibitConfig
+from compd.cycle.adapt import Probe
+from compd.cycle.clock import SimClock
+from compd.cycle.pipeline import build_model, build_pipeline
 from compd.errors import BadInput
 from compd.log import Log, read_log
 from compd.models.base import Model, step_rows
-from compd.pipeline import build_model, build_pipeline
-from compd.scoring import score_applied
 from compd.sinks.base import Sink
 from compd.sources.replay import ReplayConfig, ReplaySource
 
 if TYPE_CHECKING:
-    from compd.loop import Loop
+    from compd.cycle.loop import Loop
     from compd.sinks.fanuc_pmc import FanucPmcSink
 
 # the model classes whose `predict` over a log equals stepping `evaluate` row by row
@@ -202,7 +202,7 @@ def replay_log(
         "log": log.file,
     }
     if probes:
-        from compd.plots import probe_matrix
+        from compd.commissioning.plots import probe_matrix
 
         extra["probe_um"] = probe_matrix(log, list(model.outputs))
     return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, rows.applied, words, extra)
@@ -469,8 +469,8 @@ def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
 
 
 def write_plot(result: ReplayResult, path: str | Path) -> None:
-    """The replay's trend (compd.plots): inputs, per axis error without and with compensation,
+    """The replay's trend (compd.commissioning.plots): inputs, per axis error without and with compensation,
     commanded (the word decoded) and applied correction in µm, enable and fault bands."""
-    from compd.plots import trend_from_replay, write_trend
+    from compd.commissioning.plots import trend_from_replay, write_trend
 
     write_trend(trend_from_replay(result), path)

@@ -3,10 +3,10 @@
 The cycle's thread ends every cycle with `StatusBlock.write`: a few numbers per axis, per
 signal and for the loop copied into arrays made before any fork, between two bumps of a
 sequence number (odd while writing). No dict, no pickle, nothing that waits. The loop's
-histograms and stage times live in shared memory of their own (compd.loop.TimingStats)
+histograms and stage times live in shared memory of their own (compd.cycle.loop.TimingStats)
 and are read beside the record.
 
-The service (compd/service.py, a process of its own or a thread) takes a consistent
+The service (compd/service/host.py, a process of its own or a thread) takes a consistent
 copy with `StatusBlock.read` whenever it wants one and `compose`s the status snapshot
 (the dict written to status.json, exported as metrics, Sparkplug and OPC UA) from it
 and a `Description`: what does not change every cycle (the model, the devices' own
@@ -15,10 +15,10 @@ through the service's ring when it changes or once a status period.
 
 Every number of the record is declared once below (`AXIS`, `SIGNAL`, `LOOP`): its key
 in the status, unit and meaning; docs/status-fields.md is generated from these
-(`python -m compd.statusblock`).
+(`python -m compd.cycle.statusblock`).
 
 Relies on stores reaching the other CPU in program order (x86-64), like the mailboxes
-of compd.io.mailbox; `compd.pipeline.check` refuses `loop.io: process` elsewhere.
+of compd.io.mailbox; `compd.cycle.pipeline.check` refuses `loop.io: process` elsewhere.
 """
 
 from __future__ import annotations
@@ -35,14 +35,14 @@ from typing import Any
 import numpy as np
 
 from compd import version
-from compd.frame import QUALITY_NAMES
-from compd.guard import POLICIES, STATE_NAMES
-from compd.histogram import bin_percentiles, over_range, range_limit_us
-from compd.inhibit import HOLD_NAMES
+from compd.cycle.frame import QUALITY_NAMES
+from compd.cycle.guard import POLICIES, STATE_NAMES
+from compd.cycle.histogram import bin_percentiles, over_range, range_limit_us
+from compd.cycle.inhibit import HOLD_NAMES
 from compd.io.mailbox import READ_TRIES, shared_buffer
+from compd.service.status import SCHEMA
 from compd.sinks.base import LINK_STATES
 from compd.sinks.observe import ObserveSink
-from compd.status import SCHEMA
 
 STATES = ("starting", "running", "stopping", "stopped")  # the daemon's state, as the status names it
 
@@ -78,7 +78,7 @@ AXIS: tuple[Field, ...] = (
           " observe mode (the word at the machine is 0); null (not confirmed) while the sink's link is not up",
           "flag"),
     Field("state", "", "the guard's state of the axis", "name", _names(STATE_NAMES)),
-    Field("inhibit", "", "why the machine holds the axis off (compd.inhibit)", "name", _names(HOLD_NAMES)),
+    Field("inhibit", "", "why the machine holds the axis off (compd.cycle.inhibit)", "name", _names(HOLD_NAMES)),
     Field("saturated", "", "the axis's byte of the last word was clamped to the codec's range", "flag"),
     Field("byte", "", "the axis's byte of the computed word (null: the axis is not in the word)", "hex"),
 )
@@ -318,7 +318,7 @@ def timing(r: Reading, period_s: float) -> dict[str, Any]:
     compute = {"p50": c50, "p99": c99, "max": round(r.get("compute_max_ns") / 1000, 1)}
     limit = range_limit_us(r.hist)
     n = max(int(r.get("cycles")), 1)
-    from compd.loop import STAGES
+    from compd.cycle.loop import STAGES
 
     stages = {name: {"last_us": int(r.stages[0, i]) / 1000, "mean_us": int(r.stages[2, i]) / n / 1000,
                      "max_us": int(r.stages[1, i]) / 1000} for i, name in enumerate(STAGES)}
@@ -421,7 +421,7 @@ def _jsonable(value: Any) -> Any:
 def fields_markdown() -> str:
     """docs/status-fields.md: every number of the record, by group."""
     out = ["# Status fields", "",
-           "Generated from compd/statusblock.py (`python -m compd.statusblock`): every number the cycle",
+           "Generated from compd/cycle/statusblock.py (`python -m compd.cycle.statusblock`): every number the cycle",
            "writes into its status record each cycle, under the key it has in status.json",
            "(docs/formats.md, \"Status file\"), with its unit and meaning. The same names reach the",
            "metrics, Sparkplug and OPC UA (docs/plant.md).", ""]

@@ -126,7 +126,7 @@ class Page:
 
 
 def _png(fig: Any) -> bytes:
-    from compd.plots import pyplot
+    from compd.commissioning.plots import pyplot
 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
@@ -147,8 +147,8 @@ def fit_figure(fit: dict[str, Any], fit_file: str) -> Figure:
         return Figure(caption, why_not=f"not drawn: the fit report's {missing} file {fit.get(missing)!r} is not found")
     import numpy as np
 
-    from compd import fitting
-    from compd.plots import pyplot
+    from compd.commissioning import fitting
+    from compd.commissioning.plots import pyplot
 
     model = fitting.load_model(model_file)
     log = fitting.read_fit_log(log_file)
@@ -177,7 +177,7 @@ def fit_figure(fit: dict[str, Any], fit_file: str) -> Figure:
 
 
 def replay_figure(replay: dict[str, Any], replay_file: str) -> Figure:
-    """The replay's trend (compd.plots), replayed again from the log and config or model it names."""
+    """The replay's trend (compd.commissioning.plots), replayed again from the log and config or model it names."""
     caption = "The unseen day: replayed through model, guard and codec into a software copy of the output device"
     log_file = find_beside(replay.get("log"), replay_file)
     what = "config" if "config" in replay else "model"
@@ -188,8 +188,8 @@ def replay_figure(replay: dict[str, Any], replay_file: str) -> Figure:
             return Figure(caption + f" ({given.name}, from compd replay --plot)", given.read_bytes())
         missing = "log" if log_file is None else what
         return Figure(caption, why_not=f"not drawn: the replay report's {missing} file {replay.get(missing)!r} is not found")
-    from compd.plots import pyplot, trend_from_replay, write_trend
-    from compd.replay import replay_config, replay_model
+    from compd.commissioning.plots import pyplot, trend_from_replay, write_trend
+    from compd.commissioning.replay import replay_config, replay_model
 
     result = (replay_config if what == "config" else replay_model)(source, log_file)
     pyplot()

@@ -5,7 +5,7 @@ axis's slew limit (the config's guard, never faster than one period's slew per c
 however late a cycle runs), is held for `hold_s`, what the device reports as applied
 is read back, and the correction walks back to zero at the same slew before the sink
 is put in its safe state. The stages are the daemon's own, wired by the one pipeline
-builder (compd/pipeline.py) and stepped by the loop's own cycle: the guard (clamp,
+builder (compd/cycle/pipeline.py) and stepped by the loop's own cycle: the guard (clamp,
 slew), the codec's word, the configured sink and its device; only the model is
 replaced by the fixed correction (`FixedCorrection`) and there are no sources. A device of the software PLC in process runs on simulated time,
 one over the network on the wall clock.
@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from compd.clock import Clock, SimClock, WallClock
 from compd.config import Config, Strict
+from compd.cycle.clock import Clock, SimClock, WallClock
+from compd.cycle.pipeline import build_pipeline
 from compd.errors import BadInput
 from compd.models.base import Model
-from compd.pipeline import build_pipeline
 from compd.sinks.base import Sink
 
 SETTLE_CYCLES = 3  # cycles run after a ramp reached its goal, so the sink delivers the last step
@@ -134,8 +134,8 @@ def check_request(cfg: Config, sink: Sink, word_axes: list[str], axis: str, um: 
 def running_daemon(cfg: Config) -> str | None:
     """Why a daemon of this config seems to hold the sink's device now (its status file is
     fresh, its process exists), or None: the test must not write beside a running loop."""
-    from compd.service import daemon_status_path
-    from compd.status import liveness, read_status
+    from compd.service.host import daemon_status_path
+    from compd.service.status import liveness, read_status
 
     path = daemon_status_path(cfg)
     if not path.is_file():

@@ -22,14 +22,14 @@ from typing import Any
 
 import numpy as np
 
-from compd import activity
-from compd.adapt import Adapter
-from compd.clock import Clock
-from compd.codec import Encoder
-from compd.frame import Frame
-from compd.guard import Guard
-from compd.histogram import bin_percentiles
-from compd.inhibit import Inhibit
+from compd.cycle import activity
+from compd.cycle.adapt import Adapter
+from compd.cycle.clock import Clock
+from compd.cycle.codec import Encoder
+from compd.cycle.frame import Frame
+from compd.cycle.guard import Guard
+from compd.cycle.histogram import bin_percentiles
+from compd.cycle.inhibit import Inhibit
 from compd.io.child import hosting
 from compd.io.mailbox import shared_buffer
 from compd.models.base import Model
@@ -48,7 +48,7 @@ class TimingStats:
     def __init__(self, period_s: float) -> None:
         self.period_s = period_s
         # the histograms and stage times in memory shared with the service's process, which
-        # reads them beside the cycle's status record (compd.statusblock)
+        # reads them beside the cycle's status record (compd.cycle.statusblock)
         n = len(STAGES)
         self._buf = shared_buffer(8 * (2 * HIST_US + 3 * n))
         words = memoryview(self._buf).cast("q")
@@ -125,7 +125,7 @@ class TimingStats:
 
 
 class Loop:
-    """Runs the pipeline on a clock. Built from a config by `compd.app.App`; `compd.replay` builds one directly."""
+    """Runs the pipeline on a clock. Built from a config by `compd.daemon.app.App`; `compd.commissioning.replay` builds one directly."""
 
     def __init__(
         self,
@@ -138,7 +138,6 @@ class Loop:
         guard: Guard,
         encoder: Encoder,
         sink: Sink,
-        word_axes: list[int],
         observers: list[Callable[[Loop, float], None]] | None = None,
         cycle_hooks: list[Callable[[Loop, float], None]] | None = None,
         adapter: Adapter | None = None,
@@ -152,9 +151,8 @@ class Loop:
         self.guard = guard
         self.encoder = encoder
         self.sink = sink
-        self.word_axes = word_axes  # indices into model outputs for the high and low byte
-        # the word walks no faster than its axes' slew limits
-        encoder.set_slew([float(guard.slew_um_per_s[a]) for a in word_axes], period_s)
+        # the word walks no faster than its axes' slew limits (the encoder knows its axes)
+        encoder.set_slew([float(guard.slew_um_per_s[a]) for a in encoder.axes], period_s)
         self.observers = observers or []
         self.cycle_hooks = cycle_hooks or []
         n_out = len(model.outputs)
@@ -183,8 +181,13 @@ class Loop:
         # off the CPUs the cycle is pinned to
         self.io_process = False
         self.cycle_cpus: frozenset[int] = frozenset()
-        # what the daemon's service needs from the loop, handed over after each cycle (compd.publish)
+        # what the daemon's service needs from the loop, handed over after each cycle (compd.cycle.publish)
         self.publisher: Any = None
+
+    @property
+    def word_axes(self) -> list[int]:
+        """The word's axes, high byte first, as indices into the model's outputs (the encoder's)."""
+        return self.encoder.axes
 
     def stop(self) -> None:
         """Ask the loop to finish after the current cycle (signal-safe)."""

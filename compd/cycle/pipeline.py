@@ -15,16 +15,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from compd.adapt import Adapter
-from compd.clock import Clock, LockstepPlantClock, PlantClock, SimClock, WallClock
-from compd.codec import Encoder
 from compd.config import AdaptConfig, CodecConfig, Config, GuardConfig, InhibitConfig, LoopConfig
+from compd.cycle.adapt import Adapter
+from compd.cycle.clock import Clock, SimClock, WallClock
+from compd.cycle.codec import Encoder
+from compd.cycle.frame import Frame
+from compd.cycle.guard import Guard
+from compd.cycle.inhibit import Inhibit
+from compd.cycle.loop import Loop
 from compd.errors import BadInput
-from compd.frame import Frame
-from compd.guard import Guard
-from compd.inhibit import Inhibit
-from compd.loop import Loop
 from compd.models.base import Model
+from compd.registry import entry_point
 from compd.sinks.base import Sink
 from compd.sources.base import Source
 
@@ -45,13 +46,13 @@ def build_clock(lp: LoopConfig, sources: Sequence[Source]) -> Clock:
     if lp.clock == "sim":
         start_s = min((0.0 if s.start_s is None else s.start_s for s in sources), default=0.0)
         return SimClock(start_s, lp.speedup)
-    if lp.clock == "plant" and pc is not None and pc.lockstep:
-        return LockstepPlantClock(pc.host, pc.port, device_id=pc.device_id, address=pc.address)
-    if lp.clock == "plant" and pc is not None:
-        return PlantClock(
-            pc.host, pc.port, device_id=pc.device_id, address=pc.address,
-            poll_period_s=pc.poll_period_s, stall_s=pc.stall_s,
-        )
+    if lp.clock == "plant" and pc is not None:  # a simulated plant's clock: the simulator brings it
+        ep = entry_point("compd.clocks", "plant")
+        if ep is None:
+            raise BadInput("loop.clock: plant needs the simulator's plant clock, which is not installed (no 'plant'"
+                           " in entry point group compd.clocks: install compd from its source tree)",
+                           path=("loop", "clock"))
+        return ep.load()(pc)
     return WallClock(lp.spin_margin_s)
 
 
@@ -129,9 +130,9 @@ def build_pipeline(
     for name in word_names:
         if name not in model.outputs:
             raise BadInput(f"{name!r} is not an output of the model", path=("codec", "axes"))
-    word_axes = [model.outputs.index(a) for a in word_names]
     encoder = Encoder(codec_cfg.lsb_um, codec_cfg.deadband_um)
-    sink.bind(word_names, codec_cfg.lsb_um)
+    encoder.bind_axes(word_names, list(model.outputs))
+    sink.bind(encoder.axis_names, codec_cfg.lsb_um)
     sink.bind_model(model)  # sinks that speak per-axis values (siemens) keep it
     if observe:  # commissioning: the full loop, the output held disabled
         from compd.sinks.observe import ObserveSink
@@ -146,7 +147,6 @@ def build_pipeline(
         guard=guard,
         encoder=encoder,
         sink=sink,
-        word_axes=word_axes,
         adapter=Adapter(adapt_cfg, list(model.outputs), held_out_sigma_um(model)) if adapt_cfg is not None else None,
         inhibit=inhibit,
     )

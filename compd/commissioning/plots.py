@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.codec import byte_to_um, decode_byte
+from compd.cycle.codec import byte_to_um, decode_byte
 from compd.errors import BadInput
 from compd.log import Log, is_temperature_column
 
@@ -49,7 +49,7 @@ class Trend:
 def decode_words(word: np.ndarray, lsb_um: float) -> tuple[np.ndarray, np.ndarray]:
     """Per row and byte (high, low): the correction the word commands (µm) and its enable bit.
 
-    Decoded with compd.codec (byte_to_um, decode_byte) through a 256-entry table."""
+    Decoded with compd.cycle.codec (byte_to_um, decode_byte) through a 256-entry table."""
     table_um = np.array([byte_to_um(b, lsb_um) for b in range(256)])
     table_en = np.array([decode_byte(b).enable for b in range(256)])
     w = np.asarray(word, dtype=np.int64) & 0xFFFF
@@ -363,9 +363,9 @@ def probe_matrix(log: Log, axes: list[str]) -> np.ndarray | None:
 
 
 def trend_from_replay(result: Any) -> Trend:
-    """The trend of a `compd replay` (a compd.replay.ReplayResult): the guard's states give the
+    """The trend of a `compd replay` (a compd.commissioning.replay.ReplayResult): the guard's states give the
     fault bands (fault and recovering)."""
-    from compd.guard import FAULT, RECOVERING
+    from compd.cycle.guard import FAULT, RECOVERING
 
     ex = result.extra
     state = ex.get("guard_state")

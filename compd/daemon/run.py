@@ -19,8 +19,8 @@ def reload(app: Any, config_path: str, remaining: float | None, observe: bool | 
     bind, state, log, sources, sink) before the running one is closed; if any of that
     fails the new one is undone and the old one goes on compensating, without a step.
     """
-    from compd.app import App
     from compd.config import load_config
+    from compd.daemon.app import App
 
     try:
         new = App(load_config(config_path), duration_s=remaining, observe=observe)
@@ -75,9 +75,9 @@ def run_with_reload(
     reload triggers one more reload of the then-current file after it. Returns the
     summary of the last pipeline.
     """
-    from compd.app import App
     from compd.config import load_config
-    from compd.logsetup import setup_logging
+    from compd.daemon.app import App
+    from compd.service.logsetup import setup_logging
 
     cfg = load_config(config_path)
     setup_logging(log_level or cfg.top.logging.level)

@@ -1,0 +1,56 @@
+"""The `compd` command line: thin — parse, call, print. Each command lives with its arguments in this package's modules."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+from compd.cli import commissioning, daemon, tools  # noqa: F401  (their commands register themselves)
+from compd.cli.args import ARGUMENTS, COMMANDS, Parser, writing
+from compd.errors import BadInput
+
+__all__ = ["build_parser", "main", "writing"]
+
+ORDER = ['run', 'status', 'probe', 'arm-model', 'opcua-cert', 'docs', 'check-config', 'replay', 'output-test', 'plot', 'report', 'encode', 'decode', 'fit', 'predict', 'score', 'xi', 'bench']  # as `compd --help` lists them
+
+
+def build_parser() -> Parser:
+    from compd import version
+
+    p = Parser(
+        prog="compd", description="Real-time thermal-error compensation for CNC machine tools.",
+        epilog="example:\n  compd check-config configs/demo.yaml\n  compd run configs/demo.yaml --observe\n"
+        "  compd status --config configs/demo.yaml\n\n`compd COMMAND --help` describes a command.",
+    )
+    p.add_argument("--version", action="version", version=f"compd {version()}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    for name in ORDER:
+        ARGUMENTS[name](sub)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    # argparse exits 2 on bad arguments with a usage message: bad input is exit 2.
+    args = parser.parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except BadInput as e:
+        print(f"compd: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+    except BrokenPipeError:
+        return 0
+    except Exception as e:  # anything else: one line, exit 1 (traceback with COMPD_DEBUG=1)
+        import os
+
+        if os.environ.get("COMPD_DEBUG"):
+            raise
+        print(f"compd: internal error: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Commissioning off the machine: fit, replay, output-test, plots, reports, and the docs generated from the code."""
