@@ -46,7 +46,7 @@ mkdir -p "$(dirname "$venv")"
 say "docs, units and the drop-in examples (real-time, network)"
 install -d "$DESTDIR$PREFIX/docs" "$DESTDIR$PREFIX/systemd" "$DESTDIR$UNITDIR" "$DESTDIR$SYSUSERSDIR"
 install -m 0644 "$SRC"/docs/*.md "$DESTDIR$PREFIX/docs/"
-for unit in compd.service.host compd@.service; do
+for unit in compd.service compd@.service; do
     sed "s#/opt/compd#$PREFIX#g; s#/etc/compd#$SYSCONFDIR/compd#g" "$SRC/systemd/$unit" >"$work/$unit"
     install -m 0644 "$work/$unit" "$DESTDIR$UNITDIR/$unit"
 done

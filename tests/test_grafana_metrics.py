@@ -25,7 +25,7 @@ def _exprs(dash: dict[str, Any]) -> list[str]:
 
 
 def test_the_catalogue_has_every_family_the_collector_defines(root) -> None:
-    source = (root / "compd" / "metrics.py").read_text(encoding="utf-8")
+    source = (root / "compd" / "service" / "metrics.py").read_text(encoding="utf-8")
     defined = set(re.findall(r'MetricFamily\(\s*"(compd_[a-z0-9_]+)"', source))
     assert len(defined) >= 25
     assert {f.name for f in families()} == defined  # EXAMPLE_SNAPSHOT takes every branch

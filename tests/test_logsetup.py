@@ -10,7 +10,7 @@ from compd.service.logsetup import KeyValueFormatter, setup_logging, stderr_is_j
 
 
 def _record(msg: str, level: int = logging.WARNING, **extra) -> logging.LogRecord:
-    rec = logging.LogRecord("compd.service.host", level, __file__, 1, msg, (), None)
+    rec = logging.LogRecord("compd.service", level, __file__, 1, msg, (), None)
     for k, v in extra.items():
         setattr(rec, k, v)
     return rec

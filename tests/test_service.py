@@ -50,7 +50,7 @@ def test_status_file_is_written_while_running_and_marked_stopped_at_the_end(tmp_
     assert seen, "no running snapshot was written during the run"
     assert seen["pid"] == os.getpid() and seen["observe"] is False
     assert set(seen["axes"]["z"]) >= {"correction_um", "state", "policy", "enable", "prediction_um"}
-    assert set(seen["signals"]["T_xi"]) == {"value", "quality", "age_s"}
+    assert set(seen["signals"]["T_xi"]) == {"value", "quality", "stamp_s", "age_s"}
     assert set(seen["loop"]["lateness_us"]) == {"p50", "p99", "p999", "max"}
     final = json.loads((tmp_path / "st" / "status.json").read_text())
     assert final["state"] == "stopped"

@@ -21,7 +21,7 @@ from compd.service.notify import socket_address
 from tests.service_helpers import sim_config
 
 ROOT = Path(__file__).resolve().parent.parent
-UNITS = ("compd.service.host", "compd@.service")
+UNITS = ("compd.service", "compd@.service")
 COMPD = "/opt/compd/venv/bin/compd"
 
 
@@ -150,7 +150,7 @@ def test_realtime_drop_in_is_opt_in():
     assert v["RestrictRealtime"] == "no"
     assert v["LimitRTPRIO"] and v["LimitMEMLOCK"] == "infinity"
     assert set(v["AmbientCapabilities"].split()) <= {"CAP_SYS_NICE", "CAP_IPC_LOCK"}
-    assert unit_values(ROOT / "systemd" / "compd.service.host")["RestrictRealtime"] == "yes"
+    assert unit_values(ROOT / "systemd" / "compd.service")["RestrictRealtime"] == "yes"
 
 
 @pytest.mark.parametrize("name", UNITS)
@@ -201,12 +201,12 @@ def test_systemd_analyze_verify(tmp_path):
         text = (ROOT / "systemd" / name).read_text(encoding="utf-8").replace(COMPD, exe)
         (tmp_path / name).write_text(text, encoding="utf-8")
     shutil.copy(tmp_path / "compd@.service", tmp_path / "compd@lathe1.service")
-    for d in ("compd.service.host.d", "compd@.service.d"):
+    for d in ("compd.service.d", "compd@.service.d"):
         (tmp_path / d).mkdir()
         for drop_in in ("realtime", "network"):
             shutil.copy(ROOT / "systemd" / f"{drop_in}.conf.example", tmp_path / d / f"{drop_in}.conf")
     env = {**os.environ, "SYSTEMD_UNIT_PATH": f"{tmp_path}:"}
-    for unit in ("compd.service.host", "compd@lathe1.service"):
+    for unit in ("compd.service", "compd@lathe1.service"):
         r = subprocess.run(
             [systemd_analyze(), "verify", str(tmp_path / unit)],
             env=env, capture_output=True, text=True, timeout=60,
@@ -217,7 +217,7 @@ def test_systemd_analyze_verify(tmp_path):
 
 
 def test_unit_command_reaches_ready_pings_the_watchdog_and_stops_on_sigterm(tmp_path):
-    unit = unit_values(ROOT / "systemd" / "compd.service.host")
+    unit = unit_values(ROOT / "systemd" / "compd.service")
     config = sim_config(tmp_path, duration_s=36000, period_s=0.5, speedup=3600)
 
     def adapt(cmdline: str) -> list[str]:  # the unit's command line, in this venv
@@ -270,7 +270,7 @@ def test_install_script_stages_everything(tmp_path):
     }
     r = subprocess.run(["bash", str(ROOT / "scripts" / "install.sh")], env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
-    unit = stage / "etc/systemd/system/compd.service.host"
+    unit = stage / "etc/systemd/system/compd.service"
     v = unit_values(unit)
     assert v["ExecStart"] == "/opt/compd-test/venv/bin/compd run /etc/compd/compd.yaml"
     assert (stage / "etc/systemd/system/compd@.service").is_file()

@@ -263,7 +263,7 @@ class ServiceWork:
         self._opcua_next_s = 0.0
         self.beat = np.zeros(1, dtype=np.int64)  # counted at every turn of the loop (shared with the daemon)
         self.description = spec.description
-        self._next_status_s = -1.0  # monotonic time the next status is due (-1: on `status_now` only)
+        self._next_status_s = -1.0  # monotonic time the next status is due (-1: not serving yet)
 
     # ------------------------------------------------------------------ life
     def start(self, paused: bool) -> None:
@@ -291,6 +291,7 @@ class ServiceWork:
             self._start_telemetry(spec.telemetry)
         if self.control is not None:
             self.control.serve(self.link)
+        self._next_status_s = 0.0  # the first status at once, from the record the cycle keeps writing
         self._going.set()
 
     def _start_telemetry(self, tspec: Any) -> None:

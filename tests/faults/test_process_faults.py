@@ -329,6 +329,6 @@ def test_reload_to_an_unreachable_sink(tmp_path: Path) -> None:
     )
     record("reload_unreachable_sink", m, tmp_path)
     assert before["axes"]["z"]["enable"] is True and before["sink"]["link"] == "up"
-    assert snap["sink"]["link"] == "down" and z["enable"] is False
-    assert 'compd_axis_enabled{axis="z"} 0.0' in metrics and m.logged
+    assert snap["sink"]["link"] == "down" and z["enable"] is None  # not confirmed at the machine
+    assert 'compd_axis_enabled{axis="z"} NaN' in metrics and m.logged
     assert "NOT REACHING THE MACHINE" in render(snap, True, "running")

@@ -39,10 +39,10 @@ SNAP: dict[str, Any] = {
     "written_unix_s": 1795541065.5,
     "word": "0x4512",
     "axes": {
-        "x": {"correction_um": -3.25, "target_um": -3.5, "prediction_um": 3.5, "enable": True,
+        "x": {"correction_um": -3.25, "target_um": -3.5, "prediction_um": 3.5, "applied_um": -3.0, "enable": True,
               "state": "normal", "byte": "0x12", "word_byte": "low"},
-        "z": {"correction_um": 0.0, "target_um": -5.375, "prediction_um": 5.375, "enable": False,
-              "state": "starting", "byte": "0x45", "word_byte": "high"},
+        "z": {"correction_um": 0.0, "target_um": -5.375, "prediction_um": 5.375, "applied_um": None,
+              "enable": False, "state": "starting", "byte": "0x45", "word_byte": "high"},
     },
     "signals": {
         "T_spindle": {"value": 22.4, "quality": "good", "age_s": 0.0},
@@ -276,7 +276,7 @@ def test_browse_matches_the_documented_address_space(served: Any, pki: Pki) -> N
     want = documented(SNAP)
     _, units = doc_tables()
     # compd, State, Observe; Axes, 2 × (folder + 8); Signals, 3 × (folder + 2); Loop + 6
-    assert len(want) == 3 + (1 + 2 * 9) + (1 + 3 * 3) + (1 + 6)
+    assert len(want) == 3 + (1 + 2 * 10) + (1 + 3 * 3) + (1 + 6)
     read_only = ua.AccessLevel.CurrentRead.mask
 
     async def body(client: Client) -> dict[str, tuple[str, str, str]]:
