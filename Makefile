@@ -34,7 +34,18 @@ sysdeps:
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
 	fi
 
-test: $(TEST_STAMP) sysdeps
+# checkers of the standards compd speaks, that compd's code does not share, for the tests:
+# promtool (`promtool check metrics`) from Debian's prometheus package, unpacked, not installed
+PROMTOOL := build/tools/promtool
+$(PROMTOOL):
+	rm -rf build/tools/deb && mkdir -p build/tools/deb
+	cd build/tools/deb && { apt-get download prometheus >/dev/null 2>&1 || \
+	  { if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; $$SUDO apt-get update -qq && apt-get download prometheus >/dev/null 2>&1; }; }
+	dpkg -x build/tools/deb/prometheus_*.deb build/tools/deb/x
+	cp build/tools/deb/x/usr/bin/promtool $@
+	rm -rf build/tools/deb
+
+test: $(TEST_STAMP) sysdeps $(PROMTOOL)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -m "not accept and not bench"
 

@@ -186,7 +186,7 @@ def _status(r: subprocess.CompletedProcess, work: Path) -> None:
 
 
 def _metrics(r: subprocess.CompletedProcess, work: Path) -> None:
-    assert 'compd_correction_micrometres{axis="z"}' in r.stdout
+    assert 'compd_correction_meters{axis="z"}' in r.stdout
 
 
 CHECKS: dict[str, Callable[[subprocess.CompletedProcess, Path], None]] = {

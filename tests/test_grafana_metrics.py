@@ -6,7 +6,14 @@ import json
 import re
 from typing import Any
 
-from compd.service.metrics import families, metrics_markdown, sample_names, unit_of
+from compd.service.metrics import (
+    PROCESS_METRICS,
+    SIGNAL_FAMILIES,
+    families,
+    metrics_markdown,
+    sample_names,
+    unit_of,
+)
 
 NAME = re.compile(r"\bcompd_[a-z0-9_]+")
 
@@ -28,6 +35,8 @@ def test_the_catalogue_has_every_family_the_collector_defines(root) -> None:
     source = (root / "compd" / "service" / "metrics.py").read_text(encoding="utf-8")
     defined = set(re.findall(r'MetricFamily\(\s*"(compd_[a-z0-9_]+)"', source))
     assert len(defined) >= 25
+    # the families named from tables: one per signal unit, the processes' CPU and memory
+    defined |= {name for name, _, _ in SIGNAL_FAMILIES.values()} | {f"compd_process_{k}" for k, _, _ in PROCESS_METRICS}
     assert {f.name for f in families()} == defined  # EXAMPLE_SNAPSHOT takes every branch
 
 
@@ -64,4 +73,10 @@ def test_docs_list_every_metric_with_its_unit_and_are_current(root) -> None:
     for fam in families():
         row = next(ln for ln in text.splitlines() if f"`{sample_names(fam)[0]}`" in ln)
         assert f"| {unit_of(fam)} |" in row and fam.documentation in row
-    assert "| µm |" in text and "| s |" in text
+    assert "| m |" in text and "| s |" in text and "| °C |" in text  # base units
+
+
+def test_quantiles_are_per_instance(root) -> None:
+    """A histogram quantile over several daemons is each one's, never their merge."""
+    exprs = [q for q in _exprs(_dashboard(root)) if "histogram_quantile" in q]
+    assert exprs and all("by (le, instance)" in q for q in exprs), exprs

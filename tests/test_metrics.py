@@ -45,7 +45,8 @@ def test_metrics_endpoint(tmp_path):
     url = server.start()
     try:
         assert url.startswith("http://127.0.0.1:")
-        assert _scrape(url) == {}  # nothing before the first snapshot
+        # nothing of compd's before the first snapshot (the service's own process_* are there)
+        assert not [k for k in _scrape(url) if k.startswith("compd_")]
         snap = snapshot(app.loop, state="running", observe=False)
         server.update(snap, app.loop.stats)
         m = _scrape(url)
@@ -58,9 +59,10 @@ def test_metrics_endpoint(tmp_path):
     buckets = [v for k, v in m.items() if k.startswith("compd_cycle_lateness_seconds_bucket")]
     assert buckets == sorted(buckets)
     assert m["compd_cycle_misses_total"] == app.loop.stats.misses
-    assert m['compd_correction_micrometres{axis="z"}'] == pytest.approx(snap["axes"]["z"]["correction_um"])
-    assert m['compd_prediction_micrometres{axis="z"}'] == pytest.approx(float(app.loop.pred_um[0]))
-    assert m['compd_prediction_micrometres{axis="z"}'] > 1.0
+    assert m['compd_correction_meters{axis="z"}'] == pytest.approx(snap["axes"]["z"]["correction_um"] * 1e-6)
+    assert m['compd_prediction_meters{axis="z"}'] == pytest.approx(float(app.loop.pred_um[0]) * 1e-6)
+    assert m['compd_prediction_meters{axis="z"}'] > 1e-6
+    assert m['compd_signal_celsius{signal="T_xi"}'] == pytest.approx(snap["signals"]["T_xi"]["value"])
     assert m['compd_axis_state{axis="z",state="normal"}'] == 1.0
     assert m['compd_signal_good{signal="T_xi"}'] == 1.0
     assert m['compd_signal_quality{quality="good",signal="T_xi"}'] == 1.0
@@ -110,7 +112,8 @@ def test_idle_connections_do_not_block_a_scrape():
         for _ in range(100):
             socks.append(socket.create_connection(("127.0.0.1", server.port), timeout=5))
         t0 = time.monotonic()
-        assert _scrape(url) == {}  # answered (nothing to show before the first snapshot)
+        # answered (nothing of compd's to show before the first snapshot)
+        assert not [k for k in _scrape(url) if k.startswith("compd_")]
         assert time.monotonic() - t0 < 10.0
     finally:
         for s in socks:
@@ -173,6 +176,6 @@ def test_the_adaptation_estimate_and_probe_counts(tmp_path):
     m = _served(app, "stopped")
     assert m['compd_probes_accepted_total{axis="z"}'] == 1
     assert m['compd_probes_rejected_total{axis="z"}'] == 1
-    assert m['compd_adapt_offset_micrometres{axis="z"}'] == pytest.approx(float(ad.est[0].s[0]))
-    assert 0 < m['compd_adapt_offset_micrometres{axis="z"}'] <= 2.0
-    assert m['compd_adapt_offset_sigma_micrometres{axis="z"}'] > 0
+    assert m['compd_adapt_offset_meters{axis="z"}'] == pytest.approx(float(ad.est[0].s[0]) * 1e-6)
+    assert 0 < m['compd_adapt_offset_meters{axis="z"}'] <= 2e-6
+    assert m['compd_adapt_offset_sigma_meters{axis="z"}'] > 0

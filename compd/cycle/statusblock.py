@@ -110,6 +110,20 @@ LOOP: tuple[Field, ...] = (
 )
 
 
+# a signal's unit, by the end of its name (compd's names carry their units; STYLE); T_… is °C
+_SUFFIX_UNITS = (("_um", "µm"), ("_mm", "mm"), ("_rpm", "rpm"), ("_c", "°C"), ("_k", "K"), ("_s", "s"),
+                 ("_a", "A"), ("_v", "V"), ("_pct", "%"), ("_bar", "bar"), ("_hz", "Hz"))
+
+
+def signal_unit(name: str) -> str | None:
+    """The unit a signal's name says (`err_z_um` → µm, `T_xi` → °C), or None."""
+    low = name.lower()
+    for suffix, unit in _SUFFIX_UNITS:
+        if low.endswith(suffix):
+            return unit
+    return "°C" if name.startswith("T_") else None
+
+
 def _index(fields: tuple[Field, ...]) -> dict[str, int]:
     return {f.key: i for i, f in enumerate(fields)}
 

@@ -45,6 +45,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from compd.cycle.statusblock import signal_unit
 from compd.plant.buffer import StoreAndForward
 from compd.plant.sparkplug import (
     NAMESPACE,
@@ -71,20 +72,6 @@ MAX_COMMAND_BYTES = 16 << 20  # an NCMD/DCMD longer than this is not even decode
 NODE_REBIRTH = "Node Control/Rebirth"
 NODE_MODEL = "Node Control/Model"
 DEVICE_MODEL = "Model/apply"
-
-# the units of a signal, by the end of its name (compd's names carry their units); T_… is °C
-_SUFFIX_UNITS = (("_um", "µm"), ("_mm", "mm"), ("_rpm", "rpm"), ("_c", "°C"), ("_k", "K"), ("_s", "s"),
-                 ("_a", "A"), ("_v", "V"), ("_pct", "%"), ("_bar", "bar"), ("_hz", "Hz"))
-
-
-def signal_unit(name: str) -> str | None:
-    """The unit a signal's name says (`err_z_um` → µm, `T_xi` → °C), or None."""
-    low = name.lower()
-    for suffix, unit in _SUFFIX_UNITS:
-        if low.endswith(suffix):
-            return unit
-    return "°C" if name.startswith("T_") else None
-
 
 def _num(value: Any) -> float | None:
     """A finite float, or None (Sparkplug's is_null) for NaN, None or anything not a number."""

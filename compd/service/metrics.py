@@ -3,22 +3,49 @@
 Nothing here runs in the cycle, nor in the cycle's process: the daemon binds the
 endpoint, and the service (compd/service/host.py, a process of its own on the wall clock)
 serves it and hands `MetricsServer.update_buckets` the latest snapshot (compd/service/status.py)
-about once a second; a scrape renders the metric families from that snapshot. Metric names carry their unit (Prometheus
-convention: seconds, micrometres).
+about once a second; a scrape renders the metric families from that snapshot. Metric names end
+in their base unit (Prometheus: `_seconds`, `_meters`, `_celsius`, `_hertz`, …; a correction of
+12 µm is 1.2e-05 meters), one family per unit; `promtool check metrics` passes on a scrape
+(tests/test_promtool.py). Beside them: `compd_build_info`, the standard `process_*` metrics of
+the process that serves the scrape (the service's), and `compd_process_*` for each of compd's
+processes by name.
 """
 
 from __future__ import annotations
 
 import math
+import platform
 import threading
 from typing import Any
 
-from compd.cycle.statusblock import AXIS, A
+from compd import version
+from compd.cycle.statusblock import AXIS, A, signal_unit
 from compd.errors import BadInput
 from compd.service.threads import ServiceThread
 
 # cycle lateness histogram bounds, µs (a 2 ms cycle: "late" starts around 1000)
 LATENESS_BOUNDS_US = (10.0, 25.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 5000.0, 10000.0)
+UM = 1e-6  # µm → m
+
+# a signal's unit (compd.cycle.statusblock.signal_unit) → its family: name, factor to the base unit, what it is
+SIGNAL_FAMILIES: dict[str | None, tuple[str, float, str]] = {
+    "°C": ("compd_signal_celsius", 1.0, "a temperature, °C"),
+    "K": ("compd_signal_kelvin", 1.0, "a temperature difference, K"),
+    "µm": ("compd_signal_meters", UM, "a length or error (µm in the signal's name, here in meters)"),
+    "mm": ("compd_signal_meters", 1e-3, "a length or error (µm in the signal's name, here in meters)"),
+    "rpm": ("compd_signal_hertz", 1.0 / 60.0, "a speed (rpm in the signal's name, here in revolutions per second)"),
+    "Hz": ("compd_signal_hertz", 1.0, "a speed (rpm in the signal's name, here in revolutions per second)"),
+    "s": ("compd_signal_seconds", 1.0, "a time"),
+    "A": ("compd_signal_amperes", 1.0, "a current"),
+    "V": ("compd_signal_volts", 1.0, "a voltage"),
+    "%": ("compd_signal_ratio", 0.01, "a share (% in the signal's name, here 0 … 1)"),
+    "bar": ("compd_signal_pascals", 1e5, "a pressure (bar in the signal's name, here in pascals)"),
+    None: ("compd_signal_value", 1.0, "a signal whose name says no unit, as read"),
+}
+# the processes of compd whose CPU time and memory are exported (`compd_process_*`), by name
+PROCESS_METRICS = (("cpu_seconds", "counter", "CPU time (user and system) of compd's process"),
+                   ("resident_memory_bytes", "gauge", "Resident memory of compd's process"),
+                   ("start_time_seconds", "gauge", "Start time of compd's process since the Unix epoch"))
 
 
 class SnapshotCollector:
@@ -80,10 +107,10 @@ class SnapshotCollector:
         word = GaugeMetricFamily("compd_word", "The 16-bit compensation word the loop computed")
         word.add_metric([], float(int(snap["word"], 16)))
         yield word
-        corr = GaugeMetricFamily("compd_correction_micrometres", "Guarded correction per axis", labels=["axis"])
-        pred = GaugeMetricFamily("compd_prediction_micrometres", "Predicted thermal error per axis", labels=["axis"])
+        corr = GaugeMetricFamily("compd_correction_meters", "Guarded correction per axis", labels=["axis"])
+        pred = GaugeMetricFamily("compd_prediction_meters", "Predicted thermal error per axis", labels=["axis"])
         applied = GaugeMetricFamily(
-            "compd_applied_micrometres",
+            "compd_applied_meters",
             "What the device acknowledged or reads back as applied per axis (NaN: not known, e.g. the link not up)",
             labels=["axis"],
         )
@@ -100,9 +127,9 @@ class SnapshotCollector:
             labels=["axis", "reason"],
         )
         for axis, a in snap["axes"].items():
-            corr.add_metric([axis], _f(a["correction_um"]))
-            pred.add_metric([axis], _f(a.get("prediction_um")))
-            applied.add_metric([axis], _f(a.get("applied_um")))
+            corr.add_metric([axis], _f(a["correction_um"]) * UM)
+            pred.add_metric([axis], _f(a.get("prediction_um")) * UM)
+            applied.add_metric([axis], _f(a.get("applied_um")) * UM)
             on = a["enable"]
             en.add_metric([axis], 0.0 if snap["observe"] else math.nan if on is None else 1.0 if on else 0.0)
             sat.add_metric([axis], 1.0 if a.get("saturated") else 0.0)
@@ -129,40 +156,70 @@ class SnapshotCollector:
             pup.add_metric([p["name"]], 1.0 if p["up"] else 0.0)
             prs.add_metric([p["name"]], p["restarts"])
         yield from (pup, prs)
+        yield from _process_families(snap)
+        info = GaugeMetricFamily("compd_build_info", "1, labelled with compd's version and Python's",
+                                 labels=["version", "python"])
+        info.add_metric([version(), platform.python_version()], 1.0)
+        yield info
         yield CounterMetricFamily("compd_saturations", "Words with a clamped axis byte", value=snap["saturations"])
-        val = GaugeMetricFamily("compd_signal_value", "Last value of a signal", labels=["signal"])
+        vals: dict[str, Any] = {}
+        for fam, _, what in SIGNAL_FAMILIES.values():
+            if fam not in vals:
+                vals[fam] = GaugeMetricFamily(fam, f"Last value of a signal: {what}", labels=["signal"])
         good = GaugeMetricFamily("compd_signal_good", "1 when the signal's quality is good", labels=["signal"])
         qual = GaugeMetricFamily("compd_signal_quality", "1 for the signal's current quality", labels=["signal", "quality"])
         age = GaugeMetricFamily("compd_signal_age_seconds", "Age of the signal's last sample", labels=["signal"])
         for name, s in snap["signals"].items():
-            val.add_metric([name], _f(s["value"]))
+            fam, factor, _ = SIGNAL_FAMILIES[signal_unit(name)]
+            vals[fam].add_metric([name], _f(s["value"]) * factor)
             good.add_metric([name], 1.0 if s["quality"] == "good" else 0.0)
             qual.add_metric([name, s["quality"]], 1.0)
             age.add_metric([name], _f(s["age_s"]))
-        yield from (val, good, qual, age)
+        yield from (*vals.values(), good, qual, age)
         faults = CounterMetricFamily("compd_faults", "Guard events by kind (event:reason)", labels=["kind"])
         for kind, n in sorted(snap["faults"].items()):
             faults.add_metric([kind], n)
         yield faults
         adapt = snap.get("adapt")
         if adapt:  # the probe-updated estimate (compd.cycle.adapt)
-            off = GaugeMetricFamily("compd_adapt_offset_micrometres", "Probe-estimated offset per axis", labels=["axis"])
+            off = GaugeMetricFamily("compd_adapt_offset_meters", "Probe-estimated offset per axis", labels=["axis"])
             sd = GaugeMetricFamily(
-                "compd_adapt_offset_sigma_micrometres", "Standard deviation of the offset estimate", labels=["axis"]
+                "compd_adapt_offset_sigma_meters", "Standard deviation of the offset estimate", labels=["axis"]
             )
             acc = CounterMetricFamily("compd_probes_accepted", "Probes accepted by the innovation gate", labels=["axis"])
             rej = CounterMetricFamily("compd_probes_rejected", "Probes rejected by the innovation gate", labels=["axis"])
             slope = GaugeMetricFamily(
-                "compd_adapt_slope_micrometres_per_metre", "Probe-estimated slope over the axis position", labels=["axis"]
+                "compd_adapt_slope_ratio", "Probe-estimated slope over the axis position (m per m)", labels=["axis"]
             )
             for axis, e in adapt.items():
                 if e.get("slope_um_per_m") is not None:
-                    slope.add_metric([axis], _f(e["slope_um_per_m"]))
-                off.add_metric([axis], _f(e.get("offset_um")))
-                sd.add_metric([axis], _f(e.get("offset_sigma_um")))
+                    slope.add_metric([axis], _f(e["slope_um_per_m"]) * UM)
+                off.add_metric([axis], _f(e.get("offset_um")) * UM)
+                sd.add_metric([axis], _f(e.get("offset_sigma_um")) * UM)
                 acc.add_metric([axis], e.get("accepted", 0))
                 rej.add_metric([axis], e.get("rejected", 0))
             yield from (off, sd, acc, rej, slope)
+
+
+def _process_families(snap: dict[str, Any]) -> list[Any]:
+    """`compd_process_*{process}` for the cycle's process, the service's and each one the
+    supervisor watches, read from /proc by prometheus-client's process collector (a process
+    that is gone has no sample)."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+    from prometheus_client.process_collector import ProcessCollector
+
+    out = {key: (CounterMetricFamily if kind == "counter" else GaugeMetricFamily)(
+        f"compd_process_{key}", doc, labels=["process"]) for key, kind, doc in PROCESS_METRICS}
+    procs = [("cycle", snap.get("pid")), ("service", snap.get("service_pid"))]
+    procs += [(p["name"], p["pid"]) for p in snap.get("processes") or [] if p.get("up") and p["name"] != "service"]
+    for name, pid in procs:
+        if not isinstance(pid, int) or pid <= 0:
+            continue
+        for fam in ProcessCollector(pid=lambda pid=pid: pid, registry=None).collect():
+            key = fam.name.removeprefix("process_")
+            if key in out and fam.samples:
+                out[key].add_metric([name], fam.samples[0].value)
+    return list(out.values())
 
 
 def _f(value: Any) -> float:
@@ -179,17 +236,31 @@ EXAMPLE_SNAPSHOT: dict[str, Any] = {
                    "state": "normal"}},
     "sink": {"link": "up"}, "saturations": 0,
     "processes": [{"name": "modbus-link-fanuc_pmc", "pid": 1, "up": True, "restarts": 0, "lost": None}],
-    "signals": {"T_xi": {"value": 20.0, "quality": "good", "age_s": 0.0}},
+    "signals": {name: {"value": 1.0, "quality": "good", "age_s": 0.0}  # one of each unit's family
+                for name in ("T_xi", "T_rise_k", "err_z_um", "speed_rpm", "cycle_s", "current_a", "supply_v",
+                             "coolant_pct", "coolant_bar", "spindle_load")},
     "faults": {"bad:stale": 1},
     "adapt": {"z": {"offset_um": 0.0, "offset_sigma_um": 1.0, "accepted": 0, "rejected": 0, "slope_um_per_m": 0.0}},
 }
 
 # a metric's unit from its name (Prometheus: the base unit ends the name); others by name
-_UNIT_SUFFIXES = (("_micrometres_per_metre", "µm/m"), ("_micrometres", "µm"), ("_seconds", "s"))
+_UNIT_SUFFIXES = (("_meters", "m"), ("_seconds", "s"), ("_celsius", "°C"), ("_kelvin", "K"), ("_hertz", "Hz"),
+                  ("_amperes", "A"), ("_volts", "V"), ("_pascals", "Pa"), ("_bytes", "bytes"), ("_ratio", "ratio"))
 _UNITS = {
     "compd_word": "16-bit word (0 … 65535)",
-    "compd_signal_value": "the signal's own (°C for a temperature, rpm for a speed)",
+    "compd_signal_value": "the signal's own (its name says none)",
+    "compd_build_info": "1",
 }
+# the names before the base units (this release): old → new (no alias under an old name: promtool refuses them)
+RENAMED = (
+    ("compd_correction_micrometres", "compd_correction_meters"),
+    ("compd_prediction_micrometres", "compd_prediction_meters"),
+    ("compd_adapt_offset_micrometres", "compd_adapt_offset_meters"),
+    ("compd_adapt_offset_sigma_micrometres", "compd_adapt_offset_sigma_meters"),
+    ("compd_adapt_slope_micrometres_per_metre", "compd_adapt_slope_ratio"),
+    ("compd_signal_value (every signal)", "compd_signal_celsius, _kelvin, _meters, _hertz, _seconds, _amperes, _volts,"
+     " _ratio, _pascals by the unit the signal's name says; compd_signal_value for the others"),
+)
 
 
 def families() -> list[Any]:
@@ -242,7 +313,19 @@ def metrics_markdown() -> str:
     lines += [
         "",
         "The adaptation metrics (`compd_adapt_*`, `compd_probes_*`) are there only with an `adapt`",
-        "section; `compd_adapt_slope_micrometres_per_metre` only for an axis that estimates a slope.",
+        "section; `compd_adapt_slope_ratio` only for an axis that estimates a slope. A signal is in",
+        "the family of the unit its name says (`T_…` and `…_c`: °C, `…_um`: µm as meters, `…_rpm`:",
+        "revolutions per second, …; compd/cycle/statusblock.py `signal_unit`). The endpoint also",
+        "serves prometheus-client's standard `process_*` metrics of the service's process.",
+        "",
+        "## Renamed to base units",
+        "",
+        "Metric names end in their base unit, as `promtool check metrics` asks; the old names are",
+        "not served any more (promtool refuses them). Old → new:",
+        "",
+        "| old | new |",
+        "|---|---|",
+        *(f"| `{old}` | `{new}` |" if "(" not in old else f"| {old} | {new} |" for old, new in RENAMED),
         "",
     ]
     return "\n".join(lines)
@@ -330,8 +413,11 @@ class MetricsServer:
             raise BadInput(
                 "metrics.enabled needs prometheus-client: pip install 'compd[metrics]'", path="metrics.enabled"
             ) from None
+        from prometheus_client.process_collector import ProcessCollector
+
         registry = CollectorRegistry(auto_describe=False)
         registry.register(self.collector)
+        ProcessCollector(registry=registry)  # process_* of the process that serves the scrape: the service
         try:
             self._httpd = _make_server(self.bind, self.port, registry, self.idle_timeout_s, self.max_connections)
         except OSError as e:

@@ -6,10 +6,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from compd.cycle.statusblock import signal_unit
 from compd.plant.buffer import StoreAndForward
 from compd.plant.sparkplug import DataType, MetricDef, encode, topic
 from compd.plant.spec import TelemetrySpec
-from compd.plant.telemetry import Telemetry, device_metrics, signal_unit
+from compd.plant.telemetry import Telemetry, device_metrics
 
 from .broker import Listener, Mosquitto, Tls, metric
 
