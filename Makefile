@@ -45,7 +45,13 @@ $(PROMTOOL):
 	cp build/tools/deb/x/usr/bin/promtool $@
 	rm -rf build/tools/deb
 
-test: $(TEST_STAMP) sysdeps $(PROMTOOL)
+# Eclipse Tahu's Sparkplug B payload library (npm), pinned, to decode what compd publishes
+TAHU := build/tools/node/node_modules/sparkplug-payload/package.json
+$(TAHU):
+	mkdir -p build/tools/node
+	npm install --prefix build/tools/node --no-save --no-audit --no-fund --silent sparkplug-payload@1.0.3
+
+test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -m "not accept and not bench"
 

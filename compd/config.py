@@ -757,7 +757,9 @@ class TelemetryBufferConfig(Strict):
         description="SQLite file (relative to the config); none = $STATE_DIRECTORY/<config name>.telemetry.sqlite"
         " under systemd, else next to the config",
     )
-    max_mb: float = Field(64.0, gt=0, le=65536, description="at most this much data; when full the oldest is dropped and counted")
+    max_mb: float = Field(64.0, ge=0.1, le=65536,
+                          description="at most this much data (at least 0.1 MB: a few hundred samples); when full the"
+                          " oldest is dropped and counted")
 
 
 class TelemetryConfig(Strict):

@@ -22,7 +22,9 @@ buffer is started; ids then start again at 1 in the new file.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
+import os
 import sqlite3
 import threading
 import time
@@ -362,3 +364,53 @@ class StoreAndForward:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class Counters:
+    """The numbers a historian keys on (the Sparkplug `Sample`, `bdSeq`), in a small file of
+    their own beside the buffer (`<buffer>.counters`, JSON, written through a temp file, a
+    sync and a rename): a buffer set aside, emptied or lost does not take them with it, so
+    a sample number is never given twice. A counter is the larger of the file's and the
+    buffer's (an older compd kept them in the buffer only). A counters file that cannot be
+    read is set aside like a buffer (`.corrupt-<UTC>`), never deleted."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.values: dict[str, int] = {}
+        self.error: str | None = None  # the last write that failed (the status shows it)
+        try:
+            raw = json.loads(self.path.read_text(encoding="utf-8"))
+            if not isinstance(raw, dict) or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0
+                                                   for v in raw.values()):
+                raise ValueError("not a mapping of counters to non-negative integers")
+            self.values = {str(k): int(v) for k, v in raw.items()}
+        except FileNotFoundError:
+            pass
+        except (OSError, ValueError) as e:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+            target = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
+            with contextlib.suppress(OSError):
+                self.path.rename(target)
+            log.warning("telemetry counters %s unusable (%s): moved to %s; counting on from the buffer",
+                        self.path, e, target, extra={"event": "telemetry_counters_corrupt", "path": str(self.path),
+                                                     "moved_to": str(target), "reason": str(e)})
+
+    def get(self, key: str, floor: int = 0) -> int:
+        """The counter, at least `floor` (the buffer's own copy); `floor` when it was never set."""
+        return max(self.values[key], floor) if key in self.values else floor
+
+    def set(self, key: str, value: int) -> None:
+        """Store a counter now (it survives a crash of the process once this returns)."""
+        self.values[key] = int(value)
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        try:
+            with open(tmp, "w", encoding="utf-8") as fh:
+                json.dump(self.values, fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, self.path)
+            self.error = None
+        except OSError as e:  # a full disk: counted on in memory, said in the status, tried again next time
+            self.error = f"{self.path}: {e.strerror or e}"
+            with contextlib.suppress(OSError):
+                tmp.unlink()

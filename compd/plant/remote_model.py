@@ -35,6 +35,7 @@ import shutil
 import signal
 import time
 from datetime import UTC, datetime
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from compd.plant.spec import RemoteSpec
 log = logging.getLogger("compd.telemetry")
 
 RELOAD_WAIT_S = 30.0  # a reload that has not replaced this service by then did not take the model
+MAX_REJECTED_KEPT = 5  # rejected models kept beside the model file for the engineer; more are not kept
 
 
 class RemoteModels:
@@ -108,6 +110,10 @@ class RemoteModels:
         except Exception as e:  # a check that broke is a refusal, never a crash of the service
             why = f"{type(e).__name__}: {e}"
         if why is not None:
+            if len(list(mfile.parent.glob(f"{glob_escape(mfile.name)}.rejected-*"))) >= MAX_REJECTED_KEPT:
+                candidate.unlink(missing_ok=True)  # a peer cannot fill the disk with what it sends
+                return self._refuse(f"invalid model: {why} (not kept: {MAX_REJECTED_KEPT} rejected models are"
+                                    " kept already)")
             kept = candidate.with_name(f"{mfile.name}.rejected-{stamp}")
             os.replace(candidate, kept)  # kept for the engineer who wants to see what came
             return self._refuse(f"invalid model: {why} (kept as {kept.name})")
@@ -185,14 +191,23 @@ def validate(spec: RemoteSpec, candidate: Path) -> str | None:
         section["file"] = str(candidate)
         model = resolve_model(section, cfg.doc, ("model",), Path(cfg.file).parent)
     except BadInput as e:
-        return str(e).replace(str(candidate), "the model sent")
+        return _private(str(e), spec, candidate)
     if list(model.outputs) != list(spec.outputs):
         return f"its axes {model.outputs} are not the running model's {spec.outputs}"
     try:
         pipeline.check(dataclasses.replace(cfg, model=model))  # wiring, signals (opens no device)
     except BadInput as e:
-        return str(e).replace(str(candidate), "the model sent")
+        return _private(str(e), spec, candidate)
     return None
+
+
+def _private(text: str, spec: RemoteSpec, candidate: Path) -> str:
+    """A refusal as the plant sees it: the model sent by that name, the machine's files by
+    their names only (no folder of this host goes out over MQTT)."""
+    text = text.replace(str(candidate), "the model sent")
+    for path in (Path(spec.config).resolve(), Path(spec.config), spec.model_file):
+        text = text.replace(str(path), path.name)
+    return text
 
 
 __all__ = ["RemoteModels", "validate"]

@@ -20,8 +20,9 @@ Sparkplug B as compd speaks it (docs/plant.md):
   online (Sparkplug 3.0: a host that is not there would miss the data, so it waits on
   disk), and again when it goes offline;
 * on every connection, a new `bdSeq`; the last will is the NDEATH with it; then NBIRTH
-  (node metrics) and DBIRTH (the machine's metrics with their types, units and current
-  values), `seq` 0, 1, … 255, 0 … over every message of the session;
+  (node metrics) and DBIRTH (every metric the machine's DDATA ever carries, the events'
+  too, with their types, units, current values and time stamps), `seq` 0, 1, … 255, 0 …
+  over every message of the session;
 * a DDATA per sample (the metrics that changed are not picked out: every metric is in
   every sample, which is what a historian replaying gaps wants), a DDATA with the
   `Event/*` metrics per event, an NDATA when the node's own metrics change;
@@ -34,6 +35,7 @@ Sparkplug B as compd speaks it (docs/plant.md):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -46,7 +48,7 @@ from collections.abc import Callable
 from typing import Any
 
 from compd.cycle.statusblock import signal_unit
-from compd.plant.buffer import StoreAndForward
+from compd.plant.buffer import Counters, StoreAndForward
 from compd.plant.sparkplug import (
     NAMESPACE,
     DataType,
@@ -179,6 +181,10 @@ class Telemetry:
         self._host_online = spec.primary_host_id is None  # the primary host's STATE (always, without one)
         self._seq = 0
         self._bdseq = 0
+        self.counters: Any = None  # compd.plant.buffer.Counters: Sample and bdSeq, apart from the buffer
+        self.failures = 0  # turns of the thread that raised (a full disk …), each followed by a retry
+        self.lost_to_disk = 0  # samples and events the buffer could not take (counted in `dropped`)
+        self._last_failure: str | None = None
         self._inflight: dict[int, int] = {}  # MQTT mid → buffer record id
         self._cursor = 0  # the newest record id handed to the client in this session
         self._historical_upto = 0  # records up to this id were taken before this session's births
@@ -203,6 +209,7 @@ class Telemetry:
         """Open the buffer (BadInput if it cannot) and start the thread."""
         spec = self.spec
         self.buffer = StoreAndForward(spec.buffer_path, spec.buffer_max_bytes)
+        self.counters = Counters(spec.buffer_path.with_name(spec.buffer_path.name + ".counters"))
         self._client = self._make_client()
         self._thread = ServiceThread("compd-telemetry", self._run)
         self._thread.start()
@@ -259,8 +266,10 @@ class Telemetry:
             "acknowledged": self.acked,
             "buffered": buf.get("records", 0),
             "buffered_bytes": buf.get("bytes", 0),
-            "dropped": buf.get("dropped", 0) + self.inbox_dropped,
+            "dropped": buf.get("dropped", 0) + self.inbox_dropped + self.lost_to_disk,
             "bdseq": self._bdseq,
+            "counters_error": self.counters.error if self.counters is not None else None,
+            "failures": self.failures,
             "commands": self.commands_seen,
             "last_error": self.last_error,
         }
@@ -287,30 +296,56 @@ class Telemetry:
         return client
 
     def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._turn()
+            except Exception as e:  # a full disk, a bug: said once, the connection dropped, tried again
+                self._failed(e)
         try:
-            while not self._stop.is_set():
-                self._take_inbox()
-                if self._client.is_connected() or self._connected:
-                    if self._session:  # what came in goes out now, not after the wait below
-                        if self._birth_due:
-                            self._births(new_session=False)
-                        self._send()
-                    self._client.loop(timeout=self.spec.poll_s)
-                    if self._session:  # the acknowledgements that came in freed the window
-                        self._send()
-                else:
-                    if self._latest is not None and time.monotonic() >= self._next_try_s:
-                        self._connect()
-                    if not self._client.is_connected():
-                        self._stop.wait(self.spec.poll_s)
             self._finish()
-        except Exception as e:  # the telemetry must never take the service down: say so and end
+        except Exception as e:
             self.last_error = f"{type(e).__name__}: {e}"
-            log.exception("telemetry stopped: %s", self.last_error, extra={"event": "telemetry_error"})
+            log.exception("telemetry could not finish: %s", self.last_error, extra={"event": "telemetry_error"})
+
+    def _turn(self) -> None:
+        """One turn of the thread: take what the service handed over, connect or send."""
+        self._take_inbox()
+        if self._client.is_connected() or self._connected:
+            if self._session:  # what came in goes out now, not after the wait below
+                if self._birth_due:
+                    self._births(new_session=False)
+                self._send()
+            self._client.loop(timeout=self.spec.poll_s)
+            if self._session:  # the acknowledgements that came in freed the window
+                self._send()
+        else:
+            if self._latest is not None and time.monotonic() >= self._next_try_s:
+                self._connect()
+            if not self._client.is_connected():
+                self._stop.wait(self.spec.poll_s)
+
+    def _failed(self, e: Exception) -> None:
+        """A turn raised (the buffer's disk full, anything unforeseen): log each new reason once,
+        drop the connection (births again on the next), wait, go on. The telemetry never stops
+        for good while the service runs: it recovers when the disk has room again."""
+        reason = f"{type(e).__name__}: {e}"
+        self.failures += 1
+        if reason != self._last_failure:
+            self._last_failure = reason
+            log.error("telemetry: %s; retrying", reason, exc_info=e,
+                      extra={"event": "telemetry_error", "reason": reason})
+        self.last_error = reason
+        with contextlib.suppress(Exception):
+            self._client.disconnect()
+        self._connected = self._session = False
+        self._inflight.clear()
+        self._new_connection = False
+        self._attempts += 1
+        wait = min(self.spec.reconnect_max_s, RECONNECT_MIN_S * 2 ** min(self._attempts, 10))
+        self._next_try_s = time.monotonic() + wait
+        self._stop.wait(wait)
 
     def _take_inbox(self) -> None:
-        buf = self.buffer
-        assert buf is not None
         while True:
             try:
                 what, t_ms, values = self._inbox.get_nowait()
@@ -318,19 +353,31 @@ class Telemetry:
                 return
             if what == "answer":
                 self._answer(values)
-            elif what == "sample":
-                names = [d.name for d, _ in values]
-                if names != self._sample_names:  # a new set of metrics: births again
-                    self._sample_names = names
-                    self._birth_due = self._session
-                number = buf.get_meta("sample") + 1
-                buf.set_meta("sample", number)
-                self._latest = [(SAMPLE_METRIC, number), *values]
-                self._latest_t_ms = t_ms
-                body = [["Sample", number], *([d.name, v] for d, v in values)]
-                self._put(t_ms, "D", body)
-            else:
-                self._put(t_ms, "D", [[d.name, v] for d, v in zip(EVENT_METRICS, values, strict=True)])
+                continue
+            try:
+                self._store(what, t_ms, values)
+            except Exception:
+                self.lost_to_disk += 1  # could not be written (a full disk): counted as dropped
+                raise
+
+    def _store(self, what: str, t_ms: int, values: Any) -> None:
+        """A sample or an event into the buffer (the sample numbered)."""
+        buf = self.buffer
+        assert buf is not None
+        if what == "sample":
+            names = [d.name for d, _ in values]
+            if names != self._sample_names:  # a new set of metrics: births again
+                self._sample_names = names
+                self._birth_due = self._session
+            number = self.counters.get("sample", buf.get_meta("sample")) + 1  # never given twice
+            buf.set_meta("sample", number)
+            self.counters.set("sample", number)
+            self._latest = [(SAMPLE_METRIC, number), *values]
+            self._latest_t_ms = t_ms
+            body = [["Sample", number], *([d.name, v] for d, v in values)]
+            self._put(t_ms, "D", body)
+        else:
+            self._put(t_ms, "D", [[d.name, v] for d, v in zip(EVENT_METRICS, values, strict=True)])
 
     def _put(self, t_ms: int, kind: str, body: list[Any]) -> None:
         buf = self.buffer
@@ -347,7 +394,7 @@ class Telemetry:
         spec = self.spec
         buf = self.buffer
         assert buf is not None
-        bdseq = (buf.get_meta("bdseq", -1) + 1) % 256  # one more per CONNECT packet sent (Sparkplug 3.0)
+        bdseq = (self.counters.get("bdseq", buf.get_meta("bdseq", -1)) + 1) % 256  # one more per CONNECT (Sparkplug 3.0)
         self._attempts += 1
         # a client of its own for every connection: paho would send again by itself what the last
         # one left unacknowledged, and this thread does that (from the buffer): twice
@@ -361,6 +408,7 @@ class Telemetry:
             return  # no CONNECT went out: the same bdSeq next time
         self._bdseq = bdseq
         buf.set_meta("bdseq", bdseq)
+        self.counters.set("bdseq", bdseq)
         self._connected = True
         self._new_connection = True
 
@@ -420,12 +468,18 @@ class Telemetry:
         assert buf is not None and self._latest is not None
         self._birth_due = False
         self._seq = 0
-        self._defs = {d.name: d for d, _ in self._latest}
+        self._last_failure = None  # working again: a failure after this is said again
+        # the device's birth declares every metric its DDATA ever carries (Sparkplug 3.0): the
+        # sample's, and the events' (null until an event sets them)
+        born = [*self._latest, *((d, None) for d in EVENT_METRICS)]
+        self._defs = {d.name: d for d, _ in born}
         now_ms = int(time.time() * 1000)
         self._publish_raw("NBIRTH", None, encode(self._node_metrics(birth=True), timestamp_ms=now_ms,
-                                                 seq=self._next_seq(), with_properties=True), qos=0)
-        self._publish_raw("DBIRTH", spec.device_id, encode(self._latest, timestamp_ms=self._latest_t_ms,
-                                                           seq=self._next_seq(), with_properties=True), qos=0)
+                                                 seq=self._next_seq(), with_properties=True,
+                                                 metric_timestamp_ms=now_ms), qos=0)
+        self._publish_raw("DBIRTH", spec.device_id, encode(born, timestamp_ms=self._latest_t_ms,
+                                                           seq=self._next_seq(), with_properties=True,
+                                                           metric_timestamp_ms=self._latest_t_ms), qos=0)
         self._node_dirty = False
         self._historical_upto = self._last_put_id  # what waited goes out first, historical
         if new_session:  # what was in flight on a lost connection goes again
@@ -503,11 +557,18 @@ class Telemetry:
                         extra={"event": "telemetry_command_bad", "reason": str(e)})
             self._answer({"result": "refused", "reason": f"not a Sparkplug B payload: {e}"})
             return
+        # a command does each thing once, however many metrics ask for it, and what it cannot
+        # use is said in one line: a peer cannot make compd log or work without bound
+        rebirth = modelled = False
+        unknown: list[str] = []
         for m in payload.metrics:
             if m.name == NODE_REBIRTH and m.value is True:
-                log.info("telemetry: rebirth requested", extra={"event": "telemetry_rebirth"})
-                self._birth_due = True
+                rebirth = True
             elif m.name in (NODE_MODEL, DEVICE_MODEL):
+                if modelled:
+                    unknown.append(m.name)  # one model per command
+                    continue
+                modelled = True
                 request = str(payload.uuid or payload.timestamp_ms or "")
                 if not isinstance(m.value, str) or m.datatype not in (DataType.String, DataType.Text):
                     self._answer({"request": request, "result": "refused", "reason": f"{m.name} must be a String"})
@@ -517,8 +578,15 @@ class Telemetry:
                 else:
                     self._answer({"request": request, **self.commands(m.value, request)})
             else:
-                log.warning("telemetry: unknown command metric %r ignored", m.name,
-                            extra={"event": "telemetry_command_bad", "reason": f"unknown metric {m.name!r}"})
+                unknown.append(m.name)
+        if rebirth:
+            log.info("telemetry: rebirth requested", extra={"event": "telemetry_rebirth"})
+            self._birth_due = True
+        if unknown:
+            first = unknown[0][:80]
+            log.warning("telemetry: %d command metric(s) ignored (the first: %r)", len(unknown), first,
+                        extra={"event": "telemetry_command_bad",
+                               "reason": f"{len(unknown)} unknown or repeated metric(s), the first {first!r}"})
 
     def _host_state(self, payload: bytes) -> None:
         """The primary host's STATE (Sparkplug 3.0: JSON {"online": bool, "timestamp": ms})."""

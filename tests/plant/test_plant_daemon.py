@@ -109,6 +109,8 @@ def test_check_config_names_what_is_wrong(tmp_path: Path) -> None:
         (good.replace("pki/server.key", "pki/missing.key"), "opcua.private_key"),
         (good.replace("  users: {alice: {password_file: pki/alice.password}}\n", ""), "opcua.users"),
         (good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  tls: {ca_file: ca.pem}\n"), "telemetry.tls.ca_file"),
+        # a buffer too small for one sample would have stopped the service at start
+        (good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  buffer: {max_mb: 1.0e-7}\n"), "telemetry.buffer.max_mb"),
     ]
     for text, key in cases:
         cfg.write_text(text)

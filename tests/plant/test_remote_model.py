@@ -79,13 +79,21 @@ def test_a_remote_model_is_applied_only_when_armed(tmp_path: Path) -> None:
                 bad = results(listener)[1:3]
                 assert [r["result"] for r in bad] == ["refused", "refused"], bad
                 assert "unknown key" in bad[0]["reason"] and "axes" in bad[1]["reason"]
+                # a peer cannot fill the disk: 5 rejected models are kept, no more
+                for i in range(5):
+                    send_model(listener, refit.replace("outputs: [z]", f"outputs: [x{i}]"), f"r3.{i}")
+                listener.wait_for(lambda: len(results(listener)) >= 8)
+                more = results(listener)[3:8]
+                assert all(r["result"] == "refused" for r in more), more
+                assert ["not kept" in r["reason"] for r in more] == [False, False, False, True, True], more
+                assert len(list(tmp_path.glob("model.yaml.rejected-*"))) == 5
                 assert model.read_text() == original  # nothing of theirs reached the file
                 births = len(listener.of("NBIRTH"))
                 send_model(listener, refit, "r4")
                 listener.wait_for(lambda: any(r["result"] == "applied" for r in results(listener)), timeout_s=60)
                 assert len(listener.of("NBIRTH")) > births  # the reloaded pipeline was born again
                 send_model(listener, MODEL.format(length_mm=140.0, fitted_at="x"), "r5")  # one model per arming
-                listener.wait_for(lambda: len([r for r in results(listener) if r["result"] != "applied"]) >= 5)
+                listener.wait_for(lambda: len([r for r in results(listener) if r["result"] != "applied"]) >= 10)
                 status = json.loads((tmp_path / "status.json").read_text())
         finally:
             listener.stop()
@@ -93,6 +101,7 @@ def test_a_remote_model_is_applied_only_when_armed(tmp_path: Path) -> None:
     kinds = [r["result"] for r in res]
     assert kinds.count("accepted") == 1 and kinds.count("applied") == 1, res
     assert kinds[-1] == "refused" and "not armed" in res[-1]["reason"]
+    assert not [r for r in res if str(tmp_path) in r.get("reason", "")]  # no folder of this host goes out
     assert model.read_text() == refit  # the new model is the file: a restart runs it too
     backups = list(tmp_path.glob("model.yaml.*.bak"))
     assert len(backups) == 1 and backups[0].read_text() == original  # the old one is kept

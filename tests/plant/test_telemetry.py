@@ -103,7 +103,9 @@ def test_births_data_and_events(tmp_path: Path) -> None:
         db = dbirth[0].payload
         assert db.seq == 1
         names = {m.name for m in db.metrics}
-        assert {d.name for d, _ in device_metrics(snapshot(0))} | {"Sample"} == names  # every metric is born
+        events = {"Event/kind", "Event/subject", "Event/reason"}
+        assert {d.name for d, _ in device_metrics(snapshot(0))} | {"Sample"} | events == names  # every metric is born
+        assert all(metric(db, n).is_null for n in events) and all(m.timestamp_ms == db.timestamp_ms for m in db.metrics)
         assert metric(db, "Axis/x/correction_um").properties.get("engUnit") == "µm"
         assert metric(db, "Axis/x/correction_um").datatype == DataType.Double
         nums = samples(listener)
@@ -238,3 +240,97 @@ def test_rebirth_and_a_command_that_is_not_sparkplug(tmp_path: Path) -> None:
     assert tel.commands_seen == 3
     results = [x.value for m in listener.of("NDATA") for x in m.payload.metrics if x.name == "Model/result"]
     assert any("not a Sparkplug B payload" in r for r in results)
+
+
+def test_a_buffer_set_aside_never_restarts_sample_or_bdseq(tmp_path: Path) -> None:
+    """A historian keys on `Sample`: after the buffer file is found corrupt and set aside, the
+    numbers go on from the counters file beside it (never 1 again), and so does bdSeq."""
+    def session(first: int, n: int) -> tuple[list[int], int]:
+        with Mosquitto(tmp_path / "broker") as broker:
+            listener = Listener(broker.port)
+            tel = Telemetry(spec(tmp_path, broker.port))
+            try:
+                tel.start()
+                feed(tel, first, n, time.time())
+                listener.wait_for(lambda: len(samples(listener)) >= n)
+            finally:
+                tel.stop()
+                listener.stop()
+            return [s for s, _ in samples(listener)], metric(listener.of("NBIRTH")[0].payload, "bdSeq").value
+
+    first, bd1 = session(0, 5)
+    assert first == [1, 2, 3, 4, 5]
+    buf = tmp_path / "buf.sqlite"
+    for side in (buf, buf.with_name(buf.name + "-wal"), buf.with_name(buf.name + "-shm")):
+        if side.exists():
+            side.unlink()
+    buf.write_bytes(b"this is not an SQLite database" * 100)  # the buffer, corrupt
+    second, bd2 = session(5, 3)
+    assert second == [6, 7, 8] and bd2 == (bd1 + 1) % 256
+    assert [p for p in tmp_path.iterdir() if p.name.startswith("buf.sqlite.corrupt-")]  # kept, not deleted
+    assert (tmp_path / "buf.sqlite.counters").exists()
+
+
+def test_a_full_disk_under_the_buffer_is_said_once_and_telemetry_recovers(tmp_path: Path, caplog: Any) -> None:
+    """SQLite's `database or disk is full` from the buffer (what a full disk gives) stops nothing
+    for good: the telemetry says so once, drops the connection, and when the disk has room again
+    it connects, is born again and sends the samples taken since."""
+    import logging
+    import sqlite3
+
+    caplog.set_level(logging.INFO, logger="compd.telemetry")
+    with Mosquitto(tmp_path / "broker") as broker:
+        listener = Listener(broker.port)
+        tel = Telemetry(spec(tmp_path, broker.port, reconnect_max_s=0.5))
+        try:
+            tel.start()
+            t0 = time.time()
+            feed(tel, 0, 3, t0)
+            listener.wait_for(lambda: len(samples(listener)) >= 3)
+            buf = tel.buffer
+            real_put, real_set = buf.put, buf.set_meta
+
+            def full(*a: Any, **k: Any) -> Any:
+                raise sqlite3.OperationalError("database or disk is full")
+
+            buf.put = buf.set_meta = full  # the disk fills up
+            feed(tel, 3, 5, t0)
+            listener.wait_for(lambda: tel.failures >= 3)
+            st = tel.get_status()
+            assert not st["connected"] and "disk is full" in st["last_error"] and st["dropped"] >= 1  # counted
+            buf.put, buf.set_meta = real_put, real_set  # room again
+            feed(tel, 8, 4, t0)
+            listener.wait_for(lambda: tel.get_status()["connected"] and len(samples(listener)) >= 7)
+        finally:
+            tel.stop()
+            listener.stop()
+        numbers = [s for s, _ in samples(listener)]
+        assert numbers[:3] == [1, 2, 3] and numbers[-1] > 3  # sent again after the disk had room
+        assert len(listener.of("NBIRTH")) >= 2  # born again on the new connection
+        said = [r for r in caplog.records if getattr(r, "event", None) == "telemetry_error"]
+        assert len(said) == 1 and "disk is full" in said[0].reason
+
+
+def test_a_command_with_thousands_of_metrics_is_one_rebirth_and_one_line(tmp_path: Path, caplog: Any) -> None:
+    import logging
+
+    caplog.set_level(logging.INFO, logger="compd.telemetry")
+    with Mosquitto(tmp_path / "broker") as broker:
+        listener = Listener(broker.port)
+        tel = Telemetry(spec(tmp_path, broker.port))
+        try:
+            tel.start()
+            feed(tel, 0, 2, time.time())
+            listener.wait_for(lambda: len(samples(listener)) >= 2)
+            flood = [(MetricDef("Node Control/Rebirth", DataType.Boolean), True)] * 6_000
+            flood += [(MetricDef(f"junk/{i}", DataType.Int32), i) for i in range(3_000)]  # within decode's 10 000
+            listener.client.publish(topic("plant", "NCMD", "edge1"), encode(flood, timestamp_ms=0, seq=None), qos=1)
+            listener.wait_for(lambda: len(listener.of("DBIRTH")) >= 2 and tel.commands_seen == 1)
+        finally:
+            tel.stop()
+            listener.stop()
+    assert len(listener.of("DBIRTH")) == 2  # one rebirth for the one command
+    events = [getattr(r, "event", None) for r in caplog.records]
+    assert events.count("telemetry_rebirth") == 1 and events.count("telemetry_command_bad") == 1
+    bad = next(r for r in caplog.records if getattr(r, "event", None) == "telemetry_command_bad")
+    assert "3000" in bad.reason
