@@ -65,7 +65,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("compd.opcua")
 
-START_TIMEOUT_S = 30.0  # init (≈ 1.5 s: asyncua builds the standard address space) + bind
+START_TIMEOUT_S = 60.0  # init (≈ 1.5 s: asyncua builds the standard address space; 28 s on a loaded box) + bind
 STOP_TIMEOUT_S = 10.0
 MAX_CERT_BYTES = 1 << 20
 CERT_SUFFIXES = (".der", ".pem", ".crt", ".cer")  # files of `trusted_clients` that are read
@@ -282,6 +282,12 @@ class _Material:
     application_uri: str
     passwords: dict[str, bytes]
     trusted: frozenset[bytes] | None  # DER of each trusted client certificate; None = trust any
+
+
+def check_material(cfg: OpcUaConfig, base_dir: Path) -> None:
+    """BadInput (naming the file) unless the certificate, its key, the users' password files and
+    the trusted clients' folder are what the server needs to start (check-config)."""
+    _read_material(cfg, base_dir)
 
 
 def _read_material(cfg: OpcUaConfig, base_dir: Path) -> _Material:

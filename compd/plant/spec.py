@@ -8,12 +8,16 @@ heavy: paho-mqtt, protobuf and asyncua load in the service process only.
 from __future__ import annotations
 
 import hashlib
+import ipaddress
 import os
+import re
+import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from compd import version
+from compd.errors import BadInput
 
 MAX_SECRET_BYTES = 4096
 
@@ -177,4 +181,40 @@ def opcua_spec(cfg: Any) -> OpcUaSpec:
         read_secret(cfg, user.password_file, ("opcua", "users", name, "password_file"))
     if ua.trusted_clients is not None and not cfg.resolve_path(ua.trusted_clients).is_dir():
         raise cfg.doc.error(f"{cfg.resolve_path(ua.trusted_clients)} is not a folder", ("opcua", "trusted_clients"))
-    return OpcUaSpec(ua, Path(cfg.file).parent)
+    _check_bind(cfg, ua.bind)
+    base = Path(cfg.file).parent
+    from compd.plant.opcua import check_material  # what the server reads at start, read now
+
+    try:
+        check_material(ua, base)
+    except BadInput as e:  # named by the key whose file it is
+        key: tuple[str, ...] = ("opcua",)
+        if e.file == str(base / ua.private_key):
+            key = ("opcua", "private_key")
+        elif e.file == str(base / ua.certificate):
+            key = ("opcua", "certificate")
+        raise cfg.doc.error(e.message + (f" ({Path(e.file).name})" if e.file else ""), key) from None
+    return OpcUaSpec(ua, base)
+
+
+_HOSTNAME = re.compile(r"^(?=.{1,253}$)([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+
+
+def _check_bind(cfg: Any, bind: str) -> None:
+    """`opcua.bind` is an address of this host the server can listen on (a config error
+    naming the key, at check-config, not an OPC UA server silently off at run time)."""
+    try:
+        ipaddress.ip_address(bind)
+    except ValueError:
+        if not _HOSTNAME.match(bind):
+            raise cfg.doc.error(f"{bind!r} is neither an IP address nor a host name", ("opcua", "bind")) from None
+    try:
+        infos = socket.getaddrinfo(bind, None, type=socket.SOCK_STREAM)
+    except socket.gaierror as e:
+        raise cfg.doc.error(f"{bind!r} does not resolve: {e.strerror}", ("opcua", "bind")) from None
+    family, _, _, _, addr = infos[0]
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.bind((addr[0], 0))
+    except OSError as e:
+        raise cfg.doc.error(f"cannot listen on {bind}: {e.strerror or e}", ("opcua", "bind")) from None

@@ -79,6 +79,8 @@ POLL_S = 0.02  # how often the service takes what the cycle handed over
 OUTBOX_BYTES = 2 << 20  # cycle → service: ~5000 log rows (a stalled service; it takes them every 20 ms)
 INBOX_BYTES = 64 << 10  # service → cycle: probes
 STOP_TIMEOUT_S = 15.0  # a service that has not written its last rows by then is killed
+OPCUA_RETRY_MIN_S = 5.0  # an OPC UA server that did not start is tried again after this, doubling ...
+OPCUA_RETRY_MAX_S = 300.0  # ... up to this
 SERVICE_STALL_S = 10.0  # a service process that has not taken a turn of its loop this long has stalled
 
 
@@ -260,6 +262,8 @@ class ServiceWork:
         self.remote: Any = None  # compd.plant.remote_model.RemoteModels
         self.opcua: Any = None  # compd.plant.opcua.OpcUaServer, started on the first snapshot
         self.opcua_error: str | None = None
+        self._opcua_retry_s = 0.0  # monotonic time the next start may be tried
+        self._opcua_attempts = 0
         self._opcua_next_s = 0.0
         self.beat = np.zeros(1, dtype=np.int64)  # counted at every turn of the loop (shared with the daemon)
         self.description = spec.description
@@ -501,10 +505,13 @@ class ServiceWork:
             snap["opcua"] = self.opcua.get_status() if self.opcua is not None else {"error": self.opcua_error}
 
     def _opcua(self, ua: Any, snap: dict[str, Any]) -> None:
+        """Update the OPC UA server, or start it: a start that fails (a slow host, a port taken)
+        is said once per reason and tried again with back-off, never given up."""
         if self.opcua is not None:
             self.opcua.update(snap)
             return
-        if self.opcua_error is not None:
+        now = time.monotonic()
+        if now < self._opcua_retry_s:
             return
         from compd.plant.opcua import OpcUaServer
 
@@ -512,10 +519,15 @@ class ServiceWork:
         try:
             url = server.start(snap)
         except BadInput as e:
+            self._opcua_attempts += 1
+            wait = min(OPCUA_RETRY_MAX_S, OPCUA_RETRY_MIN_S * 2 ** min(self._opcua_attempts - 1, 10))
+            self._opcua_retry_s = time.monotonic() + wait
+            if str(e) != self.opcua_error:
+                log.error("OPC UA server off: %s; trying again in %.0f s", e, wait,
+                          extra={"event": "opcua_error", "reason": str(e), "retry_in_s": wait})
             self.opcua_error = str(e)
-            log.error("OPC UA server off: %s", e, extra={"event": "opcua_error", "reason": str(e)})
             return
-        self.opcua = server
+        self.opcua, self.opcua_error, self._opcua_attempts = server, None, 0
         log.info("OPC UA on %s", url, extra={"event": "opcua", "url": url})
 
 

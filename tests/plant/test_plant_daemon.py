@@ -111,6 +111,9 @@ def test_check_config_names_what_is_wrong(tmp_path: Path) -> None:
         (good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  tls: {ca_file: ca.pem}\n"), "telemetry.tls.ca_file"),
         # a buffer too small for one sample would have stopped the service at start
         (good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  buffer: {max_mb: 1.0e-7}\n"), "telemetry.buffer.max_mb"),
+        # what would have left the daemon running without OPC UA
+        (good.replace("  port: 4840\n", "  port: 4840\n  bind: 'not an addr'\n"), "opcua.bind"),
+        (good.replace("private_key: pki/server.key", "private_key: pki/server.pem"), "opcua.private_key"),
     ]
     for text, key in cases:
         cfg.write_text(text)
@@ -119,3 +122,41 @@ def test_check_config_names_what_is_wrong(tmp_path: Path) -> None:
         line = r.stderr.strip()
         assert "\n" not in line and key in line and "Traceback" not in line, (key, line)
         assert f"{cfg}:" in line
+
+
+def test_an_opcua_server_that_cannot_start_is_tried_again(tmp_path: Path) -> None:
+    """The OPC UA port is taken when the daemon starts: the failure is said once, compensation and
+    telemetry go on, and once the port is free the server comes up without a restart."""
+    import socket
+
+    (tmp_path / "pki").mkdir()
+    Pki(tmp_path / "pki")
+    blocker = socket.socket()
+    blocker.bind(("127.0.0.1", 0))
+    blocker.listen()
+    ua_port = blocker.getsockname()[1]
+    err = tmp_path / "stderr.txt"
+    with Mosquitto(tmp_path / "broker") as broker:
+        cfg = tmp_path / "c.yaml"
+        cfg.write_text(CONFIG.format(mqtt_port=broker.port, ua_port=ua_port))
+        try:
+            with daemon(cfg, err) as proc:
+                deadline = time.monotonic() + 90
+                while "event=opcua_error" not in err.read_text():
+                    assert time.monotonic() < deadline, err.read_text()[-2000:]
+                    time.sleep(0.1)
+                blocker.close()  # the port is free again
+                while "OPC UA on" not in err.read_text():
+                    assert time.monotonic() < deadline, err.read_text()[-2000:]
+                    time.sleep(0.1)
+                status = None
+                while status is None or not (status.get("opcua") or {}).get("endpoint"):
+                    assert time.monotonic() < deadline
+                    time.sleep(0.1)
+                    status = json.loads((tmp_path / "status.json").read_text())
+        finally:
+            blocker.close()
+    text = err.read_text()
+    assert proc.returncode == 0, text
+    assert text.count("event=opcua_error") == 1  # said once, however many tries
+    assert status["opcua"]["endpoint"] == f"opc.tcp://127.0.0.1:{ua_port}/compd/"
