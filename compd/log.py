@@ -643,8 +643,11 @@ class LogWriter:
         self._flush(time.monotonic())
 
     def _flush(self, now_s: float) -> None:
-        """Write the pending rows in one go and fsync; on failure cut any partial write."""
-        if self._due_rotation(now_s):
+        """Write the pending rows in one go and fsync; on failure cut any partial write. A file
+        due for rotation is rotated when rows are about to be written, never by an idle flush:
+        the current file is never left empty of the rows already logged (with `keep: 0` the
+        rotated file is deleted, and an idle rotation would have left nothing)."""
+        if self._pending and self._due_rotation(now_s):
             self._rotate()
         if self._fd is None and not self._open():
             self._drop_pending()

@@ -97,6 +97,25 @@ def test_writer_rotates_by_size_and_every_file_is_a_log(tmp_path: Path) -> None:
     assert len(set(t_all)) == len(t_all) and max(t_all) == 399.0
 
 
+def test_an_idle_flush_never_rotates_the_logged_rows_away(tmp_path: Path) -> None:
+    """With keep 0 a rotated file is deleted: a rotation must come with rows to write, or a
+    file over rotate_bytes that an idle flush rotated would leave the log empty at the end."""
+    path = tmp_path / "run.csv"
+    w = LogWriter(path, ["t_s", "T1"], flush_s=0.01, rotate_bytes=100, keep=0)
+    try:
+        for i in range(20):
+            w.push((float(i), 20.0))
+        deadline = time.monotonic() + 60
+        while not (path.exists() and path.stat().st_size >= 100):  # written and flushed
+            assert time.monotonic() < deadline, path.read_text() if path.exists() else "no file"
+            time.sleep(0.01)
+        for _ in range(5):
+            w._flush(time.monotonic())  # idle flushes: nothing pending
+    finally:
+        w.close()
+    assert len(read_log(path)) >= 1
+
+
 def test_writer_rotates_by_time(tmp_path: Path) -> None:
     path = tmp_path / "run.csv"
     # keep enough files for every rotation a slow machine may make (the oldest beyond `keep`
