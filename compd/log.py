@@ -528,6 +528,7 @@ class LogWriter:
         self.rows_written = 0
         self.rows_dropped = 0
         self.rotations = 0
+        self.flushes = 0  # flush turns of the writer's thread, idle ones included
         self.repaired_bytes = 0  # bytes of crash damage moved to side files (repair_log)
         self.repairs: list[Repair] = []
         self.error: str | None = None
@@ -637,6 +638,7 @@ class LogWriter:
             now = time.monotonic()
             if now - last_flush >= self.flush_s:
                 self._flush(now)
+                self.flushes += 1
                 last_flush = now
             if spans is not None:
                 spans.mark(t0, time.perf_counter_ns())

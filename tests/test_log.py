@@ -99,18 +99,22 @@ def test_writer_rotates_by_size_and_every_file_is_a_log(tmp_path: Path) -> None:
 
 def test_an_idle_flush_never_rotates_the_logged_rows_away(tmp_path: Path) -> None:
     """With keep 0 a rotated file is deleted: a rotation must come with rows to write, or a
-    file over rotate_bytes that an idle flush rotated would leave the log empty at the end."""
+    file over rotate_bytes that an idle flush rotated would leave the log empty at the end.
+    The writer's own thread does the idle flushes (the test never calls into it: two threads
+    flushing one pending buffer would write its rows twice)."""
     path = tmp_path / "run.csv"
     w = LogWriter(path, ["t_s", "T1"], flush_s=0.01, rotate_bytes=100, keep=0)
     try:
         for i in range(20):
             w.push((float(i), 20.0))
         deadline = time.monotonic() + 60
-        while not (path.exists() and path.stat().st_size >= 100):  # written and flushed
+        while not (path.exists() and path.stat().st_size >= 100 and w._q.empty()):  # all handed over
             assert time.monotonic() < deadline, path.read_text() if path.exists() else "no file"
             time.sleep(0.01)
-        for _ in range(5):
-            w._flush(time.monotonic())  # idle flushes: nothing pending
+        idle_from = w.flushes + 1  # the turn that took the last row may still be writing it
+        while w.flushes < idle_from + 5:  # five idle flushes of the writer's thread
+            assert time.monotonic() < deadline, f"{w.flushes} flushes"
+            time.sleep(0.01)
     finally:
         w.close()
     assert len(read_log(path)) >= 1
