@@ -37,6 +37,66 @@ from hil_sim.scenario import SCENARIOS, Scenario
 N_SENSORS = 19
 MODULE_CHANNELS = 8
 DAY_S = 86400.0
+HOST = "127.0.0.1"  # where the bench serves its simulated devices
+CHECK_TIMEOUT_S = 5.0  # each device must answer one read within this before the loops start (a loaded PC is slow)
+NAIVE_TIMEOUT_S = 0.25  # the hand-written loop's timeout per request, and its retries after the first try
+NAIVE_RETRIES = 3
+SERVE = "the simulated devices (python -m hil_sim serve)"
+
+
+class DeviceSilent(Exception):
+    """A device the bench serves did not answer: the message names it, where it listens and what timed
+    out. `compd bench` prints it as one line and exits 1, as `compd output-test` does for a device that
+    does not answer."""
+
+
+def _modbus_fault(name: str, port: int, what: str, error: Exception, timeout_s: float, tries: int) -> DeviceSilent:
+    """The one-line error for a request to device `name` that raised `error` (pymodbus)."""
+    from pymodbus.exceptions import ConnectionException
+
+    if isinstance(error, ConnectionException):
+        return DeviceSilent(f"{name} at {HOST}:{port} lost the connection during {what}: {SERVE} stopped serving")
+    tried = f"{tries} tries of {timeout_s:g} s" if tries > 1 else f"{timeout_s:g} s"
+    return DeviceSilent(f"{name} at {HOST}:{port} did not answer {what} within {tried}: {SERVE} stopped"
+                        " answering; is the PC too loaded to serve them?")
+
+
+def _quiet_pymodbus() -> None:
+    """pymodbus logs every timeout itself; the bench reports its own one line instead."""
+    import logging
+
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+def bench_devices(sensors: list[str]) -> list[str]:
+    """The devices compd's and the naive loop talk to: the PT100 modules, then the PMC."""
+    return [f"pt100_{m // MODULE_CHANNELS + 1}" for m in range(0, len(sensors), MODULE_CHANNELS)] + ["pmc"]
+
+
+def check_devices(names: list[str], ports: dict[str, int], timeout_s: float | None = None) -> None:
+    """Each device answers one read of holding register 0 (unit 1) within `timeout_s` (default
+    CHECK_TIMEOUT_S), or DeviceSilent naming the first that does not: a bench against silent devices
+    would time nothing but timeouts."""
+    from pymodbus.client import ModbusTcpClient
+    from pymodbus.exceptions import ModbusException
+
+    _quiet_pymodbus()
+    timeout_s = CHECK_TIMEOUT_S if timeout_s is None else timeout_s
+    for name in names:
+        port = ports.get(name)
+        if port is None:
+            raise DeviceSilent(f"{name}: {SERVE} did not say where it listens")
+        client = ModbusTcpClient(HOST, port=port, timeout=timeout_s, retries=0)
+        try:
+            if not client.connect():
+                raise DeviceSilent(f"{name} at {HOST}:{port}: no connection within {timeout_s:g} s (nothing"
+                                   f" listens there): {SERVE} are not serving")
+            try:
+                client.read_holding_registers(0, count=1, device_id=1)
+            except ModbusException as e:
+                raise _modbus_fault(name, port, "a read of holding register 0 (unit 1)", e, timeout_s, 1) from None
+        finally:
+            client.close()
 
 
 def _fit_gantry_model(work: Path) -> tuple[Path, list[str]]:
@@ -146,7 +206,7 @@ class Devices:
                 break
         if "ready" not in "".join(lines[-1:]):
             self.stop()
-            raise RuntimeError("hil_sim serve did not start: " + " | ".join(lines))
+            raise DeviceSilent(f"{SERVE} did not start: " + (" | ".join(lines[-3:]) or "it printed nothing"))
 
     def stop(self) -> None:
         if self.proc.poll() is None:
@@ -210,18 +270,26 @@ def _compd_config(
 def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], cycles: int, period_s: float) -> dict[str, Any]:
     """The loop a user writes by hand: one request per register, predict, write, sleep(period)."""
     from pymodbus.client import ModbusTcpClient
+    from pymodbus.exceptions import ModbusException
 
     from compd.commissioning.fitting import load_model
     from compd.cycle.codec import encode, word_bytes
 
+    _quiet_pymodbus()
     model = load_model(str(model_path))
     clients = {}
-    for m in range(0, len(sensors), MODULE_CHANNELS):
-        name = f"pt100_{m // MODULE_CHANNELS + 1}"
-        clients[name] = ModbusTcpClient("127.0.0.1", port=ports[name], timeout=0.25)
-        clients[name].connect()
-    pmc = ModbusTcpClient("127.0.0.1", port=ports["pmc"], timeout=0.25)
-    pmc.connect()
+    for name in bench_devices(sensors):
+        clients[name] = ModbusTcpClient(HOST, port=ports[name], timeout=NAIVE_TIMEOUT_S, retries=NAIVE_RETRIES)
+    try:
+        for name, c in clients.items():
+            if not c.connect():
+                raise DeviceSilent(f"{name} at {HOST}:{ports[name]}: the naive loop got no connection"
+                                   f" (nothing listens there): {SERVE} stopped serving")
+    except BaseException:
+        for c in clients.values():
+            c.close()
+        raise
+    pmc = clients.pop("pmc")
     x = np.zeros(len(sensors))
     out = np.zeros(2)
     lateness = np.zeros(cycles)
@@ -235,8 +303,13 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
             starts[k] = start
             lateness[k] = start - (t0 + k * period_s)
             for j, _ in enumerate(sensors):
-                client = clients[f"pt100_{j // MODULE_CHANNELS + 1}"]
-                rr = client.read_holding_registers(j % MODULE_CHANNELS, count=1, device_id=1)
+                name = f"pt100_{j // MODULE_CHANNELS + 1}"
+                try:
+                    rr = clients[name].read_holding_registers(j % MODULE_CHANNELS, count=1, device_id=1)
+                except ModbusException as e:
+                    raise _modbus_fault(name, ports[name], f"the naive loop's read of holding register"
+                                        f" {j % MODULE_CHANNELS} (unit 1)", e, NAIVE_TIMEOUT_S,
+                                        NAIVE_RETRIES + 1) from None
                 if not rr.isError():
                     v = rr.registers[0]
                     x[j] = (v - 65536 if v > 32767 else v) * 0.1
@@ -246,7 +319,11 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
             model.evaluate(x, 0.0, out)
             word = encode(-out[0], -out[1])
             high, low = word_bytes(word)
-            pmc.write_registers(0, [low, high], device_id=1)  # X0 holds the low byte
+            try:
+                pmc.write_registers(0, [low, high], device_id=1)  # X0 holds the low byte
+            except ModbusException as e:
+                raise _modbus_fault("pmc", ports["pmc"], "the naive loop's write of registers 0-1 (unit 1)", e,
+                                    NAIVE_TIMEOUT_S, NAIVE_RETRIES + 1) from None
             compute[k] = time.monotonic() - start
             time.sleep(period_s)
     finally:
@@ -399,6 +476,11 @@ def run_bench(
         model_path, sensors = _fit_gantry_model(work)
         speedup = plant_speedup(cycles, period_s)
         devices = Devices(_device_file(work, sensors, speedup))
+        try:
+            check_devices(bench_devices(sensors), devices.ports)
+        except BaseException:
+            devices.stop()
+            raise
         hogs = start_load(load)
         try:
             cfg = _compd_config(work, model_path, sensors, devices.ports, scheduler, period_s, io)
@@ -588,10 +670,14 @@ def main(args: Any) -> int:
     """`compd bench` (its arguments parsed and checked by compd's CLI): run, print the table, write the JSON."""
     from compd.cli import writing
 
-    result = run_bench(
-        args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles,
-        load=args.load, late_us=args.late_us, io=args.io, bare_cycles=args.bare_cycles, trace=args.trace,
-    )
+    try:
+        result = run_bench(
+            args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles,
+            load=args.load, late_us=args.late_us, io=args.io, bare_cycles=args.bare_cycles, trace=args.trace,
+        )
+    except DeviceSilent as e:
+        print(f"compd bench: {e}", file=sys.stderr)
+        return 1
     print(format_table(result))
     if args.json:
         with writing(args.json, "--json"):

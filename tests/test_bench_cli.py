@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import socket
 import subprocess
 import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
+
+from rig import bench
 from rig.bench import format_table
 
 
@@ -64,3 +71,72 @@ def test_bench_rejects_a_negative_load() -> None:
 def test_bench_rejects_zero_cycles() -> None:
     r = subprocess.run([sys.executable, "-m", "compd", "bench", "--cycles", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "--cycles" in r.stderr
+
+
+@contextlib.contextmanager
+def silent_device() -> Iterator[int]:
+    """A port on 127.0.0.1 where the connection is accepted (the kernel's backlog) but nothing ever
+    answers: a device that hangs. Closed on the way out."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(16)
+        yield s.getsockname()[1]
+
+
+def free_port() -> int:
+    """A port nothing listens on (bound, then closed)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def devices_at(port: int) -> type:
+    """A stand-in for rig.bench.Devices whose every device listens at `port`."""
+
+    class At:
+        def __init__(self, device_file: Path) -> None:
+            self.ports = dict.fromkeys(("pt100_1", "pt100_2", "pt100_3", "pmc", "gantry"), port)
+
+        def stop(self) -> None:
+            pass
+
+    return At
+
+
+@pytest.mark.parametrize("listening", [True, False], ids=["accepts-never-answers", "nothing-listens"])
+def test_bench_against_devices_that_do_not_answer_is_one_line_exit_1(listening, monkeypatch, capsys):
+    """Before the loops, every device must answer one read: else one line naming the device, where it
+    listens and what timed out, exit 1 (as compd output-test for a device that does not answer), not an
+    internal error."""
+    from compd.cli import main
+
+    monkeypatch.setattr(bench, "CHECK_TIMEOUT_S", 0.5)
+    with contextlib.ExitStack() as stack:
+        port = stack.enter_context(silent_device()) if listening else free_port()
+        monkeypatch.setattr(bench, "Devices", devices_at(port))
+        t0 = time.monotonic()
+        rc = main(["bench", "--cycles", "200", "--naive-cycles", "10", "--bare-cycles", "0"])
+        took_s = time.monotonic() - t0
+    err = capsys.readouterr().err
+    assert rc == 1, err
+    assert err.count("\n") == 1 and "Traceback" not in err and "internal error" not in err, err
+    assert err.startswith(f"compd bench: pt100_1 at 127.0.0.1:{port}")
+    if listening:
+        assert "did not answer a read of holding register 0 (unit 1) within 0.5 s" in err, err
+    else:
+        assert "no connection within 0.5 s (nothing listens there)" in err, err
+    assert "python -m hil_sim serve" in err
+    assert took_s < 60, took_s  # the loops never ran against the silent devices
+
+
+def test_naive_loop_names_the_device_that_stops_answering(tmp_path):
+    """A device that stops answering during the run: the naive loop's request, named, not pymodbus's exception."""
+    model = tmp_path / "m.yaml"
+    model.write_text("kind: mlr\ninputs: [T1]\noutputs: [x1]\nparams: {coef_um_per_k: [[1.0]], intercept_um: [0.0]}\n")
+    with silent_device() as port, pytest.raises(bench.DeviceSilent) as e:
+        bench.run_naive_loop(model, ["T1"], {"pt100_1": port, "pmc": port}, cycles=5, period_s=0.002)
+    assert str(e.value) == (
+        f"pt100_1 at 127.0.0.1:{port} did not answer the naive loop's read of holding register 0 (unit 1)"
+        f" within {bench.NAIVE_RETRIES + 1} tries of {bench.NAIVE_TIMEOUT_S:g} s: the simulated devices"
+        " (python -m hil_sim serve) stopped answering; is the PC too loaded to serve them?"
+    )

@@ -9,13 +9,16 @@ checkout's; the one change to the page's text is the metrics port (9105 → a fr
 
 The output the page shows is checked line by line: each shown line must be printed, with the
 same words and numbers, except times (a number followed by `us` or `s`), which depend on the
-computer.
+computer, and `…`, which the page writes for a number that depends on timing. Every command
+must exit 0, except one followed by `$ echo $?`: its exit code must be the one shown, and its
+shown lines are looked for in what it printed on stdout and stderr (an error's one line).
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import re
 import socket
@@ -39,6 +42,8 @@ CONCURRENT = "run by the test while the command before it runs"
 NOT_RUN = "not run by the test:"
 BLOCK = re.compile(r"(?:<!-- (?P<marker>[^\n]*?) -->\n)?```(?P<lang>[\w-]*)\n(?P<body>.*?)```", re.S)
 NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
+SHOWN_NUMBER = re.compile(r"…|-?\d+(?:\.\d+)?")  # on the page, `…` stands for a number that depends on timing
+EXIT_STATUS = "echo $?"
 TIME_UNIT = re.compile(r"\s*(us|s)\b")
 
 
@@ -67,10 +72,10 @@ def blocks(path: Path) -> list[Block]:
 
 def same_line(shown: str, printed: str) -> bool:
     """The same words and numbers (to the digits shown); times are the computer's."""
-    if NUMBER.sub("#", shown).split() != NUMBER.sub("#", printed).split():
+    if SHOWN_NUMBER.sub("#", shown).split() != NUMBER.sub("#", printed).split():
         return False
-    for m, p in zip(NUMBER.finditer(shown), NUMBER.finditer(printed), strict=True):
-        if TIME_UNIT.match(shown, m.end()):
+    for m, p in zip(SHOWN_NUMBER.finditer(shown), NUMBER.finditer(printed), strict=True):
+        if m[0] == "…" or TIME_UNIT.match(shown, m.end()):
             continue
         digits = len(m[0].partition(".")[2])
         if abs(float(m[0]) - float(p[0])) > 1.01 * 10.0**-digits:
@@ -119,6 +124,13 @@ def read_csv(path: Path) -> dict[str, list[float]]:
     with open(path, newline="") as fh:
         rows = list(csv.reader(fh))
     return {name: [float(r[i]) for r in rows[1:]] for i, name in enumerate(rows[0])}
+
+
+def read_csv_nan(path: Path) -> dict[str, list[float]]:
+    """read_csv with empty cells as NaN (a daemon's log: a probe column between probes)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    return {name: [float(r[i]) if r[i] else math.nan for r in rows[1:]] for i, name in enumerate(rows[0])}
 
 
 # What the walk checks beyond the output the page shows, by the command's start.
@@ -189,7 +201,51 @@ def _metrics(r: subprocess.CompletedProcess, work: Path) -> None:
     assert 'compd_correction_meters{axis="z"}' in r.stdout
 
 
+def _typo(r: subprocess.CompletedProcess, work: Path) -> None:
+    """Step 1's mistakes: one line on stderr naming file, line and key path, nothing on stdout, exit 2."""
+    assert r.returncode == 2 and r.stdout == "", (r.returncode, r.stdout)
+    assert len(r.stderr.splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert re.match(r"compd: typo\.yaml:\d+: (guard\.max_slew_per_s|sources\[0\]\.plant): ", r.stderr), r.stderr
+
+
+def _report(r: subprocess.CompletedProcess, work: Path) -> None:
+    """The record: what the options gave, and no value left blank or printed as null."""
+    text = (work / "report.html").read_text(encoding="utf-8")
+    for given in ("simulated spindle (hil_sim, paper 003)", "A. Tester", "20.0 °C (as stated, --ambient-c)",
+                  "the simulator&#x27;s true error (no instrument)", "warmup.csv</code>, 1491 rows, t_s 0.0 s to",
+                  "day2.csv</code>, 481 rows", "Sign-off", "Commissioning engineer", "Plant owner"):
+        assert given in text, given
+    assert "T_amb read" in text  # the logs' air column beside the stated ambient
+    before_signoff = text.split('<section class="signoff">')[0]
+    assert not re.search(r"<td[^>]*>\s*(null|None|nan|inf|-)?\s*</td>", before_signoff)  # blank or null cells
+    assert re.search(r'<td class="name"></td>', text)  # the sign-off's lines, blank to sign by hand
+    assert "not used: no radial output" in text  # the model's empty `radial`, explained
+    assert "not given" not in text and r.stderr == ""  # every record option was given
+
+
+def _probing(r: subprocess.CompletedProcess, work: Path) -> None:
+    summary = json.loads((work / "probing.json").read_text())
+    assert summary["adaptation"]["z"]["accepted"] >= 1, summary.get("adaptation")
+    assert summary["adaptation"]["z"]["applied"] is False  # apply: false, observed only
+    probes = [v for v in read_csv_nan(work / "probed.csv")["probe_z_um"] if v == v]
+    assert probes and all(5.0 < v < 45.0 for v in probes), probes  # the thermal error, not the 0.5 um deviation
+
+
+def _probe(r: subprocess.CompletedProcess, work: Path) -> None:
+    assert " accepted at t=" in r.stdout, r.stdout
+
+
+def _status_probing(r: subprocess.CompletedProcess, work: Path) -> None:
+    assert re.search(r"^adapt +offset", r.stdout, re.M), r.stdout
+    assert re.search(r"^z .*\(observe: not applied\)", r.stdout, re.M), r.stdout
+
+
 CHECKS: dict[str, Callable[[subprocess.CompletedProcess, Path], None]] = {
+    "compd check-config typo.yaml": _typo,
+    "compd report ": _report,
+    "compd run probing.yaml": _probing,
+    "compd probe ": _probe,
+    "compd status --config probing.yaml": _status_probing,
     "compd run machine.yaml": _warmup,
     "compd status --config machine.yaml": _status_observe,
     "compd fit --kind xi_spindle": _fit,
@@ -227,9 +283,14 @@ def test_commissioning_guide_runs_as_written(shell) -> None:
             continue
         assert b.marker in ("", CONCURRENT), f"unknown marker: {b.marker}"
         nxt = next((n for n in page[i + 1:] if n.lang == "console"), None)
+        r = None
         for k, (command, shown) in enumerate(b.commands):
             command = command.replace("9105", str(port))
             last = k == len(b.commands) - 1
+            if command == EXIT_STATUS:  # the exit code of the command before it, as the page shows it
+                assert r is not None, f"`{EXIT_STATUS}` first in a block"
+                assert shown == [str(r.returncode)], f"`{r.args[-1]}` exited {r.returncode}, the page shows {shown}"
+                continue
             if last and nxt is not None and nxt.marker == CONCURRENT:
                 assert command.startswith("compd run "), command
                 proc = shell(command, background=True)
@@ -238,8 +299,11 @@ def test_commissioning_guide_runs_as_written(shell) -> None:
                 background = (command, shown, proc)
                 continue
             r = shell(command)
-            assert r.returncode == 0, f"`{command}` exited {r.returncode}:\n{r.stdout}\n{r.stderr}"
-            check_shown(command, shown, r.stdout)
+            if k + 1 < len(b.commands) and b.commands[k + 1][0] == EXIT_STATUS:
+                check_shown(command, shown, r.stdout + r.stderr)
+            else:
+                assert r.returncode == 0, f"`{command}` exited {r.returncode}:\n{r.stdout}\n{r.stderr}"
+                check_shown(command, shown, r.stdout)
             extra_check(command, r, work, done)
         if b.marker == CONCURRENT:
             assert background is not None

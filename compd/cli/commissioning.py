@@ -262,10 +262,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
 def args_report(sub: Any) -> None:
     """`compd report`'s arguments."""
     s = sub.add_parser(
-        "report", help="one self-contained HTML commissioning page from a fit and a replay report",
-        description="Write one self-contained HTML page for the machine's file: the fit, the unseen-day score,"
-                    " the plots and the config.",
-        epilog="example:\n  compd report --fit fit.json --replay replay.json --out report.html --config compensate.yaml",
+        "report", help="one self-contained HTML commissioning record from a fit and a replay report",
+        description="Write one self-contained HTML page for the machine's file: the record (machine, operator,"
+                    " measuring instrument, ambient temperature, the time the logs cover, the date), the fit,"
+                    " the unseen-day score, the plots, the config and lines to sign on paper. A record field"
+                    " left out is printed as not given, with the option that gives it.",
+        epilog="example:\n  compd report --fit fit.json --replay replay.json --out report.html --config compensate.yaml"
+               " \\\n      --machine 'DMU 50 s/n 1234' --operator 'A. Meier' --ambient-c 20.5 22.0"
+               " \\\n      --instrument 'Renishaw XL-80 s/n 9876, resolution 0.001 um'",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     s.add_argument("--fit", required=True, metavar="FIT.json", help="compd fit --report")
@@ -275,21 +279,35 @@ def args_report(sub: Any) -> None:
                    help="the config to show (default: the one the replay report names)")
     s.add_argument("--png", nargs="+", action="extend", default=None, metavar="FILE.png",
                    help="embed these plots instead of drawing them from the reports' data")
+    rec = s.add_argument_group("the record (each one line of text; one left out is printed as not given)")
+    rec.add_argument("--machine", default=None, metavar="ID", help="the machine: type, serial or asset number")
+    rec.add_argument("--operator", default=None, metavar="NAME", help="who ran the test and measured the error")
+    rec.add_argument("--ambient-c", nargs="+", type=finite, default=None, dest="ambient_c", metavar="C",
+                     help="the shop's air during the test, °C: one reading, or the lowest and the highest"
+                          " (the logs' amb/room/air columns are shown beside it)")
+    rec.add_argument("--instrument", default=None, metavar="TEXT",
+                     help="what measured the error, with its serial number and resolution"
+                          " (e.g. 'Renishaw XL-80 s/n 9876' or 'dial gauge, 1 um')")
 
 
 @command("report", args_report)
 def cmd_report(args: argparse.Namespace) -> int:
-    from compd.commissioning.htmlreport import write_report
+    from compd.commissioning.htmlreport import make_record, write_report
 
+    record = make_record(args.machine, args.operator, args.instrument, args.ambient_c)
     check_output(args.out, "--out")
     with writing(args.out, "--out"):
-        page = write_report(args.out, args.fit, args.replay, args.config, args.png)
+        page = write_report(args.out, args.fit, args.replay, args.config, args.png, record)
     drawn = sum(f.png is not None for f in page.figures)
     print(f"compd report: {page.fit['kind']} fit, replay of {', '.join(page.replay['axes'])},"
           f" {drawn} plots -> {args.out}")
     for f in page.figures:
         if f.png is None:
             print(f"compd: {f.caption}: {f.why_not}", file=sys.stderr)
+    missing = record.missing()
+    if missing:
+        print(f"compd: the record says \"not given\" for {', '.join(m.lstrip('-') for m in missing)}"
+              f" (give {', '.join(missing)})", file=sys.stderr)
     return 0
 
 

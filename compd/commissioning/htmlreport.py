@@ -1,4 +1,4 @@
-"""`compd report`: one self-contained HTML commissioning page from a fit report and a replay report."""
+"""`compd report`: one self-contained HTML commissioning record from a fit report and a replay report."""
 
 from __future__ import annotations
 
@@ -7,13 +7,18 @@ import html
 import io
 import json
 import math
+import unicodedata
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from compd.errors import BadInput
 
 MAX_JSON_BYTES = 16 * 1024 * 1024
+RECORD_TEXT_MAX = 200  # characters of one record field (--machine, --operator, --instrument): one line
+AMBIENT_LIMITS_C = (-40.0, 60.0)  # the air of a shop; a value beyond is a typo (or °F)
+UNIX_TIME_FROM_S = 1e9  # a log whose t_s is at least this (2001-09-09) is on Unix time, else on its own clock
 
 
 def read_report(path: str | Path, flag: str) -> dict[str, Any]:
@@ -101,6 +106,107 @@ def find_beside(name: Any, report: str) -> Path | None:
     return None
 
 
+# ------------------------------------------------------------------- the record's own facts
+
+RECORD_OPTIONS = {"machine": "--machine", "operator": "--operator", "instrument": "--instrument",
+                  "ambient_c": "--ambient-c"}
+
+
+@dataclass(frozen=True)
+class Record:
+    """What the plant files with the figures and no report holds: the machine, who ran the test,
+    what measured the error, the shop's air during the test (°C: one reading, or the lowest and
+    the highest), and when the page was made (None: now)."""
+
+    machine: str | None = None
+    operator: str | None = None
+    instrument: str | None = None
+    ambient_c: tuple[float, ...] = ()
+    made_at: datetime | None = None
+
+    def missing(self) -> list[str]:
+        """The options of the fields not given, in the page's order."""
+        return [flag for key, flag in RECORD_OPTIONS.items() if not getattr(self, key)]
+
+
+def record_text(value: str | None, flag: str) -> str | None:
+    """A record field as given: one line of text (≤ RECORD_TEXT_MAX characters), or BadInput naming the option."""
+    if value is None:
+        return None
+    text = value.strip()
+    if not text:
+        raise BadInput("empty: give the text, or leave the option out (the page then says it was not given)",
+                       path=flag)
+    if any(unicodedata.category(c) in ("Cc", "Zl", "Zp") for c in text):
+        raise BadInput("one line of text, without control characters (a newline, a tab)", path=flag)
+    if len(text) > RECORD_TEXT_MAX:
+        raise BadInput(f"{len(text)} characters: at most {RECORD_TEXT_MAX} (one line of the record)", path=flag)
+    return text
+
+
+def make_record(machine: str | None = None, operator: str | None = None, instrument: str | None = None,
+                ambient_c: list[float] | tuple[float, ...] | None = None, made_at: datetime | None = None) -> Record:
+    """The record from `compd report`'s options, each checked (BadInput names the option)."""
+    temps = tuple(ambient_c or ())
+    if len(temps) > 2:
+        raise BadInput(f"one temperature, or the lowest and the highest: {len(temps)} values given",
+                       path="--ambient-c")
+    lo, hi = AMBIENT_LIMITS_C
+    for t in temps:
+        if not (math.isfinite(t) and lo <= t <= hi):
+            raise BadInput(f"{t:g} °C is not the air of a shop ({lo:g} to {hi:g} °C; in °C, not °F)",
+                           path="--ambient-c")
+    return Record(record_text(machine, "--machine"), record_text(operator, "--operator"),
+                  record_text(instrument, "--instrument"), tuple(sorted(temps)), made_at)
+
+
+@dataclass
+class LogFacts:
+    """What a log that a report names covers: rows, first and last t_s, when the file was last
+    written, and the range of each column named for the air; or why it was not read."""
+
+    role: str  # "fit", "unseen day"
+    name: str | None  # as the report names it
+    why_not: str = ""
+    rows: int = 0
+    first_t_s: float = math.nan
+    last_t_s: float = math.nan
+    modified: datetime | None = None
+    ambient_c: dict[str, tuple[float, float]] = field(default_factory=dict)  # column → (lowest, highest), °C
+
+
+def log_facts(role: str, report: dict[str, Any], report_file: str, flag: str) -> LogFacts:
+    """The facts of the log `report` names (looked up as written, then beside the report)."""
+    name = report.get("log")
+    if not isinstance(name, str) or not name:
+        return LogFacts(role, None, why_not=f"the {flag} report names no log")
+    path = find_beside(name, report_file)
+    if path is None:
+        return LogFacts(role, name, why_not=f"not found (looked up as written and beside {report_file})")
+    import numpy as np
+
+    from compd.identify.data import ambient_columns
+    from compd.log import read_log
+
+    try:
+        log = read_log(path, allow_nan=True)
+    except BadInput as e:
+        return LogFacts(role, name, why_not=f"could not be read: {e}")
+    facts = LogFacts(role, name, rows=len(log))
+    if len(log):
+        facts.first_t_s, facts.last_t_s = float(log.t_s[0]), float(log.t_s[-1])
+    try:
+        facts.modified = datetime.fromtimestamp(path.stat().st_mtime, UTC)
+    except OSError:
+        facts.modified = None
+    for col in ambient_columns(log):
+        v = log.col(col)
+        v = v[np.isfinite(v)]
+        if v.size:
+            facts.ambient_c[col] = (float(v.min()), float(v.max()))
+    return facts
+
+
 @dataclass
 class Figure:
     """An image for the page: PNG bytes and a caption, or why it could not be drawn."""
@@ -122,7 +228,11 @@ class Page:
     config_file: str | None = None
     model_params: dict[str, Any] | None = None
     model_file: str | None = None
+    model_fit: dict[str, Any] | None = None  # the model file's `fit` block (fitted_at, compd_version)
+    model_why_not: str = ""  # why the model file's params are not shown
     figures: list[Figure] = field(default_factory=list)
+    record: Record = field(default_factory=Record)
+    logs: list[LogFacts] = field(default_factory=list)
 
 
 def _png(fig: Any) -> bytes:
@@ -199,13 +309,14 @@ def replay_figure(replay: dict[str, Any], replay_file: str) -> Figure:
 
 
 def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
-               pngs: list[str] | None = None) -> Page:
-    """Read and check both reports (BadInput on the first bad key) and draw the figures."""
+               pngs: list[str] | None = None, record: Record | None = None) -> Page:
+    """Read and check both reports (BadInput on the first bad key), read what their logs cover
+    and draw the figures."""
     fit = read_report(fit_file, "--fit")
     check_fit(fit, fit_file)
     replay = read_report(replay_file, "--replay")
     check_replay(replay, replay_file)
-    page = Page(fit, fit_file, replay, replay_file)
+    page = Page(fit, fit_file, replay, replay_file, record=record or Record())
     if config_file is None and isinstance(replay.get("config"), str):
         found = find_beside(replay["config"], replay_file)
         config_file = str(found) if found else None
@@ -223,6 +334,15 @@ def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
         if isinstance(doc.data, dict) and isinstance(doc.data.get("params"), dict):
             page.model_params = doc.data["params"]
             page.model_file = str(model_file)
+            page.model_fit = doc.data["fit"] if isinstance(doc.data.get("fit"), dict) else {}
+        else:
+            page.model_why_not = f"{model_file} has no `params` mapping: not a compd model file"
+    elif isinstance(fit.get("model"), str):
+        page.model_why_not = (f"the model file {fit['model']!r} that {fit_file} names is not found"
+                              f" (looked up as written and beside {fit_file})")
+    else:
+        page.model_why_not = f"{fit_file} names no model file (a report of compd fit --kind all, or an older compd)"
+    page.logs = [log_facts("fit", fit, fit_file, "--fit"), log_facts("unseen day", replay, replay_file, "--replay")]
     for png in pngs or []:
         try:
             data = Path(png).read_bytes()
@@ -236,6 +356,78 @@ def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
     return page
 
 
+# ------------------------------------------------------------------- what an empty value means
+
+NOT_SET_C0 = "set when the daemon starts: the readings at start are the reference (the file fixes none)"
+
+
+def _feed_axis_form(params: dict[str, Any]) -> str:
+    if params.get("field") is not None:
+        return "field"
+    if params.get("position_poly") is not None:
+        return "position-regression"
+    return "analytic"
+
+
+def why_param_empty(kind: str, name: str, params: dict[str, Any]) -> str:
+    """Why a model file's parameter `name` (dotted) is empty (null), in the words of its kind
+    (docs/formats.md, the model file; docs/configuration.md, model: kind …, params)."""
+    key = name.rsplit(".", 1)[-1]
+    if key == "t0_c":
+        return NOT_SET_C0
+    if kind == "xi_spindle":
+        if name == "xi_mm":
+            return ("not recorded: where the ξ sensor sits is documentation only, the model does not use it"
+                    " (compd xi --profile finds the point)")
+        if name == "lift":
+            return "not used: no centrifugal lift, the fit had no speed input (--inputs T_xi speed_rpm fits it)"
+        if name == "radial":
+            return "not used: no radial output (the bearing-ring model is fitted with a second, radial target)"
+        if name == "radial.k_um_per_rpm2":
+            return "not used: the lift is the model's `lift` (this key is how older files carried it)"
+    if kind == "ar1":
+        if name == "c2_exponent":
+            return ("not set: outside the C2 table, C2 is linear from (0, 0) below the first speed and held above"
+                    " the last (the rule of files written before the key)")
+        if name == "c3_um_per_k":
+            return "not used by this ar1 model: no ambient input (the paper's recursion without C3)"
+    if kind == "feed_axis":
+        form = _feed_axis_form(params)
+        analytic_only = ("chi_per_m", "eta", "u1_k", "u2_k", "slide_volume_m3", "power_w", "r_cu_ohm",
+                         "cooling_time_s", "ref_power_w")
+        if form != "analytic" and name in analytic_only:
+            return f"not used by the {form} form (a parameter of the analytic form)"
+        if name in ("field", "position_poly"):
+            return f"not used: the model is in the {form} form"
+        if name == "slide_volume_m3":
+            return "not given: η is per m³ of the slide (the rule of files written before the key)"
+        if name == "power_w":
+            return "not fixed: the motor loss comes from the current input"
+        if name == "r_cu_ohm":
+            return "not used: the motor loss is the constant power_w"
+        if name in ("cooling_time_s", "ref_power_w"):
+            return "not used: no duty-cycle form, the paper's heating run from rest"
+        if name == "linear_p0_mm":
+            return "not used: the output is E at the axis's position (no straight line K0 + tanβ (y − P0))"
+    if kind in ("lvr", "mlr") and name in ("rise_mean_k", "rise_cov_k2"):
+        return ("not recorded in the model file: without the fit data's rises the model has no degraded mode"
+                " for a bad input")
+    return (f"empty in the model file: the {kind} model takes the rule for an absent value"
+            f" (docs/configuration.md, model: kind {kind}, params)")
+
+
+def why_detail_empty(name: str, value: Any) -> str:
+    """Why a figure of the fit report's `details` is empty or not finite."""
+    key = name.rsplit(".", 1)[-1]
+    if "held_out_rmse" in name:  # compd.identify scores a choice it could not fit on a fold as inf
+        return "not computed: a fit of this choice failed on a held-out fold"
+    if value is None:
+        if key == "library_span":
+            return "not used: the whole log is the sample library (no --option library_span)"
+        return "empty in the fit report: nothing of this in this fit"
+    return f"not computed ({value})"
+
+
 # ------------------------------------------------------------------- HTML
 
 CSS = """
@@ -246,7 +438,25 @@ table{border-collapse:collapse;margin:.6em 0}th,td{border:1px solid #ccc;padding
 th{background:#f2f2f2}td.l,th.l{text-align:left}.muted{color:#666}.warn{color:#a40}
 pre{background:#f7f7f7;border:1px solid #ddd;padding:.8em;overflow-x:auto;font-size:.85em}
 figure{margin:1em 0}figure img{max-width:100%;border:1px solid #ddd}figcaption{color:#444;font-size:.9em}
-.good{color:#060}.bad{color:#a00}
+.good{color:#060}.bad{color:#a00}.none{color:#777;font-style:italic}
+table.record{width:100%}table.record th{width:13em;vertical-align:top}table.record td{text-align:left}
+table.sign{width:100%;margin-top:1em}table.sign th,table.sign td{text-align:left}
+table.sign td{height:3.2em;vertical-align:middle}table.sign td.role{width:24%}table.sign td.name{width:30%}
+table.sign td.date{width:16%}table.sign td.signature{width:30%}
+.remarks{border:1px solid #ccc;height:6em;padding:.3em .7em;color:#666;margin-top:1em}
+@page{size:A4;margin:14mm 12mm 14mm 12mm}
+@media print{
+body{max-width:none;margin:0;padding:0;font-size:9.5pt;line-height:1.3;color:#000}
+h1{font-size:15pt}h2{font-size:12pt;margin-top:1.2em;break-after:avoid;page-break-after:avoid}
+h3{break-after:avoid;page-break-after:avoid}
+tr,figure,table.record,.signoff{break-inside:avoid;page-break-inside:avoid}
+.signoff{break-before:auto}
+th{background:#eee !important;-webkit-print-color-adjust:exact;print-color-adjust:exact}
+th,td{padding:.15em .5em}
+pre{white-space:pre-wrap;overflow-wrap:anywhere;font-size:7.5pt;overflow:visible}
+figure img{max-width:100%;max-height:240mm}
+.muted,.none{color:#444}
+}
 """
 
 
@@ -254,9 +464,19 @@ def _e(v: Any) -> str:
     return html.escape(str(v))
 
 
-def _f(v: Any, digits: int = 2) -> str:
+def _none(why: str) -> str:
+    """An empty value on the page: why it is empty, never a bare null or a blank."""
+    return f'<span class="none">{_e(why)}</span>'
+
+
+def _f(v: Any, digits: int = 2, why: str = "not in the report") -> str:
+    """A figure to `digits` decimals; an absent or non-finite one says why."""
+    if v is None:
+        return _none(why)
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return _e(v)
+        return _e(_text(v))
+    if isinstance(v, float) and not math.isfinite(v):
+        return _none(f"not computed ({v})")
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
@@ -280,17 +500,130 @@ def _flat(d: Any, prefix: str = "") -> list[tuple[str, Any]]:
 
 
 def _text(v: Any, limit: int = 12) -> str:
-    """A parameter as a person reads it: six significant digits, long lists cut after `limit` values."""
+    """A value as a person reads it: six significant digits, yes/no, long lists cut after `limit` values."""
+    if isinstance(v, bool):
+        return "yes" if v else "no"
     if isinstance(v, float):
-        return f"{v:.6g}"
+        return f"{v:.6g}" if math.isfinite(v) else "not computed"
     if isinstance(v, list):
         inner = ", ".join(_text(x, limit) for x in v[:limit])
         return f"[{inner}{f', … ({len(v)} values)' if len(v) > limit else ''}]"
-    return "null" if v is None else str(v)
+    return "none" if v is None else str(v)
 
 
-def _value(v: Any) -> str:
-    return _e(_text(v))
+def _empty(v: Any) -> bool:
+    return v is None or (isinstance(v, float) and not math.isfinite(v))
+
+
+def _when(dt: datetime) -> str:
+    """A date and time with its offset from UTC, to the minute."""
+    off = dt.utcoffset()
+    if off is None or off.total_seconds() == 0:
+        return f"{dt:%Y-%m-%d %H:%M} UTC"
+    minutes = int(off.total_seconds() // 60)
+    sign = "+" if minutes >= 0 else "−"
+    return f"{dt:%Y-%m-%d %H:%M} UTC{sign}{abs(minutes) // 60:02d}:{abs(minutes) % 60:02d}"
+
+
+def _span(lf: LogFacts) -> str:
+    """What a log covers, in words: its rows, its first and last t_s, when the file was last written."""
+    if lf.why_not:
+        what = f"<code>{_e(lf.name)}</code>: " if lf.name else ""
+        return what + _none(lf.why_not)
+    head = f"<code>{_e(lf.name)}</code>, {lf.rows} rows"
+    if lf.rows == 0:
+        return head + ": " + _none("no rows, so no time span")
+    first, last = lf.first_t_s, lf.last_t_s
+    span = f"t_s {first:.1f} s to {last:.1f} s ({(last - first) / 3600:.2f} h)"
+    if first >= UNIX_TIME_FROM_S:
+        t0, t1 = (datetime.fromtimestamp(t, UTC) for t in (first, last))
+        span += f": {_when(t0)} to {_when(t1)}"
+    else:
+        span += " on the log's own clock (compd's t_s is not a calendar time)"
+    written = (f"; the file was last written {_when(lf.modified.astimezone())}" if lf.modified else
+               "; " + _none("when the file was written is not known"))
+    return f"{head}, {span}{written}"
+
+
+def _ambient(page: Page) -> str:
+    """The air during the test: as stated (--ambient-c), and as the logs' columns named for the air read it."""
+    rec = page.record
+    parts = []
+    if len(rec.ambient_c) == 2:
+        parts.append(f"{rec.ambient_c[0]:.1f} to {rec.ambient_c[1]:.1f} °C (as stated, --ambient-c)")
+    elif rec.ambient_c:
+        parts.append(f"{rec.ambient_c[0]:.1f} °C (as stated, --ambient-c)")
+    else:
+        parts.append(_none("not given (use --ambient-c)"))
+    logged = []
+    for lf in page.logs:
+        for col, (lo, hi) in lf.ambient_c.items():
+            logged.append(f"{_e(col)} read {lo:.1f} to {hi:.1f} °C in <code>{_e(lf.name)}</code> ({_e(lf.role)})")
+    read = [lf for lf in page.logs if not lf.why_not]
+    if logged:
+        parts.append("; ".join(logged))
+    elif len(read) == len(page.logs) > 0:
+        parts.append(_none("the logs have no column named for the air (amb, room, air)"))
+    elif read:
+        parts.append(_none(f"{', '.join(str(lf.name) for lf in read)} has no column named for the air"
+                           " (amb, room, air); the other log was not read"))
+    else:
+        parts.append(_none("no log read, so no logged air temperature"))
+    return "<br>".join(parts)
+
+
+def _model_made(page: Page) -> str:
+    if page.model_fit is None:
+        return _none(page.model_why_not or "no model file")
+    at, version = page.model_fit.get("fitted_at"), page.model_fit.get("compd_version")
+    if not isinstance(at, str) or not at:
+        return f"<code>{_e(page.model_file)}</code>: " + _none("the fit date is not recorded (a model file written"
+                                                               " before compd kept fitted_at)")
+    by = f" by compd {_e(version)}" if isinstance(version, str) and version else ""
+    return f"<code>{_e(page.model_file)}</code>, fitted {_e(at.replace('T', ' ').replace('Z', ' UTC'))}{by}"
+
+
+def record_section(page: Page, made_at: datetime) -> str:
+    """Who, which machine, with what, in what air, when: the facts a plant files the page by."""
+    from compd import __version__
+
+    rec = page.record
+
+    def given(value: str | None, flag: str) -> str:
+        return _e(value) if value else _none(f"not given (use {flag})")
+
+    rows = [
+        ("machine", given(rec.machine, "--machine")),
+        ("operator (ran the test)", given(rec.operator, "--operator")),
+        ("measuring instrument", given(rec.instrument, "--instrument")),
+        ("ambient temperature during the test", _ambient(page)),
+        *[(f"data: the {lf.role} log", _span(lf)) for lf in page.logs],
+        ("model", _model_made(page)),
+        ("this report", f"made {_when(made_at)} by compd {_e(__version__)} from <code>{_e(page.fit_file)}</code>"
+                        f" and <code>{_e(page.replay_file)}</code>"),
+    ]
+    body = "".join(f'<tr><th class="l">{_e(k)}</th><td class="l">{v}</td></tr>' for k, v in rows)
+    return f'<h2>The record</h2><table class="record"><tbody>{body}</tbody></table>'
+
+
+def signoff_section(page: Page) -> str:
+    """Lines to sign on paper: the commissioning engineer's and the plant owner's."""
+    rows = "".join(
+        f'<tr><td class="role">{role}</td><td class="name"></td><td class="date"></td><td class="signature"></td></tr>'
+        for role in ("Commissioning engineer", "Plant owner")
+    )
+    machine = f" of {_e(page.record.machine)}" if page.record.machine else ""
+    return (
+        '<section class="signoff"><h2>Sign-off</h2>'
+        f"<p>The commissioning engineer confirms that the thermal-error compensation{machine} was commissioned"
+        " and measured as this record shows; the plant owner accepts it for production with the output"
+        " enabled.</p>"
+        '<table class="sign"><thead><tr><th>role</th><th>name</th><th>date</th><th>signature</th></tr></thead>'
+        f"<tbody>{rows}</tbody></table>"
+        '<div class="remarks">remarks:</div>'
+        '<p class="muted">Name, date, signature and remarks are left empty on purpose: they are filled in by hand'
+        " on the printed page.</p></section>"
+    )
 
 
 def fit_section(page: Page) -> str:
@@ -304,34 +637,62 @@ def fit_section(page: Page) -> str:
     if isinstance(fit.get("inputs"), list):
         facts.append("inputs " + ", ".join(f"<code>{_e(x)}</code>" for x in fit["inputs"]))
     out.append(f'<p class="muted">{"; ".join(facts)}</p>')
-    base = (fit.get("baseline_mlr") or {}).get("axes", {})
+    baseline = fit.get("baseline_mlr") or {}
+    base = baseline.get("axes", {})
     head = ["axis", "RMSE on the fitting log / µm", "max |error| / µm"]
     if base:
         head += ["held-out RMSE / µm", "MLR baseline held-out RMSE / µm"]
     rows = []
     for axis, s in fit["axes"].items():
-        r = [_e(axis), _f(s["rmse_um"]), _f(s.get("max_abs_err_um", "–"))]
+        r = [_e(axis), _f(s["rmse_um"]),
+             _f(s.get("max_abs_err_um"), why="not in the fit report (written by an older compd)")]
         if base:
-            b = base.get(axis, {})
-            r += [_f(b.get("held_out_rmse_um", "–")), _f(b.get("mlr_held_out_rmse_um", "–"))]
+            b = base.get(axis) or {}
+            why = "not computed for this axis"
+            r += [_f(b.get("held_out_rmse_um"), why=why), _f(b.get("mlr_held_out_rmse_um"), why=why)]
         rows.append(r)
     out.append(_table(head, rows))
-    method = (fit.get("baseline_mlr") or {}).get("method")
+    method = baseline.get("method")
     if method:
-        out.append(f'<p class="muted">Held out: {_e(method)}.</p>')
-    skipped = (fit.get("baseline_mlr") or {}).get("skipped")
+        text = method if str(method).lower().startswith("held out") else f"held out: {method}"
+        out.append(f'<p class="muted">{_e(text[:1].upper() + text[1:])}.</p>')
+    skipped = baseline.get("skipped")
     if skipped:
         out.append(f'<p class="warn">No held-out comparison with MLR: {_e(skipped)}.</p>')
+    elif not base:
+        out.append(f'<p class="warn">No held-out comparison with MLR: {_e(page.fit_file)} has no'
+                   " <code>baseline_mlr</code> figures.</p>")
     for w in fit.get("warnings") or []:
         out.append(f'<p class="warn">warning: {_e(w)}</p>')
     if page.model_params is not None:
+        kind = str(fit["kind"])
+        params = page.model_params
+        rows = [[_e(k), _none(why_param_empty(kind, k, params)) if v is None else _e(_text(v))]
+                for k, v in _flat(params)]
         out.append(f"<h3>Coefficients (<code>{_e(page.model_file)}</code>, params)</h3>")
-        out.append(_table(["name", "value"], [[_e(k), _value(v)] for k, v in _flat(page.model_params)], left=2))
+        out.append(_table(["name", "value"], rows, left=2))
+    else:
+        out.append(f'<h3>Coefficients</h3><p class="warn">Not shown: {_e(page.model_why_not)}.</p>')
     details = fit.get("details")
     if isinstance(details, dict) and details:
+        rows = [[_e(k), _none(why_detail_empty(k, v)) if _empty(v) else _e(_text(v))] for k, v in _flat(details)]
         out.append("<h3>Fit details</h3>")
-        out.append(_table(["name", "value"], [[_e(k), _value(v)] for k, v in _flat(details)], left=2))
+        out.append(_table(["name", "value"], rows, left=2))
     return "\n".join(out)
+
+
+def _limits(rep: dict[str, Any]) -> str:
+    """The replayed device's limits (the report's device_limits), an absent one said as what it means."""
+    lim = rep.get("device_limits")
+    if not isinstance(lim, dict):
+        return ""
+    res, top, rate = lim.get("resolution_um"), lim.get("max_abs_um"), lim.get("max_rate_um_per_s")
+    num = (int, float)
+    parts = [f"resolution {res:g} µm" if isinstance(res, num) else "resolution not in the report",
+             f"largest correction {top:g} µm" if isinstance(top, num)
+             else "no clamp of its own (only guard.max_abs_um clamps)",
+             f"at most {rate:g} µm/s" if isinstance(rate, num) else "no rate limit of its own"]
+    return "device limits: " + ", ".join(parts)
 
 
 def replay_section(page: Page) -> str:
@@ -348,15 +709,34 @@ def replay_section(page: Page) -> str:
         facts.append(f"device {_e(rep['device'])}")
     elif "plc" in rep:
         facts.append(f"PLC {_e(rep['plc'])}")
+    if _limits(rep):
+        facts.append(_e(_limits(rep)))
+    if isinstance(rep.get("inhibit"), str):
+        facts.append(f"inhibit: {_e(rep['inhibit'])}")
     out.append(f'<p class="muted">{"; ".join(facts)}</p>')
+    adapted = any(isinstance(s.get("without_adaptation"), dict) for s in rep["axes"].values())
     rows = []
     for axis, s in rep["axes"].items():
         red = s["reduction_pct"]
         cls = "good" if red >= 50 else "bad"
-        rows.append([_e(axis), _f(s["rms_before_um"]), _f(s["rms_after_um"]), _f(s.get("max_abs_before_um", "–")),
-                     _f(s["max_abs_after_um"]), f'<span class="{cls}">{red:.1f} %</span>'])
-    out.append(_table(["axis", "RMS before / µm", "RMS after / µm", "max |error| before / µm",
-                       "max |error| after / µm", "reduction"], rows))
+        row = [_e(axis), _f(s["rms_before_um"]), _f(s["rms_after_um"]),
+               _f(s.get("max_abs_before_um"), why="not in the replay report (written by an older compd)"),
+               _f(s["max_abs_after_um"]), f'<span class="{cls}">{red:.1f} %</span>']
+        if adapted:
+            plain = s.get("without_adaptation")
+            if isinstance(plain, dict):
+                row += [_f(plain.get("rms_after_um")), _f(plain.get("reduction_pct"), 1)]
+            else:
+                row += [_none("no probes of this axis in the log")] * 2
+        rows.append(row)
+    head = ["axis", "RMS before / µm", "RMS after / µm", "max |error| before / µm", "max |error| after / µm",
+            "reduction"]
+    if adapted:
+        head += ["RMS after, model alone / µm", "reduction, model alone / %"]
+    out.append(_table(head, rows))
+    if adapted:
+        out.append('<p class="muted">The log has probe columns: "after" is with the probes adapting the model;'
+                   ' "model alone" is the same replay with the probes ignored.</p>')
     faults = rep.get("faults") or {}
     text = ", ".join(f"{_e(k)}: {_e(v)}" for k, v in faults.items()) if faults else "none"
     out.append(f"<p>Guard events during the replay (the report's <code>faults</code>, by kind): {text}.</p>")
@@ -396,32 +776,34 @@ def figures_section(page: Page) -> str:
 
 def config_section(page: Page) -> str:
     if page.config_text is None:
-        return '<h2>The config</h2><p class="muted">No config given (--config CONFIG.yaml).</p>'
+        return ('<h2>The config</h2><p class="muted">Not shown: no config given (--config CONFIG.yaml), and the'
+                " replay report names none (a replay of a bare model file).</p>")
     return f"<h2>The config: <code>{_e(page.config_file)}</code></h2><pre>{_e(page.config_text)}</pre>"
 
 
 def render(page: Page) -> str:
     """The page as one HTML document: no scripts, no external resources, images as data URIs."""
-    from compd import __version__
-
+    made_at = page.record.made_at or datetime.now().astimezone()
     axes = ", ".join(page.replay["axes"])
-    title = f"compd commissioning report: {page.fit['kind']} on {axes}"
+    what = f"{page.fit['kind']} on {axes}"
+    title = (f"compd commissioning report: {page.record.machine}, {what}" if page.record.machine
+             else f"compd commissioning report: {what}")
     return "\n".join([
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
         f"<title>{_e(title)}</title><style>{CSS}</style></head><body>",
         f"<h1>{_e(title)}</h1>",
-        f'<p class="muted">Made by compd {_e(__version__)} from <code>{_e(page.fit_file)}</code> and'
-        f" <code>{_e(page.replay_file)}</code>.</p>",
-        summary_section(page), fit_section(page), replay_section(page), figures_section(page), config_section(page),
+        f'<p class="muted">Thermal-error compensation: the record of its commissioning, made {_when(made_at)}.</p>',
+        record_section(page, made_at), summary_section(page), fit_section(page), replay_section(page),
+        figures_section(page), config_section(page), signoff_section(page),
         "</body></html>",
     ]) + "\n"
 
 
 def write_report(out: str | Path, fit_file: str, replay_file: str, config_file: str | None = None,
-                 pngs: list[str] | None = None) -> Page:
+                 pngs: list[str] | None = None, record: Record | None = None) -> Page:
     """Build the page and write it to `out`."""
-    page = build_page(fit_file, replay_file, config_file, pngs)
+    page = build_page(fit_file, replay_file, config_file, pngs, record)
     Path(out).write_text(render(page), encoding="utf-8")
     return page
