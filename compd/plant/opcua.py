@@ -21,8 +21,12 @@ the folder `z` in the folder `Axes` in `compd`.
   LatenessMaxUs, ComputeP99Us (Double, µs; a p99 over the histogram's range is its limit,
   20000 µs, with Uncertain_EngineeringUnitsExceeded: `OVER_RANGE_STATUS`).
 
-A Double with a unit has an `EngineeringUnits` property (EUInformation, UNECE code).
-The axes and signals are those of the first snapshot: a reload builds a new server.
+A number in a unit is an AnalogItemType with the properties EURange (the guard's clamp of the axis,
+a signal's configured limits or its unit's documented range, the timing histograms' range) and
+EngineeringUnits (EUInformation, UNECE code; a signal's unit is the one its name says); the rest
+are BaseDataVariableType. Every node has a Description (a status record field's `meaning` from
+compd/cycle/statusblock.py, else `DESCRIPTIONS`) and every variable a MinimumSamplingInterval of
+`opcua.period_s`. The axes and signals are those of the first snapshot: a reload builds a new server.
 A value compd does not have (None, NaN) is written with a Bad StatusCode, never as a
 number; a snapshot of another shape writes what it can and counts an error.
 
@@ -31,7 +35,10 @@ refused (Bad_UserAccessDenied). Security: endpoints for the `opcua.security` pol
 only; a client whose channel is not secured is refused at login unless "None" is
 offered; with `trusted_clients`, only the certificates in that folder (exact match)
 may open a session; user names and passwords from the password files (compared in
-constant time); anonymous clients only with `anonymous: true`.
+constant time), the UserName token policy of every endpoint Basic256Sha256 (the password
+always encrypted with the server's key; one that is not is refused); anonymous clients only
+with `anonymous: true`. asyncua's own log lines reach compd's log as `opcua_stack` events,
+rate-limited (`route_asyncua_logs`).
 """
 
 from __future__ import annotations
@@ -43,7 +50,9 @@ import ipaddress
 import logging
 import math
 import os
+import re
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -56,12 +65,14 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from compd import version
+from compd.config import MAX_CORRECTION_UM, SIGNAL_ABS_MAX
 from compd.errors import BadInput
+from compd.models.base import TEMP_MAX_C, TEMP_MIN_C
 from compd.plant.spec import MAX_SECRET_BYTES
 from compd.service.threads import ServiceThread
 
 if TYPE_CHECKING:
-    from compd.config import OpcUaConfig
+    from compd.config import GuardConfig, OpcUaConfig
 
 log = logging.getLogger("compd.opcua")
 
@@ -73,29 +84,47 @@ CERT_SUFFIXES = (".der", ".pem", ".crt", ".cer")  # files of `trusted_clients` t
 
 # ------------------------------------------------------------------ the address space
 
+UNITS_NAMESPACE = "http://www.opcfoundation.org/UA/units/un/cefact"  # Part 8 §5.6.3: UNECE Recommendation 20
+
 
 @dataclass(frozen=True)
 class Unit:
-    """An engineering unit as OPC UA names it: a UNECE Recommendation 20 code."""
+    """An engineering unit as OPC UA names it: a UNECE Recommendation 20 common code and its symbol."""
 
-    symbol: str
+    symbol: str  # the EUInformation's DisplayName: the code's symbol in Recommendation 20
     unece: str
     description: str
+
+    @property
+    def unit_id(self) -> int:
+        """Part 8 §5.6.3: the code's characters, each a byte, most significant first ("4H" → 0x3448)."""
+        return int.from_bytes(self.unece.encode("ascii"), "big")
 
     def eu_information(self) -> Any:
         from asyncua import ua
 
-        return ua.EUInformation(
-            NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact",
-            UnitId=int.from_bytes(self.unece.encode("ascii"), "big"),  # Part 8 §5.6.3: the code's bytes
-            DisplayName=ua.LocalizedText(self.symbol),
-            Description=ua.LocalizedText(self.description),
-        )
+        return ua.EUInformation(NamespaceUri=UNITS_NAMESPACE, UnitId=self.unit_id,
+                                DisplayName=ua.LocalizedText(self.symbol),
+                                Description=ua.LocalizedText(self.description))
 
 
 MICROMETRE = Unit("µm", "4H", "micrometre (micron)")
 MILLISECOND = Unit("ms", "C26", "millisecond")
 MICROSECOND = Unit("µs", "B98", "microsecond")
+# a signal's unit as its name says it (compd/cycle/statusblock.py `signal_unit`) → its UNECE unit
+SIGNAL_UNITS: dict[str, Unit] = {
+    "°C": Unit("°C", "CEL", "degree Celsius"),
+    "K": Unit("K", "KEL", "kelvin"),
+    "µm": MICROMETRE,
+    "mm": Unit("mm", "MMT", "millimetre"),
+    "rpm": Unit("r/min", "RPM", "revolutions per minute"),
+    "s": Unit("s", "SEC", "second [unit of time]"),
+    "A": Unit("A", "AMP", "ampere"),
+    "V": Unit("V", "VLT", "volt"),
+    "%": Unit("%", "P1", "percent"),
+    "bar": Unit("bar", "BAR", "bar [unit of pressure]"),
+    "Hz": Unit("Hz", "HTZ", "hertz"),
+}
 
 # a signal's quality (compd/cycle/frame.py) → the StatusCode of its Value; any other → BadSensorFailure
 QUALITY_STATUS = {
@@ -114,13 +143,68 @@ Reader = Callable[[dict[str, Any]], tuple[Any, str]]  # snapshot → (raw value,
 
 
 @dataclass(frozen=True)
+class EuRange:
+    """An analog variable's EURange (Part 8 §5.3.2: the values likely in normal operation, for
+    scaling a bar graph; a value may lie outside) and where it comes from."""
+
+    low: float
+    high: float
+    source: str  # the Description of the EURange property: which config key or which documented range
+
+
+# the signals' EURange without configured limits (guard.signals.<name>.min/max), by the unit their
+# name says (docs/plant.md, "Units and ranges"); the numbers are a machine tool's, not compd's limits
+SIGNAL_RANGES: dict[str | None, tuple[float, float, str]] = {
+    "°C": (TEMP_MIN_C, TEMP_MAX_C, "a temperature on a machine tool (the guard's default limits)"),
+    "K": (TEMP_MIN_C - TEMP_MAX_C, TEMP_MAX_C - TEMP_MIN_C, "a difference of two such temperatures"),
+    "µm": (-MAX_CORRECTION_UM, MAX_CORRECTION_UM, "a thermal error: at most the largest clamp compd accepts"),
+    "mm": (-10_000.0, 10_000.0, "an axis position: 10 m of travel either way"),
+    "rpm": (-100_000.0, 100_000.0, "a spindle speed, either direction"),
+    "Hz": (-2_000.0, 2_000.0, "a rotational speed (120 000 r/min), either direction"),
+    "s": (0.0, 86_400.0, "a duration up to a day"),
+    "A": (-1_000.0, 1_000.0, "a motor current"),
+    "V": (-1_000.0, 1_000.0, "a voltage"),
+    "%": (0.0, 100.0, "a share"),
+    "bar": (0.0, 1_000.0, "a pressure (hydraulics reach 700 bar)"),
+    None: (-SIGNAL_ABS_MAX, SIGNAL_ABS_MAX, "a signal whose name says no unit: the largest limit compd accepts"),
+}
+PERIOD_RANGE_MS = (0.0, 60_000.0)  # loop.period_s is at most 60 s
+
+# the Descriptions of the nodes that are not a field of the cycle's status record; a field's Description
+# is its `meaning` in compd/cycle/statusblock.py (AXIS, SIGNAL, LOOP), as docs/status-fields.md shows it
+DESCRIPTIONS = {
+    "compd": "the live status of compd, the thermal-error compensation daemon of this machine (read-only)",
+    "compd.Observe": "observe mode: the full loop runs, the output is held disabled (the word at the machine is 0)",
+    "compd.Axes": "a folder per axis the model corrects",
+    "compd.Signals": "a folder per signal the sources read",
+    "compd.Loop": "the fixed-period cycle: its period, counts and timing",
+    "ModelKind": "the kind of the thermal-error model (feed_axis, lvr, xi_spindle, ar1, mlr)",
+    "FitDate": "when the model was fitted (the model file's fit.fitted_at, ISO 8601); empty if unknown",
+    "compd.Loop.PeriodMs": "the cycle's period (loop.period_s)",
+    "compd.Loop.LatenessP99Us": "the cycle's wake-up lateness, 99th percentile since start; above the"
+    " histogram's range it is the range limit with Uncertain_EngineeringUnitsExceeded",
+    "compd.Loop.ComputeP99Us": "the cycle's compute time, 99th percentile since start; above the histogram's"
+    " range it is the range limit with Uncertain_EngineeringUnitsExceeded",
+}
+
+
+@dataclass(frozen=True)
 class Variable:
-    """One variable: its node id (= browse path), type, unit and where its value comes from."""
+    """One variable: its node id (= browse path), type, unit, description, range and where its value comes from.
+
+    With an `eu_range` it is an AnalogItemType (EURange, and EngineeringUnits when the unit is
+    known); without, a BaseDataVariableType."""
 
     node_id: str
     data_type: str  # a ua.VariantType name: Double, UInt16, UInt64, Boolean, String
     unit: Unit | None
     read: Reader
+    description: str = ""
+    eu_range: EuRange | None = None
+
+    @property
+    def analog(self) -> bool:
+        return self.eu_range is not None
 
 
 def _good(get: Callable[[dict[str, Any]], Any]) -> Reader:
@@ -151,49 +235,113 @@ def _signal_value(name: str) -> Reader:
     return read
 
 
-def address_space(snap: dict[str, Any]) -> list[Variable]:
-    """The variables for the axes and signals of this (first) snapshot, in browse order."""
+def _meaning(field: Any) -> str:
+    """A status record field's meaning as an OPC UA Description: JSON's null is a Bad_NoData value
+    here; a name field lists its names."""
+    text = re.sub(r"\bnull\b", "Bad_NoData", field.meaning)
+    if field.kind == "name":
+        text += " (one of " + ", ".join(n for n in field.names if n is not None) + ")"
+    return text
+
+
+def axis_range(guard: GuardConfig, axis: str) -> EuRange:
+    """±the guard's clamp of `axis` (as compd.cycle.guard.Guard takes it): what a correction can reach."""
+    over = guard.axes.get(axis)
+    if over is not None and over.max_abs_um is not None:
+        return EuRange(-over.max_abs_um, over.max_abs_um, f"± guard.axes.{axis}.max_abs_um")
+    return EuRange(-guard.max_abs_um, guard.max_abs_um, "± guard.max_abs_um")
+
+
+def signal_range(guard: GuardConfig, name: str, unit: str | None) -> EuRange:
+    """The signal's plausibility limits from the config (guard.signals.<name>), else its unit's range."""
+    lim = guard.signals.get(name)
+    if lim is not None:
+        return EuRange(lim.min, lim.max, f"guard.signals.{name}.min … max")
+    low, high, why = SIGNAL_RANGES[unit]
+    return EuRange(low, high, f"no configured limits: {why}")
+
+
+def folders(snap: dict[str, Any]) -> dict[str, str]:
+    """Each folder's node id → its Description, for the axes and signals of this (first) snapshot."""
+    from compd.cycle.statusblock import signal_unit
+
+    out = {key: DESCRIPTIONS[key] for key in ("compd", "compd.Axes", "compd.Signals", "compd.Loop")}
+    axes = snap.get("axes")
+    for axis in axes if isinstance(axes, dict) else ():
+        out[f"compd.Axes.{axis}"] = f"the axis {axis}: the model's prediction, the guard's correction, the machine's word"
+    signals = snap.get("signals")
+    for name in signals if isinstance(signals, dict) else ():
+        unit = signal_unit(name)
+        out[f"compd.Signals.{name}"] = f"the signal {name}" + (f" ({unit}, as its name says)" if unit else "")
+    return out
+
+
+def address_space(snap: dict[str, Any], guard: GuardConfig | None = None) -> list[Variable]:
+    """The variables for the axes and signals of this (first) snapshot, in browse order; the ranges
+    from `guard` (the config's guard section; None: its defaults)."""
+    from compd.config import GuardConfig
+    from compd.cycle.loop import HIST_US
+    from compd.cycle.statusblock import AXIS, LOOP, SIGNAL, signal_unit
+
+    guard = guard if guard is not None else GuardConfig()
+    ax = {f.key: _meaning(f) for f in AXIS}
+    sg = {f.key: _meaning(f) for f in SIGNAL}
+    lp = {f.key: _meaning(f) for f in LOOP}
     um = MICROMETRE
+    # the loop's timing figures: 0 … the range of its histograms (1 µs bins up to 20 ms); a p99 above it
+    # is the range limit with Uncertain_EngineeringUnitsExceeded, the maximum is measured (can lie above)
+    timing = EuRange(0.0, float(HIST_US), f"0 … {HIST_US} µs, the range of the loop's timing histograms")
     out = [
-        Variable("compd.State", "String", None, _good(lambda s: s["state"])),
-        Variable("compd.Observe", "Boolean", None, _good(lambda s: s["observe"])),
+        Variable("compd.State", "String", None, _good(lambda s: s["state"]), lp["state"]),
+        Variable("compd.Observe", "Boolean", None, _good(lambda s: s["observe"]), DESCRIPTIONS["compd.Observe"]),
     ]
     axes = snap.get("axes")
     for axis in sorted(axes) if isinstance(axes, dict) else []:
         p = f"compd.Axes.{axis}."
+        clamp = axis_range(guard, axis)
+        byte = axes[axis].get("word_byte") if isinstance(axes[axis], dict) else None
+        word = lp["word"] + (f"; it carries this axis in its {byte} byte" if byte else "; it does not carry this axis")
 
         def field(key: str, axis: str = axis) -> Reader:
             return _good(lambda s: s["axes"][axis][key])
 
         out += [
-            Variable(p + "CorrectionUm", "Double", um, field("correction_um")),
-            Variable(p + "TargetUm", "Double", um, field("target_um")),
-            Variable(p + "PredictionUm", "Double", um, field("prediction_um")),
+            Variable(p + "CorrectionUm", "Double", um, field("correction_um"), ax["correction_um"], clamp),
+            Variable(p + "TargetUm", "Double", um, field("target_um"), ax["target_um"], clamp),
+            # a prediction is not clamped: it can lie outside the range (clamped before it reaches the machine)
+            Variable(p + "PredictionUm", "Double", um, field("prediction_um"), ax["prediction_um"], clamp),
             # what the device acknowledged or reads back (Bad: not known, e.g. the sink's link not up)
-            Variable(p + "AppliedUm", "Double", um, field("applied_um")),
-            Variable(p + "Word", "UInt16", None, _good(lambda s: int(s["word"], 16))),
+            Variable(p + "AppliedUm", "Double", um, field("applied_um"), ax["applied_um"], clamp),
+            Variable(p + "Word", "UInt16", None, _good(lambda s: int(s["word"], 16)), word),
             # on at the machine (compd/service/status.py): never in observe mode, whose word is 0
             Variable(p + "Enable", "Boolean", None,  # None (Bad): not confirmed while the link is not up
-                     _good(lambda s, axis=axis: False if s.get("observe") else s["axes"][axis]["enable"])),
-            Variable(p + "State", "String", None, field("state")),
-            Variable(p + "ModelKind", "String", None, _good(lambda s: s["model"]["kind"])),
-            Variable(p + "FitDate", "String", None, _good(_fit_date)),
+                     _good(lambda s, axis=axis: False if s.get("observe") else s["axes"][axis]["enable"]),
+                     ax["enable"]),
+            Variable(p + "State", "String", None, field("state"), ax["state"]),
+            Variable(p + "ModelKind", "String", None, _good(lambda s: s["model"]["kind"]), DESCRIPTIONS["ModelKind"]),
+            Variable(p + "FitDate", "String", None, _good(_fit_date), DESCRIPTIONS["FitDate"]),
         ]
     signals = snap.get("signals")
     for name in sorted(signals) if isinstance(signals, dict) else []:
         p = f"compd.Signals.{name}."
+        unit = signal_unit(name)
+        said = f"; in {unit}, as its name says" if unit else "; its name says no unit"
         out += [
-            Variable(p + "Value", "Double", None, _signal_value(name)),
-            Variable(p + "Quality", "String", None, _good(lambda s, n=name: s["signals"][n]["quality"])),
+            Variable(p + "Value", "Double", SIGNAL_UNITS.get(unit or ""), _signal_value(name),
+                     sg["value"] + said + "; its StatusCode follows Quality", signal_range(guard, name, unit)),
+            Variable(p + "Quality", "String", None, _good(lambda s, n=name: s["signals"][n]["quality"]), sg["quality"]),
         ]
     out += [
-        Variable("compd.Loop.PeriodMs", "Double", MILLISECOND, _good(lambda s: s["loop"]["period_ms"])),
-        Variable("compd.Loop.Cycles", "UInt64", None, _good(lambda s: s["loop"]["cycles"])),
-        Variable("compd.Loop.Misses", "UInt64", None, _good(lambda s: s["loop"]["misses"])),
-        Variable("compd.Loop.LatenessP99Us", "Double", MICROSECOND, _percentile("lateness_us", "p99")),
-        Variable("compd.Loop.LatenessMaxUs", "Double", MICROSECOND,
-                 _good(lambda s: s["loop"]["lateness_us"]["max"])),
-        Variable("compd.Loop.ComputeP99Us", "Double", MICROSECOND, _percentile("cycle_compute_us", "p99")),
+        Variable("compd.Loop.PeriodMs", "Double", MILLISECOND, _good(lambda s: s["loop"]["period_ms"]),
+                 DESCRIPTIONS["compd.Loop.PeriodMs"], EuRange(*PERIOD_RANGE_MS, "0 … 60 s, the longest loop.period_s")),
+        Variable("compd.Loop.Cycles", "UInt64", None, _good(lambda s: s["loop"]["cycles"]), lp["cycles"]),
+        Variable("compd.Loop.Misses", "UInt64", None, _good(lambda s: s["loop"]["misses"]), lp["misses"]),
+        Variable("compd.Loop.LatenessP99Us", "Double", MICROSECOND, _percentile("lateness_us", "p99"),
+                 DESCRIPTIONS["compd.Loop.LatenessP99Us"], timing),
+        Variable("compd.Loop.LatenessMaxUs", "Double", MICROSECOND, _good(lambda s: s["loop"]["lateness_us"]["max"]),
+                 lp["late_max_s"] + " (its wake-up lateness)", timing),
+        Variable("compd.Loop.ComputeP99Us", "Double", MICROSECOND, _percentile("cycle_compute_us", "p99"),
+                 DESCRIPTIONS["compd.Loop.ComputeP99Us"], timing),
     ]
     return out
 
@@ -468,12 +616,177 @@ class _TrustedClients:
         await self._basic.validate(cert, app_description)
 
 
+def _folder_item(nid: Any, parent: Any, bname: Any, description: str) -> Any:
+    """AddNodes: a folder (FolderType), organized by its parent, with its Description."""
+    from asyncua import ua
+
+    attrs = ua.ObjectAttributes(DisplayName=ua.LocalizedText(bname.Name), Description=ua.LocalizedText(description),
+                                EventNotifier=0, WriteMask=0, UserWriteMask=0)
+    return ua.AddNodesItem(ParentNodeId=parent, ReferenceTypeId=ua.NodeId(ua.ObjectIds.Organizes),
+                           RequestedNewNodeId=nid, BrowseName=bname, NodeClass=ua.NodeClass.Object,
+                           NodeAttributes=attrs, TypeDefinition=ua.NodeId(ua.ObjectIds.FolderType))
+
+
+def _read_only(value: Any, data_type: Any, description: str, bname: Any, sampling_ms: float) -> Any:
+    from asyncua import ua
+
+    read = ua.AccessLevel.CurrentRead.mask
+    return ua.VariableAttributes(
+        DisplayName=ua.LocalizedText(bname.Name), Description=ua.LocalizedText(description), Value=value,
+        DataType=data_type, ValueRank=ua.ValueRank.Scalar, ArrayDimensions=None, AccessLevel=read,
+        UserAccessLevel=read, MinimumSamplingInterval=sampling_ms, Historizing=False, WriteMask=0, UserWriteMask=0,
+    )
+
+
+def _variable_item(nid: Any, parent: Any, bname: Any, description: str, value: Any, sampling_ms: float,
+                   type_definition: int) -> Any:
+    """AddNodes: a read-only scalar variable, a component of its folder, of `type_definition`
+    (AnalogItemType or BaseDataVariableType)."""
+    from asyncua import ua
+
+    data_type = ua.NodeId(value.VariantType.value)  # a built-in type's NodeId is its VariantType's number
+    return ua.AddNodesItem(
+        ParentNodeId=parent, ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasComponent), RequestedNewNodeId=nid,
+        BrowseName=bname, NodeClass=ua.NodeClass.Variable, TypeDefinition=ua.NodeId(type_definition),
+        NodeAttributes=_read_only(value, data_type, description, bname, sampling_ms),
+    )
+
+
+def _property_item(nid: Any, parent: Any, name: str, description: str, value: Any, data_type: int,
+                   sampling_ms: float) -> Any:
+    """AddNodes: a read-only property (PropertyType, browse name in namespace 0) of a variable."""
+    from asyncua import ua
+
+    bname = ua.QualifiedName(name, 0)
+    return ua.AddNodesItem(
+        ParentNodeId=parent, ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasProperty), RequestedNewNodeId=nid,
+        BrowseName=bname, NodeClass=ua.NodeClass.Variable, TypeDefinition=ua.NodeId(ua.ObjectIds.PropertyType),
+        NodeAttributes=_read_only(value, ua.NodeId(data_type), description, bname, sampling_ms),
+    )
+
+
+def _encrypted_passwords(iserver: Any) -> None:
+    """Every endpoint's UserName token policy carries Basic256Sha256, so that a client encrypts the
+    password with the server's key whatever its channel (asyncua leaves it None on a SignAndEncrypt
+    endpoint: the channel's encryption only); a password that comes unencrypted, or with another
+    algorithm or server nonce, is refused (Bad_IdentityTokenInvalid)."""
+    from asyncua import ua
+    from asyncua.common.utils import ServiceError
+    from asyncua.crypto import uacrypto
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256 as Policy
+
+    # asyncua's internal server, pinned to 2.1 in pyproject.toml for these two: a version without them
+    # must not run with a UserName policy that says None
+    if not (callable(getattr(iserver, "add_endpoint", None)) and callable(getattr(iserver, "decrypt_user_token", None))):
+        raise RuntimeError("this asyncua has no InternalServer.add_endpoint/decrypt_user_token: compd needs asyncua 2.1")
+    add = iserver.add_endpoint
+
+    def add_endpoint(edp: Any) -> None:  # asyncua makes the endpoints in Server.start, before it listens
+        for token in edp.UserIdentityTokens:
+            if token.TokenType == ua.UserTokenType.UserName:
+                token.SecurityPolicyUri = Policy.URI
+        add(edp)
+
+    def decrypt_user_token(isession: Any, token: Any) -> tuple[str, str]:
+        # Part 4 §7.36.3: Password = Encrypt(length ‖ password ‖ the session's server nonce)
+        if token.EncryptionAlgorithm != Policy.AsymmetricEncryptionURI:
+            log.info("OPC UA login refused: user %r sent the password %s", token.UserName,
+                     f"encrypted with {token.EncryptionAlgorithm}" if token.EncryptionAlgorithm else "unencrypted")
+            raise ServiceError(ua.StatusCodes.BadIdentityTokenInvalid)
+        data, block = bytes(token.Password or b""), iserver.private_key.key_size // 8
+        raw = b"".join(uacrypto.decrypt_rsa_oaep(iserver.private_key, data[i: i + block])  # a block per key size
+                       for i in range(0, len(data), block))
+        nonce = isession.nonce or b""
+        length = int.from_bytes(raw[:4], "little")
+        if len(raw) != 4 + length or length < len(nonce) or not hmac.compare_digest(raw[4 + length - len(nonce):], nonce):
+            log.info("OPC UA login refused: user %r's password token is not of this session", token.UserName)
+            raise ServiceError(ua.StatusCodes.BadIdentityTokenInvalid)
+        return token.UserName, raw[4: 4 + length - len(nonce)].decode("utf-8")
+
+    iserver.add_endpoint = add_endpoint
+    iserver.decrypt_user_token = decrypt_user_token
+
+
+# ------------------------------------------------------------------ asyncua's log
+
+STACK_EVENT = "opcua_stack"  # the event of asyncua's log lines in compd's event log
+STACK_WINDOW_S = 60.0  # one line per distinct asyncua message a window; the repeats counted into the next
+STACK_LINES_PER_WINDOW = 20  # at most this many asyncua lines a window in all; the others counted
+STACK_KEYS = 256  # distinct messages remembered
+
+
+class _StackEvents(logging.Handler):
+    """asyncua's log records as compd events (`event=opcua_stack`), never raw lines: its logger, level
+    and message as fields; its INFO and DEBUG (a line per request) at debug, its WARNING and ERROR at
+    warning (a refused client, a bad request: the server goes on); each distinct message (its format)
+    at most once per STACK_WINDOW_S, STACK_LINES_PER_WINDOW lines per window in all, what was held
+    back counted in the next line (`repeated`, `dropped`)."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__()
+        self._clock = clock
+        self._seen: dict[tuple[str, int, str], tuple[float, int]] = {}  # key → (time of its line, repeats since)
+        self._window = (-math.inf, 0)  # start of the budget's window, lines in it
+        self._dropped = 0
+        self.out = logging.getLogger("compd.opcua.stack")
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            level = logging.DEBUG if record.levelno < logging.WARNING else logging.WARNING
+            if not self.out.isEnabledFor(level):
+                return
+            now = self._clock()
+            key = (record.name, record.levelno, str(record.msg))
+            last, repeats = self._seen.get(key, (-math.inf, 0))
+            if now - last < STACK_WINDOW_S:
+                self._seen[key] = (last, repeats + 1)
+                return
+            start, lines = self._window
+            if now - start >= STACK_WINDOW_S:
+                start, lines = now, 0
+            if lines >= STACK_LINES_PER_WINDOW:
+                self._dropped += 1
+                return
+            self._window = (start, lines + 1)
+            self._seen.pop(key, None)
+            self._seen[key] = (now, 0)
+            while len(self._seen) > STACK_KEYS:
+                del self._seen[next(iter(self._seen))]
+            extra: dict[str, Any] = {"event": STACK_EVENT, "stack_logger": record.name,
+                                     "stack_level": record.levelname.lower()}
+            if repeats:
+                extra["repeated"] = repeats
+            if self._dropped:
+                extra["dropped"], self._dropped = self._dropped, 0
+            if record.exc_info and record.exc_info[1] is not None:
+                extra["error"] = f"{type(record.exc_info[1]).__name__}: {record.exc_info[1]}"
+            self.out.log(level, "asyncua: %s", record.getMessage(), extra=extra)
+        except Exception:  # a log line must never break the server
+            self.handleError(record)
+
+
+_STACK_HANDLER = _StackEvents()
+
+
+def route_asyncua_logs() -> None:
+    """asyncua's loggers into compd's event log through `_StackEvents` (idempotent): no raw line and
+    no Python last-resort line; asyncua logs INFO (every request) only while compd logs debug."""
+    stack = logging.getLogger("asyncua")
+    stack.propagate = False
+    if _STACK_HANDLER not in stack.handlers:
+        stack.addHandler(_STACK_HANDLER)
+    stack.setLevel(logging.INFO if _STACK_HANDLER.out.isEnabledFor(logging.DEBUG) else logging.WARNING)
+
+
 class OpcUaServer:
     """The OPC UA server of one config: `start` on the first snapshot, `update` with each later one, `stop`."""
 
-    def __init__(self, cfg: OpcUaConfig, base_dir: Path) -> None:
+    def __init__(self, cfg: OpcUaConfig, base_dir: Path, guard: GuardConfig | None = None) -> None:
+        """`guard`: the config's guard section, whose clamps and signal limits are the EURanges
+        (None: the guard's defaults)."""
         self.cfg = cfg
         self.base_dir = Path(base_dir)
+        self.guard = guard
         self._lock = threading.Lock()
         self._thread: ServiceThread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None  # the server thread's, while it runs
@@ -481,6 +794,7 @@ class OpcUaServer:
         self._pending: list[Any] | None = None  # the newest values not yet written
         self._stopping = False
         self._variables: list[Variable] = []
+        self._folders: dict[str, str] = {}
         self._endpoint: str | None = None
         self._updates = 0
         self._errors = 0
@@ -495,12 +809,12 @@ class OpcUaServer:
         server accepts connections."""
         if self._thread is not None:
             raise RuntimeError("OpcUaServer.start called twice")
-        if logging.getLogger("asyncua").level == logging.NOTSET:
-            logging.getLogger("asyncua").setLevel(logging.WARNING)  # it logs every request at INFO
+        route_asyncua_logs()
         material = _read_material(self.cfg, self.base_dir)
         if "None" in self.cfg.security:
             log.warning("OPC UA security 'None' is offered: that traffic is not encrypted")
-        self._variables = address_space(snap)
+        self._variables = address_space(snap, self.guard)
+        self._folders = folders(snap)
         values, problems = data_values(self._variables, snap)
         self._count(problems)
         ready: concurrent.futures.Future[str] = concurrent.futures.Future()
@@ -587,6 +901,7 @@ class OpcUaServer:
             ([ua.UserNameIdentityToken] if material.passwords else [])
             + ([ua.AnonymousIdentityToken] if cfg.anonymous else [])
         )
+        _encrypted_passwords(server.iserver)
         await server.load_certificate(material.certificate.public_bytes(serialization.Encoding.DER), format="der")
         await server.load_private_key(
             material.private_key.private_bytes(
@@ -640,28 +955,49 @@ class OpcUaServer:
                 self._updates += 1
 
     async def _build(self, server: Any, idx: int) -> list[Any]:
-        """The folders and variables under Objects/compd; the variables' NodeIds, in order."""
+        """The folders, variables and their properties under Objects/compd (one AddNodes call); the
+        variables' NodeIds, in order."""
         from asyncua import ua
 
-        folders = {"": server.nodes.objects}
+        sampling_ms = self.cfg.period_s * 1000.0  # the service writes a snapshot once a period_s (host.py)
+        items: list[Any] = []
+        made: set[str] = set()
         node_ids = []
         for var in self._variables:
             *path, name = var.node_id.split(".")
             for depth in range(1, len(path) + 1):
                 key = ".".join(path[:depth])
-                if key not in folders:
-                    parent = folders[".".join(path[: depth - 1])]
-                    folders[key] = await parent.add_folder(ua.NodeId(key, idx), ua.QualifiedName(path[depth - 1], idx))
-            vtype = getattr(ua.VariantType, var.data_type)
-            node = await folders[".".join(path)].add_variable(
-                ua.NodeId(var.node_id, idx), ua.QualifiedName(name, idx), _ZERO[var.data_type], vtype
-            )
+                if key not in made:
+                    made.add(key)
+                    parent = ua.NodeId(".".join(path[: depth - 1]), idx) if depth > 1 else server.nodes.objects.nodeid
+                    items.append(_folder_item(ua.NodeId(key, idx), parent, ua.QualifiedName(path[depth - 1], idx),
+                                              self._folders.get(key, "")))
+            nid = ua.NodeId(var.node_id, idx)
+            items.append(_variable_item(
+                nid, ua.NodeId(".".join(path), idx), ua.QualifiedName(name, idx), var.description,
+                ua.Variant(_ZERO[var.data_type], getattr(ua.VariantType, var.data_type)), sampling_ms,
+                ua.ObjectIds.AnalogItemType if var.analog else ua.ObjectIds.BaseDataVariableType,
+            ))
+            if var.eu_range is not None:
+                r = var.eu_range
+                items.append(_property_item(
+                    ua.NodeId(var.node_id + ".EURange", idx), nid, "EURange", "the range of values likely in normal"
+                    f" operation (OPC UA Part 8 EURange): {r.source}",
+                    ua.Variant(ua.Range(Low=float(r.low), High=float(r.high)), ua.VariantType.ExtensionObject),
+                    ua.ObjectIds.Range, sampling_ms,
+                ))
             if var.unit is not None:
-                await node.add_property(
-                    ua.NodeId(var.node_id + ".EngineeringUnits", idx), ua.QualifiedName("EngineeringUnits", 0),
-                    var.unit.eu_information(), datatype=ua.NodeId(ua.ObjectIds.EUInformation),
-                )
-            node_ids.append(node.nodeid)
+                items.append(_property_item(
+                    ua.NodeId(var.node_id + ".EngineeringUnits", idx), nid, "EngineeringUnits",
+                    f"the unit of the value: {var.unit.description} (UNECE Recommendation 20 code {var.unit.unece})",
+                    ua.Variant(var.unit.eu_information(), ua.VariantType.ExtensionObject),
+                    ua.ObjectIds.EUInformation, sampling_ms,
+                ))
+            node_ids.append(nid)
+        results = await server.iserver.isession.add_nodes(items)
+        for item, res in zip(items, results, strict=True):
+            if not res.StatusCode.is_good():
+                raise RuntimeError(f"OPC UA: adding {item.RequestedNewNodeId} failed: {res.StatusCode.name}")
         return node_ids
 
     async def _write(self, server: Any, node_ids: list[Any], values: list[Any]) -> None:

@@ -1,4 +1,4 @@
-"""The read-only OPC UA server: values, updates, the documented address space, and its security.
+"""The read-only OPC UA server: values, updates, the documented address space (types, units, ranges, descriptions, sampling interval), its security, and asyncua's log lines.
 
 One server (module scope) serves the tests that need the default security: Basic256Sha256
 SignAndEncrypt only, trusted_clients, one user, no anonymous. The asyncua client is
@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import logging
+import math
 import os
 import socket
 import stat
@@ -20,11 +22,11 @@ from typing import Any
 
 import pytest
 from asyncua import Client, ua
-from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256, SecurityPolicyNone
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
-from compd.config import OpcUaConfig
+from compd.config import GuardConfig, OpcUaConfig
 from compd.errors import BadInput
 from compd.plant.opcua import OpcUaServer, generate_certificate
 
@@ -32,6 +34,9 @@ DOC = Path(__file__).resolve().parents[2] / "docs" / "plant.md"
 NS_URI = "urn:compd:test"
 PASSWORD = "correct horse"
 TIMEOUT_S = 30.0  # for a value to appear: generous, never a speed assertion
+PERIOD_S = 0.5  # opcua.period_s: every variable's MinimumSamplingInterval is 500 ms
+# the config's guard: its clamps and signal limits are the EURanges (x has a clamp of its own, z the default)
+GUARD = GuardConfig(max_abs_um=40.0, axes={"x": {"max_abs_um": 20.0}}, signals={"T_spindle": {"min": 10.0, "max": 60.0}})
 
 SNAP: dict[str, Any] = {
     "state": "running",
@@ -48,6 +53,7 @@ SNAP: dict[str, Any] = {
         "T_spindle": {"value": 22.4, "quality": "good", "age_s": 0.0},
         "T_bed": {"value": None, "quality": "bad", "age_s": 4.0},
         "speed_rpm": {"value": 10000.0, "quality": "stale", "age_s": 2.5},
+        "coolant": {"value": 3.0, "quality": "good", "age_s": 0.0},  # its name says no unit
     },
     "loop": {
         "period_ms": 50.0, "cycles": 12001, "misses": 3,
@@ -129,7 +135,7 @@ def config(**changes: Any) -> OpcUaConfig:
     base: dict[str, Any] = dict(
         bind="127.0.0.1", port=0, certificate="server.pem", private_key="server.key",
         trusted_clients="trusted", users={"alice": {"password_file": "alice.password"}},
-        namespace_uri=NS_URI,
+        namespace_uri=NS_URI, period_s=PERIOD_S,
     )
     return OpcUaConfig(**(base | changes))
 
@@ -142,7 +148,7 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
 @pytest.fixture(scope="module")
 def served(pki: Pki) -> Any:
     """The default server, started once with SNAP: (server, endpoint URL)."""
-    server = OpcUaServer(config(), pki.root)
+    server = OpcUaServer(config(), pki.root, GUARD)
     url = server.start(copy.deepcopy(SNAP))
     yield server, url
     server.stop()
@@ -241,79 +247,166 @@ def test_endpoint_is_the_real_port(served: Any) -> None:
 # ------------------------------------------------------------------ the documented address space
 
 
-def doc_tables() -> tuple[list[list[str]], dict[str, tuple[str, int]]]:
-    """The address-space rows (node id, browse name, data type, unit) and the units table
-    (symbol → UNECE code, UnitId) of docs/plant.md."""
-    rows, units = [], {}
+def _cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def doc_tables() -> tuple[list[list[str]], dict[str, tuple[str, int, str]], list[list[str]]]:
+    """From docs/plant.md: the address-space rows (node id, browse name, type, data type, unit,
+    EURange), the units table (symbol → UNECE code, UnitId, description) and the signal units table
+    (name pattern, unit, EURange)."""
+    rows, units, signal_rows = [], {}, []
     for line in DOC.read_text(encoding="utf-8").splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 5 and cells[0].startswith("`compd"):
-            rows.append([c.strip("`") for c in cells[:4]])
-        elif len(cells) == 3 and cells[2].isdigit():
-            units[cells[0]] = (cells[1], int(cells[2]))
-    return rows, units
+        cells = _cells(line)
+        if len(cells) == 7 and cells[0].startswith("`compd"):
+            rows.append([c.strip("`") for c in cells[:6]])
+        elif len(cells) == 4 and cells[2].isdigit():
+            units[cells[0]] = (cells[1], int(cells[2]), cells[3])
+        elif len(cells) == 4 and " … " in cells[2] and (cells[0].startswith("`") or cells[0] == "any other"):
+            signal_rows.append(cells[:3])
+    return rows, units, signal_rows
 
 
-def documented(snap: dict[str, Any]) -> dict[str, tuple[str, str, str]]:
-    """Node id → (browse name, data type, unit) for the axes and signals of `snap`."""
-    rows, _ = doc_tables()
+def _doc_range(text: str) -> tuple[float, float]:
+    low, high = text.split(" … ")
+    return float(low), float(high)
+
+
+def expected_range(node_id: str, cell: str) -> tuple[float, float] | None:
+    """The EURange a node should have: from GUARD (± clamp, signal limits) or the documented numbers."""
+    if cell == "—":
+        return None
+    if cell == "± clamp":
+        axis = node_id.split(".")[2]
+        clamp = GUARD.axes[axis].max_abs_um if axis in GUARD.axes else GUARD.max_abs_um
+        return (-clamp, clamp)
+    if cell == "limits, else by name":
+        name = node_id.split(".")[2]
+        if name in GUARD.signals:
+            return (GUARD.signals[name].min, GUARD.signals[name].max)
+        _, _, signal_rows = doc_tables()
+        return _doc_range(_signal_row(signal_rows, name)[2])
+    return _doc_range(cell)
+
+
+def _signal_row(signal_rows: list[list[str]], name: str) -> list[str]:
+    """The signal units table's row for a signal name (`T_…`, `…_c`, …, else `any other`)."""
+    for row in signal_rows:
+        for pattern in row[0].replace("`", "").split(", "):
+            if (pattern.endswith("…") and name.startswith(pattern[:-1])) or (
+                    pattern.startswith("…") and name.lower().endswith(pattern[1:])):
+                return row
+    return next(row for row in signal_rows if row[0] == "any other")
+
+
+def documented(snap: dict[str, Any]) -> dict[str, tuple[str, str, str, str, tuple[float, float] | None]]:
+    """Node id → (browse name, type, data type, unit, EURange) for the axes and signals of `snap`."""
+    rows, _, signal_rows = doc_tables()
     out = {}
-    for node_id, bname, dtype, unit in rows:
+    for node_id, bname, ntype, dtype, unit, eu_range in rows:
         if "<axis>" in node_id:
             key, names = "<axis>", snap["axes"]
         elif "<signal>" in node_id:
             key, names = "<signal>", snap["signals"]
         else:
-            out[node_id] = (bname, dtype, unit)
+            out[node_id] = (bname, ntype, dtype, unit, expected_range(node_id, eu_range))
             continue
         for name in names:
-            out[node_id.replace(key, name)] = (bname.replace(key, name), dtype, unit)
+            nid = node_id.replace(key, name)
+            u = _signal_row(signal_rows, name)[1] if unit == "by name" else unit
+            out[nid] = (bname.replace(key, name), ntype, dtype, u, expected_range(nid, eu_range))
     return out
 
 
 def test_browse_matches_the_documented_address_space(served: Any, pki: Pki) -> None:
+    """Every node browsed: node id = browse path, its type definition, data type, unit and EURange as
+    documented; a Description that is not its browse name; MinimumSamplingInterval = period_s."""
     _, url = served
     want = documented(SNAP)
-    _, units = doc_tables()
-    # compd, State, Observe; Axes, 2 × (folder + 8); Signals, 3 × (folder + 2); Loop + 6
-    assert len(want) == 3 + (1 + 2 * 10) + (1 + 3 * 3) + (1 + 6)
+    _, units, _ = doc_tables()
+    # compd, State, Observe; Axes, 2 × (folder + 9); Signals, 4 × (folder + 2); Loop + 6
+    assert len(want) == 3 + (1 + 2 * 10) + (1 + 4 * 3) + (1 + 6)
     read_only = ua.AccessLevel.CurrentRead.mask
+    type_names = {ua.NodeId(ua.ObjectIds.FolderType): "Folder",
+                  ua.NodeId(ua.ObjectIds.AnalogItemType): "AnalogItemType",
+                  ua.NodeId(ua.ObjectIds.BaseDataVariableType): "BaseDataVariableType"}
 
-    async def body(client: Client) -> dict[str, tuple[str, str, str]]:
+    async def body(client: Client) -> tuple[dict[str, Any], dict[str, str]]:
         idx = await client.get_namespace_index(NS_URI)
         top = await client.nodes.objects.get_child(f"{idx}:compd")
-        got: dict[str, tuple[str, str, str]] = {}
+        got: dict[str, Any] = {}
+        descriptions: dict[str, str] = {}
 
         async def walk(node: Any, path: str) -> None:
             bname = await node.read_browse_name()
             nid = node.nodeid
             assert (nid.NamespaceIndex, nid.Identifier) == (idx, path)  # node id = browse path
             assert bname.NamespaceIndex == idx
+            description = (await node.read_description()).Text
+            assert description and description != bname.Name, (path, description)
+            descriptions[path] = description
+            ntype = type_names[await node.read_type_definition()]
             if await node.read_node_class() == ua.NodeClass.Object:
-                assert (await node.read_type_definition()) == ua.NodeId(ua.ObjectIds.FolderType)
-                got[path] = (bname.Name, "Folder", "—")
+                got[path] = (bname.Name, ntype, "—", "—", None)
                 for child in await node.get_children():
                     await walk(child, f"{path}.{(await child.read_browse_name()).Name}")
                 return
             vtype = await node.read_data_type_as_variant_type()
             for attr in (ua.AttributeIds.AccessLevel, ua.AttributeIds.UserAccessLevel):
                 assert (await node.read_attribute(attr)).Value.Value == read_only
-            unit = "—"
-            for prop in await node.get_properties():
-                pname = await prop.read_browse_name()
-                assert pname == ua.QualifiedName("EngineeringUnits", 0)
-                assert prop.nodeid == ua.NodeId(f"{path}.EngineeringUnits", idx)
-                eu = await prop.read_value()
-                unit = eu.DisplayName.Text
-                assert (eu.NamespaceUri, eu.UnitId) == (
-                    "http://www.opcfoundation.org/UA/units/un/cefact", units[unit][1])
-                assert eu.UnitId == int.from_bytes(units[unit][0].encode(), "big")
-            got[path] = (bname.Name, vtype.name, unit)
+            sampling = await node.read_attribute(ua.AttributeIds.MinimumSamplingInterval)
+            assert sampling.Value.Value == PERIOD_S * 1000.0
+            props = {(await p.read_browse_name()).Name: p for p in await node.get_properties()}
+            unit, eu_range = "—", None
+            if ntype == "AnalogItemType":
+                assert "EURange" in props, path
+            assert set(props) <= {"EURange", "EngineeringUnits"}, (path, set(props))
+            for name, prop in props.items():
+                assert await prop.read_browse_name() == ua.QualifiedName(name, 0)
+                assert prop.nodeid == ua.NodeId(f"{path}.{name}", idx)
+                assert await prop.read_type_definition() == ua.NodeId(ua.ObjectIds.PropertyType)
+                assert (await prop.read_description()).Text
+                value = await prop.read_value()
+                if name == "EURange":
+                    eu_range = (value.Low, value.High)
+                else:
+                    unit = value.DisplayName.Text
+                    assert (value.NamespaceUri, value.UnitId, value.Description.Text) == (
+                        "http://www.opcfoundation.org/UA/units/un/cefact", units[unit][1], units[unit][2])
+                    assert value.UnitId == int.from_bytes(units[unit][0].encode(), "big")
+            got[path] = (bname.Name, ntype, vtype.name, unit, eu_range)
 
         await walk(top, "compd")
-        return got
+        return got, descriptions
 
-    assert run(url, pki, body) == want
+    got, descriptions = run(url, pki, body)
+    assert got == want
+    # a field of the status record is described by its meaning there (one text: status-fields.md, OPC UA)
+    from compd.cycle.statusblock import AXIS, LOOP, SIGNAL
+
+    meaning = {f.key: f.meaning for f in AXIS} | {"signal." + f.key: f.meaning for f in SIGNAL}
+    assert descriptions["compd.Axes.z.CorrectionUm"] == meaning["correction_um"]
+    assert descriptions["compd.Axes.z.PredictionUm"] == meaning["prediction_um"].replace("null", "Bad_NoData")
+    assert descriptions["compd.Signals.speed_rpm.Value"].startswith(meaning["signal.value"])
+    assert descriptions["compd.Loop.Misses"] == next(f.meaning for f in LOOP if f.key == "misses")
+
+
+def test_the_documented_units_and_signal_ranges_are_the_servers() -> None:
+    """docs/plant.md's units and signal-range tables against compd.plant.opcua's (and every unit's
+    UnitId computed as Part 8 says)."""
+    from compd.cycle.statusblock import signal_unit
+    from compd.plant.opcua import MICROMETRE, MICROSECOND, MILLISECOND, SIGNAL_RANGES, SIGNAL_UNITS
+
+    _, units, signal_rows = doc_tables()
+    served_units = {u.symbol: u for u in (MICROMETRE, MILLISECOND, MICROSECOND, *SIGNAL_UNITS.values())}
+    assert {s: (u.unece, u.unit_id, u.description) for s, u in served_units.items()} == units
+    assert all(unit_id == int.from_bytes(code.encode(), "big") for code, unit_id, _ in units.values())
+    assert len(signal_rows) == len(SIGNAL_RANGES)
+    for pattern, unit, eu_range in signal_rows:
+        name = "x" if pattern == "any other" else pattern.replace("`", "").split(", ")[0].replace("…", "x")
+        code_unit = signal_unit(name)
+        assert (SIGNAL_UNITS[code_unit].symbol if code_unit else "—") == unit, pattern
+        assert SIGNAL_RANGES[code_unit][:2] == _doc_range(eu_range), pattern
 
 
 # ------------------------------------------------------------------ security
@@ -359,8 +452,66 @@ def test_unencrypted_session_refused_when_none_is_not_offered(
     with pytest.raises(ua.UaError, match="No matching endpoints"):
         run(url, pki, lambda client: client.nodes.objects.read_browse_name(), cert=None)
     monkeypatch.setattr(Client, "find_endpoint", staticmethod(lambda endpoints, mode, uri: endpoints[0]))
+    # it even encrypts the password as the token policy asks, with the server certificate's key
+    server_der = x509.load_pem_x509_certificate((pki.root / "server.pem").read_bytes()).public_bytes(
+        serialization.Encoding.DER)
+    encrypt = Client._encrypt_password
+
+    def with_the_servers_key(self: Client, password: str, policy_uri: str) -> tuple[bytes, str]:
+        self.security_policy.peer_certificate = server_der
+        return encrypt(self, password, policy_uri)
+
+    monkeypatch.setattr(Client, "_encrypt_password", with_the_servers_key)
     with pytest.raises(ua.uaerrors.BadUserAccessDenied):
         run(url, pki, lambda client: client.nodes.objects.read_browse_name(), cert=None)
+
+
+def test_every_endpoint_asks_for_an_encrypted_password(pki: Pki, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The UserName token policy of every endpoint (SignAndEncrypt, Sign, None) carries Basic256Sha256:
+    the password is encrypted with the server's key on each; one sent unencrypted is refused."""
+    server = OpcUaServer(config(security=["Basic256Sha256_SignAndEncrypt", "Basic256Sha256_Sign", "None"]),
+                         pki.root, GUARD)
+    url = server.start(copy.deepcopy(SNAP))
+    try:
+        async def endpoints() -> list[Any]:
+            return await Client(url, timeout=TIMEOUT_S).connect_and_get_server_endpoints()
+
+        policies = {}
+        for edp in asyncio.run(endpoints()):
+            tokens = {t.TokenType: t for t in edp.UserIdentityTokens}
+            assert set(tokens) == {ua.UserTokenType.UserName}  # no anonymous: anonymous is false
+            policies[(edp.SecurityPolicyUri.rsplit("#", 1)[1], edp.SecurityMode.name)] = (
+                tokens[ua.UserTokenType.UserName].SecurityPolicyUri)
+        assert policies == {
+            ("Basic256Sha256", "SignAndEncrypt"): SecurityPolicyBasic256Sha256.URI,
+            ("Basic256Sha256", "Sign"): SecurityPolicyBasic256Sha256.URI,
+            ("None", "None_"): SecurityPolicyBasic256Sha256.URI,
+        }
+
+        async def state(client: Client) -> Any:
+            idx = await client.get_namespace_index(NS_URI)
+            return await client.get_node(ua.NodeId("compd.State", idx)).read_value()
+
+        assert run(url, pki, state) == "running"  # SignAndEncrypt, the password encrypted again
+        assert run(url, pki, state, cert=None) == "running"  # None offered: the password still encrypted
+        # a password encrypted with another session's nonce (a replayed token) is refused
+        encrypt = Client._encrypt_password
+
+        def with_another_nonce(self: Client, password: str, policy_uri: str) -> tuple[bytes, str]:
+            self._server_nonce = bytes(32)
+            return encrypt(self, password, policy_uri)
+
+        with monkeypatch.context() as m:
+            m.setattr(Client, "_encrypt_password", with_another_nonce)
+            with pytest.raises(ua.uaerrors.BadIdentityTokenInvalid):
+                run(url, pki, state)
+        # a client that sends the password as it is (as for a token policy None) is refused
+        monkeypatch.setattr(Client, "server_policy", lambda self, token_type: ua.UserTokenPolicy(
+            PolicyId="username", TokenType=token_type, SecurityPolicyUri=SecurityPolicyNone.URI))
+        with pytest.raises(ua.uaerrors.BadIdentityTokenInvalid):
+            run(url, pki, state)
+    finally:
+        server.stop()
 
 
 def test_anonymous_and_unencrypted_when_allowed_and_stop_twice(pki: Pki) -> None:
@@ -424,3 +575,87 @@ def test_generate_certificate(tmp_path: Path) -> None:
     assert [str(a) for a in san.get_values_for_type(x509.IPAddress)] == ["10.0.0.7"]
     assert cert.public_key().key_size == 2048
     assert cert.signature_hash_algorithm is not None and cert.signature_hash_algorithm.name == "sha256"
+
+
+# ------------------------------------------------------------------ asyncua's log
+
+
+class _Keep(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def test_asyncua_log_lines_become_rate_limited_compd_events() -> None:
+    """A record of asyncua's becomes one compd event: INFO at debug, ERROR at warning, a repeat
+    within the window counted into the next line, at most STACK_LINES_PER_WINDOW lines a window."""
+    from compd.plant.opcua import STACK_EVENT, STACK_LINES_PER_WINDOW, STACK_WINDOW_S, _StackEvents
+    from compd.service.logsetup import KeyValueFormatter
+
+    now = [1000.0]
+    events = _StackEvents(clock=lambda: now[0])
+    keep = _Keep()
+    events.out = logging.getLogger("test_opcua.events")
+    events.out.propagate, events.out.level = False, logging.DEBUG
+    events.out.addHandler(keep)
+    stack = logging.getLogger("test_opcua.asyncua.server.uaprocessor")
+    stack.propagate, stack.level = False, logging.DEBUG
+    stack.addHandler(events)
+    try:
+        stack.info("process message %s", 1)
+        for _ in range(5):
+            stack.error("sending service fault response: %s (%s)", "denied", "BadUserAccessDenied")
+        assert [(r.levelno, r.event, r.stack_level, r.getMessage()) for r in keep.records] == [
+            (logging.DEBUG, STACK_EVENT, "info", "asyncua: process message 1"),
+            (logging.WARNING, STACK_EVENT, "error",
+             "asyncua: sending service fault response: denied (BadUserAccessDenied)"),
+        ]
+        assert keep.records[1].stack_logger == stack.name and not hasattr(keep.records[1], "repeated")
+        now[0] += STACK_WINDOW_S
+        stack.error("sending service fault response: %s (%s)", "other", "BadNodeIdUnknown")
+        assert keep.records[-1].repeated == 4  # the 4 held back, counted into the next line
+        line = KeyValueFormatter(journal=True).format(keep.records[-1])
+        assert line.startswith("<4>level=warning event=opcua_stack ") and "repeated=4" in line, line
+        try:
+            raise KeyError("x")
+        except KeyError:
+            stack.exception("Error while processing message")
+        assert keep.records[-1].error == "KeyError: 'x'" and keep.records[-1].exc_info is None
+        # a flood of distinct messages: at most STACK_LINES_PER_WINDOW lines a window, the rest counted
+        now[0] += STACK_WINDOW_S
+        before = len(keep.records)
+        for i in range(STACK_LINES_PER_WINDOW + 7):
+            stack.warning(f"message {i}")
+        assert len(keep.records) - before == STACK_LINES_PER_WINDOW
+        now[0] += STACK_WINDOW_S
+        stack.warning("after the flood")
+        assert keep.records[-1].dropped == 7
+    finally:
+        stack.removeHandler(events)
+        events.out.removeHandler(keep)
+
+
+def test_the_servers_asyncua_lines_reach_compd_as_events(
+    served: Any, pki: Pki, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """asyncua's loggers do not propagate (no raw line; pytest alone attaches its own capture to
+    them): the fault a refused login answers reaches compd's log as one opcua_stack event per window."""
+    from compd.plant import opcua
+
+    stack = logging.getLogger("asyncua")
+    assert stack.propagate is False and opcua._STACK_HANDLER in stack.handlers
+    assert stack.level == logging.WARNING  # compd logs info: asyncua's INFO (each request) is not even made
+    monkeypatch.setattr(opcua._STACK_HANDLER, "_seen", {})  # what earlier tests logged is not a repeat here
+    monkeypatch.setattr(opcua._STACK_HANDLER, "_window", (-math.inf, 0))
+    _, url = served
+    with caplog.at_level(logging.WARNING, logger="compd"):
+        for _ in range(2):
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                run(url, pki, lambda client: client.nodes.objects.read_browse_name(), password="wrong")
+    faults = [r for r in caplog.records if r.name == "compd.opcua.stack" and "service fault" in r.getMessage()]
+    assert len(faults) == 1, [r.getMessage() for r in faults]
+    assert (faults[0].levelno, faults[0].event, faults[0].stack_logger) == (
+        logging.WARNING, opcua.STACK_EVENT, "asyncua.server.uaprocessor")
