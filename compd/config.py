@@ -334,7 +334,11 @@ def validate(
     try:
         return model.model_validate(data)
     except ValidationError as e:
-        err = e.errors()[0]
+        errors = e.errors()
+        err = errors[0]
+        if err["type"] == "missing":  # a key misspelt is both unknown and missing: name the misspelling
+            err = next((x for x in errors if x["type"] == "extra_forbidden"
+                        and tuple(x["loc"])[:-1] == tuple(err["loc"])[:-1]), err)
         raw = tuple(err["loc"])
         if err["type"] == "extra_forbidden" and raw:  # the last part is the user's key, whatever it holds
             loc = (*(p for p in raw[:-1] if not (isinstance(p, str) and "[" in p)), raw[-1])

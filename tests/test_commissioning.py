@@ -205,7 +205,7 @@ def _typo(r: subprocess.CompletedProcess, work: Path) -> None:
     """Step 1's mistakes: one line on stderr naming file, line and key path, nothing on stdout, exit 2."""
     assert r.returncode == 2 and r.stdout == "", (r.returncode, r.stdout)
     assert len(r.stderr.splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
-    assert re.match(r"compd: typo\.yaml:\d+: (guard\.max_slew_per_s|sources\[0\]\.plant): ", r.stderr), r.stderr
+    assert re.match(r"compd: typo\.yaml:\d+: (guard\.max_slew_per_s|sources\[0\]\.(plnat|plant)): ", r.stderr), r.stderr
 
 
 def _report(r: subprocess.CompletedProcess, work: Path) -> None:

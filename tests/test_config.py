@@ -98,6 +98,12 @@ def test_unknown_key_inside_source(tmp_path: Path) -> None:
     assert e.path == "sources[0].plnat" and e.line == 8
 
 
+def test_a_misspelt_required_key_is_named_as_written_with_the_key_it_stands_for(tmp_path: Path) -> None:
+    e = error_for(tmp_path, GOOD.replace("plant: spindle", "plnat: spindle"))
+    assert e.path == "sources[0].plnat" and e.line == 7
+    assert "did you mean 'plant'?" in e.message
+
+
 def test_unknown_key_inside_model_params(tmp_path: Path) -> None:
     e = error_for(tmp_path, GOOD.replace("length_mm: 165.0", "length_mm: 165.0, lenght: 3"))
     assert e.path == "model.params.lenght" and e.line == 14
