@@ -51,7 +51,15 @@ $(TAHU):
 	mkdir -p build/tools/node
 	npm install --prefix build/tools/node --no-save --no-audit --no-fund --silent sparkplug-payload@1.0.3
 
-test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU)
+# node-opcua's client (npm), pinned, an OPC UA stack that shares no code with compd's asyncua, to browse and
+# read compd's server; in a prefix of its own (an `npm install --no-save` into Tahu's would remove Tahu)
+NODE_OPCUA := build/tools/node-opcua/node_modules/node-opcua-client/package.json
+$(NODE_OPCUA):
+	mkdir -p build/tools/node-opcua
+	npm install --prefix build/tools/node-opcua --no-save --no-audit --no-fund --silent \
+	  node-opcua-client@2.186.4 node-opcua-certificate-manager@2.186.4
+
+test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU) $(NODE_OPCUA)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -m "not accept and not bench"
 

@@ -785,6 +785,12 @@ class TelemetryConfig(Strict):
         description="a Sparkplug primary host (the historian's ingest): data waits on disk while its STATE is not online",
     )
     period_s: float = Field(1.0, ge=0.1, le=3600, description="one NDATA/DDATA sample per this much wall time")
+    full_refresh_s: float = Field(
+        60.0, ge=0, le=86400,
+        description="a sample's DDATA carries only the metrics that changed since the last one sent (report by"
+        " exception); every this many seconds of sample time, and first after each birth, one carries every metric"
+        " (the historian's heartbeat and resynchronisation); 0 = every sample whole",
+    )
     keepalive_s: int = Field(30, ge=5, le=3600, description="MQTT keep-alive")
     reconnect_max_s: float = Field(30.0, ge=0.5, le=3600, description="longest wait between two connection attempts")
     buffer: TelemetryBufferConfig = Field(TelemetryBufferConfig(), description="store and forward")

@@ -113,11 +113,12 @@ def publish(args: argparse.Namespace) -> int:
 def listen(args: argparse.Namespace) -> int:
     import paho.mqtt.client as mqtt
 
-    from compd.plant.sparkplug import SparkplugError, decode
+    from compd.plant.sparkplug import AliasResolver, SparkplugError, decode
 
     seen: dict[str, list[tuple[int, bool, float]]] = {}  # edge → (Sample, historical, latency s)
     counts = {"messages": 0, "births": 0, "deaths": 0, "errors": 0}
     lock = threading.Lock()
+    aliases = AliasResolver()  # DDATA metrics come by alias: named from the births
     state_topic = f"spBv1.0/STATE/{HOST_ID}"
 
     def on_connect(cl: Any, u: Any, f: Any, rc: Any, p: Any) -> None:
@@ -133,6 +134,7 @@ def listen(args: argparse.Namespace) -> int:
             counts["messages"] += 1
             try:
                 payload = decode(msg.payload)
+                aliases.resolve(msg.topic, payload)
             except SparkplugError:
                 counts["errors"] += 1
                 return

@@ -12,7 +12,10 @@ writes) in an NCMD `Node Control/Model` or DCMD `Model/apply` metric
    model section pointing at the candidate; the kind must be the config's, the axes
    (outputs) the running model's, and the pipeline must build. A model file holds
    kind, inputs, outputs, params and fit only: nothing in it can touch the guard's
-   limits, the codec or the sink, which stay the config's;
+   limits, the codec or the sink, which stay the config's. Then the model must keep
+   inside the guard's clamp over the readings it was fitted on (`clamp_check`): a model
+   whose parameters are each within their bounds may still predict a correction no
+   machine has (α and L at their limits), and the axis would sit at the clamp;
 4. then the running model file is copied aside (`<file>.<UTC time>.bak`, kept), the
    candidate renamed over it, and the daemon sent SIGHUP: the reload that follows is
    the ordinary one (it validates again and, if anything fails, goes on with the old
@@ -27,17 +30,22 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import json
 import logging
 import math
+import numbers
 import os
 import shutil
 import signal
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from compd.errors import BadInput
 from compd.plant.spec import RemoteSpec
@@ -198,7 +206,197 @@ def validate(spec: RemoteSpec, candidate: Path) -> str | None:
         pipeline.check(dataclasses.replace(cfg, model=model))  # wiring, signals (opens no device)
     except BadInput as e:
         return _private(str(e), spec, candidate)
+    return clamp_check(model, cfg.top.guard)
+
+
+# --- the model against the guard's clamp, over the readings it was fitted on ---------------------
+
+FIT_RANGE_KEY = "input_range"  # fit.input_range: {input: [min, max]}, the readings of the fit's log
+HORIZON_S = 8 * 3600.0  # a model that evolves in time holds its readings this long: a shift
+MAX_STEPS = 2000  # ... in at most this many steps (its update period, else a minute, apart)
+MAX_COMBINATIONS = 4096  # more (reference, reading) combinations than this: a coordinate search
+MAX_ROWS = 1_000_000  # ... or more model rows than this in all (a second or two on the service's thread)
+POSITION_POINTS = 11  # a position input is tried at this many points along its range
+
+
+def input_ranges(model: Any, guard: Any) -> tuple[dict[str, tuple[float, float]], str] | str:
+    """Per model input the (min, max) its predictions are checked over, and where they come from;
+    or why there are none (a refusal).
+
+    The model file's `fit.input_range` (the range of each input in the log it was fitted on),
+    checked: a mapping of every input to [min, max], finite, min ≤ max. Without it, each input's
+    plausibility limits (`guard.signals.<input>` min and max: the readings the guard lets through);
+    an input without either cannot be bounded, and the model is refused rather than applied
+    unchecked."""
+    fit = model.fit if isinstance(model.fit, dict) else {}
+    raw = fit.get(FIT_RANGE_KEY)
+    inputs = list(model.inputs)
+    if raw is not None:
+        where = f"its fit.{FIT_RANGE_KEY}"
+        if not isinstance(raw, dict):
+            return f"{where} is not a mapping of each input to [min, max]"
+        extra = sorted(str(k) for k in raw if k not in inputs)
+        if extra:
+            return f"{where} names {extra[0][:60]!r}, which is not one of its inputs"
+        out: dict[str, tuple[float, float]] = {}
+        for name in inputs:
+            pair = raw.get(name)
+            if (not isinstance(pair, list | tuple) or len(pair) != 2
+                    or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in pair)
+                    or not all(math.isfinite(float(v)) for v in pair)):
+                return f"{where}.{name} is not [min, max] (two finite numbers)"
+            lo, hi = float(pair[0]), float(pair[1])
+            if lo > hi:
+                return f"{where}.{name}: min {lo:g} is above max {hi:g}"
+            out[name] = (lo, hi)
+        return out, f"fit.{FIT_RANGE_KEY}"
+    missing = [name for name in inputs if name not in guard.signals]
+    if missing:
+        return (f"the model file records no fit range (fit.{FIT_RANGE_KEY}) and guard.signals gives no limits for"
+                f" {missing[0]}: what it predicts there is unbounded, so it is not applied unchecked (give the"
+                f" model file fit.{FIT_RANGE_KEY}, or guard.signals.{missing[0]} min and max)")
+    return {name: (float(guard.signals[name].min), float(guard.signals[name].max)) for name in inputs}, "guard.signals"
+
+
+def clamp_check(model: Any, guard: Any) -> str | None:
+    """Why the model (a compd.config.ModelSpec) would drive an axis into the guard's clamp (None: it
+    would not): anywhere over its input ranges (`input_ranges`), with the reference readings at
+    start anywhere in them too, a predicted |correction| above that axis's clamp
+    (`guard.axes.<axis>.max_abs_um`, else `guard.max_abs_um`), or one that is not finite.
+
+    Tried: every input's (reference, reading) at the ends of its range — (min, max), (max, min),
+    (min, min), (max, max) —, a position input at POSITION_POINTS points along it, in every
+    combination (up to MAX_COMBINATIONS and MAX_ROWS model rows; beyond, a coordinate search per
+    axis and sign, which is exact for the kinds linear in their inputs: lvr, mlr). A model that evolves in time (ar1, the
+    analytic feed_axis) holds the readings for HORIZON_S; the others are evaluated once. The model
+    is evaluated as the loop runs it (Model.predict_rows: the input lead's transient left out)."""
+    got = input_ranges(model, guard)
+    if isinstance(got, str):
+        return got
+    ranges, source = got
+    peaks = largest_predictions(model, ranges)
+    for axis, (peak_um, reference, reading) in zip(model.outputs, peaks, strict=True):
+        lim, key = _clamp(guard, axis)
+        at = _where(model.inputs, reference, reading)
+        if not math.isfinite(peak_um):
+            return f"axis {axis}: over its input range ({source}) the model predicts a value that is not finite ({at})"
+        if abs(peak_um) > lim:
+            return (f"axis {axis} would sit at the guard's clamp: over its input range ({source}) the model predicts"
+                    f" a |correction| of {abs(peak_um):.1f} µm ({at}), beyond {key} {lim:g} µm")
     return None
+
+
+def _clamp(guard: Any, axis: str) -> tuple[float, str]:
+    """The guard's clamp of one axis (µm) and the config key that sets it (compd.cycle.guard)."""
+    own = guard.axes.get(axis)
+    if own is not None and own.max_abs_um:
+        return float(own.max_abs_um), f"guard.axes.{axis}.max_abs_um"
+    return float(guard.max_abs_um), "guard.max_abs_um"
+
+
+def _where(inputs: list[str], reference: np.ndarray, reading: np.ndarray) -> str:
+    parts = []
+    for name, r0, r in zip(inputs, reference, reading, strict=True):
+        parts.append(f"{name} {r:.6g}" + (f" from {r0:.6g} at start" if r0 != r else ""))
+    return "at " + ", ".join(parts)
+
+
+def _dynamic(model: Any) -> bool:
+    """Whether the model's prediction moves while its readings hold (an ar1 recursion, the analytic
+    feed-axis heating), so that a step of readings must be held to see where it goes."""
+    return model.update_period_s > 0 or (model.kind == "feed_axis" and not model.field_form)
+
+
+def largest_predictions(spec: Any, ranges: dict[str, tuple[float, float]]) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """Per output axis the prediction (µm) of largest magnitude over the ranges (`clamp_check`),
+    with the reference readings and the readings it comes at; NaN or ±inf wins over any number."""
+    def fresh() -> Any:
+        m = spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
+        if spec.update_period_s is not None:
+            m.update_period_s = spec.update_period_s
+        return m
+
+    probe = fresh()
+    roles = list(getattr(spec.params, "input_roles", None) or [])
+    cands: list[list[tuple[float, float]]] = []
+    for i, name in enumerate(spec.inputs):
+        lo, hi = ranges[name]
+        if i < len(roles) and roles[i] == "position":
+            cands.append([(float(v), float(v)) for v in np.linspace(lo, hi, POSITION_POINTS)])
+        elif lo == hi:
+            cands.append([(lo, lo)])
+        else:
+            cands.append([(lo, hi), (hi, lo), (lo, lo), (hi, hi)])
+    if _dynamic(probe):
+        step_s = probe.update_period_s if probe.update_period_s > 0 else 60.0
+        n = int(min(MAX_STEPS, math.ceil(HORIZON_S / step_s)))
+        t_s = np.arange(n + 1, dtype=float) * step_s
+    else:
+        n, t_s = 1, np.array([0.0, 1.0])
+    seen: dict[tuple[int, ...], np.ndarray] = {}
+
+    def run(choice: tuple[int, ...]) -> np.ndarray:
+        """The predictions (rows × axes) of one combination: started on the references, then the readings."""
+        if choice not in seen:
+            pairs = [c[k] for c, k in zip(cands, choice, strict=True)]
+            X = np.empty((n + 1, len(pairs)))
+            X[0] = [a for a, _ in pairs]
+            X[1:] = [b for _, b in pairs]
+            with np.errstate(all="ignore"):
+                seen[choice] = np.asarray(fresh().predict_rows(X, t_s), dtype=float)
+        return seen[choice]
+
+    def score(choice: tuple[int, ...], axis: int, sign: float) -> float:
+        col = run(choice)[:, axis]
+        return math.inf if not np.isfinite(col).all() else float(np.max(sign * col))
+
+    total = math.prod(len(c) for c in cands)
+    best: list[tuple[float, tuple[int, ...]]] = [(-math.inf, ())] * len(spec.outputs)
+    if total <= MAX_COMBINATIONS and total * (n + 1) <= MAX_ROWS:
+        for choice in itertools.product(*(range(len(c)) for c in cands)):
+            for a in range(len(spec.outputs)):
+                v = max(score(choice, a, 1.0), score(choice, a, -1.0))
+                if v > best[a][0]:
+                    best[a] = (v, choice)
+    else:
+        for a in range(len(spec.outputs)):
+            for sign in (1.0, -1.0):
+                v, choice = _coordinate_search(lambda c, a=a, sign=sign: score(c, a, sign), [len(c) for c in cands])
+                if v > best[a][0]:
+                    best[a] = (v, choice)
+    out = []
+    for a, (_, choice) in enumerate(best):
+        col = run(choice)[:, a]
+        bad = ~np.isfinite(col)
+        row = int(np.argmax(bad)) if bad.any() else int(np.argmax(np.abs(col)))
+        pairs = [c[k] for c, k in zip(cands, choice, strict=True)]
+        reference = np.array([p for p, _ in pairs])
+        # the first row is the start itself: its readings are the references
+        out.append((float(col[row]), reference, reference.copy() if row == 0 else np.array([r for _, r in pairs])))
+    return out
+
+
+def _coordinate_search(score: Callable[[tuple[int, ...]], float], sizes: list[int]) -> tuple[float, tuple[int, ...]]:
+    """The largest `score` over the combinations of one choice per input (sizes[i] each), by changing
+    one input's choice at a time while that raises it, from every input at its first and at its
+    second choice: exact when the score is a sum of one term per input (a linear model)."""
+    best_v, best_c = -math.inf, tuple(0 for _ in sizes)
+    for start in {tuple(0 for _ in sizes), tuple(min(1, n - 1) for n in sizes)}:
+        choice, v = start, score(start)
+        for _ in range(50):  # sweeps; each one raises the score or ends the search
+            better = False
+            for i, n in enumerate(sizes):
+                for k in range(n):
+                    if k != choice[i]:
+                        trial = (*choice[:i], k, *choice[i + 1:])
+                        tv = score(trial)
+                        if tv > v:
+                            choice, v, better = trial, tv, True
+            if not better:
+                break
+        if v > best_v:
+            best_v, best_c = v, choice
+    return best_v, best_c
 
 
 def _private(text: str, spec: RemoteSpec, candidate: Path) -> str:
@@ -210,4 +408,4 @@ def _private(text: str, spec: RemoteSpec, candidate: Path) -> str:
     return text
 
 
-__all__ = ["RemoteModels", "validate"]
+__all__ = ["RemoteModels", "clamp_check", "input_ranges", "largest_predictions", "validate"]

@@ -20,6 +20,12 @@ Value conventions (Sparkplug 3.0; checked against Tahu's Python and Java librari
 - A metric whose datatype is left out (0, Unknown: the spec lets DATA and CMD messages omit
   it) decodes to the raw value of whichever value field it carries (an int as sent, unsigned);
   the receiver knows the type from the birth certificate.
+
+Aliases (Sparkplug 3.0, payloads chapter): an edge node that uses them gives every metric of its
+NBIRTH and DBIRTHs a name and an alias, each alias unique across the node and all its devices
+(`AliasTable`), except `Node Control/Rebirth`, which keeps its name only; its NDATA, DDATA, NCMD
+and DCMD then carry the alias and no name (`encode(..., aliases=..., names=False)`). A host maps
+them back with the births it holds (`AliasResolver`).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ import math
 import numbers
 import struct
 import uuid as uuid_mod
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
@@ -41,6 +47,10 @@ NAMESPACE = "spBv1.0"
 NODE_TYPES = frozenset({"NBIRTH", "NDEATH", "NDATA", "NCMD"})
 DEVICE_TYPES = frozenset({"DBIRTH", "DDEATH", "DDATA", "DCMD"})
 MESSAGE_TYPES = NODE_TYPES | DEVICE_TYPES | {"STATE"}
+BIRTH_TYPES = frozenset({"NBIRTH", "DBIRTH"})
+# Sparkplug 3.0 forbids an alias on the NBIRTH's `Node Control/Rebirth`: a host writes it by
+# name, whatever aliases the node uses
+UNALIASED = frozenset({"Node Control/Rebirth"})
 
 
 class DataType(IntEnum):
@@ -325,13 +335,19 @@ def encode(
     historical: bool = False,
     with_properties: bool = False,
     metric_timestamp_ms: int | None = None,
+    aliases: Mapping[str, int] | None = None,
+    names: bool = True,
 ) -> bytes:
-    """One Sparkplug B payload: each (definition, value) a metric, by name, with its datatype.
+    """One Sparkplug B payload: each (definition, value) a metric, with its datatype.
 
     A value of None is sent as is_null (no value field). `seq` is the payload's sequence
     number (0–255), None for a message without one (NDEATH). `historical` marks every metric
     is_historical (samples sent late from the store-and-forward buffer); `with_properties`
     adds the engUnit property (births); `metric_timestamp_ms` stamps every metric.
+
+    `aliases` (name → alias) gives each metric it names its alias; with `names` (the default)
+    the name goes too (a birth), without (a DATA or CMD message by alias) every metric must have
+    an alias and carries no name, or SparkplugError.
 
     Values must fit their datatype, or SparkplugError: integers (Python or numpy, never bool)
     within the type's range; Float/Double take any real number but not a bool (a flag sent as
@@ -349,12 +365,20 @@ def encode(
                 raise SparkplugError(f"seq {seq!r} is not 0..255")
             msg.seq = int(seq)
         stamp = None if metric_timestamp_ms is None else _check_u64(metric_timestamp_ms, "metric_timestamp_ms")
+        if not names and aliases is None:
+            raise SparkplugError("a message without names needs aliases")
         for definition, value in values:
             if not isinstance(definition, MetricDef):
                 raise SparkplugError(f"{definition!r} is not a MetricDef")
             where = f"metric {_show(definition.name)}"
             m = msg.metrics.add()
-            m.name = definition.name
+            alias = None if aliases is None else aliases.get(definition.name)
+            if alias is not None:
+                m.alias = _check_u64(alias, f"{where}: alias")
+            elif not names:
+                raise SparkplugError(f"{where} has no alias: a message by alias cannot carry it")
+            if names:
+                m.name = definition.name
             m.datatype = int(definition.datatype)
             if stamp is not None:
                 m.timestamp = stamp
@@ -524,6 +548,112 @@ def _decode(data: bytes, max_metrics: int) -> Payload:
         uuid=_text(msg.uuid, "the payload's uuid") if msg.HasField("uuid") else None,
         body=msg.body if msg.HasField("body") else None,
     )
+
+
+# --- aliases ----------------------------------------------------------------------------------
+
+
+class AliasTable:
+    """The aliases of one edge node: one number per metric of the node (device None) or of one of
+    its devices, unique across the node and all its devices (Sparkplug 3.0). Given from `first` on
+    in the order the metrics are first declared, never taken back or given to another metric while
+    the table lives: a rebirth, or a set of metrics that changed, keeps every alias it had.
+    `Node Control/Rebirth` gets none (UNALIASED)."""
+
+    def __init__(self, first: int = 1) -> None:
+        if not _is_int(first) or not 0 <= first < _U64:
+            raise SparkplugError(f"first alias {first!r} is not 0..2^64-1")
+        self._alias: dict[tuple[str | None, str], int] = {}
+        self._key: dict[int, tuple[str | None, str]] = {}
+        self._next = int(first)
+
+    def declare(self, device: str | None, names: Iterable[str]) -> dict[str, int]:
+        """name → alias of these metrics of the node (`device` None) or of a device, the new ones
+        numbered now; an UNALIASED name is left out (it goes by name)."""
+        out: dict[str, int] = {}
+        for name in names:
+            if name in UNALIASED:
+                continue
+            key = (device, name)
+            alias = self._alias.get(key)
+            if alias is None:
+                if self._next >= _U64:
+                    raise SparkplugError("no alias left (2^64 given)")
+                alias = self._next
+                self._next += 1
+                self._alias[key] = alias
+                self._key[alias] = key
+            out[name] = alias
+        return out
+
+    def name(self, device: str | None, alias: int) -> str | None:
+        """The metric of the node (device None) or of that device with this alias, or None."""
+        key = self._key.get(alias) if _is_int(alias) else None
+        return key[1] if key is not None and key[0] == device else None
+
+    def __len__(self) -> int:
+        return len(self._alias)
+
+
+class AliasResolver:
+    """What a Sparkplug host keeps of the births: per edge node the alias → (name, datatype) of its
+    NBIRTH and of each device's DBIRTH. `resolve` gives the metrics of a DATA or CMD message that
+    came by alias their names back (and their datatype, where the message left it out). A new
+    NBIRTH or an NDEATH forgets the node's births, a DDEATH its device's."""
+
+    def __init__(self) -> None:
+        self._births: dict[tuple[str, str, str | None], dict[int, tuple[str, DataType]]] = {}
+
+    def resolve(self, topic_name: str, payload: Payload) -> list[int]:
+        """Fill in the names (in place) of `payload`'s metrics that came by alias, from the birth of
+        the node or device the topic names; the aliases that birth did not declare (left nameless).
+        A topic that is not Sparkplug B raises SparkplugError."""
+        group, kind, node, device = parse_topic(topic_name)
+        if kind == "STATE":
+            return []
+        if kind in ("NBIRTH", "NDEATH"):
+            for key in [k for k in self._births if k[0] == group and k[1] == node]:
+                del self._births[key]
+        if kind == "DDEATH":
+            self._births.pop((group, node, device), None)
+        if kind in BIRTH_TYPES:
+            self._births[(group, node, device)] = {
+                m.alias: (m.name, m.datatype) for m in payload.metrics if m.alias is not None and m.name is not None
+            }
+        if kind in BIRTH_TYPES or kind.endswith("DEATH"):
+            return []
+        born = self._births.get((group, node, device), {})
+        unknown: list[int] = []
+        for i, m in enumerate(payload.metrics):
+            if m.name is not None or m.alias is None:
+                continue
+            hit = born.get(m.alias)
+            if hit is None:
+                unknown.append(m.alias)
+                continue
+            m.name = hit[0]
+            if m.datatype is DataType.Unknown and hit[1] is not DataType.Unknown:
+                m.value = _typed(m.value, hit[1], f"metric #{i} (alias {m.alias}, {_show(hit[0])})")
+                m.datatype = hit[1]
+        return unknown
+
+
+def _typed(raw: Any, datatype: DataType, where: str) -> Any:
+    """The raw value of a metric sent without its datatype, as the datatype its birth declared
+    (SparkplugError when it does not fit)."""
+    if raw is None:
+        return None
+    if datatype in _INTS and _is_int(raw):
+        return _int_from_wire(int(raw), datatype, where)
+    if datatype in (DataType.Float, DataType.Double) and isinstance(raw, float):
+        return raw
+    if datatype is DataType.Boolean and isinstance(raw, bool):
+        return raw
+    if datatype in _STRINGS and isinstance(raw, str):
+        return raw
+    if datatype in _BYTES and isinstance(raw, bytes):
+        return raw
+    raise SparkplugError(f"{where}: a {type(raw).__name__} is not a {datatype.name}")
 
 
 # --- topics -----------------------------------------------------------------------------------

@@ -90,6 +90,7 @@ class TelemetrySpec:
     buffer_path: Path
     buffer_max_bytes: int
     period_s: float = 1.0
+    full_refresh_s: float = 60.0  # a DDATA with every metric at least this often (sample time); 0 = always
     keepalive_s: int = 30
     reconnect_max_s: float = 30.0
     username: str | None = None
@@ -154,7 +155,8 @@ def telemetry_spec(cfg: Any, signals: list[str], outputs: list[str], snapshot_pe
         client_id=tel.client_id or f"{tel.group_id}-{tel.edge_node_id}",
         group_id=tel.group_id, edge_node_id=tel.edge_node_id, device_id=tel.device_id,
         buffer_path=bpath, buffer_max_bytes=int(tel.buffer.max_mb * 1e6),
-        period_s=tel.period_s, keepalive_s=tel.keepalive_s, reconnect_max_s=tel.reconnect_max_s,
+        period_s=tel.period_s, full_refresh_s=tel.full_refresh_s, keepalive_s=tel.keepalive_s,
+        reconnect_max_s=tel.reconnect_max_s,
         username=tel.username, password=password, ca_file=ca, cert_file=cert, key_file=keyf,
         check_hostname=tel.tls.check_hostname if tel.tls is not None else True,
         properties={"compd version": version(), "config": str(Path(cfg.file).resolve())},
@@ -168,6 +170,7 @@ class OpcUaSpec:
 
     cfg: Any
     base_dir: Path
+    guard: Any = None  # the config's guard section: the EURange of each axis and signal
 
 
 def opcua_spec(cfg: Any) -> OpcUaSpec:
@@ -194,7 +197,7 @@ def opcua_spec(cfg: Any) -> OpcUaSpec:
         elif e.file == str(base / ua.certificate):
             key = ("opcua", "certificate")
         raise cfg.doc.error(e.message + (f" ({Path(e.file).name})" if e.file else ""), key) from None
-    return OpcUaSpec(ua, base)
+    return OpcUaSpec(ua, base, cfg.top.guard)
 
 
 _HOSTNAME = re.compile(r"^(?=.{1,253}$)([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")

@@ -21,11 +21,20 @@ Sparkplug B as compd speaks it (docs/plant.md):
   disk), and again when it goes offline;
 * on every connection, a new `bdSeq`; the last will is the NDEATH with it; then NBIRTH
   (node metrics) and DBIRTH (every metric the machine's DDATA ever carries, the events'
-  too, with their types, units, current values and time stamps), `seq` 0, 1, … 255, 0 …
-  over every message of the session;
-* a DDATA per sample (the metrics that changed are not picked out: every metric is in
-  every sample, which is what a historian replaying gaps wants), a DDATA with the
-  `Event/*` metrics per event, an NDATA when the node's own metrics change;
+  too, and the `Model/apply` command, with their types, units, current values and time
+  stamps), `seq` 0, 1, … 255, 0 … over every message of the session;
+* aliases: the births give every metric its name and an alias (`AliasTable`: unique across
+  the node and its device, kept for the life of the process, so a rebirth keeps them; not
+  `Node Control/Rebirth`, which goes by name); NDATA and DDATA carry the alias and no name;
+* a DDATA per sample, by exception: `Sample` and the metrics that changed since the last
+  one sent (a Double by more than its unit's deadband, DEADBAND_BY_UNIT; anything else by
+  any change), and every metric at the first sample after each birth and at least every
+  `full_refresh_s` of sample time (0: always); a DDATA with the three `Event/*` metrics per
+  event (an event is news even when it repeats the last); an NDATA with the node's own
+  metrics that changed (and `Model/result` with every answer). The buffer keeps every
+  sample whole and by name: a record is encoded (aliases, exceptions) when it is sent, so a
+  sample replayed after a rebirth, a reconnection or a restart speaks the aliases of the
+  births just sent, and the exceptions run over the records in the order they go out;
 * NCMD `Node Control/Rebirth` → births again; NCMD `Node Control/Model` or DCMD
   `Model/apply` (a model file's text) → `commands` (compd/plant/remote_model.py), whose
   answer goes out as NDATA `Model/result`;
@@ -51,6 +60,7 @@ from compd.cycle.statusblock import signal_unit
 from compd.plant.buffer import Counters, StoreAndForward
 from compd.plant.sparkplug import (
     NAMESPACE,
+    AliasTable,
     DataType,
     MetricDef,
     SparkplugError,
@@ -74,6 +84,36 @@ MAX_COMMAND_BYTES = 16 << 20  # an NCMD/DCMD longer than this is not even decode
 NODE_REBIRTH = "Node Control/Rebirth"
 NODE_MODEL = "Node Control/Model"
 DEVICE_MODEL = "Model/apply"
+
+# Report by exception: a Double metric goes out again when it has moved more than this from the
+# value last sent (so what a host holds is never further than this from the truth, and is exact
+# again at every full refresh); half the finest step the quantity comes in, so a real step is
+# always sent and only float noise below it waits. Other units, a metric without one, and every
+# other datatype (integers, booleans, strings, quality, state): any change.
+DEADBAND_BY_UNIT: dict[str, float] = {
+    "µm": 0.01,  # 1/100 of the word's 1 µm LSB, the finest correction a machine is given
+    "mm": 0.001,  # a position: 1 µm
+    "°C": 0.005,  # half the 0.01 °C step of a PT100 transmitter
+    "K": 0.005,
+    "rpm": 0.5,  # spindle speeds come in whole rpm
+    "µs": 0.5,  # half the loop histogram's 1 µs bin
+    "A": 0.005,  # half a drive's 0.01 A step
+}
+_MISSING = object()
+
+
+def moved(definition: MetricDef, value: Any, last: Any = _MISSING) -> bool:
+    """Whether `value` is news against `last`, the value last sent (none sent yet: news).
+
+    A Double or Float beyond its unit's deadband (DEADBAND_BY_UNIT); a null to a number or back,
+    and any change of any other metric, always."""
+    if last is _MISSING:
+        return True
+    if (definition.datatype in (DataType.Double, DataType.Float) and isinstance(value, int | float)
+            and isinstance(last, int | float) and not isinstance(value, bool) and not isinstance(last, bool)):
+        return abs(value - last) > DEADBAND_BY_UNIT.get(definition.unit or "", 0.0)
+    return bool(value != last)
+
 
 def _num(value: Any) -> float | None:
     """A finite float, or None (Sparkplug's is_null) for NaN, None or anything not a number."""
@@ -150,6 +190,8 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
 EVENT_METRICS = (MetricDef("Event/kind", DataType.String), MetricDef("Event/subject", DataType.String),
                  MetricDef("Event/reason", DataType.String))
 SAMPLE_METRIC = MetricDef("Sample", DataType.UInt64)
+# what a host may write to the device (DCMD): declared in the DBIRTH, so that it has an alias
+DEVICE_COMMANDS = (MetricDef(DEVICE_MODEL, DataType.String),)
 
 
 class Telemetry:
@@ -172,6 +214,15 @@ class Telemetry:
         self._drain_s = DRAIN_S  # at stop, how long what is buffered may take to go out
         self._next_sample_s = -math.inf  # wall time the next sample is due
         self._defs: dict[str, MetricDef] = {}  # the device's metrics as the last DBIRTH announced them
+        self.aliases = AliasTable()  # the node's and the device's aliases, kept across rebirths
+        self._node_aliases: dict[str, int] = {}  # name → alias of the last NBIRTH
+        self._device_aliases: dict[str, int] = {}  # ... and of the last DBIRTH
+        self._sent: dict[str, Any] | None = None  # device metric → value last sent (None: next one full)
+        self._full_t_ms = 0  # sample time of the last full refresh sent
+        self._node_sent: dict[str, Any] = {}  # node metric → value last sent (NBIRTH, NDATA)
+        self._answered = False  # a command answered since the last NDATA: Model/result goes again
+        self.full_refreshes = 0  # DDATA samples sent with every metric
+        self.exceptions = 0  # DDATA samples sent with the metrics that changed
         self._latest: list[tuple[MetricDef, Any]] | None = None  # the newest sample (the births' values)
         self._latest_t_ms = 0
         self._birth_due = False  # a new device metric set: births again
@@ -282,6 +333,10 @@ class Telemetry:
         client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=spec.client_id, clean_session=True,
                              reconnect_on_failure=False)
         client.connect_timeout = CONNECT_TIMEOUT_S
+        # paho holds back a QoS 1 message beyond its in-flight limit (20 by default) while a QoS 0
+        # one (an NDATA, a rebirth) goes at once: past the window's samples, seq out of order on
+        # the wire. Room for the whole window and the NDEATH, so every message leaves in seq order
+        client.max_inflight_messages_set(WINDOW + 2)
         if spec.username is not None:
             client.username_pw_set(spec.username, spec.password)
         if spec.ca_file is not None:
@@ -470,16 +525,24 @@ class Telemetry:
         self._seq = 0
         self._last_failure = None  # working again: a failure after this is said again
         # the device's birth declares every metric its DDATA ever carries (Sparkplug 3.0): the
-        # sample's, and the events' (null until an event sets them)
-        born = [*self._latest, *((d, None) for d in EVENT_METRICS)]
+        # sample's, and the events' (null until an event sets them); and what a DCMD may write
+        born = [*self._latest, *((d, None) for d in EVENT_METRICS), *((d, "") for d in DEVICE_COMMANDS)]
         self._defs = {d.name: d for d, _ in born}
+        node = self._node_metrics(birth=True)
+        # every metric with its name and alias; the aliases stay what they were for a metric born before
+        self._node_aliases = self.aliases.declare(None, [d.name for d, _ in node])
+        self._device_aliases = self.aliases.declare(spec.device_id, list(self._defs))
         now_ms = int(time.time() * 1000)
-        self._publish_raw("NBIRTH", None, encode(self._node_metrics(birth=True), timestamp_ms=now_ms,
-                                                 seq=self._next_seq(), with_properties=True,
-                                                 metric_timestamp_ms=now_ms), qos=0)
+        self._publish_raw("NBIRTH", None, encode(node, timestamp_ms=now_ms, seq=self._next_seq(),
+                                                 with_properties=True, metric_timestamp_ms=now_ms,
+                                                 aliases=self._node_aliases), qos=0)
         self._publish_raw("DBIRTH", spec.device_id, encode(born, timestamp_ms=self._latest_t_ms,
                                                            seq=self._next_seq(), with_properties=True,
-                                                           metric_timestamp_ms=self._latest_t_ms), qos=0)
+                                                           metric_timestamp_ms=self._latest_t_ms,
+                                                           aliases=self._device_aliases), qos=0)
+        self._node_sent = {d.name: v for d, v in node}
+        self._answered = False
+        self._sent = None  # the first sample after a birth goes whole: a host starts from it
         self._node_dirty = False
         self._historical_upto = self._last_put_id  # what waited goes out first, historical
         if new_session:  # what was in flight on a lost connection goes again
@@ -520,26 +583,64 @@ class Telemetry:
         assert buf is not None
         if self._node_dirty:
             self._node_dirty = False
-            self._publish_raw("NDATA", None, encode(self._node_metrics(birth=False), timestamp_ms=int(time.time() * 1000),
-                                                    seq=self._next_seq()), qos=0)
+            self._send_node()
         room = WINDOW - len(self._inflight)
         if room <= 0:
             return
         for rec in buf.pending(room, after_id=self._cursor):
             values = []
-            for name, value in json.loads(rec.body):
+            rows = json.loads(rec.body)
+            for name, value in rows:
                 d = SAMPLE_METRIC if name == "Sample" else self._defs.get(name) or _EVENT_DEFS.get(name)
-                if d is None:
+                if d is None or d.name not in self._device_aliases:
                     self.dropped_unknown += 1
                     continue
                 values.append((d, value))
+            if rows and rows[0][0] == "Sample":  # a sample (an event goes whole: it is news each time)
+                values = self._exceptions(values, rec.t_ms)
             payload = encode(values, timestamp_ms=rec.t_ms, seq=self._next_seq(),
-                             historical=rec.id <= self._historical_upto, metric_timestamp_ms=rec.t_ms)
+                             historical=rec.id <= self._historical_upto, metric_timestamp_ms=rec.t_ms,
+                             aliases=self._device_aliases, names=False)
             info = self._publish_raw("DDATA", self.spec.device_id, payload, qos=1)
             self._cursor = rec.id
             if info.rc != 0:  # not connected after all: on_disconnect follows
                 return
             self._inflight[info.mid] = rec.id
+
+    def _exceptions(self, values: list[tuple[MetricDef, Any]], t_ms: int) -> list[tuple[MetricDef, Any]]:
+        """What of a sample goes out (report by exception): every metric when a full refresh is due
+        (the first sample after a birth, `full_refresh_s` of sample time after the last refresh or
+        more, a sample time before it, or a refresh period of 0), else `Sample` and the metrics that
+        `moved` since the value last sent."""
+        refresh_ms = self.spec.full_refresh_s * 1000.0
+        sent = self._sent
+        if sent is None or refresh_ms <= 0 or not 0 <= t_ms - self._full_t_ms < refresh_ms:
+            self._sent = {d.name: v for d, v in values}
+            self._full_t_ms = t_ms
+            self.full_refreshes += 1
+            return values
+        out = [(d, v) for d, v in values if d.name == "Sample" or moved(d, v, sent.get(d.name, _MISSING))]
+        for d, v in out:
+            sent[d.name] = v
+        self.exceptions += 1
+        return out
+
+    def _send_node(self) -> None:
+        """An NDATA with the node's metrics that changed since the NBIRTH or the last NDATA (and
+        `Model/result` whenever a command was answered since, even with the same text); none when
+        nothing did."""
+        answered, self._answered = self._answered, False
+        sent = self._node_sent
+        news = [(d, v) for d, v in self._node_metrics(birth=False)
+                if (answered and d.name == "Model/result") or moved(d, v, sent.get(d.name, _MISSING))]
+        if not news:
+            return
+        for d, v in news:
+            sent[d.name] = v
+        now_ms = int(time.time() * 1000)
+        self._publish_raw("NDATA", None, encode(news, timestamp_ms=now_ms, seq=self._next_seq(),
+                                                metric_timestamp_ms=now_ms, aliases=self._node_aliases,
+                                                names=False), qos=0)
 
     def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
         """A command (NCMD/DCMD), or the primary host's STATE: nothing in it is trusted before it is decoded and checked."""
@@ -558,27 +659,36 @@ class Telemetry:
             self._answer({"result": "refused", "reason": f"not a Sparkplug B payload: {e}"})
             return
         # a command does each thing once, however many metrics ask for it, and what it cannot
-        # use is said in one line: a peer cannot make compd log or work without bound
+        # use is said in one line: a peer cannot make compd log or work without bound. A metric
+        # comes by name or (Sparkplug 3.0) by the alias the birth of that node or device gave it
+        scope = None if msg.topic.split("/")[2] == "NCMD" else self.spec.device_id
         rebirth = modelled = False
         unknown: list[str] = []
         for m in payload.metrics:
-            if m.name == NODE_REBIRTH and m.value is True:
+            name = m.name
+            if name is None and m.alias is not None:
+                name = self.aliases.name(scope, m.alias)
+            if name is None:
+                unknown.append(f"alias {m.alias}" if m.alias is not None else "a metric with neither name nor alias")
+            elif name == NODE_REBIRTH and m.value is True:
                 rebirth = True
-            elif m.name in (NODE_MODEL, DEVICE_MODEL):
+            elif name in (NODE_MODEL, DEVICE_MODEL):
                 if modelled:
-                    unknown.append(m.name)  # one model per command
+                    unknown.append(name)  # one model per command
                     continue
                 modelled = True
                 request = str(payload.uuid or payload.timestamp_ms or "")
-                if not isinstance(m.value, str) or m.datatype not in (DataType.String, DataType.Text):
-                    self._answer({"request": request, "result": "refused", "reason": f"{m.name} must be a String"})
+                # the datatype may be left out (Sparkplug 3.0: SHOULD NOT be sent in a CMD)
+                if not isinstance(m.value, str) or m.datatype not in (DataType.String, DataType.Text,
+                                                                      DataType.Unknown):
+                    self._answer({"request": request, "result": "refused", "reason": f"{name} must be a String"})
                 elif self.commands is None:
                     self._answer({"request": request, "result": "refused",
                                   "reason": "this compd takes no remote models (telemetry.remote_models.allow)"})
                 else:
                     self._answer({"request": request, **self.commands(m.value, request)})
             else:
-                unknown.append(m.name)
+                unknown.append(name)
         if rebirth:
             log.info("telemetry: rebirth requested", extra={"event": "telemetry_rebirth"})
             self._birth_due = True
@@ -613,6 +723,7 @@ class Telemetry:
     def _answer(self, result: dict[str, Any]) -> None:
         self._result = json.dumps(result, ensure_ascii=False, sort_keys=True)
         self._node_dirty = True
+        self._answered = True
         log.info("telemetry: command answered: %s", self._result, extra={"event": "telemetry_command", **{
             k: v for k, v in result.items() if k in ("request", "result", "reason")}})
 

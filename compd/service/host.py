@@ -515,7 +515,7 @@ class ServiceWork:
             return
         from compd.plant.opcua import OpcUaServer
 
-        server = OpcUaServer(ua.cfg, ua.base_dir)
+        server = OpcUaServer(ua.cfg, ua.base_dir, ua.guard)
         try:
             url = server.start(snap)
         except BadInput as e:

@@ -28,7 +28,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import NameOID
 
-from compd.plant.sparkplug import Payload, decode
+from compd.plant.sparkplug import AliasResolver, Payload, decode
 
 # the start of a daemon's config (str.format-escaped): the sim spindle at wall-clock pace
 SIM_SPINDLE = """\
@@ -189,6 +189,7 @@ class Listener:
                  tls: Tls | None = None, client_id: str = "test-listener", host_id: str | None = None) -> None:
         self.messages: list[Message] = []
         self.errors: list[str] = []
+        self.aliases = AliasResolver()  # data comes by alias: named from the births, as a host does
         self._lock = threading.Lock()
         self._subscribed = threading.Event()
         c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
@@ -228,13 +229,8 @@ class Listener:
                 self.errors.append(f"{msg.topic}: {e}")
             return
         with self._lock:
+            self.aliases.resolve(msg.topic, payload)
             self.messages.append(Message(msg.topic, kind, payload, t))
-
-    def resubscribed(self, timeout_s: float = 30.0) -> None:
-        """After the broker came back: wait until the subscription is renewed."""
-        self._subscribed.clear()
-        if not self._subscribed.wait(timeout_s):
-            raise TimeoutError("the listener did not subscribe again")
 
     def of(self, kind: str) -> list[Message]:
         with self._lock:

@@ -13,6 +13,9 @@ from hypothesis import strategies as st
 
 from compd.plant.sparkplug import (
     NAMESPACE,
+    UNALIASED,
+    AliasResolver,
+    AliasTable,
     DataType,
     MetricDef,
     Payload,
@@ -464,3 +467,82 @@ def test_bad_topics_raise(bad):
 def test_bad_topic_parts_raise(args):
     with pytest.raises(SparkplugError):
         topic(*args)
+
+
+# --- aliases ----------------------------------------------------------------------------------
+
+
+def test_a_birth_carries_name_and_alias_data_the_alias_only():
+    defs = [(MetricDef("Axis/z/correction_um", D.Double, "µm"), -1.25), (MetricDef("State", D.String), "running")]
+    aliases = {"Axis/z/correction_um": 7, "State": 300}
+    birth = decode(encode(defs, timestamp_ms=1, seq=0, with_properties=True, aliases=aliases))
+    assert [(m.name, m.alias, m.datatype) for m in birth.metrics] == [
+        ("Axis/z/correction_um", 7, D.Double), ("State", 300, D.String)]
+    data = encode(defs, timestamp_ms=2, seq=1, aliases=aliases, names=False)
+    got = decode(data)
+    assert [(m.name, m.alias, m.value, m.datatype) for m in got.metrics] == [
+        (None, 7, -1.25, D.Double), (None, 300, "running", D.String)]
+    raw = PayloadMessage.FromString(data).metrics
+    assert not raw[0].HasField("name") and raw[0].alias == 7  # no name on the wire at all
+    # the wire bytes of an aliased data metric: alias (field 2), datatype (4), double (13)
+    assert encode([defs[0]], timestamp_ms=2, seq=1, aliases={"Axis/z/correction_um": 7}, names=False) == (
+        vint(1, 2) + vlen(2, vint(2, 7) + vint(4, 10) + key(13, 1) + struct.pack("<d", -1.25)) + vint(3, 1))
+    # a metric without an alias cannot go in a message by alias; a message by alias needs aliases
+    with pytest.raises(SparkplugError, match="has no alias"):
+        encode(defs, timestamp_ms=2, seq=1, aliases={"State": 300}, names=False)
+    with pytest.raises(SparkplugError, match="needs aliases"):
+        encode(defs, timestamp_ms=2, seq=1, names=False)
+    with pytest.raises(SparkplugError, match="alias"):
+        encode(defs, timestamp_ms=2, seq=1, aliases={"State": -1})
+
+
+def test_the_alias_table_is_unique_across_the_node_and_stable():
+    table = AliasTable()
+    node = table.declare(None, ["bdSeq", "Node Control/Rebirth", "Model/result"])
+    dev = table.declare("m1", ["Sample", "Model/result", "State"])
+    assert "Node Control/Rebirth" not in node and {"Node Control/Rebirth"} == UNALIASED
+    assert node == {"bdSeq": 1, "Model/result": 2}
+    assert dev == {"Sample": 3, "Model/result": 4, "State": 5}  # the same name on the device: another alias
+    # a rebirth with a metric more (and one fewer) keeps every alias; the new one gets the next
+    again = table.declare("m1", ["Sample", "Signal/T_new/value", "State"])
+    assert again == {"Sample": 3, "Signal/T_new/value": 6, "State": 5}
+    assert table.declare(None, ["Model/result", "bdSeq"]) == {"Model/result": 2, "bdSeq": 1}
+    assert table.name(None, 2) == "Model/result" and table.name("m1", 4) == "Model/result"
+    assert table.name("m1", 1) is None and table.name(None, 3) is None and table.name(None, 99) is None
+    assert table.name(None, "2") is None and len(table) == 6
+
+
+def test_a_host_resolves_aliases_from_the_births():
+    nb = encode([(MetricDef("bdSeq", D.UInt64), 0), (MetricDef("Telemetry/dropped", D.UInt64), 0)],
+                timestamp_ms=1, seq=0, aliases={"bdSeq": 1, "Telemetry/dropped": 2})
+    db = encode([(MetricDef("Sample", D.UInt64), 1), (MetricDef("Word", D.UInt16), 0), (MetricDef("Off", D.Int8), 0)],
+                timestamp_ms=1, seq=1, aliases={"Sample": 3, "Word": 4, "Off": 5})
+    host = AliasResolver()
+    assert host.resolve("spBv1.0/g/NBIRTH/e", decode(nb)) == []
+    assert host.resolve("spBv1.0/g/DBIRTH/e/m1", decode(db)) == []
+    data = decode(encode([(MetricDef("Word", D.UInt16), 0x4543), (MetricDef("Sample", D.UInt64), 9)],
+                         timestamp_ms=2, seq=2, aliases={"Word": 4, "Sample": 3}, names=False))
+    assert host.resolve("spBv1.0/g/DDATA/e/m1", data) == []
+    assert [(m.name, m.value) for m in data.metrics] == [("Word", 0x4543), ("Sample", 9)]
+    # an alias of the node is not one of the device's; one no birth gave stays nameless
+    stray = decode(encode([(MetricDef("x", D.UInt64), 1), (MetricDef("y", D.UInt64), 1)], timestamp_ms=2, seq=3,
+                          aliases={"x": 2, "y": 77}, names=False))
+    assert host.resolve("spBv1.0/g/DDATA/e/m1", stray) == [2, 77] and stray.metrics[0].name is None
+    node = decode(encode([(MetricDef("x", D.UInt64), 5)], timestamp_ms=2, seq=4, aliases={"x": 2}, names=False))
+    assert host.resolve("spBv1.0/g/NDATA/e", node) == [] and node.metrics[0].name == "Telemetry/dropped"
+    # a metric sent without its datatype takes the birth's (a signed one read as such)
+    untyped = PayloadMessage(timestamp=3, seq=5)
+    untyped.metrics.add(alias=5, int_value=255)
+    p = decode(untyped.SerializeToString())
+    assert p.metrics[0].datatype is D.Unknown and host.resolve("spBv1.0/g/DDATA/e/m1", p) == []
+    assert (p.metrics[0].name, p.metrics[0].datatype, p.metrics[0].value) == ("Off", D.Int8, -1)
+    wrong = PayloadMessage(timestamp=3, seq=6)
+    wrong.metrics.add(alias=4, string_value="not a word")
+    with pytest.raises(SparkplugError, match="not a UInt16"):
+        host.resolve("spBv1.0/g/DDATA/e/m1", decode(wrong.SerializeToString()))
+    # a new NBIRTH (a new session) forgets the device's birth until its DBIRTH comes again
+    host.resolve("spBv1.0/g/NBIRTH/e", decode(nb))
+    again = decode(encode([(MetricDef("Word", D.UInt16), 1)], timestamp_ms=4, seq=2, aliases={"Word": 4}, names=False))
+    assert host.resolve("spBv1.0/g/DDATA/e/m1", again) == [4]
+    with pytest.raises(SparkplugError):
+        host.resolve("not/sparkplug", again)
