@@ -178,3 +178,25 @@ def test_fitted_model_runs_in_loop_from_replay(tmp_path, capsys):
     assert not result["faults"], result["faults"]
     for axis in comp.values():
         assert axis["reduction_pct"] > 50.0, comp
+
+
+def test_a_fit_records_its_input_range_and_a_fitted_model_passes_the_remote_clamp_check(tmp_path):
+    """`fit.input_range` is each input's finite readings in the fit's log; the remote-model check
+    (compd.plant.remote_model.clamp_check) evaluates the model over it: a model fitted on the log
+    stays inside a clamp its errors fit in, and is refused under one they do not."""
+    from compd.config import GuardConfig, load_model_file, resolve_model
+    from compd.plant.remote_model import clamp_check
+
+    log = tmp_path / "log.csv"
+    _write_log(log)
+    out = tmp_path / "m.yaml"
+    assert main(["fit", "--kind", "mlr", "--log", str(log), "--out", str(out)]) == 0
+    doc = yaml.safe_load(out.read_text())
+    data = read_log(log)
+    assert doc["fit"]["input_range"] == {n: [pytest.approx(data.col(n).min()), pytest.approx(data.col(n).max())]
+                                         for n in ("T1", "T2", "T3")}
+    fdoc, _ = load_model_file(out)
+    spec = resolve_model({"kind": "mlr", "file": str(out)}, fdoc, (), tmp_path)
+    assert clamp_check(spec, GuardConfig(max_abs_um=63)) is None  # errors of ~12 µm at most
+    why = clamp_check(spec, GuardConfig(max_abs_um=2))
+    assert why is not None and "fit.input_range" in why and "guard.max_abs_um 2" in why

@@ -212,6 +212,12 @@ def fit_model(
         "rmse_um": {a: s["rmse_um"] for a, s in axes.items()},
         "max_abs_err_um": {a: s["max_abs_err_um"] for a, s in axes.items()},
     }
+    ranges = {}  # the readings the fit saw: a remote model is checked against the guard's clamp over them
+    for name, col in zip(model.inputs, log.matrix(list(model.inputs)).T, strict=True):
+        seen = col[np.isfinite(col)]
+        if seen.size:
+            ranges[name] = [float(seen.min()), float(seen.max())]
+    fit_info["input_range"] = ranges
     held = {a: v["held_out_rmse_um"] for a, v in report.get("baseline_mlr", {}).get("axes", {}).items()}
     held = held or {a: v for a, v in report.get("held_out_rmse_um", {}).items() if isinstance(v, float)}
     if held:  # how far off the model is on rows its fit did not see (the probe adapter's σ_m)
