@@ -41,6 +41,20 @@ def test_slew_and_clamp() -> None:
     assert out[-1] == pytest.approx(-20.0)  # correction = −prediction, clamped
 
 
+def test_a_prediction_beyond_the_clamp_is_flagged_and_said_once() -> None:
+    """An axis whose model asks for more than max_abs_um is `clamped` (the status says saturated)
+    with one `clamped` event naming the prediction, and `unclamped` when it comes back inside."""
+    g, f = make(max_abs_um=20.0)
+    run(g, f, [5.0] * 5 + [455400.0] * 30 + [10.0] * 5)
+    said = [(subject, event) for _, subject, event, _ in g.events]
+    assert said.count(("z", "clamped")) == 1 and said.count(("z", "unclamped")) == 1
+    why = next(r for _, _, e, r in g.events if e == "clamped")
+    assert why == "the model predicts 455400.0 um, beyond the clamp of 20 um"
+    assert not g.clamped[0] and g.state[0] == 1  # inside again, still normal
+    run(g, f, [-30.0] * 3, t0=10.0)
+    assert g.clamped[0] and g.target_um[0] == pytest.approx(20.0)
+
+
 @pytest.mark.parametrize("policy", ["hold", "ramp_to_zero", "disable"])
 def test_fault_policies_and_recovery(policy: str) -> None:
     g, f = make(policy, ramp_um_per_s=2.0)
@@ -183,7 +197,8 @@ def test_update_rows_equals_update_row_by_row(policy: str) -> None:
     np.testing.assert_array_equal(st2, st)
     np.testing.assert_array_equal(dts2, dts)
     assert got.faults == ref.faults and got.events == ref.events
-    for name in ("out_um", "enable", "target_um", "state", "hold"):
+    assert ref.faults.get("clamped", 0) > 0  # the walk reaches the clamp: both paths flag it alike
+    for name in ("out_um", "enable", "target_um", "state", "hold", "clamped"):
         np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
     assert (got._last_t, got.dt_s, got.degraded) == (ref._last_t, ref.dt_s, ref.degraded)
     assert (st == 1).mean() > 0.5  # mostly the float path's NORMAL rows

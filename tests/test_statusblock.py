@@ -66,6 +66,25 @@ def test_the_record_holds_what_the_pipeline_has(tmp_path: Path) -> None:
         app.close()
 
 
+def test_an_axis_held_at_the_guards_clamp_is_saturated_with_an_event(tmp_path: Path) -> None:
+    """The model asks for more than max_abs_um: the record says saturated (the codec's byte is not
+    at 63 LSB here) and the guard's `clamped` event is among the status's events."""
+    app = _ran(tmp_path, cycles=10)
+    try:
+        loop, g = app.loop, app.guard
+        g._max_abs[0] = 0.5  # a clamp the spindle's growth passes at once (the config's floor is higher)
+        loop.run(max_cycles=200)
+        block = StatusBlock(loop)
+        block.write()
+        snap = compose(block.read(), describe(loop, observe=False))
+        z = snap["axes"]["z"]
+        assert abs(z["prediction_um"]) > 0.5 and abs(z["target_um"]) == 0.5
+        assert z["saturated"] is True and not loop.encoder.saturated[0]
+        assert any(e["event"] == "clamped" and e["subject"] == "z" for e in snap["events"]), snap["events"]
+    finally:
+        app.close()
+
+
 def test_a_reader_in_another_process_never_sees_a_half_written_record(tmp_path: Path) -> None:
     """The writer stamps one number into every field of a write; a forked reader checks that
     each copy it takes holds one number only (the seqlock). The writer goes on until the

@@ -70,6 +70,9 @@ class Guard:
         self.enable = np.zeros(n, dtype=bool)
         self.target_um = np.zeros(n)
         self.state = np.full(n, STARTING, dtype=np.uint8)
+        # the target is held at ±max_abs_um this cycle: the model asks for more than the clamp lets
+        # through (an event `clamped` when it starts, `unclamped` when it ends)
+        self.clamped = np.zeros(n, dtype=bool)
         # why the machine holds an axis off this cycle (compd.cycle.inhibit: 0 none, 1 inhibited,
         # 2 waiting for reference); written before `update`, which ramps a held axis to 0
         self.hold = np.zeros(n, dtype=np.uint8)
@@ -328,6 +331,8 @@ class Guard:
                 self._hold_event(now_s, a, int(hold[a]), int(held[a]))
                 held[a] = hold[a]
             if hold[a]:  # held off by the machine: to 0 at the slew, never a step
+                if self.clamped[a]:
+                    self._clamp_event(now_s, a, 0.0)
                 self.target_um[a] = 0.0
                 out = float(self.out_um[a])
                 step = self._slew[a] * dt
@@ -339,7 +344,12 @@ class Guard:
             good = inputs_ok and math.isfinite(p)
             lim = self._max_abs[a]
             target = -p if good else 0.0
-            target = lim if target > lim else (-lim if target < -lim else target)
+            if target > lim or target < -lim:
+                target = lim if target > 0 else -lim
+                if not self.clamped[a]:
+                    self._clamp_event(now_s, a, p)
+            elif self.clamped[a]:
+                self._clamp_event(now_s, a, p)
             self.target_um[a] = target
             st = int(self.state[a])
             if good:
@@ -417,6 +427,7 @@ class Guard:
         was_degraded = self.degraded
         normal = self._all_normal()
         axes = range(n_axes)
+        clamped = self.clamped  # _clamp_event flips it: the float path reads and writes it in place
         for i, now in enumerate(ts):
             if normal and plains[i] and degs[i] == was_degraded:
                 p = pred[i]
@@ -430,7 +441,12 @@ class Guard:
                 for a in axes:
                     tg = -p[a]
                     m = lim[a]
-                    tg = m if tg > m else (-m if tg < -m else tg)
+                    if tg > m or tg < -m:
+                        if not clamped[a]:
+                            self._clamp_event(now, a, p[a])
+                        tg = m if tg > 0 else -m
+                    elif clamped[a]:
+                        self._clamp_event(now, a, p[a])
                     target[a] = tg
                     step = slew[a] * dt
                     o = out[a]
@@ -471,6 +487,18 @@ class Guard:
     def _all_normal(self) -> bool:
         """Every axis NORMAL and none held off (what the float path of `update_rows` needs)."""
         return bool((self.state == NORMAL).all()) and not self._held.any()
+
+    def _clamp_event(self, now_s: float, a: int, pred_um: float) -> None:
+        """The axis's target starts (or stops) being held at the clamp: flag and event."""
+        lim = self._max_abs[a]
+        if not self.clamped[a]:
+            self.clamped[a] = True
+            self._event(now_s, self.axes[a], "clamped",
+                        f"the model predicts {pred_um:.1f} um, beyond the clamp of {lim:g} um", key="clamped")
+        else:
+            self.clamped[a] = False
+            self._event(now_s, self.axes[a], "unclamped", f"the prediction is inside the clamp of {lim:g} um",
+                        key="unclamped")
 
     def _hold_event(self, now_s: float, a: int, hold: int, was: int) -> None:
         if hold:

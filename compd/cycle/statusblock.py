@@ -79,7 +79,8 @@ AXIS: tuple[Field, ...] = (
           "flag"),
     Field("state", "", "the guard's state of the axis", "name", _names(STATE_NAMES)),
     Field("inhibit", "", "why the machine holds the axis off (compd.cycle.inhibit)", "name", _names(HOLD_NAMES)),
-    Field("saturated", "", "the axis's byte of the last word was clamped to the codec's range", "flag"),
+    Field("saturated", "", "the correction is held at a limit: the guard's clamp (max_abs_um; the model asks for"
+          " more) or the codec's range (the word byte's 63 LSB)", "flag"),
     Field("byte", "", "the axis's byte of the computed word (null: the axis is not in the word)", "hex"),
 )
 SIGNAL: tuple[Field, ...] = (
@@ -216,6 +217,7 @@ class StatusBlock:
         np.copyto(ax[5], g.enable)
         np.copyto(ax[7], g.state)
         np.copyto(ax[8], g.hold)
+        np.copyto(ax[9], g.clamped)
         if self._slots:
             cmd, app = self._slot_cmd, self._slot_app
             sink.commanded_um(cmd)
@@ -225,7 +227,8 @@ class StatusBlock:
             for slot, axis in self._slots:
                 ax[3, axis] = cmd[slot]
                 ax[4, axis] = app[slot]
-                ax[9, axis] = 1.0 if sat[slot] else 0.0
+                if sat[slot]:
+                    ax[9, axis] = 1.0
                 ax[10, axis] = (word >> 8) & 0xFF if slot == 0 else word & 0xFF
         fr = lp.frame
         sg = self._signals

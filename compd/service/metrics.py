@@ -120,7 +120,7 @@ class SnapshotCollector:
             " mode; NaN while the sink's link is not up (not confirmed)",
             labels=["axis"],
         )
-        sat = GaugeMetricFamily("compd_axis_saturated", "1 when the axis's word byte is clamped at 63 LSB", labels=["axis"])
+        sat = GaugeMetricFamily("compd_axis_saturated", "1 when the axis's correction is held at a limit: the guard's clamp (max_abs_um) or the word byte's 63 LSB", labels=["axis"])
         st = GaugeMetricFamily("compd_axis_state", "1 for the axis's current guard state", labels=["axis", "state"])
         held = GaugeMetricFamily(
             "compd_axis_held", "1 when the machine holds the axis off (inhibited, or waiting for its reference)",
