@@ -5,13 +5,13 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
-from compd.cli import commissioning, daemon, tools  # noqa: F401  (their commands register themselves)
+from compd.cli import commissioning, daemon, plant, tools  # noqa: F401  (their commands register themselves)
 from compd.cli.args import ARGUMENTS, COMMANDS, Parser, writing
 from compd.errors import BadInput
 
 __all__ = ["build_parser", "main", "writing"]
 
-ORDER = ['run', 'status', 'probe', 'arm-model', 'opcua-cert', 'docs', 'check-config', 'replay', 'output-test', 'plot', 'report', 'encode', 'decode', 'fit', 'predict', 'score', 'xi', 'bench']  # as `compd --help` lists them
+ORDER = ['run', 'status', 'probe', 'arm-model', 'opcua-cert', 'sparkplug-watch', 'docs', 'check-config', 'replay', 'output-test', 'plot', 'report', 'encode', 'decode', 'fit', 'predict', 'score', 'xi', 'bench']  # as `compd --help` lists them
 
 
 def build_parser() -> Parser:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import socket
 import sys
 from pathlib import Path
 from typing import Any
@@ -251,7 +252,7 @@ def args_opcua_cert(sub: Any) -> None:
     s.add_argument("--uri", default="urn:compd:server", help="the application URI (default urn:compd:server)")
     s.add_argument("--name", default="compd", help="the certificate's common name (default compd)")
     s.add_argument("--host", action="append", default=[], metavar="HOST",
-                   help="a DNS name or IP address clients use to reach it (repeat; default 127.0.0.1)")
+                   help="a DNS name or IP address clients use to reach it (repeat; default this host's name and 127.0.0.1)")
 
 
 @command("opcua-cert", args_opcua_cert)
@@ -262,10 +263,16 @@ def cmd_opcua_cert(args: argparse.Namespace) -> int:
     except ImportError:
         raise BadInput("needs the plant extra: pip install 'compd[plant]'") from None
     for path, key in ((args.cert, "--cert"), (args.key, "--key")):
+        folder = Path(path).parent
+        if not folder.exists():  # a folder of its own for the pair: readable by its owner only
+            try:
+                folder.mkdir(mode=0o700, parents=True)
+            except OSError as e:
+                raise BadInput(f"cannot make the folder {folder}: {e.strerror or e}", path=key) from None
         check_output(path, key)
         if Path(path).exists():
             raise BadInput(f"{path} exists: compd never overwrites a certificate or a key", path=key)
     generate_certificate(Path(args.cert), Path(args.key), common_name=args.name, application_uri=args.uri,
-                         hosts=args.host or ["127.0.0.1"])
+                         hosts=args.host or [socket.gethostname(), "127.0.0.1"])
     print(f"compd: wrote {args.cert} and {args.key} (key 0600) for {args.uri}")
     return 0
