@@ -6,10 +6,11 @@ PY := $(VENV)/bin/python
 BASE_STAMP := $(VENV)/.base-installed
 TEST_STAMP := $(VENV)/.test-installed
 # Debian packages the tests need (serial ptys, an independent Modbus client, the systemd units'
-# verify and security checks, headless Chromium for compd report's page, the MQTT broker of the plant tests); COMMAND:PACKAGE where the command is not named like its package.
-APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell mosquitto
+# verify and security checks, headless Chromium for compd report's page, the MQTT broker of the plant tests,
+# dpkg-dev and lintian to build and check the Debian package); COMMAND:PACKAGE where the command is not named like its package.
+APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell mosquitto dpkg-shlibdeps:dpkg-dev lintian
 
-.PHONY: venv demo test accept bench lint sysdeps clean install docs reliability
+.PHONY: venv demo test accept bench lint sysdeps clean install deb docs reliability
 
 $(BASE_STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -81,10 +82,16 @@ bench: $(TEST_STAMP) sysdeps
 	$(VENV)/bin/compd bench --cycles 20000 --json bench.json
 	$(VENV)/bin/compd bench --cycles 20000 --scheduler fifo --json bench_fifo.json
 
-# installs the service: venv under /opt/compd, systemd units, /etc/compd/compd.yaml, user compd.
-# DESTDIR=/some/dir stages instead (no user, no systemctl); PREFIX=... moves the venv.
+# installs the service: venv (every runtime extra, with pip) under /opt/compd, /usr/bin/compd, systemd
+# units, /etc/compd/compd.yaml, user compd. DESTDIR=/some/dir stages instead (no user, no systemctl;
+# the staged files name only their final paths); PREFIX=... moves the venv, BINDIR=... the symlink.
 install: $(BASE_STAMP)
 	PYTHON="$(abspath $(PY))" scripts/install.sh
+
+# builds build/compd_<version>-1_<arch>.deb (scripts/build_deb.sh, packaging/deb/): `make install`
+# staged at /opt/compd on Debian's python3, plus a postinst that creates the user and never starts compd
+deb:
+	scripts/build_deb.sh --out build
 
 # regenerates the configuration reference from the config schema and the metrics reference
 # from compd/service/metrics.py (tests check both are current)

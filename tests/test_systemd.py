@@ -281,10 +281,11 @@ def test_install_script_stages_everything(tmp_path):
         assert (stage / "opt/compd-test/docs" / doc).is_file()
     config = stage / "etc/compd/compd.yaml"
     assert config.read_text() == (ROOT / "configs" / "service.yaml").read_text()
-    # the venv's compd validates the installed config (dependencies from this interpreter's site-packages)
+    # the venv's compd validates the installed config (dependencies from this interpreter's site-packages);
+    # its console script names the final path (/opt/compd-test/...), so the staged interpreter runs it
     deps = sysconfig.get_paths()["purelib"]
     check = subprocess.run(
-        [str(stage / "opt/compd-test/venv/bin/compd"), "check-config", str(config)],
+        [str(stage / "opt/compd-test/venv/bin/python"), "-m", "compd", "check-config", str(config)],
         env={**os.environ, "PYTHONPATH": deps}, capture_output=True, text=True, timeout=60, cwd=tmp_path,
     )
     assert check.returncode == 0 and check.stdout.strip() == "ok", check.stderr
