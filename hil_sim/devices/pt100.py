@@ -67,6 +67,8 @@ class Pt100Transmitter:
             for v, f in zip(self.values_c, self.faults, strict=True):
                 if f != "none":
                     out.append((f, v))
+                elif v != v:  # no reading (a plant's unplugged sensor): the wire is open
+                    out.append(("burnout", v))
                 elif v > self.range_max_c:
                     out.append(("over", v))
                 elif v < self.range_min_c:

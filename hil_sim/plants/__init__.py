@@ -9,5 +9,6 @@ PLANTS = Registry(
         "feed_axis": ("hil_sim.plants.feed_axis", "FeedAxisPlant"),
         "lathe": ("hil_sim.plants.lathe", "LathePlant"),
         "gantry": ("hil_sim.plants.gantry", "GantryPlant"),
+        "vmc": ("hil_sim.plants.vmc", "VmcPlant"),
     },
 )

@@ -29,3 +29,12 @@ def test_noise_and_drift():
     assert v.shape == (5000, 3)
     np.testing.assert_allclose(v.std(axis=0), 0.05, rtol=0.1)
     np.testing.assert_allclose(v.mean(axis=0), [20.0, 20.0, 21.0], atol=0.01)
+
+
+def test_a_channel_without_a_reading_is_an_open_wire() -> None:
+    """A plant's unplugged sensor (NaN) reads as burnout on every module kind, never as a number."""
+    from hil_sim.devices.pt100 import Pt100Transmitter
+
+    tx = Pt100Transmitter(["T_col_top", "T_xi"], [float("nan"), 21.5])
+    (state, _), ok = tx.readings()
+    assert state == "burnout" and ok == ("ok", 21.5)

@@ -76,5 +76,5 @@ def test_shipped_scenarios_load_and_last_a_day():
         sc = Scenario.load(f)
         machines.add(sc.machine)
         assert sc.duration_s == pytest.approx(86400.0), f.name
-    assert machines == {"lathe", "spindle", "gantry", "feed_axis"}
-    assert len(files) == 8
+    assert machines == {"lathe", "spindle", "gantry", "feed_axis", "vmc"}
+    assert len(files) == 10
