@@ -33,8 +33,10 @@ def _fit_options_help() -> str:
 def args_fit(sub: Any) -> None:
     """`compd fit`'s arguments."""
     s = sub.add_parser("fit", help="identify a model's coefficients from a log",
-                       description="Identify a model's coefficients from a log and write the model file (with its fit date and scores); --kind all fits every kind that applies and compares them.",
-                       epilog="example:\n  compd fit --kind lvr --log day1.csv --out lvr.yaml --report fit.json\n  compd fit --kind ar1 --log day1.csv --out ar1.yaml --inputs T_bed --ambient T_amb --option dt_s=60")
+                       description="Identify a model's coefficients from a log and write the model file (with its fit date and scores); --kind all fits every kind that applies and compares them."
+                                   " With --on-residual-of the model is fitted stage by stage: on what a model fitted before leaves of the error (its prediction over the log subtracted, as compd predict evaluates it), and the report's stagewise block compares, held out, that sum with the kind alone, the model before alone and MLR on every input.",
+                       epilog="example:\n  compd fit --kind lvr --log day1.csv --out lvr.yaml --report fit.json\n  compd fit --kind ar1 --log day1.csv --out ar1.yaml --inputs T_bed --ambient T_amb --option dt_s=60"
+                              "\n  compd fit --kind mlr --log day1.csv --inputs T_col1 T_col2 --on-residual-of spindle.yaml --out column.yaml --report column.json")
     s.add_argument("--kind", required=True, choices=["feed_axis", "lvr", "xi_spindle", "ar1", "mlr", "all"])
     s.add_argument("--log", required=True, metavar="LOG.csv")
     s.add_argument("--out", required=True, metavar="MODEL.yaml", help="model file (a folder with --kind all)")
@@ -45,6 +47,10 @@ def args_fit(sub: Any) -> None:
                    help="a fit option of the kind (value read as YAML)")
     s.add_argument("--report", default=None, metavar="REPORT.json")
     s.add_argument("--plot", default=None, metavar="FILE.png")
+    s.add_argument("--on-residual-of", action="append", default=None, dest="on_residual_of", metavar="MODEL.yaml",
+                   help="fit on what this model (fitted before) leaves: each target whose axis it predicts, less its"
+                        " prediction over the log; repeat it to subtract the sum of several models. The new model"
+                        " predicts the rest: the two add up (the model file's fit.on_residual_of names the first)")
     s.epilog_extra = _fit_options_help
 
 
@@ -57,10 +63,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
         options["ambient"] = args.ambient
     check_output(args.report, "--report")
     check_plot(args.plot)
+    _not_over_a_model_before(args)
     check_output(args.out, "--out", folder=args.kind == "all")  # last: it may create the folder
     log = fitting.read_fit_log(args.log)
+    stage = fitting.residual_stage(log, args.on_residual_of, args.target) if args.on_residual_of else None
+    if stage is not None:
+        print(fitting.stage_line(stage))
     if args.kind == "all":
-        rows = fitting.fit_all(log, args.inputs, args.target, options)
+        rows = fitting.fit_all(log, args.inputs, args.target, options, stage)
         out = Path(args.out)
         for _, label, oc, _ in rows:
             if oc is not None:
@@ -70,7 +80,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                     p = Path(args.plot)
                     p = p.with_name(f"{p.stem}_{label}{p.suffix or '.png'}")
                     with writing(p, "--plot"):
-                        report.plot_fit(oc, log, p)
+                        report.plot_fit(oc, stage.log if stage else log, p)
                 fitting.warn(oc.warnings)
         print(fitting.comparison_table(rows))
         if args.report:
@@ -79,7 +89,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
                     label: oc.report if oc else {"skipped": why} for _, label, oc, why in rows
                 })
         return 0
-    oc = fitting.fit_model(args.kind, log, args.inputs, args.target, options)
+    oc = fitting.fit_model(args.kind, log, args.inputs, args.target, options, stage=stage)
+    if stage is not None:
+        log = stage.log  # the plot shows what the model was fitted to
     with writing(args.out, "--out"):
         fitting.write_model(oc.model, args.out)
     if args.report:  # the model file and plot beside the figures, for `compd report`
@@ -92,8 +104,25 @@ def cmd_fit(args: argparse.Namespace) -> int:
     for axis, s in oc.report["axes"].items():
         print(f"{args.kind} axis {axis}: RMSE {s['rmse_um']:.3f} um, max {s['max_abs_err_um']:.3f} um,"
               f" {oc.report['rows']} rows, {oc.report['fit_time_s']:.2f} s -> {args.out}")
+    for line in fitting.stagewise_lines(oc):
+        print(line)
     fitting.warn(oc.warnings)
     return 0
+
+
+def _not_over_a_model_before(args: argparse.Namespace) -> None:
+    """BadInput when `--out` would overwrite a model given to `--on-residual-of`."""
+    from compd.identify import KINDS
+
+    for file in args.on_residual_of or []:
+        model = Path(file).resolve()
+        out = Path(args.out).resolve()
+        if args.kind != "all" and model == out:
+            raise BadInput(f"would overwrite {file}, the model given to --on-residual-of", path="--out")
+        if args.kind == "all" and model.parent == out and any(
+                model.stem == k or model.stem.startswith(f"{k}_") for k in KINDS):
+            raise BadInput(f"the folder holds {file}, the model given to --on-residual-of, which --kind all"
+                           " could overwrite", path="--out")
 
 
 def args_predict(sub: Any) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import sys
@@ -98,12 +99,14 @@ def held_out_rmse(
 
 def compare_with_mlr(
     kind: str, log: Log, inputs: list[str], targets: list[str], options: dict[str, Any], axes: list[str],
-    warnings: list[str],
+    warnings: list[str], ours: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The fitted kind against MLR on the same log and the same inputs, both scored held out
-    (`held_out_rmse`); a warning per axis where MLR predicts the unseen rows better."""
+    (`held_out_rmse`; `ours`, the kind's, when already computed on the same folds); a warning per
+    axis where MLR predicts the unseen rows better."""
     try:
-        ours = held_out_rmse(kind, log, inputs, targets, options)
+        if ours is None:
+            ours = held_out_rmse(kind, log, inputs, targets, options)
         # MLR on temperature rises (the papers' baseline): a speed, position or current input stays out;
         # a model that takes none (the analytic feed axis) is compared with MLR on every one
         mlr_inputs = [c for c in inputs if c in log.temperature_columns()] or log.temperature_columns()
@@ -125,6 +128,220 @@ def compare_with_mlr(
     return out
 
 
+@dataclass
+class Stage:
+    """What `compd fit --on-residual-of` fits on: the models fitted before, evaluated over the log as
+    `compd predict` evaluates them (from a cold start, each input's lead included), and the targets less
+    their sum."""
+
+    info: list[dict[str, Any]]  # per model file: file, path, sha256, kind, inputs, outputs, fitted_at, log
+    models: list[Model]
+    pred_um: dict[str, np.ndarray]  # per axis they predict: the summed prediction (NaN where one is not finite)
+    covered: dict[str, list[str]]  # per target column: the files whose prediction it has subtracted ([]: none)
+    left_out: dict[str, int]  # per covered target: rows blanked, the prediction not finite there
+    log: Log  # each covered target less the prediction, blank where that is not finite
+    whole: Log  # the same cells blank, the error whole: what the single-stage comparisons fit
+
+
+def residual_stage(log: Log, files: list[str], targets: list[str] | None) -> Stage:
+    """The log a fit `--on-residual-of` FILES takes: each target whose axis the models output, less the
+    sum of their predictions. A model's input missing from the log, the same file twice, or models
+    that predict none of the targets' axes are BadInput."""
+    tcols = default_targets(log, targets)
+    info: list[dict[str, Any]] = []
+    models: list[Model] = []
+    pred_um: dict[str, np.ndarray] = {}
+    producers: dict[str, list[str]] = {}
+    seen: set[Path] = set()
+    for file in files:
+        if Path(file).resolve() in seen:
+            raise BadInput("given twice (its prediction would be subtracted twice)", file=str(file),
+                           path="--on-residual-of")
+        seen.add(Path(file).resolve())
+        model = load_model(file)
+        for name in model.inputs:
+            if name not in log.columns:
+                raise BadInput(f"column {name!r}, an input of {file} (--on-residual-of), is not in the log",
+                               file=log.file)
+        pred = predict_log(model, log)
+        name = Path(file).name
+        for k, axis in enumerate(model.outputs):
+            pred_um[axis] = pred_um[axis] + pred[:, k] if axis in pred_um else pred[:, k].astype(float)
+            producers.setdefault(axis, []).append(name)
+        models.append(model)
+        info.append({
+            "file": name, "path": str(file), "sha256": hashlib.sha256(Path(file).read_bytes()).hexdigest(),
+            "kind": model.kind, "inputs": list(model.inputs), "outputs": list(model.outputs),
+            "fitted_at": model.fit_info.get("fitted_at"), "log": model.fit_info.get("log"),
+        })
+    covered: dict[str, list[str]] = {}
+    left_out: dict[str, int] = {}
+    residual, whole = log.data.copy(), log.data.copy()
+    for t in tcols:
+        axis = error_axis(t) or t
+        covered[t] = producers.get(axis, [])
+        if covered[t]:
+            j, p = log.index(t), pred_um[axis]
+            bad = ~np.isfinite(p)
+            left_out[t] = int(np.count_nonzero(bad & np.isfinite(log.data[:, j])))
+            residual[:, j] = np.where(bad, np.nan, log.data[:, j] - np.where(bad, 0.0, p))
+            whole[bad, j] = np.nan
+    if not any(covered.values()):
+        names = ", ".join(i["file"] for i in info)
+        verb = "predicts" if len(info) == 1 else "predict"
+        noun = "axis" if len(pred_um) == 1 else "axes"
+        those = "that axis" if len(pred_um) == 1 else "those axes"
+        raise BadInput(f"{names} {verb} {noun} {', '.join(sorted(pred_um))}, and no target is of {those}"
+                       f" (targets: {', '.join(tcols)})", path="--on-residual-of")
+    return Stage(info, models, pred_um, covered, left_out,
+                 Log(log.file, list(log.columns), residual), Log(log.file, list(log.columns), whole))
+
+
+def stage_line(stage: Stage) -> str:
+    """One line saying what a fit `--on-residual-of` is fitted on."""
+    models = ", ".join(f"{i['file']} ({i['kind']}, fitted on {i['log'] or 'a log it does not name'})"
+                       for i in stage.info)
+    its = "its" if len(stage.info) == 1 else "their"
+    parts = [f"{t} less {its} prediction" if files else f"{t} as is (no model before predicts it)"
+             for t, files in stage.covered.items()]
+    left = sum(stage.left_out.values())
+    tail = f"; {left} rows left out where the prediction is not finite" if left else ""
+    leave = "leaves" if len(stage.info) == 1 else "leave"
+    return f"fitting on what {models} {leave}: {', '.join(parts)}{tail}"
+
+
+def stagewise_note(stage: Stage, log_file: str) -> str:
+    """What the held-out figures of a stage-by-stage fit can and cannot say about the models before."""
+    name = Path(log_file).name
+    groups = {
+        "fitted on this log: the sum and the first alone have seen every fold's errors through that fit"
+        " (which flatters both against the single-stage fits, refitted per fold)":
+            [i for i in stage.info if i["log"] == name],
+        "fitted on another log, so on this one the sum and the first alone are held out as well":
+            [i for i in stage.info if i["log"] not in (name, None)],
+        "fitted on a log its file does not name: the figures cannot say whether it saw this one":
+            [i for i in stage.info if i["log"] is None],
+    }
+    text = "the models fitted before are used as given in every fold: their coefficients are not refitted per fold"
+    for what, infos in groups.items():
+        if infos:
+            files = ", ".join(f"{i['file']}" + (f" ({i['log']})" if i["log"] else "") for i in infos)
+            text += f"; {files} {'was' if len(infos) == 1 else 'were'} {what}"
+    return text
+
+
+STAGEWISE_FORMS = {
+    "sum_held_out_rmse_um": "the models fitted before, as given, plus the kind refitted per fold on what they"
+                            " leave in the other folds",
+    "alone_held_out_rmse_um": "the kind on the same inputs fitted on the whole error, no model before it",
+    "first_alone_rmse_um": "the models fitted before alone, as given, on the same rows",
+    "mlr_all_inputs_held_out_rmse_um": "MLR on the temperature inputs of every model, on the whole error",
+}
+
+
+def _fold_rows(cut: list[holdout.Fold], n: int) -> np.ndarray:
+    mask = np.zeros(n, dtype=bool)
+    for fold in cut:
+        for lo, hi in fold:
+            mask[lo:hi] = True
+    return mask
+
+
+def compare_stagewise(
+    kind: str, stage: Stage, inputs: list[str], targets: list[str], options: dict[str, Any], axes: list[str],
+    warnings: list[str],
+) -> tuple[dict[str, Any], np.ndarray | None]:
+    """The stage-by-stage fit against the single-stage ones, per axis, on the same folds as the report's
+    `baseline_mlr` (compd.identify.holdout) and the same rows: the sum (the models before, as given, plus
+    `kind` refitted per fold on their residual), `kind` alone on the whole error, the models before
+    alone, MLR on every model's temperature inputs. Returns the report's `stagewise` block and the
+    sum's held-out RMSE per target (None if a fold could not be fitted)."""
+    cut, how = holdout.folds(stage.whole)
+    temps = stage.whole.temperature_columns()
+    both = list(dict.fromkeys([*(n for m in stage.models for n in m.inputs), *inputs]))
+    mlr_inputs = [c for c in both if c in temps] or temps
+    forms = {
+        "sum_held_out_rmse_um": (stage.log, lambda lg: identify(kind, lg, inputs, targets, **options)),
+        "alone_held_out_rmse_um": (stage.whole, lambda lg: identify(kind, lg, inputs, targets, **options)),
+        "mlr_all_inputs_held_out_rmse_um": (stage.whole, lambda lg: identify("mlr", lg, mlr_inputs, targets)),
+    }
+    held: dict[str, np.ndarray] = {}
+    skipped: dict[str, str] = {}
+    for key, (lg, fit_on) in forms.items():
+        try:
+            held[key] = holdout.pooled_rmse(holdout.fold_errors(lg, targets, fit_on, cut), len(targets))
+        except holdout.FIT_ERRORS as e:
+            skipped[key] = f"the held-out comparison could not fit a fold: {e}"
+    scored = _fold_rows(cut, len(stage.whole))
+    Y = stage.whole.matrix(targets)
+    first = " + ".join(i["file"] for i in stage.info)
+    out_axes: dict[str, Any] = {}
+    for k, (axis, t) in enumerate(zip(axes, targets, strict=True)):
+        if not stage.covered.get(t):
+            out_axes[axis] = {"on_residual": False,
+                              "note": f"{first} {'predicts' if len(stage.info) == 1 else 'predict'} no axis"
+                                      f" {axis}: {kind} fitted on {t} as is"}
+            continue
+        r = (Y[:, k] - stage.pred_um[error_axis(t) or t])[scored]
+        r = r[np.isfinite(r)]
+        entry: dict[str, Any] = {"on_residual": True, "residual_of": stage.covered[t],
+                                 "rows_without_prediction": stage.left_out[t], "held_out_rows": int(r.size)}
+        for key in STAGEWISE_FORMS:  # in the order the forms are described
+            if key == "first_alone_rmse_um":
+                entry[key] = float(np.sqrt(np.mean(r * r))) if r.size else None
+            else:
+                entry[key] = float(held[key][k]) if key in held else None
+        out_axes[axis] = entry
+        total, alone = entry["sum_held_out_rmse_um"], entry["alone_held_out_rmse_um"]
+        mlr = entry["mlr_all_inputs_held_out_rmse_um"]
+        if total is not None and alone is not None and total > alone:
+            warnings.append(f"{kind}: axis {axis}: {first} + {kind} predicts held out worse ({total:.3f} um)"
+                            f" than {kind} alone on the whole error ({alone:.3f} um)")
+        if total is not None and mlr is not None and total > mlr:
+            warnings.append(f"{kind}: axis {axis}: {first} + {kind} predicts held out worse ({total:.3f} um)"
+                            f" than MLR on {', '.join(mlr_inputs)} ({mlr:.3f} um)")
+    block: dict[str, Any] = {
+        "method": HELD_OUT_METHOD,
+        "folds": how,
+        "first": [i["file"] for i in stage.info],
+        "first_refitted_per_fold": False,
+        "note": stagewise_note(stage, stage.log.file),
+        "kind": kind,
+        "inputs": list(inputs),
+        "mlr_inputs": mlr_inputs,
+        "forms": STAGEWISE_FORMS,
+        "axes": out_axes,
+    }
+    if skipped:
+        block["skipped"] = skipped
+    return block, held.get("sum_held_out_rmse_um")
+
+
+def stagewise_lines(oc: FitOutcome) -> list[str]:
+    """The printed summary of a fit `--on-residual-of`: per axis the held-out RMSE of the sum, the kind
+    alone, the models before alone and MLR on every input (or why an axis was fitted as is)."""
+    block = oc.report.get("stagewise")
+    if not block:
+        return []
+    first = " + ".join(block["first"])
+    f = lambda v: "-" if v is None else f"{v:.3f} um"  # noqa: E731
+    lines = []
+    for axis, e in block["axes"].items():
+        if not e["on_residual"]:
+            lines.append(f"{oc.kind} axis {axis}: {e['note']}")
+            continue
+        lines.append(
+            f"{oc.kind} axis {axis} held out: {first} + {oc.kind} {f(e['sum_held_out_rmse_um'])},"
+            f" {oc.kind} on {' '.join(block['inputs'])} alone {f(e['alone_held_out_rmse_um'])},"
+            f" {first} alone {f(e['first_alone_rmse_um'])}"
+            f" (as given, not refitted), MLR on {' '.join(block['mlr_inputs'])}"
+            f" {f(e['mlr_all_inputs_held_out_rmse_um'])}"
+        )
+    for key, why in block.get("skipped", {}).items():
+        lines.append(f"{oc.kind}: {key}: {why}")
+    return lines
+
+
 # a fit that leaves more than this share of the error's RMS, in sample, removes almost nothing
 REMOVES_NOTHING = 0.9
 
@@ -142,9 +359,16 @@ def fit_model(
     options: dict[str, Any],
     *,
     baseline: bool = True,
+    stage: Stage | None = None,
 ) -> FitOutcome:
-    """Fit `kind` (compd.identify), score it on the log, compare with MLR on the same targets."""
+    """Fit `kind` (compd.identify), score it on the log, compare with MLR on the same targets.
+
+    With `stage` (`compd fit --on-residual-of`, built by `residual_stage` from this log) the fit
+    runs on `stage.log`, the targets less the models fitted before; the report adds
+    `on_residual_of` and the held-out comparison `stagewise` (`compare_stagewise`)."""
     FITS.get(kind, path="--kind")  # an unknown kind: BadInput naming --kind
+    if stage is not None:
+        log = stage.log
     t0 = time.perf_counter()
     try:
         result = identify(kind, log, inputs, targets, **options)
@@ -184,22 +408,28 @@ def fit_model(
         "axes": axes,
         "details": result.report,
     }
+    held_options = dict(options)
+    if "form" in result.report:  # score the form the fit kept (feed_axis form: auto)
+        held_options["form"] = result.report["form"]
+    # ... and the lead it kept: a fold refits the coefficients, not the lag search
+    lead = result.model.params.model_dump().get("lead_s")
+    led = {n: v for n, v in zip(model.inputs, lead or [], strict=False) if v > 0}
+    held_options["lag"] = led or "off"
+    # what the fit took as --inputs (a kind that chose its own says which)
+    fit_inputs = inputs or result.report.get("fit_inputs")
+    fit_inputs = list(model.inputs if fit_inputs is None else fit_inputs)
+    ours: np.ndarray | None = None  # the kind's held-out RMSE, once (the stagewise sum is the same figure)
+    if stage is not None:
+        report["on_residual_of"] = stage.info
+        if baseline:
+            report["stagewise"], ours = compare_stagewise(kind, stage, fit_inputs, tcols, held_options,
+                                                          model.outputs, warnings)
     if baseline and kind != "mlr":
-        held_options = dict(options)
-        if "form" in result.report:  # score the form the fit kept (feed_axis form: auto)
-            held_options["form"] = result.report["form"]
-        # ... and the lead it kept: a fold refits the coefficients, not the lag search
-        lead = result.model.params.model_dump().get("lead_s")
-        led = {n: v for n, v in zip(model.inputs, lead or [], strict=False) if v > 0}
-        held_options["lag"] = led or "off"
-        # what the fit took as --inputs (a kind that chose its own says which)
-        fit_inputs = inputs or result.report.get("fit_inputs")
-        fit_inputs = list(model.inputs if fit_inputs is None else fit_inputs)
         report["baseline_mlr"] = compare_with_mlr(kind, log, fit_inputs, tcols, held_options,
-                                                  model.outputs, warnings)
+                                                  model.outputs, warnings, ours)
     if baseline and kind == "mlr":  # the baseline's own held-out figure (the probe adapter's σ_m, the tables)
         try:
-            held = held_out_rmse("mlr", log, inputs, tcols, options)
+            held = ours if ours is not None else held_out_rmse("mlr", log, inputs, tcols, options)
             report["held_out_rmse_um"] = dict(zip(model.outputs, map(float, held), strict=True))
         except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
             report["held_out_rmse_um"] = {"skipped": f"the held-out comparison could not fit a fold: {e}"}
@@ -226,6 +456,11 @@ def fit_model(
                 "c2_at_unseen_speeds"):
         if key in result.report:
             fit_info[key] = result.report[key]
+    if stage is not None:  # what was subtracted before the fit: a later check can tell it is the same model
+        before = [{k: i[k] for k in ("file", "sha256", "kind", "fitted_at")}
+                  for i in stage.info if set(i["outputs"]) & set(model.outputs)]  # those on this model's axes
+        if before:
+            fit_info["on_residual_of"] = before
     model.fit_info = json.loads(json.dumps(fit_info))
     return FitOutcome(kind, model, report, pred, warnings)
 
@@ -305,12 +540,16 @@ def applicable(kind: str, log: Log, inputs: list[str] | None, options: dict[str,
 Row = tuple[str, str, FitOutcome | None, str | None]
 
 
-def fit_all(log: Log, inputs: list[str] | None, targets: list[str] | None, options: dict[str, Any]) -> list[Row]:
+def fit_all(
+    log: Log, inputs: list[str] | None, targets: list[str] | None, options: dict[str, Any],
+    stage: Stage | None = None,
+) -> list[Row]:
     """Every applicable kind on the same log: (kind, label, outcome or None, why skipped).
 
     Without `inputs` each kind takes its own defaults (every temperature for lvr, mlr and the
     feed axis; the ar1 structure sensors and the ξ sensor chosen held out); each is scored held
-    out against MLR on its inputs (compd.identify.holdout), MLR itself too."""
+    out against MLR on its inputs (compd.identify.holdout), MLR itself too. With `stage` each kind
+    is fitted on what the models before it leave (`fit_model`)."""
     tcols = default_targets(log, targets)
     single_axis = {"feed_axis", "ar1", "xi_spindle"}
     jobs: list[tuple[str, list[str]]] = []
@@ -330,7 +569,7 @@ def fit_all(log: Log, inputs: list[str] | None, targets: list[str] | None, optio
         if why is None:
             try:
                 opts = {k: v for k, v in options.items() if k in known[kind]}
-                out.append((kind, label, fit_model(kind, log, inputs, tc, opts), None))
+                out.append((kind, label, fit_model(kind, log, inputs, tc, opts, stage=stage), None))
                 continue
             except (BadInput, ValueError) as e:
                 why = str(e)
@@ -389,7 +628,27 @@ def comparison_table(rows: list[Row]) -> str:
     axes = {a for _, _, oc, _ in rows if oc is not None for a in oc.report["axes"]}
     for axis in sorted(axes - set(best)):
         lines.append(f"no recommendation for {axis}: every fit warns or could not be scored held out")
-    return "\n".join(lines)
+    return "\n".join(lines + _stagewise_table(rows))
+
+
+def _stagewise_table(rows: list[Row]) -> list[str]:
+    """`--kind all --on-residual-of`: per kind and axis the held-out RMSE of the sum, the kind alone,
+    the models before alone and MLR on every input (the report's `stagewise`)."""
+    fits = [(label, oc) for _, label, oc, _ in rows if oc is not None and "stagewise" in oc.report]
+    if not fits:
+        return []
+    first = " + ".join(fits[0][1].report["stagewise"]["first"])
+    lines = [f"held out, each kind fitted on what {first} leaves ({first} as given, not refitted per fold):",
+             f"{'model':<16} {'axis':<8} {'sum':>9} {'alone':>9} {'first':>9} {'MLR all':>9}  (RMSE um)"]
+    f = lambda v: f"{v:>9.3f}" if v is not None else f"{'-':>9}"  # noqa: E731
+    for label, oc in fits:
+        for axis, e in oc.report["stagewise"]["axes"].items():
+            if not e["on_residual"]:
+                lines.append(f"{label:<16} {axis:<8} {e['note']}")
+                continue
+            lines.append(f"{label:<16} {axis:<8} {f(e['sum_held_out_rmse_um'])} {f(e['alone_held_out_rmse_um'])}"
+                         f" {f(e['first_alone_rmse_um'])} {f(e['mlr_all_inputs_held_out_rmse_um'])}")
+    return lines
 
 
 def read_profile(file: str | Path) -> tuple[np.ndarray, np.ndarray]:
