@@ -540,6 +540,18 @@ class GuardConfig(Strict):
         default_factory=dict, description="per-axis overrides by axis name"
     )
 
+    def clamp_um(self, axis: str) -> tuple[float, str]:
+        """The clamp of `axis` (µm) and the key that sets it: its own override, else guard.max_abs_um."""
+        own = self.axes.get(axis)
+        if own is not None and own.max_abs_um:
+            return float(own.max_abs_um), f"guard.axes.{axis}.max_abs_um"
+        return float(self.max_abs_um), "guard.max_abs_um"
+
+    def slew_um_per_s(self, axis: str) -> float:
+        """The slew limit of `axis` (µm/s): its own override, else guard.max_slew_um_per_s."""
+        own = self.axes.get(axis)
+        return float((own.max_slew_um_per_s if own else None) or self.max_slew_um_per_s)
+
 
 class CodecConfig(Strict):
     """The 16-bit word of paper 002 (docs/formats.md)."""

@@ -89,20 +89,27 @@ def check_shown(command: str, shown: list[str], printed: str) -> None:
         assert any(same_line(s, p) for p in lines), f"`{command}`: the page shows\n  {s}\nit printed:\n{printed}"
 
 
-@pytest.fixture()
-def shell(tmp_path: Path) -> Callable[..., Any]:
-    """A shell whose `compd` and `python` are this checkout's, working in an empty folder."""
+def doc_folder(tmp_path: Path, tools: dict[str, str] | None = None) -> tuple[Path, dict[str, str]]:
+    """An empty folder to walk a page in, and the environment whose `compd` and `python` (and
+    `tools`: name → the command it runs) are this checkout's."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
-    (bin_dir / "compd").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m compd "$@"\n')
-    (bin_dir / "python").write_text(f'#!/bin/sh\nexec "{sys.executable}" "$@"\n')
-    for f in bin_dir.iterdir():
-        f.chmod(0o755)
+    commands = {"compd": f'"{sys.executable}" -m compd', "python": f'"{sys.executable}"', **(tools or {})}
+    for name, cmd in commands.items():
+        (bin_dir / name).write_text(f'#!/bin/sh\nexec {cmd} "$@"\n')
+        (bin_dir / name).chmod(0o755)
     work = tmp_path / "work"
     work.mkdir()
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '/usr/bin:/bin')}",
            "PYTHONPATH": str(ROOT)}
     env.pop("RUNTIME_DIRECTORY", None)
+    return work, env
+
+
+@pytest.fixture()
+def shell(tmp_path: Path) -> Callable[..., Any]:
+    """A shell whose `compd` and `python` are this checkout's, working in an empty folder."""
+    work, env = doc_folder(tmp_path)
 
     def run(command: str, background: bool = False) -> Any:
         argv = ["bash", "-o", "pipefail", "-c", command]

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.test_packaging import naming
+
 ROOT = Path(__file__).resolve().parent.parent
 VERSION = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["version"]
 UNITDIR = "lib/systemd/system"
@@ -142,14 +144,7 @@ def test_contents_units_conffile_and_control(deb: Path, tree: Path) -> None:
 
 def test_nothing_in_the_package_names_the_build_or_the_checkout(built: tuple[Path, Path], tree: Path) -> None:
     _, out = built
-    needles = [os.fsencode(str(out)), os.fsencode(str(ROOT))]
-    named = []
-    for dirpath, dirnames, filenames in os.walk(tree):
-        for name in dirnames + filenames:
-            path = Path(dirpath, name)
-            data = os.fsencode(os.readlink(path)) if path.is_symlink() else path.read_bytes() if path.is_file() else b""
-            if any(n in data for n in needles):
-                named.append(str(path.relative_to(tree)))
+    named = naming(tree, [str(out), str(ROOT)])
     assert not named, named
     # what used to name it: the #! lines, activate, pyvenv.cfg
     venv = tree / VENV[1:]

@@ -8,7 +8,6 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
 from typing import Any, TextIO
 
 from compd.cli.args import command, positive
@@ -17,42 +16,16 @@ from compd.errors import BadInput
 CONNECT_TIMEOUT_S = 10.0  # for the broker to accept the connection
 
 
-@dataclass
-class Broker:
-    """Where and how to connect: from the config's telemetry section or from the options."""
-
-    host: str
-    port: int
-    group_id: str | None = None
-    edge_node_id: str | None = None
-    username: str | None = None
-    password: str | None = None
-    ca_file: str | None = None
-    cert_file: str | None = None
-    key_file: str | None = None
-    check_hostname: bool = True
-
-
-def broker_of(config: str) -> Broker:
-    """The broker of CONFIG's telemetry section (its password and TLS files read as the daemon reads them)."""
+def _watched(config: str) -> tuple[Any, str, str]:
+    """The broker of CONFIG's telemetry section (its files read as the daemon reads them), its group and edge node."""
     from compd.config import load_config
-    from compd.plant.spec import read_secret, readable_file
+    from compd.plant.spec import broker_spec
 
     cfg = load_config(config)
     tel = cfg.top.telemetry
     if tel is None:
         raise BadInput("the config has no telemetry section: give --host instead", file=config, path="telemetry")
-    key = ("telemetry",)
-    password = read_secret(cfg, tel.password_file, (*key, "password_file")) if tel.password_file else None
-    b = Broker(host=tel.host, port=tel.port or (8883 if tel.tls is not None else 1883), group_id=tel.group_id,
-               edge_node_id=tel.edge_node_id, username=tel.username, password=password)
-    if tel.tls is not None:
-        b.ca_file = readable_file(cfg, tel.tls.ca_file, (*key, "tls", "ca_file"))
-        if tel.tls.cert_file is not None and tel.tls.key_file is not None:
-            b.cert_file = readable_file(cfg, tel.tls.cert_file, (*key, "tls", "cert_file"))
-            b.key_file = readable_file(cfg, tel.tls.key_file, (*key, "tls", "key_file"))
-        b.check_hostname = tel.tls.check_hostname
-    return b
+    return broker_spec(cfg), tel.group_id, tel.edge_node_id
 
 
 def _value(v: Any) -> str:
@@ -164,11 +137,15 @@ def cmd_sparkplug_watch(args: argparse.Namespace) -> int:
         import paho.mqtt.client as mqtt
 
         from compd.plant.sparkplug import NAMESPACE, AliasResolver
+        from compd.plant.spec import BrokerSpec
+        from compd.plant.telemetry import log_in
     except ImportError:
         raise BadInput("needs the plant extra: pip install 'compd[plant]'") from None
-    broker = broker_of(args.config) if args.config is not None else Broker(host=args.host, port=args.port)
-    group = args.group or broker.group_id
-    node = args.node or broker.edge_node_id
+    if args.config is not None:
+        broker, group, node = _watched(args.config)
+    else:
+        broker, group, node = BrokerSpec(host=args.host, port=args.port), None, None
+    group, node = args.group or group, args.node or node
     if args.rebirth and not (group and node):
         raise BadInput("--rebirth needs the group and the edge node: give --config, or --group and --node",
                        path="--rebirth")
@@ -177,14 +154,7 @@ def cmd_sparkplug_watch(args: argparse.Namespace) -> int:
     connected: list[Any] = []
 
     client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, clean_session=True)
-    if broker.username is not None:
-        client.username_pw_set(broker.username, broker.password)
-    if broker.ca_file is not None:
-        import ssl
-
-        client.tls_set(ca_certs=broker.ca_file, certfile=broker.cert_file, keyfile=broker.key_file,
-                       cert_reqs=ssl.CERT_REQUIRED, tls_version=ssl.PROTOCOL_TLS_CLIENT)
-        client.tls_insecure_set(not broker.check_hostname)
+    log_in(client, broker)
     client.on_connect = lambda c, _u, _f, rc, _p: connected.append(rc)
     client.on_message = lambda _c, _u, msg: inbox.append((msg.topic, bytes(msg.payload)))
     where = f"{broker.host}:{broker.port}"

@@ -93,11 +93,7 @@ class OutputTestResult:
 
 def axis_limits(cfg: Config, axis: str) -> tuple[float, float]:
     """The guard's clamp and slew limit of `axis` (its override, else the guard's), µm and µm/s."""
-    g = cfg.guard
-    over = g.axes.get(axis)
-    max_abs = (over.max_abs_um if over else None) or g.max_abs_um
-    slew = (over.max_slew_um_per_s if over else None) or g.max_slew_um_per_s
-    return float(max_abs), float(slew)
+    return cfg.guard.clamp_um(axis)[0], cfg.guard.slew_um_per_s(axis)
 
 
 def build_sink(cfg: Config) -> tuple[Sink, list[str], list[str]]:

@@ -51,12 +51,8 @@ class Guard:
         self.cfg = cfg
         self.axes = list(axes)
         n = len(axes)
-        self.max_abs_um = np.array(
-            [(cfg.axes.get(a) and cfg.axes[a].max_abs_um) or cfg.max_abs_um for a in axes]
-        )
-        self.slew_um_per_s = np.array(
-            [(cfg.axes.get(a) and cfg.axes[a].max_slew_um_per_s) or cfg.max_slew_um_per_s for a in axes]
-        )
+        self.max_abs_um = np.array([cfg.clamp_um(a)[0] for a in axes])
+        self.slew_um_per_s = np.array([cfg.slew_um_per_s(a) for a in axes])
         self.policy = [
             POLICIES.index((cfg.axes.get(a) and cfg.axes[a].fault_policy) or cfg.fault_policy)
             for a in axes
@@ -72,7 +68,8 @@ class Guard:
         self.state = np.full(n, STARTING, dtype=np.uint8)
         # the target is held at ±max_abs_um this cycle: the model asks for more than the clamp lets
         # through (an event `clamped` when it starts, `unclamped` when it ends)
-        self.clamped = np.zeros(n, dtype=bool)
+        self.clamped = np.zeros(n, dtype=bool)  # for the status record
+        self._clamped = [False] * n  # the same, as the cycle reads it (a list: no numpy scalar per cycle)
         # why the machine holds an axis off this cycle (compd.cycle.inhibit: 0 none, 1 inhibited,
         # 2 waiting for reference); written before `update`, which ramps a held axis to 0
         self.hold = np.zeros(n, dtype=np.uint8)
@@ -331,7 +328,7 @@ class Guard:
                 self._hold_event(now_s, a, int(hold[a]), int(held[a]))
                 held[a] = hold[a]
             if hold[a]:  # held off by the machine: to 0 at the slew, never a step
-                if self.clamped[a]:
+                if self._clamped[a]:
                     self._clamp_event(now_s, a, 0.0)
                 self.target_um[a] = 0.0
                 out = float(self.out_um[a])
@@ -346,9 +343,9 @@ class Guard:
             target = -p if good else 0.0
             if target > lim or target < -lim:
                 target = lim if target > 0 else -lim
-                if not self.clamped[a]:
+                if not self._clamped[a]:
                     self._clamp_event(now_s, a, p)
-            elif self.clamped[a]:
+            elif self._clamped[a]:
                 self._clamp_event(now_s, a, p)
             self.target_um[a] = target
             st = int(self.state[a])
@@ -427,7 +424,7 @@ class Guard:
         was_degraded = self.degraded
         normal = self._all_normal()
         axes = range(n_axes)
-        clamped = self.clamped  # _clamp_event flips it: the float path reads and writes it in place
+        clamped = self._clamped  # _clamp_event flips it: the float path reads it in place
         for i, now in enumerate(ts):
             if normal and plains[i] and degs[i] == was_degraded:
                 p = pred[i]
@@ -491,12 +488,12 @@ class Guard:
     def _clamp_event(self, now_s: float, a: int, pred_um: float) -> None:
         """The axis's target starts (or stops) being held at the clamp: flag and event."""
         lim = self._max_abs[a]
-        if not self.clamped[a]:
-            self.clamped[a] = True
+        self._clamped[a] = on = not self._clamped[a]
+        self.clamped[a] = on
+        if on:
             self._event(now_s, self.axes[a], "clamped",
                         f"the model predicts {pred_um:.1f} um, beyond the clamp of {lim:g} um", key="clamped")
         else:
-            self.clamped[a] = False
             self._event(now_s, self.axes[a], "unclamped", f"the prediction is inside the clamp of {lim:g} um",
                         key="unclamped")
 

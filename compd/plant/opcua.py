@@ -246,10 +246,8 @@ def _meaning(field: Any) -> str:
 
 def axis_range(guard: GuardConfig, axis: str) -> EuRange:
     """±the guard's clamp of `axis` (as compd.cycle.guard.Guard takes it): what a correction can reach."""
-    over = guard.axes.get(axis)
-    if over is not None and over.max_abs_um is not None:
-        return EuRange(-over.max_abs_um, over.max_abs_um, f"± guard.axes.{axis}.max_abs_um")
-    return EuRange(-guard.max_abs_um, guard.max_abs_um, "± guard.max_abs_um")
+    clamp_um, key = guard.clamp_um(axis)
+    return EuRange(-clamp_um, clamp_um, f"± {key}")
 
 
 def signal_range(guard: GuardConfig, name: str, unit: str | None) -> EuRange:

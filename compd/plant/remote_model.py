@@ -276,7 +276,7 @@ def clamp_check(model: Any, guard: Any) -> str | None:
     ranges, source = got
     peaks = largest_predictions(model, ranges)
     for axis, (peak_um, reference, reading) in zip(model.outputs, peaks, strict=True):
-        lim, key = _clamp(guard, axis)
+        lim, key = guard.clamp_um(axis)
         at = _where(model.inputs, reference, reading)
         if not math.isfinite(peak_um):
             return f"axis {axis}: over its input range ({source}) the model predicts a value that is not finite ({at})"
@@ -284,14 +284,6 @@ def clamp_check(model: Any, guard: Any) -> str | None:
             return (f"axis {axis} would sit at the guard's clamp: over its input range ({source}) the model predicts"
                     f" a |correction| of {abs(peak_um):.1f} µm ({at}), beyond {key} {lim:g} µm")
     return None
-
-
-def _clamp(guard: Any, axis: str) -> tuple[float, str]:
-    """The guard's clamp of one axis (µm) and the config key that sets it (compd.cycle.guard)."""
-    own = guard.axes.get(axis)
-    if own is not None and own.max_abs_um:
-        return float(own.max_abs_um), f"guard.axes.{axis}.max_abs_um"
-    return float(guard.max_abs_um), "guard.max_abs_um"
 
 
 def _where(inputs: list[str], reference: np.ndarray, reading: np.ndarray) -> str:
@@ -310,11 +302,10 @@ def _dynamic(model: Any) -> bool:
 def largest_predictions(spec: Any, ranges: dict[str, tuple[float, float]]) -> list[tuple[float, np.ndarray, np.ndarray]]:
     """Per output axis the prediction (µm) of largest magnitude over the ranges (`clamp_check`),
     with the reference readings and the readings it comes at; NaN or ±inf wins over any number."""
+    from compd.cycle.pipeline import build_model
+
     def fresh() -> Any:
-        m = spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
-        if spec.update_period_s is not None:
-            m.update_period_s = spec.update_period_s
-        return m
+        return build_model(spec)  # a model as the loop builds it, fresh for each combination
 
     probe = fresh()
     roles = list(getattr(spec.params, "input_roles", None) or [])

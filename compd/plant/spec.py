@@ -7,6 +7,7 @@ heavy: paho-mqtt, protobuf and asyncua load in the service process only.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import ipaddress
 import os
@@ -77,12 +78,25 @@ class RemoteSpec:
     pending_path: Path
 
 
-@dataclass
-class TelemetrySpec:
-    """Everything a Telemetry needs, resolved from the config (plain data: it crosses a fork)."""
+@dataclass(kw_only=True)
+class BrokerSpec:
+    """Where the plant's MQTT broker is and how to log in to it: the telemetry section's connection
+    keys, its files read (`broker_spec`); a Telemetry's and `compd sparkplug-watch`'s."""
 
     host: str
     port: int
+    username: str | None = None
+    password: str | None = None
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    check_hostname: bool = True
+
+
+@dataclass(kw_only=True)
+class TelemetrySpec(BrokerSpec):
+    """Everything a Telemetry needs, resolved from the config (plain data: it crosses a fork)."""
+
     client_id: str
     group_id: str
     edge_node_id: str
@@ -93,12 +107,6 @@ class TelemetrySpec:
     full_refresh_s: float = 60.0  # a DDATA with every metric at least this often (sample time); 0 = always
     keepalive_s: int = 30
     reconnect_max_s: float = 30.0
-    username: str | None = None
-    password: str | None = None
-    ca_file: str | None = None
-    cert_file: str | None = None
-    key_file: str | None = None
-    check_hostname: bool = True
     properties: dict[str, str] = field(default_factory=dict)  # NBIRTH's Properties/… (version, config)
     poll_s: float = 0.05  # the thread's wait for the network between two looks at its inbox
     slack_s: float = 0.0  # a snapshot this much before a sample is due is taken for it (half the snapshots' period)
@@ -113,22 +121,31 @@ def file_sha256(path: Path) -> str:
         return ""
 
 
+def broker_spec(cfg: Any) -> BrokerSpec:
+    """The telemetry section's broker: address, user and password (its file read), TLS files
+    (readable); a config error naming the key of a file that cannot be read."""
+    tel = cfg.top.telemetry
+    key = ("telemetry",)
+    b = BrokerSpec(host=tel.host, port=tel.port or (8883 if tel.tls is not None else 1883), username=tel.username)
+    if tel.password_file is not None:
+        if tel.username is None:
+            raise cfg.doc.error("a password needs a username", (*key, "password_file"))
+        b.password = read_secret(cfg, tel.password_file, (*key, "password_file"))
+    if tel.tls is not None:
+        b.ca_file = readable_file(cfg, tel.tls.ca_file, (*key, "tls", "ca_file"))
+        if tel.tls.cert_file is not None and tel.tls.key_file is not None:
+            b.cert_file = readable_file(cfg, tel.tls.cert_file, (*key, "tls", "cert_file"))
+            b.key_file = readable_file(cfg, tel.tls.key_file, (*key, "tls", "key_file"))
+        b.check_hostname = tel.tls.check_hostname
+    return b
+
+
 def telemetry_spec(cfg: Any, signals: list[str], outputs: list[str], snapshot_period_s: float) -> TelemetrySpec:
     """The telemetry section as a TelemetrySpec; a config error for a file that cannot be read,
     an arming signal no source gives, or remote models without a writable model file."""
     tel = cfg.top.telemetry
     key = ("telemetry",)
-    password = None
-    if tel.password_file is not None:
-        if tel.username is None:
-            raise cfg.doc.error("a password needs a username", (*key, "password_file"))
-        password = read_secret(cfg, tel.password_file, (*key, "password_file"))
-    ca = cert = keyf = None
-    if tel.tls is not None:
-        ca = readable_file(cfg, tel.tls.ca_file, (*key, "tls", "ca_file"))
-        if tel.tls.cert_file is not None and tel.tls.key_file is not None:
-            cert = readable_file(cfg, tel.tls.cert_file, (*key, "tls", "cert_file"))
-            keyf = readable_file(cfg, tel.tls.key_file, (*key, "tls", "key_file"))
+    broker = broker_spec(cfg)
     bpath = buffer_path(cfg)
     if not bpath.parent.is_dir():
         raise cfg.doc.error(f"folder {bpath.parent} does not exist", (*key, "buffer", "path"))
@@ -150,15 +167,12 @@ def telemetry_spec(cfg: Any, signals: list[str], outputs: list[str], snapshot_pe
             daemon_pid=os.getpid(), pending_path=Path(f"{bpath}.model-pending.json"),
         )
     return TelemetrySpec(
-        host=tel.host,
-        port=tel.port or (8883 if tel.tls is not None else 1883),
+        **dataclasses.asdict(broker),
         client_id=tel.client_id or f"{tel.group_id}-{tel.edge_node_id}",
         group_id=tel.group_id, edge_node_id=tel.edge_node_id, device_id=tel.device_id,
         buffer_path=bpath, buffer_max_bytes=int(tel.buffer.max_mb * 1e6),
         period_s=tel.period_s, full_refresh_s=tel.full_refresh_s, keepalive_s=tel.keepalive_s,
         reconnect_max_s=tel.reconnect_max_s,
-        username=tel.username, password=password, ca_file=ca, cert_file=cert, key_file=keyf,
-        check_hostname=tel.tls.check_hostname if tel.tls is not None else True,
         properties={"compd version": version(), "config": str(Path(cfg.file).resolve())},
         slack_s=snapshot_period_s / 2, remote=remote, primary_host_id=tel.primary_host_id,
     )

@@ -68,7 +68,7 @@ from compd.plant.sparkplug import (
     encode,
     topic,
 )
-from compd.plant.spec import TelemetrySpec
+from compd.plant.spec import BrokerSpec, TelemetrySpec
 from compd.service.threads import ServiceThread
 
 log = logging.getLogger("compd.telemetry")
@@ -192,6 +192,17 @@ EVENT_METRICS = (MetricDef("Event/kind", DataType.String), MetricDef("Event/subj
 SAMPLE_METRIC = MetricDef("Sample", DataType.UInt64)
 # what a host may write to the device (DCMD): declared in the DBIRTH, so that it has an alias
 DEVICE_COMMANDS = (MetricDef(DEVICE_MODEL, DataType.String),)
+
+
+def log_in(client: Any, broker: BrokerSpec) -> None:
+    """Give a paho client the broker's user and password and its TLS (CA, client certificate,
+    host name check), as the telemetry section says."""
+    if broker.username is not None:
+        client.username_pw_set(broker.username, broker.password)
+    if broker.ca_file is not None:
+        client.tls_set(ca_certs=broker.ca_file, certfile=broker.cert_file, keyfile=broker.key_file,
+                       cert_reqs=ssl.CERT_REQUIRED, tls_version=ssl.PROTOCOL_TLS_CLIENT)
+        client.tls_insecure_set(not broker.check_hostname)
 
 
 class Telemetry:
@@ -337,12 +348,7 @@ class Telemetry:
         # one (an NDATA, a rebirth) goes at once: past the window's samples, seq out of order on
         # the wire. Room for the whole window and the NDEATH, so every message leaves in seq order
         client.max_inflight_messages_set(WINDOW + 2)
-        if spec.username is not None:
-            client.username_pw_set(spec.username, spec.password)
-        if spec.ca_file is not None:
-            client.tls_set(ca_certs=spec.ca_file, certfile=spec.cert_file, keyfile=spec.key_file,
-                           cert_reqs=ssl.CERT_REQUIRED, tls_version=ssl.PROTOCOL_TLS_CLIENT)
-            client.tls_insecure_set(not spec.check_hostname)
+        log_in(client, spec)
         client.on_connect = self._on_connect
         client.on_disconnect = self._on_disconnect
         client.on_publish = self._on_publish

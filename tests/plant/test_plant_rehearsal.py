@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from tests.service_helpers import wait_running
-from tests.test_commissioning import blocks, free_port
+from tests.test_commissioning import blocks, doc_folder, free_port
 
 pytestmark = pytest.mark.slow
 
@@ -60,18 +60,7 @@ def test_the_pattern_is_strict() -> None:
 
 @pytest.fixture()
 def shell(tmp_path: Path):
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    venv_bin = Path(sys.executable).parent
-    (bin_dir / "compd").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m compd "$@"\n')
-    (bin_dir / "uaread").write_text(f'#!/bin/sh\nexec "{venv_bin / "uaread"}" "$@"\n')
-    for f in bin_dir.iterdir():
-        f.chmod(0o755)
-    work = tmp_path / "work"
-    work.mkdir()
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '/usr/bin:/bin')}",
-           "PYTHONPATH": str(ROOT)}
-    env.pop("RUNTIME_DIRECTORY", None)
+    work, env = doc_folder(tmp_path, {"uaread": f'"{Path(sys.executable).parent / "uaread"}"'})
     started: list[subprocess.Popen] = []
 
     def run(command: str, background: bool = False):
