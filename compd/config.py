@@ -842,6 +842,10 @@ class ConfigModel(Strict):
         min_length=1, description="signal sources, one section per device (see Sources)"
     )
     model: dict[str, Any] = Field(description="the thermal-error model (see Models)")
+    shadow: dict[str, Any] | None = Field(
+        None, description="a candidate model (or a set of contributions) evaluated every cycle beside the active"
+        " one, driving nothing, scored on the same probes; `compd promote` makes it active; none = no shadow",
+    )
     guard: GuardConfig = Field(GuardConfig(), description="what reaches the machine")
     codec: CodecConfig = Field(CodecConfig(), description="corrections → 16-bit word")
     sink: dict[str, Any] = Field(description="where the correction goes (see Sinks)")
@@ -899,6 +903,38 @@ class ModelSection(Strict):
     )
 
 
+NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]*$"  # a contribution's name: in log columns, metric labels, node names
+
+
+class ContributionSection(ModelSection):
+    """One contribution of `model.contributions`: a model (file or params) with its own inputs,
+    a name and its own limits; the axis correction is the sum of the contributions."""
+
+    name: str | None = Field(
+        None, pattern=NAME_PATTERN, max_length=32,
+        description="the contribution's name (letters, digits, _; in log columns and metric labels); none = its kind",
+    )
+    max_abs_um: float | None = Field(
+        None, gt=0, le=MAX_CORRECTION_UM, description="this contribution's clamp; none = its axis's clamp"
+    )
+    max_slew_um_per_s: float | None = Field(
+        None, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
+        description="how fast this contribution may change; none = its axis's slew limit",
+    )
+    fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = Field(
+        None, description="what this contribution does when one of its inputs goes bad (the others keep"
+        " compensating); disable takes its axes to their own fault policy; none = its axis's fault policy",
+    )
+
+
+class ContributionsSection(Strict):
+    """A model section that sums several contributions per axis."""
+
+    contributions: list[dict[str, Any]] = Field(
+        min_length=1, max_length=16, description="the contributions, each a model section with a name and limits"
+    )
+
+
 @dataclass
 class ModelSpec:
     """A resolved model: its class, validated params and wiring."""
@@ -924,6 +960,7 @@ class Config:
     sources: list[tuple[type, Any, PathT]]
     model: ModelSpec
     sink: tuple[type, Any, PathT]
+    shadow: ModelSpec | None = None
 
     @property
     def loop(self) -> LoopConfig:
@@ -972,10 +1009,15 @@ def load_model_file(file: str | Path) -> tuple[Document, dict[str, Any]]:
     return doc, data
 
 
-def resolve_model(section: Any, doc: Document, path: PathT, base_dir: Path) -> ModelSpec:
-    """Resolve a model section (inline or from a file) to a ModelSpec."""
+def resolve_model(
+    section: Any, doc: Document, path: PathT, base_dir: Path, guard: GuardConfig | None = None
+) -> ModelSpec:
+    """Resolve a model section (inline, from a file, or `contributions`: several summed) to a
+    ModelSpec; a contribution's limits default to its axes' in `guard`."""
     from compd.models import MODELS
 
+    if isinstance(section, dict) and "contributions" in section:
+        return _resolve_contributions(section, doc, path, base_dir, guard or GuardConfig())
     sec = validate(ModelSection, section, doc, path)
     try:
         cls = MODELS.get(sec.kind)
@@ -1036,6 +1078,50 @@ def resolve_model(section: Any, doc: Document, path: PathT, base_dir: Path) -> M
         raise pdoc.error(e.message, (*base, *keys) if keys else ppath) from None
     mfile = None if sec.file is None else str(fpath.resolve())
     return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path, mfile)
+
+
+def _resolve_contributions(
+    section: dict[str, Any], doc: Document, path: PathT, base_dir: Path, guard: GuardConfig
+) -> ModelSpec:
+    """`model.contributions`: each item resolved as a model section; the sum's spec (kind
+    `contributions`: compd.models.contributions) with each one's limits settled."""
+    from compd.models.contributions import ContributionParams, Contributions, ContributionSetParams
+
+    sec = validate(ContributionsSection, section, doc, path)
+    parts: list[ContributionParams] = []
+    names: set[str] = set()
+    for i, item in enumerate(sec.contributions):
+        where = (*path, "contributions", i)
+        if not isinstance(item, dict):
+            raise doc.error("a contribution is a model section (kind, file or params, ...)", where)
+        if "contributions" in item:
+            raise doc.error("a contribution cannot itself have contributions", (*where, "contributions"))
+        csec = validate(ContributionSection, item, doc, where)
+        own = {k: v for k, v in item.items() if k not in ("name", "max_abs_um", "max_slew_um_per_s", "fault_policy")}
+        spec = resolve_model(own, doc, where, base_dir)
+        name = csec.name or spec.cls.kind
+        if name in names:
+            raise doc.error(f"contribution name {name!r} is used twice (give each a `name`)", (*where, "name"))
+        names.add(name)
+        outs = list(spec.outputs)
+        parts.append(ContributionParams(
+            name=name, kind=spec.cls.kind, inputs=list(spec.inputs), outputs=outs,
+            params=spec.params.model_dump(mode="json"), fit=dict(spec.fit), file=spec.file,
+            update_period_s=spec.update_period_s,
+            max_abs_um=[csec.max_abs_um or guard.clamp_um(a)[0] for a in outs],
+            max_slew_um_per_s=[csec.max_slew_um_per_s or guard.slew_um_per_s(a) for a in outs],
+            fault_policy=[csec.fault_policy or _axis_policy(guard, a) for a in outs],
+        ))
+    params = ContributionSetParams(contributions=parts, ramp_um_per_s=guard.ramp_um_per_s,
+                                   recovery_s=guard.recovery_s)
+    inputs = list(dict.fromkeys(n for p in parts for n in p.inputs))
+    outputs = list(dict.fromkeys(a for p in parts for a in p.outputs))
+    return ModelSpec(Contributions, params, inputs, outputs, None, {}, doc, path, None)
+
+
+def _axis_policy(guard: GuardConfig, axis: str) -> str:
+    own = guard.axes.get(axis)
+    return (own.fault_policy if own is not None else None) or guard.fault_policy
 
 
 def _check_timings(top: ConfigModel, doc: Document) -> None:
@@ -1100,7 +1186,7 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
         sources.append((cls, cfg, ("sources", i)))
     sink_cls, sink_cfg = _plugin(SINKS, top.sink, doc, ("sink",))
     base_dir = Path(doc.file).parent
-    model = resolve_model(top.model, doc, ("model",), base_dir)
+    model = resolve_model(top.model, doc, ("model",), base_dir, top.guard)
     if len(model.outputs) > 2 and top.codec.axes is None:
         raise doc.error("the word carries two axes: name them in codec.axes", ("model", "outputs"))
     for i, axis in enumerate(top.codec.axes or []):
@@ -1121,7 +1207,16 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
                 f"{axis!r} is not an output of the model ({', '.join(model.outputs)})",
                 ("guard", "axes", axis),
             )
-    return Config(doc.file, doc, top, sources, model, (sink_cls, sink_cfg, ("sink",)))
+    shadow = None
+    if top.shadow is not None:
+        shadow = resolve_model(top.shadow, doc, ("shadow",), base_dir, top.guard)
+        for axis in shadow.outputs:
+            if axis not in model.outputs:
+                raise doc.error(
+                    f"{axis!r} is not an output of the model ({', '.join(model.outputs)}): a shadow stands beside"
+                    " the active model on its axes", ("shadow", "outputs"),
+                )
+    return Config(doc.file, doc, top, sources, model, (sink_cls, sink_cfg, ("sink",)), shadow)
 
 
 __all__ = [

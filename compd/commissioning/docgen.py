@@ -267,6 +267,10 @@ def generate() -> str:
         d.section(f"sources: kind {kind}", cls.Config, 3, intro)
     d.lines += ["## Models", ""]
     d.section("model", c.ModelSection, 3)
+    d.section("model: contributions", c.ContributionsSection, 3, CONTRIBUTIONS_INTRO)
+    d.section("model: contributions, each item", c.ContributionSection, 3,
+              "A model section as above (kind, file or params, inputs, outputs, update_period_s) with these"
+              " further keys.")
     for kind, cls in _kinds(MODELS):
         intro = _first_paragraph(sys.modules[cls.__module__])
         d.section(f"model: kind {kind}, params", cls.Params, 3, intro)
@@ -274,6 +278,28 @@ def generate() -> str:
     for kind, cls in _kinds(SINKS):
         d.section(f"sink: kind {kind}", cls.Config, 3, _first_paragraph(cls.Config) or _first_paragraph(cls))
     return "\n".join(d.lines).rstrip() + "\n"
+
+
+CONTRIBUTIONS_INTRO = """\
+An axis with several heat sources: `model: {contributions: [...]}` instead of one model. Each
+contribution is a model section (its own kind, file or params, inputs and outputs) with an
+optional `name` and its own limits; the axis's prediction is the sum of the contributions on
+it, and the guard's clamp and slew still bound that sum. A contribution whose inputs go bad
+follows its own `fault_policy` while the others keep compensating. Each contribution shows in
+the status (`axes.<axis>.contributions.<name>`), the data log (`pred_<axis>_<name>_um`), the
+metrics (`compd_contribution_*`), Sparkplug (`Axis/<axis>/Contribution/<name>/…`), OPC UA
+(`compd.Axes.<axis>.Contributions.<name>`) and the replay report (`contributions`).
+
+```yaml
+model:
+  contributions:
+    - {name: spindle, kind: xi_spindle, file: spindle.yaml, max_abs_um: 40}
+    - {name: column, kind: mlr, file: column.yaml, max_slew_um_per_s: 0.5, fault_policy: ramp_to_zero}
+```
+
+The top-level `shadow` section takes the same forms as `model` (one model, or contributions):
+a candidate evaluated every cycle beside the active model on the axes it names, driving
+nothing, scored on the same probes; `compd promote CONFIG` makes it the model."""
 
 
 def main(argv: list[str] | None = None) -> int:

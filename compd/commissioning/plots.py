@@ -32,6 +32,8 @@ class Trend:
     applied_um: np.ndarray  # what the device applied
     error_um: np.ndarray | None = None  # logged thermal error (err_<axis>_um)
     pred_um: np.ndarray | None = None  # the model's predicted error
+    # a sum of contributions: (name, axis, each row's share of the axis's prediction)
+    parts: list[tuple[str, str, np.ndarray]] = field(default_factory=list)
     corr_um: np.ndarray | None = None  # the guard's correction (before the word's LSB steps)
     fault: np.ndarray | None = None  # bool: the guard had the axis in fault (or recovering)
     fault_label: str = "guard fault or recovering"
@@ -196,6 +198,9 @@ def _error_panel(ax: Any, x: np.ndarray, trend: Trend, a: int) -> None:
         ax.plot(x, e + trend.applied_um[:, a], lw=1, color=C_RESIDUAL, label="left with compensation\n(error + applied)")
     if trend.pred_um is not None:
         ax.plot(x, trend.pred_um[:, a], lw=1, ls="--", color=C_PRED, label="predicted error (model)")
+    for name, axis, share in trend.parts:
+        if axis == trend.axes[a]:
+            ax.plot(x, share, lw=0.9, ls=":", label=f"contribution {name}")
     if trend.probe_um is not None and np.isfinite(trend.probe_um[:, a]).any():
         ax.plot(x, trend.probe_um[:, a], "D", ms=4, color="black", label="probe (measured error)")
     ax.axhline(0.0, color="0.6", lw=0.5)
@@ -351,6 +356,8 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
         fault_label="no prediction (guard fault)", title=f"compd trend of {Path(log.file).name}", notes=notes,
         probe_um=probe, commanded_um=commanded,
         commanded_label="commanded (K0, the guard's correction)" if k0_sink else "commanded (word)",
+        parts=[(c[len(f"pred_{a}_"):-3], a, log.col(c)) for a in axes for c in log.columns
+               if c.startswith(f"pred_{a}_") and c.endswith("_um") and c != f"pred_{a}_um"],
     )
 
 
@@ -385,5 +392,5 @@ def trend_from_replay(result: Any) -> Trend:
         corr_um=ex.get("corr_um"), fault=fault, scores=dict(rep.get("axes", {})),
         title=f"compd replay of {name}" if name else "compd replay", notes=notes, probe_um=ex.get("probe_um"),
         commanded_um=ex.get("commanded_um"), commanded_label="commanded (the device's target)",
-        resolution_um=limits.get("resolution_um"),
+        resolution_um=limits.get("resolution_um"), parts=list(ex.get("parts") or []),
     )

@@ -41,6 +41,7 @@ from compd.cycle.pipeline import build_model, build_pipeline
 from compd.errors import BadInput
 from compd.log import Log, read_log
 from compd.models.base import Model, step_rows
+from compd.models.contributions import Contributions
 from compd.sinks.base import Sink
 from compd.sources.replay import ReplayConfig, ReplaySource
 
@@ -83,12 +84,13 @@ class _Rows:
     words: np.ndarray  # rows: the word
     applied: np.ndarray  # what the device applied (0 off the word)
     commanded: np.ndarray  # what the device was commanded (NaN off the word)
+    parts: np.ndarray  # rows × (contribution, axis) pairs: each contribution's share (a sum of contributions)
 
     @classmethod
-    def empty(cls, n: int, n_out: int) -> _Rows:
+    def empty(cls, n: int, n_out: int, n_parts: int = 0) -> _Rows:
         return cls(np.zeros((n, n_out)), np.zeros((n, n_out)), np.zeros((n, n_out), dtype=bool),
                    np.zeros((n, n_out), dtype=np.uint8), np.zeros(n, dtype=np.int64), np.zeros((n, n_out)),
-                   np.full((n, n_out), np.nan))
+                   np.full((n, n_out), np.nan), np.full((n, n_parts), np.nan))
 
 
 def probe_columns(log: Log, axes: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
@@ -145,7 +147,8 @@ def replay_log(
     # may walk what the slew licensed in that time, not one LSB per row
     loop.encoder.set_slew([float(loop.guard.slew_um_per_s[a]) for a in loop.word_axes], math.inf)
     n, n_out = len(log), len(model.outputs)
-    rows = _Rows.empty(n, n_out)
+    parts = list(model.part_names) if isinstance(model, Contributions) else []
+    rows = _Rows.empty(n, n_out, len(parts))
     t = log.t_s
     loop.open()
     try:
@@ -194,18 +197,72 @@ def replay_log(
     }
     if probes:
         report["adaptation"] = adaptation
+    for k, (name, axis) in enumerate(parts):
+        report.setdefault("contributions", {}).setdefault(axis, {})[name] = _contribution_report(
+            rows.parts[:, k], err[:, model.outputs.index(axis)], loop.guard.faults, f"{axis}/{name}")
     extra = {
         "pred_um": rows.pred, "corr_um": rows.corr, "guard_state": rows.state, "lsb_um": loop.encoder.lsb_um,
         "commanded_um": rows.commanded, "enable": rows.enable,
         "word_axes": [model.outputs[a] for a in loop.word_axes],
         "signals": {name: log.col(name) for name in model.inputs if name in log.columns},
         "log": log.file,
+        "parts": [(name, axis, rows.parts[:, k]) for k, (name, axis) in enumerate(parts)],
     }
     if probes:
         from compd.commissioning.plots import probe_matrix
 
         extra["probe_um"] = probe_matrix(log, list(model.outputs))
     return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, rows.applied, words, extra)
+
+
+def _contribution_report(share: np.ndarray, err: np.ndarray, faults: dict[str, int], subject: str) -> dict[str, Any]:
+    """One contribution's part of a replay: its share of the axis's prediction (RMS, largest, last; µm) and,
+    where the log has the error, what it alone would leave (RMS of error − share)."""
+    fin = share[np.isfinite(share)]
+    out: dict[str, Any] = {
+        "rms_um": float(np.sqrt(np.mean(fin**2))) if fin.size else None,
+        "max_abs_um": float(np.max(np.abs(fin))) if fin.size else None,
+        "final_um": float(share[-1]) if np.isfinite(share[-1]) else None,
+        "rows_without": int(share.size - fin.size),
+    }
+    both = np.isfinite(err) & np.isfinite(share)
+    if both.any():
+        out["alone_residual_rms_um"] = float(np.sqrt(np.mean((err[both] - share[both]) ** 2)))
+    return out
+
+
+def shadow_report(log: Log, shadow: Model, axes: list[str], active_um: np.ndarray) -> dict[str, Any]:
+    """The shadow model over the log (it drives nothing: evaluated over the log at once, rows whose
+    inputs are not all finite left out) scored against the active model's prediction on the same
+    measurements: the log's error `err_<axis>_um` on every row where it and both predictions are
+    finite, and its probes `probe_<axis>_um` (RMS of measured − predicted, µm). `_pred`: the
+    shadow's prediction per active axis (NaN where it serves none), for the caller."""
+    n = len(log)
+    X = log.matrix(shadow.inputs) if shadow.inputs else np.zeros((n, 0))
+    t = np.asarray(log.t_s, dtype=float)
+    pred = np.full((n, len(axes)), np.nan)
+    ok = np.isfinite(X).all(axis=1)
+    if ok.any():
+        own = shadow.predict(X[ok], t[ok])
+        for j, axis in enumerate(shadow.outputs):
+            pred[ok, axes.index(axis)] = own[:, j]
+    per_axis: dict[str, Any] = {}
+    for axis in shadow.outputs:
+        a = axes.index(axis)
+        entry: dict[str, Any] = {}
+        for what, col in (("error", f"err_{axis}_um"), ("probes", f"probe_{axis}_um")):
+            if col not in log.columns:
+                continue
+            e = log.col(col)
+            use = np.isfinite(e) & np.isfinite(pred[:, a]) & np.isfinite(active_um[:, a])
+            k = int(use.sum())
+            entry[what] = {"rows": k,
+                           "active_rms_um": float(np.sqrt(np.mean((e[use] - active_um[use, a]) ** 2))) if k else None,
+                           "shadow_rms_um": float(np.sqrt(np.mean((e[use] - pred[use, a]) ** 2))) if k else None}
+        per_axis[axis] = entry
+    fit = shadow.fit_info
+    return {"model": {"kind": shadow.kind, "file": shadow.file, "fitted_at": fit.get("fitted_at")},
+            "axes": per_axis, "_pred": pred}
 
 
 def _log_probes(loop: Loop, probes: dict[str, tuple[np.ndarray, np.ndarray | None]], i: int, now: float) -> None:
@@ -247,6 +304,8 @@ def _run_cycles(
         for slot, axis in enumerate(wa):
             rows.commanded[i, axis] = commanded[slot]
         rows.pred[i] = loop.pred_um
+        if rows.parts.shape[1]:
+            rows.parts[i] = loop.model.part_um  # type: ignore[attr-defined]
         rows.corr[i] = loop.guard.out_um
         rows.enable[i] = loop.guard.enable
         rows.state[i] = loop.guard.state
@@ -259,7 +318,7 @@ def _run_stages(
     """The replay stage by stage, each over every row, with `_run_cycles`'s result."""
     t = np.asarray(log.t_s, dtype=float)
     n = len(t)
-    ok, degraded, hold, terms = _inputs_and_model(loop, source, log, rows.pred)
+    ok, degraded, hold, terms = _inputs_and_model(loop, source, log, rows.pred, rows.parts)
     guard = loop.guard
     dt = np.zeros(n)
     if loop.adapter is None:
@@ -282,7 +341,7 @@ def _run_stages(
 
 
 def _inputs_and_model(
-    loop: Loop, source: ReplaySource, log: Log, pred: np.ndarray
+    loop: Loop, source: ReplaySource, log: Log, pred: np.ndarray, parts: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, list[Any] | None]:
     """The read, check and model stages of every row: the prediction into `pred`; per row the
     guard's `inputs_ok` (the loop's ok, or degraded), the degraded flag, the hold reasons
@@ -344,6 +403,8 @@ def _inputs_and_model(
                     np.copyto(x, X[i])
                 loop.model_step(ok, now)
             pred[i] = loop.pred_um
+            if parts.shape[1]:  # a sum of contributions (never batched): each one's share
+                parts[i] = model.part_um  # type: ignore[attr-defined]
             ok_rows[i] = ok or loop.degraded
             deg_rows[i] = loop.degraded
             if terms is not None:
@@ -442,6 +503,10 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     use_inhibit = bool(held) and all(name in log.columns for name in held)
     result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt,
                         inhibit_cfg=inhibit if use_inhibit else None)
+    if cfg.shadow is not None:
+        shadow = build_model(cfg.shadow)
+        result.report["shadow"] = shadow_report(log, shadow, list(model.outputs), result.extra["pred_um"])
+        result.extra["shadow_um"] = result.report["shadow"].pop("_pred")
     if held:
         result.report["inhibit"] = "from the log" if use_inhibit else "not in the log: never held off"
     host = sink.cfg.host if isinstance(sink, FanucPmcSink) else None

@@ -296,6 +296,10 @@ class Guard:
         expected_s = max(rate, 0.0) * elapsed_s
         return abs(gap_s - expected_s) > jump_s + 0.25 * expected_s
 
+    def event(self, t: float, subject: str, event: str, reason: str) -> None:
+        """Record an event of a stage before the guard (a contribution's fault, clamp, recovery)."""
+        self._event(t, subject, event, reason, key=event if event in ("clamped", "unclamped") else None)
+
     def _event(self, t: float, subject: str, event: str, reason: str, key: str | None = None) -> None:
         """Record an event; `faults` counts it under `key` (default "event:reason")."""
         key = f"{event}:{reason}" if key is None else key

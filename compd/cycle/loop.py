@@ -30,6 +30,7 @@ from compd.cycle.frame import Frame
 from compd.cycle.guard import Guard
 from compd.cycle.histogram import bin_percentiles
 from compd.cycle.inhibit import Inhibit
+from compd.cycle.shadow import Shadow
 from compd.io.child import hosting
 from compd.io.mailbox import shared_buffer
 from compd.models.base import Model
@@ -183,6 +184,8 @@ class Loop:
         self.cycle_cpus: frozenset[int] = frozenset()
         # what the daemon's service needs from the loop, handed over after each cycle (compd.cycle.publish)
         self.publisher: Any = None
+        self.shadow: Shadow | None = None  # a candidate model beside the active one (compd.cycle.shadow)
+        self._probe_seq = 0
 
     @property
     def word_axes(self) -> list[int]:
@@ -377,6 +380,9 @@ class Loop:
             waiting = bool(self.adapter.inbox)  # what a probe needs (allocates) only when one waits
             self.adapter.apply(pred, now, self.pred_adapted_um, self.applied() if waiting else None,
                                self.model.linear_terms() if waiting else None)
+            if self.shadow is not None and self.adapter.probe_seq != self._probe_seq:  # scored on the same probes
+                self._probe_seq = self.adapter.probe_seq
+                self.shadow.probed(self.adapter.probe_um, pred, now)
             pred = self.pred_adapted_um
         t2 = perf()
         if self.inhibit is not None:
@@ -397,8 +403,12 @@ class Loop:
         t4 = perf()
         self.sink.write(self.word, g.out_um, g.enable, changed, now)
         t5 = perf()
+        t6 = t5
+        if self.shadow is not None:  # after the output: a candidate never delays what drives the machine
+            self.shadow.step(now)
+            t6 = perf()
         st.stage(0, t1 - t)
-        st.stage(1, t2 - t1)
+        st.stage(1, t2 - t1 + t6 - t5)  # the model stage's time includes the shadow's
         st.stage(2, t3 - t2)
         st.stage(3, t4 - t3)
         st.stage(4, t5 - t4)
@@ -422,7 +432,7 @@ class Loop:
                 self._next_model_s = now + ups
                 if self.on_model_state is not None:
                     self.on_model_state(self.model.get_state())
-        elif self.model_started and self.model.supports_degraded:
+        elif (self.model_started or self.model.starts_by_parts) and self.model.supports_degraded:
             # some inputs bad: predict from the others where they carry the information
             np.equal(self.frame.quality[self.guard.input_idx], 0, out=self._good)
             self.model.run_degraded(self.x, self._good, now, self.pred_um)

@@ -23,8 +23,10 @@ from compd.cycle.frame import Frame
 from compd.cycle.guard import Guard
 from compd.cycle.inhibit import Inhibit
 from compd.cycle.loop import Loop
+from compd.cycle.shadow import Shadow
 from compd.errors import BadInput
 from compd.models.base import Model
+from compd.models.contributions import Contributions
 from compd.registry import entry_point
 from compd.sinks.base import Sink
 from compd.sources.base import Source
@@ -86,6 +88,7 @@ class Pipeline:
     sink: Sink
     loop: Loop
     word_axis_names: list[str]
+    shadow: Shadow | None = None
 
 
 def build_pipeline(
@@ -100,6 +103,7 @@ def build_pipeline(
     observe: bool = False,
     adapt_cfg: AdaptConfig | None = None,
     inhibit_cfg: InhibitConfig | None = None,
+    shadow: Model | None = None,
 ) -> Pipeline:
     """Wire the stages: one frame of every source's signals, the guard on the model's
     inputs, the word's two axes (`codec.axes`, else the model's first two outputs),
@@ -125,6 +129,8 @@ def build_pipeline(
     for name in guard_cfg.signals:
         if name not in frame.index:
             raise BadInput(f"{name!r} is not a signal of any source", path=("guard", "signals", name))
+    if isinstance(model, Contributions):  # a contribution's faults and clamps are the guard's events
+        model.emit = guard.event
     inhibit = Inhibit(inhibit_cfg, model.outputs, frame) if inhibit_cfg is not None else None
     word_names = list(codec_cfg.axes or model.outputs[:2])
     for name in word_names:
@@ -154,7 +160,14 @@ def build_pipeline(
         loop.adapter.bind(frame.index)
         for s in sources:
             s.bind_probes(loop.adapter.inbox)
-    return Pipeline(sources, frame, model, guard, encoder, sink, loop, word_names)
+    if shadow is not None:  # a candidate beside the active model, driving nothing (compd.cycle.shadow)
+        try:
+            loop.shadow = Shadow(shadow, frame, guard_cfg, list(model.outputs))
+        except BadInput as e:
+            raise BadInput(e.message, path=("shadow", "inputs")) from None
+        if isinstance(shadow, Contributions):
+            shadow.emit = None
+    return Pipeline(sources, frame, model, guard, encoder, sink, loop, word_names, loop.shadow)
 
 
 def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
@@ -185,6 +198,7 @@ def from_config(cfg: Config, *, observe: bool | None = None) -> tuple[Pipeline, 
             sources=sources, model=build_model(cfg.model), sink=sink, clock=clock, period_s=lp.period_s,
             guard_cfg=top.guard, codec_cfg=top.codec, observe=top.observe if observe is None else observe,
             adapt_cfg=top.adapt, inhibit_cfg=top.inhibit,
+            shadow=build_model(cfg.shadow) if cfg.shadow is not None else None,
         )
     except BadInput as e:
         raise cfg.doc.error(e.message, e.keys) from None

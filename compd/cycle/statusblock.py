@@ -40,6 +40,7 @@ from compd.cycle.guard import POLICIES, STATE_NAMES
 from compd.cycle.histogram import bin_percentiles, over_range, range_limit_us
 from compd.cycle.inhibit import HOLD_NAMES
 from compd.io.mailbox import READ_TRIES, shared_buffer
+from compd.models.contributions import Contributions
 from compd.service.status import SCHEMA
 from compd.sinks.base import LINK_STATES
 from compd.sinks.observe import ObserveSink
@@ -82,6 +83,15 @@ AXIS: tuple[Field, ...] = (
     Field("saturated", "", "the correction is held at a limit: the guard's clamp (max_abs_um; the model asks for"
           " more) or the codec's range (the word byte's 63 LSB)", "flag"),
     Field("byte", "", "the axis's byte of the computed word (null: the axis is not in the word)", "hex"),
+    Field("shadow_um", "µm", "the shadow model's prediction for the axis (the correction it would command is its"
+          " negative; it drives nothing); null without a shadow on the axis, or without a good input vector"),
+)
+PART: tuple[Field, ...] = (
+    Field("prediction_um", "µm", "what the contribution adds to its axis's prediction: its model's, after its own"
+          " clamp, slew and fault policy (null: under `disable` with an input bad)"),
+    Field("raw_um", "µm", "the contribution's model's own prediction (null: an input bad)"),
+    Field("state", "", "the contribution's state on the axis (its own fault policy)", "name", _names(STATE_NAMES)),
+    Field("clamped", "", "the contribution's prediction is held at its own clamp", "flag"),
 )
 SIGNAL: tuple[Field, ...] = (
     Field("value", "signal unit", "the newest value the cycle read (°C for a PT100, rpm, µm, …)"),
@@ -130,6 +140,7 @@ def _index(fields: tuple[Field, ...]) -> dict[str, int]:
 
 
 A = _index(AXIS)
+P = _index(PART)
 S = _index(SIGNAL)
 L = _index(LOOP)
 _LINK = {name: i for i, name in enumerate(LINK_STATES)}
@@ -144,6 +155,7 @@ class Reading:
     loop: np.ndarray
     axes: np.ndarray
     signals: np.ndarray
+    parts: np.ndarray  # PART × the contributions' (name, axis) pairs (none for one model)
     hist: np.ndarray
     compute_hist: np.ndarray
     stages: np.ndarray  # (last, max, sum) × stage, ns
@@ -159,7 +171,10 @@ class StatusBlock:
         self.loop = loop
         n_axes, n_sig = len(loop.model.outputs), len(loop.frame.names)
         self.n_axes, self.n_signals = n_axes, n_sig
-        n = len(LOOP) + len(AXIS) * n_axes + len(SIGNAL) * n_sig
+        model = loop.model
+        self._sum = model if isinstance(model, Contributions) else None
+        n_parts = len(model.part_names) if isinstance(model, Contributions) else 0
+        n = len(LOOP) + len(AXIS) * n_axes + len(SIGNAL) * n_sig + len(PART) * n_parts
         self._buf = shared_buffer(8 * (_HEAD + n))
         self._head = memoryview(self._buf).cast("q")[:_HEAD]
         data = np.frombuffer(self._buf, dtype=np.float64, offset=8 * _HEAD)
@@ -167,7 +182,10 @@ class StatusBlock:
         self._lv = memoryview(self._buf)[8 * _HEAD: 8 * (_HEAD + len(LOOP))].cast("d")  # scalar stores: no numpy
         rest = data[len(LOOP):]
         self._axes = rest[: len(AXIS) * n_axes].reshape(len(AXIS), n_axes)
-        self._signals = rest[len(AXIS) * n_axes:].reshape(len(SIGNAL), n_sig)
+        rest = rest[len(AXIS) * n_axes:]
+        self._signals = rest[: len(SIGNAL) * n_sig].reshape(len(SIGNAL), n_sig)
+        self._parts = rest[len(SIGNAL) * n_sig:].reshape(len(PART), n_parts)
+        self._parts[:] = math.nan
         self._axes[:] = math.nan
         self._signals[:] = math.nan
         self._loop[:] = 0.0
@@ -230,11 +248,20 @@ class StatusBlock:
                 if sat[slot]:
                     ax[9, axis] = 1.0
                 ax[10, axis] = (word >> 8) & 0xFF if slot == 0 else word & 0xFF
+        if lp.shadow is not None:
+            np.copyto(ax[11], lp.shadow.pred_um)
         fr = lp.frame
         sg = self._signals
         np.copyto(sg[0], fr.values)
         np.copyto(sg[1], fr.quality)
         np.copyto(sg[2], fr.stamp_s)
+        cs = self._sum
+        if cs is not None:
+            pt = self._parts
+            np.copyto(pt[0], cs.part_um)
+            np.copyto(pt[1], cs.part_raw_um)
+            np.copyto(pt[2], cs.part_state)
+            np.copyto(pt[3], cs.part_clamped)
         d = time.perf_counter_ns() - t0
         if d > v[18]:
             v[18] = d
@@ -248,7 +275,7 @@ class StatusBlock:
             seq = head[0]
             if seq & 1:
                 continue
-            r = Reading(self._loop.copy(), self._axes.copy(), self._signals.copy(),
+            r = Reading(self._loop.copy(), self._axes.copy(), self._signals.copy(), self._parts.copy(),
                         np.frombuffer(st.hist, dtype=np.int64).copy(),
                         np.frombuffer(st.compute_hist, dtype=np.int64).copy(),
                         np.vstack([np.frombuffer(a, dtype=np.int64) for a in
@@ -287,6 +314,8 @@ def describe_static(loop: Any, observe: bool) -> dict[str, Any]:
         "signals": list(loop.frame.names),
         "policy": [POLICIES[p] for p in loop.guard.policy],
         "word_byte": [("high", "low")[slot_of[i]] if i in slot_of else None for i in range(len(loop.model.outputs))],
+        # the (contribution, axis) pairs of a sum of contributions, in the record's order
+        "parts": [list(p) for p in loop.model.part_names] if isinstance(loop.model, Contributions) else [],
     }
 
 
@@ -297,6 +326,7 @@ def describe_devices(loop: Any, processes: list[dict[str, Any]] | None = None) -
         "sources": [src.get_status() for src in loop.sources],
         "sink": loop.sink.get_status(),
         "adapt": loop.adapter.get_status() if loop.adapter is not None else None,
+        "shadow": loop.shadow.get_status() if loop.shadow is not None else None,
         "faults": dict(loop.guard.faults),
         "processes": processes,
         # the threads of Python in the cycle's process (on the wall clock: the cycle's alone)
@@ -374,6 +404,9 @@ def compose(r: Reading, desc: Description) -> dict[str, Any]:
         else:
             a["enable"] = bool(a["guard_enable"])
         axes[name] = a
+    for k, (part, axis) in enumerate(st.get("parts") or []):
+        c = {f.key: _value(f, float(r.parts[j, k])) for j, f in enumerate(PART)}
+        axes[axis].setdefault("contributions", {})[part] = c
     now = r.get("loop_time_s")
     signals = {}
     for i, name in enumerate(st["signals"]):
@@ -418,6 +451,8 @@ def compose(r: Reading, desc: Description) -> dict[str, Any]:
     }
     if dev.get("adapt") is not None:
         snap["adapt"] = dev["adapt"]
+    if dev.get("shadow") is not None:
+        snap["shadow"] = dev["shadow"]
     if dev.get("processes") is not None:
         snap["processes"] = dev["processes"]
     return _jsonable(snap)
@@ -442,7 +477,10 @@ def fields_markdown() -> str:
            "writes into its status record each cycle, under the key it has in status.json",
            "(docs/formats.md, \"Status file\"), with its unit and meaning. The same names reach the",
            "metrics, Sparkplug and OPC UA (docs/plant.md).", ""]
-    for title, where, fields in (("Per axis", "`axes.<axis>`", AXIS), ("Per signal", "`signals.<name>`", SIGNAL),
+    for title, where, fields in (("Per axis", "`axes.<axis>`", AXIS),
+                                 ("Per contribution (a sum of contributions only)",
+                                  "`axes.<axis>.contributions.<name>`", PART),
+                                 ("Per signal", "`signals.<name>`", SIGNAL),
                                  ("The loop", "the top level, `loop` and `publisher`", LOOP)):
         out += [f"## {title} ({where})", "", "| key | unit | kind | meaning |", "|---|---|---|---|"]
         for f in fields:

@@ -175,6 +175,12 @@ class Model(ABC):
         """Predict from the inputs where `good` is True; NaN for axes it cannot serve."""
         out.fill(np.nan)
 
+    @property
+    def starts_by_parts(self) -> bool:
+        """True when the model may run before every input has been good once (a sum of
+        contributions starts each on its own inputs); False: `start` waits for all of them."""
+        return False
+
     def linear_terms(self) -> list[tuple[float, float]] | None:
         """Per output axis (error slope µm/mm, reference position P0 mm) of the last
         evaluation, its output being the error at P0, for a sink that applies a

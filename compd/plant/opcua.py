@@ -267,10 +267,42 @@ def folders(snap: dict[str, Any]) -> dict[str, str]:
     axes = snap.get("axes")
     for axis in axes if isinstance(axes, dict) else ():
         out[f"compd.Axes.{axis}"] = f"the axis {axis}: the model's prediction, the guard's correction, the machine's word"
+        parts = axes[axis].get("contributions") if isinstance(axes[axis], dict) else None
+        if isinstance(parts, dict):
+            out[f"compd.Axes.{axis}.Contributions"] = (f"the contributions summed into the axis {axis}'s prediction,"
+                                                      " each limited on its own")
+            for name in parts:
+                out[f"compd.Axes.{axis}.Contributions.{name}"] = f"the contribution {name} to the axis {axis}"
     signals = snap.get("signals")
     for name in signals if isinstance(signals, dict) else ():
         unit = signal_unit(name)
         out[f"compd.Signals.{name}"] = f"the signal {name}" + (f" ({unit}, as its name says)" if unit else "")
+    return out
+
+
+def _contribution_variables(snap: dict[str, Any], axis: str, meaning: dict[str, str]) -> list[Variable]:
+    """A sum of contributions: each contribution's share of `axis`, its model's own prediction and
+    its state, under compd.Axes.<axis>.Contributions.<name>; its EURange ± its own clamp."""
+    parts = snap["axes"][axis].get("contributions")
+    if not isinstance(parts, dict):
+        return []
+    limits = {c.get("name"): (c.get("limits") or {}).get(axis) or {}
+              for c in (snap.get("model") or {}).get("contributions") or [] if isinstance(c, dict)}
+    out = []
+    for name in sorted(parts):
+        p = f"compd.Axes.{axis}.Contributions.{name}."
+        clamp = limits.get(name, {}).get("max_abs_um")
+        rng = (EuRange(-float(clamp), float(clamp), f"± the contribution {name}'s clamp (max_abs_um)")
+               if isinstance(clamp, int | float) else None)
+
+        def field(key: str, name: str = name) -> Reader:
+            return _good(lambda s: s["axes"][axis]["contributions"][name][key])
+
+        out += [
+            Variable(p + "PredictionUm", "Double", MICROMETRE, field("prediction_um"), meaning["prediction_um"], rng),
+            Variable(p + "RawUm", "Double", MICROMETRE, field("raw_um"), meaning["raw_um"], rng),
+            Variable(p + "State", "String", None, field("state"), meaning["state"]),
+        ]
     return out
 
 
@@ -279,10 +311,11 @@ def address_space(snap: dict[str, Any], guard: GuardConfig | None = None) -> lis
     from `guard` (the config's guard section; None: its defaults)."""
     from compd.config import GuardConfig
     from compd.cycle.loop import HIST_US
-    from compd.cycle.statusblock import AXIS, LOOP, SIGNAL, signal_unit
+    from compd.cycle.statusblock import AXIS, LOOP, PART, SIGNAL, signal_unit
 
     guard = guard if guard is not None else GuardConfig()
     ax = {f.key: _meaning(f) for f in AXIS}
+    pt = {f.key: _meaning(f) for f in PART}
     sg = {f.key: _meaning(f) for f in SIGNAL}
     lp = {f.key: _meaning(f) for f in LOOP}
     um = MICROMETRE
@@ -319,6 +352,9 @@ def address_space(snap: dict[str, Any], guard: GuardConfig | None = None) -> lis
             Variable(p + "ModelKind", "String", None, _good(lambda s: s["model"]["kind"]), DESCRIPTIONS["ModelKind"]),
             Variable(p + "FitDate", "String", None, _good(_fit_date), DESCRIPTIONS["FitDate"]),
         ]
+        out += _contribution_variables(snap, axis, pt)
+        if axis in ((snap.get("shadow") or {}).get("axes") or {}):  # a shadow model on the axis: what it predicts
+            out.append(Variable(p + "ShadowUm", "Double", um, field("shadow_um"), ax["shadow_um"], clamp))
     signals = snap.get("signals")
     for name in sorted(signals) if isinstance(signals, dict) else []:
         p = f"compd.Signals.{name}."

@@ -155,12 +155,32 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
              else bool(a["enable"])),
             (MetricDef(p + "state", D.String), str(a.get("state", ""))),
         ]
+        if a.get("shadow_um") is not None or axis in ((snap.get("shadow") or {}).get("axes") or {}):
+            out.append((MetricDef(p + "shadow_um", D.Double, "µm"), _num(a.get("shadow_um"))))
+        for name, c in sorted((a.get("contributions") or {}).items()):  # a sum of contributions: each one
+            q = f"{p}Contribution/{name}/"
+            out += [
+                (MetricDef(q + "prediction_um", D.Double, "µm"), _num(c.get("prediction_um"))),
+                (MetricDef(q + "raw_um", D.Double, "µm"), _num(c.get("raw_um"))),
+                (MetricDef(q + "state", D.String), str(c.get("state") or "")),
+            ]
     for name, s in sorted((snap.get("signals") or {}).items()):
         p = f"Signal/{name}/"
         out += [
             (MetricDef(p + "value", D.Double, signal_unit(name)), _num(s.get("value"))),
             (MetricDef(p + "quality", D.String), str(s.get("quality", ""))),
         ]
+    shadow = snap.get("shadow")
+    if isinstance(shadow, dict):  # the shadow model and its score on the probes, per axis
+        out.append((MetricDef("Shadow/kind", D.String), str((shadow.get("model") or {}).get("kind") or "")))
+        out.append((MetricDef("Shadow/file", D.String), str((shadow.get("model") or {}).get("file") or "")))
+        for axis, sc in sorted((shadow.get("axes") or {}).items()):
+            p = f"Shadow/{axis}/"
+            out += [
+                (MetricDef(p + "probes", D.UInt64), _count(sc.get("probes"))),
+                (MetricDef(p + "active_rms_um", D.Double, "µm"), _num(sc.get("active_rms_um"))),
+                (MetricDef(p + "shadow_rms_um", D.Double, "µm"), _num(sc.get("shadow_rms_um"))),
+            ]
     lp = snap.get("loop")
     if isinstance(lp, dict):
         late, comp = lp.get("lateness_us") or {}, lp.get("cycle_compute_us") or {}

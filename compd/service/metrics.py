@@ -19,7 +19,7 @@ import threading
 from typing import Any
 
 from compd import version
-from compd.cycle.statusblock import AXIS, A, signal_unit
+from compd.cycle.statusblock import AXIS, PART, A, P, signal_unit
 from compd.errors import BadInput
 from compd.service.threads import ServiceThread
 
@@ -139,6 +139,8 @@ class SnapshotCollector:
                 if reason is not None:
                     held.add_metric([axis, reason], 1.0 if a.get("inhibit") == reason else 0.0)
         yield from (corr, pred, applied, en, sat, st, held)
+        yield from _contribution_families(snap)
+        yield from _shadow_families(snap)
         from compd.sinks.base import LINK_STATES
 
         link = snap["sink"].get("link")
@@ -201,6 +203,50 @@ class SnapshotCollector:
             yield from (off, sd, acc, rej, slope)
 
 
+def _contribution_families(snap: dict[str, Any]) -> list[Any]:
+    """A sum of contributions: each one's share of its axis, its model's own prediction and its state."""
+    from prometheus_client.core import GaugeMetricFamily
+
+    share = GaugeMetricFamily("compd_contribution_meters", "What a contribution adds to its axis's prediction"
+                              " (after its own clamp, slew and fault policy)", labels=["axis", "contribution"])
+    raw = GaugeMetricFamily("compd_contribution_raw_meters", "A contribution's model's own prediction (NaN: an"
+                            " input bad)", labels=["axis", "contribution"])
+    state = GaugeMetricFamily("compd_contribution_state", "1 for a contribution's current state on its axis",
+                              labels=["axis", "contribution", "state"])
+    found = False
+    for axis, a in snap["axes"].items():
+        for name, c in (a.get("contributions") or {}).items():
+            found = True
+            share.add_metric([axis, name], _f(c.get("prediction_um")) * UM)
+            raw.add_metric([axis, name], _f(c.get("raw_um")) * UM)
+            for st in PART[P["state"]].names:
+                state.add_metric([axis, name, st], 1.0 if c.get("state") == st else 0.0)
+    return [share, raw, state] if found else []
+
+
+def _shadow_families(snap: dict[str, Any]) -> list[Any]:
+    """A shadow model: its prediction per axis, the probes it was scored on, and what each model left."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+    shadow = snap.get("shadow")
+    if not shadow:
+        return []
+    pred = GaugeMetricFamily("compd_shadow_prediction_meters", "The shadow model's predicted thermal error per axis"
+                             " (it drives nothing; NaN: no good input vector)", labels=["axis"])
+    probes = CounterMetricFamily("compd_shadow_probes", "Probes the active and the shadow model were scored on",
+                                 labels=["axis"])
+    rms = GaugeMetricFamily("compd_shadow_probe_rms_meters", "RMS over the probes of the measured error minus the"
+                            " model's prediction, for the active and the shadow model", labels=["axis", "model"])
+    for axis, a in snap["axes"].items():
+        if "shadow_um" in a and axis in (shadow.get("axes") or {}):
+            pred.add_metric([axis], _f(a.get("shadow_um")) * UM)
+    for axis, sc in (shadow.get("axes") or {}).items():
+        probes.add_metric([axis], sc.get("probes", 0))
+        rms.add_metric([axis, "active"], _f(sc.get("active_rms_um")) * UM)
+        rms.add_metric([axis, "shadow"], _f(sc.get("shadow_rms_um")) * UM)
+    return [pred, probes, rms]
+
+
 def _process_families(snap: dict[str, Any]) -> list[Any]:
     """`compd_process_*{process}` for the cycle's process, the service's and each one the
     supervisor watches, read from /proc by prometheus-client's process collector (a process
@@ -233,7 +279,10 @@ EXAMPLE_SNAPSHOT: dict[str, Any] = {
              "stages": {"model": {"mean_us": 1.0, "max_us": 1.0}}},
     "uptime_s": 1.0, "observe": False, "word": "0x0000",
     "axes": {"z": {"correction_um": 0.0, "prediction_um": 0.0, "enable": True, "saturated": False,
-                   "state": "normal"}},
+                   "state": "normal",
+                   "contributions": {"spindle": {"prediction_um": 0.0, "raw_um": 0.0, "state": "normal"}},
+                   "shadow_um": 0.0}},
+    "shadow": {"model": {"kind": "mlr"}, "axes": {"z": {"probes": 1, "active_rms_um": 1.0, "shadow_rms_um": 0.5}}},
     "sink": {"link": "up"}, "saturations": 0,
     "processes": [{"name": "modbus-link-fanuc_pmc", "pid": 1, "up": True, "restarts": 0, "lost": None}],
     "signals": {name: {"value": 1.0, "quality": "good", "age_s": 0.0}  # one of each unit's family
