@@ -242,6 +242,45 @@ def cmd_arm_model(args: argparse.Namespace) -> int:
     return 0
 
 
+def args_promote(sub: Any) -> None:
+    """`compd promote`'s arguments."""
+    s = sub.add_parser("promote", help="make the config's shadow model the model, through a validated reload",
+                       description="Make CONFIG's shadow section its model: the config's text is edited (the old model kept"
+                       " as comment lines, the file as it was kept as CONFIG.<stamp>.bak), checked as check-config"
+                       " checks it, and the daemon running it (its status file) reloads; waits until the status shows"
+                       " the promoted model. Refuses a shadow the daemon scored worse than the active model on the"
+                       " probes unless --force. Exit 1 when the reload did not take it.",
+                       epilog="example:\n  compd promote /etc/compd/compd.yaml\n  compd promote cell.yaml --dry-run")
+    s.add_argument("config")
+    s.add_argument("--force", action="store_true", help="promote a shadow the probes scored worse than the model")
+    s.add_argument("--dry-run", action="store_true", dest="dry_run", help="print the new config, change nothing")
+    s.add_argument("--no-reload", action="store_true", dest="no_reload",
+                   help="edit the config only: the running daemon takes it at its next reload or start")
+    s.add_argument("--wait-s", type=positive, default=60.0, dest="wait_s", metavar="S",
+                   help="how long to wait for the daemon's reload (default 60)")
+
+
+@command("promote", args_promote)
+def cmd_promote(args: argparse.Namespace) -> int:
+    from compd.commissioning.promote import promote
+
+    r = promote(args.config, force=args.force, reload=not args.no_reload, wait_s=args.wait_s, dry_run=args.dry_run)
+    if args.dry_run:
+        sys.stdout.write(r["text"])
+        return 0
+    what = f"{r['model']}" + (f" ({r['model_file']})" if r.get("model_file") else "")
+    print(f"compd promote: {args.config}: the shadow is the model now: {what}; the file as it was: {r['backup']}")
+    if r["reloaded"] is None:
+        print("compd promote: no daemon runs this config (or --no-reload): it takes the model at its next start")
+        return 0
+    if not r["reloaded"]:
+        print(f"compd promote: the daemon (pid {r['pid']}) did not show the promoted model within {args.wait_s:g} s:"
+              " see its log (reload_rejected); the config as it was is in the .bak file", file=sys.stderr)
+        return 1
+    print(f"compd promote: the daemon (pid {r['pid']}) reloaded and runs the promoted model")
+    return 0
+
+
 def args_opcua_cert(sub: Any) -> None:
     """`compd opcua-cert`'s arguments."""
     s = sub.add_parser("opcua-cert", help="write a self-signed certificate and key for the OPC UA server",

@@ -439,6 +439,10 @@ class Loop:
             self.degraded = True
         else:
             self.pred_um.fill(math.nan)
+        if self.model.state_dirty:
+            self.model.state_dirty = False
+            if self.on_model_state is not None:
+                self.on_model_state(self.model.get_state())
         if ok:
             self.degraded = False
 

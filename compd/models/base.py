@@ -108,6 +108,9 @@ class Model(ABC):
     kind: ClassVar[str]
     Params: ClassVar[type[Strict]]
     update_period_s: float = 0.0
+    # set by a model whose memory changed outside `start` (a contribution of a sum started): the
+    # loop hands the state on for persistence and clears it
+    state_dirty: bool = False
     # the params `compd status` shows as the model's key coefficients (`coefficients`)
     summary_keys: ClassVar[tuple[str, ...]] = ()
     per_axis_keys: ClassVar[tuple[str, ...]] = ()  # those of them that hold one value per output axis

@@ -194,6 +194,7 @@ class Contributions(Model):
                     if not part.started:
                         m.start(part.x, t_s)
                         part.started = True
+                        self.state_dirty = True  # its T0 and memory are worth keeping now
                     m.run(part.x, t_s, part.raw)
                     ups = m.update_period_s
                     if ups > 0:

@@ -234,6 +234,17 @@ def _short(value: Any) -> str:
 def _model_lines(model: dict[str, Any]) -> list[str]:
     """What is running, per axis: the file, kind, fit date and score, key coefficients, the
     latched start temperatures (T0)."""
+    parts = model.get("contributions")
+    if isinstance(parts, list):  # a sum of contributions: each one's own model
+        out = []
+        for p in parts:
+            if isinstance(p, dict):
+                out.append(f"  contribution {p.get('name')}: {p.get('kind')} ({', '.join(p.get('inputs') or [])}"
+                           f" -> {', '.join(p.get('outputs') or [])})")
+                own = (model.get("state") or {}).get(p.get("name"))  # the sum's state is the newest, by name
+                out += ["  " + ln for ln in _model_lines({**p, "contributions": None,
+                                                           "state": own if isinstance(own, dict) else p.get("state")})]
+        return out
     fit = model.get("fit") or {}
     coef = dict(model.get("coefficients") or {})
     lines = [
@@ -339,6 +350,22 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
             f" {str(a.get('inhibit') or a.get('state', '?')):<11} {a.get('policy', '?'):<13}"
             f" {'yes' if a.get('saturated') else 'no'}"
         )
+        for part, c in (a.get("contributions") or {}).items():  # a sum of contributions: each one's share
+            lines.append(
+                f"  + {part:<16} {_num(c.get('prediction_um'), '10.2f')} (its model {_num(c.get('raw_um'), '.2f')})"
+                f" {c.get('state', '?')}{' clamped' if c.get('clamped') else ''}"
+            )
+    shadow = data.get("shadow")
+    if isinstance(shadow, dict):  # the candidate beside the model, driving nothing
+        sm = shadow.get("model") or {}
+        lines.append(f"shadow: {sm.get('kind', '?')}" + (f" {sm['file']}" if sm.get("file") else "")
+                     + " (drives nothing; scored on the probes)")
+        for axis, sc in (shadow.get("axes") or {}).items():
+            pred = (data.get("axes", {}).get(axis) or {}).get("shadow_um")
+            lines.append(
+                f"  {axis:<6} predicts {_num(pred, '.2f')} um; {sc.get('probes', 0)} probes: RMS active"
+                f" {_num(sc.get('active_rms_um'), '.2f')} um, shadow {_num(sc.get('shadow_rms_um'), '.2f')} um"
+            )
     lines.append(f"{'signal':<14} {'value':>10} {'quality':<13} {'age_s':>8}")
     for name, s in data.get("signals", {}).items():
         lines.append(
