@@ -1,4 +1,4 @@
-"""Models in on purpose: a model from the command topic, validated like a reload, applied only when allowed and armed.
+"""Models in on purpose: a model from the command topic, validated like a reload, applied only when allowed and armed; a shadow without arming.
 
 A refitted model reaches a machine as the text of a model file (the YAML `compd fit`
 writes) in an NCMD `Node Control/Model` or DCMD `Model/apply` metric
@@ -24,6 +24,30 @@ writes) in an NCMD `Node Control/Model` or DCMD `Model/apply` metric
    file next to the buffer meanwhile). If the reload did not take it (the old pipeline
    still runs `RELOAD_WAIT_S` later), the previous file is put back and the answer is
    `failed`.
+
+A model may come as the **shadow** instead: NCMD `Node Control/Shadow` or DCMD
+`Model/shadow`, the same text. A shadow drives nothing (compd/cycle/shadow.py), so it is
+not armed for; what makes it the model later is `compd promote`, at the machine.
+`RemoteModels.handle(text, request, "shadow")` answers it:
+
+1. `telemetry.remote_models.allow` must be true, the text at most `max_bytes`, and the
+   config's `shadow` section must name one model file (`shadow: {kind, file}`): a config
+   without one, or a shadow given as inline params or as contributions, is `refused`
+   (nothing to replace). The machine need not be armed;
+2. checked as a reload would check it, against the shadow section: the config read again
+   with the shadow pointing at the candidate; the kind must be the shadow section's, its
+   axes among the running model's, the pipeline must build with it as the shadow (its
+   inputs signals a source gives), and its file must not be one the active model reads
+   (else sending a shadow would change what drives the machine). No clamp check: it
+   drives no axis;
+3. then as for a model: the shadow file copied aside (`<file>.<UTC time>.bak`), the
+   candidate renamed over it, SIGHUP; `accepted`, then `applied` when the reloaded
+   pipeline's shadow is the file sent, or `failed` (and the previous shadow file back).
+
+`Model/apply` needs the config's model to be one model file too: a model given as inline
+params or as contributions is `refused` (a config may allow remote models for its shadow
+alone). One model (or shadow) is applied at a time; the request waiting for its reload
+records which file it replaced.
 """
 
 from __future__ import annotations
@@ -52,6 +76,8 @@ from compd.plant.spec import RemoteSpec
 
 log = logging.getLogger("compd.telemetry")
 
+TARGETS = ("model", "shadow")  # what a model sent replaces: the model section's file, or the shadow section's
+FORMS = {"params": "given as inline params", "contributions": "a set of contributions"}
 RELOAD_WAIT_S = 30.0  # a reload that has not replaced this service by then did not take the model
 MAX_REJECTED_KEPT = 5  # rejected models kept beside the model file for the engineer; more are not kept
 
@@ -96,58 +122,87 @@ class RemoteModels:
         return self._signal_armed or time.monotonic() < self._armed_until
 
     # ---------------------------------------------------------------- a model
-    def handle(self, text: str, request: str) -> dict[str, Any]:
-        """Validate and apply a model file's text (see the module); the answer."""
+    def handle(self, text: str, request: str, target: str = "model") -> dict[str, Any]:
+        """Validate and apply a model file's text as the model or as the shadow (`target`, see
+        the module); the answer."""
         spec = self.spec
+        if target not in TARGETS:
+            return self._refuse(f"unknown target {target[:40]!r} (known: {', '.join(TARGETS)})", "model")
+        shadow = target == "shadow"
         size = len(text.encode("utf-8"))
         if size > spec.max_bytes:
-            return self._refuse(f"the model is {size} bytes, more than remote_models.max_bytes ({spec.max_bytes})")
-        if not self.armed():
-            return self._refuse("not armed: arm it at the machine (compd arm-model, or the arming signal)")
+            return self._refuse(f"the {target} is {size} bytes, more than remote_models.max_bytes ({spec.max_bytes})",
+                                target)
+        mfile = self._file(target)
+        if isinstance(mfile, str):
+            return self._refuse(mfile, target)
+        if shadow and (why := _shadow_read_by_model(spec)) is not None:
+            return self._refuse(why, target)  # the config's doing, not the text's: nothing written
+        if not shadow and not self.armed():
+            return self._refuse("not armed: arm it at the machine (compd arm-model, or the arming signal)", target)
         if self._pending is not None:
-            return self._refuse("a model sent before is still being applied")
-        mfile = spec.model_file
+            return self._refuse("a model sent before is still being applied", target)
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
         candidate = mfile.with_name(f".{mfile.name}.remote-{stamp}")
         try:
             candidate.write_text(text, encoding="utf-8")
         except OSError as e:
-            return self._refuse(f"cannot write {candidate}: {e.strerror or e}")
+            return self._refuse(f"cannot write {candidate}: {e.strerror or e}", target)
         try:
-            why = validate(spec, candidate)
+            why = validate(spec, candidate, target)
         except Exception as e:  # a check that broke is a refusal, never a crash of the service
             why = f"{type(e).__name__}: {e}"
         if why is not None:
             if len(list(mfile.parent.glob(f"{glob_escape(mfile.name)}.rejected-*"))) >= MAX_REJECTED_KEPT:
                 candidate.unlink(missing_ok=True)  # a peer cannot fill the disk with what it sends
-                return self._refuse(f"invalid model: {why} (not kept: {MAX_REJECTED_KEPT} rejected models are"
-                                    " kept already)")
+                return self._refuse(f"invalid {target}: {why} (not kept: {MAX_REJECTED_KEPT} rejected models are"
+                                    " kept already)", target)
             kept = candidate.with_name(f"{mfile.name}.rejected-{stamp}")
             os.replace(candidate, kept)  # kept for the engineer who wants to see what came
-            return self._refuse(f"invalid model: {why} (kept as {kept.name})")
+            return self._refuse(f"invalid {target}: {why} (kept as {kept.name})", target)
         backup = mfile.with_name(f"{mfile.name}.{stamp}.bak")
         try:
             shutil.copy2(mfile, backup)
             os.replace(candidate, mfile)
         except OSError as e:
-            return self._refuse(f"cannot replace {mfile}: {e.strerror or e}")
+            candidate.unlink(missing_ok=True)
+            return self._refuse(f"cannot replace {mfile.name}: {e.strerror or e}", target)
         sha = hashlib.sha256(text.encode("utf-8")).hexdigest()
-        self._armed_until = -math.inf  # one model per arming
-        pending = {"request": request, "sha256": sha, "backup": str(backup), "t_unix_s": time.time()}
+        if not shadow:
+            self._armed_until = -math.inf  # one model per arming (a shadow is not armed for)
+        pending = {"request": request, "target": target, "file": str(mfile), "sha256": sha, "backup": str(backup),
+                   "t_unix_s": time.time()}
         try:
             spec.pending_path.write_text(json.dumps(pending), encoding="utf-8")
         except OSError as e:
             log.warning("cannot write %s: %s", spec.pending_path, e, extra={"event": "model_remote"})
         self._pending = {**pending, "deadline": time.monotonic() + RELOAD_WAIT_S}
-        log.warning("remote model accepted (request %s, sha256 %s); reloading", request, sha[:12],
-                    extra={"event": "model_remote", "result": "accepted", "request": request, "sha256": sha})
+        log.warning("remote %s accepted (request %s, sha256 %s); reloading", target, request, sha[:12],
+                    extra={"event": "model_remote", "result": "accepted", "target": target, "request": request,
+                           "sha256": sha})
         os.kill(spec.daemon_pid, signal.SIGHUP)
-        return {"result": "accepted", "reason": "validated; the daemon reloads", "sha256": sha,
+        return {"result": "accepted", "target": target, "reason": "validated; the daemon reloads", "sha256": sha,
                 "backup": backup.name}
 
+    def _file(self, target: str) -> Path | str:
+        """The file a `target` sent replaces, or why there is none (a refusal)."""
+        spec = self.spec
+        if target == "shadow":
+            if spec.shadow_form is None:
+                return ("the config has no shadow section: a shadow sent replaces the model file its shadow section"
+                        " names (shadow: {kind, file})")
+            if spec.shadow_file is None:
+                return (f"the config's shadow is {FORMS.get(spec.shadow_form, spec.shadow_form)}: only a shadow"
+                        " that is one model file (shadow: {kind, file}) can be replaced remotely")
+            return spec.shadow_file
+        if spec.model_file is None:
+            return (f"the config's model is {FORMS.get(spec.model_form, spec.model_form)}: Model/apply replaces"
+                    " a model that is one model file (model: {kind, file})")
+        return spec.model_file
+
     def started(self) -> dict[str, Any] | None:
-        """At the start of a pipeline's service: the answer to a model a reload has now applied
-        (or not), if one was waiting for it."""
+        """At the start of a pipeline's service: the answer to a model (or shadow) a reload has now
+        applied (or not), if one was waiting for it."""
         path = self.spec.pending_path
         try:
             pending = json.loads(path.read_text(encoding="utf-8"))
@@ -157,17 +212,20 @@ class RemoteModels:
         if not isinstance(pending, dict):
             return None
         request = str(pending.get("request", ""))
-        if pending.get("sha256") == self.spec.model_sha256:
+        target = "shadow" if pending.get("target") == "shadow" else "model"
+        running = self.spec.shadow_sha256 if target == "shadow" else self.spec.model_sha256
+        if running is not None and pending.get("sha256") == running:
             self.applied += 1
-            log.warning("remote model applied (request %s)", request,
-                        extra={"event": "model_remote", "result": "applied", "request": request})
-            return {"request": request, "result": "applied", "sha256": self.spec.model_sha256}
-        return {"request": request, "result": "failed",
-                "reason": "the reloaded pipeline does not run the model sent (it was replaced again)"}
+            log.warning("remote %s applied (request %s)", target, request,
+                        extra={"event": "model_remote", "result": "applied", "target": target, "request": request})
+            return {"request": request, "result": "applied", "target": target, "sha256": running}
+        return {"request": request, "result": "failed", "target": target,
+                "reason": f"the reloaded pipeline does not run the {target} sent (it was replaced again)"}
 
     def _undo(self, p: dict[str, Any]) -> dict[str, Any]:
         """The reload did not take the model: the previous file back (the rejected one kept)."""
-        mfile = self.spec.model_file
+        target = p.get("target", "model")
+        mfile = Path(p["file"])
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
         try:
             shutil.copy2(mfile, mfile.with_name(f"{mfile.name}.rejected-{stamp}"))
@@ -175,38 +233,87 @@ class RemoteModels:
         except OSError as e:
             log.error("cannot put %s back: %s", mfile, e, extra={"event": "model_remote"})
         self.spec.pending_path.unlink(missing_ok=True)
-        log.error("remote model not applied: the reload did not take it; the previous model file is back",
-                  extra={"event": "model_remote", "result": "failed", "request": p["request"]})
-        return {"request": p["request"], "result": "failed",
-                "reason": "the reload did not take it (see the daemon's reload_rejected line); previous model file back"}
+        log.error("remote %s not applied: the reload did not take it; the previous %s file is back", target, target,
+                  extra={"event": "model_remote", "result": "failed", "target": target, "request": p["request"]})
+        return {"request": p["request"], "result": "failed", "target": target,
+                "reason": f"the reload did not take it (see the daemon's reload_rejected line); previous {target} file"
+                          " back"}
 
-    def _refuse(self, why: str) -> dict[str, Any]:
+    def _refuse(self, why: str, target: str) -> dict[str, Any]:
         self.refused += 1
-        log.warning("remote model refused: %s", why, extra={"event": "model_remote", "result": "refused",
-                                                             "reason": why})
-        return {"result": "refused", "reason": why}
+        log.warning("remote %s refused: %s", target, why, extra={"event": "model_remote", "result": "refused",
+                                                                 "target": target, "reason": why})
+        return {"result": "refused", "target": target, "reason": why}
 
 
-def validate(spec: RemoteSpec, candidate: Path) -> str | None:
-    """Why the model file `candidate` cannot replace the running one (None: it can), checked as
-    a reload would: the config read again with its model section pointing at `candidate`."""
+def validate(spec: RemoteSpec, candidate: Path, target: str = "model") -> str | None:
+    """Why the model file `candidate` cannot replace the running model's (`target` "model") or
+    the shadow's ("shadow") file (None: it can), checked as a reload would: the config read
+    again with its model (or shadow) section pointing at `candidate`."""
     from compd.config import load_config, resolve_model
     from compd.cycle import pipeline
 
+    shadow = target == "shadow"
     try:
         cfg = load_config(spec.config)
-        section = dict(cfg.top.model)
+        raw = cfg.top.shadow if shadow else cfg.top.model
+        if not isinstance(raw, dict) or "contributions" in raw or raw.get("file") is None:
+            return f"the config's {target} section names no model file now (it was edited since the daemon read it)"
+        section = dict(raw)
         section["file"] = str(candidate)
-        model = resolve_model(section, cfg.doc, ("model",), Path(cfg.file).parent)
+        model = resolve_model(section, cfg.doc, (target,), Path(cfg.file).parent)
     except BadInput as e:
         return _private(str(e), spec, candidate)
-    if list(model.outputs) != list(spec.outputs):
+    if shadow:
+        lacking = [a for a in model.outputs if a not in spec.outputs]
+        if lacking:
+            return (f"its axes {model.outputs} are not among the running model's {spec.outputs} (a shadow stands"
+                    f" beside the model on its axes: {lacking[0]!r} is none of them)")
+        if (why := _shadow_read_by_model(spec, cfg)) is not None:
+            return why
+    elif list(model.outputs) != list(spec.outputs):
         return f"its axes {model.outputs} are not the running model's {spec.outputs}"
     try:
-        pipeline.check(dataclasses.replace(cfg, model=model))  # wiring, signals (opens no device)
+        # wiring, signals (opens no device)
+        pipeline.check(dataclasses.replace(cfg, shadow=model) if shadow else dataclasses.replace(cfg, model=model))
     except BadInput as e:
         return _private(str(e), spec, candidate)
+    if shadow:
+        return None  # it drives nothing: no clamp to keep inside
     return clamp_check(model, cfg.top.guard)
+
+
+def model_files(spec: Any) -> list[str]:
+    """The model files a resolved model (compd.config.ModelSpec) reads: its own, or its contributions'."""
+    files = [spec.file] if spec.file else []
+    files += [p.file for p in getattr(spec.params, "contributions", None) or () if getattr(p, "file", None)]
+    return files
+
+
+def _shadow_read_by_model(spec: RemoteSpec, cfg: Any = None) -> str | None:
+    """Why the shadow's file cannot be replaced without arming: the active model (of `cfg`, else of
+    the config read now) reads it too; None when it does not (or the config cannot be read: the
+    check as a reload would check it says why)."""
+    from compd.config import load_config
+
+    if spec.shadow_file is None:
+        return None
+    if cfg is None:
+        try:
+            cfg = load_config(spec.config)
+        except BadInput:
+            return None
+    if not any(_same_file(spec.shadow_file, f) for f in model_files(cfg.model)):
+        return None
+    return (f"the shadow's file {spec.shadow_file.name} is one the active model reads: replacing it would change what"
+            " drives the machine (give the shadow a file of its own, or send the model with Model/apply, armed)")
+
+
+def _same_file(a: Path, b: str | Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
 
 
 # --- the model against the guard's clamp, over the readings it was fitted on ---------------------
@@ -394,9 +501,10 @@ def _private(text: str, spec: RemoteSpec, candidate: Path) -> str:
     """A refusal as the plant sees it: the model sent by that name, the machine's files by
     their names only (no folder of this host goes out over MQTT)."""
     text = text.replace(str(candidate), "the model sent")
-    for path in (Path(spec.config).resolve(), Path(spec.config), spec.model_file):
-        text = text.replace(str(path), path.name)
+    for path in (Path(spec.config).resolve(), Path(spec.config), spec.model_file, spec.shadow_file):
+        if path is not None:
+            text = text.replace(str(path), path.name)
     return text
 
 
-__all__ = ["RemoteModels", "clamp_check", "input_ranges", "largest_predictions", "validate"]
+__all__ = ["TARGETS", "RemoteModels", "clamp_check", "input_ranges", "largest_predictions", "model_files", "validate"]

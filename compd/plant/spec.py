@@ -65,17 +65,23 @@ def buffer_path(cfg: Any, env: dict[str, str] | None = None) -> Path:
 
 @dataclass
 class RemoteSpec:
-    """What the remote model handler needs (`telemetry.remote_models` with `allow: true`)."""
+    """What the remote model handler needs (`telemetry.remote_models` with `allow: true`): the
+    files a model sent may replace (the model's, the shadow's; None where that section names
+    none), what they hold now, and how the arming works."""
 
     config: str
-    model_file: Path
-    model_sha256: str
+    model_file: Path | None  # None: the model is inline params or contributions (Model/apply refused)
+    model_sha256: str | None
     outputs: list[str]
     arm_signal: str | None
     arm_window_s: float
     max_bytes: int
     daemon_pid: int
     pending_path: Path
+    shadow_file: Path | None = None  # the shadow section's model file: what Model/shadow replaces
+    shadow_sha256: str | None = None
+    model_form: str = "file"  # how the model section gives it: file, params or contributions
+    shadow_form: str | None = None  # ... and the shadow section (None: there is none)
 
 
 @dataclass(kw_only=True)
@@ -114,6 +120,13 @@ class TelemetrySpec(BrokerSpec):
     primary_host_id: str | None = None  # data flows only while this Sparkplug host is online
 
 
+def _model_form(section: Any, spec: Any) -> str:
+    """How a model section (raw) gives its model, resolved as `spec`: "contributions", "file" or "params"."""
+    if isinstance(section, dict) and "contributions" in section:
+        return "contributions"
+    return "file" if spec.file is not None else "params"
+
+
 def file_sha256(path: Path) -> str:
     try:
         return hashlib.sha256(Path(path).read_bytes()).hexdigest()
@@ -142,7 +155,8 @@ def broker_spec(cfg: Any) -> BrokerSpec:
 
 def telemetry_spec(cfg: Any, signals: list[str], outputs: list[str], snapshot_period_s: float) -> TelemetrySpec:
     """The telemetry section as a TelemetrySpec; a config error for a file that cannot be read,
-    an arming signal no source gives, or remote models without a writable model file."""
+    an arming signal no source gives, or remote models without a model file to replace (the
+    model's or the shadow's) or with one in a folder that is not writable."""
     tel = cfg.top.telemetry
     key = ("telemetry",)
     broker = broker_spec(cfg)
@@ -154,17 +168,26 @@ def telemetry_spec(cfg: Any, signals: list[str], outputs: list[str], snapshot_pe
     if rm.arm_signal is not None and rm.arm_signal not in signals:
         raise cfg.doc.error(f"no source gives a signal {rm.arm_signal!r}", (*key, "remote_models", "arm_signal"))
     if rm.allow:
-        if cfg.model.file is None:
-            raise cfg.doc.error("remote models replace the model file: give model.file, not inline params",
-                                (*key, "remote_models", "allow"))
-        mfile = Path(cfg.model.file)
-        if not os.access(mfile.parent, os.W_OK):
-            raise cfg.doc.error(f"remote models replace {mfile}, but its folder is not writable",
-                                (*key, "remote_models", "allow"))
+        # a model sent replaces a model file: the model section's (Model/apply, armed) or the
+        # shadow section's (Model/shadow); at least one of them must name one
+        mform = _model_form(cfg.top.model, cfg.model)
+        sform = _model_form(cfg.top.shadow, cfg.shadow) if cfg.shadow is not None else None
+        mfile = Path(cfg.model.file) if mform == "file" else None
+        sfile = Path(cfg.shadow.file) if sform == "file" else None
+        if mfile is None and sfile is None:
+            raise cfg.doc.error("remote models replace a model file: give model.file (or a shadow section with a"
+                                " file), not inline params or contributions", (*key, "remote_models", "allow"))
+        for f in (mfile, sfile):
+            if f is not None and not os.access(f.parent, os.W_OK):
+                raise cfg.doc.error(f"remote models replace {f}, but its folder is not writable",
+                                    (*key, "remote_models", "allow"))
         remote = RemoteSpec(
-            config=str(Path(cfg.file).resolve()), model_file=mfile, model_sha256=file_sha256(mfile),
+            config=str(Path(cfg.file).resolve()), model_file=mfile,
+            model_sha256=file_sha256(mfile) if mfile is not None else None,
             outputs=list(outputs), arm_signal=rm.arm_signal, arm_window_s=rm.arm_window_s, max_bytes=rm.max_bytes,
             daemon_pid=os.getpid(), pending_path=Path(f"{bpath}.model-pending.json"),
+            shadow_file=sfile, shadow_sha256=file_sha256(sfile) if sfile is not None else None,
+            model_form=mform, shadow_form=sform,
         )
     return TelemetrySpec(
         **dataclasses.asdict(broker),

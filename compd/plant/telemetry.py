@@ -37,7 +37,9 @@ Sparkplug B as compd speaks it (docs/plant.md):
   births just sent, and the exceptions run over the records in the order they go out;
 * NCMD `Node Control/Rebirth` → births again; NCMD `Node Control/Model` or DCMD
   `Model/apply` (a model file's text) → `commands` (compd/plant/remote_model.py), whose
-  answer goes out as NDATA `Model/result`;
+  answer goes out as NDATA `Model/result`; NCMD `Node Control/Shadow` or DCMD
+  `Model/shadow` likewise, the text meant for the shadow model (declared in the births
+  of a node that takes remote models);
 * data is published with QoS 1, not the QoS 0 the specification asks for, so that the
   broker acknowledges each sample and the buffer knows what it may forget.
 """
@@ -84,6 +86,10 @@ MAX_COMMAND_BYTES = 16 << 20  # an NCMD/DCMD longer than this is not even decode
 NODE_REBIRTH = "Node Control/Rebirth"
 NODE_MODEL = "Node Control/Model"
 DEVICE_MODEL = "Model/apply"
+NODE_SHADOW = "Node Control/Shadow"
+DEVICE_SHADOW = "Model/shadow"
+# the commands that carry a model file's text, and what it replaces (RemoteModels.handle's target)
+MODEL_COMMANDS = {NODE_MODEL: "model", DEVICE_MODEL: "model", NODE_SHADOW: "shadow", DEVICE_SHADOW: "shadow"}
 
 # Report by exception: a Double metric goes out again when it has moved more than this from the
 # value last sent (so what a host holds is never further than this from the truth, and is exact
@@ -211,7 +217,15 @@ EVENT_METRICS = (MetricDef("Event/kind", DataType.String), MetricDef("Event/subj
                  MetricDef("Event/reason", DataType.String))
 SAMPLE_METRIC = MetricDef("Sample", DataType.UInt64)
 # what a host may write to the device (DCMD): declared in the DBIRTH, so that it has an alias
-DEVICE_COMMANDS = (MetricDef(DEVICE_MODEL, DataType.String),)
+DEVICE_COMMANDS = (MetricDef(DEVICE_MODEL, DataType.String), MetricDef(DEVICE_SHADOW, DataType.String))
+# ... the shadow's only by a node that takes remote models (one that takes none declares
+# Model/apply alone, as before shadows; it answers either by name all the same)
+SHADOW_COMMANDS = frozenset((NODE_SHADOW, DEVICE_SHADOW))
+
+
+def declares(command: str, spec: TelemetrySpec) -> bool:
+    """Whether the births declare this command metric (see SHADOW_COMMANDS)."""
+    return command not in SHADOW_COMMANDS or spec.remote is not None
 
 
 def log_in(client: Any, broker: BrokerSpec) -> None:
@@ -232,11 +246,11 @@ class Telemetry:
     def __init__(
         self,
         spec: TelemetrySpec,
-        commands: Callable[[str, str], dict[str, Any]] | None = None,
+        commands: Callable[[str, str, str], dict[str, Any]] | None = None,
         armed: Callable[[], bool] | None = None,
     ) -> None:
         self.spec = spec
-        self.commands = commands  # (model text, request id) → the answer, on this thread
+        self.commands = commands  # (model text, request id, "model" or "shadow") → the answer, on this thread
         self.armed = armed or (lambda: False)
         self.buffer: StoreAndForward | None = None
         self._inbox: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
@@ -552,7 +566,8 @@ class Telemetry:
         self._last_failure = None  # working again: a failure after this is said again
         # the device's birth declares every metric its DDATA ever carries (Sparkplug 3.0): the
         # sample's, and the events' (null until an event sets them); and what a DCMD may write
-        born = [*self._latest, *((d, None) for d in EVENT_METRICS), *((d, "") for d in DEVICE_COMMANDS)]
+        born = [*self._latest, *((d, None) for d in EVENT_METRICS),
+                *((d, "") for d in DEVICE_COMMANDS if declares(d.name, self.spec))]
         self._defs = {d.name: d for d, _ in born}
         node = self._node_metrics(birth=True)
         # every metric with its name and alias; the aliases stay what they were for a metric born before
@@ -582,7 +597,7 @@ class Telemetry:
         out: list[tuple[MetricDef, Any]] = []
         if birth:
             out += [(MetricDef("bdSeq", D.UInt64), self._bdseq), (MetricDef(NODE_REBIRTH, D.Boolean), False),
-                    (MetricDef(NODE_MODEL, D.String), "")]
+                    *((MetricDef(n, D.String), "") for n in (NODE_MODEL, NODE_SHADOW) if declares(n, self.spec))]
             out += [(MetricDef(f"Properties/{k}", D.String), v) for k, v in sorted(self.spec.properties.items())]
         out += [
             (MetricDef("Telemetry/buffered", D.UInt64), int(st.get("records", 0))),
@@ -698,9 +713,9 @@ class Telemetry:
                 unknown.append(f"alias {m.alias}" if m.alias is not None else "a metric with neither name nor alias")
             elif name == NODE_REBIRTH and m.value is True:
                 rebirth = True
-            elif name in (NODE_MODEL, DEVICE_MODEL):
+            elif name in MODEL_COMMANDS:
                 if modelled:
-                    unknown.append(name)  # one model per command
+                    unknown.append(name)  # one model (or shadow) per command
                     continue
                 modelled = True
                 request = str(payload.uuid or payload.timestamp_ms or "")
@@ -712,7 +727,7 @@ class Telemetry:
                     self._answer({"request": request, "result": "refused",
                                   "reason": "this compd takes no remote models (telemetry.remote_models.allow)"})
                 else:
-                    self._answer({"request": request, **self.commands(m.value, request)})
+                    self._answer({"request": request, **self.commands(m.value, request, MODEL_COMMANDS[name])})
             else:
                 unknown.append(name)
         if rebirth:
