@@ -66,12 +66,16 @@ test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU) $(NODE_OPCUA)
 
 # the randomized family: 20 machines per type, fitted on a training day and replayed on an unseen one,
 # gated on issue 29's goals (scripts/family.py); closed loop on every machine's unseen day (issue 5):
-# hil_sim serve + compd run over Modbus TCP; then 200 telemetry publishers into one mosquitto for
-# 10 min, and with the broker killed for 60 s (issue 20). Every step runs; any that fails fails accept.
+# hil_sim serve + compd run over Modbus TCP; the vmc's spindle and column contributions summed on Z, in
+# closed loop and with a sensor unplugged (issue 32, scripts/accept_contributions.py); then 200 telemetry
+# publishers into one mosquitto for 10 min, and with the broker killed for 60 s (issue 20). Every step
+# runs; any that fails fails accept.
 accept: $(TEST_STAMP) sysdeps
 	@status=0; \
 	$(PY) scripts/family.py --seeds 1-20 --workdir build/accept/family --json build/accept/family.json --gate || status=1; \
 	$(PY) scripts/accept.py --json build/accept/results.json || status=1; \
+	$(PY) scripts/accept_contributions.py --workdir build/accept/contributions \
+	  --json build/accept/contributions.json || status=1; \
 	$(PY) scripts/plant_scale.py --json build/accept/plant.json || status=1; \
 	$(PY) scripts/plant_scale.py --duration-s 300 --outage-at-s 120 --outage-s 60 \
 	  --workdir build/accept/plant_outage --json build/accept/plant_outage.json || status=1; \

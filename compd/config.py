@@ -922,8 +922,9 @@ class ContributionSection(ModelSection):
         description="how fast this contribution may change; none = its axis's slew limit",
     )
     fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = Field(
-        None, description="what this contribution does when one of its inputs goes bad (the others keep"
-        " compensating); disable takes its axes to their own fault policy; none = its axis's fault policy",
+        None, description="what this contribution does when one of its inputs goes bad and its model cannot"
+        " predict from the rest (mlr and lvr with their fit's statistics go on from the others: `degraded`), while"
+        " the others keep compensating; disable takes its axes to their own fault policy; none = its axis's",
     )
 
 

@@ -10,7 +10,15 @@ and without the correction the CNC applied.
 Wiring per machine (as in the papers): lathe → Siemens NC (paper 001), motorized
 spindle → FANUC PMC external shift (paper 003), gantry → PCI-1756 DO word into the
 PMC's X inputs (paper 002), feed axis → Siemens NC with the position-dependent
-K0 + tanβ·(P − P0) (paper 000 §4.3).
+K0 + tanβ·(P − P0) (paper 000 §4.3), vertical machining centre (`vmc`: the motorized
+spindle on a steel column, one Z error of two heat sources) → the spindle's FANUC PMC
+word, Z on its high byte.
+
+The model section is the model file's (`model_file`) unless `model_section` gives compd's
+whole `model:` section, e.g. a sum of contributions (issue 32: `{contributions: [...]}`,
+each with its own file, limits and fault policy); `guard` adds to or overrides the guard
+section, `compd_log` keeps compd's data log (every `log_period_s` and on every word change)
+and its event lines (stderr) beside the residual log.
 
 Every time in the compd config is plant time: the loop period, AR(1)'s Δτ, the
 guard's slew and staleness, the sinks' update intervals, `--duration`.
@@ -68,6 +76,9 @@ class Machine:
     # further fits of the paper's kind in named forms: (tag, extra `compd fit` arguments)
     variants: tuple[tuple[str, tuple[str, ...]], ...] = ()
     beats_mlr: bool = False  # acceptance: the default fit must leave a smaller RMS than MLR
+    # in scripts/accept.py's default machines (one model per run, gated at --min-reduction); the vmc's
+    # two heat sources on one axis are judged by scripts/accept_contributions.py instead
+    accept: bool = True
 
 
 MACHINES: dict[str, Machine] = {
@@ -101,7 +112,17 @@ MACHINES: dict[str, Machine] = {
             ("feed_axis_duty", ("--option", "form=analytic", "--option", "duty_cycle=true")),
         ),
     ),
+    # the spindle's PMC word (Z high byte) on a machine whose Z also moves with its column: the
+    # paper's spindle model on T_xi alone cannot see the column (scripts/accept_contributions.py
+    # sums a spindle and a column contribution); MLR fits err_z_um on the seven temperatures
+    "vmc": Machine(
+        "vmc", "fanuc_pmc", "fanuc_pmc", "xi_spindle", ("--inputs", "T_xi", "speed_rpm", "--target", "err_z_um"),
+        ("--target", "err_z_um"), ("z",), 10.0, accept=False,
+    ),
 }
+
+# the machines scripts/accept.py runs unless told (`--machines`)
+ACCEPT_MACHINES: tuple[str, ...] = tuple(n for n, m in MACHINES.items() if m.accept)
 
 
 def python() -> str:
@@ -114,9 +135,12 @@ def env() -> dict[str, str]:
     return e
 
 
-def run_cli(args: list[str], timeout_s: float = 600.0) -> str:
-    """Run `python -m ...` and return stdout; a failure raises RuntimeError with stderr."""
+def run_cli(args: list[str], timeout_s: float = 600.0, stderr_to: Path | None = None) -> str:
+    """Run `python -m ...` and return stdout; a failure raises RuntimeError with stderr.
+    `stderr_to`: also write its stderr (compd's event lines) to that file, failed or not."""
     p = subprocess.run([python(), *args], capture_output=True, text=True, env=env(), timeout=timeout_s, cwd=ROOT)
+    if stderr_to is not None:
+        stderr_to.write_text(p.stderr)
     if p.returncode != 0:
         raise RuntimeError(f"{' '.join(args[:3])} failed ({p.returncode}): {p.stderr.strip()[-2000:]}")
     return p.stdout
@@ -198,14 +222,23 @@ def sink_section(machine: str, port: int, speedup: float) -> dict[str, Any]:
 
 
 def compd_config(
-    machine: str, model_file: Path, ports: dict[str, int], speedup: float, log_path: Path | None = None,
-    lockstep: bool = False, probing: dict[str, Any] | None = None,
+    machine: str, model_file: Path | None, ports: dict[str, int], speedup: float, log_path: Path | None = None,
+    lockstep: bool = False, probing: dict[str, Any] | None = None, *,
+    model_section: dict[str, Any] | None = None, guard: dict[str, Any] | None = None, log_period_s: float = 60.0,
 ) -> dict[str, Any]:
     """compd's config: two Modbus TCP sources, the model, the machine's sink, the plant clock;
     with `probing`, a third source, the CNC's probe-result block, and the `adapt` section.
 
     In lockstep the sources are polled by the clock once per cycle and wait long for a reply
-    (a stall must not turn into a lost sample), and the plant clock says `lockstep`."""
+    (a stall must not turn into a lost sample), and the plant clock says `lockstep`.
+    `model_section` replaces the model file's section (`{kind, file}`) as it stands (give its
+    files as absolute paths); `guard` keys are set over the guard section."""
+    if model_section is None:
+        if model_file is None:
+            raise ValueError("compd_config: give model_file or model_section")
+        model: dict[str, Any] = {"kind": yaml.safe_load(model_file.read_text())["kind"], "file": str(model_file)}
+    else:
+        model = dict(model_section)
     sensors, extras, axes = plant_signals(machine)
     names = sensors + extras + [f"err_{a}_um" for a in axes]
     m = MACHINES[machine]
@@ -224,10 +257,10 @@ def compd_config(
              "data_type": "float32", "scale": 1.0, "burnout_codes": [], "out_of_range_codes": [],
              "channels": machine_channels},
         ],
-        "model": {"kind": yaml.safe_load(model_file.read_text())["kind"], "file": str(model_file)},
+        "model": model,
         # plant seconds: thermal errors move by < 0.05 um/s, so 0.2 um/s never limits a
         # model that tracks them, and keeps word changes within the PMC's step limit
-        "guard": {"max_slew_um_per_s": SLEW_UM_PER_S, "stale_after_s": max(600.0, 1.0 * speedup)},
+        "guard": {"max_slew_um_per_s": SLEW_UM_PER_S, "stale_after_s": max(600.0, 1.0 * speedup), **(guard or {})},
         "codec": {"axes": list(m.axes)},
         "sink": sink_section(machine, ports["cnc"], speedup),
         "console": {"period_s": 0, "summary": False},
@@ -244,7 +277,7 @@ def compd_config(
         for s in cfg["sources"]:
             s["timeout_s"] = 30.0
     if log_path is not None:
-        cfg["log"] = {"path": str(log_path), "period_s": 60.0}
+        cfg["log"] = {"path": str(log_path), "period_s": float(log_period_s)}
     return cfg
 
 
@@ -287,7 +320,7 @@ def stop_serve(proc: subprocess.Popen[str]) -> str:
 
 def closed_loop(
     machine: str,
-    model_file: Path,
+    model_file: Path | None,
     workdir: Path,
     *,
     speedup: float = 1200.0,
@@ -296,19 +329,30 @@ def closed_loop(
     tag: str = "",
     lockstep: bool = True,
     probing: dict[str, Any] | None = None,
+    model_section: dict[str, Any] | None = None,
+    guard: dict[str, Any] | None = None,
+    compd_log: bool = False,
+    log_period_s: float = 60.0,
 ) -> dict[str, Any]:
-    """One closed-loop run on the unseen day; returns the plant's residual report and compd's summary.
+    """One closed-loop run on the unseen day (or `scenario`); returns the plant's residual report and
+    compd's summary.
 
     `lockstep` (default): the plant waits for compd, the result does not depend on wall time;
     otherwise the plant runs at `speedup` and compd follows it (see the module's doc).
     `probing`: the plant probes, compd adapts (the module's doc); the result's `adaptation`
-    is compd's estimate per axis (accepted and rejected probes)."""
+    is compd's estimate per axis (accepted and rejected probes).
+    `model_section` (then `model_file` may be None) and `guard`: as in `compd_config`.
+    `compd_log`: compd writes its data log every `log_period_s` (and on every word change) to
+    the result's `compd_log`, its event lines to `compd_events`."""
     from hil_sim.scenario import Scenario
 
     workdir.mkdir(parents=True, exist_ok=True)
     scenario = scenario or SCENARIOS / f"{machine}_unseen.yaml"
     dur = duration_s if duration_s is not None else Scenario.load(scenario).duration_s
-    tag = tag or model_file.stem
+    if not tag:
+        if model_file is None:
+            raise ValueError("closed_loop: name the run (tag) when the model is a model_section")
+        tag = model_file.stem
     residual_log = workdir / f"residual_{machine}_{tag}.csv"
     bench_file = workdir / f"bench_{machine}_{tag}.yaml"
     bench_file.write_text(
@@ -318,13 +362,18 @@ def closed_loop(
     proc, ports = start_serve(bench_file)
     try:
         cfg_file = workdir / f"compd_{machine}_{tag}.yaml"
-        cfg = compd_config(machine, model_file, ports, speedup, lockstep=lockstep, probing=probing)
+        data_log = workdir / f"compd_log_{machine}_{tag}.csv" if compd_log else None
+        events = workdir / f"compd_events_{machine}_{tag}.log" if compd_log else None
+        if data_log is not None:
+            data_log.unlink(missing_ok=True)  # compd appends to a log it finds
+        cfg = compd_config(machine, model_file, ports, speedup, data_log, lockstep=lockstep, probing=probing,
+                           model_section=model_section, guard=guard, log_period_s=log_period_s)
         cfg_file.write_text(yaml.safe_dump(cfg, sort_keys=False))
         summary_file = workdir / f"summary_{machine}_{tag}.json"
         # lockstep: as long as the work takes (a stall only makes it longer); a day is ~1 min
         timeout_s = 3600.0 if lockstep else dur / speedup * 4 + 120
         run_cli(["-m", "compd", "run", str(cfg_file), "--duration", str(dur), "--json", str(summary_file)],
-                timeout_s=timeout_s)
+                timeout_s=timeout_s, stderr_to=events)
     finally:
         serve_err = stop_serve(proc)
     wall_s = time.monotonic() - t0
@@ -344,6 +393,8 @@ def closed_loop(
         "plant_s": dur,
         "lockstep": lockstep,
         "residual_log": str(residual_log),
+        "compd_log": str(data_log) if data_log is not None else None,
+        "compd_events": str(events) if events is not None else None,
         "serve_stderr": serve_err[-2000:],
     }
 

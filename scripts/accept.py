@@ -34,7 +34,7 @@ from rig import closedloop as cl  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--machines", nargs="+", default=list(cl.MACHINES), choices=list(cl.MACHINES))
+    ap.add_argument("--machines", nargs="+", default=list(cl.ACCEPT_MACHINES), choices=list(cl.MACHINES))
     ap.add_argument("--speedup", type=float, default=1200.0,
                     help="plant seconds per wall second with --realtime; sets compd's period (2 s at 1200)")
     ap.add_argument("--realtime", action="store_true",

@@ -89,7 +89,8 @@ AXIS: tuple[Field, ...] = (
 PART: tuple[Field, ...] = (
     Field("prediction_um", "µm", "what the contribution adds to its axis's prediction: its model's, after its own"
           " clamp, slew and fault policy (null: under `disable` with an input bad)"),
-    Field("raw_um", "µm", "the contribution's model's own prediction (null: an input bad)"),
+    Field("raw_um", "µm", "the contribution's model's own prediction (null: an input bad and the model cannot"
+          " predict from the others)"),
     Field("state", "", "the contribution's state on the axis (its own fault policy)", "name", _names(STATE_NAMES)),
     Field("clamped", "", "the contribution's prediction is held at its own clamp", "flag"),
 )

@@ -210,7 +210,7 @@ def _contribution_families(snap: dict[str, Any]) -> list[Any]:
     share = GaugeMetricFamily("compd_contribution_meters", "What a contribution adds to its axis's prediction"
                               " (after its own clamp, slew and fault policy)", labels=["axis", "contribution"])
     raw = GaugeMetricFamily("compd_contribution_raw_meters", "A contribution's model's own prediction (NaN: an"
-                            " input bad)", labels=["axis", "contribution"])
+                            " input bad and the model cannot predict from the others)", labels=["axis", "contribution"])
     state = GaugeMetricFamily("compd_contribution_state", "1 for a contribution's current state on its axis",
                               labels=["axis", "contribution", "state"])
     found = False
