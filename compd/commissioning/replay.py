@@ -41,7 +41,6 @@ from compd.cycle.pipeline import build_model, build_pipeline
 from compd.errors import BadInput
 from compd.log import Log, read_log
 from compd.models.base import Model, step_rows
-from compd.models.contributions import Contributions
 from compd.sinks.base import Sink
 from compd.sources.replay import ReplayConfig, ReplaySource
 
@@ -147,7 +146,7 @@ def replay_log(
     # may walk what the slew licensed in that time, not one LSB per row
     loop.encoder.set_slew([float(loop.guard.slew_um_per_s[a]) for a in loop.word_axes], math.inf)
     n, n_out = len(log), len(model.outputs)
-    parts = list(model.part_names) if isinstance(model, Contributions) else []
+    parts = list(model.part_names)
     rows = _Rows.empty(n, n_out, len(parts))
     t = log.t_s
     loop.open()
@@ -305,7 +304,7 @@ def _run_cycles(
             rows.commanded[i, axis] = commanded[slot]
         rows.pred[i] = loop.pred_um
         if rows.parts.shape[1]:
-            rows.parts[i] = loop.model.part_um  # type: ignore[attr-defined]
+            rows.parts[i] = loop.model.part_um
         rows.corr[i] = loop.guard.out_um
         rows.enable[i] = loop.guard.enable
         rows.state[i] = loop.guard.state
@@ -369,11 +368,11 @@ def _inputs_and_model(
     if e:  # what the loop's model stage leaves after row e − 1
         pred[:e] = model.predict(X[:e], t[:e])
         ok_rows[:e] = True
-        loop.model_started = True
+        loop.stage.started = True
         loop.pred_um[:] = pred[e - 1]
         ups = model.update_period_s
         if ups > 0:
-            loop._next_model_s = float(t[step_rows(t[:e], ups)[-1]]) + ups
+            loop.stage.next_s = float(t[step_rows(t[:e], ups)[-1]]) + ups
     moved = None
     if inhibit is not None:  # its signals' rows: the hold reasons change only where they do
         S = log.matrix(inhibit_signals(inhibit.cfg))
@@ -396,7 +395,7 @@ def _inputs_and_model(
             ok = guard.check_inputs(frame, now)
             framed = True
         if i >= e:
-            if now >= loop._next_model_s:
+            if now >= loop.stage.next_s:
                 if framed:
                     np.take(frame.values, guard.input_idx, out=x)
                 else:
@@ -404,7 +403,7 @@ def _inputs_and_model(
                 loop.model_step(ok, now)
             pred[i] = loop.pred_um
             if parts.shape[1]:  # a sum of contributions (never batched): each one's share
-                parts[i] = model.part_um  # type: ignore[attr-defined]
+                parts[i] = model.part_um
             ok_rows[i] = ok or loop.degraded
             deg_rows[i] = loop.degraded
             if terms is not None:

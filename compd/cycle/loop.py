@@ -33,7 +33,7 @@ from compd.cycle.inhibit import Inhibit
 from compd.cycle.shadow import Shadow
 from compd.io.child import hosting
 from compd.io.mailbox import shared_buffer
-from compd.models.base import Model
+from compd.models.base import Model, ModelStage
 from compd.sinks.base import Sink
 from compd.sources.base import Source
 
@@ -159,7 +159,6 @@ class Loop:
         n_out = len(model.outputs)
         self.x = np.zeros(len(model.inputs))
         self._good = np.zeros(len(model.inputs), dtype=bool)
-        self.degraded = False
         self.pred_um = np.full(n_out, math.nan)
         self.adapter = adapter  # probe-updated offset (and gain) per axis, or None
         self.inhibit = inhibit  # the machine's inhibit and referenced signals, or None
@@ -167,8 +166,7 @@ class Loop:
         self.applied_um = np.zeros(n_out)
         self._word_applied = np.zeros(2)
         self.stats = TimingStats(period_s)
-        self.model_started = False
-        self._next_model_s = -math.inf
+        self.stage = ModelStage(model)  # the model's start, update period and degraded mode
         self._stop = False
         self.t_start_s = 0.0
         self.now_s = 0.0
@@ -371,7 +369,7 @@ class Loop:
             s.read(frame, now)
         t1 = perf()
         ok = self.guard.check_inputs(frame, now)
-        if now >= self._next_model_s:
+        if now >= self.stage.next_s:
             np.take(frame.values, self.guard.input_idx, out=self.x)
             self.model_step(ok, now)
         pred = self.pred_um
@@ -417,34 +415,23 @@ class Loop:
 
     def model_step(self, ok: bool, now: float) -> None:
         """The cycle's model stage, when the model is due, on `x` (this cycle's inputs; `ok`:
-        all good): start on the first good inputs, run, and hold until update_period_s has
-        passed; with some inputs bad, predict from the others where the model can, else NaN.
-        The prediction in `pred_um`. (A replay calls it for the rows it steps the model on.)"""
-        if ok:
-            if not self.model_started:
-                self.model.start(self.x, now)
-                self.model_started = True
-                if self.on_model_state is not None:
-                    self.on_model_state(self.model.get_state())
-            self.model.run(self.x, now, self.pred_um)
-            ups = self.model.update_period_s
-            if ups > 0:
-                self._next_model_s = now + ups
-                if self.on_model_state is not None:
-                    self.on_model_state(self.model.get_state())
-        elif (self.model_started or self.model.starts_by_parts) and self.model.supports_degraded:
-            # some inputs bad: predict from the others where they carry the information
+        all good), by the stage's rule (compd.models.base.ModelStage); the prediction in
+        `pred_um`, the model's memory handed on when it changed. (A replay calls it for the rows
+        it steps the model on.)"""
+        if not ok:
             np.equal(self.frame.quality[self.guard.input_idx], 0, out=self._good)
-            self.model.run_degraded(self.x, self._good, now, self.pred_um)
-            self.degraded = True
-        else:
-            self.pred_um.fill(math.nan)
-        if self.model.state_dirty:
-            self.model.state_dirty = False
-            if self.on_model_state is not None:
-                self.on_model_state(self.model.get_state())
-        if ok:
-            self.degraded = False
+        if self.stage.step(self.x, self._good, ok, now, self.pred_um) and self.on_model_state is not None:
+            self.on_model_state(self.model.get_state())
+
+    @property
+    def model_started(self) -> bool:
+        """The model has started (its first good input vector came)."""
+        return self.stage.started
+
+    @property
+    def degraded(self) -> bool:
+        """The model's last step predicted from a reduced set of inputs."""
+        return self.stage.degraded
 
     def applied(self) -> np.ndarray:
         """What the machine applies per model output (µm), from the sink."""

@@ -26,7 +26,6 @@ from compd.cycle.loop import Loop
 from compd.cycle.shadow import Shadow
 from compd.errors import BadInput
 from compd.models.base import Model
-from compd.models.contributions import Contributions
 from compd.registry import entry_point
 from compd.sinks.base import Sink
 from compd.sources.base import Source
@@ -129,8 +128,7 @@ def build_pipeline(
     for name in guard_cfg.signals:
         if name not in frame.index:
             raise BadInput(f"{name!r} is not a signal of any source", path=("guard", "signals", name))
-    if isinstance(model, Contributions):  # a contribution's faults and clamps are the guard's events
-        model.emit = guard.event
+    model.emit = guard.event  # the model's own events (a contribution's fault, clamp) are the guard's
     inhibit = Inhibit(inhibit_cfg, model.outputs, frame) if inhibit_cfg is not None else None
     word_names = list(codec_cfg.axes or model.outputs[:2])
     for name in word_names:
@@ -165,8 +163,6 @@ def build_pipeline(
             loop.shadow = Shadow(shadow, frame, guard_cfg, list(model.outputs))
         except BadInput as e:
             raise BadInput(e.message, path=("shadow", "inputs")) from None
-        if isinstance(shadow, Contributions):
-            shadow.emit = None
     return Pipeline(sources, frame, model, guard, encoder, sink, loop, word_names, loop.shadow)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from compd.config import GuardConfig
 from compd.cycle.frame import Frame
 from compd.cycle.guard import Guard
-from compd.models.base import Model
+from compd.models.base import Model, ModelStage
 
 
 class ShadowScore:
@@ -71,8 +71,7 @@ class Shadow:
         self.good = np.zeros(len(model.inputs), dtype=bool)
         self.out = np.full(len(model.outputs), math.nan)
         self.pred_um = np.full(len(axes), math.nan)  # per active axis; NaN where the shadow serves none
-        self.started = False
-        self.next_s = -math.inf
+        self.stage = ModelStage(model)  # started, stepped and degraded as the active model is
         self.score = ShadowScore(axes)
 
     def step(self, now_s: float) -> None:
@@ -84,21 +83,11 @@ class Shadow:
         ok = g.check_inputs(view, now_s)
         if g.events:
             g.events.clear()  # its inputs' events are not the machine's
-        m = self.model
-        if now_s >= self.next_s:
+        if now_s >= self.stage.next_s:
             np.take(view.values, g.input_idx, out=self.x)
-            if ok:
-                if not self.started:
-                    m.start(self.x, now_s)
-                    self.started = True
-                m.run(self.x, now_s, self.out)
-                if m.update_period_s > 0:
-                    self.next_s = now_s + m.update_period_s
-            elif (self.started or m.starts_by_parts) and m.supports_degraded:
+            if not ok:
                 np.equal(view.quality[g.input_idx], 0, out=self.good)
-                m.run_degraded(self.x, self.good, now_s, self.out)
-            else:
-                self.out.fill(math.nan)
+            self.stage.step(self.x, self.good, ok, now_s, self.out)
         for j, a in enumerate(self.slot):
             self.pred_um[a] = self.out[j]
 

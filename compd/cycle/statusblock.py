@@ -40,7 +40,6 @@ from compd.cycle.guard import POLICIES, STATE_NAMES
 from compd.cycle.histogram import bin_percentiles, over_range, range_limit_us
 from compd.cycle.inhibit import HOLD_NAMES
 from compd.io.mailbox import READ_TRIES, shared_buffer
-from compd.models.contributions import Contributions
 from compd.service.status import SCHEMA
 from compd.sinks.base import LINK_STATES
 from compd.sinks.observe import ObserveSink
@@ -173,8 +172,7 @@ class StatusBlock:
         n_axes, n_sig = len(loop.model.outputs), len(loop.frame.names)
         self.n_axes, self.n_signals = n_axes, n_sig
         model = loop.model
-        self._sum = model if isinstance(model, Contributions) else None
-        n_parts = len(model.part_names) if isinstance(model, Contributions) else 0
+        n_parts = len(model.part_names)
         n = len(LOOP) + len(AXIS) * n_axes + len(SIGNAL) * n_sig + len(PART) * n_parts
         self._buf = shared_buffer(8 * (_HEAD + n))
         self._head = memoryview(self._buf).cast("q")[:_HEAD]
@@ -256,8 +254,8 @@ class StatusBlock:
         np.copyto(sg[0], fr.values)
         np.copyto(sg[1], fr.quality)
         np.copyto(sg[2], fr.stamp_s)
-        cs = self._sum
-        if cs is not None:
+        cs = lp.model
+        if cs.part_names:
             pt = self._parts
             np.copyto(pt[0], cs.part_um)
             np.copyto(pt[1], cs.part_raw_um)
@@ -316,7 +314,7 @@ def describe_static(loop: Any, observe: bool) -> dict[str, Any]:
         "policy": [POLICIES[p] for p in loop.guard.policy],
         "word_byte": [("high", "low")[slot_of[i]] if i in slot_of else None for i in range(len(loop.model.outputs))],
         # the (contribution, axis) pairs of a sum of contributions, in the record's order
-        "parts": [list(p) for p in loop.model.part_names] if isinstance(loop.model, Contributions) else [],
+        "parts": [list(p) for p in loop.model.part_names],
     }
 
 

@@ -17,7 +17,6 @@ from compd.cycle.clock import SimClock
 from compd.cycle.loop import Loop
 from compd.cycle.pipeline import from_config
 from compd.errors import BadInput
-from compd.models.contributions import Contributions
 from compd.service.host import LogSpec, Service, StateSpec
 from compd.service.state import load_saved, params_digest
 
@@ -37,7 +36,6 @@ class LogObserver:
         self.adapter = loop.adapter
         self._probe_seq = loop.adapter.probe_seq if loop.adapter is not None else 0
         self._blank = (math.nan,) * (2 * len(loop.model.outputs))
-        self._sum = loop.model if isinstance(loop.model, Contributions) else None
         self._shadow = loop.shadow
 
     @staticmethod
@@ -48,7 +46,7 @@ class LogObserver:
             + list(loop.frame.names)
             + [f"pred_{a}_um" for a in outs]
             # each contribution's share of a sum of contributions (compd.models.contributions)
-            + [f"pred_{a}_{name}_um" for name, a in LogObserver.parts_of(loop)]
+            + [f"pred_{a}_{name}_um" for name, a in loop.model.part_names]
             + [f"corr_{a}_um" for a in outs]
             + [f"applied_{a}_um" for a in outs]
             + ["word"]
@@ -57,11 +55,6 @@ class LogObserver:
             # a probe's whole thermal error and where it was measured, blank between probes
             + ([f"probe_{a}_um" for a in outs] + [f"probe_pos_{a}_mm" for a in outs] if loop.adapter else [])
         )
-
-    @staticmethod
-    def parts_of(loop: Loop) -> list[tuple[str, str]]:
-        """The (contribution, axis) pairs of a sum of contributions; none for one model."""
-        return list(loop.model.part_names) if isinstance(loop.model, Contributions) else []
 
     def __call__(self, loop: Loop, now: float) -> None:
         ad = self.adapter
@@ -75,7 +68,7 @@ class LogObserver:
             (now,)
             + tuple(loop.frame.values.tolist())
             + tuple(loop.pred_um.tolist())
-            + (tuple(self._sum.part_um.tolist()) if self._sum is not None else ())
+            + tuple(loop.model.part_um.tolist())
             + tuple(loop.guard.out_um.tolist())
             + tuple(loop.applied().tolist())
             + (float(loop.word),)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
@@ -111,6 +113,17 @@ class Model(ABC):
     # set by a model whose memory changed outside `start` (a contribution of a sum started): the
     # loop hands the state on for persistence and clears it
     state_dirty: bool = False
+    # where the model's own events go (t_s, subject, event, reason): the guard's (compd.cycle.pipeline);
+    # None: nowhere (a shadow's)
+    emit: Callable[[float, str, str, str], None] | None = None
+    # the parts summed into each axis's prediction, (name, axis) each, and per part what it adds (after
+    # its own limits), its model's own prediction, its state and clamp flag: none for one model
+    # (compd.models.contributions has them)
+    part_names: tuple[tuple[str, str], ...] = ()
+    part_um: np.ndarray = np.zeros(0)
+    part_raw_um: np.ndarray = np.zeros(0)
+    part_state: np.ndarray = np.zeros(0, dtype=np.uint8)
+    part_clamped: np.ndarray = np.zeros(0, dtype=bool)
     # the params `compd status` shows as the model's key coefficients (`coefficients`)
     summary_keys: ClassVar[tuple[str, ...]] = ()
     per_axis_keys: ClassVar[tuple[str, ...]] = ()  # those of them that hold one value per output axis
@@ -271,6 +284,45 @@ class Model(ABC):
                if k in self.fit_info}
         return {"kind": self.kind, "inputs": self.inputs, "outputs": self.outputs, "file": self.file,
                 "fit": fit, "coefficients": self.coefficients(), "state": self.get_state()}
+
+
+class ModelStage:
+    """The rule by which a cycle steps one model: started on its first good input vector, run when
+    due and held until `update_period_s` has passed, predicting from the good inputs where it can
+    when some are bad (`degraded`), else NaN. The loop's model stage, each contribution of a sum
+    (compd.models.contributions) and the shadow (compd.cycle.shadow) step their models by it."""
+
+    def __init__(self, model: Model) -> None:
+        self.model = model
+        self.started = False
+        self.next_s = -math.inf  # when the model is next due
+        self.degraded = False  # the last step predicted from a reduced set of inputs
+
+    def step(self, x: np.ndarray, good: np.ndarray, ok: bool, now_s: float, out: np.ndarray) -> bool:
+        """One step on the inputs `x` (`ok`: all good; else `good` says which are), the prediction
+        into `out`. True when the model's memory changed in a way worth keeping (it started, it
+        stepped on its update period, or it says so: `state_dirty`)."""
+        m = self.model
+        kept = False
+        if ok:
+            if not self.started:
+                m.start(x, now_s)
+                self.started = True
+                kept = True
+            m.run(x, now_s, out)
+            if m.update_period_s > 0:
+                self.next_s = now_s + m.update_period_s
+                kept = True
+            self.degraded = False
+        elif (self.started or m.starts_by_parts) and m.supports_degraded:
+            m.run_degraded(x, good, now_s, out)  # predict from the others where they carry the information
+            self.degraded = True
+        else:
+            out.fill(math.nan)
+        if m.state_dirty:
+            m.state_dirty = False
+            kept = True
+        return kept
 
 
 def _compact(value: Any, max_items: int = 12) -> Any:

@@ -20,14 +20,13 @@ and the replay report.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
 from compd.config import Strict
-from compd.models.base import Model
+from compd.models.base import Model, ModelStage
 
 STARTING, NORMAL, FAULT, RECOVERING = 0, 1, 2, 3
 POLICIES = ("hold", "ramp_to_zero", "disable")
@@ -59,9 +58,6 @@ class ContributionSetParams(Strict):
     recovery_s: float = 5.0
 
 
-Emit = Callable[[float, str, str, str], None]
-
-
 class _Part:
     """One contribution's model and its per-axis limiter state (arrays made once)."""
 
@@ -76,8 +72,7 @@ class _Part:
         self.clamp = [float(v) for v in p.max_abs_um]
         self.slew = [float(v) for v in p.max_slew_um_per_s]
         self.policy = [POLICIES.index(v) for v in p.fault_policy]
-        self.started = False
-        self.next_s = -math.inf
+        self.stage = ModelStage(model)  # its own start, update period and degraded mode
 
 
 class Contributions(Model):
@@ -109,7 +104,7 @@ class Contributions(Model):
             idx = np.array([self.inputs.index(n) for n in p.inputs], dtype=np.intp)
             self._parts.append(_Part(p, model, idx, [self.outputs.index(a) for a in p.outputs]))
             names += [(p.name, a) for a in p.outputs]
-        self.part_names = names  # (contribution, axis) per part, in order
+        self.part_names = tuple(names)  # (contribution, axis) per part, in order
         n = len(names)
         self.part_um = np.zeros(n)  # what each part adds to its axis (after its own limits)
         self.part_raw_um = np.full(n, math.nan)  # its model's own prediction
@@ -122,7 +117,6 @@ class Contributions(Model):
         self._ramp = float(params.ramp_um_per_s)
         self._recovery_s = float(params.recovery_s)
         self._last_t = math.nan
-        self.emit: Emit | None = None  # where events go (the guard's: compd.cycle.pipeline)
         held = self._held_out()
         if held:
             self.fit_info["held_out_rmse_um"] = held
@@ -188,21 +182,8 @@ class Contributions(Model):
             if good is not None:
                 np.take(good, part.idx, out=part.good)
                 ok = bool(part.good.all())
-            m = part.model
-            if t_s >= part.next_s:
-                if ok:
-                    if not part.started:
-                        m.start(part.x, t_s)
-                        part.started = True
-                        self.state_dirty = True  # its T0 and memory are worth keeping now
-                    m.run(part.x, t_s, part.raw)
-                    ups = m.update_period_s
-                    if ups > 0:
-                        part.next_s = t_s + ups
-                elif part.started and m.supports_degraded:
-                    m.run_degraded(part.x, part.good, t_s, part.raw)
-                else:
-                    part.raw.fill(math.nan)
+            if t_s >= part.stage.next_s and part.stage.step(part.x, part.good, ok, t_s, part.raw):
+                self.state_dirty = True  # its T0 and memory are worth keeping now
             for j, a in enumerate(part.axes):
                 v = self._limit(k, part, j, float(part.raw[j]), t_s, dt)
                 self.part_raw_um[k] = part.raw[j]
