@@ -224,16 +224,18 @@ class Child:
     def call(self, *msg: Any, timeout_s: float) -> Any:
         """Send `msg` to the child and read its answer; ChildGone when the child has exited
         or did not answer within `timeout_s`. Not for the cycle: it waits."""
+        ok, value = self.wait_answer(self.begin(*msg), timeout_s)
+        if not ok:
+            raise value
+        return value
+
+    def wait_answer(self, seq: int, timeout_s: float) -> tuple[bool, Any]:
+        """Wait for the answer to the call `begin` returned `seq` for: (ok, value; the exception
+        when not ok); ChildGone when the child has exited or did not answer within `timeout_s`."""
         with self._lock:
             conn = self._conn
             if conn is None or self._gone:
                 raise ChildGone(f"{self.name}: the process has exited")
-            seq = next(self._seq)
-            try:
-                conn.send((seq, *msg))
-            except (OSError, ValueError) as e:
-                self._gone = True
-                raise ChildGone(f"{self.name}: {e}") from None
             deadline = time.monotonic() + timeout_s
             while True:
                 rest = deadline - time.monotonic()
@@ -247,11 +249,40 @@ class Child:
                     self._gone = True
                     raise ChildGone(f"{self.name}: the process has exited ({e or 'pipe closed'})") from None
                 if answer[0] == "reply" and answer[1] == seq:  # an older call's late answer is passed over
-                    break
-        ok, value = answer[2], answer[3]
-        if not ok:
-            raise value
-        return value
+                    return bool(answer[2]), answer[3]
+
+    def begin(self, *msg: Any) -> int:
+        """Send `msg` to the child without waiting for its answer (the cycle's thread, between
+        cycles: a restart); `answer` tells later whether it came. ChildGone when the child has
+        exited."""
+        with self._lock:
+            conn = self._conn
+            if conn is None or self._gone:
+                raise ChildGone(f"{self.name}: the process has exited")
+            seq = next(self._seq)
+            try:
+                conn.send((seq, *msg))
+            except (OSError, ValueError) as e:
+                self._gone = True
+                raise ChildGone(f"{self.name}: {e}") from None
+            return seq
+
+    def answer(self, seq: int) -> tuple[bool, Any] | None:
+        """The answer to the call `begin` returned `seq` for, if it has come: (ok, value; the
+        exception when not ok), else None. Never waits. ChildGone when the pipe is closed."""
+        with self._lock:
+            conn = self._conn
+            if conn is None or self._gone:
+                raise ChildGone(f"{self.name}: the process has exited")
+            try:
+                while conn.poll(0):
+                    reply = conn.recv()
+                    if reply[0] == "reply" and reply[1] == seq:
+                        return bool(reply[2]), reply[3]
+            except (EOFError, OSError) as e:
+                self._gone = True
+                raise ChildGone(f"{self.name}: the process has exited ({e or 'pipe closed'})") from None
+        return None
 
     def stop(self, timeout_s: float) -> bool:
         """Wait up to `timeout_s` for the child to exit (after it was told to), then kill

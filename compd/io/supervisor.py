@@ -28,7 +28,10 @@ restarts the whole daemon, the way its unit file asks (`Restart=on-failure`,
 all that happens.
 
 A restart forks between two cycles (the child's start takes a few ms): the cycle after
-it can be late, and is counted so. That is the price of getting the link back.
+it can be late, and is counted so. That is the price of getting the link back. It never
+waits for the new process to open (`IoWorker.restart`): one that does not answer within its
+`restart_open_s` (stopped or hung before it came up) is lost, reported and restarted again
+with the back-off, like any other.
 """
 
 from __future__ import annotations

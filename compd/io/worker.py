@@ -76,7 +76,7 @@ import numpy as np
 
 from compd.cycle import activity
 from compd.cycle.histogram import DurationHist
-from compd.io.child import Child, ChildGone, Heartbeat
+from compd.io.child import Child, ChildGone, Heartbeat, exit_text
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import SharedBlob
 
@@ -90,6 +90,8 @@ RECOVERED_AFTER_S = 5.0
 STATUS_BYTES = 4096  # a worker's status as JSON, at most
 STATUS_EVERY_S = 0.1  # how often a worker refreshes its published status (and at every change of state or error)
 BEAT_EVERY_S = 0.05  # a running worker's thread beats at least this often (its idle waits are capped to it) ...
+OPEN_TIMEOUT_S = 60.0  # a worker's process started at start-up (not by the cycle) answers `open` within this
+RESTART_OPEN_S = 10.0  # a process restarted between cycles that has not answered `open` by then is lost
 STALL_AFTER_S = 2.0  # ... and one that has not beaten for this long has stalled (a device call that hangs, SIGSTOP)
 
 
@@ -221,6 +223,10 @@ class IoWorker:
         self.recovered_after_s = recovered_after_s
         self._healthy_since: float | None = None  # rounds without an error since (monotonic s)
         self._child: Child | None = None  # the process the worker runs in (None: a thread here)
+        # a process restarted between cycles that has not answered `open` yet: it, the call's
+        # number, and when it is lost if it still has not (monotonic s); `health` looks
+        self._opening: tuple[Child, int, float] | None = None
+        self.restart_open_s = max(RESTART_OPEN_S, 2.0 * stall_after_s)
         self._last_status: dict[str, Any] | None = None  # a stopped child's final counts
         self._paced = True
         self._stop = False
@@ -278,6 +284,8 @@ class IoWorker:
         """The process the worker runs in (None: stopped or gone)."""
         if self._child is not None:
             return self._child.pid
+        if self._opening is not None:
+            return self._opening[0].pid
         return os.getpid() if self._thread is not None else None
 
     @property
@@ -298,6 +306,8 @@ class IoWorker:
         A stopped worker is healthy (nothing to run)."""
         if self._start_args is None:
             return None
+        if self._opening is not None:
+            return self._opened(now_s)
         if self._child is not None:
             return self._heartbeat.health(self._child, now_s)
         th = self._thread
@@ -311,6 +321,9 @@ class IoWorker:
         and keep `reason` as its error until `restart`."""
         child = self._child
         self.lost_pid = self.pid
+        if self._opening is not None:  # a restarted process that never answered `open`
+            self._opening[0].stop(0.0)
+            self._opening = None
         if child is not None:
             self._child = None
             child.stop(0.0)  # kills what is left (SIGKILL works on a stopped process) and reaps
@@ -321,13 +334,49 @@ class IoWorker:
     def restart(self) -> None:
         """Start the worker again as it was started last (after `abandon`); raises what
         `start` raises. The queued writes a lost process had not had acknowledged are sent
-        by the new one."""
+        by the new one.
+
+        The supervisor calls this on the cycle's thread, between two cycles, so it never
+        waits for the new process: it forks it and asks it to open; `health` then takes its
+        answer, or says it is lost when it fails, ends, or has not answered within
+        `RESTART_OPEN_S` (a process stopped before it answered)."""
         if self._start_args is None:
             raise RuntimeError(f"I/O worker {self.name} was never started")
         paced, clock, process, avoid = self._start_args
         self.work.last_error = None
-        self.start(paced=paced, clock=clock, process=process, avoid_cpus=avoid)
+        if not process:
+            self.start(paced=paced, clock=clock, process=process, avoid_cpus=avoid)
+        else:
+            self._last_status = None
+            child, seq = self._fork(paced, clock, avoid)
+            self._opening = (child, seq, time.monotonic() + self.restart_open_s)
+            self._started(paced, clock, process, avoid)
         self.lost = None
+
+    def _opened(self, now_s: float) -> str | None:
+        """`health` of a process restarted and not yet open: None while it may still answer
+        (or once it has: it is the worker's process from then on), else why it is lost."""
+        assert self._opening is not None
+        child, seq, deadline_s = self._opening
+        try:
+            got = child.answer(seq)
+        except ChildGone:
+            got = None
+            if child.alive():
+                return "its new process closed its pipe before it opened"
+        if got is not None:
+            ok, value = got
+            if not ok:
+                return f"its new process failed to open: {type(value).__name__}: {value}"
+            self._opening = None
+            self._child = child
+            self._heartbeat.reset(now_s)
+            return None
+        if not child.alive():
+            return f"its new process {exit_text(child.exit_code)} before it opened"
+        if time.monotonic() > deadline_s:
+            return f"its new process did not open within {self.restart_open_s:.0f} s"
+        return None
 
     def start(
         self, *, paced: bool = True, clock: Callable[[], float] | None = None, process: bool = False,
@@ -344,6 +393,20 @@ class IoWorker:
             self._start_thread(paced, clock)
             self._started(paced, clock, process, avoid_cpus)
             return
+        child, seq = self._fork(paced, clock, avoid_cpus)
+        try:
+            ok, value = child.wait_answer(seq, timeout_s=OPEN_TIMEOUT_S)
+            if not ok:
+                raise value
+        except BaseException:
+            self._end_child(child)
+            raise
+        self._child = child
+        self._started(paced, clock, process, avoid_cpus)
+
+    def _fork(self, paced: bool, clock: Callable[[], float] | None, avoid: frozenset[int]) -> tuple[Child, int]:
+        """Fork the worker's process and ask it to open the work (not waiting for the answer);
+        the child and the number of that call."""
         child = Child(self.name)
 
         def answer(what: str, *args: Any) -> Any:
@@ -360,22 +423,22 @@ class IoWorker:
 
         def serve(ch: Child) -> None:
             self._child = None  # in the child, the worker is a thread of its own process
+            self._opening = None
             try:
                 ch.serve_calls(answer)
             finally:
                 self.stop()
 
-        child.start(serve, avoid_cpus, keep_fds=(self._fd,))
-        try:
-            child.call("open", timeout_s=60.0)
-        except BaseException:
-            with contextlib.suppress(ChildGone):
-                child.call("exit", timeout_s=self.join_timeout_s)
-            child.stop(self.join_timeout_s)
-            self.state = "closed"
-            raise
-        self._child = child
-        self._started(paced, clock, process, avoid_cpus)
+        self.state = "connecting"
+        child.start(serve, avoid, keep_fds=(self._fd,))
+        return child, child.begin("open")
+
+    def _end_child(self, child: Child) -> None:
+        """A child that did not open: asked to exit, killed when it does not within the join timeout."""
+        with contextlib.suppress(ChildGone):
+            child.call("exit", timeout_s=self.join_timeout_s)
+        child.stop(self.join_timeout_s)
+        self.state = "closed"
 
     def _started(self, paced: bool, clock: Callable[[], float] | None, process: bool, avoid: frozenset[int]) -> None:
         self._start_args = (paced, clock, process, avoid)
@@ -411,6 +474,9 @@ class IoWorker:
         _started.discard(self)
         self._start_args = None
         self.lost = None
+        if self._opening is not None:  # restarted, never opened: nothing of it to keep
+            self._end_child(self._opening[0])
+            self._opening = None
         child = self._child
         if child is not None:
             self._child = None
@@ -501,10 +567,11 @@ class IoWorker:
             last: dict[str, Any] = json.loads(raw) if raw else self._own_status()
             return {**last, **self._accounts(), "last_error": f"{self.name}: {self.lost}", "pid": self.lost_pid,
                     "lost": self.lost}
-        if self._child is not None:
+        child = self._child if self._child is not None else self._opening[0] if self._opening is not None else None
+        if child is not None:
             raw = self._status_blob.read()
             # nothing published yet: the counts as they were when the child was forked
-            published: dict[str, Any] = json.loads(raw) if raw else {**self._own_status(), "pid": self._child.pid}
+            published: dict[str, Any] = json.loads(raw) if raw else {**self._own_status(), "pid": child.pid}
             return {**published, **self._accounts()}
         if self._last_status is not None:  # stopped: the counts its process had at the end
             return {**self._last_status, "state": self.state}

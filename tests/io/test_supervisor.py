@@ -179,3 +179,69 @@ def test_a_lost_process_shows_in_the_metrics_and_in_compd_status() -> None:
     text = render({**snap, "pid": 40, "service_pid": 42, "threads": ["MainThread"], "state": "running"}, True, "")
     assert "PROCESS LOST: poll-pt (pid 41) killed by SIGKILL: restarting" in text
     assert "process service restarted 1 time (last lost: stopped beating for 10.2 s)" in text
+
+
+class HangsAtOpen(Echo):
+    """Echo whose `open` never returns while the file `flag` exists (a process restarted and then
+    stopped, or hung, before it answered)."""
+
+    def __init__(self, flag: str, *args: Any) -> None:
+        super().__init__(*args)
+        self.flag = flag
+
+    def open(self) -> None:
+        while os.path.exists(self.flag):
+            time.sleep(0.01)
+
+
+def test_a_restart_never_waits_for_the_new_process_to_open(tmp_path, caplog) -> None:  # noqa: ANN001
+    """The supervisor runs on the cycle's thread: a restarted process that does not answer `open`
+    (stopped, hung) never holds it up; it is lost after `restart_open_s` and restarted again."""
+    caplog.set_level(logging.INFO, logger="compd.io")
+    flag = tmp_path / "hang"
+    snap, echo = Snapshot(2), Snapshot(2)
+    writes = WriteQueue()
+    w = IoWorker(HangsAtOpen(str(flag), snap, writes, echo), name="echo", period_s=0.01, stall_after_s=1.0)
+    w.restart_open_s = 1.0
+    writes.wake = w.wake
+    sup = Supervisor(workers=lambda: [w], restart_min_s=0.05, restart_max_s=0.1, check_every_s=0.0)
+    w.start(process=True, clock=time.monotonic)
+    slowest_s = 0.0
+
+    def check() -> None:
+        nonlocal slowest_s
+        t0 = time.monotonic()
+        sup.check()
+        slowest_s = max(slowest_s, time.monotonic() - t0)
+
+    def until(predicate: Any, what: str) -> None:
+        deadline = time.monotonic() + WAIT_S
+        while not predicate():
+            assert time.monotonic() < deadline, f"timed out waiting for {what}"
+            check()
+            time.sleep(0.005)
+
+    try:
+        until(lambda: snap.sample()[0][1] >= 2, "rounds")
+        first = w.pid
+        assert first is not None
+        flag.write_text("")
+        os.kill(first, signal.SIGKILL)
+        until(lambda: sup.restarts >= 1, "the restart")
+        hung = w.pid
+        assert hung not in (None, first)
+        until(lambda: any("did not open within" in r.reason for r in _events(caplog, "io_process_lost")),
+              "the hung process lost")
+        lost = next(r for r in _events(caplog, "io_process_lost") if "did not open within" in r.reason)
+        assert lost.pid == hung
+        with pytest.raises(ProcessLookupError):  # killed and reaped: it never wakes up to write
+            os.kill(hung, 0)
+        flag.unlink()
+        until(lambda: w.running and snap.sample()[0][0] not in (float(first), float(hung)), "a process that opened")
+        n = snap.sample()[0][1]
+        until(lambda: snap.sample()[0][1] >= n + 2, "rounds after the restart")
+    finally:
+        flag.unlink(missing_ok=True)
+        w.stop()
+    # the old code waited for `open` inside `check` (up to 60 s); no check may wait for a child
+    assert slowest_s < 5.0, slowest_s
