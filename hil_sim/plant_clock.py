@@ -233,8 +233,10 @@ class LockstepPlantClock(PlantClock):
             time.sleep(0.01)
 
     def wait_until(self, deadline_s: float) -> None:
-        if self.sink is not None and not self.sink.flush(self.lost_s):
-            raise RuntimeError(f"lockstep: the sink's writes were not acknowledged within {self.lost_s:g} s")
+        # the sink knows what its device holds (its link read it back: the next cycle syncs), and
+        # what it wrote is acknowledged: the plant never runs on while compd's output is unknown
+        if self.sink is not None and not (self.sink.await_held(self.lost_s) and self.sink.flush(self.lost_s)):
+            raise RuntimeError(f"lockstep: the sink's device did not answer within {self.lost_s:g} s")
         t, state = self._answer(
             lambda: self._worker.request(("run_to", deadline_s), self.lost_s), "no acknowledgement of the run-to time"
         )

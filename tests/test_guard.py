@@ -233,3 +233,26 @@ def test_plain_rows_pass_check_inputs_after_rows_that_passed() -> None:
     if last_ok:
         np.testing.assert_array_equal(shadow._prev_val, g._prev_val)
         np.testing.assert_array_equal(shadow._prev_t, g._prev_t)
+
+
+def test_a_start_goes_on_from_what_the_machine_applies() -> None:
+    """Seeded with the machine's correction (the sink read it back), the guard never steps: before
+    the model's first prediction it takes it to 0 at the ramp (enabled while not 0), and from the
+    first prediction it slews from wherever it stands."""
+    g, f = make(ramp_um_per_s=2.0)
+    g.seed(0, -9.0, 0.0)
+    assert g.out_um[0] == -9.0 and g.enable[0]
+    assert [e for _, _, e, _ in g.events] == ["synced"]
+    out, ens = run(g, f, [math.nan] * 10)  # no prediction yet: 2 µm/s × 0.1 s a cycle toward 0
+    np.testing.assert_allclose(out, -9.0 + 0.2 * np.arange(10))
+    assert all(ens) and g.state[0] == 0  # still starting
+    out, ens = run(g, f, [5.0] * 40, t0=1.0)  # the model starts: slews from −7.2 to −5 at 10 µm/s
+    steps = np.abs(np.diff(np.concatenate([[-7.2], out])))
+    assert steps.max() <= 1.0 + 1e-9 and out[-1] == pytest.approx(-5.0) and all(ens)
+
+
+def test_a_start_with_nothing_to_predict_ends_at_zero_disabled() -> None:
+    g, f = make(ramp_um_per_s=5.0)
+    g.seed(0, 3.0, 0.0)
+    out, ens = run(g, f, [math.nan] * 20)
+    assert out[-1] == 0.0 and not ens[-1] and np.abs(np.diff(out)).max() <= 0.5 + 1e-9

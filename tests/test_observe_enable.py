@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from compd.config import load_config
@@ -153,3 +154,28 @@ def test_a_sink_whose_link_is_down_is_not_enabled_and_confirms_no_word(tmp_path:
     assert snap["word_at_machine"] is None  # nothing is confirmed at the machine
     text = render(jsonable(snap), True, "running")
     assert "OUTPUT NOT REACHING THE MACHINE" in text
+
+
+def test_observe_mode_takes_a_correction_found_at_the_card_to_zero_one_lsb_at_a_time() -> None:
+    """A card still holding the word of a run that was killed: observe mode does not drop it to
+    0x0000 at once (a step at the machine) but walks it down at the guard's ramp, one LSB at a
+    time, then holds the safe word."""
+    from compd.cycle.codec import codes_from_word, encode
+    from compd.plc.pci1756 import Pci1756Card
+    from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
+
+    card = Pci1756Card()
+    card.write_do_word(0, encode(-9.0, 4.0))  # what the killed run left on the lines
+    sink = ObserveSink(Pci1756Sink(Pci1756Config(kind="pci1756"), card=card), ramp_um_per_s=5.0)
+    sink.bind(["z", "x"], 1.0)
+    sink.open(0.0)
+    assert sink.sync(0.0) and sink.held_um() == {"z": -9.0, "x": 4.0}
+    codes = []
+    for k in range(2000):  # 10 ms cycles: 20 s, the ramp takes 1.8 s
+        sink.write(encode(30.0, 30.0), np.zeros(2), np.ones(2, dtype=bool), k == 0, 0.01 * k)
+        codes.append(codes_from_word(card.read_do_word(0)))
+    steps = np.abs(np.diff(np.array([(-9, 4)] + codes), axis=0))
+    assert steps.max() <= 1, "the word stepped"
+    assert codes[-1] == (0, 0) and card.read_do_word(0) == 0
+    first_zero = next(i for i, c in enumerate(codes) if c[0] == 0)
+    assert 0.01 * first_zero >= 9.0 / 5.0 - 0.05  # no faster than the ramp

@@ -214,7 +214,8 @@ def run_output_test(
     sink.open(clock.now())
     try:
         t_end = clock.now() + LINK_WAIT_S
-        while sink.link_state() != "up":
+        # up, and what the device holds read back: the ramp starts from what the machine applies
+        while not (loop.sync_output(clock.now()) or sink.synced()) or sink.link_state() != "up":
             if clock.now() >= t_end:
                 raise DeviceUnreachable(f"{info['device']} does not answer (link {sink.link_state()}): nothing written")
             clock.wait_until(clock.now() + 0.05)

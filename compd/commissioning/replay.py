@@ -53,6 +53,7 @@ if TYPE_CHECKING:
 # (a kind from another package) are stepped. A model with linear terms is stepped too:
 # the Siemens sink sends the terms of the row it writes, and feed_axis's `predict` gives
 # the error at each row's position, not at P0.
+REACH_S = 10.0  # a device over the network reads back what it holds within this, or nothing is replayed
 BATCH_MODELS = frozenset({
     "compd.models.ar1.AR1", "compd.models.xi_spindle.XiSpindle", "compd.models.lvr.LVR",
     "compd.models.mlr.MLR", "compd.models.feed_axis.FeedAxis",
@@ -151,6 +152,10 @@ def replay_log(
     t = log.t_s
     loop.open()
     try:
+        # what the device holds before the first row (a PMC over the network may hold a correction)
+        if not loop.sink.await_held(REACH_S):
+            raise BadInput(f"{loop.sink.device_info()['device']} does not answer: nothing replayed", file=log.file)
+        loop.sync_output(float(t[0]))
         if per_row:
             _run_cycles(loop, clock, probes, log, rows)
         else:

@@ -211,6 +211,18 @@ class Encoder:
         self._budget[0] = self._budget[1] = 0.0
         self.saturated[0] = self.saturated[1] = False
 
+    def seed(self, i: int, c_um: float) -> None:
+        """Axis `i` (0 high byte, 1 low byte) holds what the machine applies now (`c_um`, read
+        back by the sink at its start or after its link was restored): its code is the one
+        nearest, settled, and the word walks on from there."""
+        q = c_um / self.lsb_um if math.isfinite(c_um) else 0.0
+        q = math.floor(abs(q) + 0.5) * (1 if q >= 0 else -1)
+        self.codes[i] = max(-MAX_MAG, min(MAX_MAG, q))
+        self._moving[i] = False
+        self._budget[i] = 0.0
+        self.saturated[i] = False
+        self.word = word_from_codes(self.codes[0], self.codes[1])
+
     def adopt(self, previous: Encoder) -> None:
         """Config reload: hold what the previous encoder sent (converted to this LSB)."""
         for i in range(2):

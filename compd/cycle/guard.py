@@ -34,7 +34,7 @@ STARTING, NORMAL, FAULT, RECOVERING = 0, 1, 2, 3
 
 
 class AxisState(enum.IntEnum):
-    STARTING = 0  # no good prediction yet: output 0
+    STARTING = 0  # no good prediction yet: output 0 (or, from what the machine applied, to 0 at the ramp)
     NORMAL = 1
     FAULT = 2
     RECOVERING = 3  # inputs good again, waiting recovery_s
@@ -368,8 +368,13 @@ class Guard:
                     reason = "prediction not finite" if inputs_ok else "input bad"
                     self._event(now_s, self.axes[a], "fault", reason)
                     self.state[a] = st = FAULT
-                else:
-                    self.enable[a] = False
+                else:  # no prediction yet: what the machine applied at the start (`seed`) to 0 at the ramp
+                    out = float(self.out_um[a])
+                    if out != 0.0:
+                        step = self._ramp * dt
+                        out = out - step if out > step else (out + step if out < -step else 0.0)
+                        self.out_um[a] = out
+                    self.enable[a] = out != 0.0
                     continue
             out = float(self.out_um[a])
             if st == NORMAL:
@@ -506,6 +511,18 @@ class Guard:
             self._event(now_s, self.axes[a], "held", str(HOLD_NAMES[hold]))
         else:
             self._event(now_s, self.axes[a], "released", str(HOLD_NAMES[was]))
+
+    def seed(self, a: int, um: float, now_s: float) -> None:
+        """What the machine applies on axis `a` now (µm, read back by the sink at its start or after
+        its link was restored): the output goes on from there at the slew, never a step. Before the
+        model's first prediction it goes to 0 at `ramp_um_per_s`."""
+        if not math.isfinite(um):
+            return
+        self.out_um[a] = um
+        if int(self.state[a]) == STARTING:
+            self.enable[a] = um != 0.0
+        self._event(now_s, self.axes[a], "synced",
+                    f"the machine applies {um:+.3f} um: the output goes on from there", key="synced")
 
     def safe(self) -> None:
         self.out_um[:] = 0.0

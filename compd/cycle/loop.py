@@ -383,6 +383,7 @@ class Loop:
                 self.shadow.probed(self.adapter.probe_um, pred, now)
             pred = self.pred_adapted_um
         t2 = perf()
+        self.sync_output(now)  # what the machine applies, when the sink has just read it back
         if self.inhibit is not None:
             self.inhibit.evaluate(frame, now, self.guard.hold)
         self.guard.update(pred, ok or self.degraded, now, degraded=self.degraded)
@@ -412,6 +413,22 @@ class Loop:
         st.stage(4, t5 - t4)
         for obs in self.observers:
             obs(self, now)
+
+    def sync_output(self, now_s: float) -> bool:
+        """When the sink has just learned what its device holds (`Sink.sync`: at its open, after
+        its link was restored), the guard's output and the word start from it, so the output
+        walks on from what the machine applies and never steps. Every cycle (a few hundred ns
+        when nothing is new); a replay or `output-test` calls it before its first row."""
+        if not self.sink.sync(now_s):
+            return False
+        held = self.sink.held_um()
+        for a, name in enumerate(self.guard.axes):
+            if name in held:
+                self.guard.seed(a, held[name], now_s)
+        for slot, name in enumerate(self.encoder.axis_names):
+            if name in held:
+                self.encoder.seed(slot, held[name])
+        return True
 
     def model_step(self, ok: bool, now: float) -> None:
         """The cycle's model stage, when the model is due, on `x` (this cycle's inputs; `ok`:

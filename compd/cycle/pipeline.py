@@ -136,12 +136,12 @@ def build_pipeline(
             raise BadInput(f"{name!r} is not an output of the model", path=("codec", "axes"))
     encoder = Encoder(codec_cfg.lsb_um, codec_cfg.deadband_um)
     encoder.bind_axes(word_names, list(model.outputs))
-    sink.bind(encoder.axis_names, codec_cfg.lsb_um)
-    sink.bind_model(model)  # sinks that speak per-axis values (siemens) keep it
     if observe:  # commissioning: the full loop, the output held disabled
         from compd.sinks.observe import ObserveSink
 
-        sink = ObserveSink(sink)
+        sink = ObserveSink(sink, guard_cfg.ramp_um_per_s, codec_cfg.deadband_um)
+    sink.bind(encoder.axis_names, codec_cfg.lsb_um)
+    sink.bind_model(model)  # sinks that speak per-axis values (siemens) keep it
     loop = Loop(
         period_s=period_s,
         clock=clock,

@@ -19,6 +19,7 @@ from compd.cycle.pipeline import from_config
 from compd.errors import BadInput
 from compd.service.host import LogSpec, Service, StateSpec
 from compd.service.state import load_saved, params_digest
+from compd.sinks.base import SAFE_TIMEOUT_S
 
 log = logging.getLogger("compd")
 
@@ -332,15 +333,16 @@ class App:
 
     def _release_clashing_sink(self) -> None:
         """The new sink talks to the device the previous one holds: release the old one
-        first (safe output, close) rather than open a second connection beside it."""
+        first (what it wrote acknowledged, then closed) rather than open a second connection
+        beside it. No safe output: the new sink reads back what the device applies and goes on
+        from there (compd.sinks.base), so a reload neither steps the axis nor walks it to 0."""
         prev = self._previous
         if prev is None or id(self.sink) in self._adopted:
             return
         key = self.sink.device_key()
         if key is not None and key == prev.sink.device_key():
             try:
-                prev.guard.safe()
-                prev.sink.safe()
+                prev.sink.flush(SAFE_TIMEOUT_S)
             finally:
                 prev.sink.close()
                 self._released.add(id(prev.sink))

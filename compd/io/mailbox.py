@@ -169,6 +169,56 @@ class Latest(Generic[T]):
         self.count += 1
 
 
+class Sync:
+    """What a device held at each connect of a sink's link (compd.sinks.modbus_link), in memory
+    shared with the link's worker: the connection's epoch, the registers read at its start (the
+    held block), and the epoch the sink has taken.
+
+    Worker side: `begin` (a connect: a new epoch, sending stops), `publish` (the held block read).
+    Cycle side: `pending` (a held block not yet taken), `accept`, `accepted`. Nothing waits."""
+
+    def __init__(self, ranges: Sequence[tuple[int, int]]) -> None:
+        self.ranges = [(int(a), int(n)) for a, n in ranges]
+        self._buf = shared_buffer(24)
+        # the current epoch (0: none yet), the epoch whose held block is published, the epoch taken
+        # (a memoryview of int64: reading one every cycle makes no numpy scalar)
+        self._epochs = memoryview(self._buf).cast("q")
+        self._held = SharedRegisters(sum(n for _, n in self.ranges))
+
+    def begin(self) -> None:
+        """Worker: a new connection; what was taken before no longer counts."""
+        self._epochs[0] += 1
+
+    def publish(self, regs: Sequence[int]) -> None:
+        """Worker: the current epoch's held block."""
+        e = int(self._epochs[0])
+        self._held.publish((regs, float(e)))
+        self._epochs[1] = e
+
+    def pending(self) -> tuple[int, list[int]] | None:
+        """Cycle: (epoch, held block) when the current epoch's block is read and not yet taken."""
+        e = int(self._epochs[0])
+        if e == 0 or int(self._epochs[1]) != e or int(self._epochs[2]) == e:
+            return None
+        regs, stamp = self._held.value
+        if regs is None or int(stamp) != e or int(self._epochs[0]) != e:
+            return None  # a newer connection began meanwhile: its block comes next
+        return e, regs
+
+    def accept(self, epoch: int) -> None:
+        """Cycle: the sink reckons from `epoch`'s held block; the worker sends from now on."""
+        self._epochs[2] = epoch
+
+    def accepted(self) -> bool:
+        """Whether the current epoch's block has been taken (what is submitted is sent)."""
+        e = int(self._epochs[0])
+        return e > 0 and int(self._epochs[2]) == e
+
+    @property
+    def epoch(self) -> int:
+        return int(self._epochs[0])
+
+
 class WriteQueue:
     """Register writes from the cycle to a worker: the newest values per address, sent in
     order of first submission. A newer write to an address replaces one not yet sent (it

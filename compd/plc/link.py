@@ -16,6 +16,7 @@ from abc import ABC, abstractmethod
 from typing import Any
 
 from compd.cycle.histogram import DurationHist
+from compd.io.mailbox import Sync
 from compd.sinks.device_time import DeviceTime
 
 
@@ -64,9 +65,12 @@ class VirtualLink:
     """
 
     def __init__(
-        self, device: VirtualDevice, time: DeviceTime, *, status: tuple[int, int] | None = None, name: str = "sink"
+        self, device: VirtualDevice, time: DeviceTime, *, status: tuple[int, int] | None = None, name: str = "sink",
+        sync: list[tuple[int, int]] | None = None,
     ) -> None:
         self.device = device
+        # what the device holds when the link starts (ModbusLink's sync ranges), read at `start`
+        self.sync = Sync(sync) if sync is not None else None
         self.time = time
         self.status_range = status
         self.name = name
@@ -80,9 +84,35 @@ class VirtualLink:
         self.latency_hist = DurationHist()
 
     def start(self) -> None:
-        """The device's clock starts at the sink's time."""
+        """The device's clock starts at the sink's time; what it holds is read at once."""
         self.device.start_at(self.time.now_s)
         self.state = "up"
+        if self.sync is not None:
+            self.sync.begin()
+            regs: list[int] = []
+            for address, count in self.sync.ranges:
+                got = self.device.read_registers(address, count)
+                if got is None:  # as over Modbus: nothing is written until it can be read
+                    self.errors += 1
+                    self.last_error = f"cannot read what the device holds (registers {address}+{count}): not in its map"
+                    return
+                regs += got
+            self.sync.publish(regs)
+
+    def held(self) -> tuple[int, list[int]] | None:
+        """As ModbusLink.held: the block read at `start`, until the sink takes it."""
+        return self.sync.pending() if self.sync is not None else None
+
+    def accept(self, epoch: int) -> None:
+        assert self.sync is not None
+        self.sync.accept(epoch)
+
+    def synced(self) -> bool:
+        return self.sync is None or self.sync.accepted()
+
+    def await_held(self, timeout_s: float) -> bool:
+        """In process the held block is read at `start`: nothing to wait for."""
+        return True
 
     def _run_clock(self) -> None:
         self.device.advance_to(self.time.now_s)

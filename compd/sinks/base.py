@@ -53,6 +53,8 @@ class Sink(ABC):
         # network, whose write round trips and output latency are the bench's I/O statistics,
         # or the same interface to a device of the software PLC in this process
         self.link: ModbusLink | VirtualLink | None = None
+        self.syncs = 0  # times the sink learned what its device holds (`sync`)
+        self._held_um: dict[str, float] = {}  # ... and what it held then, by axis
 
     def bind(self, axes: list[str], lsb_um: float) -> None:
         """The word's axes (high byte first) and the codec's LSB."""
@@ -63,7 +65,64 @@ class Sink(ABC):
         """The model whose outputs the sink is handed (sinks that speak per-axis values)."""
 
     def open(self, now_s: float) -> None:
-        """Connect to the device; called once before the first cycle."""
+        """Connect to the device; called once before the first cycle. Writes nothing that could
+        move an axis: what the device holds is not known yet (`sync`)."""
+
+    # ------------------------------------------------------------ what the device holds
+    # A sink never assumes what its device applies: compd's own earlier run may have been
+    # killed while the device held a correction, or the device restarted and holds 0. At its
+    # open, and whenever its link to the device is restored, the sink reads back what the device
+    # applies (`held_um`) before it writes anything that could move an axis, and steps from
+    # there; the loop starts the guard and the word from it too (`Loop.sync_output`), so the
+    # first word of every start, reload and link restart is within one step of the machine.
+    def sync(self, now_s: float) -> bool:
+        """Every cycle, before the guard (never waits): True in the cycle the sink has just learned
+        what its device holds — at its open, and after its link to the device was restored — and
+        reckons from it from now on; `held_um` then says what. The base reads its link's held
+        block (compd.sinks.modbus_link: read at every connect, before anything is sent) and hands
+        it to `take_held`."""
+        link = self.link
+        if link is None:
+            return False
+        got = link.held()
+        if got is None:
+            return False
+        epoch, regs = got
+        link.accept(epoch)  # what was queued before is dropped; what is submitted from now on is sent
+        self.take_held(regs, now_s)
+        self.syncs += 1
+        return True
+
+    def resync(self, timeout_s: float, now_s: float) -> bool:
+        """Outside the cycle (the safe output, a test): make sure the sink knows what its device
+        holds on the current connection, waiting up to `timeout_s` for the link's held block;
+        False when it cannot (nothing that could move an axis may be written then)."""
+        if self.synced():
+            return True
+        if not self.await_held(timeout_s):
+            return False
+        self.sync(now_s)
+        return self.synced()
+
+    def take_held(self, regs: list[int], now_s: float) -> None:
+        """The held block of a new connection (the registers of the link's sync ranges): reckon
+        from it, and say it in `held_um`. Sinks with a link to a device override this."""
+
+    def held_um(self) -> dict[str, float]:
+        """What the device applied when the sink last synced (`sync` True), µm by axis name (the
+        axes the device reports); the guard and the word start there."""
+        return dict(self._held_um)
+
+    def await_held(self, timeout_s: float) -> bool:
+        """Outside the cycle (replay, output-test, a lockstep clock before it releases the plant,
+        the safe output): wait until the sink can sync (`sync` will say True, or it has already);
+        False after `timeout_s` (the device does not answer)."""
+        return self.link is None or self.link.await_held(timeout_s)
+
+    def synced(self) -> bool:
+        """Whether the sink knows what its device holds on the current connection: what it
+        submits now is sent (before, it writes nothing that could move an axis)."""
+        return self.link is None or self.link.synced()
 
     def device_key(self) -> Hashable | None:
         """What outside device this sink holds (e.g. a Modbus host and port), or None when
@@ -90,7 +149,10 @@ class Sink(ABC):
     def safe(self) -> bool:
         """Emit the safe output (enable bits off, the correction walked back to zero where
         the device asks for steps), through a fresh link when the running one's worker is
-        gone; True when the device acknowledged it (within `SAFE_TIMEOUT_S` per write)."""
+        gone; True when the device acknowledged it (within `SAFE_TIMEOUT_S` per write), or when
+        the sink never synced (nothing of compd's was written: nothing to take back). The walk
+        starts from what the device holds, read back when the link is new (False when it cannot
+        be read: nothing that could move an axis is written blind)."""
 
     @abstractmethod
     def applied_um(self, out: np.ndarray) -> None:
@@ -162,4 +224,5 @@ class Sink(ABC):
         return {"device": self.cfg.kind, "resolution_um": None, "max_abs_um": None, "max_rate_um_per_s": None}
 
     def get_status(self) -> dict[str, Any]:
-        return {"kind": self.cfg.kind, "writes": self.writes, "link": self.link_state()}
+        return {"kind": self.cfg.kind, "writes": self.writes, "link": self.link_state(), "syncs": self.syncs,
+                "held_um": self.held_um()}

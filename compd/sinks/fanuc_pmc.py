@@ -16,6 +16,11 @@ With `host` the PMC is reached over Modbus TCP, written from a background thread
 the cycle never waits on the network; without, it is the software PLC's PMC
 (compd.plc), run in process on the loop's clock (replay, demo). Both are reached
 through the same link interface, so the sink has one code path.
+
+At its open, and whenever its link is restored, the sink writes nothing until it has read
+back what the PMC applies (registers 404/405) and, in word mode, the strobe's level (so the
+next word makes an edge): its steps start from the shift the machine applies, never from 0
+(compd.sinks.base, "what the device holds").
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from compd.config import SinkConfig
-from compd.cycle.codec import codes_from_word, word_bytes, word_from_codes
+from compd.cycle.codec import MAX_MAG, codes_from_word, word_bytes, word_from_codes
 from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
 from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
@@ -109,10 +114,20 @@ class FanucPmcSink(Sink):
         self._dirty = False
         self._max_step_lsb = 1
         self._scans_at_delivery: int | None = None
+        self._fresh = True  # the next word sets the target (the first after a sync)
 
     def bind(self, axes: list[str], lsb_um: float) -> None:
         super().bind(axes, lsb_um)
         self._max_step_lsb = max(1, int(math.floor(self.cfg.max_step_um / lsb_um + 1e-9)))
+
+    def _sync_ranges(self) -> list[tuple[int, int]]:
+        """What is read back at every connect: the status block (applied shift at +4, +5) and, in
+        word mode, the word's X bytes and the strobe's."""
+        cfg = self.cfg
+        ranges = [(cfg.status_address, 8)]
+        if cfg.mode == "word":
+            ranges += [(cfg.x_word, 2), (cfg.x_strobe, 1)]
+        return ranges
 
     def _connect(self) -> ModbusLink | VirtualLink:
         """The link to the PMC: the one in this process (told the codec's LSB), or Modbus TCP."""
@@ -122,7 +137,8 @@ class FanucPmcSink(Sink):
             from compd.plc.link import VirtualLink
 
             self.pmc.write_registers(LSB_NM, [int(round(self.lsb_um * 1000))])
-            return VirtualLink(self.pmc, self.time, status=(cfg.status_address, 8), name="fanuc_pmc")
+            return VirtualLink(self.pmc, self.time, status=(cfg.status_address, 8), name="fanuc_pmc",
+                               sync=self._sync_ranges())
         from compd.sinks.modbus_link import ModbusLink
 
         return ModbusLink(
@@ -132,22 +148,48 @@ class FanucPmcSink(Sink):
             timeout_s=cfg.timeout_s,
             status=(cfg.status_address, 8),
             name="fanuc_pmc",
+            sync=self._sync_ranges(),
         )
 
     def open(self, now_s: float) -> None:
-        cfg = self.cfg
+        """Connect; nothing is written until the PMC's applied shift is read back (`sync`)."""
         self.time.set(now_s)
         self.link = self._connect()
         self.link.start()
-        if cfg.reset_alarm_on_start:
+
+    def take_held(self, regs: list[int], now_s: float) -> None:
+        """The PMC's applied shift is where the steps start (the word's codes nearest to it) and
+        what the guard and word start from; in word mode the strobe's level is taken too (the next
+        word toggles it from there). Alarms latched by an earlier run are reset on the first."""
+        cfg = self.cfg
+        lsb = self.lsb_um
+        held = {}
+        for a in range(2):
+            v = regs[4 + a]
+            um = float(v - 0x10000 if v & 0x8000 else v)
+            q = int(math.floor(abs(um) / lsb + 0.5)) * (1 if um >= 0 else -1)
+            self.sent_lsb[a] = self.target_lsb[a] = max(-MAX_MAG, min(MAX_MAG, q))
+            if a < len(self.axes):
+                held[self.axes[a]] = um
+        self._held_um = held
+        if cfg.mode == "word":
+            self._strobe = (regs[10] >> cfg.strobe_bit) & 1
+        self._next_update_s = -math.inf
+        self._fresh = True
+        self._dirty = False
+        if cfg.reset_alarm_on_start and not self.syncs:
+            assert self.link is not None
             self.link.submit(cfg.status_address + 3, [1])
-        self._deliver(now_s)
+
+    def link_state(self) -> LinkState:
+        """The link's; `connecting` while it is up but what the PMC applies is not yet read back."""
+        if self.link is None:
+            return "closed"
+        st = self.link.state
+        return "connecting" if st == "up" and not self.link.synced() else st  # type: ignore[return-value]
 
     def device_key(self) -> Any:
         return None if self.cfg.host is None else ("modbus", self.cfg.host, self.cfg.port)
-
-    def link_state(self) -> LinkState:
-        return "closed" if self.link is None else self.link.state  # type: ignore[return-value]
 
     def _deliver(self, now_s: float) -> None:
         cfg = self.cfg
@@ -175,9 +217,13 @@ class FanucPmcSink(Sink):
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
     ) -> None:
-        if changed or self.writes == 0:
-            self.target_lsb = list(codes_from_word(word))
         self.writes += 1
+        if self.link is None or not self.link.synced():  # what the PMC applies not yet read back
+            self.time.set(now_s)
+            return
+        if changed or self._fresh:
+            self.target_lsb = list(codes_from_word(word))
+            self._fresh = False
         if self.sent_lsb != self.target_lsb and now_s >= self._next_update_s:
             if self.time.catch_up:
                 self._catch_up(now_s)
@@ -244,18 +290,22 @@ class FanucPmcSink(Sink):
     def safe(self) -> bool:
         """Walk the shift back to zero in allowed steps (the PMC would alarm on one jump),
         one step per `min_update_s` of the PMC's time; True when every step was acknowledged."""
-        self.target_lsb = [0, 0]
-        if self.link is None:
-            return True
+        if self.link is None or not self.syncs:
+            return True  # nothing was ever written to the PMC on this sink: nothing of ours to take back
         self.link.ensure_serving()
         ok = True
         for _ in range(10_000):
+            # from what the PMC applies (read back when the link is new: a fresh one, or one
+            # restored while the walk went on); unknown, nothing may be written
+            if not self.resync(SAFE_TIMEOUT_S, self.time.now_s):
+                return False
             if self.sent_lsb == [0, 0]:
                 break
             self.sent_lsb = step_toward(self.sent_lsb, [0, 0], self._max_step_lsb)
             self._deliver(self.time.now_s)
             ok = self.link.flush(SAFE_TIMEOUT_S) and ok
             self.time.wait(self.cfg.min_update_s)
+        self.target_lsb = [0, 0]
         self.time.wait(2 * self.cfg.scan_s)  # the last step's two scans
         return ok
 
@@ -333,8 +383,6 @@ class FanucPmcSink(Sink):
     def device_info(self) -> dict[str, Any]:
         """The word's LSB (the shift registers hold whole µm), its full scale 63 LSB, and
         the step rate: `max_step_um` per `min_update_s`."""
-        from compd.cycle.codec import MAX_MAG
-
         cfg = self.cfg
         where = "in process" if cfg.host is None else f"at {cfg.host}:{cfg.port}"
         res = self.lsb_um if cfg.mode == "word" else max(1.0, self.lsb_um)

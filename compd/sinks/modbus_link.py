@@ -10,6 +10,16 @@ count, frame length, unit): a reply of the wrong shape is a link error (`errors`
 `bad_replies`, `last_error`), never taken as the device's status or applied value.
 `state` is the link as the worker last found it: connecting (started, no answer
 yet), up, down (connect or I/O failed), closed.
+
+What the device holds, before anything is written (`sync` ranges): a sink never knows what
+a device applies when it connects — its own earlier run may have been killed while the
+device held a correction, another process may have written it, the device may have been
+restarted and hold 0. So at every connect (the first, and every one after the link was
+lost) the worker, before it sends anything, starts a new *epoch*, reads the sync ranges and
+publishes them as the epoch's `held` block. It sends nothing more until the sink has taken
+that block (`accept`, which also drops the writes still queued: they were reckoned from what
+the device held before): the sink then knows what the device applies and steps from there,
+so the first write of every connection is within one step of what the machine applies.
 """
 
 from __future__ import annotations
@@ -20,7 +30,7 @@ from typing import Any
 
 from compd.cycle.histogram import DurationHist
 from compd.io.child import hosting_now
-from compd.io.mailbox import SharedRegisters, WriteQueue
+from compd.io.mailbox import SharedRegisters, Sync, WriteQueue
 from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault, OverModbus
 from compd.io.worker import DeviceWork, IoWorker, LinkDown, stall_after
 
@@ -37,6 +47,7 @@ class LinkWork(OverModbus, DeviceWork):
         status_out: SharedRegisters,
         status_range: tuple[int, int] | None,
         status_period_s: float,
+        sync: Sync | None = None,
     ) -> None:
         super().__init__()
         self.client = client
@@ -44,6 +55,8 @@ class LinkWork(OverModbus, DeviceWork):
         self.status_out = status_out
         self.status_range = status_range
         self.status_period_s = status_period_s
+        self.sync = sync
+        self._synced = False  # this connection's held block has been read
         self.writes = 0
         self.reply_errors = 0  # exception replies and malformed replies
         self.bad_replies = 0
@@ -56,12 +69,37 @@ class LinkWork(OverModbus, DeviceWork):
 
     max_writes_per_round = 64  # a round ends, so requests and stop are seen, however busy the queue
 
+    def connect(self) -> None:
+        super().connect()
+        self._synced = False
+        if self.sync is not None:  # a new epoch: nothing is sent until the sink has taken its held block
+            self.sync.begin()
+
     def round(self, request: Any) -> list[int] | None:
-        """Send the queued writes, reading the status block whenever it is due; then the
+        """A new connection's held block first (see the module); then send the queued writes
+        (once the sink has taken it), reading the status block whenever it is due; then the
         registers `request` asks for (address, count)."""
-        self._send_queued()
+        sync = self.sync
+        if sync is not None and not self._synced:
+            self._read_held(sync)
+        if sync is None or sync.accepted():
+            self._send_queued()
         self._status_if_due()
         return None if request is None else self._read(*request)
+
+    def _read_held(self, sync: Sync) -> None:
+        """This connection's held block: the sync ranges read and published (the sink takes it
+        and drops what it had queued before: `ModbusLink.accept`). A range the device refuses
+        leaves it unread (tried again next round): nothing is written meanwhile."""
+        regs: list[int] = []
+        for address, count in sync.ranges:
+            r = self._read(address, count)
+            if r is None:
+                self.last_error = f"cannot read what the device holds (registers {address}+{count}): {self.last_error}"
+                return
+            regs += r
+        sync.publish(regs)
+        self._synced = True
 
     def _status_if_due(self) -> None:
         now = time.monotonic()
@@ -124,6 +162,7 @@ class ModbusLink:
         reconnect_min_s: float = 0.1,
         reconnect_max_s: float = 5.0,
         name: str = "sink",
+        sync: list[tuple[int, int]] | None = None,
     ) -> None:
         self.host, self.port, self.device_id = host, port, device_id
         self.timeout_s = timeout_s
@@ -133,9 +172,11 @@ class ModbusLink:
         self.name = name
         self._status = SharedRegisters(status[1] if status is not None else 0)
         self._queue = WriteQueue()
+        # what the device holds at each connect, before anything is written (None: no such read)
+        self.sync = Sync(sync) if sync is not None else None
         self._work = LinkWork(
             ModbusClient.tcp(host, port, device_id=device_id, timeout_s=timeout_s),
-            self._queue, self._status, status, status_period_s,
+            self._queue, self._status, status, status_period_s, self.sync,
         )
         self._worker = IoWorker(
             self._work, name=f"modbus-link-{name}", period_s=status_period_s,
@@ -207,7 +248,35 @@ class ModbusLink:
                 "errors": io["errors"] + io.get("reply_errors", 0),
                 "bad_replies": io.get("bad_replies", 0), "last_error": io["last_error"], "pid": io.get("pid")}
 
+    def held(self) -> tuple[int, list[int]] | None:
+        """The held block of the link's current connection, with its epoch, when the worker has
+        read it and the sink has not yet taken it (`accept`); None otherwise. Never waits."""
+        return self.sync.pending() if self.sync is not None else None
+
+    def accept(self, epoch: int) -> None:
+        """The sink has taken the held block of `epoch` (and reckons from it): what it submits
+        from now on is sent. Drops what was submitted before (reckoned from an older state)."""
+        assert self.sync is not None
+        self._queue.clear()
+        self.sync.accept(epoch)
+
+    def synced(self) -> bool:
+        """Whether what is submitted now is sent: the sink has taken the current connection's
+        held block (always, for a link without sync ranges)."""
+        return self.sync is None or self.sync.accepted()
+
     # ------------------------------------------------------------ between cycles
+    def await_held(self, timeout_s: float) -> bool:
+        """Between cycles (a lockstep clock's release, the safe output): wait until the link is
+        synced or has a held block for the sink to take; False after `timeout_s`."""
+        deadline = time.monotonic() + timeout_s
+        while not self.synced() and self.held() is None:
+            if time.monotonic() >= deadline:
+                return False
+            self._worker.wake()
+            time.sleep(0.002)
+        return True
+
     def flush(self, timeout_s: float = 2.0) -> bool:
         """Wait until every queued write has been acknowledged by the device (or `timeout_s`);
         a write that failed on the way is queued again and retried once the link is back."""

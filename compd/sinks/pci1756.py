@@ -1,4 +1,11 @@
-"""PCI-1756 digital-output sink (paper 002): the word on two DO bytes, plus a heartbeat."""
+"""PCI-1756 digital-output sink (paper 002): the word on two DO bytes, plus a heartbeat.
+
+The card's outputs latch: a word written by an earlier run stays on the lines after compd
+ends (killed, or the watchdog's SIGABRT). At its open, and whenever the link to the card is
+restored, the sink reads the DO lines back (the PCI-1756 reads back its output latch; the
+card over Modbus: the X registers the DO bytes were written to) before it writes anything,
+and the guard and the word start from the word found there (compd.sinks.base, "what the
+device holds"): the word walks from it one LSB a cycle, never jumps to 0 at a start."""
 
 from __future__ import annotations
 
@@ -18,7 +25,9 @@ class DoCard(ABC):
     Modbus, a real driver): 16-bit words on two DO bytes (low byte at `port`), single DO bits."""
 
     def start(self) -> None:
-        """Connect (a card reached over a network); called when the sink opens."""
+        """Connect (a card reached over a network); called when the sink opens. A card in this
+        process has its lines read back at once (`held`)."""
+        self._held_epoch += 1
 
     def link_state(self) -> LinkState:
         """Whether what is written reaches the lines: a card in this process always does."""
@@ -32,6 +41,34 @@ class DoCard(ABC):
         """Before the safe output: a card reached through a worker gets a fresh one when its
         worker is gone (see ModbusLink.ensure_serving); in process: nothing to do."""
         return True
+
+    # what the DO lines hold when the card is reached (at the start, after its link is restored):
+    # a card in this process reads its latch at once; a card over a link, at every connect
+    _held_epoch = 0
+    _taken_epoch = 0
+
+    def held(self) -> tuple[int, int] | None:
+        """(epoch, the 32 DO lines as read back) for a connection whose lines the sink has not
+        yet taken; None otherwise. Never waits. A card in this process: its latch, once per start."""
+        if self._held_epoch == self._taken_epoch:
+            return None
+        return self._held_epoch, self.read_do()
+
+    def accept(self, epoch: int, lines: int) -> None:
+        """The sink takes the lines read back (and writes from them from now on)."""
+        self._taken_epoch = epoch
+
+    def synced(self) -> bool:
+        """Whether the lines have been taken for the current connection: what is written is sent."""
+        return self._held_epoch > 0 and self._taken_epoch == self._held_epoch
+
+    def await_held(self, timeout_s: float) -> bool:
+        """Outside the cycle: wait until `held` (or the card is synced); in process: at once."""
+        return True
+
+    def read_do(self) -> int:
+        """All 32 DO lines as one integer (bit 0 = DO0): the card's output latch read back."""
+        raise NotImplementedError
 
     @abstractmethod
     def write_do_word(self, port: int, value: int) -> None: ...
@@ -89,10 +126,32 @@ class ModbusDoCard(DoCard):
 
         self._do = bytearray(4)
         self.x_register = x_register
-        self.link = ModbusLink(host, port, device_id=device_id, name="pci1756")
+        # the four X registers the DO bytes are written to are read back at every connect
+        self.link = ModbusLink(host, port, device_id=device_id, name="pci1756", sync=[(x_register, 4)])
 
     def start(self) -> None:
         self.link.start()
+
+    def held(self) -> tuple[int, int] | None:
+        got = self.link.held()
+        if got is None:
+            return None
+        epoch, regs = got
+        return epoch, sum((r & 0xFF) << (8 * k) for k, r in enumerate(regs[:4]))
+
+    def accept(self, epoch: int, lines: int) -> None:
+        """The lines read back are the card's from now on (the next write sends them with its change)."""
+        self._do[:] = (lines & 0xFFFFFFFF).to_bytes(4, "little")
+        self.link.accept(epoch)
+
+    def synced(self) -> bool:
+        return self.link.synced()
+
+    def await_held(self, timeout_s: float) -> bool:
+        return self.link.await_held(timeout_s)
+
+    def read_do(self) -> int:
+        return int.from_bytes(self._do, "little")
 
     def _push(self) -> None:
         self.link.submit(self.x_register, list(self._do))
@@ -142,21 +201,55 @@ class Pci1756Sink(Sink):
         self._heartbeat = False
         self._strobe = False
         self.word = 0
+        self._fresh = True  # the next write sends the word (the first after a sync)
 
     def device_key(self) -> Any:
         return ("modbus", self.cfg.host, self.cfg.port) if self.cfg.device == "modbus" else None
 
     def link_state(self) -> LinkState:
-        """The card over Modbus: its link; a card in this process (emulated, a driver): up."""
-        return self.card.link_state()
+        """The card over Modbus: its link (`connecting` while up but the lines not yet read back);
+        a card in this process (emulated, a driver): up."""
+        st = self.card.link_state()
+        return "connecting" if st == "up" and not self.card.synced() else st
 
     def open(self, now_s: float) -> None:
+        """Connect; nothing is written until the DO lines are read back (`sync`)."""
         self.card.start()
+
+    def sync(self, now_s: float) -> bool:
+        """The DO lines read back on a new connection: the word on them is where the guard and the
+        word start (`held_um`), and the heartbeat and strobe go on from their levels there."""
+        got = self.card.held()
+        if got is None:
+            return False
+        epoch, lines = got
+        self.card.accept(epoch, lines)
+        cfg = self.cfg
+        self.word = (lines >> (8 * cfg.word_port)) & 0xFFFF
+        if cfg.heartbeat_bit is not None:
+            self._heartbeat = bool(lines >> cfg.heartbeat_bit & 1)
+        if cfg.strobe_bit is not None:
+            self._strobe = bool(lines >> cfg.strobe_bit & 1)
+        c1, c2 = word_to_um(self.word, self.lsb_um)
+        self._held_um = dict(zip(self.axes, (c1, c2), strict=False))
+        self._fresh = True
+        self.syncs += 1
+        return True
+
+    def synced(self) -> bool:
+        return self.card.synced()
+
+    def await_held(self, timeout_s: float) -> bool:
+        return self.card.await_held(timeout_s)
 
     def write(
         self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
     ) -> None:
-        if changed or self.writes == 0:
+        if not self.card.synced():  # the lines not yet read back: nothing is written
+            self.writes += 1
+            return
+        if changed or self._fresh:
+            self._fresh = False
             self.card.write_do_word(self.cfg.word_port, word)
             self.word = word
             if self.cfg.strobe_bit is not None:
@@ -168,7 +261,13 @@ class Pci1756Sink(Sink):
             self.card.write_do_bit(self.cfg.heartbeat_bit, self._heartbeat)
 
     def safe(self) -> bool:
+        """Word 0x0000 (every enable bit off) at once: the CNC drops the correction. Through a
+        fresh link when the running one's worker is gone, from the lines read back there."""
+        if not self.syncs:
+            return True  # nothing was ever written to the card on this sink: nothing of ours to take back
         self.card.ensure_serving()
+        if not self.resync(SAFE_TIMEOUT_S, 0.0):
+            return False  # the card does not answer: nothing can reach it
         self.card.write_do_word(self.cfg.word_port, 0)
         self.word = 0
         if self.cfg.strobe_bit is not None:
@@ -218,7 +317,7 @@ class Pci1756Sink(Sink):
                                positions_mm)
             return
         rows = np.flatnonzero(changed)
-        if self.writes == 0 and (rows.size == 0 or rows[0] != 0):
+        if self._fresh and (rows.size == 0 or rows[0] != 0):
             rows = np.r_[0, rows]
         for r in rows.tolist():
             self.write(int(words[r]), corr_um[r], enable[r], bool(changed[r]), float(t_s[r]))

@@ -11,6 +11,11 @@ over Modbus TCP; without, it is the software PLC's NC (compd.plc), in process on
 loop's clock. Both through the same link interface: the sink has one code path. In
 process a write lands where the NC's time stands (the last call's), so the NC ramps
 toward it over the time up to the call (a replay's row after dt: not one row late).
+
+At its open, and whenever its link is restored, the sink reads back the NC's data (K0 and
+the ΔK it applies, per axis) before it writes anything: the guard starts from the ΔK the NC
+applies (compd.sinks.base, "what the device holds"), so the first K0 sent is within one slew
+step of it, never a jump to 0 that the NC would ramp away at its own rate.
 """
 
 from __future__ import annotations
@@ -86,7 +91,11 @@ class SiemensSink(Sink):
         return None if self.cfg.host is None else ("modbus", self.cfg.host, self.cfg.port)
 
     def link_state(self) -> LinkState:
-        return "closed" if self.link is None else self.link.state  # type: ignore[return-value]
+        """The link's; `connecting` while it is up but the NC's data not yet read back."""
+        if self.link is None:
+            return "closed"
+        st = self.link.state
+        return "connecting" if st == "up" and not self.link.synced() else st  # type: ignore[return-value]
 
     def _connect(self) -> ModbusLink | VirtualLink:
         """The link to the NC's data (the status block: every axis the sink writes)."""
@@ -95,16 +104,32 @@ class SiemensSink(Sink):
             from compd.plc.link import VirtualLink
 
             status = (0, min(count, BLOCK * self.nc.n))
-            return VirtualLink(self.nc, self.time, status=status, name="siemens")
+            return VirtualLink(self.nc, self.time, status=status, name="siemens", sync=[status])
         from compd.sinks.modbus_link import ModbusLink
 
-        return ModbusLink(self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, count), name="siemens")
+        return ModbusLink(self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, count),
+                          name="siemens", sync=[(0, count)])
 
     def open(self, now_s: float) -> None:
+        """Connect; nothing is written until the NC's data is read back (`sync`)."""
         self.time.set(now_s)
         self.link = self._connect()
         self.link.start()
+
+    def take_held(self, regs: list[int], now_s: float) -> None:
+        """The ΔK each axis's NC applies is where the guard starts (`held_um`); K0 is sent anew
+        from the next write on (with the compensation type: MD32750)."""
+        held = {}
+        for name, ax in zip(self.outputs, self.nc_axis, strict=True):
+            if ax >= 0 and BLOCK * ax + APPLIED + 1 < len(regs):
+                um = 1000.0 * regs_f32(regs[BLOCK * ax + APPLIED], regs[BLOCK * ax + APPLIED + 1])
+                if math.isfinite(um):
+                    held[name] = um
+        self._held_um = held
+        self.sent_k0_um[:] = np.nan
+        self._next_s = -math.inf
         # a model may offer linear terms only in some modes; output-test binds no model
+        assert self.link is not None
         linear = self.model is not None and self.model.linear_terms() is not None
         for ax in self.nc_axis:
             if ax >= 0:
@@ -117,7 +142,7 @@ class SiemensSink(Sink):
         if not t.catch_up:
             t.set(now_s)
         self.writes += 1
-        if now_s < self._next_s or not self.outputs or self.link is None:
+        if now_s < self._next_s or not self.outputs or self.link is None or not self.link.synced():
             t.set(now_s)
             return
         if t.catch_up:
@@ -173,9 +198,11 @@ class SiemensSink(Sink):
 
     def safe(self) -> bool:
         """K0 = 0 (and tanβ = 0): the NC ramps ΔK away at its own MD32760 rate."""
-        if self.link is None:
-            return True
+        if self.link is None or not self.syncs:
+            return True  # nothing was ever written to the NC on this sink: nothing of ours to take back
         self.link.ensure_serving()
+        if not self.resync(SAFE_TIMEOUT_S, self.time.now_s):
+            return False  # the NC does not answer: nothing can reach it
         for ax in self.nc_axis:
             if ax >= 0:
                 self.link.submit(BLOCK * ax + K0, f32_regs(0.0) + f32_regs(0.0))

@@ -16,10 +16,13 @@ from hil_sim.scenario import SCENARIOS
 
 
 class _Sink:
-    """The part of a sink the clock uses: flush = the link's drain."""
+    """The part of a sink the clock uses: what the device holds read back, flush = the link's drain."""
 
     def __init__(self, link: ModbusLink) -> None:
         self.link = link
+
+    def await_held(self, timeout_s: float) -> bool:
+        return self.link.await_held(timeout_s)
 
     def flush(self, timeout_s: float) -> bool:
         return self.link.drain(timeout_s)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -29,6 +30,7 @@ def test_in_process_walks_to_target_without_alarm(mode):
     sink = FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", mode=mode, max_step_um=5, step_limit_um=10))
     sink.bind(["x1", "x2"], 1.0)
     sink.open(0.0)
+    assert sink.sync(0.0)  # what the PMC applies, read back before anything is written
     word = encode(30, -20)
     applied = []
     out = np.zeros(2)
@@ -72,6 +74,7 @@ def test_over_modbus_tcp_against_scanning_pmc():
             sink.bind(["x1", "x2"], 1.0)
             sink.open(time.monotonic())
             try:
+                assert sink.resync(5.0, time.monotonic())  # what the PMC applies, read back over Modbus
                 _run_remote(sink, encode(25, -12), 0.6)
                 sink.settle(0.0)
                 time.sleep(0.05)
@@ -95,6 +98,7 @@ def test_without_splitting_the_pmc_alarms():
     sink = FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", max_step_um=63, step_limit_um=63), pmc=pmc)
     sink.bind(["x1", "x2"], 1.0)
     sink.open(0.0)
+    assert sink.sync(0.0)  # what the PMC applies, read back before anything is written
     pmc.write_registers(300, [10])  # D0: the machine's real limit
     sink.write(encode(25, 0), Z, EN, True, 0.05)
     sink.settle(0.05)
@@ -119,17 +123,19 @@ class _Spy(FanucPmc):
 
 @pytest.mark.parametrize("mode", ["word", "shift"])
 def test_in_process_a_call_after_dt_takes_the_steps_dt_allows(mode):
-    """The PMC on the loop's time: a call 0.1 s after the last makes the five 5 µm steps
-    min_update_s (0.02 s) allows in 0.1 s, two scans or more apart, and the next call the rest."""
+    """The PMC on the loop's time: a call 0.1 s after the last (the sync at 0) makes the six 5 µm
+    steps min_update_s (0.02 s) allows in [0, 0.1] s, two scans or more apart, and the next call
+    the rest."""
     pmc = _Spy(step_limit_um=10)
     sink = FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", mode=mode, max_step_um=5, min_update_s=0.02), pmc=pmc)
     sink.bind(["x1", "x2"], 1.0)
     sink.open(0.0)
+    assert sink.sync(0.0)  # what the PMC applies, read back before anything is written
     out = np.zeros(2)
     sink.write(encode(40, -12), Z, EN, True, 0.1)
     sink.settle(0.1)
     sink.applied_um(out)
-    assert out.tolist() == [25.0, -12.0]
+    assert out.tolist() == [30.0, -12.0]
     sink.write(encode(40, -12), Z, EN, False, 1.0)
     sink.settle(1.0)
     sink.applied_um(out)
@@ -155,8 +161,9 @@ def test_on_its_own_clock_a_call_makes_one_step_and_never_waits():
     sink.time = _OwnClock()
     sink.bind(["x1", "x2"], 1.0)
     sink.open(0.0)
+    assert sink.sync(0.0)  # what the PMC applies, read back before anything is written
     sink.write(encode(40, 0), Z, EN, True, 5.0)
-    assert sink.sent_lsb == [5, 0] and sink.updates == 2  # the open's zeros and one step
+    assert sink.sent_lsb == [5, 0] and sink.updates == 1  # one step (the open writes nothing)
     sink.write(encode(40, 0), Z, EN, False, 5.01)  # before min_update_s: nothing
     assert sink.sent_lsb == [5, 0]
     sink.write(encode(40, 0), Z, EN, False, 60.0)
@@ -179,6 +186,7 @@ def test_write_rows_equals_writing_row_by_row(mode):
         s = FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", mode=mode, max_step_um=5, min_update_s=0.3))
         s.bind(["x1", "x2"], 1.0)
         s.open(float(t[0]) - 1.0)
+        assert s.sync(float(t[0]) - 1.0)
         return s
 
     ref, got = fresh(), fresh()
@@ -192,3 +200,50 @@ def test_write_rows_equals_writing_row_by_row(mode):
     got.link.flush()
     assert got.pmc.mem == ref.pmc.mem and got.sent_lsb == ref.sent_lsb and got.time.now_s == ref.time.now_s
     assert ref.pmc.alarms() == 0
+
+
+def test_a_pmc_found_holding_another_shift_after_its_link_was_lost_is_stepped_from_there() -> None:
+    """The PMC restarted while compd ran (a power cycle: it holds 0 again): when the link is back,
+    the sink reads back what it applies and steps up from there, one max_step_um at a time, rather
+    than believing its own last step is still applied (the machine left uncompensated)."""
+    first = FanucPmc(step_limit_um=10)
+    scan: PmcScanThread | None = PmcScanThread(first).start()
+    srv = ModbusServerThread(first, port=0).start()
+    port = srv.port
+    second = _Spy(step_limit_um=10)
+    scan2: PmcScanThread | None = None
+    sink = FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", host="127.0.0.1", port=port, max_step_um=5,
+                                       min_update_s=0.02))
+    sink.bind(["x1", "x2"], 1.0)
+    sink.open(time.monotonic())
+    try:
+        assert sink.resync(5.0, time.monotonic())
+        word = encode(25, -12)
+        _run_until(sink, word, lambda: first.applied_um() == [25.0, -12.0])
+        srv.stop()
+        scan.stop()
+        scan = None
+        srv = ModbusServerThread(second, port=port).start()  # the same address, a PMC holding 0
+        scan2 = PmcScanThread(second).start()
+        _run_until(sink, word, lambda: second.applied_um() == [25.0, -12.0])
+        assert sink.syncs == 2 and sink.held_um() == {"x1": 0.0, "x2": 0.0}
+        assert max(abs(c[2]) for c in second.changes) <= 5.0 and second.alarms() == 0
+    finally:
+        sink.close()
+        srv.stop()
+        for s in (scan, scan2):
+            if s is not None:
+                s.stop()
+
+
+def _run_until(sink: FanucPmcSink, word: int, done: Callable[[], bool], timeout_s: float = 30.0) -> None:
+    """The daemon's cycle against a PMC on its own clock: sync, write, 2 ms apart, until `done`."""
+    deadline = time.monotonic() + timeout_s
+    first = True
+    while not done():
+        assert time.monotonic() < deadline, "timed out"
+        now = time.monotonic()
+        first = sink.sync(now) or first
+        sink.write(word, Z, EN, first, now)
+        first = False
+        time.sleep(0.002)

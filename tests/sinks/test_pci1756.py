@@ -11,6 +11,8 @@ from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
 def make_sink(**kw) -> Pci1756Sink:  # noqa: ANN003
     sink = Pci1756Sink(Pci1756Config(kind="pci1756", **kw))
     sink.bind(["x1", "x2"], 1.0)
+    sink.open(0.0)
+    assert sink.sync(0.0)  # the card's lines read back before anything is written
     return sink
 
 

@@ -22,6 +22,7 @@ def test_do_bytes_drive_pmc_over_modbus_tcp():
             sink = Pci1756Sink(cfg)
             sink.bind(["x1", "x2"], 1.0)
             sink.open(0.0)
+            assert sink.resync(5.0, 0.0)  # the X registers read back before anything is written
             z, en = np.zeros(2), np.ones(2, dtype=bool)
             try:
                 for k, word in enumerate([encode(3, -2), encode(8, -6)]):

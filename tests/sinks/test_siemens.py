@@ -32,6 +32,7 @@ def _sink(model, **kw):
     sink.bind(["z"], 1.0)
     sink.bind_model(model)
     sink.open(0.0)
+    assert sink.sync(0.0)  # the NC's data read back before anything is written
     return sink
 
 
@@ -71,6 +72,7 @@ def test_over_modbus_tcp():
         sink.bind_model(_Model())
         sink.open(0.0)
         try:
+            assert sink.resync(5.0, 0.0)  # the NC's data read back over Modbus
             sink.write(0, np.array([-7.5]), np.array([True]), True, time.monotonic())
             sink.settle(0.0)
             c = ModbusTcpClient("127.0.0.1", port=srv.port, timeout=1, retries=0)
