@@ -201,9 +201,11 @@ def test_a_restart_after_an_unclean_end_never_moves_the_axis(tmp_path: Path, sin
             if p.poll() is None:
                 p.kill()
                 p.wait(10)
-        if watch is not None:
-            watch.stop()
-        bench.stop()
+        try:
+            if watch is not None:
+                watch.stop()
+        finally:
+            bench.stop()
     um = [v for _, v in watch.reads]
     after_kill = um[n_killed:n_term]
     moved = max(abs(v - held) for v in after_kill)
@@ -251,7 +253,9 @@ def test_a_reload_that_changes_the_sink_does_not_move_the_axis(tmp_path: Path) -
         if proc is not None and proc.poll() is None:
             proc.kill()
             proc.wait(10)
-        watch.stop()
-        bench.stop()
+        try:
+            watch.stop()
+        finally:
+            bench.stop()
     moved = max(abs(v - held) for _, v in watch.reads[n0:n_term])
     assert moved <= 1.0 + 1e-6, f"the axis moved {moved:.2f} um from {held:.2f} um across the reload"
