@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import signal
@@ -265,3 +266,56 @@ def test_a_reload_keeps_the_socket_and_the_estimate(tmp_path):
     finally:
         (new or old).close()
     assert not (tmp_path / "status.sock").exists()
+
+
+def test_a_reload_that_changes_the_estimates_terms_starts_it_fresh_and_says_so(tmp_path, caplog):
+    """adapt.gain switched on by a reload: the running estimate (offset only) does not fit the new
+    one; it starts fresh with an adapt_reset event (it was dropped without a word)."""
+    from compd.config import load_config
+    from compd.cycle.adapt import Probe
+    from compd.daemon.app import App
+
+    cfg = sim_config(tmp_path, EXTRA.format(), duration_s=600)
+    old = App(load_config(cfg))
+    old.open()
+    new = None
+    try:
+        old.loop.run(100.0)
+        old.loop.adapter.inbox.append(Probe(t_s=old.loop.now_s, axis="z", error_um=float(old.loop.pred_um[0]) + 1))
+        old.loop.step(old.loop.now_s + 1.0)
+        assert old.loop.adapter.est[0].accepted == 1
+        cfg.write_text(cfg.read_text(encoding="utf-8").replace("adapt: {}", "adapt: {gain: true}"), encoding="utf-8")
+        new = App(load_config(cfg))
+        with caplog.at_level(logging.WARNING, logger="compd"):
+            new.adopt(old)
+        new.open()
+        old.close(handing_over_to=new)
+        assert new.loop.adapter.est[0].accepted == 0 and new.loop.adapter.est[0].n == 2
+        (reset,) = [r for r in caplog.records if getattr(r, "event", None) == "adapt_reset"]
+        assert "z: s has 1 terms, the estimate 2" in reset.reason
+    finally:
+        (new or old).close()
+
+
+def test_a_state_file_with_a_nan_covariance_is_refused_at_start_and_the_estimate_starts_fresh(tmp_path):
+    """What issue 39 saw: a covariance gone NaN, persisted, restored at the next start, and every
+    later probe rejected. A real daemon start now refuses it with an event naming it."""
+    cfg = sim_config(tmp_path, EXTRA.format(), duration_s=1e6, speedup=0)
+    from compd.config import load_config
+    from compd.service.state import params_digest
+
+    digest = params_digest(load_config(cfg).model.params)
+    axes = {"z": {"s": [2.5], "P": [[math.nan]], "t_probe_s": 10.0, "accepted": 4, "rejected": 1,
+                  "probe_age_s": 30.0}}
+    (tmp_path / "state.json").write_text(json.dumps({
+        "format": 1, "kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"], "saved_unix_s": time.time(),
+        "state": {"t0_c": 19.8, "ref_c": None},
+        "adapt": {"params_sha256": digest, "saved_unix_s": time.time(), "axes": axes}}), encoding="utf-8")
+    err, st = run_briefly(tmp_path, cfg)
+    assert "event=state_restored" in err  # the model's memory in the same file is sound: taken
+    assert "event=adapt_restored" not in err
+    (line,) = [ln for ln in err.splitlines() if "event=state_ignored" in ln]
+    assert "level=warning" in line and "z: P[0] holds nan" in line, line
+    assert st["adapt"]["z"]["accepted"] == 0 and st["adapt"]["z"]["offset_um"] == 0.0
+    kept = json.loads((tmp_path / "state.json").read_text(encoding="utf-8"))["adapt"]["axes"]["z"]
+    assert kept["accepted"] == 0 and all(math.isfinite(v) for row in kept["P"] for v in row)
