@@ -319,3 +319,74 @@ def test_a_state_file_with_a_nan_covariance_is_refused_at_start_and_the_estimate
     assert st["adapt"]["z"]["accepted"] == 0 and st["adapt"]["z"]["offset_um"] == 0.0
     kept = json.loads((tmp_path / "state.json").read_text(encoding="utf-8"))["adapt"]["axes"]["z"]
     assert kept["accepted"] == 0 and all(math.isfinite(v) for row in kept["P"] for v in row)
+
+
+def serving(tmp_path: Path, link: control.ProbeLink) -> control.ControlServer:
+    server = control.ControlServer(tmp_path / "status.sock")
+    server.open()
+    server.serve(link)
+    return server
+
+
+def raw_request(path: Path, data: bytes) -> dict:
+    """Send bytes as they are and read the one-line answer; AssertionError when the server closes without one."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(WAIT_S)
+        s.connect(str(path))
+        s.sendall(data)
+        got = b""
+        while b"\n" not in got:
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            got += chunk
+    assert got.endswith(b"\n"), f"the connection closed without an answer: {got!r}"
+    return json.loads(got)
+
+
+def test_the_socket_refuses_a_probe_no_probe_measures(tmp_path, monkeypatch):
+    """Another client can send the JSON itself: the daemon's side bounds the numbers too."""
+    monkeypatch.setattr(control, "WAIT_S", 0.05)
+    link = FakeLink()
+    server = serving(tmp_path, link)
+    try:
+        sock = tmp_path / "status.sock"
+        for body, key in (('"error_um": 10.3, "sigma_um": 1e200', "sigma_um"), ('"error_um": 1e5', "error_um"),
+                          ('"error_um": 1.0, "position_mm": 1e300', "position_mm"),
+                          ('"error_um": 1.0, "sigma_um": NaN', "sigma_um")):
+            answer = raw_request(sock, b'{"op": "probe", "axis": "z", ' + body.encode() + b"}\n")
+            assert answer["ok"] is False and answer["error"].startswith(key), (body, answer)
+        assert link.sent == []  # none reached the cycle
+        assert raw_request(sock, b'{"op": "probe", "axis": "z", "error_um": 10.3, "sigma_um": 2.0}\n')["ok"]
+        assert len(link.sent) == 1
+    finally:
+        server.close()
+
+
+def test_every_request_is_answered_and_the_server_goes_on_serving(tmp_path, monkeypatch):
+    """The control socket's open cases of issue 39: each closed the connection without an answer."""
+    monkeypatch.setattr(control, "WAIT_S", 0.05)
+    link = FakeLink()
+    server = serving(tmp_path, link)
+    try:
+        sock = tmp_path / "status.sock"
+        digits = b"1" * 400
+        cases = {
+            "a 4000-deep array": b"[" * 4000 + b"]" * 4000 + b"\n",  # longer than a request may be
+            "a 2000-deep array": b"[" * 2000 + b"]" * 2000 + b"\n",  # within the length: the parser's recursion
+            "a 400-digit error_um": b'{"op": "probe", "axis": "z", "error_um": ' + digits + b"}\n",
+            "a 400-digit sigma_um": b'{"op": "probe", "axis": "z", "error_um": 1, "sigma_um": ' + digits + b"}\n",
+            "window_s 10**400": b'{"op": "arm_model", "window_s": 1' + b"0" * 400 + b"}\n",
+            "not UTF-8": b"\xff\xfe{}\n",
+        }
+        for what, data in cases.items():
+            answer = raw_request(sock, data)
+            assert answer["ok"] is False and answer["error"], (what, answer)
+            assert len(answer["error"]) < 200, (what, answer)  # a 400-digit number is not echoed whole
+        assert "finite" in raw_request(sock, cases["window_s 10**400"])["error"]
+        assert link.sent == []
+        answer = control.send_probe(sock, {"op": "probe", "axis": "z", "error_um": 1.0})  # still served
+        assert answer["ok"] and answer["outcome"] == "queued" and len(link.sent) == 1
+        until(lambda: server.served == len(cases) + 2, "every request counted as served")  # counted after its answer
+    finally:
+        server.close()
