@@ -321,6 +321,18 @@ def test_a_state_file_with_a_nan_covariance_is_refused_at_start_and_the_estimate
     assert kept["accepted"] == 0 and all(math.isfinite(v) for row in kept["P"] for v in row)
 
 
+def test_a_probe_no_probe_measures_is_refused_at_the_command_line(tmp_path):
+    """Issue 39: `--sigma-um 1e200` was accepted and poisoned the estimate. Refused before any daemon
+    is asked (none runs here: the old command exited 1, no daemon), exit 2 and one line naming the flag."""
+    for args, flag in ((["--error-um", "10.3", "--sigma-um", "1e200"], "--sigma-um"),
+                       (["--error-um", "10.3", "--sigma-um", "1e-9"], "--sigma-um"),
+                       (["--error-um", "2e4"], "--error-um"),
+                       (["--error-um", "1", "--position-mm", "1e300"], "--position-mm")):
+        r = compd("probe", "--axis", "z", *args, cwd=tmp_path)
+        assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, (args, r.returncode, r.stderr)
+        assert r.stderr.startswith(f"compd: {flag}: ") and "Traceback" not in r.stderr, r.stderr
+
+
 def serving(tmp_path: Path, link: control.ProbeLink) -> control.ControlServer:
     server = control.ControlServer(tmp_path / "status.sock")
     server.open()
@@ -388,5 +400,39 @@ def test_every_request_is_answered_and_the_server_goes_on_serving(tmp_path, monk
         answer = control.send_probe(sock, {"op": "probe", "axis": "z", "error_um": 1.0})  # still served
         assert answer["ok"] and answer["outcome"] == "queued" and len(link.sent) == 1
         until(lambda: server.served == len(cases) + 2, "every request counted as served")  # counted after its answer
+    finally:
+        server.close()
+
+
+class NullLink(FakeLink):
+    """A daemon whose verdict holds nulls where numbers were (NaN on the way) and a key of its own."""
+
+    def outcome(self, tag: str) -> dict | None:
+        if not self.verdicts or not self.sent or self.sent[-1].source != tag:
+            return None
+        return {"event": "rejected", "source": tag, "t_s": None, "error_um": None, "measured_um": None,
+                "innovation_um": float("nan"), "innovation_sigma_um": None, "offset_um": None,
+                "reason": "sigma_um must be within [0.001, 1000] um", "newer_key": None}
+
+
+def test_compd_probe_prints_any_answer_nulls_included(tmp_path, monkeypatch):
+    """`compd probe` formatted the answer's numbers as numbers: a null (a NaN on the daemon's side,
+    or `t_s` of a queued probe) ended in an internal TypeError."""
+    monkeypatch.setattr(control, "WAIT_S", 0.05)
+    cfg = sim_config(tmp_path, EXTRA.format())
+    link = NullLink(verdicts=True)
+    server = serving(tmp_path, link)
+    try:
+        r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "10.3", cwd=tmp_path)
+        assert r.returncode == 0 and r.stderr == "", r.stderr
+        (line,) = r.stdout.splitlines()
+        assert line.startswith("compd: probe z error 10.3 um rejected at t=null s (sigma_um must be within"), line
+        assert "innovation null um (sigma null um), offset now null um" in line, line
+        assert line.endswith(f"; pid={os.getpid()} measured_um=null newer_key=null"), line
+        link.verdicts = False  # the loop takes nothing: queued, t_s null
+        r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "10.3", cwd=tmp_path)
+        assert r.returncode == 0 and r.stderr == "", r.stderr
+        assert r.stdout == f"compd: probe z error 10.3 um queued (the loop has not taken it yet; see the daemon's log);" \
+                           f" t_s=null pid={os.getpid()}\n", r.stdout
     finally:
         server.close()
