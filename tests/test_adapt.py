@@ -233,3 +233,63 @@ def test_the_offset_starts_within_the_models_own_error():
         ad.inbox.append(Probe(0.0, "z", 12.0))  # the model says 10; one probe sees 2 µm more
         ad.apply(np.array([10.0]), 0.0, out)
     assert tight.est[0].s[0] < 0.5 * wide.est[0].s[0]
+
+
+def test_a_probe_with_numbers_no_probe_measures_is_rejected_with_its_reason():
+    """What a device or a replayed log hands over is checked where every probe passes: a σ or
+    an error that is not finite or beyond the bounds is rejected, named, and changes nothing."""
+    nan, inf = math.nan, math.inf
+    cases = [({"error_um": 1.0, "sigma_um": nan}, "sigma_um"), ({"error_um": 1.0, "sigma_um": inf}, "sigma_um"),
+             ({"error_um": 1.0, "sigma_um": 1e200}, "sigma_um"), ({"error_um": 1.0, "sigma_um": 1e-9}, "sigma_um"),
+             ({"error_um": nan}, "error_um"), ({"error_um": -inf}, "error_um"),
+             ({"error_um": 2e6}, "error_um"),  # 2 m: an int32 of nm in the CNC's block holds it
+             ({"error_um": 1.0, "position_mm": inf}, "position_mm"), ({"error_um": 1.0, "position_mm": 1e300}, "position_mm")]
+    ad = Adapter(AdaptConfig(reject_fault_after=100), ["z"])
+    out = np.zeros(1)
+    before = ad.get_state()
+    for k, (numbers, key) in enumerate(cases):
+        ad.inbox.append(Probe(float(k), "z", source="cnc_probe", residual=True, **numbers))
+        ad.apply(np.array([5.0]), float(k), out, applied_um=np.array([-5.0]))
+        ev = ad.events[-1]
+        assert ev["event"] == "rejected" and ev["reason"].startswith(key), (numbers, ev)
+        assert ev["source"] == "cnc_probe"
+    after = ad.get_state()["z"]
+    assert after["s"] == before["z"]["s"] and after["accepted"] == 0 and after["rejected"] == len(cases)
+    assert all(math.isfinite(v) for row in after["P"] for v in row)
+    assert math.isnan(ad.probe_um[0])  # none of them is a measurement for the data log or the shadow's score
+    ad.inbox.append(Probe(100.0, "z", 0.2, sigma_um=1000.0))  # the bounds themselves are taken
+    ad.apply(np.array([0.0]), 100.0, out)
+    assert ad.events[-1]["event"] == "accepted" and "reason" not in ad.events[-1]
+
+
+def test_an_update_that_would_go_non_finite_is_rejected_and_the_estimate_kept():
+    """σ² overflowing (a σ of 1e200, as the socket once took it) or a position far off a slope
+    axis would make s or P NaN; the filter rejects the probe instead and keeps what it had."""
+    ad = Adapter(AdaptConfig(slope_position={"y": "pos_y_mm"}), ["y"])
+    e = ad.est[0]
+    s0, P0 = e.s.copy(), e.P.copy()
+    for sigma_um, pos_m in ((1e200, 0.0), (0.3, 1e200)):
+        ok, _nu, _sd, why = e.update(5.0, 6.0, sigma_um, 10.0, pos_m)
+        assert not ok and why, (sigma_um, pos_m)
+        assert np.array_equal(e.s, s0) and np.array_equal(e.P, P0)
+    assert e.rejected == 2 and e.accepted == 0
+    ok, _nu, _sd, why = e.update(5.0, 6.0, 0.3, 10.0, 0.1)  # a sane probe is still taken
+    assert ok and why is None and np.isfinite(e.P).all()
+
+
+def test_a_saved_state_that_is_not_finite_or_not_a_covariance_is_refused_whole():
+    ad = Adapter(AdaptConfig(), ["x", "z"])
+    good = {"s": [1.5], "P": [[0.04]], "t_probe_s": 3.0, "accepted": 2, "rejected": 0, "probe_age_s": 10.0}
+    for bad, named in (({"P": [[math.nan]]}, "P[0]"), ({"s": [math.inf]}, "s holds"),
+                       ({"P": [[-1.0]]}, "positive semi-definite"), ({"probe_age_s": math.nan}, "probe_age_s"),
+                       ({"accepted": 1e400}, "accepted")):
+        with pytest.raises(ValueError, match=r"^z: .*" + named.replace("[", r"\[")):
+            ad.set_state({"x": good, "z": {**good, **bad}})
+        assert ad.get_status()["x"]["accepted"] == 0  # nothing of it taken, not even the good axis
+    g = Adapter(AdaptConfig(gain=True), ["z"])
+    with pytest.raises(ValueError, match="not symmetric"):
+        g.set_state({"z": {**good, "s": [0.0, 0.0], "P": [[1.0, 0.5], [0.0, 1.0]]}})
+    with pytest.raises(ValueError, match="s has 1 terms"):
+        g.set_state({"z": good})
+    ad.set_state({"x": good, "z": good})
+    assert ad.get_status()["z"]["offset_um"] == 1.5 and ad.get_status()["x"]["accepted"] == 2

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import signal
@@ -265,3 +266,173 @@ def test_a_reload_keeps_the_socket_and_the_estimate(tmp_path):
     finally:
         (new or old).close()
     assert not (tmp_path / "status.sock").exists()
+
+
+def test_a_reload_that_changes_the_estimates_terms_starts_it_fresh_and_says_so(tmp_path, caplog):
+    """adapt.gain switched on by a reload: the running estimate (offset only) does not fit the new
+    one; it starts fresh with an adapt_reset event (it was dropped without a word)."""
+    from compd.config import load_config
+    from compd.cycle.adapt import Probe
+    from compd.daemon.app import App
+
+    cfg = sim_config(tmp_path, EXTRA.format(), duration_s=600)
+    old = App(load_config(cfg))
+    old.open()
+    new = None
+    try:
+        old.loop.run(100.0)
+        old.loop.adapter.inbox.append(Probe(t_s=old.loop.now_s, axis="z", error_um=float(old.loop.pred_um[0]) + 1))
+        old.loop.step(old.loop.now_s + 1.0)
+        assert old.loop.adapter.est[0].accepted == 1
+        cfg.write_text(cfg.read_text(encoding="utf-8").replace("adapt: {}", "adapt: {gain: true}"), encoding="utf-8")
+        new = App(load_config(cfg))
+        with caplog.at_level(logging.WARNING, logger="compd"):
+            new.adopt(old)
+        new.open()
+        old.close(handing_over_to=new)
+        assert new.loop.adapter.est[0].accepted == 0 and new.loop.adapter.est[0].n == 2
+        (reset,) = [r for r in caplog.records if getattr(r, "event", None) == "adapt_reset"]
+        assert "z: s has 1 terms, the estimate 2" in reset.reason
+    finally:
+        (new or old).close()
+
+
+def test_a_state_file_with_a_nan_covariance_is_refused_at_start_and_the_estimate_starts_fresh(tmp_path):
+    """What issue 39 saw: a covariance gone NaN, persisted, restored at the next start, and every
+    later probe rejected. A real daemon start now refuses it with an event naming it."""
+    cfg = sim_config(tmp_path, EXTRA.format(), duration_s=1e6, speedup=0)
+    from compd.config import load_config
+    from compd.service.state import params_digest
+
+    digest = params_digest(load_config(cfg).model.params)
+    axes = {"z": {"s": [2.5], "P": [[math.nan]], "t_probe_s": 10.0, "accepted": 4, "rejected": 1,
+                  "probe_age_s": 30.0}}
+    (tmp_path / "state.json").write_text(json.dumps({
+        "format": 1, "kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"], "saved_unix_s": time.time(),
+        "state": {"t0_c": 19.8, "ref_c": None},
+        "adapt": {"params_sha256": digest, "saved_unix_s": time.time(), "axes": axes}}), encoding="utf-8")
+    err, st = run_briefly(tmp_path, cfg)
+    assert "event=state_restored" in err  # the model's memory in the same file is sound: taken
+    assert "event=adapt_restored" not in err
+    (line,) = [ln for ln in err.splitlines() if "event=state_ignored" in ln]
+    assert "level=warning" in line and "z: P[0] holds nan" in line, line
+    assert st["adapt"]["z"]["accepted"] == 0 and st["adapt"]["z"]["offset_um"] == 0.0
+    kept = json.loads((tmp_path / "state.json").read_text(encoding="utf-8"))["adapt"]["axes"]["z"]
+    assert kept["accepted"] == 0 and all(math.isfinite(v) for row in kept["P"] for v in row)
+
+
+def test_a_probe_no_probe_measures_is_refused_at_the_command_line(tmp_path):
+    """Issue 39: `--sigma-um 1e200` was accepted and poisoned the estimate. Refused before any daemon
+    is asked (none runs here: the old command exited 1, no daemon), exit 2 and one line naming the flag."""
+    for args, flag in ((["--error-um", "10.3", "--sigma-um", "1e200"], "--sigma-um"),
+                       (["--error-um", "10.3", "--sigma-um", "1e-9"], "--sigma-um"),
+                       (["--error-um", "2e4"], "--error-um"),
+                       (["--error-um", "1", "--position-mm", "1e300"], "--position-mm")):
+        r = compd("probe", "--axis", "z", *args, cwd=tmp_path)
+        assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, (args, r.returncode, r.stderr)
+        assert r.stderr.startswith(f"compd: {flag}: ") and "Traceback" not in r.stderr, r.stderr
+
+
+def serving(tmp_path: Path, link: control.ProbeLink) -> control.ControlServer:
+    server = control.ControlServer(tmp_path / "status.sock")
+    server.open()
+    server.serve(link)
+    return server
+
+
+def raw_request(path: Path, data: bytes) -> dict:
+    """Send bytes as they are and read the one-line answer; AssertionError when the server closes without one."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(WAIT_S)
+        s.connect(str(path))
+        s.sendall(data)
+        got = b""
+        while b"\n" not in got:
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            got += chunk
+    assert got.endswith(b"\n"), f"the connection closed without an answer: {got!r}"
+    return json.loads(got)
+
+
+def test_the_socket_refuses_a_probe_no_probe_measures(tmp_path, monkeypatch):
+    """Another client can send the JSON itself: the daemon's side bounds the numbers too."""
+    monkeypatch.setattr(control, "WAIT_S", 0.05)
+    link = FakeLink()
+    server = serving(tmp_path, link)
+    try:
+        sock = tmp_path / "status.sock"
+        for body, key in (('"error_um": 10.3, "sigma_um": 1e200', "sigma_um"), ('"error_um": 1e5', "error_um"),
+                          ('"error_um": 1.0, "position_mm": 1e300', "position_mm"),
+                          ('"error_um": 1.0, "sigma_um": NaN', "sigma_um")):
+            answer = raw_request(sock, b'{"op": "probe", "axis": "z", ' + body.encode() + b"}\n")
+            assert answer["ok"] is False and answer["error"].startswith(key), (body, answer)
+        assert link.sent == []  # none reached the cycle
+        assert raw_request(sock, b'{"op": "probe", "axis": "z", "error_um": 10.3, "sigma_um": 2.0}\n')["ok"]
+        assert len(link.sent) == 1
+    finally:
+        server.close()
+
+
+def test_every_request_is_answered_and_the_server_goes_on_serving(tmp_path, monkeypatch):
+    """The control socket's open cases of issue 39: each closed the connection without an answer."""
+    monkeypatch.setattr(control, "WAIT_S", 0.05)
+    link = FakeLink()
+    server = serving(tmp_path, link)
+    try:
+        sock = tmp_path / "status.sock"
+        digits = b"1" * 400
+        cases = {
+            "a 4000-deep array": b"[" * 4000 + b"]" * 4000 + b"\n",  # longer than a request may be
+            "a 2000-deep array": b"[" * 2000 + b"]" * 2000 + b"\n",  # within the length: the parser's recursion
+            "a 400-digit error_um": b'{"op": "probe", "axis": "z", "error_um": ' + digits + b"}\n",
+            "a 400-digit sigma_um": b'{"op": "probe", "axis": "z", "error_um": 1, "sigma_um": ' + digits + b"}\n",
+            "window_s 10**400": b'{"op": "arm_model", "window_s": 1' + b"0" * 400 + b"}\n",
+            "not UTF-8": b"\xff\xfe{}\n",
+        }
+        for what, data in cases.items():
+            answer = raw_request(sock, data)
+            assert answer["ok"] is False and answer["error"], (what, answer)
+            assert len(answer["error"]) < 200, (what, answer)  # a 400-digit number is not echoed whole
+        assert "finite" in raw_request(sock, cases["window_s 10**400"])["error"]
+        assert link.sent == []
+        answer = control.send_probe(sock, {"op": "probe", "axis": "z", "error_um": 1.0})  # still served
+        assert answer["ok"] and answer["outcome"] == "queued" and len(link.sent) == 1
+        until(lambda: server.served == len(cases) + 2, "every request counted as served")  # counted after its answer
+    finally:
+        server.close()
+
+
+class NullLink(FakeLink):
+    """A daemon whose verdict holds nulls where numbers were (NaN on the way) and a key of its own."""
+
+    def outcome(self, tag: str) -> dict | None:
+        if not self.verdicts or not self.sent or self.sent[-1].source != tag:
+            return None
+        return {"event": "rejected", "source": tag, "t_s": None, "error_um": None, "measured_um": None,
+                "innovation_um": float("nan"), "innovation_sigma_um": None, "offset_um": None,
+                "reason": "sigma_um must be within [0.001, 1000] um", "newer_key": None}
+
+
+def test_compd_probe_prints_any_answer_nulls_included(tmp_path, monkeypatch):
+    """`compd probe` formatted the answer's numbers as numbers: a null (a NaN on the daemon's side,
+    or `t_s` of a queued probe) ended in an internal TypeError."""
+    monkeypatch.setattr(control, "WAIT_S", 0.05)
+    cfg = sim_config(tmp_path, EXTRA.format())
+    link = NullLink(verdicts=True)
+    server = serving(tmp_path, link)
+    try:
+        r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "10.3", cwd=tmp_path)
+        assert r.returncode == 0 and r.stderr == "", r.stderr
+        (line,) = r.stdout.splitlines()
+        assert line.startswith("compd: probe z error 10.3 um rejected at t=null s (sigma_um must be within"), line
+        assert "innovation null um (sigma null um), offset now null um" in line, line
+        assert line.endswith(f"; pid={os.getpid()} measured_um=null newer_key=null"), line
+        link.verdicts = False  # the loop takes nothing: queued, t_s null
+        r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "10.3", cwd=tmp_path)
+        assert r.returncode == 0 and r.stderr == "", r.stderr
+        assert r.stdout == f"compd: probe z error 10.3 um queued (the loop has not taken it yet; see the daemon's log);" \
+                           f" t_s=null pid={os.getpid()}\n", r.stdout
+    finally:
+        server.close()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import logging
+import math
 import time
 from pathlib import Path
 
@@ -67,3 +69,28 @@ def test_reference_survives_restart(tmp_path: Path) -> None:
     second.run()
     assert second.model.t0_c == t0
     assert second.loop.pred_um[0] > 10.0  # still sees the growth since the cold start
+
+
+def test_the_writer_never_saves_an_adapt_state_that_is_not_finite(tmp_path: Path, caplog) -> None:
+    p = tmp_path / "state.json"
+    w = StateWriter(p, "xi_spindle", ["T"], ["z"], params_sha256="abc")
+    try:
+        w.submit({"t0_c": 21.5})
+        good = {"z": {"s": [1.0], "P": [[0.25]], "t_probe_s": 5.0, "accepted": 1, "rejected": 0, "probe_age_s": 0.0}}
+        w.submit_adapt(good)
+        with caplog.at_level(logging.ERROR, logger="compd"):
+            w.submit_adapt({"z": {**good["z"], "P": [[math.nan]]}})  # a covariance gone NaN
+            w.submit_adapt({"z": {**good["z"], "P": [[-4.0]]}})  # a negative variance
+    finally:
+        w.close()
+    saved = json.loads(p.read_text())
+    assert saved["adapt"]["axes"] == good  # the last good estimate is the one kept
+    refused = [r for r in caplog.records if getattr(r, "event", None) == "adapt_state_refused"]
+    assert len(refused) == 2 and "z: P[0]" in refused[0].reason and "semi-definite" in refused[1].reason
+
+
+def test_a_time_stamp_no_float_holds_is_ignored_not_raised(tmp_path: Path) -> None:
+    p = tmp_path / "state.json"
+    p.write_text('{"format": 1, "kind": "xi_spindle", "inputs": ["T"], "outputs": ["z"], "state": {},'
+                 ' "saved_unix_s": 1' + "0" * 400 + "}")
+    assert load_saved(p, "xi_spindle", ["T"], ["z"]) is None

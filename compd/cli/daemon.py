@@ -168,21 +168,33 @@ def args_probe(sub: Any) -> None:
                        epilog="example:\n  compd probe --axis z --error-um 12.5 --config /etc/compd/compd.yaml")
     s.add_argument("--axis", required=True, metavar="AX", help="the axis (a model output)")
     s.add_argument("--error-um", required=True, type=finite, dest="error_um", metavar="E",
-                   help="the axis's whole thermal error measured on the machine, um (see --residual)")
+                   help="the axis's whole thermal error measured on the machine, um, within ±10000 (see --residual)")
     s.add_argument("--position-mm", type=finite, default=None, dest="position_mm", metavar="P",
                    help="where the probe measured")
     s.add_argument("--sigma-um", type=positive, default=None, dest="sigma_um", metavar="S",
-                   help="the measurement's sigma (default: adapt.sigma_um)")
+                   help="the measurement's sigma, 0.001 to 1000 um (default: adapt.sigma_um)")
     s.add_argument("--residual", action="store_true",
                    help="E is the deviation that remains on the compensated machine (the daemon adds back"
                    " the correction applied at that moment)")
     s.add_argument("--config", default=None, help="the daemon's config (finds its probe socket)")
 
 
+def shown(value: Any, spec: str = ".2f") -> str:
+    """A value of the daemon's answer as text: a number formatted with `spec`, a string as it is,
+    anything else (null, true, a list) as JSON: whatever the answer holds prints."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return format(value, spec)
+    return value if isinstance(value, str) else json.dumps(value)
+
+
 @command("probe", args_probe)
 def cmd_probe(args: argparse.Namespace) -> int:
+    from compd.cycle.adapt import probe_problem
     from compd.service.control import NoDaemon, send_probe
 
+    bad = probe_problem(args.error_um, args.sigma_um, args.position_mm)
+    if bad is not None:  # refused here as the daemon would refuse it
+        raise BadInput(bad[1], path="--" + bad[0].replace("_", "-"))
     path = probe_socket(args.config)
     request = {"op": "probe", "axis": args.axis, "error_um": args.error_um, "position_mm": args.position_mm,
                "sigma_um": args.sigma_um, "residual": args.residual}
@@ -192,19 +204,25 @@ def cmd_probe(args: argparse.Namespace) -> int:
         print(f"compd: {e}", file=sys.stderr)
         return 1
     if not answer.get("ok"):
-        why = str(answer.get("error", "refused"))
+        error = answer.get("error", "refused")
+        why = error if isinstance(error, str) else json.dumps(error)
         raise BadInput(f"the daemon refused the probe: {why}", path="--axis" if why.startswith("unknown axis") else None)
     what = "deviation" if args.residual else "error"
     head = f"compd: probe {args.axis} {what} {args.error_um:g} um"
     outcome = answer.get("outcome")
+    said = {"ok", "outcome", "axis"}  # what the line says; every other key of the answer follows it
     if outcome in ("accepted", "rejected"):
-        print(f"{head} {outcome} at t={answer['t_s']:.1f} s: thermal error {answer['error_um']:.2f} um,"
-              f" innovation {answer['innovation_um']:.2f} um (sigma {answer['innovation_sigma_um']:.2f} um),"
-              f" offset now {answer['offset_um']:.2f} um")
+        why = "" if answer.get("reason") is None else f" ({answer['reason']})"
+        line = (f"{head} {outcome} at t={shown(answer.get('t_s'), '.1f')} s{why}: thermal error"
+                f" {shown(answer.get('error_um'))} um, innovation {shown(answer.get('innovation_um'))} um"
+                f" (sigma {shown(answer.get('innovation_sigma_um'))} um), offset now {shown(answer.get('offset_um'))} um")
+        said |= {"t_s", "reason", "error_um", "innovation_um", "innovation_sigma_um", "offset_um"}
     elif outcome == "queued":
-        print(f"{head} queued at t={answer['t_s']:.1f} s (the loop has not taken it yet; see the daemon's log)")
+        line = f"{head} queued (the loop has not taken it yet; see the daemon's log)"
     else:  # no_prediction, no_correction_known: handed over but not used
-        print(f"{head} not used: {outcome} (pid {answer.get('pid')})")
+        line = f"{head} not used: {shown(outcome)}"
+    rest = [f"{k}={shown(v, '')}" for k, v in answer.items() if k not in said]
+    print(f"{line}; {' '.join(rest)}" if rest else line)
     return 0
 
 
@@ -237,8 +255,8 @@ def cmd_arm_model(args: argparse.Namespace) -> int:
         return 1
     if not answer.get("ok"):
         raise BadInput(f"the daemon refused: {answer.get('error', 'refused')}")
-    print(f"compd: armed for {answer['armed_s']:.0f} s: the next model from the command topic is applied"
-          f" (once) if it validates (pid {answer.get('pid')})")
+    print(f"compd: armed for {shown(answer.get('armed_s'), '.0f')} s: the next model from the command topic is"
+          f" applied (once) if it validates (pid {shown(answer.get('pid'), '')})")
     return 0
 
 

@@ -32,6 +32,15 @@ guard, whose slew limit moves it, never steps it. An estimate without a probe fo
 (`decay`); `reject_fault_after` probes rejected in a row raise a fault event (the
 model or the probe is wrong, and the operator should know). With `apply: false` the
 estimate is kept, logged and shown but not applied (observe).
+
+Nothing a probe carries is trusted before its numbers are checked (`probe_problem`, here,
+where every probe passes: the command line, the socket, a CNC's probe block, a replayed
+log): the error finite and within ±`MAX_PROBE_ERROR_UM`, σ within [`MIN_PROBE_SIGMA_UM`,
+`MAX_PROBE_SIGMA_UM`], the position finite and within ±`MAX_PROBE_POSITION_MM`; a probe
+outside is rejected with its reason. An update whose s or P would not be finite is
+rejected too and the estimate stays as it was; and a saved state is taken only when every
+number is finite and P a covariance (`state_problem`), so a bad probe can never poison the
+estimate, the state file or the next start.
 """
 
 from __future__ import annotations
@@ -44,13 +53,96 @@ from typing import Any
 
 import numpy as np
 
-from compd.config import AdaptConfig
+from compd.config import MAX_CORRECTION_UM, SIGNAL_ABS_MAX, AdaptConfig
 from compd.errors import BadInput
 
 OFFSET_PRIOR_UM = 5.0  # σ of the offset before the first probe when the model's own error is not known
+# what a probe may carry: thermal errors are tens to hundreds of µm
+MAX_PROBE_ERROR_UM = MAX_CORRECTION_UM  # 10 mm: larger than any clamp compd accepts, so no thermal error
+MAX_PROBE_SIGMA_UM = 1000.0  # a probe scattered by more than 1 mm says nothing of such errors
+MIN_PROBE_SIGMA_UM = 0.001  # 1 nm, the probe block's resolution: no probe of a machine tool is finer
+MAX_PROBE_POSITION_MM = SIGNAL_ABS_MAX  # as any signal's limit: a position beyond ±10⁶ mm is a typo
+PSD_TOLERANCE = 1e-9  # of P's largest entry: how far P may be from symmetric or have a negative eigenvalue
 PRIOR_PROBES = 2.0  # the fit's held-out σ_m counts as this many probes' worth of scatter
 HISTORY = 4096  # cycles of (position, prediction, correction sent) kept per slope axis (8 s at 2 ms)
 POSITION_MATCH_MM = 0.5  # the axis stood "at" the probe's position within this
+
+
+def finite_number(value: Any) -> bool:
+    """True for an int or a float that is finite as a float (not a bool, not an int beyond a float's range)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int of hundreds of digits
+        return False
+
+
+def brief(value: Any, limit: int = 40) -> str:
+    """`value` as an error message shows it: its repr, cut to `limit` characters with how long it was."""
+    try:
+        text = repr(value)
+    except ValueError:  # an int of more digits than Python converts
+        return "an int of thousands of digits"
+    return text if len(text) <= limit else f"{text[:limit - 3]}… ({len(text)} characters)"
+
+
+def probe_problem(error_um: Any, sigma_um: Any = None, position_mm: Any = None) -> tuple[str, str] | None:
+    """Why a probe's numbers cannot be taken: (the key, why), or None. `sigma_um` and `position_mm`
+    None: not given (the config's σ; no position)."""
+    if not finite_number(error_um):
+        return "error_um", f"must be a finite number, got {brief(error_um)}"
+    if abs(error_um) > MAX_PROBE_ERROR_UM:
+        return "error_um", f"{error_um:g} um is beyond ±{MAX_PROBE_ERROR_UM:g} um: no thermal error is that large"
+    if sigma_um is not None:
+        if not finite_number(sigma_um):
+            return "sigma_um", f"must be a finite number, got {brief(sigma_um)}"
+        if not MIN_PROBE_SIGMA_UM <= sigma_um <= MAX_PROBE_SIGMA_UM:
+            return "sigma_um", (f"must be within [{MIN_PROBE_SIGMA_UM:g}, {MAX_PROBE_SIGMA_UM:g}] um, got {sigma_um:g}"
+                                " (beyond 1 mm a probe says nothing; below 1 nm no probe measures)")
+    if position_mm is not None:
+        if not finite_number(position_mm):
+            return "position_mm", f"must be a finite number, got {brief(position_mm)}"
+        if abs(position_mm) > MAX_PROBE_POSITION_MM:
+            return "position_mm", f"{position_mm:g} mm is beyond ±{MAX_PROBE_POSITION_MM:g} mm"
+    return None
+
+
+def state_problem(state: Any, n: int | None = None) -> str | None:
+    """Why an axis's saved estimate (`AxisEstimate.get_state`) cannot be taken, or None: `s` of `n`
+    finite numbers (None: any length), `P` an n × n covariance (finite, symmetric and positive
+    semi-definite within PSD_TOLERANCE of its largest entry), the counts whole numbers ≥ 0 and
+    the times finite or null."""
+    if not isinstance(state, dict):
+        return f"not a mapping: {brief(state)}"
+    s, P = state.get("s"), state.get("P")
+    if not isinstance(s, list) or not s:
+        return f"s is not a list of numbers: {brief(s)}"
+    n = len(s) if n is None else n
+    if len(s) != n:
+        return f"s has {len(s)} terms, the estimate {n} (adapt.gain or adapt.slope_position changed)"
+    if not isinstance(P, list) or len(P) != n or not all(isinstance(row, list) and len(row) == n for row in P):
+        return f"P is not {n} × {n}"
+    for name, values in (("s", s), *((f"P[{i}]", row) for i, row in enumerate(P))):
+        bad = [v for v in values if not finite_number(v)]
+        if bad:
+            return f"{name} holds {brief(bad[0])}, not a finite number"
+    for key in ("accepted", "rejected"):
+        v = state.get(key, 0)
+        if not finite_number(v) or v < 0 or v != int(v):
+            return f"{key} is {brief(v)}, not a count"
+    for key in ("t_probe_s", "probe_age_s"):
+        v = state.get(key)
+        if v is not None and not finite_number(v):
+            return f"{key} is {brief(v)}, not a finite number or null"
+    cov = np.asarray(P, float)
+    tol = PSD_TOLERANCE * max(1.0, float(np.abs(cov).max()))
+    if float(np.abs(cov - cov.T).max()) > tol:
+        return "P is not symmetric"
+    low = float(np.linalg.eigvalsh(cov).min())
+    if low < -tol:
+        return f"P is not positive semi-definite (an eigenvalue {low:g})"
+    return None
 
 
 @dataclass(frozen=True)
@@ -164,8 +256,9 @@ class AxisEstimate:
 
     def update(
         self, pred_um: float, z_um: float, sigma_um: float, t_s: float, pos_m: float = 0.0
-    ) -> tuple[bool, float, float]:
-        """One probe: (accepted, innovation µm, its σ µm)."""
+    ) -> tuple[bool, float, float, str | None]:
+        """One probe: (accepted, innovation µm, its σ µm, why it was rejected or None). An update
+        whose s or P would not be finite is rejected and leaves the estimate as it was."""
         self.advance(t_s)
         H = np.zeros(self.n)
         H[0] = 1.0
@@ -173,25 +266,38 @@ class AxisEstimate:
             H[self.i_gain] = pred_um
         if self.i_slope > 0:
             H[self.i_slope] = pos_m
-        nu = z_um - (pred_um + float(H @ self.s))
-        r = sigma_um * sigma_um + self.model_var_um2  # the probe's noise and the model's own error now
-        S = float(H @ self.P @ H) + r
-        sd = math.sqrt(S)
-        self.last_innovation_um = nu
-        if not math.isfinite(nu) or abs(nu) > self.cfg.gate_sigma * sd:
+        with np.errstate(all="ignore"):  # numpy's own overflow warnings: what is not finite is rejected below
+            nu = z_um - (pred_um + float(H @ self.s))
+            r = sigma_um * sigma_um + self.model_var_um2  # the probe's noise and the model's own error now
+            S = float(H @ self.P @ H) + r
+            sd = math.sqrt(S) if S >= 0.0 else math.nan
+            self.last_innovation_um = nu
+            why = None
+            if not (math.isfinite(S) and S > 0.0):
+                why = f"the innovation's variance is {S:g}, not a positive finite number"
+            elif not math.isfinite(nu):
+                why = "the innovation is not a finite number"
+            elif abs(nu) > self.cfg.gate_sigma * sd:
+                why = f"innovation {nu:.2f} um beyond gate_sigma {self.cfg.gate_sigma:g} x {sd:.2f} um"
+            else:
+                K = (self.P @ H) / S
+                s = self.s + K * nu
+                A = np.eye(self.n) - np.outer(K, H)
+                P = A @ self.P @ A.T + np.outer(K, K) * r
+                if not (np.isfinite(s).all() and np.isfinite(P).all()):
+                    why = "the update would make the estimate non-finite"
+        if why is not None:
             self.rejected += 1
             self.rejected_in_a_row += 1
-            return False, nu, sd
-        K = (self.P @ H) / S
-        self.s += K * nu
-        A = np.eye(self.n) - np.outer(K, H)
-        self.P = A @ self.P @ A.T + np.outer(K, K) * r
+            return False, nu, sd, why
+        self.s[:] = s
+        self.P[:] = P
         if self.learn_sigma:  # from accepted probes only: an outlier teaches nothing
             self._learn_sigma(t_s, z_um - pred_um, sigma_um * sigma_um)
         self.accepted += 1
         self.rejected_in_a_row = 0
         self.t_probe_s = t_s
-        return True, nu, sd
+        return True, nu, sd, None
 
     def _learn_sigma(self, t_s: float, miss_um: float, probe_var_um2: float) -> None:
         """σ_m² from the change of the model's miss between consecutive probes: E[(Δmiss)²] =
@@ -217,21 +323,23 @@ class AxisEstimate:
         }
 
     def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0, now_s: float | None = None) -> None:
-        """Take a saved state. From a file (`now_s`, the loop time now; `elapsed_s` since it was
-        saved): the last probe's time moves onto this loop's clock and the covariance grows
-        by the drift over the time the daemon was down."""
-        s, P = state.get("s"), state.get("P")
-        if isinstance(s, list) and len(s) == self.n and isinstance(P, list) and len(P) == self.n:
-            self.s[:] = np.asarray(s, float)
-            self.P[:] = np.asarray(P, float)
-            self.t_probe_s = state.get("t_probe_s")
-            self.accepted = int(state.get("accepted", 0))
-            self.rejected = int(state.get("rejected", 0))
-            if now_s is not None:
-                age = state.get("probe_age_s")
-                self.t_probe_s = None if age is None else now_s - float(age) - elapsed_s
-                self.t_s = None
-                self._grow(max(elapsed_s, 0.0) / 3600.0)
+        """Take a saved state (ValueError naming what is wrong with it: `state_problem`). From a
+        file (`now_s`, the loop time now; `elapsed_s` since it was saved): the last probe's time
+        moves onto this loop's clock and the covariance grows by the drift over the time the
+        daemon was down."""
+        why = state_problem(state, self.n)
+        if why is not None:
+            raise ValueError(why)
+        self.s[:] = np.asarray(state["s"], float)
+        self.P[:] = np.asarray(state["P"], float)
+        self.t_probe_s = state.get("t_probe_s")
+        self.accepted = int(state.get("accepted", 0))
+        self.rejected = int(state.get("rejected", 0))
+        if now_s is not None:
+            age = state.get("probe_age_s")
+            self.t_probe_s = None if age is None else now_s - float(age) - elapsed_s
+            self.t_s = None
+            self._grow(max(elapsed_s, 0.0) / 3600.0)
 
 
 class Adapter:
@@ -356,21 +464,31 @@ class Adapter:
                                 "source": probe.source})
             return
         a = self.axes.index(probe.axis)
+        e = self.est[a]
+        position = probe.position_mm
+        if isinstance(position, float) and math.isnan(position):  # no position (a log row without one)
+            position = None
+        bad = probe_problem(probe.error_um, probe.sigma_um, position)
+        if bad is not None:  # numbers no probe measures: rejected, the estimate untouched
+            e.rejected += 1
+            e.rejected_in_a_row += 1
+            self._verdict(a, probe, False, probe.error_um, math.nan, math.nan, f"{bad[0]} {bad[1]}")
+            return
         z = probe.error_um
         p = float(pred_um[a])
         # an axis that moves may have left the probe's position before the result came: the
         # prediction and the correction are those of the last cycle it stood there
         then = None
-        if probe.position_mm is not None and math.isfinite(probe.position_mm):
-            then = self.at_position(a, probe.position_mm)
+        if position is not None:
+            then = self.at_position(a, position)
         if then is not None:
             p = then[0]
         # a model whose output is the error at P0 with a slope the CNC applies (Siemens tanβ):
         # at the probe's position it predicts p + slope·(y − P0), and the CNC applied c − that
         shift = 0.0
-        if terms is not None and a < len(terms) and probe.position_mm is not None and math.isfinite(probe.position_mm):
+        if terms is not None and a < len(terms) and position is not None:
             slope_um_per_mm, p0_mm = terms[a]
-            shift = slope_um_per_mm * (probe.position_mm - p0_mm)
+            shift = slope_um_per_mm * (position - p0_mm)
         p += shift
         if probe.residual:  # deviation with the correction in place: the whole error is d − c
             c = then[1] if then is not None else None
@@ -386,20 +504,28 @@ class Adapter:
                                 "error_um": probe.error_um, "source": probe.source})
             return
         sigma = probe.sigma_um if probe.sigma_um is not None else self.cfg.sigma_um
-        e = self.est[a]
         pos_m = float(self.pos_m[a])  # where the axis stands now, unless the probe says where it measured
-        if probe.position_mm is not None and math.isfinite(probe.position_mm):
-            pos_m = (probe.position_mm - self.cfg.slope_ref_mm) / 1000.0
-        ok, nu, sd = e.update(p, z, sigma, probe.t_s, pos_m)
+        if position is not None:
+            pos_m = (position - self.cfg.slope_ref_mm) / 1000.0
+        ok, nu, sd, why = e.update(p, z, sigma, probe.t_s, pos_m)
         self.probe_um[a] = z
-        self.probe_pos_mm[a] = math.nan if probe.position_mm is None else probe.position_mm
+        self.probe_pos_mm[a] = math.nan if position is None else position
         self.probe_seq += 1
         self._probed = True
-        self.events.append({
+        self._verdict(a, probe, ok, z, nu, sd, why)
+
+    def _verdict(self, a: int, probe: Probe, ok: bool, z: float, nu: float, sd: float, why: str | None) -> None:
+        """The event of a probe taken (accepted, or rejected with `why`), a fault after too many
+        rejected in a row, and the state handed on."""
+        e = self.est[a]
+        ev = {
             "t_s": probe.t_s, "axis": probe.axis, "event": "accepted" if ok else "rejected",
             "error_um": z, "measured_um": probe.error_um, "innovation_um": nu, "innovation_sigma_um": sd,
             "offset_um": float(e.s[0]), "source": probe.source,
-        })
+        }
+        if why is not None:
+            ev["reason"] = why
+        self.events.append(ev)
         was = self.fault[a]
         self.fault[a] = e.rejected_in_a_row >= self.cfg.reject_fault_after
         if self.fault[a] and not was:
@@ -412,8 +538,13 @@ class Adapter:
         return {axis: e.get_state() for axis, e in zip(self.axes, self.est, strict=True)}
 
     def set_state(self, state: dict[str, Any], elapsed_s: float = 0.0, now_s: float | None = None) -> None:
+        """Take a saved state (`get_state`), per axis it holds; nothing of it when any axis's part is
+        bad: ValueError naming the axis and why (the caller starts the estimate fresh)."""
         for axis, e in zip(self.axes, self.est, strict=True):
-            if isinstance(state.get(axis), dict):
+            if axis in state and (why := state_problem(state[axis], e.n)) is not None:
+                raise ValueError(f"{axis}: {why}")
+        for axis, e in zip(self.axes, self.est, strict=True):
+            if axis in state:
                 e.set_state(state[axis], elapsed_s, now_s)
 
     def get_status(self) -> dict[str, Any]:

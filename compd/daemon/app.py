@@ -235,8 +235,10 @@ class App:
             return
         try:
             elapsed = max(time.time() - float(part["saved_unix_s"]), 0.0)
-            ad.set_state(dict(part["axes"]), elapsed, self.clock.now())
-        except (KeyError, TypeError, ValueError) as e:
+            if not math.isfinite(elapsed):
+                raise ValueError(f"saved_unix_s is {part['saved_unix_s']!r}")
+            ad.set_state(dict(part["axes"]), elapsed, self.clock.now())  # ValueError: a number not finite, P not PSD
+        except (KeyError, TypeError, ValueError, OverflowError) as e:
             ad.reset()
             log.warning("adaptation state ignored: %s: %s", spath, e,
                         extra={"event": "state_ignored", "path": str(spath), "reason": f"adapt: {e}"})
@@ -276,8 +278,13 @@ class App:
         if same_model and pa is not None and ad is not None and (
             params_digest(previous.cfg.model.params) == params_digest(self.cfg.model.params)
         ):
-            ad.set_state(pa.get_state())
-            self._adapt_carried = True
+            try:
+                ad.set_state(pa.get_state())
+                self._adapt_carried = True
+            except ValueError as e:  # another adapt.gain or slope_position: the estimate starts again
+                ad.reset()
+                log.warning("adaptation reset: the running estimate does not fit the new adapt section: %s", e,
+                            extra={"event": "adapt_reset", "reason": str(e)})
         prev_state = previous.service.state_spec
         if same_model and prev_state is not None and self.cfg.top.state.path and (
             self.cfg.resolve_path(self.cfg.top.state.path) == prev_state.path

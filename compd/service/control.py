@@ -19,6 +19,11 @@ Protocol: one JSON object on one line each way.
             "sigma_um": null, "residual": false}
   answer   {"ok": true, "outcome": "accepted" | "rejected" | "queued" | ..., ...}
            {"ok": false, "error": "why"}   (a bad request: `compd probe` exits 2)
+
+Every request gets an answer: one that is not JSON, longer than `MAX_REQUEST` bytes, nested
+too deep for the parser, or holds a number no float can (an int of hundreds of digits) is
+a bad request like any other; the probe's numbers are bounded as the adapter bounds them
+(compd.cycle.adapt.probe_problem). The thread goes on serving whatever a client sends.
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any
 
-from compd.cycle.adapt import Probe
+from compd.cycle.adapt import Probe, brief, finite_number, probe_problem
 from compd.errors import BadInput
 from compd.service.threads import ServiceThread
 
@@ -74,25 +79,16 @@ def sock_beside(status: Path) -> Path:
     return p if p != Path(status) else Path(f"{status}.sock")
 
 
-def _finite(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
 def check_request(req: Any, axes: list[str]) -> str | None:
     """Why a probe request is bad, or None."""
     if not isinstance(req, dict) or req.get("op") != "probe":
         return "not a probe request"
     axis = req.get("axis")
     if not isinstance(axis, str) or axis not in axes:
-        return f"unknown axis {axis!r}: the daemon adapts {', '.join(axes)}"
-    if not _finite(req.get("error_um")):
-        return f"error_um must be a finite number, got {req.get('error_um')!r}"
-    for key in ("position_mm", "sigma_um"):
-        v = req.get(key)
-        if v is not None and not _finite(v):
-            return f"{key} must be a finite number, got {v!r}"
-    if req.get("sigma_um") is not None and req["sigma_um"] <= 0:
-        return f"sigma_um must be > 0, got {req['sigma_um']!r}"
+        return f"unknown axis {brief(axis)}: the daemon adapts {', '.join(axes)}"
+    bad = probe_problem(req.get("error_um"), req.get("sigma_um"), req.get("position_mm"))
+    if bad is not None:
+        return f"{bad[0]} {bad[1]}"
     if not isinstance(req.get("residual", False), bool):
         return "residual must be true or false"
     return None
@@ -208,8 +204,10 @@ class ControlServer:
             with conn:
                 try:
                     self._serve(conn)
-                except Exception:  # a client that hangs up or sends garbage never stops the thread
+                except OSError:  # a client that hangs up or stalls never stops the thread
                     log.debug("probe request failed", exc_info=True, extra={"event": "probe_request_error"})
+                except Exception:  # a bug: said loudly, and the next request is served all the same
+                    log.error("probe request failed", exc_info=True, extra={"event": "probe_request_error"})
 
     def _serve(self, conn: socket.socket) -> None:
         conn.settimeout(WAIT_S)
@@ -219,12 +217,18 @@ class ControlServer:
             if not chunk:
                 break
             data += chunk
-        try:
-            req = json.loads(data.split(b"\n", 1)[0].decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
-            answer: dict[str, Any] = {"ok": False, "error": "not a JSON request"}
+        answer: dict[str, Any]
+        if b"\n" not in data and len(data) >= MAX_REQUEST:
+            answer = {"ok": False, "error": f"a request is one line of at most {MAX_REQUEST} bytes"}
         else:
-            answer = self.handle(req)
+            try:
+                req = json.loads(data.split(b"\n", 1)[0].decode("utf-8"))
+            except RecursionError:
+                answer = {"ok": False, "error": "not a JSON request: nested too deep"}
+            except (UnicodeDecodeError, ValueError) as e:  # not UTF-8, not JSON
+                answer = {"ok": False, "error": f"not a JSON request: {e}"}
+            else:
+                answer = self.handle(req)
         conn.sendall((json.dumps(answer) + "\n").encode("utf-8"))
         self.served += 1
 
@@ -236,12 +240,15 @@ class ControlServer:
             if link is None:
                 return {"ok": False, "error": "the daemon is starting"}
             w = req.get("window_s")
-            if w is not None and not _finite(w):
-                return {"ok": False, "error": f"window_s must be a number, got {w!r}"}
+            if w is not None and not finite_number(w):
+                return {"ok": False, "error": f"window_s must be a finite number, got {brief(w)}"}
             return link.arm_model(w)
         if link is None or link.axes is None:
             return {"ok": False, "error": "this daemon has no adapt section"}
-        why = check_request(req, link.axes)
+        try:
+            why = check_request(req, link.axes)
+        except (TypeError, ValueError, OverflowError) as e:  # a value no check foresaw: refused, never unanswered
+            why = f"bad request: {type(e).__name__}: {e}"
         if why is not None:
             return {"ok": False, "error": why}
         self._n += 1

@@ -121,11 +121,13 @@ def log_probe_event(ev: dict[str, Any]) -> None:
     if kind in ("accepted", "rejected"):
         extra.update({k: ev.get(k) for k in ("error_um", "measured_um", "innovation_um",
                                                "innovation_sigma_um", "offset_um")})
+        if ev.get("reason") is not None:  # why it was rejected
+            extra["reason"] = ev["reason"]
         log.log(
             logging.INFO if kind == "accepted" else logging.WARNING,
-            "probe %s %s: error %.2f um, innovation %.2f um (sigma %.2f um), offset now %.2f um",
+            "probe %s %s: error %.6g um, innovation %.2f um (sigma %.2f um), offset now %.2f um%s",
             axis, kind, ev["error_um"], ev["innovation_um"], ev["innovation_sigma_um"], ev["offset_um"],
-            extra=extra,
+            "" if ev.get("reason") is None else f": {ev['reason']}", extra=extra,
         )
     elif kind == "fault":
         extra["event"] = "adapt_fault"

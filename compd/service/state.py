@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from compd.cycle.adapt import state_problem
 from compd.service.threads import ServiceThread
 
 log = logging.getLogger("compd.state")
@@ -85,7 +86,7 @@ def load_saved(path: Path, model_kind: str, inputs: list[str], outputs: list[str
             raise ValueError(f"saved {-elapsed:.0f} s in the future (clock jumped?)")
         adapt = raw.get("adapt")
         return Saved(dict(raw["state"]), max(elapsed, 0.0), adapt if isinstance(adapt, dict) else None)
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError) as e:  # OverflowError: an int no float holds
         log.warning("state ignored: %s: %s", path, e,
                     extra={"event": "state_ignored", "path": str(path), "reason": str(e)})
         return None
@@ -97,7 +98,9 @@ class StateWriter:
     `submit(state)` is called at a model step; only the newest pending state is
     written. `submit_adapt(state)` (after a probe) keeps the adapter's state, written
     with the model's in the same file: at once when a model state is known, else with
-    the next one. Errors (full disk) are kept in `error` and logged, never raised.
+    the next one; a state with a number that is not finite or a covariance that is not
+    one is never written (the last good one stays). Errors (full disk) are kept in
+    `error` and logged, never raised.
     `close()` writes what is pending before it returns.
     """
 
@@ -123,7 +126,14 @@ class StateWriter:
             self._cv.notify()
 
     def submit_adapt(self, axes: dict[str, Any]) -> None:
-        """The adapter's state (Adapter.get_state()); called on the cycle after a probe."""
+        """The adapter's state (Adapter.get_state()) after a probe; refused (an error event, the
+        last good state kept) when an axis's part is not finite or its P not a covariance."""
+        for axis, part in axes.items():
+            why = state_problem(part)
+            if why is not None:
+                log.error("adaptation state not saved: %s: %s", axis, why,
+                          extra={"event": "adapt_state_refused", "path": str(self.path), "reason": f"{axis}: {why}"})
+                return
         with self._cv:
             self._adapt = {"params_sha256": self.params_sha256, "saved_unix_s": time.time(), "axes": axes}
             if self._pending is None and self._last is not None:

@@ -3,12 +3,15 @@ cycle takes them from there into the adapter's inbox)."""
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 
+import numpy as np
 import pytest
 
-from compd.config import load_config
+from compd.config import AdaptConfig, load_config
+from compd.cycle.adapt import Adapter
 from compd.errors import ConfigError
 from compd.plc.fanuc_pmc import FanucPmc
 from compd.plc.probe_block import encode_result
@@ -225,3 +228,31 @@ adapt: {{sigma_um: {sigma}}}
     src.probe_ring().put(Probe(t_s=1.0, axis="z", error_um=2.0, source="p", residual=True))
     new.service.publisher.after_cycle(float("inf"))  # the new pipeline's cycle takes it
     assert [p.error_um for p in new.loop.adapter.inbox] == [2.0] and not old.loop.adapter.inbox
+
+
+def test_a_result_no_probe_measures_from_the_cnc_is_rejected_by_the_adapter_with_its_reason():
+    """The block holds what a macro wrote: a deviation of 2 m fits its int32 of nm. The source hands
+    it on as it reads it; the adapter, where every probe passes, rejects it and says why."""
+    pmc = FanucPmc()
+    inbox = RingInbox()
+    ad = Adapter(AdaptConfig(), ["x", "z"])
+    with ModbusServerThread(pmc, port=0) as srv:
+        src = _source(srv.port)
+        inbox.attach(src)
+        with Harness(src):
+            _wait_polls(src)
+            pmc.publish_probe(1, 2_000_000.0, None, 65.535)  # 2 m, the block's largest σ
+            _wait_polls(src, 3)
+            pmc.publish_probe(1, 1.5, 200.0, 0.3)  # then a sound one
+            _wait_polls(src, 3)
+            probes = list(inbox)
+    assert [p.error_um for p in probes] == [2_000_000.0, 1.5]
+    out = np.zeros(2)
+    for p in probes:
+        ad.inbox.append(p)
+        ad.apply(np.array([0.0, 8.0]), p.t_s, out, applied_um=np.array([0.0, -8.0]))
+    verdicts = [e for e in ad.events if e["event"] in ("accepted", "rejected")]
+    big, sound = verdicts
+    assert big["event"] == "rejected" and big["reason"].startswith("error_um 2e+06 um is beyond"), big
+    assert big["source"] == "cnc_probe" and math.isnan(big["innovation_um"])
+    assert sound["event"] == "accepted" and ad.get_status()["z"]["accepted"] == 1
