@@ -17,7 +17,18 @@ from compd.config import load_config
 from compd.cycle.loop import TimingStats
 from compd.daemon.app import App
 from compd.errors import BadInput
-from compd.service.status import liveness, read_status, render, snapshot, timing, write_atomic
+from compd.service.status import (
+    STALE_MIN_S,
+    held,
+    liveness,
+    mark_stale,
+    read_status,
+    render,
+    snapshot,
+    stale_after_s,
+    timing,
+    write_atomic,
+)
 from tests.service_helpers import sim_config
 
 
@@ -107,6 +118,35 @@ def test_liveness():
     child.wait()
     alive, why = liveness({**base, "pid": child.pid}, now)
     assert not alive and "is gone" in why
+
+
+def test_a_stale_cycle_is_not_alive_but_held_and_a_reload_is_alive():
+    now = 1000.0
+    base = {"pid": os.getpid(), "state": "running", "written_unix_s": now - 0.5, "status_period_s": 1.0,
+            "record_age_s": 0.01, "stale_after_s": 1.0}
+    alive, why = liveness({**base, "state": "stale", "record_age_s": 3.25}, now)
+    assert not alive and why.startswith("stale: the cycle has not run for 3.2 s")
+    assert held({**base, "state": "stale"}, now)  # its process and service are there: the file is not free
+    assert not held({**base, "written_unix_s": now - 60}, now)
+    assert liveness({**base, "state": "reloading", "record_age_s": 2.0}, now) == (
+        True, "reloading (the loop paused 2.0 s ago)")
+    assert stale_after_s(0.002, "running") == STALE_MIN_S and stale_after_s(0.5, "running") == 2.5
+    assert stale_after_s(0.002, "reloading") > 10.0
+    assert stale_after_s(0.002, "stopping") is None and stale_after_s(0.002, "stopped") is None
+
+
+def test_mark_stale_keeps_what_each_axis_last_said():
+    snap = {"state": "running", "observe": False,
+            "axes": {"z": {"state": "normal", "enable": True,
+                           "contributions": {"spindle": {"state": "fault"}}}}}
+    mark_stale(snap)
+    z = snap["axes"]["z"]
+    assert snap["state"] == "stale" and z["state"] == "stale" and z["last_state"] == "normal"
+    assert z["enable"] is None  # not confirmed at the machine
+    assert z["contributions"]["spindle"] == {"state": "stale", "last_state": "fault"}
+    observed = {"state": "running", "observe": True, "axes": {"z": {"state": "normal", "enable": False}}}
+    mark_stale(observed)
+    assert observed["axes"]["z"]["enable"] is False  # observe mode: the word at the machine is 0
 
 
 def test_render_shows_axes_signals_and_loop(ran_app):

@@ -37,6 +37,15 @@ def test_a_live_daemons_status_file_is_refused(tmp_path: Path, capsys: pytest.Ca
         assert len(err.splitlines()) == 1
 
 
+def test_a_stale_daemons_status_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Its cycle stopped or hung, its service writing on: it may run again, the file is not free."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(CONFIG)
+    _other_daemon(tmp_path / "shared.json", state="stale")
+    assert main(["check-config", str(cfg)]) == 2
+    assert "is the status file of a running compd" in capsys.readouterr().err
+
+
 def test_a_stopped_daemons_status_file_is_taken_over(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = tmp_path / "c.yaml"
     cfg.write_text(CONFIG)

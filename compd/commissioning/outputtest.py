@@ -129,16 +129,17 @@ def check_request(cfg: Config, sink: Sink, word_axes: list[str], axis: str, um: 
 
 def running_daemon(cfg: Config) -> str | None:
     """Why a daemon of this config seems to hold the sink's device now (its status file is
-    fresh, its process exists), or None: the test must not write beside a running loop."""
+    fresh, its process exists; also with its cycle stale: stopped, it may run again), or None:
+    the test must not write beside a running loop."""
     from compd.service.host import daemon_status_path
-    from compd.service.status import liveness, read_status
+    from compd.service.status import held, read_status
 
     path = daemon_status_path(cfg)
     if not path.is_file():
         return None
     try:
         data = read_status(path)
-        alive, _ = liveness(data)
+        alive = held(data)
     except (BadInput, TypeError, ValueError):
         return None
     return f"a daemon of this config is running (pid {data.get('pid')}, {path}): stop it first" if alive else None

@@ -40,11 +40,13 @@ from compd.cycle.guard import POLICIES, STATE_NAMES
 from compd.cycle.histogram import bin_percentiles, over_range, range_limit_us
 from compd.cycle.inhibit import HOLD_NAMES
 from compd.io.mailbox import READ_TRIES, shared_buffer
-from compd.service.status import SCHEMA
+from compd.service.status import RELOAD_STALE_S, SCHEMA, STALE, STALE_MIN_S, STALE_PERIODS, UNSEEN_S
 from compd.sinks.base import LINK_STATES
 from compd.sinks.observe import ObserveSink
 
-STATES = ("starting", "running", "stopping", "stopped")  # the daemon's state, as the status names it
+# the daemon's state, as its record names it (`reloading`: the loop paused while a reload builds the
+# new pipeline); the status says `stale` instead when the record stopped moving (compd.service.status)
+STATES = ("starting", "running", "stopping", "stopped", "reloading")
 
 
 @dataclass(frozen=True)
@@ -99,7 +101,8 @@ SIGNAL: tuple[Field, ...] = (
     Field("stamp_s", "s", "loop time at which the value was sampled at its source (`age_s` = loop time − this)"),
 )
 LOOP: tuple[Field, ...] = (
-    Field("state", "", "the daemon's state", "name", STATES),
+    Field("state", "", f"the daemon's state; the status says `{STALE}` instead when the cycle has not written this"
+          " record for `stale_after_s` (a cycle stopped or hung: nothing it shows is live)", "name", STATES),
     Field("loop_time_s", "s", "loop time of the last cycle"),
     Field("t_start_s", "s", "loop time of the first cycle"),
     Field("cycles", "", "cycles run", "count"),
@@ -118,6 +121,15 @@ LOOP: tuple[Field, ...] = (
     Field("rows_dropped", "", "data-log rows the service's ring had no room for", "count"),
     Field("messages_dropped", "", "messages to the service its ring had no room for", "count"),
     Field("write_max_ns", "ns", "the longest this record's write took", "count"),
+)
+
+# What the service adds beside the record (the top level of the status): how old the record is.
+SERVICE: tuple[Field, ...] = (
+    Field("record_age_s", "s", "how long (monotonic time, as the service sees it every 20 ms) since the cycle last"
+          f" wrote this record; a time the service itself did not run (a turn over {UNSEEN_S:g} s late) is not counted"),
+    Field("stale_after_s", "s", f"the age past which the status says `{STALE}`: {STALE_PERIODS:g} loop periods and at"
+          f" least {STALE_MIN_S:g} s while running, {RELOAD_STALE_S:g} s while reloading; null while stopping or"
+          " stopped (the loop is not meant to run)"),
 )
 
 
@@ -473,14 +485,15 @@ def fields_markdown() -> str:
     """docs/status-fields.md: every number of the record, by group."""
     out = ["# Status fields", "",
            "Generated from compd/cycle/statusblock.py (`python -m compd.cycle.statusblock`): every number the cycle",
-           "writes into its status record each cycle, under the key it has in status.json",
-           "(docs/formats.md, \"Status file\"), with its unit and meaning. The same names reach the",
-           "metrics, Sparkplug and OPC UA (docs/plant.md).", ""]
+           "writes into its status record each cycle, and those the service adds beside it, under the key",
+           "it has in status.json (docs/formats.md, \"Status file\"), with its unit and meaning. The same names",
+           "reach the metrics, Sparkplug and OPC UA (docs/plant.md).", ""]
     for title, where, fields in (("Per axis", "`axes.<axis>`", AXIS),
                                  ("Per contribution (a sum of contributions only)",
                                   "`axes.<axis>.contributions.<name>`", PART),
                                  ("Per signal", "`signals.<name>`", SIGNAL),
-                                 ("The loop", "the top level, `loop` and `publisher`", LOOP)):
+                                 ("The loop", "the top level, `loop` and `publisher`", LOOP),
+                                 ("The service's, beside the record", "the top level", SERVICE)):
         out += [f"## {title} ({where})", "", "| key | unit | kind | meaning |", "|---|---|---|---|"]
         for f in fields:
             kind = f"one of {', '.join('null' if n is None else f'`{n}`' for n in f.names)}" if f.kind == "name" else f.kind

@@ -103,6 +103,7 @@ def run_with_reload(
     try:
         while True:
             app.loop.resume()  # a request from here on stops the run below at once
+            app.service.resume()  # after a reload that was refused: the status says running again
             if not requests["stop"] and not requests["reload"]:
                 t0 = app.clock.now()
                 app.loop.run(remaining)
@@ -111,6 +112,7 @@ def run_with_reload(
             if requests["stop"] or not requests["reload"] or (remaining is not None and remaining <= 0):
                 break
             requests["reload"] = 0  # served from here: a SIGHUP during this reload asks for one more
+            app.service.reloading()  # the loop pauses: the status says reloading, not a dead cycle
             app = current[0] = reload(app, config_path, remaining, observe_flag)
     finally:
         app.close()

@@ -69,6 +69,7 @@ from compd.config import MAX_CORRECTION_UM, SIGNAL_ABS_MAX
 from compd.errors import BadInput
 from compd.models.base import TEMP_MAX_C, TEMP_MIN_C
 from compd.plant.spec import MAX_SECRET_BYTES
+from compd.service.status import STALE
 from compd.service.threads import ServiceThread
 
 if TYPE_CHECKING:
@@ -138,6 +139,8 @@ OTHER_QUALITY_STATUS = "BadSensorFailure"  # burnout, implausible, frozen, and a
 NO_VALUE_STATUS = "BadNoData"  # compd has no value (None, NaN) or the snapshot lacks it
 # a percentile whose quantile fell in the histogram's overflow bin: the value is the range limit
 OVER_RANGE_STATUS = "UncertainEngineeringUnitsExceeded"
+# a snapshot whose cycle is stale (compd.service.status): every Good value of the record is its last one
+STALE_STATUS = "UncertainLastUsableValue"
 
 Reader = Callable[[dict[str, Any]], tuple[Any, str]]  # snapshot → (raw value, StatusCode name)
 
@@ -405,7 +408,11 @@ def _coerce(data_type: str, raw: Any) -> Any:
 
 def data_values(variables: list[Variable], snap: dict[str, Any]) -> tuple[list[Any], list[str]]:
     """A ua.DataValue per variable from one snapshot, and a line per value the snapshot lacked
-    or had of the wrong type (that variable: Bad_NoData). Never raises for the snapshot's shape."""
+    or had of the wrong type (that variable: Bad_NoData). Never raises for the snapshot's shape.
+
+    A snapshot whose cycle is stale: the states (compd.State, each axis's and contribution's State,
+    all `stale`) are Good, composed now; every other Good value is the record's last one,
+    Uncertain_LastUsableValue with the time the cycle last wrote it as its SourceTimestamp."""
     from asyncua import ua
 
     now = datetime.now(UTC)
@@ -413,6 +420,11 @@ def data_values(variables: list[Variable], snap: dict[str, Any]) -> tuple[list[A
     source = now
     if isinstance(written, int | float) and not isinstance(written, bool) and math.isfinite(written):
         source = datetime.fromtimestamp(written, UTC)
+    stale = snap.get("state") == STALE
+    last = source  # when the cycle last wrote its record
+    age = snap.get("record_age_s")
+    if stale and isinstance(age, int | float) and not isinstance(age, bool) and math.isfinite(age) and age >= 0:
+        last = source - timedelta(seconds=age)
     out, problems = [], []
     for var in variables:
         vtype = getattr(ua.VariantType, var.data_type)
@@ -422,11 +434,15 @@ def data_values(variables: list[Variable], snap: dict[str, Any]) -> tuple[list[A
         except (KeyError, IndexError, TypeError, ValueError, AttributeError) as e:
             problems.append(f"{var.node_id}: {type(e).__name__}: {e}")
             value, code = None, NO_VALUE_STATUS
+        recorded = stale and not var.node_id.endswith(".State")  # a value of the stale record
+        if recorded and code == "Good":
+            code = STALE_STATUS
         status = ua.StatusCode(getattr(ua.StatusCodes, code))
         if value is None and not status.is_bad():
             status = ua.StatusCode(getattr(ua.StatusCodes, NO_VALUE_STATUS))
         variant = ua.Variant() if status.is_bad() else ua.Variant(value, vtype)
-        out.append(ua.DataValue(Value=variant, StatusCode=status, SourceTimestamp=source, ServerTimestamp=now))
+        out.append(ua.DataValue(Value=variant, StatusCode=status, SourceTimestamp=last if recorded else source,
+                                ServerTimestamp=now))
     return out, problems
 
 

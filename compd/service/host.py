@@ -8,9 +8,11 @@ Two halves, so that the cycle's interpreter runs no Python but the cycle's own:
   `status.period_s`, the guard's and the adapter's events, the data log's rows, the
   model's and the adapter's state) and takes the probes that came in;
 * the service, `ServiceWork`: composes the status from the record every
-  `status.period_s` and writes the status file, serves and feeds the metrics,
-  logs the events and late cycles, writes the data log and the model state, serves the
-  probe socket, composes the STATUS= line for systemd. On the wall clock (`loop.io: process`, the
+  `status.period_s` (watching, every turn of its loop, that the record still moves: one
+  that stopped is `stale` on every channel, compd.service.status) and writes the status
+  file, serves and feeds the metrics, logs the events and late cycles, writes the data
+  log and the model state, serves the probe socket, composes the STATUS= line for
+  systemd. On the wall clock (`loop.io: process`, the
   default) it runs in a process of its own (`compd.io.child`), so none of this ever
   holds the GIL the cycle needs; on a simulated clock, and with `loop.io: thread`, on a
   thread of the daemon, fed the same way.
@@ -24,7 +26,9 @@ STOPPING=1 from the daemon, and the STATUS= line the service composes, which rea
 the cycle through shared memory.
 
 A reload starts the new pipeline's service paused: it takes over the files and
-sockets only when the old one has written its last rows and stopped (`go`).
+sockets only when the old one has written its last rows and stopped (`go`). While the
+reload builds the new pipeline the loop is paused and the old record says `reloading`
+(`Service.reloading`), which the status tells from a dead cycle.
 """
 
 from __future__ import annotations
@@ -140,8 +144,9 @@ def log_probe_event(ev: dict[str, Any]) -> None:
 
 
 def check_status_free(cfg: Any) -> None:
-    """BadInput when another compd that is alive writes the status file of `cfg`: two instances
-    on one file overwrite each other's state (and `compd status` shows either)."""
+    """BadInput when another compd that is alive (or whose cycle is stale: stopped, it may run
+    again) writes the status file of `cfg`: two instances on one file overwrite each other's
+    state (and `compd status` shows either)."""
     path = status_path(cfg)
     if path is None:
         return
@@ -150,7 +155,7 @@ def check_status_free(cfg: Any) -> None:
     except BadInput:
         return  # none yet, or not a status file: this daemon overwrites it
     pid = data.get("pid")
-    if pid == os.getpid() or not status_mod.liveness(data)[0]:
+    if pid == os.getpid() or not status_mod.held(data):
         return  # a reload of this daemon, or one that has stopped
     msg = (f"{path} is the status file of a running compd (pid {pid}, config {data.get('config')});"
            " give each config its own status.path")
@@ -270,6 +275,11 @@ class ServiceWork:
         self.beat = np.zeros(1, dtype=np.int64)  # counted at every turn of the loop (shared with the daemon)
         self.description = spec.description
         self._next_status_s = -1.0  # monotonic time the next status is due (-1: not serving yet)
+        self._record_writes = -1  # the cycle's record's write count as last seen ...
+        self._record_moved_s = 0.0  # ... and the monotonic time it was seen to change
+        self._record_looked_s = 0.0  # ... and last looked at
+        self._reading: Any = None  # the last consistent copy of the record
+        self.cycle_stale = False  # the last status said the record is stale
 
     # ------------------------------------------------------------------ life
     def start(self, paused: bool) -> None:
@@ -372,6 +382,7 @@ class ServiceWork:
             if self._going.is_set():
                 t0 = time.perf_counter_ns()
                 try:
+                    self.record_age_s()
                     self.step()
                     if 0.0 <= self._next_status_s <= time.monotonic():
                         self.publish()
@@ -438,20 +449,63 @@ class ServiceWork:
         elif what == "adapt_state":
             sw.submit_adapt(value)
 
+    def record_age_s(self) -> float:
+        """Monotonic seconds the service has watched the cycle's record without seeing it change
+        (its write count; looked at every turn of the service's loop, and at each status): not the
+        loop's clock, which a simulated clock runs faster. A time the service itself did not run
+        (a turn over UNSEEN_S late: a host so busy that neither got the CPU, or the service's
+        thread beside a cycle starved alike) is not counted: it says nothing of the cycle."""
+        now = time.monotonic()
+        block = self.spec.block
+        writes = block.writes if block is not None else 0
+        unseen = now - self._record_looked_s - POLL_S
+        self._record_looked_s = now
+        if writes != self._record_writes:
+            self._record_writes, self._record_moved_s = writes, now
+        elif unseen > status_mod.UNSEEN_S:
+            self._record_moved_s = min(now, self._record_moved_s + unseen)
+        return now - self._record_moved_s
+
     def publish(self) -> None:
         """Compose the status from the cycle's record now (compd.cycle.statusblock) and write it
-        out: status file, metrics, STATUS= line, the plant; the next a period later."""
+        out: status file, metrics, STATUS= line, the plant; the next a period later. A record that
+        has not moved for its `stale_after_s` is `stale` (compd.service.status.mark_stale)."""
         spec = self.spec
         if spec.block is None:
             return
         self._next_status_s = time.monotonic() + spec.status_period_s
         reading = spec.block.read()
-        if reading is None:  # the cycle has not written it yet
-            return
+        if reading is None:  # never written yet; or mid-write (a cycle stopped there): the last copy, aged
+            reading = self._reading
+            if reading is None:
+                return
+        self._reading = reading
         snap = compose(reading, self.description)
         snap.update(spec.extra or {})
         snap["wall_uptime_s"] = time.monotonic() - spec.t0_s
+        age = self.record_age_s()
+        limit = status_mod.stale_after_s(float(self.description.static["period_s"]), snap["state"])
+        snap["record_age_s"] = round(age, 3)
+        snap["stale_after_s"] = limit
+        stale = limit is not None and age > limit
+        if stale != self.cycle_stale:
+            self._say_stale(stale, snap["state"], age)
+        if stale:
+            status_mod.mark_stale(snap)
         self._status(snap, lateness_buckets(reading, LATENESS_BOUNDS_US))
+
+    def _say_stale(self, stale: bool, state: str, age_s: float) -> None:
+        """The record went stale, or moves again: a log line and a telemetry event."""
+        self.cycle_stale = stale
+        if stale:
+            reason = f"no record from the cycle for {age_s:.1f} s (its state {state}): stopped or hung?"
+            log.warning("the cycle is stale: %s", reason,
+                        extra={"event": "cycle_stale", "record_age_s": round(age_s, 3), "state": state})
+        else:
+            reason = f"the cycle writes its record again (state {state})"
+            log.info("%s", reason, extra={"event": "cycle_resumed", "state": state})
+        if self.telemetry is not None:
+            self.telemetry.event("cycle_stale" if stale else "cycle_resumed", "loop", reason)
 
     def _status(self, raw: dict[str, Any], buckets: Any) -> None:
         snap = status_mod.jsonable(raw)
@@ -814,9 +868,23 @@ class Service:
             log.info("%d kB of memory copied from the pages shared with the daemon's child processes", unshared,
                      extra={"event": "realtime", "unshared_kb": unshared})
 
+    def reloading(self) -> None:
+        """The loop has returned for a reload: the record says `reloading` while the new pipeline
+        is built, so that the status tells the pause from a dead cycle (compd.service.status)."""
+        self.state = "reloading"
+        self.publisher.publish_status("reloading")
+
+    def resume(self) -> None:
+        """The loop runs on after a reload that was refused or failed: the record says running again."""
+        if self.state == "reloading":
+            self.state = "running"
+            self.publisher.publish_status("running")
+
     def stopping(self) -> None:
-        """The loop has returned: tell systemd we are shutting down."""
+        """The loop has returned: tell systemd we are shutting down; the record says `stopping`
+        while the safe output goes out (the loop is not meant to run: never `stale`)."""
         self.state = "stopping"
+        self.publisher.publish_status("stopping")
         if self.notifier is not None:
             self.notifier.send(STOPPING=1, STATUS="stopping: emitting the safe output")
 

@@ -19,8 +19,9 @@ import threading
 from typing import Any
 
 from compd import version
-from compd.cycle.statusblock import AXIS, PART, A, P, signal_unit
+from compd.cycle.statusblock import AXIS, PART, STATES, A, P, signal_unit
 from compd.errors import BadInput
+from compd.service.status import STALE
 from compd.service.threads import ServiceThread
 
 # cycle lateness histogram bounds, µs (a 2 ms cycle: "late" starts around 1000)
@@ -98,6 +99,15 @@ class SnapshotCollector:
             worst.add_metric([stage], t["max_us"] * 1e-6)
         yield mean
         yield worst
+        daemon = GaugeMetricFamily("compd_state", "1 for the daemon's current state (stale: its cycle has not written"
+                                   " its record for stale_after_s, stopped or hung)", labels=["state"])
+        for name in (*STATES, STALE):
+            daemon.add_metric([name], 1.0 if snap.get("state") == name else 0.0)
+        yield daemon
+        age = GaugeMetricFamily("compd_cycle_record_age_seconds", "Time since the cycle last wrote its status record"
+                                " (monotonic, as the service sees it)")
+        age.add_metric([], _f(snap.get("record_age_s")))
+        yield age
         up = GaugeMetricFamily("compd_uptime_seconds", "Loop time since the first cycle")
         up.add_metric([], snap["uptime_s"] or 0.0)
         yield up
@@ -121,7 +131,8 @@ class SnapshotCollector:
             labels=["axis"],
         )
         sat = GaugeMetricFamily("compd_axis_saturated", "1 when the axis's correction is held at a limit: the guard's clamp (max_abs_um) or the word byte's 63 LSB", labels=["axis"])
-        st = GaugeMetricFamily("compd_axis_state", "1 for the axis's current guard state", labels=["axis", "state"])
+        st = GaugeMetricFamily("compd_axis_state", "1 for the axis's current guard state (stale: the cycle is stale,"
+                               " nobody computes the axis)", labels=["axis", "state"])
         held = GaugeMetricFamily(
             "compd_axis_held", "1 when the machine holds the axis off (inhibited, or waiting for its reference)",
             labels=["axis", "reason"],
@@ -133,8 +144,8 @@ class SnapshotCollector:
             on = a["enable"]
             en.add_metric([axis], 0.0 if snap["observe"] else math.nan if on is None else 1.0 if on else 0.0)
             sat.add_metric([axis], 1.0 if a.get("saturated") else 0.0)
-            for state in AXIS[A["state"]].names:
-                st.add_metric([axis, state], 1.0 if a["state"] == state else 0.0)
+            for name in (*AXIS[A["state"]].names, STALE):
+                st.add_metric([axis, name], 1.0 if a["state"] == name else 0.0)
             for reason in AXIS[A["inhibit"]].names:
                 if reason is not None:
                     held.add_metric([axis, reason], 1.0 if a.get("inhibit") == reason else 0.0)
@@ -211,15 +222,15 @@ def _contribution_families(snap: dict[str, Any]) -> list[Any]:
                               " (after its own clamp, slew and fault policy)", labels=["axis", "contribution"])
     raw = GaugeMetricFamily("compd_contribution_raw_meters", "A contribution's model's own prediction (NaN: an"
                             " input bad and the model cannot predict from the others)", labels=["axis", "contribution"])
-    state = GaugeMetricFamily("compd_contribution_state", "1 for a contribution's current state on its axis",
-                              labels=["axis", "contribution", "state"])
+    state = GaugeMetricFamily("compd_contribution_state", "1 for a contribution's current state on its axis"
+                              " (stale: the cycle is stale)", labels=["axis", "contribution", "state"])
     found = False
     for axis, a in snap["axes"].items():
         for name, c in (a.get("contributions") or {}).items():
             found = True
             share.add_metric([axis, name], _f(c.get("prediction_um")) * UM)
             raw.add_metric([axis, name], _f(c.get("raw_um")) * UM)
-            for st in PART[P["state"]].names:
+            for st in (*PART[P["state"]].names, STALE):
                 state.add_metric([axis, name, st], 1.0 if c.get("state") == st else 0.0)
     return [share, raw, state] if found else []
 
@@ -277,7 +288,7 @@ def _f(value: Any) -> float:
 EXAMPLE_SNAPSHOT: dict[str, Any] = {
     "loop": {"cycles": 1, "misses": 0, "skipped": 0, "cycle_compute_us": {"max": 1.0},
              "stages": {"model": {"mean_us": 1.0, "max_us": 1.0}}},
-    "uptime_s": 1.0, "observe": False, "word": "0x0000",
+    "state": "running", "record_age_s": 0.0, "uptime_s": 1.0, "observe": False, "word": "0x0000",
     "axes": {"z": {"correction_um": 0.0, "prediction_um": 0.0, "enable": True, "saturated": False,
                    "state": "normal",
                    "contributions": {"spindle": {"prediction_um": 0.0, "raw_um": 0.0, "state": "normal"}},

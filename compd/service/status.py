@@ -6,6 +6,11 @@ it about once a second and writes it with `write_atomic` (temp file + rename, so
 reader never sees half a file). `snapshot` composes one in process, through the same
 record. `compd status` reads it back with `read_status`, judges whether the daemon is
 alive (`liveness`) and prints it (`render`) or passes the JSON through.
+
+The service writes on whether the cycle runs or not, so the snapshot says how old the
+cycle's record is (`record_age_s`, monotonic time since its write count last moved) and,
+past `stale_after_s`, `state: stale` (`mark_stale`): a cycle stopped (SIGSTOP) or hung is
+never shown as running, on any channel (status file, metrics, Sparkplug, OPC UA).
 """
 
 from __future__ import annotations
@@ -24,6 +29,45 @@ from compd.errors import BadInput
 
 SCHEMA = 1
 DEFAULT_PATH = "/run/compd/status.json"
+
+STALE = "stale"  # the status's state when the cycle's record stopped moving (the record itself never says it)
+# The cycle writes its record after every cycle. Unwritten for STALE_PERIODS loop periods, and at
+# least STALE_MIN_S, it is stale: a running cycle on a busy 2-core host never pauses that long (160 ms
+# at the most, measured at a load of 13: docs/reliability.md), a stopped one is seen within it.
+STALE_PERIODS = 5.0
+STALE_MIN_S = 1.0
+# A reload stops the loop while it builds and opens the new pipeline (state `reloading`): its record
+# is stale only past this, far above the longest reload measured (docs/reliability.md).
+RELOAD_STALE_S = 60.0
+# A turn of the service's loop this much later than its poll: the time between is not counted in the
+# record's age (the service did not watch; on a host that busy the cycle may not have run either).
+UNSEEN_S = 0.1
+
+
+def stale_after_s(period_s: float, state: str) -> float | None:
+    """How long (monotonic s) the cycle's record may stay unwritten before the status calls it
+    stale, for a loop of `period_s` whose record says `state`; None: never (the loop is not
+    meant to run: stopping, stopped)."""
+    if state == "reloading":
+        return RELOAD_STALE_S
+    if state in ("starting", "running"):
+        return max(STALE_PERIODS * period_s, STALE_MIN_S)
+    return None
+
+
+def mark_stale(snap: dict[str, Any]) -> None:
+    """Make a snapshot of a stale record say so (see the module): `state` stale, and each axis's
+    and contribution's state too, the record's own kept as `last_state`, so that nothing shows an
+    axis `normal` that nobody computes any more; each axis's `enable` null (not confirmed: what
+    the machine holds now is not known), but false in observe mode (its word is 0)."""
+    snap["state"] = STALE
+    observe = bool(snap.get("observe"))
+    for a in (snap.get("axes") or {}).values():
+        a["last_state"], a["state"] = a.get("state"), STALE
+        if not observe:
+            a["enable"] = None
+        for c in (a.get("contributions") or {}).values():
+            c["last_state"], c["state"] = c.get("state"), STALE
 
 
 def timing(stats: Any) -> dict[str, Any]:
@@ -149,7 +193,7 @@ _SHAPE: dict[str, tuple[type, ...]] = {
     "word_at_machine": (str,),
     "config": (str,), "metrics_url": (str,), "version": (str,), "axes": (dict,), "signals": (dict,), "loop": (dict,),
     "model": (dict,), "sink": (dict,), "faults": (dict,), "events": (list,), "adapt": (dict,),
-    "sources": (list,),
+    "sources": (list,), "record_age_s": _NUMBER, "stale_after_s": _NUMBER,
 }
 
 
@@ -192,20 +236,43 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def liveness(data: dict[str, Any], now_unix_s: float | None = None) -> tuple[bool, str]:
-    """(alive, why): running and updated within max(3 periods, 5 s), by a process that exists."""
+def _gone(data: dict[str, Any], now_unix_s: float | None) -> str | None:
+    """Why no compd process writes this status file any more (stopped, its pid gone, the file
+    not updated within max(3 periods, 5 s)), or None: one does."""
     now = time.time() if now_unix_s is None else now_unix_s
     age = now - float(data.get("written_unix_s", 0.0))
     limit = max(3.0 * float(data.get("status_period_s", 1.0)), 5.0)
-    state = data.get("state", "?")
-    if state == "stopped":
-        return False, f"stopped ({age:.0f} s ago)"
+    if data.get("state", "?") == "stopped":
+        return f"stopped ({age:.0f} s ago)"
     pid = data.get("pid")
     if isinstance(pid, int) and not _pid_alive(pid):
-        return False, f"not running: pid {pid} is gone (last update {age:.0f} s ago)"
+        return f"not running: pid {pid} is gone (last update {age:.0f} s ago)"
     if age > limit:
-        return False, f"stale: no update for {age:.0f} s (hung?)"
+        return f"stale: no update for {age:.0f} s (hung?)"
+    return None
+
+
+def liveness(data: dict[str, Any], now_unix_s: float | None = None) -> tuple[bool, str]:
+    """(alive, why): running and updated within max(3 periods, 5 s), by a process that exists,
+    whose cycle writes its record (not `stale`: the service writes on for a stopped or hung cycle)."""
+    gone = _gone(data, now_unix_s)
+    if gone is not None:
+        return False, gone
+    state = data.get("state", "?")
+    if state == STALE:
+        age = data.get("record_age_s")
+        for_s = f" for {age:.1f} s" if isinstance(age, int | float) else ""
+        return False, f"stale: the cycle has not run{for_s} (stopped or hung?; its service still writes the status)"
+    if state == "reloading":
+        age = data.get("record_age_s")
+        return True, f"reloading (the loop paused {age:.1f} s ago)" if isinstance(age, int | float) else state
     return True, state
+
+
+def held(data: dict[str, Any], now_unix_s: float | None = None) -> bool:
+    """Whether a compd process still holds what this status file is of (its devices, its status
+    file): alive, or with a stale cycle — stopped or hung, it may run again."""
+    return _gone(data, now_unix_s) is None
 
 
 def _hms(seconds: float | None) -> str:
@@ -303,6 +370,11 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
     if data.get("observe"):
         head += ", OBSERVE MODE (output held disabled)"
     lines.append(head)
+    if data.get("state") == STALE:  # the service writes on; nothing of the cycle's below is live
+        last = ", ".join(f"{n} {a.get('last_state')}" for n, a in (data.get("axes") or {}).items() if isinstance(a, dict))
+        lines.append(f"CYCLE STALE: no record from the cycle for {_num(data.get('record_age_s'), '.1f')} s (stale after"
+                     f" {_num(data.get('stale_after_s'), 'g')} s): what follows is its last record, not live"
+                     + (f"; the axes' last states: {last}" if last else ""))
     if data.get("config"):
         lines.append(f"config: {data['config']}")
     lp = data.get("loop", {})

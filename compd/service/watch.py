@@ -76,7 +76,7 @@ def rich_frame(path: str, data: dict[str, Any] | None, alive: bool, why: str, in
         axes.add_column(col, justify="right" if col.endswith("µm") else "left")
     for name, a in (data.get("axes") or {}).items():
         state = str(a.get("state", "?"))
-        style = "red" if state == "fault" else "yellow" if state in ("starting", "recovering") else ""
+        style = "red" if state in ("fault", "stale") else "yellow" if state in ("starting", "recovering") else ""
         axes.add_row(
             name, _cell(a.get("prediction_um"), ".2f"), _cell(a.get("correction_um"), ".2f"),
             _cell(a.get("target_um"), ".2f"), str(a.get("byte") or "-"), "yes" if a.get("enable") else "no",

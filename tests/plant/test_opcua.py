@@ -17,6 +17,7 @@ import stat
 import threading
 import time
 from collections.abc import Awaitable, Callable
+from datetime import UTC
 from pathlib import Path
 from typing import Any
 
@@ -236,6 +237,39 @@ def test_values_are_the_snapshots_and_follow_updates(served: Any, pki: Pki) -> N
     status = server.get_status()
     assert status["endpoint"] == url and status["updates"] >= 3
     assert "compd.Axes.x.CorrectionUm" in status["last_error"]
+
+
+def test_a_stale_cycle_s_values_are_its_last_usable_ones(served: Any, pki: Pki) -> None:
+    """The states say `stale` (Good: composed now); every other value is the record's last,
+    Uncertain_LastUsableValue stamped when the cycle wrote it; a Bad one stays Bad."""
+    from compd.service.status import mark_stale
+
+    server, url = served
+    stale = copy.deepcopy(SNAP)
+    mark_stale(stale)
+    stale["record_age_s"] = 3.0
+    nodes = ["compd.State", "compd.Axes.x.State", "compd.Axes.x.CorrectionUm", "compd.Axes.x.Enable",
+             "compd.Signals.T_spindle.Value", "compd.Signals.T_bed.Value", "compd.Loop.Cycles"]
+    want = {"compd.State": ("stale", "Good"), "compd.Axes.x.State": ("stale", "Good"),
+            "compd.Axes.x.CorrectionUm": (-3.25, "UncertainLastUsableValue"),
+            "compd.Axes.x.Enable": (None, "BadNoData"),  # not confirmed at the machine
+            "compd.Signals.T_spindle.Value": (22.4, "UncertainLastUsableValue"),
+            "compd.Signals.T_bed.Value": (None, "BadSensorFailure"),
+            "compd.Loop.Cycles": (12001, "UncertainLastUsableValue")}
+
+    async def body(client: Client) -> Any:
+        server.update(stale)
+        await until(lambda: read_all(client, nodes), want)
+        idx = await client.get_namespace_index(NS_URI)
+        stamps = [(await client.get_node(ua.NodeId(n, idx)).read_data_value(raise_on_bad_status=False)).SourceTimestamp
+                  for n in ("compd.Axes.x.CorrectionUm", "compd.State")]
+        server.update(copy.deepcopy(SNAP))
+        await until(lambda: read_all(client, ["compd.State"]), {"compd.State": ("running", "Good")})
+        return stamps
+
+    recorded, state = (t if t.tzinfo else t.replace(tzinfo=UTC) for t in run(url, pki, body))
+    assert state.timestamp() == SNAP["written_unix_s"]
+    assert recorded.timestamp() == SNAP["written_unix_s"] - 3.0  # when the cycle last wrote its record
 
 
 def test_endpoint_is_the_real_port(served: Any) -> None:

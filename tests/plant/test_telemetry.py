@@ -167,6 +167,18 @@ def test_device_metrics_of_a_snapshot() -> None:
     assert "Loop/cycles" not in {d.name for d, _ in device_metrics({"axes": {}, "signals": {}})}
 
 
+def test_a_stale_cycle_s_metrics_say_so() -> None:
+    """The same metrics (no rebirth): State and each axis's state `stale`, enable null (not confirmed)."""
+    from compd.service.status import mark_stale
+
+    snap = snapshot(4)
+    mark_stale(snap)
+    m = {d.name: v for d, v in device_metrics(snap)}
+    assert m["State"] == "stale" and m["Axis/x/state"] == "stale" and m["Axis/z/state"] == "stale"
+    assert m["Axis/x/enable"] is None and m["Axis/x/correction_um"] == -2.0  # the last value, said stale
+    assert [d for d, _ in device_metrics(snap)] == [d for d, _ in device_metrics(snapshot(4))]
+
+
 def test_births_data_and_events(tmp_path: Path) -> None:
     with Mosquitto(tmp_path / "broker") as broker:
         listener = Listener(broker.port)
