@@ -765,6 +765,11 @@ class RemoteModelsConfig(Strict):
         600.0, gt=0, le=86400, description="`compd arm-model` arms for this long, for one model"
     )
     max_bytes: int = Field(1 << 20, ge=1024, le=16 << 20, description="a longer model text is refused")
+    shadow_min_interval_s: float = Field(
+        60.0, ge=0, le=86400,
+        description="a shadow sent (Model/shadow) less than this long after the last one accepted is refused: each"
+        " accepted shadow reloads the daemon and starts the shadow's score on the probes afresh; 0 = no limit",
+    )
 
 
 class TelemetryBufferConfig(Strict):

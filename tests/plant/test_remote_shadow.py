@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import signal
@@ -186,11 +187,12 @@ def hups() -> Iterator[list[int]]:
         signal.signal(signal.SIGHUP, old)
 
 
-def remote(tmp_path: Path, model: str, shadow: str | None) -> RemoteModels:
+def remote(tmp_path: Path, model: str, shadow: str | None, remote_models: str = "{allow: true}") -> RemoteModels:
     """The remote model handler of a daemon on config `model`/`shadow` sections (this process its daemon)."""
     cfg = tmp_path / "c.yaml"
     cfg.write_text(CONFIG.format(port=1883, shadow=f"shadow: {shadow}" if shadow else "").replace(
-        "model: {kind: xi_spindle, file: model.yaml}", f"model: {model}"))
+        "model: {kind: xi_spindle, file: model.yaml}", f"model: {model}").replace(
+        "remote_models: {allow: true}", f"remote_models: {remote_models}"))
     c = load_config(cfg)
     tspec = telemetry_spec(c, [], list(c.model.outputs), 0.2)
     assert tspec.remote is not None
@@ -302,3 +304,53 @@ def test_a_shadow_is_checked_against_the_shadow_section_not_the_clamp(files: Pat
     answer = rm.handle(big, "r1", "shadow")
     assert answer["result"] == "refused" and "remote_models.max_bytes" in answer["reason"]
     assert not hups and (files / "shadow.yaml").read_text() == OLD_SHADOW
+
+
+# --- a shadow sent again: each accepted one reloads the daemon and starts the shadow's score afresh -----
+
+SHADOW_SECTION = "{kind: xi_spindle, file: shadow.yaml}"
+
+
+def test_a_shadow_within_shadow_min_interval_s_of_the_last_is_refused(files: Path, hups: list[int]) -> None:
+    """The interval holds across the reload (a new handler): the last accepted shadow is recorded beside
+    the shadow file; the text the file holds already is refused (nothing to reload); 0 = no limit."""
+    rm = remote(files, MODEL_FILE, SHADOW_SECTION)
+    assert rm.spec.shadow_min_interval_s == 60.0
+    same = rm.handle(OLD_SHADOW, "r0", "shadow")
+    assert same["result"] == "refused" and "holds this text already" in same["reason"], same
+    assert rm.handle(NEW_SHADOW, "r1", "shadow")["result"] == "accepted"
+    record = json.loads((files / "shadow.yaml.remote.json").read_text())
+    assert record["request"] == "r1" and record["sha256"] == hashlib.sha256(NEW_SHADOW.encode()).hexdigest()
+    after = remote(files, MODEL_FILE, SHADOW_SECTION)  # the reloaded pipeline's handler
+    assert after.started()["result"] == "applied"
+    third = MODEL.format(length_mm=140.0, fitted_at="2026-11-21T10:00:00Z")
+    answer = after.handle(third, "r2", "shadow")
+    assert answer["result"] == "refused", answer
+    assert "a shadow was accepted 0 s ago (request r1)" in answer["reason"]
+    assert "remote_models.shadow_min_interval_s (60 s)" in answer["reason"]
+    assert hups == [signal.SIGHUP] and (files / "shadow.yaml").read_text() == NEW_SHADOW
+    assert not list(files.glob("shadow.yaml.rejected-*"))  # refused before anything was written
+    # without a limit it is taken
+    free = remote(files, MODEL_FILE, SHADOW_SECTION, "{allow: true, shadow_min_interval_s: 0}")
+    assert free.handle(third, "r3", "shadow")["result"] == "accepted"
+
+
+def test_backups_of_the_shadow_file_are_bounded_and_none_is_deleted(files: Path, hups: list[int]) -> None:
+    """With MAX_SHADOW_BACKUPS backups beside the shadow file a shadow sent is refused: a backup is what a
+    reload that fails puts back, so it is not written without one, and none is deleted to make room."""
+    for k in range(remote_model.MAX_SHADOW_BACKUPS - 1):
+        (files / f"shadow.yaml.2026010{k % 10}T00000{k}.000000Z.bak").write_text(f"backup {k}\n")
+    mine = {p.name: p.read_text() for p in files.glob("shadow.yaml.*.bak")}
+    rm = remote(files, MODEL_FILE, SHADOW_SECTION, "{allow: true, shadow_min_interval_s: 0}")
+    assert rm.handle(NEW_SHADOW, "r1", "shadow")["result"] == "accepted"  # the last backup there is room for
+    assert len(list(files.glob("shadow.yaml.*.bak"))) == remote_model.MAX_SHADOW_BACKUPS
+    after = remote(files, MODEL_FILE, SHADOW_SECTION, "{allow: true, shadow_min_interval_s: 0}")
+    after.started()
+    answer = after.handle(OLD_SHADOW, "r2", "shadow")
+    assert answer["result"] == "refused", answer
+    assert (f"{remote_model.MAX_SHADOW_BACKUPS} backups of shadow.yaml are kept beside it already"
+            in answer["reason"])
+    assert (files / "shadow.yaml").read_text() == NEW_SHADOW and len(hups) == 1
+    assert len(list(files.glob("shadow.yaml.*.bak"))) == remote_model.MAX_SHADOW_BACKUPS
+    assert all((files / name).read_text() == text for name, text in mine.items())  # none deleted
+
