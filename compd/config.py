@@ -9,8 +9,10 @@ registries, so each driver owns its options (STYLE: one config section, one modu
 from __future__ import annotations
 
 import difflib
+import hashlib
 import importlib
 import importlib.util
+import json
 import os
 import platform
 import stat
@@ -763,6 +765,11 @@ class RemoteModelsConfig(Strict):
         600.0, gt=0, le=86400, description="`compd arm-model` arms for this long, for one model"
     )
     max_bytes: int = Field(1 << 20, ge=1024, le=16 << 20, description="a longer model text is refused")
+    shadow_min_interval_s: float = Field(
+        60.0, ge=0, le=86400,
+        description="a shadow sent (Model/shadow) less than this long after the last one accepted is refused: each"
+        " accepted shadow reloads the daemon and starts the shadow's score on the probes afresh; 0 = no limit",
+    )
 
 
 class TelemetryBufferConfig(Strict):
@@ -949,6 +956,20 @@ class ModelSpec:
     doc: Document
     path: PathT
     file: str | None = None  # the model file (absolute), None for inline params
+    sha256: str | None = None  # the model file's bytes as read (`sha256sum` prints it), None without a file
+
+
+def model_sha256(spec: ModelSpec) -> str:
+    """What a resolved model is, as one sha256: its model file's (the bytes it was read from), else
+    that of its definition as read (kind, inputs, outputs, update period and params: inline params,
+    contributions). Two loads of the same text give the same digest: a running daemon's shadow and
+    `compd promote`'s reading of the config are compared by it."""
+    if spec.sha256 is not None:
+        return spec.sha256
+    definition = {"kind": spec.cls.kind, "inputs": list(spec.inputs), "outputs": list(spec.outputs),
+                  "update_period_s": spec.update_period_s, "params": spec.params.model_dump(mode="json")}
+    text = json.dumps(definition, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
 @dataclass
@@ -995,9 +1016,10 @@ def _plugin(registry: Any, data: Any, doc: Document, path: PathT) -> tuple[type,
     return cls, validate(cls.Config, data, doc, path)
 
 
-def load_model_file(file: str | Path) -> tuple[Document, dict[str, Any]]:
-    """Read a model YAML (kind, inputs, outputs, params, fit: docs/formats.md); at most MODEL_MAX_BYTES."""
-    doc = load_yaml(file, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
+def load_model_file(file: str | Path, text: str | None = None) -> tuple[Document, dict[str, Any]]:
+    """Read a model YAML (kind, inputs, outputs, params, fit: docs/formats.md); at most MODEL_MAX_BYTES
+    (`text`: the file's text, read already)."""
+    doc = load_yaml(file, text, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
     data = doc.data
     if not isinstance(data, dict):
         raise doc.error("a model file is a mapping with kind, inputs, outputs, params", ())
@@ -1025,6 +1047,7 @@ def resolve_model(
     except BadInput as e:
         raise doc.error(e.message, (*path, "kind")) from None
     fit: dict[str, Any] = {}
+    sha256: str | None = None
     pdoc, ppath = doc, (*path, "params")
     if sec.file is not None:
         if sec.params is not None:
@@ -1032,7 +1055,9 @@ def resolve_model(
         fpath = Path(sec.file)
         if not fpath.is_absolute():
             fpath = base_dir / fpath
-        mdoc, mdata = load_model_file(fpath)
+        ftext = read_bounded(str(fpath), MODEL_MAX_BYTES)
+        mdoc, mdata = load_model_file(fpath, ftext)
+        sha256 = hashlib.sha256(ftext.encode("utf-8")).hexdigest()  # the bytes read (strict UTF-8 round-trips)
         if mdata["kind"] != sec.kind:
             raise doc.error(
                 f"model file {fpath} is of kind {mdata['kind']!r}, not {sec.kind!r}", (*path, "kind")
@@ -1078,7 +1103,7 @@ def resolve_model(
             raise wdoc.error(e.message, (*wpath, *keys[1:])) from None
         raise pdoc.error(e.message, (*base, *keys) if keys else ppath) from None
     mfile = None if sec.file is None else str(fpath.resolve())
-    return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path, mfile)
+    return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path, mfile, sha256)
 
 
 def _resolve_contributions(

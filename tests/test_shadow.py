@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import signal
 import subprocess
 import sys
@@ -20,13 +21,18 @@ from tests.service_helpers import sim_config
 from tests.test_contributions import plant  # noqa: F401  (the fixture: two fitted contributions, an unseen day)
 from tests.test_probe import ENV, compd, status_of, until
 
-SHADOW = "{kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 13.6e-6, length_mm: 100.0}}"
-EXTRA = f"""
-# the shadow: the same spindle, another length
-shadow: {SHADOW}
-status: {{path: status.json, period_s: 0.1}}
-log: {{path: log.csv, period_s: 10}}
-adapt: {{apply: false}}
+# the shadow: the same spindle, another length, fitted over 20…45 °C (34 µm at most: inside the guard's 63 µm clamp)
+SHADOW = """kind: xi_spindle
+inputs: [T_xi]
+outputs: [z]
+params: {{alpha_per_k: 13.6e-6, length_mm: {length_mm}}}
+fit: {{fitted_at: "2026-11-20T10:00:00Z", log: day1.csv, input_range: {{T_xi: [20.0, 45.0]}}}}
+"""
+EXTRA = """
+shadow: {kind: xi_spindle, file: shadow.yaml}
+status: {path: status.json, period_s: 0.1}
+log: {path: log.csv, period_s: 10}
+adapt: {apply: false}
 """
 
 
@@ -67,6 +73,7 @@ def test_promoted_text_keeps_the_old_model_as_comments() -> None:
 def daemon(tmp_path: Path):
     """A daemon on the simulated spindle (20× real time) with a shadow (a third shorter: it predicts a third less), stopped with SIGTERM at the end."""
     cfg = sim_config(tmp_path, EXTRA, duration_s=1e6, speedup=20)
+    (tmp_path / "shadow.yaml").write_text(SHADOW.format(length_mm=100.0))
     proc = subprocess.Popen([sys.executable, "-m", "compd", "run", cfg.name], cwd=tmp_path, env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -101,8 +108,11 @@ def test_a_shadow_scored_on_probes_is_promoted_through_a_reload(daemon, tmp_path
     assert status["shadow"]["model"]["kind"] == "xi_spindle"
     z = status["axes"]["z"]
     assert z["shadow_um"] != z["prediction_um"]  # another length: another prediction
+    # the score is of this very shadow: the file's sha256
+    sha = hashlib.sha256((tmp_path / "shadow.yaml").read_bytes()).hexdigest()
+    assert status["shadow"]["model"]["sha256"] == sha
     # probes that measure what the active model predicts: the shadow is scored worse and not promoted
-    _probe_at(tmp_path, "active", 2)
+    _probe_at(tmp_path, "active", 3)
     sc = status_of(tmp_path)["shadow"]["axes"]["z"]
     assert sc["shadow_rms_um"] > sc["active_rms_um"]
     before = cfg.read_text()
@@ -115,7 +125,15 @@ def test_a_shadow_scored_on_probes_is_promoted_through_a_reload(daemon, tmp_path
     until(lambda: _logged_shadow(tmp_path / "log.csv"), "the shadow's column in the data log")
     r = compd("promote", cfg.name, cwd=tmp_path, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert "reloaded and runs the promoted model" in r.stdout
+    # what it is about to make the model, said first: kind, file, sha256, where it came from, its predictions now
+    said = r.stdout.splitlines()
+    assert said[0] == (f"compd promote: about to make the shadow the model: xi_spindle, file {tmp_path / 'shadow.yaml'},"
+                       f" sha256 {sha}")
+    assert said[1] == "compd promote: the shadow came from: fitted 2026-11-20T10:00:00Z on day1.csv"
+    assert said[2].startswith(f"compd promote: now (daemon pid {proc.pid}): z: the shadow predicts ")
+    assert ", the active model " in said[2]
+    assert said[3].startswith("compd promote: its score on the probes: z: 9 probes, shadow RMS ")
+    assert "reloaded and runs the promoted model" in said[-1]
     new = load_config(cfg)
     assert new.shadow is None and new.model.params.length_mm == 100.0
     assert "# model: {kind: xi_spindle" in cfg.read_text()  # the old model kept, as comments

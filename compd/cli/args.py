@@ -52,6 +52,17 @@ def positive(text: str) -> float:
     return value
 
 
+def count(text: str) -> int:
+    """argparse type: a whole number ≥ 1 (how many of something)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be ≥ 1, got {text!r}")
+    return value
+
+
 def non_negative(text: str) -> float:
     """argparse type: a finite number ≥ 0."""
     value = _number(text)

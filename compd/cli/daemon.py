@@ -13,6 +13,7 @@ from typing import Any
 from compd.cli.args import (
     check_output,
     command,
+    count,
     finite,
     positive,
     writing,
@@ -263,38 +264,60 @@ def cmd_arm_model(args: argparse.Namespace) -> int:
 def args_promote(sub: Any) -> None:
     """`compd promote`'s arguments."""
     s = sub.add_parser("promote", help="make the config's shadow model the model, through a validated reload",
-                       description="Make CONFIG's shadow section its model: the config's text is edited (the old model kept"
-                       " as comment lines, the file as it was kept as CONFIG.<stamp>.bak), checked as check-config"
-                       " checks it, and the daemon running it (its status file) reloads; waits until the status shows"
-                       " the promoted model. Refuses a shadow the daemon scored worse than the active model on the"
-                       " probes unless --force. Exit 1 when the reload did not take it.",
+                       description="Make CONFIG's shadow section its model. First says what it is about to make the"
+                       " model: the shadow's kind, file and sha256, where it came from, and what it and the active"
+                       " model predict now (the running daemon's status). The shadow is checked as a model sent to be"
+                       " applied is (check-config's checks, the model's axes, the guard's clamp over its inputs'"
+                       " fitted range) and must have been scored by the daemon running CONFIG on at least"
+                       " --min-probes probes per axis, not worse than the active model, unless --force. Then the"
+                       " config's text is edited (the old model kept as comment lines, the file as it was kept as"
+                       " CONFIG.<stamp>.bak) and the daemon reloads; promote waits until its status shows the"
+                       " promoted model. Exit 2 when refused; exit 1 when the reload did not take it: CONFIG is then"
+                       " put back as it was and the promoted text kept as CONFIG.promoted-rejected-<stamp>.",
                        epilog="example:\n  compd promote /etc/compd/compd.yaml\n  compd promote cell.yaml --dry-run")
     s.add_argument("config")
-    s.add_argument("--force", action="store_true", help="promote a shadow the probes scored worse than the model")
-    s.add_argument("--dry-run", action="store_true", dest="dry_run", help="print the new config, change nothing")
+    s.add_argument("--force", action="store_true",
+                   help="promote a shadow without enough probes, scored worse, or with no daemon to score it"
+                   " (the guard's clamp is checked all the same)")
+    s.add_argument("--min-probes", type=count, default=None, dest="min_probes", metavar="N",
+                   help="probes per axis the daemon must have scored the shadow on (default 3)")
+    s.add_argument("--dry-run", action="store_true", dest="dry_run",
+                   help="check, print the new config (what it says on stderr), change nothing")
     s.add_argument("--no-reload", action="store_true", dest="no_reload",
-                   help="edit the config only: the running daemon takes it at its next reload or start")
+                   help="edit the config only: the running daemon takes it at its next reload or start, unverified")
     s.add_argument("--wait-s", type=positive, default=60.0, dest="wait_s", metavar="S",
                    help="how long to wait for the daemon's reload (default 60)")
 
 
 @command("promote", args_promote)
 def cmd_promote(args: argparse.Namespace) -> int:
-    from compd.commissioning.promote import promote
+    from compd.commissioning.promote import MIN_PROBES, promote
 
-    r = promote(args.config, force=args.force, reload=not args.no_reload, wait_s=args.wait_s, dry_run=args.dry_run)
+    said = sys.stderr if args.dry_run else sys.stdout  # a dry run's stdout is the new config alone
+
+    def say(line: str) -> None:
+        print(f"compd promote: {line}", file=said, flush=True)
+
+    r = promote(args.config, force=args.force, reload=not args.no_reload, wait_s=args.wait_s, dry_run=args.dry_run,
+                min_probes=args.min_probes or MIN_PROBES, say=say)
     if args.dry_run:
         sys.stdout.write(r["text"])
         return 0
     what = f"{r['model']}" + (f" ({r['model_file']})" if r.get("model_file") else "")
-    print(f"compd promote: {args.config}: the shadow is the model now: {what}; the file as it was: {r['backup']}")
-    if r["reloaded"] is None:
-        print("compd promote: no daemon runs this config (or --no-reload): it takes the model at its next start")
-        return 0
-    if not r["reloaded"]:
-        print(f"compd promote: the daemon (pid {r['pid']}) did not show the promoted model within {args.wait_s:g} s:"
-              " see its log (reload_rejected); the config as it was is in the .bak file", file=sys.stderr)
+    if r["reloaded"] is False:
+        print(f"compd promote: the daemon (pid {r['pid']}) did not show the promoted model within {args.wait_s:g} s"
+              f" (see its log: reload_rejected or reload_failed): {args.config} is back as it was, the promoted text is"
+              f" kept as {r['restored']}, and the daemon was asked to reload the config as it is", file=sys.stderr)
         return 1
+    print(f"compd promote: {args.config}: the shadow is the model now: {what}; the file as it was: {r['backup']}")
+    if r["reloaded"] is None:  # nothing has loaded the promoted file yet: said, so that nobody takes it as checked
+        if args.no_reload:
+            print("compd promote: --no-reload: the file is promoted unverified (the daemon has not loaded it): it"
+                  " takes the model at its next reload or start")
+        else:
+            print("compd promote: no daemon runs this config: the file is promoted unverified (no daemon has loaded"
+                  " it): it takes the model at its next start")
+        return 0
     print(f"compd promote: the daemon (pid {r['pid']}) reloaded and runs the promoted model")
     return 0
 

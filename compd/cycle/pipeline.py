@@ -15,7 +15,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from compd.config import AdaptConfig, CodecConfig, Config, GuardConfig, InhibitConfig, LoopConfig
+from compd.config import (
+    AdaptConfig,
+    CodecConfig,
+    Config,
+    GuardConfig,
+    InhibitConfig,
+    LoopConfig,
+    model_sha256,
+)
 from compd.cycle.adapt import Adapter
 from compd.cycle.clock import Clock, SimClock, WallClock
 from compd.cycle.codec import Encoder
@@ -190,11 +198,14 @@ def from_config(cfg: Config, *, observe: bool | None = None) -> tuple[Pipeline, 
     sink = _built(cfg, sink_path, sink_cls, sink_cfg, base)
     clock = build_clock(lp, sources)
     try:
+        shadow = None
+        if cfg.shadow is not None:
+            shadow = build_model(cfg.shadow)
+            shadow.sha256 = model_sha256(cfg.shadow)  # the status says which shadow its score is of (compd promote)
         p = build_pipeline(
             sources=sources, model=build_model(cfg.model), sink=sink, clock=clock, period_s=lp.period_s,
             guard_cfg=top.guard, codec_cfg=top.codec, observe=top.observe if observe is None else observe,
-            adapt_cfg=top.adapt, inhibit_cfg=top.inhibit,
-            shadow=build_model(cfg.shadow) if cfg.shadow is not None else None,
+            adapt_cfg=top.adapt, inhibit_cfg=top.inhibit, shadow=shadow,
         )
     except BadInput as e:
         raise cfg.doc.error(e.message, e.keys) from None

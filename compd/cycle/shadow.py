@@ -11,7 +11,7 @@ data log (`shadow_<axis>_um`) show: the correction it would command is its negat
 Every probe the adapter takes (its whole thermal error, compd.cycle.adapt) scores both on
 the same measurement: the active model's prediction and the shadow's, as the two stood
 when the probe came. `compd promote CONFIG` moves a shadow that has proven itself into
-`model` through the ordinary validated reload (compd/cli/promote.py).
+`model` through the ordinary validated reload (compd/commissioning/promote.py).
 """
 
 from __future__ import annotations
@@ -99,10 +99,11 @@ class Shadow:
                 self.score.add(a, z, float(active_um[a]), float(self.pred_um[a]), t_s)
 
     def get_status(self) -> dict[str, Any]:
-        """The shadow model (kind, file, fit date) and its score against the active one per axis it serves."""
+        """The shadow model (kind, file, which one it is, fit date) and its score against the active one per
+        axis it serves (the score is of this shadow: `compd promote` compares its sha256 with the config's)."""
         fit = self.model.fit_info
         return {
-            "model": {"kind": self.model.kind, "file": self.model.file, "inputs": self.model.inputs,
-                      "outputs": self.model.outputs, "fitted_at": fit.get("fitted_at")},
+            "model": {"kind": self.model.kind, "file": self.model.file, "sha256": self.model.sha256,
+                      "inputs": self.model.inputs, "outputs": self.model.outputs, "fitted_at": fit.get("fitted_at")},
             "axes": {self.axes[a]: self.score.result(a) for a in self.slot},
         }

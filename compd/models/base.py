@@ -141,6 +141,7 @@ class Model(ABC):
         self.outputs = list(outputs)
         self.fit_info = dict(fit or {})
         self.file: str | None = None  # the model file it was loaded from (set by the pipeline)
+        self.sha256: str | None = None  # what it is (compd.config.model_sha256; set by the pipeline for a shadow)
         # the inputs' sensor lag compensated before every evaluation (None: no input is led)
         self.lead: InputLead | None = None
         if isinstance(params, LeadParams) and params.lead_s and any(v > 0 for v in params.lead_s):

@@ -33,13 +33,20 @@ not armed for; what makes it the model later is `compd promote`, at the machine.
 1. `telemetry.remote_models.allow` must be true, the text at most `max_bytes`, and the
    config's `shadow` section must name one model file (`shadow: {kind, file}`): a config
    without one, or a shadow given as inline params or as contributions, is `refused`
-   (nothing to replace). The machine need not be armed;
+   (nothing to replace). The machine need not be armed. Refused before anything is
+   written (`_shadow_gate`): the text the shadow file holds already, a shadow less than
+   `shadow_min_interval_s` after the last one accepted (each reloads the daemon and starts
+   the shadow's score on the probes afresh, the score `compd promote` wants; the last one
+   is recorded beside the shadow file, `<file>.remote.json`, so the limit holds across the
+   reload), and one when MAX_SHADOW_BACKUPS backups of the shadow file are kept (none is
+   deleted: a backup is what a failed reload puts back);
 2. checked as a reload would check it, against the shadow section: the config read again
    with the shadow pointing at the candidate; the kind must be the shadow section's, its
    axes among the running model's, the pipeline must build with it as the shadow (its
    inputs signals a source gives), and its file must not be one the active model reads
    (else sending a shadow would change what drives the machine). No clamp check: it
-   drives no axis;
+   drives no axis (`compd promote`, which makes it the model, applies `drive_check`, the
+   model's checks, at the machine);
 3. then as for a model: the shadow file copied aside (`<file>.<UTC time>.bak`), the
    candidate renamed over it, SIGHUP; `accepted`, then `applied` when the reloaded
    pipeline's shadow is the file sent, or `failed` (and the previous shadow file back).
@@ -72,7 +79,7 @@ from typing import Any
 import numpy as np
 
 from compd.errors import BadInput
-from compd.plant.spec import RemoteSpec
+from compd.plant.spec import RemoteSpec, file_sha256
 
 log = logging.getLogger("compd.telemetry")
 
@@ -80,6 +87,7 @@ TARGETS = ("model", "shadow")  # what a model sent replaces: the model section's
 FORMS = {"params": "given as inline params", "contributions": "a set of contributions"}
 RELOAD_WAIT_S = 30.0  # a reload that has not replaced this service by then did not take the model
 MAX_REJECTED_KEPT = 5  # rejected models kept beside the model file for the engineer; more are not kept
+MAX_SHADOW_BACKUPS = 10  # backups of the shadow file beside it: with this many, a shadow sent is refused
 
 
 class RemoteModels:
@@ -142,6 +150,8 @@ class RemoteModels:
             return self._refuse("not armed: arm it at the machine (compd arm-model, or the arming signal)", target)
         if self._pending is not None:
             return self._refuse("a model sent before is still being applied", target)
+        if shadow and (why := self._shadow_gate(mfile, text)) is not None:
+            return self._refuse(why, target)  # nothing written, nothing reloaded
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
         candidate = mfile.with_name(f".{mfile.name}.remote-{stamp}")
         try:
@@ -170,6 +180,8 @@ class RemoteModels:
         sha = hashlib.sha256(text.encode("utf-8")).hexdigest()
         if not shadow:
             self._armed_until = -math.inf  # one model per arming (a shadow is not armed for)
+        else:
+            _write_shadow_record(mfile, request, sha)  # the next one waits for it; `compd promote` shows it
         pending = {"request": request, "target": target, "file": str(mfile), "sha256": sha, "backup": str(backup),
                    "t_unix_s": time.time()}
         try:
@@ -183,6 +195,29 @@ class RemoteModels:
         os.kill(spec.daemon_pid, signal.SIGHUP)
         return {"result": "accepted", "target": target, "reason": "validated; the daemon reloads", "sha256": sha,
                 "backup": backup.name}
+
+    def _shadow_gate(self, mfile: Path, text: str) -> str | None:
+        """Why a shadow sent is refused before it is checked (None: it is checked): the shadow file
+        holds this text already (nothing would change but the score, started afresh by the reload),
+        one was accepted less than `shadow_min_interval_s` ago (each reloads the daemon and starts
+        the shadow's score on the probes afresh), or MAX_SHADOW_BACKUPS backups of the shadow file
+        are kept already (none is deleted: a backup is what a reload that fails puts back)."""
+        sha = hashlib.sha256(text.encode("utf-8")).hexdigest()
+        if file_sha256(mfile) == sha:
+            return (f"the shadow file {mfile.name} holds this text already (sha256 {sha[:12]}): nothing to reload"
+                    " (its score on the probes goes on)")
+        interval = self.spec.shadow_min_interval_s
+        record = read_shadow_record(mfile)
+        since = since_recorded_s(record) if record is not None and interval > 0 else None
+        if record is not None and since is not None and since < interval:
+            return (f"a shadow was accepted {since:.0f} s ago (request {str(record.get('request'))[:40]}): at most one"
+                    f" per remote_models.shadow_min_interval_s ({interval:g} s), since each reloads the daemon and"
+                    " starts the shadow's score on the probes afresh")
+        kept = len(list(mfile.parent.glob(f"{glob_escape(mfile.name)}.*.bak")))
+        if kept >= MAX_SHADOW_BACKUPS:
+            return (f"{kept} backups of {mfile.name} are kept beside it already (at most {MAX_SHADOW_BACKUPS}, none"
+                    " deleted): move them away at the machine to take another shadow")
+        return None
 
     def _file(self, target: str) -> Path | str:
         """The file a `target` sent replaces, or why there is none (a refusal)."""
@@ -264,23 +299,97 @@ def validate(spec: RemoteSpec, candidate: Path, target: str = "model") -> str | 
         model = resolve_model(section, cfg.doc, (target,), Path(cfg.file).parent)
     except BadInput as e:
         return _private(str(e), spec, candidate)
-    if shadow:
-        lacking = [a for a in model.outputs if a not in spec.outputs]
-        if lacking:
-            return (f"its axes {model.outputs} are not among the running model's {spec.outputs} (a shadow stands"
-                    f" beside the model on its axes: {lacking[0]!r} is none of them)")
-        if (why := _shadow_read_by_model(spec, cfg)) is not None:
-            return why
-    elif list(model.outputs) != list(spec.outputs):
-        return f"its axes {model.outputs} are not the running model's {spec.outputs}"
+    if not shadow:
+        why = drive_check(cfg, model, spec.outputs)
+        return None if why is None else _private(why, spec, candidate)
+    lacking = [a for a in model.outputs if a not in spec.outputs]
+    if lacking:
+        return (f"its axes {model.outputs} are not among the running model's {spec.outputs} (a shadow stands"
+                f" beside the model on its axes: {lacking[0]!r} is none of them)")
+    if (why := _shadow_read_by_model(spec, cfg)) is not None:
+        return why
     try:
-        # wiring, signals (opens no device)
-        pipeline.check(dataclasses.replace(cfg, shadow=model) if shadow else dataclasses.replace(cfg, model=model))
+        pipeline.check(dataclasses.replace(cfg, shadow=model))  # wiring, signals (opens no device)
     except BadInput as e:
         return _private(str(e), spec, candidate)
-    if shadow:
-        return None  # it drives nothing: no clamp to keep inside
+    return None  # it drives nothing: no clamp to keep inside
+
+
+def drive_check(cfg: Any, model: Any, outputs: list[str]) -> str | None:
+    """Why the resolved `model` (a compd.config.ModelSpec, its kind's parameter bounds checked when
+    it was read) cannot drive the machine of `cfg` (None: it can): what a model sent to be applied
+    (Model/apply) and a shadow made the model (`compd promote`) must both pass. Its axes must be
+    `outputs` (the running model's, in order: the word's bytes follow them), the pipeline must
+    build with it as the model (wiring, signals; opens no device), and it must keep inside the
+    guard's clamp over the readings it was fitted on (`clamp_check`)."""
+    from compd.cycle import pipeline
+
+    if list(model.outputs) != list(outputs):
+        return f"its axes {model.outputs} are not the running model's {list(outputs)}"
+    try:
+        pipeline.check(dataclasses.replace(cfg, model=model))
+    except BadInput as e:
+        return str(e)
     return clamp_check(model, cfg.top.guard)
+
+
+# --- a shadow sent from the plant: when it was accepted, and which one ----------------------------
+
+def shadow_record_path(shadow_file: str | Path) -> Path:
+    """The record of the last shadow the plant sent for `shadow_file`, beside it (one file, replaced
+    by the next): its request, sha256 and when it was accepted."""
+    path = Path(shadow_file)
+    return path.with_name(f"{path.name}.remote.json")
+
+
+def read_shadow_record(shadow_file: str | Path) -> dict[str, Any] | None:
+    """The record of the last shadow sent for `shadow_file` (None: none, or not a record)."""
+    try:
+        data = json.loads(shadow_record_path(shadow_file).read_text(encoding="utf-8")[:4096])
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or not isinstance(data.get("sha256"), str):
+        return None
+    return data
+
+
+def since_recorded_s(record: dict[str, Any]) -> float | None:
+    """How long ago a record was written (s): on the monotonic clock while the machine has not
+    restarted since (its boot id), else on the wall clock; None when unknown (a wall clock that went
+    back, a record without a time)."""
+    boot, mono = _boot_id(), record.get("monotonic_s")
+    if boot and record.get("boot_id") == boot and _real(mono):
+        return max(time.monotonic() - float(mono), 0.0)
+    t = record.get("t_unix_s")
+    if not _real(t):
+        return None
+    since = time.time() - float(t)
+    return since if since >= 0 else None
+
+
+def _real(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _boot_id() -> str:
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text(encoding="ascii").strip()
+    except OSError:
+        return ""
+
+
+def _write_shadow_record(shadow_file: Path, request: str, sha256: str) -> None:
+    now = time.time()
+    record = {"request": request, "sha256": sha256, "file": shadow_file.name,
+              "accepted_utc": datetime.fromtimestamp(now, UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+              "t_unix_s": now, "monotonic_s": time.monotonic(), "boot_id": _boot_id()}
+    path = shadow_record_path(shadow_file)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(json.dumps(record), encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as e:
+        log.warning("cannot write %s: %s", path, e.strerror or e, extra={"event": "model_remote"})
 
 
 def model_files(spec: Any) -> list[str]:
@@ -376,19 +485,45 @@ def clamp_check(model: Any, guard: Any) -> str | None:
     combination (up to MAX_COMBINATIONS and MAX_ROWS model rows; beyond, a coordinate search per
     axis and sign, which is exact for the kinds linear in their inputs: lvr, mlr). A model that evolves in time (ar1, the
     analytic feed_axis) holds the readings for HORIZON_S; the others are evaluated once. The model
-    is evaluated as the loop runs it (Model.predict_rows: the input lead's transient left out)."""
+    is evaluated as the loop runs it (Model.predict_rows: the input lead's transient left out).
+
+    A sum of contributions: each contribution on its own, over its own file's fit.input_range
+    (else the guard's signal limits), against its own clamp (its `max_abs_um`, which defaults to
+    its axis's): a contribution that sits at its clamp is as absurd as a model at the guard's."""
+    parts = getattr(model.params, "contributions", None)
+    if parts is None:
+        return _clamp_check(model, guard, guard.clamp_um, "", "the guard's")
+    from compd.config import ModelSpec
+    from compd.models import MODELS
+
+    for p in parts:
+        cls = MODELS.get(p.kind)
+        spec = ModelSpec(cls, cls.Params.model_validate(p.params), list(p.inputs), list(p.outputs),
+                         p.update_period_s, dict(p.fit), None, (), p.file)  # type: ignore[arg-type]
+        lims = dict(zip(p.outputs, p.max_abs_um, strict=True))
+        why = _clamp_check(spec, guard, lambda axis, lims=lims, p=p: (lims[axis], f"contribution {p.name}'s max_abs_um"),
+                           f"contribution {p.name!r}: ", "its")
+        if why is not None:
+            return why
+    return None
+
+
+def _clamp_check(model: Any, guard: Any, clamp_um: Callable[[str], tuple[float, str]], who: str,
+                 whose: str) -> str | None:
+    """`clamp_check` of one model against the clamp `clamp_um(axis)` gives (the limit, its key)."""
     got = input_ranges(model, guard)
     if isinstance(got, str):
-        return got
+        return who + got
     ranges, source = got
     peaks = largest_predictions(model, ranges)
     for axis, (peak_um, reference, reading) in zip(model.outputs, peaks, strict=True):
-        lim, key = guard.clamp_um(axis)
+        lim, key = clamp_um(axis)
         at = _where(model.inputs, reference, reading)
         if not math.isfinite(peak_um):
-            return f"axis {axis}: over its input range ({source}) the model predicts a value that is not finite ({at})"
+            return (f"{who}axis {axis}: over its input range ({source}) the model predicts a value that is not finite"
+                    f" ({at})")
         if abs(peak_um) > lim:
-            return (f"axis {axis} would sit at the guard's clamp: over its input range ({source}) the model predicts"
+            return (f"{who}axis {axis} would sit at {whose} clamp: over its input range ({source}) the model predicts"
                     f" a |correction| of {abs(peak_um):.1f} µm ({at}), beyond {key} {lim:g} µm")
     return None
 
@@ -507,4 +642,5 @@ def _private(text: str, spec: RemoteSpec, candidate: Path) -> str:
     return text
 
 
-__all__ = ["TARGETS", "RemoteModels", "clamp_check", "input_ranges", "largest_predictions", "model_files", "validate"]
+__all__ = ["TARGETS", "RemoteModels", "clamp_check", "drive_check", "input_ranges", "largest_predictions", "model_files",
+           "read_shadow_record", "shadow_record_path", "since_recorded_s", "validate"]

@@ -82,6 +82,7 @@ class RemoteSpec:
     shadow_sha256: str | None = None
     model_form: str = "file"  # how the model section gives it: file, params or contributions
     shadow_form: str | None = None  # ... and the shadow section (None: there is none)
+    shadow_min_interval_s: float = 60.0  # a shadow sent sooner after the last one accepted is refused
 
 
 @dataclass(kw_only=True)
@@ -187,7 +188,7 @@ def telemetry_spec(cfg: Any, signals: list[str], outputs: list[str], snapshot_pe
             outputs=list(outputs), arm_signal=rm.arm_signal, arm_window_s=rm.arm_window_s, max_bytes=rm.max_bytes,
             daemon_pid=os.getpid(), pending_path=Path(f"{bpath}.model-pending.json"),
             shadow_file=sfile, shadow_sha256=file_sha256(sfile) if sfile is not None else None,
-            model_form=mform, shadow_form=sform,
+            model_form=mform, shadow_form=sform, shadow_min_interval_s=rm.shadow_min_interval_s,
         )
     return TelemetrySpec(
         **dataclasses.asdict(broker),

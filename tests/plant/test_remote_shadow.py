@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import signal
@@ -186,11 +187,12 @@ def hups() -> Iterator[list[int]]:
         signal.signal(signal.SIGHUP, old)
 
 
-def remote(tmp_path: Path, model: str, shadow: str | None) -> RemoteModels:
+def remote(tmp_path: Path, model: str, shadow: str | None, remote_models: str = "{allow: true}") -> RemoteModels:
     """The remote model handler of a daemon on config `model`/`shadow` sections (this process its daemon)."""
     cfg = tmp_path / "c.yaml"
     cfg.write_text(CONFIG.format(port=1883, shadow=f"shadow: {shadow}" if shadow else "").replace(
-        "model: {kind: xi_spindle, file: model.yaml}", f"model: {model}"))
+        "model: {kind: xi_spindle, file: model.yaml}", f"model: {model}").replace(
+        "remote_models: {allow: true}", f"remote_models: {remote_models}"))
     c = load_config(cfg)
     tspec = telemetry_spec(c, [], list(c.model.outputs), 0.2)
     assert tspec.remote is not None
@@ -302,3 +304,108 @@ def test_a_shadow_is_checked_against_the_shadow_section_not_the_clamp(files: Pat
     answer = rm.handle(big, "r1", "shadow")
     assert answer["result"] == "refused" and "remote_models.max_bytes" in answer["reason"]
     assert not hups and (files / "shadow.yaml").read_text() == OLD_SHADOW
+
+
+# --- a shadow sent again: each accepted one reloads the daemon and starts the shadow's score afresh -----
+
+SHADOW_SECTION = "{kind: xi_spindle, file: shadow.yaml}"
+
+
+def test_a_shadow_within_shadow_min_interval_s_of_the_last_is_refused(files: Path, hups: list[int]) -> None:
+    """The interval holds across the reload (a new handler): the last accepted shadow is recorded beside
+    the shadow file; the text the file holds already is refused (nothing to reload); 0 = no limit."""
+    rm = remote(files, MODEL_FILE, SHADOW_SECTION)
+    assert rm.spec.shadow_min_interval_s == 60.0
+    same = rm.handle(OLD_SHADOW, "r0", "shadow")
+    assert same["result"] == "refused" and "holds this text already" in same["reason"], same
+    assert rm.handle(NEW_SHADOW, "r1", "shadow")["result"] == "accepted"
+    record = json.loads((files / "shadow.yaml.remote.json").read_text())
+    assert record["request"] == "r1" and record["sha256"] == hashlib.sha256(NEW_SHADOW.encode()).hexdigest()
+    after = remote(files, MODEL_FILE, SHADOW_SECTION)  # the reloaded pipeline's handler
+    assert after.started()["result"] == "applied"
+    third = MODEL.format(length_mm=140.0, fitted_at="2026-11-21T10:00:00Z")
+    answer = after.handle(third, "r2", "shadow")
+    assert answer["result"] == "refused", answer
+    assert "a shadow was accepted 0 s ago (request r1)" in answer["reason"]
+    assert "remote_models.shadow_min_interval_s (60 s)" in answer["reason"]
+    assert hups == [signal.SIGHUP] and (files / "shadow.yaml").read_text() == NEW_SHADOW
+    assert not list(files.glob("shadow.yaml.rejected-*"))  # refused before anything was written
+    # without a limit it is taken
+    free = remote(files, MODEL_FILE, SHADOW_SECTION, "{allow: true, shadow_min_interval_s: 0}")
+    assert free.handle(third, "r3", "shadow")["result"] == "accepted"
+
+
+def test_backups_of_the_shadow_file_are_bounded_and_none_is_deleted(files: Path, hups: list[int]) -> None:
+    """With MAX_SHADOW_BACKUPS backups beside the shadow file a shadow sent is refused: a backup is what a
+    reload that fails puts back, so it is not written without one, and none is deleted to make room."""
+    for k in range(remote_model.MAX_SHADOW_BACKUPS - 1):
+        (files / f"shadow.yaml.2026010{k % 10}T00000{k}.000000Z.bak").write_text(f"backup {k}\n")
+    mine = {p.name: p.read_text() for p in files.glob("shadow.yaml.*.bak")}
+    rm = remote(files, MODEL_FILE, SHADOW_SECTION, "{allow: true, shadow_min_interval_s: 0}")
+    assert rm.handle(NEW_SHADOW, "r1", "shadow")["result"] == "accepted"  # the last backup there is room for
+    assert len(list(files.glob("shadow.yaml.*.bak"))) == remote_model.MAX_SHADOW_BACKUPS
+    after = remote(files, MODEL_FILE, SHADOW_SECTION, "{allow: true, shadow_min_interval_s: 0}")
+    after.started()
+    answer = after.handle(OLD_SHADOW, "r2", "shadow")
+    assert answer["result"] == "refused", answer
+    assert (f"{remote_model.MAX_SHADOW_BACKUPS} backups of shadow.yaml are kept beside it already"
+            in answer["reason"])
+    assert (files / "shadow.yaml").read_text() == NEW_SHADOW and len(hups) == 1
+    assert len(list(files.glob("shadow.yaml.*.bak"))) == remote_model.MAX_SHADOW_BACKUPS
+    assert all((files / name).read_text() == text for name, text in mine.items())  # none deleted
+
+
+def probe(folder: Path, cfg: Path, error_um: float) -> None:
+    r = compd("probe", "--axis", "z", "--error-um", f"{error_um:.4f}", "--config", str(cfg), cwd=folder)
+    assert r.returncode == 0, r.stderr
+
+
+def test_a_shadow_sent_again_starts_its_score_afresh_and_promote_refuses_it(tmp_path: Path) -> None:
+    """A scored shadow, then the plant sends it again: the very text is refused (the score goes on); a
+    changed one reloads the daemon, its score starts at no probe, and `compd promote` refuses it, saying
+    which request sent it; a third within shadow_min_interval_s is refused."""
+    first = MODEL.format(length_mm=80.0, fitted_at="2026-02-01T00:00:00Z")  # half the model's: half its prediction
+    (tmp_path / "model.yaml").write_text(ORIGINAL)
+    (tmp_path / "shadow.yaml").write_text(first)
+    with Mosquitto(tmp_path / "broker") as broker:
+        cfg = tmp_path / "c.yaml"
+        cfg.write_text(CONFIG.format(port=broker.port, shadow=SHADOW_FILE + "\nadapt: {apply: false}").replace(
+            "speedup: 1}", "speedup: 50}"))  # the spindle warms faster: the two models' predictions apart
+        listener = Listener(broker.port)
+        try:
+            with daemon(cfg, tmp_path / "stderr.txt") as proc:
+                listener.wait_for(lambda: listener.of("DBIRTH"), timeout_s=60)
+                status_when(tmp_path, lambda s: abs(s["axes"]["z"].get("prediction_um") or 0.0) > 2.0)
+                for k in range(3):  # probes that measure what the shadow predicts just then
+                    probe(tmp_path, cfg, status_of_file(tmp_path)["axes"]["z"]["shadow_um"])
+                    status_when(tmp_path, lambda s, k=k: s["shadow"]["axes"]["z"]["probes"] > k)
+                scored = compd("promote", str(cfg), "--dry-run", cwd=tmp_path)
+                assert scored.returncode == 0, scored.stderr  # 3 probes on this shadow: it could be promoted
+                # the same text again: refused, nothing reloaded, the score goes on
+                same = answered(listener, send(listener, "Model/shadow", first), "refused")
+                assert "holds this text already" in same["reason"], same
+                assert status_of_file(tmp_path)["shadow"]["axes"]["z"]["probes"] == 3
+                # another text: accepted, the daemon reloads, the score starts afresh
+                r_new = send(listener, "Model/shadow", NEW_SHADOW)
+                answered(listener, r_new, "applied")
+                new_sha = hashlib.sha256(NEW_SHADOW.encode()).hexdigest()
+                status = status_when(tmp_path, lambda s: (s.get("shadow") or {}).get("model", {}).get("sha256")
+                                     == new_sha)
+                assert status["shadow"]["axes"]["z"]["probes"] == 0
+                refused = compd("promote", str(cfg), cwd=tmp_path)
+                # a third within the interval: refused
+                third = MODEL.format(length_mm=140.0, fitted_at="2026-11-21T10:00:00Z")
+                limited = answered(listener, send(listener, "Node Control/Shadow", third), "refused")
+        finally:
+            listener.stop()
+    assert proc.returncode == 0, (tmp_path / "stderr.txt").read_text()
+    assert refused.returncode == 2 and "too few probes (z 0; at least 3 per axis" in refused.stderr, refused.stderr
+    assert (f"compd promote: the shadow came from: the plant (Model/shadow, request {r_new}, accepted "
+            in refused.stdout), refused.stdout
+    assert "remote_models.shadow_min_interval_s (60 s)" in limited["reason"], limited
+    assert (tmp_path / "shadow.yaml").read_text() == NEW_SHADOW
+    assert "shadow: {kind: xi_spindle, file: shadow.yaml}" in cfg.read_text()  # not promoted
+
+
+def status_of_file(folder: Path) -> dict[str, Any]:
+    return json.loads((folder / "status.json").read_text())
