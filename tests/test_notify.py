@@ -76,16 +76,18 @@ def test_observer_ready_once_then_pings_at_half_the_watchdog(listener):
     n = Notifier(path)
     obs = WatchdogObserver(n, 2.0, status="compensating", clock=lambda: t[0])
     try:
-        obs(None, 0.0)
-        assert sock.recv(4096) == b"READY=1\nSTATUS=compensating"
+        obs(None, 0.0)  # the first cycle pings with READY: after a reload the interval starts here
+        assert sock.recv(4096) == b"READY=1\nSTATUS=compensating\nWATCHDOG=1"
         for dt in (0.3, 0.3, 0.3):  # 0.9 s < 1.0 s: nothing
             t[0] += dt
             obs(None, 0.0)
-        assert obs.pings == 0
+        assert obs.pings == 1
         t[0] += 0.11
         obs(None, 0.0)
         assert sock.recv(4096) == b"WATCHDOG=1"
-        assert obs.pings == 1
+        assert obs.pings == 2
+        obs.ping()  # a reload pauses the loop: the daemon pings as it starts building the new pipeline
+        assert sock.recv(4096) == b"WATCHDOG=1" and obs.pings == 3
     finally:
         n.close()
 
@@ -142,7 +144,7 @@ def test_the_watchdog_is_no_longer_fed_once_the_supervisor_gave_up(listener):
     obs = WatchdogObserver(n, 2.0, status="compensating", clock=lambda: t[0], healthy=lambda: healthy[0])
     try:
         obs(None, 0.0)
-        assert sock.recv(4096) == b"READY=1\nSTATUS=compensating"
+        assert sock.recv(4096) == b"READY=1\nSTATUS=compensating\nWATCHDOG=1"
         t[0] += 1.1
         obs(None, 0.0)
         assert sock.recv(4096) == b"WATCHDOG=1"
@@ -151,6 +153,8 @@ def test_the_watchdog_is_no_longer_fed_once_the_supervisor_gave_up(listener):
             t[0] += 1.1
             obs(None, 0.0)
         assert sock.recv(4096).startswith(b"STATUS=I/O processes keep dying")
-        assert obs.pings == 1 and obs.starved and n.sent == 3
+        assert obs.pings == 2 and obs.starved and n.sent == 3
+        obs.ping()  # nor at a reload
+        assert obs.pings == 2 and n.sent == 3
     finally:
         n.close()

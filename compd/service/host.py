@@ -873,6 +873,8 @@ class Service:
         is built, so that the status tells the pause from a dead cycle (compd.service.status)."""
         self.state = "reloading"
         self.publisher.publish_status("reloading")
+        if self.watchdog is not None:  # the interval starts anew: the new pipeline's first cycle pings again
+            self.watchdog.ping()
 
     def resume(self) -> None:
         """The loop runs on after a reload that was refused or failed: the record says running again."""

@@ -113,6 +113,13 @@ class WatchdogObserver:
         self.healthy = healthy  # False: the supervisor gave up on a child; no more pings
         self.starved = False
 
+    def ping(self) -> None:
+        """WATCHDOG=1 now, outside a cycle: the daemon pauses its loop on purpose (a reload builds
+        the new pipeline), and the new pipeline's first cycle pings again."""
+        if math.isfinite(self.interval_s) and self.ready and (self.healthy is None or self.healthy()):
+            self.notifier.send(WATCHDOG=1)
+            self.pings += 1
+
     def __call__(self, loop: Any, now_s: float) -> None:
         t = self.clock()
         if t >= self._next_status_s and self.ready:
@@ -128,7 +135,13 @@ class WatchdogObserver:
         self._next_s = t + self.interval_s
         if not self.ready:
             self.ready = True
-            self.notifier.send(READY=1, STATUS=self.status)
+            if math.isfinite(self.interval_s) and (self.healthy is None or self.healthy()):
+                # the first cycle pings too: after a reload the interval starts anew here, so the
+                # gap between two pings is never the old pipeline's interval plus the new one's
+                self.notifier.send(READY=1, STATUS=self.status, WATCHDOG=1)
+                self.pings += 1
+            else:
+                self.notifier.send(READY=1, STATUS=self.status)
         elif self.healthy is None or self.healthy():
             self.notifier.send(WATCHDOG=1)
             self.pings += 1
