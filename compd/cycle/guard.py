@@ -298,12 +298,14 @@ class Guard:
 
     def event(self, t: float, subject: str, event: str, reason: str) -> None:
         """Record an event of a stage before the guard (a contribution's fault, clamp, recovery)."""
-        self._event(t, subject, event, reason, key=event if event in ("clamped", "unclamped") else None)
+        self._event(t, subject, event, reason, key=event if event in ("clamped", "unclamped") else "")
 
-    def _event(self, t: float, subject: str, event: str, reason: str, key: str | None = None) -> None:
-        """Record an event; `faults` counts it under `key` (default "event:reason")."""
-        key = f"{event}:{reason}" if key is None else key
-        self.faults[key] = self.faults.get(key, 0) + 1
+    def _event(self, t: float, subject: str, event: str, reason: str, key: str | None = "") -> None:
+        """Record an event; `faults` counts it under `key` (default "event:reason"; None: not a
+        fault, not counted)."""
+        if key is not None:
+            key = key or f"{event}:{reason}"
+            self.faults[key] = self.faults.get(key, 0) + 1
         self.events.append((t, subject, event, reason))
         if len(self.events) > 1000:
             del self.events[:500]
@@ -522,7 +524,7 @@ class Guard:
         if int(self.state[a]) == STARTING:
             self.enable[a] = um != 0.0
         self._event(now_s, self.axes[a], "synced",
-                    f"the machine applies {um:+.3f} um: the output goes on from there", key="synced")
+                    f"the machine applies {um:+.3f} um: the output goes on from there", key=None)
 
     def safe(self) -> None:
         self.out_um[:] = 0.0

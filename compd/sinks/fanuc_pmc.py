@@ -174,12 +174,14 @@ class FanucPmcSink(Sink):
         self._held_um = held
         if cfg.mode == "word":
             self._strobe = (regs[10] >> cfg.strobe_bit) & 1
+        assert self.link is not None
+        self.link.status = regs[:8]  # the status block, read with it: what the PMC applies is known from now
         self._next_update_s = -math.inf
         self._fresh = True
         self._dirty = False
         if cfg.reset_alarm_on_start and not self.syncs:
-            assert self.link is not None
             self.link.submit(cfg.status_address + 3, [1])
+            self._dirty = True  # a replay's next settle lets the PMC scan it
 
     def link_state(self) -> LinkState:
         """The link's; `connecting` while it is up but what the PMC applies is not yet read back."""

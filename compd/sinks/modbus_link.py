@@ -301,6 +301,8 @@ class ModbusLink:
             reason = f"stopped beating for {timeout_s:.1f} s"
         else:
             reason = w.lost or "its process has ended"
+        if self.sync is not None:  # a fresh link: what the device holds is read again before anything is sent
+            self.sync.begin()
         if w.wanted or w.lost is not None:
             log.error("%s (pid %s) %s: the safe output goes through a fresh link", w.name, w.pid or w.lost_pid,
                       reason, extra={"event": "io_process_lost", "worker": w.name, "pid": w.pid or w.lost_pid,

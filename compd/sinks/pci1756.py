@@ -172,7 +172,9 @@ class ModbusDoCard(DoCard):
         return self._do[port] | (self._do[port + 1] << 8)
 
     def link_state(self) -> LinkState:
-        return self.link.state  # type: ignore[return-value]
+        """The link's; `connecting` while it is up but the lines not yet read back."""
+        st = self.link.state
+        return "connecting" if st == "up" and not self.link.synced() else st  # type: ignore[return-value]
 
     def flush(self, timeout_s: float) -> bool:
         return self.link.drain(timeout_s)
@@ -209,8 +211,7 @@ class Pci1756Sink(Sink):
     def link_state(self) -> LinkState:
         """The card over Modbus: its link (`connecting` while up but the lines not yet read back);
         a card in this process (emulated, a driver): up."""
-        st = self.card.link_state()
-        return "connecting" if st == "up" and not self.card.synced() else st
+        return self.card.link_state()
 
     def open(self, now_s: float) -> None:
         """Connect; nothing is written until the DO lines are read back (`sync`)."""
