@@ -62,6 +62,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     check_output(args.json, "--json")
     result = run_with_reload(args.config, args.duration, args.observe, args.log_level)
+    if result is None:  # SIGTERM or SIGINT while it started, before it opened anything
+        print("compd: stopped before the loop started: nothing was opened", file=sys.stderr)
+        return 0
     comp = result["compensation"]
     loop = result["loop"]
     if result.get("observe"):
