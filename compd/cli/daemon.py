@@ -108,11 +108,14 @@ def args_check_config(sub: Any) -> None:
 def cmd_check_config(args: argparse.Namespace) -> int:
     from compd.config import load_config
     from compd.cycle import pipeline
-    from compd.service.host import check_status_free
+    from compd.service.control import check_socket_path
+    from compd.service.host import check_status_folder, check_status_free
 
     cfg = load_config(args.config)
     pipeline.check(cfg)  # the wiring, by building the pipeline (opens no device)
+    check_status_folder(cfg)  # the status file can be written where it goes
     check_status_free(cfg)  # no other running compd writes its status file
+    check_socket_path(cfg)  # the probe socket can be bound where it goes
     print("ok")
     return 0
 
