@@ -68,6 +68,7 @@ from typing import Any, TypeVar
 
 from compd.cycle.statusblock import signal_unit
 from compd.errors import BadInput
+from compd.plant import sandbox
 from compd.plant.buffer import MEMORY_MAX_BYTES, Counters, MemoryBuffer, StoreAndForward
 from compd.plant.sparkplug import (
     NAMESPACE,
@@ -607,7 +608,10 @@ class Telemetry:
         try:
             self._client.connect(spec.host, spec.port, keepalive=spec.keepalive_s)
         except (OSError, ssl.SSLError, ValueError) as e:
-            self._connection_failed(f"cannot connect to {spec.host}:{spec.port}: {getattr(e, 'strerror', None) or e}")
+            why = f"cannot connect to {spec.host}:{spec.port}: {getattr(e, 'strerror', None) or e}"
+            if sandbox.refused_by_this_host(e):  # EPERM: the unit's IP sandbox (compd.plant.sandbox)
+                why += f" ({sandbox.connect_refused_hint(spec.host)})"
+            self._connection_failed(why)
             return  # no CONNECT went out: the same bdSeq next time
         self._bdseq = bdseq
         self._on_buffer(lambda b: b.set_meta("bdseq", bdseq))

@@ -543,6 +543,11 @@ class ServiceWork:
             return
         self.opcua, self.opcua_error, self._opcua_attempts = server, None, 0
         log.info("OPC UA on %s", url, extra={"event": "opcua", "url": url})
+        from compd.plant.sandbox import listening_hint
+
+        hint = listening_hint("the OPC UA server", ua.cfg.bind)
+        if hint is not None:  # the sandbox drops other hosts' packets unseen: said once, at the start
+            log.warning("%s", hint, extra={"event": "opcua_sandbox", "url": url})
 
 
 class _ServiceHost:
