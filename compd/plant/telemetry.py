@@ -626,7 +626,8 @@ class Telemetry:
         if self._down_since is None:
             self._down_since = time.monotonic()
         if why != self.last_error:
-            log.warning("telemetry: %s; samples are kept on disk until it answers", why,
+            log.warning("telemetry: %s; samples are kept %s until it answers", why,
+                        "on disk" if self.buffer is self.disk else "in memory",
                         extra={"event": "telemetry_down", "reason": why})
         self.last_error = why
         wait = min(self.spec.reconnect_max_s, RECONNECT_MIN_S * 2 ** min(self._attempts, 10))
