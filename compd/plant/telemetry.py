@@ -381,7 +381,12 @@ class Telemetry:
         return disk + (self.memory.dropped if self.memory is not None else 0)
 
     def get_status(self) -> dict[str, Any]:
-        buf = self.buffer.get_status() if self.buffer is not None else {}
+        """The telemetry's state for the status file (from any thread)."""
+        current = self.buffer
+        try:
+            buf = current.get_status() if current is not None else {}
+        except sqlite3.Error:  # the file closed by the thread this moment (`_unbuffered`): counted next time
+            buf = {}
         return {
             "broker": f"{self.spec.host}:{self.spec.port}",
             "connected": self._session,
@@ -391,7 +396,7 @@ class Telemetry:
             "buffered": buf.get("records", 0),
             "buffered_bytes": buf.get("bytes", 0),
             # where samples wait: `disk` (the buffer's file), `memory` (it cannot be written: buffer_error)
-            "buffer": "memory" if self.buffer is not None and self.buffer is self.memory else "disk",
+            "buffer": "memory" if current is not None and current is self.memory else "disk",
             "buffer_error": self.buffer_error,
             "dropped": self._buffer_dropped() + self.inbox_dropped + self.lost_to_disk,
             "bdseq": self._bdseq,
