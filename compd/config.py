@@ -571,7 +571,8 @@ class CodecConfig(Strict):
         ),
     )
     axes: list[str] | None = Field(
-        None, max_length=2, description="model outputs on the high and low byte (default: in order)"
+        None, max_length=2, description="the axes the word drives, high byte first; every output of the model (each"
+        " contribution's, the shadow's) is one of them (default: the first model's outputs, in order)"
     )
 
     @model_validator(mode="after")
@@ -894,6 +895,12 @@ class SinkConfig(Strict):
 
     kind: str = Field(description="the sink kind")
 
+    def driven_axes(self) -> tuple[list[str], str] | None:
+        """The axes this section says the sink drives and the key that says so, for a sink that
+        maps axes to its device's own (siemens: `axes`); None when it does not say: the word's
+        axes are then `codec.axes`, else the first model's outputs (`DrivenAxes`)."""
+        return None
+
 
 class ModelSection(Strict):
     """The model section: a model file, or inline params."""
@@ -941,6 +948,36 @@ class ContributionsSection(Strict):
     contributions: list[dict[str, Any]] = Field(
         min_length=1, max_length=16, description="the contributions, each a model section with a name and limits"
     )
+
+
+def did_you_mean(name: str, known: list[str] | tuple[str, ...]) -> str:
+    """`; did you mean 'z'?` naming the known name `name` most likely stands for: the same name in
+    another case first (difflib finds no likeness between `Z` and `z`), else difflib's closest;
+    "" when none is close. Names stay case-sensitive: this only suggests."""
+    text = str(name)
+    close = [k for k in known if k.casefold() == text.casefold()] or difflib.get_close_matches(text, list(known), n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+@dataclass(frozen=True)
+class DrivenAxes:
+    """The axes the machine is driven on, declared once, and where: a sink's own list (`sink.axes`
+    of a sink that maps axes to its device's), else `codec.axes`, else the outputs of the first
+    model (of the first contribution, for a sum). Every output of the model, of each contribution
+    and of the shadow, and every axis a per-axis section names, must be one of them: a misspelt
+    axis (`Z` beside `z`) is refused, never an axis of its own that drives the word's other byte."""
+
+    names: tuple[str, ...]
+    origin: str  # the key (or the model) that declares them, for the error
+    who: str = "the sink"  # ... "the model" for the outputs of a model narrower than the sink's axes
+
+    def check(self, axis: Any, doc: Document, path: PathT, note: str = "") -> None:
+        """A ConfigError at `path` of `doc` unless `axis` is one of the driven axes."""
+        if axis not in self.names:
+            raise doc.error(
+                f"{axis!r} is not an axis {self.who} drives ({', '.join(self.names)}: {self.origin}){note}"
+                f"{did_you_mean(axis, self.names)}", path,
+            )
 
 
 @dataclass
@@ -1033,14 +1070,16 @@ def load_model_file(file: str | Path, text: str | None = None) -> tuple[Document
 
 
 def resolve_model(
-    section: Any, doc: Document, path: PathT, base_dir: Path, guard: GuardConfig | None = None
+    section: Any, doc: Document, path: PathT, base_dir: Path, guard: GuardConfig | None = None,
+    axes: DrivenAxes | None = None,
 ) -> ModelSpec:
     """Resolve a model section (inline, from a file, or `contributions`: several summed) to a
-    ModelSpec; a contribution's limits default to its axes' in `guard`."""
+    ModelSpec; a contribution's limits default to its axes' in `guard`. With `axes`, every output
+    (each contribution's) must be one of them; without, a sum's first contribution declares them."""
     from compd.models import MODELS
 
     if isinstance(section, dict) and "contributions" in section:
-        return _resolve_contributions(section, doc, path, base_dir, guard or GuardConfig())
+        return _resolve_contributions(section, doc, path, base_dir, guard or GuardConfig(), axes)
     sec = validate(ModelSection, section, doc, path)
     try:
         cls = MODELS.get(sec.kind)
@@ -1102,15 +1141,22 @@ def resolve_model(
             wdoc, wpath = where(str(keys[0]))
             raise wdoc.error(e.message, (*wpath, *keys[1:])) from None
         raise pdoc.error(e.message, (*base, *keys) if keys else ppath) from None
+    if axes is not None:
+        wdoc, wpath = where("outputs")
+        note = "" if wdoc is doc else f" (the model file of {format_path(path)})"
+        for j, axis in enumerate(outputs):
+            axes.check(axis, wdoc, (*wpath, j), note)
     mfile = None if sec.file is None else str(fpath.resolve())
     return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path, mfile, sha256)
 
 
 def _resolve_contributions(
-    section: dict[str, Any], doc: Document, path: PathT, base_dir: Path, guard: GuardConfig
+    section: dict[str, Any], doc: Document, path: PathT, base_dir: Path, guard: GuardConfig,
+    axes: DrivenAxes | None = None,
 ) -> ModelSpec:
     """`model.contributions`: each item resolved as a model section; the sum's spec (kind
-    `contributions`: compd.models.contributions) with each one's limits settled."""
+    `contributions`: compd.models.contributions) with each one's limits settled. Each one's
+    outputs are among `axes`; without them, the first contribution's outputs declare the axes."""
     from compd.models.contributions import ContributionParams, Contributions, ContributionSetParams
 
     sec = validate(ContributionsSection, section, doc, path)
@@ -1124,7 +1170,9 @@ def _resolve_contributions(
             raise doc.error("a contribution cannot itself have contributions", (*where, "contributions"))
         csec = validate(ContributionSection, item, doc, where)
         own = {k: v for k, v in item.items() if k not in ("name", "max_abs_um", "max_slew_um_per_s", "fault_policy")}
-        spec = resolve_model(own, doc, where, base_dir)
+        spec = resolve_model(own, doc, where, base_dir, axes=axes)
+        if axes is None:  # declared by none: the first contribution's outputs declare them
+            axes = DrivenAxes(tuple(spec.outputs), f"the outputs of {format_path(where)}; codec.axes declares more")
         name = csec.name or spec.cls.kind
         if name in names:
             raise doc.error(f"contribution name {name!r} is used twice (give each a `name`)", (*where, "name"))
@@ -1191,6 +1239,17 @@ def _check_optional(top: ConfigModel, doc: Document) -> None:
             ) from None
 
 
+def _declared_axes(top: ConfigModel, sink: SinkConfig) -> DrivenAxes | None:
+    """The axes the config declares the machine is driven on: the sink's own list, else
+    `codec.axes`; None when neither says (the first model's outputs then declare them)."""
+    own = sink.driven_axes()
+    if own is not None:
+        return DrivenAxes(tuple(own[0]), f"sink.{own[1]}")
+    if top.codec.axes:
+        return DrivenAxes(tuple(top.codec.axes), "codec.axes")
+    return None
+
+
 def load_config(file: str | Path, text: str | None = None) -> Config:
     """Load and validate a config file; raises ConfigError (exit 2) on any problem."""
     from compd.sinks import SINKS
@@ -1212,36 +1271,29 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
         sources.append((cls, cfg, ("sources", i)))
     sink_cls, sink_cfg = _plugin(SINKS, top.sink, doc, ("sink",))
     base_dir = Path(doc.file).parent
-    model = resolve_model(top.model, doc, ("model",), base_dir, top.guard)
+    declared = _declared_axes(top, sink_cfg)
+    model = resolve_model(top.model, doc, ("model",), base_dir, top.guard, axes=declared)
     if len(model.outputs) > 2 and top.codec.axes is None:
         raise doc.error("the word carries two axes: name them in codec.axes", ("model", "outputs"))
+    # what the model drives, for the sections that name an axis: the declared axes when it drives
+    # all of them (else a narrower list the error then names)
+    if declared is None:
+        first = ("model", "contributions", 0) if "contributions" in top.model else ("model",)
+        declared = DrivenAxes(tuple(model.outputs), f"the outputs of {format_path(first)}")
+    driven = declared if set(declared.names) == set(model.outputs) else DrivenAxes(
+        tuple(model.outputs), "its outputs", who="the model")
     for i, axis in enumerate(top.codec.axes or []):
-        if axis not in model.outputs:
-            raise doc.error(
-                f"{axis!r} is not an output of the model ({', '.join(model.outputs)})",
-                ("codec", "axes", i),
-            )
+        declared.check(axis, doc, ("codec", "axes", i))
+        driven.check(axis, doc, ("codec", "axes", i))
     for axis in top.inhibit.axes if top.inhibit is not None else {}:
-        if axis not in model.outputs:
-            raise doc.error(
-                f"{axis!r} is not an output of the model ({', '.join(model.outputs)})",
-                ("inhibit", "axes", axis),
-            )
+        driven.check(axis, doc, ("inhibit", "axes", axis))
     for axis in top.guard.axes:
-        if axis not in model.outputs:
-            raise doc.error(
-                f"{axis!r} is not an output of the model ({', '.join(model.outputs)})",
-                ("guard", "axes", axis),
-            )
+        driven.check(axis, doc, ("guard", "axes", axis))
+    for axis in top.adapt.slope_position if top.adapt is not None else {}:
+        driven.check(axis, doc, ("adapt", "slope_position", axis))
     shadow = None
-    if top.shadow is not None:
-        shadow = resolve_model(top.shadow, doc, ("shadow",), base_dir, top.guard)
-        for axis in shadow.outputs:
-            if axis not in model.outputs:
-                raise doc.error(
-                    f"{axis!r} is not an output of the model ({', '.join(model.outputs)}): a shadow stands beside"
-                    " the active model on its axes", ("shadow", "outputs"),
-                )
+    if top.shadow is not None:  # it stands beside the active model, on its axes
+        shadow = resolve_model(top.shadow, doc, ("shadow",), base_dir, top.guard, axes=driven)
     return Config(doc.file, doc, top, sources, model, (sink_cls, sink_cfg, ("sink",)), shadow)
 
 

@@ -52,11 +52,13 @@ fi
 
 venv="$DESTDIR$PREFIX/venv"
 work=$(mktemp -d)
+running=""  # the compd units that run now (an upgrade over them: said at the end)
 trap 'rm -rf "$work"' EXIT
 
 say "venv $venv (extras: ${EXTRAS:-none})"
 mkdir -p "$(dirname "$venv")"
-# a normal venv with pip in it, so the plant's engineer can inspect and upgrade it
+# a normal venv with pip in it, so the plant's engineer can inspect it (pip list, pip check); a newer compd
+# or another extra comes from running this again from the source tree (or a newer package), never pip by hand
 [ -x "$venv/bin/python" ] || "$PYTHON" -m venv "$venv" || die "$PYTHON -m venv failed (Debian: apt install python3-venv)"
 # a venv from an older install.sh has no pip: give it one
 "$venv/bin/python" -m pip --version >/dev/null 2>&1 || "$venv/bin/python" -m ensurepip -q
@@ -111,10 +113,16 @@ else
     fi
     if [ -d /run/systemd/system ]; then
         systemctl daemon-reload
+        # a compd that runs keeps the old code it has loaded (and would load the rest from these files)
+        running=$(systemctl list-units --type=service --state=active --no-legend --plain \
+            'compd.service' 'compd@*.service' 2>/dev/null | awk '{ printf "%s ", $1 }') || running=""
     fi
 fi
 if [ -n "$DESTDIR" ]; then
     say "done: staged in $DESTDIR (its files name their final paths: copy the tree to /, or package it)"
+elif [ -n "$running" ]; then
+    say "done. Still running the old version: ${running% }; restart it to run this one: systemctl restart ${running% }"
+    say "(not reload: a reload rereads the config, the running daemon keeps the old code it has loaded)"
 else
     say "done. Next: edit $SYSCONFDIR/compd/compd.yaml, then: systemctl enable --now compd"
 fi

@@ -172,6 +172,14 @@ mount -t overlay overlay -o "lowerdir=$x/usr/bin:/usr/bin" /usr/bin
 mount -t overlay overlay -o "lowerdir=$x/usr/lib/sysusers.d:/usr/lib/sysusers.d" /usr/lib/sysusers.d
 cd /
 run postinst sh "$x/DEBIAN/postinst" configure
+# an upgrade (configure with the version it replaces): with compd not running, then with systemd
+# saying two units run (a systemctl of this namespace's, on PATH)
+run upgrade sh "$x/DEBIAN/postinst" configure 0.0.9-1
+mkdir -p /run/systemd/system /opt/fakebin
+printf '#!/bin/sh\ncase "$*" in *list-units*) printf "compd.service loaded active running compd\\ncompd@lathe1.service loaded active running compd (lathe1)\\n" ;; esac\n' >/opt/fakebin/systemctl
+chmod +x /opt/fakebin/systemctl
+run upgrade_running env PATH="/opt/fakebin:$PATH" sh "$x/DEBIAN/postinst" configure 0.0.9-1
+rm -rf /run/systemd
 run id id compd
 as_compd="setpriv --reuid=compd --regid=compd --init-groups"
 run version $as_compd /usr/bin/compd --version
@@ -218,6 +226,11 @@ def test_installs_and_runs_in_a_throw_away_root(deb: Path, tmp_path: Path) -> No
     postinst = out("postinst")
     assert "neither enabled nor started" in postinst and "systemctl enable --now compd" in postinst
     assert had_user or "created the system user compd" in postinst
+    # after an upgrade it names what still runs the old code and says restart, not reload
+    assert out("upgrade").strip() == "compd: upgraded from 0.0.9-1; compd is not running: it starts on this version."
+    running = out("upgrade_running")
+    assert "upgraded from 0.0.9-1; still running the old version: compd.service compd@lathe1.service." in running
+    assert "systemctl restart compd.service compd@lathe1.service" in running and "not reload" in running
     assert re.search(r"groups=.*\(dialout\)", out("id"))
     assert out("version").strip() == f"compd {VERSION}"
     assert out("check").strip() == "ok"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import logging
 import math
@@ -436,3 +438,61 @@ def test_compd_probe_prints_any_answer_nulls_included(tmp_path, monkeypatch):
                            f" t_s=null pid={os.getpid()}\n", r.stdout
     finally:
         server.close()
+
+
+def _check(tmp_path: Path, extra: str) -> tuple[int, str, Path]:
+    """check-config on the sim spindle with `extra`, in process: its exit code, stderr line, config."""
+    from compd.cli import main
+
+    cfg = sim_config(tmp_path, extra)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        rc = main(["check-config", str(cfg)])
+    return rc, err.getvalue().strip(), cfg
+
+
+def _line(cfg: Path, text: str) -> int:
+    return next(i for i, line in enumerate(cfg.read_text().splitlines(), 1) if text in line)
+
+
+@pytest.mark.parametrize(("extra", "key", "why"), [
+    ("adapt: {{socket_path: {long}/p.sock}}", "adapt.socket_path", "bytes long: a Unix socket path is at most 107"),
+    ("adapt: {{socket_path: missing/p.sock}}", "adapt.socket_path", "missing of the probe socket"),
+    ("status: {{path: missing/status.json}}\nadapt: {{}}", "status.path", "missing of the status file does not exist"),
+    ("status: {{path: status.json}}\nadapt: {{}}", "status.path", "status.sock exists and is not a socket"),
+])
+def test_check_config_refuses_a_probe_socket_that_cannot_be_bound(tmp_path, extra, key, why):
+    """Issue 39 item 7: these passed check-config and then failed `compd run`; now one line naming the key."""
+    (tmp_path / "status.sock").write_text("not a socket", encoding="utf-8")
+    rc, err, cfg = _check(tmp_path, extra.format(long="x" * 110))
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert f"{cfg}:{_line(cfg, key.split('.')[0] + ':')}: {key}: " in err and why in err, err
+
+
+def test_check_config_refuses_a_folder_it_cannot_write(tmp_path):
+    """A folder compd's user cannot write in (made immutable: root writes anywhere else)."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if subprocess.run(["chattr", "+i", str(folder)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not supported on this file system")
+    try:
+        rc, err, _ = _check(tmp_path, "adapt: {socket_path: ro/p.sock}")
+        assert rc == 2 and "adapt.socket_path: the probe socket" in err and "its folder is not writable" in err
+        rc, err, _ = _check(tmp_path, "status: {path: ro/status.json}")
+        assert rc == 2 and "status.path: the status file" in err and "its folder is not writable" in err
+    finally:
+        subprocess.run(["chattr", "-i", str(folder)], check=True)
+
+
+def test_what_check_config_accepts_binds(tmp_path):
+    """A socket beside the status file: ok, and the daemon's open binds it (and names status.path when it cannot)."""
+    from compd.config import load_config
+
+    rc, err, cfg = _check(tmp_path, "status: {path: status.json}\nadapt: {}")
+    assert rc == 0, err
+    server = control.ControlServer(control.socket_path(load_config(cfg)), ("status", "path"))
+    server.open()
+    server.close()
+    with pytest.raises(BadInput) as e:
+        control.ControlServer(tmp_path / "missing" / "p.sock", ("status", "path")).open()
+    assert e.value.path == "status.path" and "does not exist" in e.value.message

@@ -168,4 +168,4 @@ def test_a_shadow_on_an_axis_the_model_lacks_is_refused(tmp_path: Path, capsys: 
     capsys.readouterr()
     assert main(["check-config", str(cfg)]) == 2
     err = capsys.readouterr().err.strip()
-    assert "shadow.outputs" in err and "'x' is not an output of the model" in err
+    assert "shadow.outputs[0]" in err and "'x' is not an axis the sink drives (z: the outputs of model)" in err

@@ -63,6 +63,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     check_output(args.json, "--json")
     result = run_with_reload(args.config, args.duration, args.observe, args.log_level)
+    if result is None:  # SIGTERM or SIGINT while it started, before it opened anything
+        print("compd: stopped before the loop started: nothing was opened", file=sys.stderr)
+        return 0
     comp = result["compensation"]
     loop = result["loop"]
     if result.get("observe"):
@@ -106,11 +109,14 @@ def args_check_config(sub: Any) -> None:
 def cmd_check_config(args: argparse.Namespace) -> int:
     from compd.config import load_config
     from compd.cycle import pipeline
-    from compd.service.host import check_status_free
+    from compd.service.control import check_socket_path
+    from compd.service.host import check_status_folder, check_status_free
 
     cfg = load_config(args.config)
     pipeline.check(cfg)  # the wiring, by building the pipeline (opens no device)
+    check_status_folder(cfg)  # the status file can be written where it goes
     check_status_free(cfg)  # no other running compd writes its status file
+    check_socket_path(cfg)  # the probe socket can be bound where it goes
     print("ok")
     return 0
 

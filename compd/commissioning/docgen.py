@@ -290,6 +290,11 @@ the status (`axes.<axis>.contributions.<name>`), the data log (`pred_<axis>_<nam
 metrics (`compd_contribution_*`), Sparkplug (`Axis/<axis>/Contribution/<name>/…`), OPC UA
 (`compd.Axes.<axis>.Contributions.<name>`) and the replay report (`contributions`).
 
+Every contribution's outputs are axes the sink drives: the sink's own `axes` (siemens), else
+`codec.axes`, else the first contribution's outputs. Contributions on two axes (a lathe's z and
+x) name both in `codec.axes`; an output that is none of them (`Z` beside `z`) is refused, with
+the axis it most likely means, never driven as an axis of its own.
+
 ```yaml
 model:
   contributions:

@@ -65,7 +65,7 @@ def reload(app: Any, config_path: str, remaining: float | None, observe: bool | 
 
 def run_with_reload(
     config_path: str, duration_s: float | None, observe: bool = False, log_level: str | None = None
-) -> dict[str, Any]:
+) -> dict[str, Any] | None:
     """Run the loop until SIGTERM/SIGINT or the duration; SIGHUP reloads the config.
 
     A reload validates the new config, builds and opens the new pipeline before the
@@ -74,7 +74,42 @@ def run_with_reload(
     Reloads are serialised and the last request wins: a SIGHUP that arrives during a
     reload triggers one more reload of the then-current file after it. Returns the
     summary of the last pipeline.
+
+    The signal handlers are installed first, before the config is read and the pipeline
+    built (a second or more): a SIGHUP then is a reload served once the loop runs, not the
+    default action that ends the process without a word; a SIGTERM or SIGINT before anything
+    was opened ends it with nothing to make safe (None), after that with the safe output.
+    Python runs no handler before it runs this module: a signal in the interpreter's own
+    start (tens of ms) still takes its default action. The previous handlers are back on return.
     """
+    # set only by the signal handlers (which run on this thread, between statements)
+    requests = {"stop": False, "reload": 0}
+    current: list[Any] = [None]  # the App that runs, once there is one
+
+    def on_stop(signum: int, frame: object) -> None:
+        requests["stop"] = True
+        if current[0] is not None:
+            current[0].loop.stop()
+
+    def on_hup(signum: int, frame: object) -> None:
+        requests["reload"] += 1
+        if current[0] is not None:
+            current[0].loop.stop()
+
+    handlers = {signal.SIGTERM: on_stop, signal.SIGINT: on_stop, signal.SIGHUP: on_hup}
+    previous = {signum: signal.signal(signum, handler) for signum, handler in handlers.items()}
+    try:
+        return _run(config_path, duration_s, observe, log_level, requests, current)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+def _run(
+    config_path: str, duration_s: float | None, observe: bool, log_level: str | None,
+    requests: dict[str, Any], current: list[Any],
+) -> dict[str, Any] | None:
+    """`run_with_reload` once its handlers are in place: the config read, the App built and run."""
     from compd.config import load_config
     from compd.daemon.app import App
     from compd.service.logsetup import setup_logging
@@ -82,22 +117,12 @@ def run_with_reload(
     cfg = load_config(config_path)
     setup_logging(log_level or cfg.top.logging.level)
     observe_flag = True if observe else None
-    app = App(cfg, duration_s=duration_s, observe=observe_flag)
-    # set only by the signal handlers (which run on this thread, between statements)
-    requests = {"stop": False, "reload": 0}
-    current = [app]
-
-    def on_stop(signum: int, frame: object) -> None:
-        requests["stop"] = True
-        current[0].loop.stop()
-
-    def on_hup(signum: int, frame: object) -> None:
-        requests["reload"] += 1
-        current[0].loop.stop()
-
-    signal.signal(signal.SIGTERM, on_stop)
-    signal.signal(signal.SIGINT, on_stop)
-    signal.signal(signal.SIGHUP, on_hup)
+    app = None if requests["stop"] else App(cfg, duration_s=duration_s, observe=observe_flag)
+    if app is None or requests["stop"]:  # asked to stop before anything was opened: nothing to make safe
+        log.info("stopped before the loop started: nothing was opened", extra={"event": "stopped_early",
+                                                                               "config": config_path})
+        return None
+    current[0] = app
     remaining = app.duration_s
     app.open()
     try:

@@ -17,6 +17,10 @@ A file that is not a database compd can use (SQLite says it is not a database or
 malformed, or it holds tables that are not ours) is never repaired by deleting: it is renamed
 aside to `<name>.corrupt-<UTC time>` (with its -wal and -shm files), kept, logged, and a new
 buffer is started; ids then start again at 1 in the new file.
+
+While the file cannot be written (its disk full, an I/O error) or opened at all, the telemetry
+keeps its records in a `MemoryBuffer` instead (the same calls, bounded, gone with the process)
+and hands them to the file when it can be written again; what the file held stays in it.
 """
 
 from __future__ import annotations
@@ -326,6 +330,13 @@ class StoreAndForward:
         return self._count
 
     @property
+    def last_id(self) -> int:
+        """The id of the newest record ever put (acknowledged or not; 0 before the first)."""
+        with self._lock:
+            row = self._db.execute("SELECT seq FROM sqlite_sequence WHERE name = 'records'").fetchone()
+        return 0 if row is None else int(row[0])
+
+    @property
     def bytes(self) -> int:
         """The sum of the stored record bodies (what max_bytes bounds; not the file's size)."""
         return self._bytes
@@ -364,6 +375,95 @@ class StoreAndForward:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+MEMORY_MAX_BYTES = 4_000_000  # the memory buffer's bound (about an hour of the demo's samples at 1 s)
+
+
+class MemoryBuffer:
+    """The buffer's stand-in while the file cannot take records: `put`, `pending`, `ack`, the
+    meta integers and the counts as `StoreAndForward` has them, in memory. Bounded by `max_bytes`
+    of record bodies like the file (the oldest dropped and counted, never the new one); lost
+    with the process, so `take` hands what it holds to the file as soon as that can be written.
+    Ids increase from 1 for its own life. Used by the telemetry's thread alone."""
+
+    path = None  # no file
+
+    def __init__(self, max_bytes: int) -> None:
+        if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or max_bytes < 1:
+            raise ValueError(f"max_bytes must be a positive integer, not {max_bytes!r}")
+        self.max_bytes = max_bytes
+        self._records: dict[int, Record] = {}  # insertion order is id order
+        self._meta: dict[str, int] = {}
+        self._next_id = 1
+        self._bytes = 0
+        self.dropped = 0  # records dropped (the oldest when full, or one too large) over its life
+        self.dropped_bytes = 0
+
+    def put(self, t_ms: int, kind: str, body: bytes) -> int:
+        """Append one record; its id, or -1 when the body alone exceeds max_bytes (dropped)."""
+        size = len(body)
+        if size > self.max_bytes:
+            self.dropped += 1
+            self.dropped_bytes += size
+            return -1
+        record_id = self._next_id
+        self._next_id += 1
+        self._records[record_id] = Record(record_id, int(t_ms), str(kind), bytes(body))
+        self._bytes += size
+        while self._bytes > self.max_bytes:
+            old = self._records.pop(next(iter(self._records)))
+            self._bytes -= len(old.body)
+            self.dropped += 1
+            self.dropped_bytes += len(old.body)
+        return record_id
+
+    def pending(self, limit: int, after_id: int = 0) -> list[Record]:
+        """Up to `limit` records with id > after_id, oldest first."""
+        out: list[Record] = []
+        for record_id, rec in self._records.items():
+            if len(out) >= limit:
+                break
+            if record_id > after_id:
+                out.append(rec)
+        return out
+
+    def ack(self, ids: Iterable[int]) -> None:
+        """Forget these records (the broker has them); unknown ids are ignored."""
+        for i in ids:
+            rec = self._records.pop(int(i), None)
+            if rec is not None:
+                self._bytes -= len(rec.body)
+
+    def take(self) -> list[Record]:
+        """Every record, oldest first; they are forgotten (the caller has put them in the file)."""
+        out = list(self._records.values())
+        self._records.clear()
+        self._bytes = 0
+        return out
+
+    def set_meta(self, key: str, value: int) -> None:
+        self._meta[key] = int(value)
+
+    def get_meta(self, key: str, default: int = 0) -> int:
+        return self._meta.get(key, default)
+
+    def __len__(self) -> int:
+        return len(self._records)
+
+    @property
+    def bytes(self) -> int:
+        return self._bytes
+
+    def get_status(self) -> dict[str, Any]:
+        """As `StoreAndForward.get_status`, with path None."""
+        first = next(iter(self._records.values()), None)
+        return {"path": None, "records": len(self._records), "bytes": self._bytes, "max_bytes": self.max_bytes,
+                "dropped": self.dropped, "dropped_bytes": self.dropped_bytes,
+                "oldest_t_ms": None if first is None else first.t_ms}
+
+    def close(self) -> None:
+        """Nothing to close (what it holds stays for `take`)."""
 
 
 class Counters:

@@ -14,6 +14,13 @@ marked historical, before the live ones. A sample that the broker received but w
 acknowledgement was lost with the connection is sent again: each carries its number
 (`Sample`, never reused, kept across restarts), so a consumer drops the repeat.
 
+When the buffer's file cannot be written (its disk full, an I/O error) or opened (a service
+that starts on a full disk), the telemetry goes on live: samples and events wait in memory
+instead (compd/plant/buffer.py's MemoryBuffer, bounded) and go out as they come, `compd
+status` says `buffer: memory` with the reason, one line says so (`telemetry_unbuffered`).
+The file is tried again with back-off; once it takes records, what memory held is moved into
+it and one line says so (`telemetry_buffered`). Nothing the file held is deleted for room.
+
 Sparkplug B as compd speaks it (docs/plant.md):
 
 * with `primary_host_id`, nothing but the connection until that host's STATE says it is
@@ -52,14 +59,17 @@ import logging
 import math
 import queue
 import random
+import sqlite3
 import ssl
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from compd.cycle.statusblock import signal_unit
-from compd.plant.buffer import Counters, StoreAndForward
+from compd.errors import BadInput
+from compd.plant import sandbox
+from compd.plant.buffer import MEMORY_MAX_BYTES, Counters, MemoryBuffer, StoreAndForward
 from compd.plant.sparkplug import (
     NAMESPACE,
     AliasTable,
@@ -106,6 +116,7 @@ DEADBAND_BY_UNIT: dict[str, float] = {
     "A": 0.005,  # half a drive's 0.01 A step
 }
 _MISSING = object()
+_T = TypeVar("_T")
 
 
 def moved(definition: MetricDef, value: Any, last: Any = _MISSING) -> bool:
@@ -252,7 +263,13 @@ class Telemetry:
         self.spec = spec
         self.commands = commands  # (model text, request id, "model" or "shadow") → the answer, on this thread
         self.armed = armed or (lambda: False)
-        self.buffer: StoreAndForward | None = None
+        self.buffer: StoreAndForward | MemoryBuffer | None = None  # where records go now: the file, or memory
+        self.disk: StoreAndForward | None = None  # the file, while it can be written
+        self.memory: MemoryBuffer | None = None  # records taken while it cannot (`_unbuffered`)
+        self.buffer_error: str | None = None  # why the file is not used (None: it is)
+        self._disk_dropped = 0  # the file's count of dropped records when it was last closed
+        self._disk_attempts = 0
+        self._disk_next_s = 0.0  # monotonic time the file is tried again
         self._inbox: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._thread: ServiceThread | None = None
@@ -302,10 +319,14 @@ class Telemetry:
 
     # ------------------------------------------------------------------ any thread
     def start(self) -> None:
-        """Open the buffer (BadInput if it cannot) and start the thread."""
+        """Open the buffer (when it cannot be: live, from memory, the file tried again) and start the thread."""
         spec = self.spec
-        self.buffer = StoreAndForward(spec.buffer_path, spec.buffer_max_bytes)
+        self.memory = MemoryBuffer(min(spec.buffer_max_bytes, MEMORY_MAX_BYTES))
         self.counters = Counters(spec.buffer_path.with_name(spec.buffer_path.name + ".counters"))
+        try:
+            self.disk = self.buffer = StoreAndForward(spec.buffer_path, spec.buffer_max_bytes)
+        except BadInput as e:  # a full disk (the open writes), a file that cannot be opened: not off for good
+            self._unbuffered(e.message)
         self._client = self._make_client()
         self._thread = ServiceThread("compd-telemetry", self._run)
         self._thread.start()
@@ -347,13 +368,25 @@ class Telemetry:
             self._thread.join(drain_s + CONNECT_TIMEOUT_S + 5.0)
             self._thread = None
         status = self.get_status()
-        if self.buffer is not None:
-            self.buffer.close()
-            self.buffer = None
+        if self.disk is not None:
+            self.disk.close()
+            self.disk = None
+        self.buffer = None
         return status
 
+    def _buffer_dropped(self) -> int:
+        """Records the buffer dropped (the oldest when full): the file's (its count now, else when
+        it was last open) and memory's."""
+        disk = self.disk.dropped if self.disk is not None else self._disk_dropped
+        return disk + (self.memory.dropped if self.memory is not None else 0)
+
     def get_status(self) -> dict[str, Any]:
-        buf = self.buffer.get_status() if self.buffer is not None else {}
+        """The telemetry's state for the status file (from any thread)."""
+        current = self.buffer
+        try:
+            buf = current.get_status() if current is not None else {}
+        except sqlite3.Error:  # the file closed by the thread this moment (`_unbuffered`): counted next time
+            buf = {}
         return {
             "broker": f"{self.spec.host}:{self.spec.port}",
             "connected": self._session,
@@ -362,7 +395,10 @@ class Telemetry:
             "acknowledged": self.acked,
             "buffered": buf.get("records", 0),
             "buffered_bytes": buf.get("bytes", 0),
-            "dropped": buf.get("dropped", 0) + self.inbox_dropped + self.lost_to_disk,
+            # where samples wait: `disk` (the buffer's file), `memory` (it cannot be written: buffer_error)
+            "buffer": "memory" if current is not None and current is self.memory else "disk",
+            "buffer_error": self.buffer_error,
+            "dropped": self._buffer_dropped() + self.inbox_dropped + self.lost_to_disk,
             "bdseq": self._bdseq,
             "counters_error": self.counters.error if self.counters is not None else None,
             "failures": self.failures,
@@ -403,7 +439,10 @@ class Telemetry:
             log.exception("telemetry could not finish: %s", self.last_error, extra={"event": "telemetry_error"})
 
     def _turn(self) -> None:
-        """One turn of the thread: take what the service handed over, connect or send."""
+        """One turn of the thread: the buffer's file tried again when it is due, take what the
+        service handed over, connect or send."""
+        if self.disk is None and time.monotonic() >= self._disk_next_s:
+            self._buffer_again()
         self._take_inbox()
         if self._client.is_connected() or self._connected:
             if self._session:  # what came in goes out now, not after the wait below
@@ -440,6 +479,78 @@ class Telemetry:
         self._next_try_s = time.monotonic() + wait
         self._stop.wait(wait)
 
+    # ------------------------------------------------------------ the buffer's file, or memory
+    def _on_buffer(self, op: Callable[[StoreAndForward | MemoryBuffer], _T]) -> _T:
+        """`op(buffer)`; when the buffer's file cannot take it (a full disk, an I/O error), memory
+        takes over (`_unbuffered`) and `op` runs there."""
+        buf = self.buffer
+        assert buf is not None
+        try:
+            return op(buf)
+        except (sqlite3.Error, OSError) as e:
+            if buf is not self.disk:
+                raise
+            self._unbuffered(f"{type(e).__name__}: {e}")
+            assert self.buffer is not None
+            return op(self.buffer)
+
+    def _unbuffered(self, reason: str) -> None:
+        """The buffer's file cannot be written or opened: records wait in memory from now on
+        (what the file holds stays there, sent once it is back), and the file is tried again
+        later. What was in flight from the file goes again from it then."""
+        path = self.spec.buffer_path
+        disk, self.disk = self.disk, None
+        if disk is not None:
+            self._disk_dropped = disk.dropped
+            with contextlib.suppress(Exception):
+                disk.close()
+        assert self.memory is not None
+        self.buffer = self.memory
+        self.buffer_error = reason
+        self._inflight.clear()  # their acknowledgements are the file's: it keeps them, to send again
+        self._cursor = self._historical_upto = self._last_put_id = 0
+        self._disk_attempts += 1
+        self._disk_next_s = time.monotonic() + self._disk_wait_s()
+        log.error("telemetry buffer %s cannot be used (%s): publishing live without it, samples kept in memory"
+                  " (at most %d bytes) until it can; trying it again", path, reason, self.memory.max_bytes,
+                  extra={"event": "telemetry_unbuffered", "path": str(path), "reason": reason})
+
+    def _disk_wait_s(self) -> float:
+        return min(self.spec.reconnect_max_s, RECONNECT_MIN_S * 2 ** min(self._disk_attempts, 10))
+
+    def _buffer_again(self) -> None:
+        """Open the buffer's file again and move what memory holds into it (oldest first); on
+        success it is the buffer again, else memory stays and the next try comes later."""
+        spec = self.spec
+        memory = self.memory
+        assert memory is not None
+        disk = None
+        try:
+            disk = StoreAndForward(spec.buffer_path, spec.buffer_max_bytes)
+            waiting = memory.pending(len(memory))
+            for rec in waiting:  # all or none: memory forgets them only once the file has them all
+                disk.put(rec.t_ms, rec.kind, rec.body)
+        except (BadInput, sqlite3.Error, OSError) as e:
+            if disk is not None:  # some may be in the file now and in memory too: sent twice, never lost
+                with contextlib.suppress(Exception):
+                    disk.close()
+            self.buffer_error = e.message if isinstance(e, BadInput) else f"{type(e).__name__}: {e}"  # said: status
+            log.debug("telemetry buffer %s still cannot be used: %s", spec.buffer_path, self.buffer_error,
+                      extra={"event": "telemetry_unbuffered", "path": str(spec.buffer_path), "reason": self.buffer_error})
+            self._disk_attempts += 1
+            self._disk_next_s = time.monotonic() + self._disk_wait_s()
+            return
+        memory.take()
+        self.disk = self.buffer = disk
+        self.buffer_error = None
+        self._disk_attempts = 0
+        self._inflight.clear()  # memory's: what they were is in the file now, sent again from it
+        self._cursor = 0
+        self._historical_upto = self._last_put_id = disk.last_id  # all of it older than this session's births
+        log.info("telemetry buffer %s can be used again: %d samples and events moved into it from memory",
+                 spec.buffer_path, len(waiting), extra={"event": "telemetry_buffered", "path": str(spec.buffer_path),
+                                                        "moved": len(waiting)})
+
     def _take_inbox(self) -> None:
         while True:
             try:
@@ -457,15 +568,14 @@ class Telemetry:
 
     def _store(self, what: str, t_ms: int, values: Any) -> None:
         """A sample or an event into the buffer (the sample numbered)."""
-        buf = self.buffer
-        assert buf is not None
         if what == "sample":
             names = [d.name for d, _ in values]
             if names != self._sample_names:  # a new set of metrics: births again
                 self._sample_names = names
                 self._birth_due = self._session
-            number = self.counters.get("sample", buf.get_meta("sample")) + 1  # never given twice
-            buf.set_meta("sample", number)
+            assert self.buffer is not None
+            number = self.counters.get("sample", self.buffer.get_meta("sample")) + 1  # never given twice
+            self._on_buffer(lambda b: b.set_meta("sample", number))
             self.counters.set("sample", number)
             self._latest = [(SAMPLE_METRIC, number), *values]
             self._latest_t_ms = t_ms
@@ -475,15 +585,19 @@ class Telemetry:
             self._put(t_ms, "D", [[d.name, v] for d, v in zip(EVENT_METRICS, values, strict=True)])
 
     def _put(self, t_ms: int, kind: str, body: list[Any]) -> None:
-        buf = self.buffer
-        assert buf is not None
-        before = buf.dropped
-        self._last_put_id = buf.put(t_ms, kind, json.dumps(body, ensure_ascii=False, allow_nan=False).encode("utf-8"))
+        data = json.dumps(body, ensure_ascii=False, allow_nan=False).encode("utf-8")
+
+        def put(b: StoreAndForward | MemoryBuffer) -> tuple[StoreAndForward | MemoryBuffer, int, int]:
+            before = b.dropped
+            return b, before, b.put(t_ms, kind, data)
+
+        buf, before, self._last_put_id = self._on_buffer(put)
         if buf.dropped != before:
             self._node_dirty = True
             if buf.dropped == 1 or buf.dropped % 1000 == 0:
                 log.warning("telemetry buffer full (%s): the oldest samples dropped, %d so far",
-                            buf.path, buf.dropped, extra={"event": "telemetry_dropped", "dropped": buf.dropped})
+                            buf.path or "memory", buf.dropped, extra={"event": "telemetry_dropped",
+                                                                      "dropped": buf.dropped})
 
     def _connect(self) -> None:
         spec = self.spec
@@ -499,10 +613,13 @@ class Telemetry:
         try:
             self._client.connect(spec.host, spec.port, keepalive=spec.keepalive_s)
         except (OSError, ssl.SSLError, ValueError) as e:
-            self._connection_failed(f"cannot connect to {spec.host}:{spec.port}: {getattr(e, 'strerror', None) or e}")
+            why = f"cannot connect to {spec.host}:{spec.port}: {getattr(e, 'strerror', None) or e}"
+            if sandbox.refused_by_this_host(e):  # EPERM: the unit's IP sandbox (compd.plant.sandbox)
+                why += f" ({sandbox.connect_refused_hint(spec.host)})"
+            self._connection_failed(why)
             return  # no CONNECT went out: the same bdSeq next time
         self._bdseq = bdseq
-        buf.set_meta("bdseq", bdseq)
+        self._on_buffer(lambda b: b.set_meta("bdseq", bdseq))
         self.counters.set("bdseq", bdseq)
         self._connected = True
         self._new_connection = True
@@ -514,7 +631,8 @@ class Telemetry:
         if self._down_since is None:
             self._down_since = time.monotonic()
         if why != self.last_error:
-            log.warning("telemetry: %s; samples are kept on disk until it answers", why,
+            log.warning("telemetry: %s; samples are kept %s until it answers", why,
+                        "on disk" if self.buffer is self.disk else "in memory",
                         extra={"event": "telemetry_down", "reason": why})
         self.last_error = why
         wait = min(self.spec.reconnect_max_s, RECONNECT_MIN_S * 2 ** min(self._attempts, 10))
@@ -551,9 +669,15 @@ class Telemetry:
 
     def _on_publish(self, client: Any, userdata: Any, mid: int, reason: Any, properties: Any) -> None:
         rid = self._inflight.pop(mid, None)
-        if rid is not None and self.buffer is not None:
+        if rid is None or self.buffer is None:
+            return
+        self.acked += 1
+        try:
             self.buffer.ack([rid])
-            self.acked += 1
+        except (sqlite3.Error, OSError) as e:  # the file cannot be written: it keeps the record, sent again
+            if self.buffer is not self.disk:
+                raise
+            self._unbuffered(f"{type(e).__name__}: {e}")
 
     def _births(self, new_session: bool) -> None:
         """NBIRTH and DBIRTH with the newest values; on a new connection, what is buffered up to
@@ -601,7 +725,7 @@ class Telemetry:
             out += [(MetricDef(f"Properties/{k}", D.String), v) for k, v in sorted(self.spec.properties.items())]
         out += [
             (MetricDef("Telemetry/buffered", D.UInt64), int(st.get("records", 0))),
-            (MetricDef("Telemetry/dropped", D.UInt64), int(st.get("dropped", 0))),
+            (MetricDef("Telemetry/dropped", D.UInt64), self._buffer_dropped()),
             (MetricDef("Model/armed", D.Boolean), bool(self.armed())),
             (MetricDef("Model/result", D.String), self._result),
         ]

@@ -73,6 +73,40 @@ def socket_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
     return None if status is None else sock_beside(status)
 
 
+def socket_key(cfg: Any) -> tuple[str, ...]:
+    """The config key the probe socket's path comes from: `adapt.socket_path`, else `status.path`
+    (the socket lies beside the status file; under systemd beside $RUNTIME_DIRECTORY/status.json)."""
+    ad = cfg.top.adapt
+    return ("adapt", "socket_path") if ad is not None and ad.socket_path else ("status", "path")
+
+
+def unbindable(path: Path) -> str | None:
+    """Why a Unix socket cannot be bound at `path` by this user (None: it can): longer than
+    sun_path holds, its folder missing or not writable, or a file there that is not a socket."""
+    n = len(os.fsencode(path))
+    if n > SUN_PATH_MAX:
+        return f"the probe socket {path} is {n} bytes long: a Unix socket path is at most {SUN_PATH_MAX}"
+    folder = path.parent
+    if not folder.is_dir():
+        return f"the folder {folder} of the probe socket {path} does not exist"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"the probe socket {path} cannot be made: its folder is not writable (uid {os.geteuid()})"
+    try:
+        mode = path.lstat().st_mode
+    except OSError:
+        return None
+    return None if stat.S_ISSOCK(mode) else f"{path} exists and is not a socket"
+
+
+def check_socket_path(cfg: Any, env: dict[str, str] | None = None) -> None:
+    """A config error naming the key (`socket_key`) when the probe socket of `cfg` cannot be
+    bound where it would be (`unbindable`): what `compd check-config` accepts, `compd run` binds."""
+    path = socket_path(cfg, env)
+    why = None if path is None else unbindable(path)
+    if why is not None:
+        raise cfg.doc.error(why, socket_key(cfg))
+
+
 def sock_beside(status: Path) -> Path:
     """status.json → status.sock (a status file already named .sock gets .sock appended)."""
     p = Path(status).with_suffix(".sock")
@@ -119,8 +153,9 @@ class ControlServer:
     """The daemon's end of the probe socket: bound by the daemon (`open`), served one request
     at a time by a thread of the service (`serve`)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, key: tuple[str, ...] = ("adapt", "socket_path")) -> None:
         self.path = Path(path)
+        self.key = key  # the config key the path comes from (`socket_key`), for the error
         self.daemon_pid = os.getpid()  # the daemon's, also when a service process serves the socket
         self.link: ProbeLink | None = None  # the running pipeline's (a reload points it at the new one)
         self.served = 0
@@ -134,17 +169,12 @@ class ControlServer:
     def open(self) -> None:
         """Bind (0660), replacing a stale socket file; BadInput if another daemon serves it."""
         path = self.path
-        if len(os.fsencode(path)) > SUN_PATH_MAX:
-            raise BadInput(f"a Unix socket path is at most {SUN_PATH_MAX} bytes: {path}", path=("adapt", "socket_path"))
-        try:
-            mode = path.lstat().st_mode
-        except FileNotFoundError:
-            mode = None
-        if mode is not None:
-            if not stat.S_ISSOCK(mode):
-                raise BadInput(f"{path} exists and is not a socket", path=("adapt", "socket_path"))
+        why = unbindable(path)
+        if why is not None:
+            raise BadInput(why, path=self.key)
+        if path.is_socket():
             if _answers(path):
-                raise BadInput(f"another compd serves {path}", path=("adapt", "socket_path"))
+                raise BadInput(f"another compd serves {path}", path=self.key)
             path.unlink()  # a crashed daemon's socket
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
@@ -155,8 +185,7 @@ class ControlServer:
             self._ino = path.stat().st_ino
         except OSError as e:
             sock.close()
-            raise BadInput(f"cannot open the probe socket {path}: {e.strerror or e}",
-                           path=("adapt", "socket_path")) from None
+            raise BadInput(f"cannot open the probe socket {path}: {e.strerror or e}", path=self.key) from None
         self._sock = sock
         log.info("probe socket %s", path, extra={"event": "probe_socket", "path": str(path)})
 

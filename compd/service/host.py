@@ -57,7 +57,7 @@ from compd.io.ring import MessageRing, SharedBlob
 from compd.log import LogWriter
 from compd.service import logsetup  # noqa: F401  (installs the library's NullHandler)
 from compd.service import status as status_mod
-from compd.service.control import ControlServer, ProbeLink, socket_path
+from compd.service.control import ControlServer, ProbeLink, socket_key, socket_path
 from compd.service.metrics import LATENESS_BOUNDS_US, MetricsServer
 from compd.service.notify import Notifier, WatchdogObserver, watchdog_interval_s
 from compd.service.state import StateWriter
@@ -162,6 +162,20 @@ def check_status_free(cfg: Any) -> None:
     if cfg.top.status.path:
         raise cfg.doc.error(msg, ("status", "path"))
     raise BadInput(msg, file=str(path))
+
+
+def check_status_folder(cfg: Any) -> None:
+    """A config error naming `status.path` when the status file's folder is missing or not
+    writable by this user (the file is written through a temporary file beside it)."""
+    path = status_path(cfg)
+    if path is None:
+        return
+    folder = path.parent
+    why = (f"the folder {folder} of the status file does not exist" if not folder.is_dir() else
+           f"the status file {path} cannot be written: its folder is not writable (uid {os.geteuid()})"
+           if not os.access(folder, os.W_OK | os.X_OK) else None)
+    if why is not None:
+        raise cfg.doc.error(why, ("status", "path"))
 
 
 @dataclass
@@ -585,6 +599,11 @@ class ServiceWork:
             return
         self.opcua, self.opcua_error, self._opcua_attempts = server, None, 0
         log.info("OPC UA on %s", url, extra={"event": "opcua", "url": url})
+        from compd.plant.sandbox import listening_hint
+
+        hint = listening_hint("the OPC UA server", ua.cfg.bind)
+        if hint is not None:  # the sandbox drops other hosts' packets unseen: said once, at the start
+            log.warning("%s", hint, extra={"event": "opcua_sandbox", "url": url})
 
 
 class _ServiceHost:
@@ -743,7 +762,7 @@ class Service:
         self._metrics_adopted = False
         self.realtime = top.loop.realtime
         spath = socket_path(app.cfg)
-        self.control = ControlServer(spath) if spath is not None else None
+        self.control = ControlServer(spath, socket_key(app.cfg)) if spath is not None else None
         self._control_adopted = False
         self.notifier: Notifier | None = None
         self.watchdog: WatchdogObserver | None = None

@@ -353,8 +353,11 @@ def _plant_lines(data: dict[str, Any]) -> list[str]:
     tel = data.get("telemetry")
     if isinstance(tel, dict):
         state = "connected" if tel.get("connected") else f"NOT CONNECTED ({tel.get('last_error') or 'connecting'})"
-        out.append(f"telemetry: {tel.get('broker')} {state}; {tel.get('acknowledged', 0)} acknowledged,"
-                   f" {tel.get('buffered', 0)} buffered, {tel.get('dropped', 0)} dropped")
+        line = (f"telemetry: {tel.get('broker')} {state}; {tel.get('acknowledged', 0)} acknowledged,"
+                f" {tel.get('buffered', 0)} buffered, {tel.get('dropped', 0)} dropped")
+        if tel.get("buffer") == "memory":  # the buffer's file cannot be used: live, samples wait in memory
+            line += f"; BUFFER IN MEMORY ({tel.get('buffer_error')}): the file is tried again"
+        out.append(line)
     ua = data.get("opcua")
     if isinstance(ua, dict):
         out.append(f"opcua: {ua.get('endpoint')}" if ua.get("endpoint") else f"opcua: OFF ({ua.get('error')})")

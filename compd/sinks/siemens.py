@@ -45,12 +45,17 @@ class SiemensConfig(SinkConfig):
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
     axes: dict[str, Annotated[int, Field(ge=0, le=63)]] | None = Field(
-        None, description="model output → NC axis index (default: in order)"
+        None, description="the axes this sink drives, each → its NC axis index; every model output is one of them"
+        " (default: the model's outputs, in order)"
     )
     min_change_um: float = Field(0.1, ge=0, le=100, description="smaller changes are not sent")
     min_update_s: float = Field(0.05, ge=0.001, le=60)
     ipo_s: float = Field(0.004, ge=0.0005, le=0.1, description="in-process NC: IPO cycle")
     velo_factor: float = Field(1e-5, gt=0, le=1, description="in-process NC: MD32760 (fraction)")
+
+    def driven_axes(self) -> tuple[list[str], str] | None:
+        """`axes` declares the axes this sink drives (a model output it does not name would reach no NC axis)."""
+        return (list(self.axes), "axes") if self.axes else None
 
 
 class SiemensSink(Sink):

@@ -62,13 +62,19 @@ def render(help_text: str, version: str, date: str) -> str:
         "the config compd.service runs (compd@NAME.service runs /etc/compd/NAME.yaml)",
         ".TP",
         "\\fI/opt/compd/venv\\fR",
-        "compd and its Python dependencies (a venv with pip)",
+        "compd and its Python dependencies with every extra (a venv: its pip is for inspection; a newer compd comes"
+        " as a newer package, never through pip)",
         ".TP",
         "\\fI/opt/compd/docs\\fR",
         "the documentation: commissioning.md, configuration.md, troubleshooting.md and the rest",
         ".TP",
         "\\fI/opt/compd/systemd\\fR",
         "opt\\-in drop\\-ins for the units: real\\-time scheduling and the device network",
+        ".SH UPGRADES",
+        "After installing a newer package, restart every running compd: \\fBsystemctl restart compd\\fR (and each"
+        " \\fBcompd@\\fR\\fINAME\\fR). A reload is not enough: it rereads the config, while the running daemon keeps"
+        " the code it has loaded and would load the rest from the new files. The package never restarts compd"
+        " itself (a restart takes the correction to the safe state); its postinst names what runs.",
         ".SH SEE ALSO",
         "\\fBsystemctl\\fR(1), \\fBjournalctl\\fR(1), /opt/compd/docs/commissioning.md",
     ]

@@ -260,3 +260,22 @@ def test_a_path_that_cannot_be_opened_is_bad_input(tmp_path):
         StoreAndForward(folder, 1000)
     assert str(folder) in str(e.value)
     assert list(tmp_path.iterdir()) == [folder]  # nothing renamed, nothing made
+
+
+def test_the_memory_buffer_keeps_the_newest_within_its_bound_and_hands_them_over():
+    """While the file cannot be written: the same calls in memory, the oldest dropped and counted when full."""
+    from compd.plant.buffer import MemoryBuffer
+
+    mem = MemoryBuffer(max_bytes=250)
+    ids = [mem.put(i, "D", bytes([i]) * 100) for i in range(4)]
+    assert ids == [1, 2, 3, 4] and len(mem) == 2 and mem.bytes == 200  # 1 and 2 dropped for room
+    assert (mem.dropped, mem.dropped_bytes) == (2, 200)
+    assert mem.put(9, "D", b"x" * 251) == -1 and mem.dropped == 3  # too large alone: refused, counted
+    assert [r.id for r in mem.pending(10)] == [3, 4] and [r.id for r in mem.pending(10, after_id=3)] == [4]
+    mem.ack([3, 77])
+    assert [r.t_ms for r in mem.pending(10)] == [3]
+    mem.set_meta("sample", 5)
+    assert mem.get_meta("sample") == 5 and mem.get_meta("bdseq", -1) == -1
+    assert mem.get_status()["records"] == 1 and mem.get_status()["path"] is None
+    assert [r.body for r in mem.take()] == [bytes([3]) * 100] and len(mem) == 0 and mem.bytes == 0
+    assert mem.put(0, "D", b"y") == 5  # ids never given twice
