@@ -294,8 +294,9 @@ def args_report(sub: Any) -> None:
         "report", help="one self-contained HTML commissioning record from a fit and a replay report",
         description="Write one self-contained HTML page for the machine's file: the record (machine, operator,"
                     " measuring instrument, ambient temperature, the time the logs cover, the date), the fit,"
-                    " the unseen-day score, the plots, the config and lines to sign on paper. A record field"
-                    " left out is printed as not given, with the option that gives it.",
+                    " the thermal test (per axis the drift from the first measurement, as ISO 230-3 states it,"
+                    " beside the model's residual), the unseen-day score, the plots, the config and lines to"
+                    " sign on paper. A record field left out is printed as not given, with the option that gives it.",
         epilog="example:\n  compd report --fit fit.json --replay replay.json --out report.html --config compensate.yaml"
                " \\\n      --machine 'DMU 50 s/n 1234' --operator 'A. Meier' --ambient-c 20.5 22.0"
                " \\\n      --instrument 'Renishaw XL-80 s/n 9876, resolution 0.001 um'",
@@ -317,19 +318,53 @@ def args_report(sub: Any) -> None:
     rec.add_argument("--instrument", default=None, metavar="TEXT",
                      help="what measured the error, with its serial number and resolution"
                           " (e.g. 'Renishaw XL-80 s/n 9876' or 'dial gauge, 1 um')")
+    test = s.add_argument_group("the thermal test (per axis the drift from the first measurement, its largest"
+                                " value and range, as ISO 230-3 gives them, beside the model's residual)")
+    test.add_argument("--test-log", default=None, dest="test_log", metavar="LOG.csv",
+                      help="the test's log: probe_<axis>_um at the measurements, or err_<axis>_um"
+                           " (default: the log the fit report names)")
+    test.add_argument("--model", default=None, metavar="MODEL.yaml",
+                      help="the model whose prediction and residual the test shows (default: the fit report's)")
+    test.add_argument("--test-every-min", type=positive, default=None, dest="test_every_min", metavar="N",
+                      help="where the log has no probe rows, err_<axis>_um is taken every N minutes from the"
+                           " first measurement (default 10)")
+    test.add_argument("--test-json", default=None, dest="test_json", metavar="FILE",
+                      help="write the thermal test's figures as JSON too")
 
 
 @command("report", args_report)
 def cmd_report(args: argparse.Namespace) -> int:
-    from compd.commissioning.htmlreport import make_record, write_report
+    from compd.commissioning import thermaltest
+    from compd.commissioning.htmlreport import build_page, make_record, render
+    from compd.commissioning.report import write_json
 
     record = make_record(args.machine, args.operator, args.instrument, args.ambient_c)
+    every_min = thermaltest.DEFAULT_EVERY_MIN if args.test_every_min is None else args.test_every_min
+    every_s = thermaltest.check_every_min(every_min)
     check_output(args.out, "--out")
+    check_output(args.test_json, "--test-json")
+    page = build_page(args.fit, args.replay, args.config, args.png, record, test_log=args.test_log,
+                      test_model=args.model, every_s=every_s)
+    if args.test_json and page.thermal is None:
+        raise BadInput(f"no thermal test to write: {page.thermal_why_not}", path="--test-json")
     with writing(args.out, "--out"):
-        page = write_report(args.out, args.fit, args.replay, args.config, args.png, record)
+        Path(args.out).write_text(render(page), encoding="utf-8")
     drawn = sum(f.png is not None for f in page.figures)
     print(f"compd report: {page.fit['kind']} fit, replay of {', '.join(page.replay['axes'])},"
           f" {drawn} plots -> {args.out}")
+    tt = page.thermal
+    for ax in tt.axes if tt is not None else []:
+        d, r = ax.drift(), ax.residual()
+        left = (f"; residual RMS {r.rms_um:.2f} um, range {r.range_um:.2f} um" if r is not None
+                else f"; no residual ({ax.why_no_prediction})")
+        print(f"compd report: thermal test of {Path(tt.log).name}, axis {ax.axis}: {ax.rows.size} measurements"
+              f" ({ax.source}), largest drift {d.max_abs_um:.2f} um at {(d.at_t_s - tt.t0_s) / 3600:.2f} h,"
+              f" range {d.range_um:.2f} um{left}")
+    if tt is None:
+        print(f"compd: the thermal test is not shown: {page.thermal_why_not}", file=sys.stderr)
+    elif args.test_json:
+        with writing(args.test_json, "--test-json"):
+            write_json(args.test_json, tt.as_dict())
     for f in page.figures:
         if f.png is None:
             print(f"compd: {f.caption}: {f.why_not}", file=sys.stderr)

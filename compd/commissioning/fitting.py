@@ -18,6 +18,7 @@ from pydantic import ValidationError
 
 from compd import version
 from compd.commissioning.scoring import score_residual
+from compd.commissioning.thermaltest import thermal_test
 from compd.errors import BadInput
 from compd.identify import FITS, KINDS, holdout, identify, option_names
 from compd.identify.data import (
@@ -433,6 +434,8 @@ def fit_model(
             report["held_out_rmse_um"] = dict(zip(model.outputs, map(float, held), strict=True))
         except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
             report["held_out_rmse_um"] = {"skipped": f"the held-out comparison could not fit a fold: {e}"}
+    if stage is None:  # the test's own figures, ISO 230-3's drift beside this model's residual (in sample)
+        report["thermal_test"] = thermal_test_block(log, model, pred)
     report["warnings"] = warnings
     fit_info: dict[str, Any] = {
         "fitted_at": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
@@ -463,6 +466,15 @@ def fit_model(
             fit_info["on_residual_of"] = before
     model.fit_info = json.loads(json.dumps(fit_info))
     return FitOutcome(kind, model, report, pred, warnings)
+
+
+def thermal_test_block(log: Log, model: Model, pred: np.ndarray) -> dict[str, Any]:
+    """The fit report's `thermal_test` (compd.commissioning.thermaltest) of the log the model was
+    fitted on, or `skipped` with the reason (a log that measures no axis)."""
+    try:
+        return thermal_test(log, list(model.outputs), pred).as_dict()
+    except BadInput as e:
+        return {"skipped": e.message}
 
 
 def score_model(model: Model, log: Log) -> dict[str, Any]:
