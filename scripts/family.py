@@ -2,6 +2,7 @@
 
 usage: python scripts/family.py [--kinds lathe spindle gantry feed_axis] [--seeds 1-20] [--jobs N]
        [--workdir build/family] [--fresh] [--json FILE] [--probe-every-h H] [--day-h H] [--gate]
+       [--train day|plan]
 
 The harness
 -----------
@@ -43,6 +44,11 @@ error 90 %), its median at least MLR's, and probing never costing a machine more
 
 Machines run side by side in --jobs processes (default: the CPU count). --day-h shortens
 both days (durations scaled, the same draws otherwise): for quick checks and the tests.
+
+--train plan fits each machine on the thermal test `compd testplan` designs for it instead of its
+drawn training day (hil_sim.family.PLAN: the type's speed range, or its axis's stroke and feed
+range, the day's hours, compd's defaults otherwise; the same ambient); the unseen day is the same.
+Its logs go to build/family-plan unless --workdir says otherwise.
 """
 
 from __future__ import annotations
@@ -81,12 +87,13 @@ PROBE_LOSS_MAX_PTS = 0.5
 
 # --------------------------------------------------------------------------------------
 # logs
-def machine_logs(kind: str, seed: int, work: Path, fresh: bool, day_h: float) -> tuple[Path, Path, family.Machine, bool]:
+def machine_logs(kind: str, seed: int, work: Path, fresh: bool, day_h: float,
+                 train: str = "day") -> tuple[Path, Path, family.Machine, bool]:
     """(train log, unseen log, machine, whether they were reused) in `work`; logged again when
     --fresh or when the cached machine file is not the machine drawn now."""
     import yaml
 
-    m = family.draw(kind, seed, day_h)
+    m = family.draw(kind, seed, day_h, train)
     rate = family.RATES_S[kind]
     stem = work / f"{kind}_{seed}"
     train, unseen, machine_file = (Path(f"{stem}_{s}") for s in ("train.csv", "unseen.csv", "machine.yaml"))
@@ -187,7 +194,8 @@ def _why(stage: str, e: BaseException) -> str:
 
 # --------------------------------------------------------------------------------------
 # one machine (in a worker process)
-def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: float, day_h: float) -> dict[str, Any]:
+def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: float, day_h: float,
+                train: str = "day") -> dict[str, Any]:
     """Log, fit, replay one machine: its figures (and the reasons of what failed)."""
     os.environ["TQDM_DISABLE"] = "1"  # no progress bars from parallel fits
     from compd.commissioning import fitting
@@ -196,7 +204,7 @@ def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: flo
     t0 = time.monotonic()
     out: dict[str, Any] = {"kind": kind, "seed": seed, "models": {}}
     try:
-        train_file, unseen_file, m, reused = machine_logs(kind, seed, Path(work), fresh, day_h)
+        train_file, unseen_file, m, reused = machine_logs(kind, seed, Path(work), fresh, day_h, train)
         train = fitting.read_fit_log(train_file)
         unseen = read_log(unseen_file, allow_nan=True)
     except Exception as e:  # noqa: BLE001 - a machine that cannot be logged is reported, not fatal
@@ -204,7 +212,8 @@ def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: flo
         out["wall_s"] = time.monotonic() - t0
         return out
     out["logs_reused"] = reused
-    out["drawn"] = {"duty": m.drawn["duty"], "placement": m.drawn["placement"]}
+    out["drawn"] = {"duty": m.drawn["duty"], "placement": m.drawn["placement"],
+                    **({"plan": m.drawn["plan"]} if "plan" in m.drawn else {})}
     out["error_um"] = {
         day: {c[4:-3]: float(np.sqrt(np.mean(lg.col(c) ** 2))) for c in lg.error_columns()}
         for day, lg in (("train", train), ("unseen", unseen))
@@ -365,12 +374,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kinds", nargs="+", default=list(family.KINDS), help=f"of {', '.join(family.KINDS)}")
     ap.add_argument("--seeds", default="1-20", help="e.g. 1-20 or 1,4,9-12: one machine per seed")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="machines side by side (processes)")
-    ap.add_argument("--workdir", default="build/family", help="logs, machine files, fitted models")
+    ap.add_argument("--workdir", default=None,
+                    help="logs, machine files, fitted models (default build/family, with --train plan build/family-plan)")
     ap.add_argument("--fresh", action="store_true", help="log every day again (default: reuse the cached logs)")
     ap.add_argument("--json", default=None, help="write every machine's figures and the table here")
     ap.add_argument("--probe-every-h", type=float, default=-1.0,
                     help="probe every H hours on every kind (0: no probes; default: lathe 2, feed_axis 1)")
     ap.add_argument("--day-h", type=float, default=24.0, help="shorten both days to H hours (quick checks)")
+    ap.add_argument("--train", choices=family.TRAINS, default="day",
+                    help="fit on the drawn training day (default) or on compd testplan's plan for the machine")
     ap.add_argument("--gate", action="store_true",
                     help="exit 1 when a goal is missed: the physics model's 10th percentile (lathe, gantry, feed axis"
                     " 85 %%, spindle 90 %%), its median below MLR's, or probes costing a machine more than 0.5 points")
@@ -387,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
     except BadInput as e:
         print(f"family: {e}", file=sys.stderr)
         return 2
-    work = Path(args.workdir).resolve()
+    work = Path(args.workdir or ("build/family-plan" if args.train == "plan" else "build/family")).resolve()
     work.mkdir(parents=True, exist_ok=True)
     # the costliest kinds first, so the last jobs to start are short ones
     order = {"feed_axis": 0, "gantry": 1, "lathe": 2, "spindle": 3}
@@ -395,8 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     results: list[dict[str, Any]] = []
     with ProcessPoolExecutor(max_workers=min(args.jobs, len(jobs))) as pool:
-        futures = {pool.submit(run_machine, k, s, str(work), args.fresh, args.probe_every_h, args.day_h): (k, s)
-                   for k, s in jobs}
+        futures = {pool.submit(run_machine, k, s, str(work), args.fresh, args.probe_every_h, args.day_h,
+                               args.train): (k, s) for k, s in jobs}
         for fut in as_completed(futures):
             k, s = futures[fut]
             try:
@@ -414,7 +426,8 @@ def main(argv: list[str] | None = None) -> int:
            for day, axes in r.get("working_error_um", {}).items() for a, v in axes.items()
            if a in SCORED.get(r["kind"], (a,)) and not SANE_UM[0] <= v <= SANE_UM[1]]
     print(f"\nworking-day RMS error outside {SANE_UM[0]:g}-{SANE_UM[1]:g} um: " + ("; ".join(odd) or "none"))
-    print(f"{len(results)} machines ({', '.join(args.kinds)}; seeds {args.seeds}) in {wall_s:.0f} s wall, "
+    print(f"{len(results)} machines ({', '.join(args.kinds)}; seeds {args.seeds}; trained on the"
+          f" {'drawn day' if args.train == 'day' else 'compd testplan plan'}) in {wall_s:.0f} s wall, "
           f"{args.jobs} at once; workdir {work}")
     missed = goals_missed(rows)
     print("goals: " + ("all met" if not missed else "missed: " + "; ".join(missed)))
@@ -422,6 +435,7 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(_json_safe({
             "kinds": args.kinds, "seeds": seeds, "day_h": args.day_h, "probe_every_h": args.probe_every_h,
+            "train": args.train,
             "wall_s": wall_s, "table": rows, "goals_missed": missed, "machines": results,
         }), indent=1))
     return 1 if args.gate and missed else 0

@@ -1,4 +1,4 @@
-"""Commissioning commands: `compd fit`, `predict`, `score`, `xi`, `replay`, `plot`, `report`, `output-test`; each one's arguments beside it."""
+"""Commissioning commands: `compd testplan`, `fit`, `predict`, `score`, `xi`, `replay`, `plot`, `report`, `output-test`; each one's arguments beside it."""
 
 from __future__ import annotations
 
@@ -14,13 +14,88 @@ from compd.cli.args import (
     check_output,
     check_plot,
     command,
+    count,
     finite,
+    non_negative,
     positive,
     writing,
 )
 from compd.errors import BadInput
 
 log = logging.getLogger("compd")
+
+
+def args_testplan(sub: Any) -> None:
+    """`compd testplan`'s arguments."""
+    s = sub.add_parser(
+        "testplan", help="design the thermal test of a machine: the plan as CSV and the program for its control",
+        description="Design the thermal test of a machine for identification (docs/testplan.md): every speed level"
+                    " held short and long in a pseudo-random order, cool-down pauses, an idle stretch at the start,"
+                    " a measurement every N minutes; write it as CSV and, with --gcode, as a program.",
+        epilog="example:\n  compd testplan --max-rpm 12000 --hours 24 --out plan.csv --gcode linuxcnc --program plan.ngc"
+               "\n  compd testplan --max-rpm 4500 --hours 24 --axis z:600:8000 --out plan.csv --gcode fanuc"
+               " --program O2303.nc --probe-call 'M98 P9010'",
+    )
+    s.add_argument("--max-rpm", required=True, type=non_negative, dest="max_rpm", metavar="N",
+                   help="the spindle's highest speed (0: no spindle; the axes' feeds are the spectrum)")
+    s.add_argument("--hours", required=True, type=positive, metavar="H", help="the time the test may take")
+    s.add_argument("--out", required=True, metavar="PLAN.csv")
+    s.add_argument("--min-rpm", type=positive, default=None, dest="min_rpm", metavar="N",
+                   help="the lowest running speed (default 10 %% of --max-rpm)")
+    s.add_argument("--levels", type=count, default=7, metavar="N",
+                   help="speed levels, the lowest and the highest included (default 7)")
+    s.add_argument("--time-constant-min", type=positive, default=60.0, dest="time_constant_min", metavar="MIN",
+                   help="your guess of the machine's thermal time constant: the holds span a quarter of it to"
+                        " three times it (default 60)")
+    s.add_argument("--probe-every-min", type=positive, default=10.0, dest="probe_every_min", metavar="MIN",
+                   help="a measurement every MIN minutes (default 10)")
+    s.add_argument("--step-min", type=positive, default=None, dest="step_min", metavar="MIN",
+                   help="every change falls on this grid (default: the measuring interval, so every change"
+                        " is measured)")
+    s.add_argument("--idle-hours", type=non_negative, default=1.0, dest="idle_hours", metavar="H",
+                   help="the machine at rest at the start, for the shop's air alone (default 1)")
+    s.add_argument("--axis", action="append", default=None, metavar="NAME:STROKE_MM:MAX_FEED_MM_MIN[:MIN]",
+                   help="a linear axis the test moves over its stroke (repeat for more; min feed default 10 %%)")
+    s.add_argument("--feed-levels", type=count, default=4, dest="feed_levels", metavar="N",
+                   help="feed levels per axis (default 4)")
+    s.add_argument("--seed", type=int, default=0, help="the pseudo-random order's seed (default 0)")
+    s.add_argument("--gcode", choices=("linuxcnc", "fanuc", "siemens"), default=None,
+                   help="also write the program for this control")
+    s.add_argument("--program", default=None, metavar="FILE", help="the program's file (with --gcode)")
+    s.add_argument("--probe-call", default=None, dest="probe_call", metavar="TEXT",
+                   help="the line that calls your measuring routine (default: linuxcnc 'o<probe> call',"
+                        " fanuc 'M98 P9000', siemens 'PROBE_Z': placeholders for your own routine)")
+
+
+@command("testplan", args_testplan)
+def cmd_testplan(args: argparse.Namespace) -> int:
+    from compd.commissioning import testplan as tp
+
+    if (args.gcode is None) != (args.program is None):
+        raise BadInput("give --gcode and --program together", path="--program" if args.gcode else "--gcode")
+    if args.probe_call is not None and args.gcode is None:
+        raise BadInput("the measuring call goes into a program: give --gcode and --program", path="--probe-call")
+    call = tp.check_probe_call(args.probe_call or tp.PROBE_CALLS[args.gcode], args.gcode) if args.gcode else ""
+    axes = [tp.parse_axis(a) for a in args.axis or []]
+    check_output(args.out, "--out")
+    check_output(args.program, "--program")
+    plan = tp.design(args.max_rpm, args.hours, min_rpm=args.min_rpm, probe_every_min=args.probe_every_min,
+                     step_min=args.step_min, time_constant_min=args.time_constant_min, levels=args.levels,
+                     feed_levels=args.feed_levels, axes=axes, idle_hours=args.idle_hours, seed=args.seed)
+    with writing(args.out, "--out"):
+        plan.write_csv(args.out)
+    for line in tp.summary_lines(plan):
+        print(f"compd testplan: {line}")
+    done = f"compd testplan: {len(plan)} rows -> {args.out}"
+    if args.gcode:
+        text = tp.PROGRAMS[args.gcode](plan, call, Path(args.out).name)
+        with writing(args.program, "--program"), open(args.program, "w", encoding="ascii", newline="\n") as fh:
+            fh.write(text)
+        done += f"; {args.gcode} program -> {args.program} (measuring call: {call})"
+    print(done)
+    for w in tp.warnings(plan):
+        print(f"compd: warning: {w}", file=sys.stderr)
+    return 0
 
 
 def _fit_options_help() -> str:
