@@ -139,14 +139,21 @@ def cmd_fit(args: argparse.Namespace) -> int:
     check_output(args.report, "--report")
     check_plot(args.plot)
     _not_over_a_model_before(args)
-    check_output(args.out, "--out", folder=args.kind == "all")  # last: it may create the folder
+    # --kind all --out MODEL.yaml: the recommended model there, every kind's in MODEL.candidates/;
+    # --out FOLDER: every kind's in the folder, the recommended one as FOLDER/recommended.yaml
+    one_file = args.kind == "all" and Path(args.out).suffix in (".yaml", ".yml")
+    folder = Path(args.out).with_suffix(".candidates") if one_file else Path(args.out)
+    check_output(args.out, "--out", folder=args.kind == "all" and not one_file)  # last: it may create the folder
+    if one_file:
+        check_output(str(folder), "--out", folder=True)
     log = fitting.read_fit_log(args.log)
     stage = fitting.residual_stage(log, args.on_residual_of, args.target) if args.on_residual_of else None
     if stage is not None:
         print(fitting.stage_line(stage))
     if args.kind == "all":
         rows = fitting.fit_all(log, args.inputs, args.target, options, stage)
-        out = Path(args.out)
+        pick, sums = fitting.recommendation(stage.log if stage else log, rows, args.target, stage)
+        out = folder
         for _, label, oc, _ in rows:
             if oc is not None:
                 with writing(out / f"{label}.yaml", "--out"):
@@ -158,11 +165,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
                         report.plot_fit(oc, stage.log if stage else log, p)
                 fitting.warn(oc.warnings)
         print(fitting.comparison_table(rows))
+        for line in fitting.recommendation_lines(pick, sums):
+            print(line)
+        for so in sums:
+            fitting.warn(so.warnings)
+        recommended = Path(args.out) if one_file else folder / "recommended.yaml"
+        if pick is not None:
+            with writing(recommended, "--out"):
+                fitting.write_recommended(pick, stage.log if stage else log, recommended)
+            print(f"recommended model -> {recommended}" + (f" (every kind's in {folder}/)" if one_file else ""))
         if args.report:
             with writing(args.report, "--report"):
                 report.write_json(args.report, {
-                    label: oc.report if oc else {"skipped": why} for _, label, oc, why in rows
+                    **{label: oc.report if oc else {"skipped": why} for _, label, oc, why in rows},
+                    **fitting.recommendation_report(pick, sums, recommended),
                 })
+        if pick is None:
+            print("compd: no model to recommend: every fit warns or could not be scored held out", file=sys.stderr)
+            return 1
         return 0
     oc = fitting.fit_model(args.kind, log, args.inputs, args.target, options, stage=stage)
     if stage is not None:
