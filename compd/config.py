@@ -1254,7 +1254,11 @@ def _check_timings(top: ConfigModel, doc: Document) -> None:
         limits.append((lim.frozen_after_s, ("guard", "signals", name, "frozen_after_s")))
     for value, path in limits:
         if value is not None and not value > period:
-            raise doc.error(f"{value:g} s is not longer than one cycle (loop.period_s = {period:g} s)", path)
+            if tuple(path) in doc.lines:
+                raise doc.error(f"{value:g} s is not longer than one cycle (loop.period_s = {period:g} s)", path)
+            # a default the file does not write: the line is the period's, and the message names the key to add
+            raise doc.error(f"the default {format_path(path)} ({value:g} s) is not longer than one cycle: set"
+                            f" {format_path(path)} above {period:g} s in the guard section", ("loop", "period_s"))
 
 
 # An optional feature a config can switch on: the key that switches it on, the module it

@@ -809,7 +809,7 @@ def _input_range(model: Model, log: Log) -> dict[str, list[float]]:
 
 
 def write_recommended(pick: Any, log: Log, path: str | Path) -> None:
-    data = recommended_model_dict(pick, log)
+    data = json.loads(json.dumps(recommended_model_dict(pick, log)))  # no YAML aliases for shared lists
     Path(path).write_text(yaml.safe_dump(data, sort_keys=False, allow_unicode=True), encoding="utf-8")
 
 

@@ -19,8 +19,8 @@ stretches cut at duty changes): what a fit never saw is what an unseen day bring
 * **What it will do** (`stated`): the expected unseen-day RMS is the pooled held-out RMSE; its
   range runs from the best to the worst fold's RMS (a fold is an unseen duty, as a day is), never
   narrower than ÷/× `MIN_SPREAD` around the expectation, and for a sum whose stages cancel
-  (|stage 1| + |stage 2| over |sum|, `CANCEL_RATIO`, above `CANCEL_WARN`) the upper end grows by
-  that ratio: each stage's own error is of the size of that stage, not of their small sum. The
+  (|stage 1| + |stage 2| over |sum|, the cancel ratio, above `CANCEL_WARN`) the upper end grows by
+  ratio / CANCEL_WARN (continuous where the warning starts): each stage's own error is of the size of that stage, not of their small sum. The
   reduction is stated against the training log's RMS error, with the same range.
 """
 
