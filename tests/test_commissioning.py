@@ -175,6 +175,19 @@ def _score(r: subprocess.CompletedProcess, work: Path) -> None:
     assert "warning" not in r.stderr
 
 
+def _recommended(r: subprocess.CompletedProcess, work: Path) -> None:
+    """The recommended model file holds its statement, and the unseen day lands inside [0.5x, 2x] of it."""
+    from compd.commissioning import fitting
+
+    model = yaml.safe_load((work / "recommended.yaml").read_text())
+    stated = model["fit"]["expected_unseen"]["z"]
+    assert stated["range_um"][0] <= stated["rms_um"] <= stated["range_um"][1]
+    assert (work / "recommended.candidates").is_dir()
+    assert "fitting:" not in r.stderr  # no progress bar into a pipe
+    day2 = fitting.score_model(fitting.load_model(work / "recommended.yaml"), fitting.read_fit_log(work / "day2.csv"))
+    assert 0.5 * stated["rms_um"] <= day2["axes"]["z"]["rms_after_um"] <= 2.0 * stated["rms_um"], (stated, day2)
+
+
 def _replay(r: subprocess.CompletedProcess, work: Path) -> None:
     rep = json.loads((work / "replay.json").read_text())
     day2 = read_csv(work / "day2.csv")
@@ -263,6 +276,7 @@ CHECKS: dict[str, Callable[[subprocess.CompletedProcess, Path], None]] = {
     "compd status --config machine.yaml": _status_observe,
     "compd fit --kind xi_spindle": _fit,
     "compd score model.yaml": _score,
+    "compd fit --kind all": _recommended,
     "compd replay compensate.yaml": _replay,
     "compd run compensate.yaml": _compensate,
     "compd status --config compensate.yaml": _status,

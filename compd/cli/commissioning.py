@@ -181,7 +181,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                     **fitting.recommendation_report(pick, sums, recommended),
                 })
         if pick is None:
-            print("compd: no model to recommend: every fit warns or could not be scored held out", file=sys.stderr)
+            print("compd: no model to recommend: every fit did not converge, removes almost nothing or could not be scored held out (see the warnings above)", file=sys.stderr)
             return 1
         return 0
     oc = fitting.fit_model(args.kind, log, args.inputs, args.target, options, stage=stage)
