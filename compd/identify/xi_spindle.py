@@ -70,6 +70,11 @@ class Options(Strict):
         None, gt=0, lt=1e-3, description="radial fit: bearing steel α; none = the radial params' default"
     )
     clearance: bool = Field(True, description="radial fit: add the preload-loss clearance c(ΔL)")
+    xi_sensor: str | None = Field(
+        None, min_length=1,
+        description="the ξ sensor when --inputs names none (none: the temperature column that predicts the held-out"
+        " folds best; the lag search holds the one chosen)",
+    )
     ring_gains: bool = Field(
         True,
         description="radial fit: fit a gain on each ring's term (compd's form); false = paper 003's u_C − u_B + c"
@@ -99,7 +104,12 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         )
     radial = len(targets) == 2
     chosen = None
-    if not inputs and not radial and len(log.temperature_columns()) > 1:
+    if not inputs and not radial and opt.xi_sensor is not None:
+        if opt.xi_sensor not in log.columns:
+            raise BadInput(f"the ξ sensor {opt.xi_sensor} is not a column of the log", file=log.file,
+                           path="--option xi_sensor")
+        inputs = [opt.xi_sensor, *([opt.speed_input] if opt.speed_input in log.columns else [])]
+    elif not inputs and not radial and len(log.temperature_columns()) > 1:
         inputs, chosen = _xi_sensor(log, targets, opt)
     inputs = _inputs(log, opt, inputs, radial)
     speed = opt.speed_input if opt.speed_input in inputs else None
@@ -319,19 +329,26 @@ def _argmin_piecewise(
     """
     order = np.argsort(knot, kind="stable")
     kn = knot[order]
-    # rows already past their knot: 0..j-1 (hi), the rest lo; j runs over the intervals
-    def cum(a: np.ndarray, rev: bool) -> np.ndarray:
-        if rev:
-            return np.r_[np.cumsum(a[::-1])[::-1], 0.0]
-        return np.r_[0.0, np.cumsum(a)]
-
+    # rows already past their knot: 0..j-1 (hi), the rest lo; j runs over the n + 1 intervals. Each
+    # sum is Σ_lo over all rows plus the forward cumulative sum of (hi − lo) terms: one cumsum for the three
     rh, rl = y[order] - c_hi[order], y[order] - c_lo[order]
     sh, sl = s_hi[order], s_lo[order]
-    q = cum(sh * sh, False) + cum(sl * sl, True)
-    b = cum(sh * rh, False) + cum(sl * rl, True)
-    c = cum(rh * rh, False) + cum(rl * rl, True)
-    left = np.maximum(np.r_[-np.inf, kn], lo_bound)
-    right = np.r_[kn, np.inf]
+    terms = np.empty((3, kn.size + 1))
+    terms[:, 0] = 0.0
+    terms[0, 1:] = sh * sh - sl * sl
+    terms[1, 1:] = sh * rh - sl * rl
+    terms[2, 1:] = rh * rh - rl * rl
+    np.cumsum(terms, axis=1, out=terms)
+    q = terms[0] + float(sl @ sl)
+    b = terms[1] + float(sl @ rl)
+    c = terms[2] + float(rl @ rl)
+    left = np.empty(kn.size + 1)
+    left[0] = -np.inf
+    np.maximum(kn, lo_bound, out=left[1:])
+    left[0] = max(left[0], lo_bound)
+    right = np.empty(kn.size + 1)
+    right[:-1] = kn
+    right[-1] = np.inf
     ok = (right >= left) & np.isfinite(left)
     with np.errstate(divide="ignore", invalid="ignore"):
         p = np.where(q > 0, b / q, left)
@@ -342,5 +359,7 @@ def _argmin_piecewise(
 
 
 def choices(result: FitResult) -> dict[str, Any]:
-    """Nothing beyond its coefficients: the ξ fit has no form to choose."""
-    return {}
+    """What this fit chose beyond its coefficients, as options (compd.identify.lag holds them while it
+    searches a lag): the ξ sensor, where the fit chose it."""
+    chosen = result.report.get("inputs_chosen")
+    return {"xi_sensor": chosen["inputs"][0]} if chosen else {}

@@ -113,6 +113,35 @@ def test_a_spindle_growing_toward_the_axis_minus_is_fitted_with_its_sign() -> No
                                    atol=1e-6)
 
 
+def test_the_xi_sensor_is_chosen_once_and_held_while_the_lag_is_searched(monkeypatch) -> None:
+    """--inputs naming none: the ξ sensor is the column that predicts the held-out folds best, chosen
+    once; the lag search refits with it held (it chose it again in every fold of every lag tried:
+    35 s on an 8-hour day), and --option xi_sensor=COL names it."""
+    from compd.identify import identify
+    from compd.identify import xi_spindle as xs
+
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 8 * 3600, 60.0)
+    n = np.repeat([0.0, 6000, 0, 12000, 3000, 9000, 0, 15000], t.size // 8)
+    heat = np.zeros(t.size)
+    for k in range(1, t.size):
+        heat[k] = heat[k - 1] + (2e-8 * n[k] ** 2 - heat[k - 1]) * 60 / 1500
+    T_xi = 22 + heat + rng.normal(0, 0.02, t.size)
+    T_amb = 20 + 0.3 * np.sin(t / 5000)
+    err = 13.6e-6 * 165e3 * (T_xi - T_xi[0])
+    log = Log("x.csv", ["t_s", "T_amb", "T_xi", "speed_rpm", "err_z_um"], np.column_stack([t, T_amb, T_xi, n, err]))
+    calls = []
+    real = xs._xi_sensor
+    monkeypatch.setattr(xs, "_xi_sensor", lambda *a: calls.append(1) or real(*a))
+    res = identify("xi_spindle", log, None, ["err_z_um"])
+    assert res.model.inputs == ["T_xi", "speed_rpm"] and res.report["inputs_chosen"]["inputs"][0] == "T_xi"
+    assert len(calls) == 1
+    named = identify("xi_spindle", log, None, ["err_z_um"], xi_sensor="T_amb", lag="off")
+    assert named.model.inputs == ["T_amb", "speed_rpm"] and len(calls) == 1
+    with pytest.raises(BadInput, match="T_nope is not a column"):
+        identify("xi_spindle", log, None, ["err_z_um"], xi_sensor="T_nope", lag="off")
+
+
 # paper 003, Table 1: T(ξ) °C → modelled ΔL µm (α = 13.6e-6 /K, L = 165 mm, T0 = 22.5 °C).
 # The paper prints 18.50 for 30.7 °C; α L ΔT gives 18.40.
 TABLE_1 = [
