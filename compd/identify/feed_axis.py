@@ -58,10 +58,13 @@ from compd.models.feed_axis import (
     FeedAxisParams,
     PositionPoly,
     SlideField,
-    error_basis,
+    _erf_weights,
+    _heat_capacity,
+    _midpoints_m,
     field_terms,
     leaky_heat_j,
     linear_reduction,
+    position_weights,
 )
 
 
@@ -405,6 +408,7 @@ class _Shape:
         self.ok = measured_rows(E)
         self.E = E[self.ok]
         self.heat = functools.lru_cache(maxsize=64)(self._heat)
+        self.weighted = functools.lru_cache(maxsize=8)(self._weighted)
         self.a0 = opt.diffusivity_m2_s
         self.free_chi = opt.chi_per_m is None
         self.free_tau = opt.duty_cycle and opt.cooling_time_s is None
@@ -412,10 +416,29 @@ class _Shape:
     def _heat(self, tau: float | None) -> np.ndarray:
         return leaky_heat_j(self.t, self.pw, tau)
 
+    def _weighted(self, a: float) -> tuple[np.ndarray, np.ndarray]:
+        """At the measured rows, for diffusivity a: W ⊙ (1 − erf) (n × m) and Σ_j W ⊙ erf (n), W the
+        rows' position weights (compd.models.feed_axis.position_weights): what error_basis sums,
+        less the shape χ and the heat, which enter as a vector and a per-row factor."""
+        p = self.probe
+        g = _erf_weights(self.t[self.ok], _midpoints_m(p), a, special.erf)
+        W = position_weights(self.pos[self.ok], p)
+        return W * (1.0 - g), (W * g).sum(axis=1)
+
     def basis(self, chi: float, a: float, tau: float | None) -> np.ndarray:
-        """The error's basis (U1, U2, η columns) at the measured rows."""
-        full = error_basis(self.t, self.heat(tau), self.pos, self.probe, chi, a, tau, special.erf)
-        return self.opt.xi * full[self.ok]
+        """The error's basis (U1, U2, η columns) at the measured rows: error_basis's, summed by the
+        position weights (one product per column instead of error_basis's n × m × 3 cumulative sum)."""
+        p = self.probe
+        wh, wg = self.weighted(a)
+        q = self.heat(tau)[self.ok]
+        y = _midpoints_m(p)
+        out = np.empty((wg.size, 3))
+        out[:, 0] = wh @ np.exp(-chi * y)
+        out[:, 1] = wh @ np.exp(chi * y)
+        if tau is not None and p.ref_power_w is not None:  # the steady profile's share Q/(τ P_ref)
+            out[:, :2] *= (q / (tau * p.ref_power_w))[:, None]
+        out[:, 2] = wg * (q / _heat_capacity(p))
+        return (self.opt.xi * p.alpha_per_k * (p.length_mm / p.segments) * 1000.0) * out
 
     def linear(self, chi: float, a: float, tau: float | None) -> tuple[float, np.ndarray]:
         """(sum of squared errors, (U1, U2, η)) by linear least squares at this shape."""

@@ -343,6 +343,19 @@ def _at_position(cum: np.ndarray, y_mm: np.ndarray, p: FeedAxisParams) -> np.nda
     return lo + frac[:, None] * (hi - lo)
 
 
+def position_weights(pos_mm: np.ndarray, p: FeedAxisParams) -> np.ndarray:
+    """`_at_position` as weights (n × m): row r's value at its position is Σ_j W[r, j] x_j of the
+    per-segment terms x (1 up to the segment below it, the interpolation's share of the next, 0
+    beyond): a fit evaluating many shapes sums with one product instead of a cumulative sum each."""
+    seg = p.length_mm / p.segments
+    u = np.clip((np.asarray(pos_mm, float) - p.stroke_start_mm) / seg - 0.5, -1.0, p.segments - 1.0)
+    j = np.floor(u).astype(int)
+    j = np.minimum(j, p.segments - 2) if p.segments > 1 else np.full_like(j, -1)
+    frac = u - j
+    cols = np.arange(p.segments)[None, :]
+    return np.where(cols <= j[:, None], 1.0, np.where(cols == (j + 1)[:, None], frac[:, None], 0.0))
+
+
 def error_um(t_s, q_j, pos_mm, p: FeedAxisParams) -> np.ndarray:
     """E(t, y) in µm for arrays of heating time, heat and position (paper 000, eq. 21)."""
     f = error_basis(np.atleast_1d(t_s), np.atleast_1d(q_j), np.atleast_1d(pos_mm), p, p.chi_per_m, p.diffusivity_m2_s)

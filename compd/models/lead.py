@@ -22,8 +22,6 @@ import math
 
 import numpy as np
 
-BLOCK_DECAY = 10.0  # a batch block spans at most this many τ_f: e^10 keeps the sums' rounding negligible
-
 
 class InputLead:
     """The lead of a model's inputs; stateful (the low-pass), one instance per model."""
@@ -93,33 +91,30 @@ class InputLead:
             y1_0 = self.y1[k] if self.y1[k] == self.y1[k] else v[0]
             y2_0 = self.y2[k] if self.y2[k] == self.y2[k] else v[0]
             # y1 = v + (y1 − v) a, i.e. y1_k = a y1_(k−1) + (1 − a) v_k
-            y1 = _first_order(a, (1.0 - a) * v, h, y1_0)
+            y1 = _first_order(a, (1.0 - a) * v, y1_0)
             y1_prev = np.r_[y1_0, y1[:-1]]
             # y2_k = a y2_(k−1) + (1 − a) v_k + (y1_(k−1) − v_k) h a
-            y2 = _first_order(a, (1.0 - a) * v + (y1_prev - v) * h * a, h, y2_0)
+            y2 = _first_order(a, (1.0 - a) * v + (y1_prev - v) * h * a, y2_0)
             out[:, i] = y2 + self.ratio[k] * (y1 - y2)
             self.y1[k], self.y2[k] = float(y1[-1]), float(y2[-1])
         self.t_s = float(t[-1])
         return out
 
 
-def _first_order(a: np.ndarray, c: np.ndarray, h: np.ndarray, y0: float) -> np.ndarray:
-    """y_k = a_k y_(k−1) + c_k from y_(−1) = y0, with a_k = e^(−h_k): vectorised in blocks.
+def _first_order(a: np.ndarray, c: np.ndarray, y0: float) -> np.ndarray:
+    """y_k = a_k y_(k−1) + c_k from y_(−1) = y0 (0 ≤ a_k ≤ 1), vectorised as a prefix scan.
 
-    Within a block y_k = P_k (y_start + Σ_j c_j / P_j), P_k = Π a = e^(−Σ h); a block ends
-    before Σ h passes BLOCK_DECAY, so 1/P stays below e^10 and the sum keeps its digits."""
-    n = a.size
-    y = np.empty(n)
-    cum = np.cumsum(h)
-    start, carry = 0, y0
-    while start < n:
-        # the block's first row alone (its own decay may be any size: a gap in the log)
-        y[start] = a[start] * carry + c[start]
-        base = cum[start]
-        end = max(int(np.searchsorted(cum, base + BLOCK_DECAY, side="right")), start + 1)
-        if end > start + 1:
-            p = np.exp(-(cum[start + 1:end] - base))
-            y[start + 1:end] = p * (y[start] + np.cumsum(c[start + 1:end] / p))
-        carry = float(y[end - 1])
-        start = end
-    return y
+    Each step is the affine map y ↦ a_k y + c_k; maps compose, (a, c) ∘ (a', c') = (a a', a c' + c),
+    so log2(n) passes of whole-array products give every prefix (a doubling scan). Only
+    products of decays ≤ 1 and sums of terms are formed: no division, whatever the steps' decay
+    (a log step many times the filter's τ_f, which the lag search tries, is a row like any other)."""
+    A = np.array(a, dtype=float)
+    C = np.array(c, dtype=float)
+    C[0] += A[0] * y0
+    shift = 1
+    n = C.size
+    while shift < n:
+        C[shift:] += A[shift:] * C[:-shift]
+        A[shift:] *= A[:-shift]
+        shift *= 2
+    return C
