@@ -380,7 +380,9 @@ def test_harness_on_two_short_machines(tmp_path, capsys):
     doc = json.loads(out.read_text())
     assert [m["seed"] for m in doc["machines"]] == [1, 2]
     for m in doc["machines"]:
-        assert set(m["models"]) == {"ar1", "mlr"}
+        assert set(m["models"]) == {"ar1", "mlr", "recommended"}
+        rec = m["models"]["recommended"]  # compd fit --kind all's pick, what it stated and how that held
+        assert "failed" in rec or (rec["stated"]["z"]["rms_um"] > 0 and rec["calibration"]["z"] > 0), rec
         for res in m["models"].values():
             # every model has figures or says why not: nothing is dropped
             assert "failed" in res or ("axes" in res and "reduction_pct" in res["axes"]["z"]), res
