@@ -256,21 +256,26 @@ def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: flo
             except Exception as e:  # noqa: BLE001
                 res["probed"] = {"every_h": probe_h, "failed": _why("probed replay", e)}
     if recommend:
-        out["models"]["recommended"] = recommended(kind, seed, train, unseen, models_dir, probe_h)
+        # the machine's deployment options, as its user gives them to `compd fit --kind all` (the feed
+        # axis's Siemens sink takes the linear form over the stroke: linear_p0_mm, length_mm)
+        deploy = fit_plan(kind, m, train.temperature_columns())[PHYSICS[kind]][3] if kind == "feed_axis" else {}
+        out["models"]["recommended"] = recommended(kind, seed, train, unseen, models_dir, probe_h, deploy)
     out["wall_s"] = time.monotonic() - t0
     return out
 
 
-def recommended(kind: str, seed: int, train: Any, unseen: Any, models_dir: Path, probe_h: float) -> dict[str, Any]:
-    """`compd fit --kind all` on the training day (every kind with its own defaults, the sums of two
-    stages), its recommended model replayed on the unseen day; beside it what the fit stated it would
-    leave there (fit.expected_unseen) and the ratio of what it left to that."""
+def recommended(kind: str, seed: int, train: Any, unseen: Any, models_dir: Path, probe_h: float,
+                options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """`compd fit --kind all` on the training day (every kind with its own defaults and the machine's
+    deployment `options`, the sums of two stages), its recommended model replayed on the unseen day;
+    beside it what the fit stated it would leave there (fit.expected_unseen) and the ratio of what it
+    left to that."""
     from compd.commissioning import fitting
 
     targets = [f"err_{a}_um" for a in SCORED[kind]] if kind in SCORED else None
     res: dict[str, Any] = {"kind": "all"}
     try:
-        rows = fitting.fit_all(train, None, targets, {})
+        rows = fitting.fit_all(train, None, targets, dict(options or {}))
         pick, sums = fitting.recommendation(train, rows, targets)
         if pick is None:
             raise ValueError("no recommendation")
