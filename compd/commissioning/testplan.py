@@ -8,8 +8,8 @@ ends the plan. docs/testplan.md gives the design's rationale; in short:
 * the primary spectrum: the spindle's speed levels spread evenly over [min, max] (or, on a
   machine without a spindle, each axis's feed levels); each level is held twice, once short
   and once long, the hold lengths spread geometrically from a quarter of the machine's time
-  constant τ to three τ; the top level (the largest heat input) gets the longest, the others
-  theirs in a pseudo-random order;
+  constant τ to three τ and given to the levels in a pseudo-random order, so that no level is
+  always the long one;
 * the holds follow each other in a pseudo-random order with steps up and down (never the same
   level twice in a row), a multi-level pseudo-random sequence rather than a staircase;
 * cool-down pauses (everything stopped) of lengths from τ/4 to 2τ between holds, the longest
@@ -230,10 +230,6 @@ def design(
     if len(secondary) > 2 * m:
         raise BadInput(f"{len(secondary) - 1} axis feeds and standing do not fit into the {2 * m} holds of a pass:"
                        " give fewer --feed-levels or more --levels", path="--feed-levels")
-    # the top of each spectrum (the fastest speed; without a spindle each axis's fastest feed): the
-    # largest heat input, held longest so the test sees it near its steady state
-    tops = [m - 1] if spindle else [k for k, (_, own) in enumerate(primary)
-                                    if all(f == feeds[a][-1] for a, f in own.items())]
     rng = np.random.default_rng([int(seed), 40])
     segments: list[tuple[str, float, float, dict[str, float]]] = []  # (kind, τ units, speed, feeds)
     last = None
@@ -241,7 +237,7 @@ def design(
         order = _order(rng, m, last)
         last = order[-1][0]
         short = rng.permutation(hold_tau[:m])  # each level's short hold and its long one
-        long = _long_holds(rng, hold_tau[m:], tops)
+        long = rng.permutation(hold_tau[m:])
         q = len(secondary)  # each feed (and standing) once, the other holds drawn, all shuffled
         extra = [int(e) for e in rng.permutation(np.concatenate([np.arange(q), rng.integers(0, q, 2 * m - q)]))]
         gaps = set(int(g) for g in rng.choice(np.arange(1, 2 * m), size=n_pauses - 1, replace=False))
@@ -316,19 +312,6 @@ def _levels(low: float, high: float, n: int, flag: str, unit: str) -> list[float
         raise BadInput(f"{n} levels from {low:g} to {high:g} {unit} are not {n} different whole numbers:"
                        " give fewer levels or a wider range", path=flag)
     return vals
-
-
-def _long_holds(rng: np.random.Generator, lengths: np.ndarray, tops: list[int]) -> np.ndarray:
-    """Each level's long hold (τ units, by level index): the longest lengths at the `tops` (the largest
-    heat inputs: a model that never saw the top near its steady state extrapolates there on every day
-    that runs it long), the rest drawn among the other levels."""
-    ordered = np.sort(lengths)[::-1]
-    out = np.empty(len(lengths))
-    rest = [k for k in range(len(lengths)) if k not in tops]
-    for k, top in enumerate(rng.permutation(tops)):
-        out[int(top)] = ordered[k]
-    out[rest] = rng.permutation(ordered[len(tops):])
-    return out
 
 
 def _order(rng: np.random.Generator, m: int, before: int | None) -> list[tuple[int, bool]]:
