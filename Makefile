@@ -9,6 +9,9 @@ TEST_STAMP := $(VENV)/.test-installed
 # verify and security checks, headless Chromium for compd report's page, the MQTT broker of the plant tests,
 # dpkg-dev and lintian to build and check the Debian package); COMMAND:PACKAGE where the command is not named like its package.
 APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell mosquitto dpkg-shlibdeps:dpkg-dev lintian
+# ... and those installed without their recommends: LinuxCNC's standalone G-code interpreter `rs274`, which
+# reads compd testplan's programs back (linuxcnc-uspace; its recommends would bring a desktop)
+APT_PACKAGES_BARE := rs274:linuxcnc-uspace
 
 .PHONY: venv demo test accept bench lint sysdeps clean install deb docs reliability
 
@@ -29,10 +32,13 @@ demo: $(BASE_STAMP)
 
 sysdeps:
 	@missing=""; for p in $(APT_PACKAGES); do command -v $${p%%:*} >/dev/null || missing="$$missing $${p##*:}"; done; \
-	if [ -n "$$missing" ]; then \
-	  echo "installing Debian packages:$$missing"; \
+	bare=""; for p in $(APT_PACKAGES_BARE); do command -v $${p%%:*} >/dev/null || bare="$$bare $${p##*:}"; done; \
+	if [ -n "$$missing$$bare" ]; then \
+	  echo "installing Debian packages:$$missing$$bare"; \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
-	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	  $$SUDO apt-get update -qq || exit 1; \
+	  if [ -n "$$missing" ]; then DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null || exit 1; fi; \
+	  if [ -n "$$bare" ]; then DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$bare >/dev/null || exit 1; fi; \
 	fi
 
 # checkers of the standards compd speaks, that compd's code does not share, for the tests:

@@ -1080,6 +1080,8 @@ def resolve_model(
 
     if isinstance(section, dict) and "contributions" in section:
         return _resolve_contributions(section, doc, path, base_dir, guard or GuardConfig(), axes)
+    if isinstance(section, dict) and section.get("kind") == SUM_KIND:
+        return _resolve_sum_file(section, doc, path, base_dir, guard or GuardConfig(), axes)
     sec = validate(ModelSection, section, doc, path)
     try:
         cls = MODELS.get(sec.kind)
@@ -1150,9 +1152,53 @@ def resolve_model(
     return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path, mfile, sha256)
 
 
+SUM_KIND = "contributions"  # a model file of several contributions summed (`compd fit --kind all` may write one)
+
+
+def _resolve_sum_file(
+    section: dict[str, Any], doc: Document, path: PathT, base_dir: Path, guard: GuardConfig,
+    axes: DrivenAxes | None,
+) -> ModelSpec:
+    """`{kind: contributions, file: SUM.yaml}`: a model file that sums several contributions (each
+    with its kind, inputs, outputs, params and its own fit block, as `compd fit --kind all` writes a
+    recommended sum), resolved as a config's `model.contributions` would be, the limits the guard's."""
+    extra = set(section) - {"kind", "file", "update_period_s"}
+    if extra:
+        raise doc.error(f"a model file of contributions takes only kind and file here (got {sorted(extra)[0]!r});"
+                        " limits per contribution: write model.contributions in the config", (*path, sorted(extra)[0]))
+    if not isinstance(section.get("file"), str):
+        raise doc.error(f"kind {SUM_KIND!r} names a model file of contributions: give 'file'", (*path, "file"))
+    fpath = Path(section["file"])
+    if not fpath.is_absolute():
+        fpath = base_dir / fpath
+    ftext = read_bounded(str(fpath), MODEL_MAX_BYTES)
+    mdoc, mdata = load_model_file(fpath, ftext)
+    if mdata["kind"] != SUM_KIND:
+        raise doc.error(f"model file {fpath} is of kind {mdata['kind']!r}, not {SUM_KIND!r}", (*path, "kind"))
+    params = mdata["params"]
+    if not isinstance(params, dict) or not isinstance(params.get("contributions"), list):
+        raise mdoc.error("a model file of contributions holds params.contributions: a list of models", ("params",))
+    items, fits = [], []
+    for i, item in enumerate(params["contributions"]):
+        if not isinstance(item, dict):
+            raise mdoc.error("a contribution is a model (name, kind, inputs, outputs, params, fit)",
+                             ("params", "contributions", i))
+        fits.append(item.get("fit") or {})
+        items.append({k: v for k, v in item.items() if k != "fit"})
+    spec = _resolve_contributions({"contributions": items}, mdoc, ("params",), fpath.parent, guard, axes, fits)
+    spec.path = path
+    spec.fit = mdata.get("fit") or {}
+    spec.file = str(fpath.resolve())
+    spec.sha256 = hashlib.sha256(ftext.encode("utf-8")).hexdigest()
+    if axes is not None:
+        for j, axis in enumerate(spec.outputs):
+            axes.check(axis, mdoc, ("outputs", j), f" (the model file of {format_path(path)})")
+    return spec
+
+
 def _resolve_contributions(
     section: dict[str, Any], doc: Document, path: PathT, base_dir: Path, guard: GuardConfig,
-    axes: DrivenAxes | None = None,
+    axes: DrivenAxes | None = None, fits: list[dict[str, Any]] | None = None,
 ) -> ModelSpec:
     """`model.contributions`: each item resolved as a model section; the sum's spec (kind
     `contributions`: compd.models.contributions) with each one's limits settled. Each one's
@@ -1180,7 +1226,7 @@ def _resolve_contributions(
         outs = list(spec.outputs)
         parts.append(ContributionParams(
             name=name, kind=spec.cls.kind, inputs=list(spec.inputs), outputs=outs,
-            params=spec.params.model_dump(mode="json"), fit=dict(spec.fit), file=spec.file,
+            params=spec.params.model_dump(mode="json"), fit=dict(fits[i] if fits else spec.fit), file=spec.file,
             update_period_s=spec.update_period_s,
             max_abs_um=[csec.max_abs_um or guard.clamp_um(a)[0] for a in outs],
             max_slew_um_per_s=[csec.max_slew_um_per_s or guard.slew_um_per_s(a) for a in outs],

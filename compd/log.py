@@ -45,10 +45,23 @@ def is_temperature_column(name: str) -> bool:
 
 
 def error_axis(name: str) -> str | None:
-    """`err_x1_um` → `x1`; None for other columns."""
-    if name.startswith("err_") and name.endswith("_um") and len(name) > 7:
-        return name[4:-3]
+    """`err_x1_um` → `x1`; a share of an axis's error measured on its own, `err_<axis>_um_<part>`
+    (`err_z_um_spindle`: what a mandrel test measures of the spindle alone) → its axis, `z`; None
+    for other columns."""
+    if not name.startswith("err_"):
+        return None
+    body = name[4:]
+    if body.endswith("_um") and len(body) > 3:
+        return body[:-3]
+    cut = body.find("_um_")
+    if cut > 0 and cut + 4 < len(body):
+        return body[:cut]
     return None
+
+
+def is_axis_error(name: str) -> bool:
+    """`err_<axis>_um`: an axis's whole thermal error (a fit's default target), not one part's share."""
+    return name.endswith("_um") and error_axis(name) is not None
 
 
 @dataclass
@@ -84,7 +97,9 @@ class Log:
         return self.data[:, idx]
 
     def error_columns(self) -> list[str]:
-        return [c for c in self.columns if error_axis(c)]
+        """The axes' whole errors, `err_<axis>_um` (a part's share, `err_<axis>_um_<part>`, is a
+        target only when named)."""
+        return [c for c in self.columns if is_axis_error(c)]
 
     def temperature_columns(self) -> list[str]:
         return [c for c in self.columns if is_temperature_column(c)]

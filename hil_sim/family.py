@@ -9,7 +9,11 @@ size, in another ambient. Every range is in the tables below (RANGES, PLACEMENT,
 NEIGHBOURS, DUTY, COMMON_DUTY, AMBIENT); the plants compute their own physics, nothing of
 compd's models is used.
 
-`python -m hil_sim family --kind KIND --seeds 1-20 --out DIR [--rate-s S]` writes
+`draw(..., train="plan")` replaces the training day by the thermal test `compd testplan` designs
+for the machine from what its builder knows (PLAN below): the type's speed range (or its axis's
+stroke and feed range), the day's hours, compd's defaults otherwise; in the same ambient.
+
+`python -m hil_sim family --kind KIND --seeds 1-20 --out DIR [--rate-s S] [--train plan]` writes
 DIR/<kind>_<seed>_train.csv, DIR/<kind>_<seed>_unseen.csv (log CSVs as `hil_sim log`
 writes them) and DIR/<kind>_<seed>_machine.yaml (what was drawn; its `train` and `unseen`
 are scenario files' contents, so `hil_sim log` can rerun a day from them).
@@ -27,8 +31,9 @@ from typing import Any
 
 import numpy as np
 
+from compd.commissioning.testplan import Axis, design
 from compd.errors import BadInput
-from hil_sim.scenario import Ambient, Scenario, Segment
+from hil_sim.scenario import Ambient, Scenario, Segment, plan_segments
 
 KINDS = ("lathe", "spindle", "gantry", "feed_axis")  # the families scripts/family.py fits and gates
 # every kind `draw` and `hil_sim family` take: the VMC (two heat sources on one axis) is drawn too,
@@ -207,6 +212,13 @@ COMMON_DUTY = {
     "partial_share": ("uniform", 0.25, 0.6),
 }
 
+# the training day as compd testplan's plan (draw(train="plan")): the builder gives the type's speed
+# range (lathe, spindle, vmc) or its axis with the drawn stroke and the type's feed range (gantry: the
+# gantry's axis x, both sides; feed axis: y), the day's hours, and leaves compd's defaults (7 speed or
+# 4 feed levels, τ 60 min, idle 1 h, a measurement every 10 min); the plan's seed is the machine's
+PLAN = {"time_constant_min": 60.0, "probe_every_min": 10.0, "idle_hours": 1.0, "axis": {"gantry": "x", "feed_axis": "y"}}
+TRAINS = ("day", "plan")
+
 AMBIENT = {
     "start_c": ("uniform", 18.0, 23.0),
     "drift_k_per_day": ("uniform", -1.0, 1.0),
@@ -246,12 +258,16 @@ class Machine:
         })
 
 
-def draw(kind: str, seed: int, day_h: float = 24.0) -> Machine:
+def draw(kind: str, seed: int, day_h: float = 24.0, train: str = "day") -> Machine:
     """Machine `seed` of the family `kind`: the same seed gives the same machine and days.
 
     `day_h` shortens both days (every duration scaled by day_h/24, all else the same
-    draws): for quick tests.
+    draws): for quick tests. `train="plan"` makes the training day compd testplan's plan for
+    the machine (PLAN), day_h long, in the drawn training day's ambient; everything else is
+    drawn as for `train="day"`.
     """
+    if train not in TRAINS:
+        raise BadInput(f"unknown training day {train!r} (known: {', '.join(TRAINS)})", path="--train")
     if kind not in ALL_KINDS:
         raise BadInput(f"unknown kind {kind!r} (known: {', '.join(ALL_KINDS)})", path="--kind")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
@@ -288,6 +304,8 @@ def draw(kind: str, seed: int, day_h: float = 24.0) -> Machine:
     if scale != 1.0:
         drawn["day_h"] = float(day_h)
         train_segs, unseen_segs = _scaled(train_segs, scale), _scaled(unseen_segs, scale)
+    if train == "plan":
+        train_segs, drawn["plan"] = _plan_day(kind, int(seed), params, travel, day_h)  # type: ignore[arg-type]
     train = Scenario(train_segs, train_amb, seeds[0], kind, params)
     unseen = Scenario(unseen_segs, unseen_amb, seeds[1], kind, params)
     return Machine(kind, int(seed), params, train, unseen, drawn)
@@ -621,6 +639,29 @@ def _days(kind: str, r_train: np.random.Generator, r_unseen: np.random.Generator
     return train, day.segments, duty
 
 
+def _plan_day(kind: str, seed: int, params: dict[str, Any], travel: tuple[float, float],
+              day_h: float) -> tuple[list[Segment], dict[str, Any]]:
+    """The training day as compd testplan designs it for this machine (PLAN), `day_h` hours; a
+    shortened day scales τ, the idle stretch and the measuring interval with it."""
+    lo, hi = DUTY[kind]["limits"]
+    scale = day_h / 24.0
+    step_s = max(1, round(PLAN["probe_every_min"] * 60.0 * scale))  # whole seconds, as the plan's times
+    options = {"time_constant_min": _sig(PLAN["time_constant_min"] * scale, 6), "probe_every_min": step_s / 60.0,
+               "idle_hours": _sig(PLAN["idle_hours"] * scale, 6), "seed": seed}
+    if kind in PLAN["axis"]:
+        stroke = travel[1] - travel[0]
+        # a shortened day's short steps: the lowest feed raised until one stroke out and back fits a step
+        low = max(lo, math.ceil(2.0 * stroke * 60.0 / step_s))
+        plan = design(0.0, day_h, axes=[Axis(PLAN["axis"][kind], stroke, hi, low)], **options)
+    else:
+        plan = design(hi, day_h, min_rpm=lo, **options)
+    info = plan.info
+    summary = {"max_rpm": hi if info["spindle"] else 0.0, "hours": float(day_h), **options,
+               "levels": info["speeds_rpm"] or {a: f for a, f in info["feeds_mm_min"].items()},
+               "holds": len(info["holds_s"]), "pauses": len(info["pauses_s"]), "probes": info["probes"]}
+    return plan_segments(plan, stroke_mm=travel if kind in PLAN["axis"] else None), _plain(summary)
+
+
 def _scaled(segments: list[Segment], scale: float) -> list[Segment]:
     """The day with every duration times `scale` (whole seconds, at least one)."""
     out = []
@@ -719,6 +760,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--rate-s", type=float, default=None,
                    help="seconds between log rows (default per kind: " +
                    ", ".join(f"{k} {v:g}" for k, v in RATES_S.items()) + ")")
+    p.add_argument("--train", choices=TRAINS, default="day",
+                   help="the training day: the drawn day (default), or compd testplan's plan for the machine")
     p.set_defaults(func=cmd_family)
 
 
@@ -734,7 +777,7 @@ def cmd_family(args: argparse.Namespace) -> int:
     except OSError as e:
         raise BadInput(f"cannot create the folder: {e.strerror or e}", file=str(out)) from None
     for seed in seeds:
-        m = draw(args.kind, seed)
+        m = draw(args.kind, seed, train=args.train)
         s = write_machine(m, out, args.rate_s)
         parts = [f"{day} " + ", ".join(f"{a} rms {v['rms_um']:.2f} um (working {v['working_rms_um']:.2f})"
                                         for a, v in axes.items()) for day, axes in s.items()]

@@ -233,6 +233,27 @@ class Scenario:
             raise ValueError(f"{file}: {e}") from None
 
 
+def plan_segments(plan: Any, axis: str | None = None, stroke_mm: tuple[float, float] | None = None) -> list[Segment]:
+    """The segments of a `compd testplan` plan (compd.commissioning.testplan.Plan): one per row but
+    the last (which ends the plan), at the row's speed; the linear axes reciprocate over `stroke_mm`
+    (the plant's own stroke when None) at the feed of the plan's axis `axis` (its only feed column
+    when None; 0: they stand). ValueError names what does not fit."""
+    feeds = plan.feeds_mm_min
+    if axis is None and len(feeds) > 1:
+        raise ValueError(f"the plan has feeds for the axes {', '.join(feeds)}: say which one the plant's"
+                         " linear axes follow")
+    if axis is not None and axis not in feeds:
+        raise ValueError(f"the plan has no feed_{axis}_mm_min (its feed columns: "
+                         f"{', '.join(f'feed_{a}_mm_min' for a in feeds) or 'none'})")
+    feed = feeds[axis if axis is not None else next(iter(feeds))] if feeds else None
+    out = []
+    for i in range(len(plan.t_s) - 1):
+        f = 0.0 if feed is None else float(feed[i])
+        out.append(Segment(float(plan.t_s[i + 1] - plan.t_s[i]), speed_rpm=float(plan.speed_rpm[i]), feed_mm_min=f,
+                           stroke_mm=stroke_mm if f > 0 else None))
+    return out
+
+
 _SEG_KEYS = {f.name for f in fields(Segment)}
 
 

@@ -223,6 +223,7 @@ def _report(r: subprocess.CompletedProcess, work: Path) -> None:
                   "day2.csv</code>, 481 rows", "Sign-off", "Commissioning engineer", "Plant owner"):
         assert given in text, given
     assert "T_amb read" in text  # the logs' air column beside the stated ambient
+    assert "The thermal test: drift per axis (ISO 230-3)" in text and '<table class="measure">' in text
     before_signoff = text.split('<section class="signoff">')[0]
     assert not re.search(r"<td[^>]*>\s*(null|None|nan|inf|-)?\s*</td>", before_signoff)  # blank or null cells
     assert re.search(r'<td class="name"></td>', text)  # the sign-off's lines, blank to sign by hand

@@ -77,25 +77,34 @@ def test_fit_all_gives_each_kind_its_inputs_says_held_out_and_recommends(tmp_pat
     assert rc == 0
     assert "in-sample" in out and "held-out" in out  # the table says which is which
     assert "skipped: no pos_<axis>_mm column" in out  # feed_axis lacks its position
-    assert "recommended for z:" in out
+    assert "recommended: " in out and "expected on an unseen day, axis z: RMS" in out
+    assert (tmp_path / "m" / "recommended.yaml").exists()
     import json
 
     rep = json.loads((tmp_path / "all.json").read_text())
-    # no column of a lathe grows the error as a ξ sensor does: skipped, with the reason
-    assert "ξ sensor" in rep["xi_spindle"]["skipped"]
+    assert rep["recommended"]["label"] in rep and rep["recommended"]["expected_unseen"]["z"]["rms_um"] > 0
     assert rep["ar1"]["inputs"][0] == "speed_rpm" and len(rep["ar1"]["inputs"]) >= 2  # its own structure sensors
     assert rep["lvr"]["inputs"] == ["T1", "T3", "T7"]  # every temperature
 
 
-@pytest.mark.parametrize("warned", [True, False])
-def test_a_fit_that_warns_is_never_the_recommendation(warned):
+@pytest.mark.parametrize("warned", ["blocking", "advice", None])
+def test_only_a_warning_that_rules_a_fit_out_keeps_it_from_the_recommendation(warned):
+    """A fit that did not converge or predicts nothing is never the recommendation; one whose warning
+    only advises (a parameter at the edge of its range, a lag at the longest tried) is judged on its
+    held-out error like any other (a better LVR lost to MLR over a lag warning)."""
+    from compd.commissioning import recommend as rec
+
     class Oc:
-        def __init__(self, kind, held, warnings):
+        def __init__(self, kind, held, warnings, blocking):
             self.kind = kind
-            self.warnings = warnings
+            self.warnings, self.blocking = warnings, blocking
+            self.fold_rms_um = {"z": [held * 0.8, held * 1.2]}
             self.report = {"axes": {"z": {"rmse_um": 0.1, "max_abs_err_um": 0.2}}, "fit_time_s": 0.0,
                            "held_out_rmse_um": {"z": held}}
 
-    rows = [("ar1", "ar1", Oc("ar1", 0.5, ["ar1: C1 … at the edge"] if warned else []), None),
-            ("mlr", "mlr", Oc("mlr", 0.9, []), None)]
-    assert fitting.recommend(rows)["z"][0] == ("mlr" if warned else "ar1")
+    why = ["ar1: C1 … at the edge"] if warned else []
+    rows = [("ar1", "ar1", Oc("ar1", 0.5, why, why if warned == "blocking" else []), None),
+            ("mlr", "mlr", Oc("mlr", 0.9, [], []), None)]
+    pick = rec.choose(rec.candidates(rows, [], fitting.held_out_of), ["z"], {"z": 10.0})
+    assert pick.candidate.label == ("mlr" if warned == "blocking" else "ar1")
+    assert pick.stated["z"].rms_um == (0.9 if warned == "blocking" else 0.5)

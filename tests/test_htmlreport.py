@@ -60,7 +60,7 @@ def test_report_is_one_self_contained_page(reports, capsys):
     # nothing fetched from anywhere: no scripts, no links, no external sources
     assert not re.search(r'(src|href)="(?!data:)', text) and "<script" not in text and "<link" not in text
     pngs = images(text)
-    assert len(pngs) == 2
+    assert len(pngs) == 3  # the fit's, the replay's and the thermal test's (from the fit's log)
     import base64
 
     assert all(base64.b64decode(p)[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
@@ -84,7 +84,7 @@ def test_report_embeds_given_pngs(reports):
     write_trend(Trend(t, ["x1"], {"T1": 20 + t}, np.zeros(10, int), ["x1"], 1.0, np.zeros((10, 1))), png)
     assert main(["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "r.html", "--png", str(png)]) == 0
     text = (reports / "r.html").read_text()
-    assert len(images(text)) == 1 and "mine.png" in text
+    assert len(images(text)) == 2 and "mine.png" in text  # the one given, and the thermal test's
 
 
 def test_report_without_the_data_says_what_is_missing(reports, capsys):
@@ -92,7 +92,7 @@ def test_report_without_the_data_says_what_is_missing(reports, capsys):
     assert main(["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "r.html"]) == 0
     captured = capsys.readouterr()
     assert "1 plots" in captured.out and "'unseen.csv' is not found" in captured.err
-    assert len(images((reports / "r.html").read_text())) == 1
+    assert len(images((reports / "r.html").read_text())) == 2  # the fit's and the thermal test's
 
 
 @pytest.mark.parametrize("which, content, words", [
@@ -157,7 +157,8 @@ def test_report_renders_in_headless_chromium(reports):
     dom = chromium(exe, "--dump-dom", page)
     assert dom.returncode == 0, dom.stderr.decode(errors="replace")[-2000:]
     html = dom.stdout.decode()
-    assert "compd commissioning report" in html and html.count("<img") == 2 and "<table" in html
+    assert "compd commissioning report" in html and html.count("<img") == 3 and "<table" in html
+    assert "The thermal test: drift per axis (ISO 230-3)" in html and '<table class="measure">' in html
     assert '<table class="record">' in html and '<section class="signoff">' in html
     # printed, it is laid out on A4 (595 x 842 pt), on a few pages: the print stylesheet took
     pdf = reports / "report.pdf"
@@ -168,12 +169,12 @@ def test_report_renders_in_headless_chromium(reports):
     assert boxes == {(0, 0, 595, 842)}, boxes
     assert 1 <= len(re.findall(rb"/Type\s*/Page[^s]", data)) <= 8
     shot = reports / "shot.png"
-    run = chromium(exe, "--window-size=1200,2400", f"--screenshot={shot}", page)
+    run = chromium(exe, "--window-size=1200,4000", f"--screenshot={shot}", page)  # down to the plots
     assert run.returncode == 0 and shot.exists(), run.stderr.decode(errors="replace")[-2000:]
     import matplotlib.image
 
     img = matplotlib.image.imread(shot)[..., :3]
-    assert img.shape[:2] == (2400, 1200)
+    assert img.shape[:2] == (4000, 1200)
     # the page is not blank, and the plots were decoded and drawn: pixels of their line colours
     assert (img.min(axis=2) < 0.5).mean() > 0.005
     saturated = (img.max(axis=2) - img.min(axis=2)) > 0.35

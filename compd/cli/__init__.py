@@ -11,7 +11,7 @@ from compd.errors import BadInput
 
 __all__ = ["build_parser", "main", "writing"]
 
-ORDER = ['run', 'status', 'probe', 'arm-model', 'promote', 'opcua-cert', 'sparkplug-watch', 'docs', 'check-config', 'replay', 'output-test', 'plot', 'report', 'encode', 'decode', 'fit', 'predict', 'score', 'xi', 'bench']  # as `compd --help` lists them
+ORDER = ['run', 'status', 'probe', 'arm-model', 'promote', 'opcua-cert', 'sparkplug-watch', 'docs', 'check-config', 'replay', 'output-test', 'plot', 'report', 'encode', 'decode', 'testplan', 'fit', 'predict', 'score', 'xi', 'bench']  # as `compd --help` lists them
 
 
 def build_parser() -> Parser:

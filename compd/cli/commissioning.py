@@ -1,4 +1,4 @@
-"""Commissioning commands: `compd fit`, `predict`, `score`, `xi`, `replay`, `plot`, `report`, `output-test`; each one's arguments beside it."""
+"""Commissioning commands: `compd testplan`, `fit`, `predict`, `score`, `xi`, `replay`, `plot`, `report`, `output-test`; each one's arguments beside it."""
 
 from __future__ import annotations
 
@@ -14,13 +14,88 @@ from compd.cli.args import (
     check_output,
     check_plot,
     command,
+    count,
     finite,
+    non_negative,
     positive,
     writing,
 )
 from compd.errors import BadInput
 
 log = logging.getLogger("compd")
+
+
+def args_testplan(sub: Any) -> None:
+    """`compd testplan`'s arguments."""
+    s = sub.add_parser(
+        "testplan", help="design the thermal test of a machine: the plan as CSV and the program for its control",
+        description="Design the thermal test of a machine for identification (docs/testplan.md): every speed level"
+                    " held short and long in a pseudo-random order, cool-down pauses, an idle stretch at the start,"
+                    " a measurement every N minutes; write it as CSV and, with --gcode, as a program.",
+        epilog="example:\n  compd testplan --max-rpm 12000 --hours 24 --out plan.csv --gcode linuxcnc --program plan.ngc"
+               "\n  compd testplan --max-rpm 4500 --hours 24 --axis z:600:8000 --out plan.csv --gcode fanuc"
+               " --program O2303.nc --probe-call 'M98 P9010'",
+    )
+    s.add_argument("--max-rpm", required=True, type=non_negative, dest="max_rpm", metavar="N",
+                   help="the spindle's highest speed (0: no spindle; the axes' feeds are the spectrum)")
+    s.add_argument("--hours", required=True, type=positive, metavar="H", help="the time the test may take")
+    s.add_argument("--out", required=True, metavar="PLAN.csv")
+    s.add_argument("--min-rpm", type=positive, default=None, dest="min_rpm", metavar="N",
+                   help="the lowest running speed (default 10 %% of --max-rpm)")
+    s.add_argument("--levels", type=count, default=7, metavar="N",
+                   help="speed levels, the lowest and the highest included (default 7)")
+    s.add_argument("--time-constant-min", type=positive, default=60.0, dest="time_constant_min", metavar="MIN",
+                   help="your guess of the machine's thermal time constant: the holds span a quarter of it to"
+                        " three times it (default 60)")
+    s.add_argument("--probe-every-min", type=positive, default=10.0, dest="probe_every_min", metavar="MIN",
+                   help="a measurement every MIN minutes (default 10)")
+    s.add_argument("--step-min", type=positive, default=None, dest="step_min", metavar="MIN",
+                   help="every change falls on this grid (default: the measuring interval, so every change"
+                        " is measured)")
+    s.add_argument("--idle-hours", type=non_negative, default=1.0, dest="idle_hours", metavar="H",
+                   help="the machine at rest at the start, for the shop's air alone (default 1)")
+    s.add_argument("--axis", action="append", default=None, metavar="NAME:STROKE_MM:MAX_FEED_MM_MIN[:MIN]",
+                   help="a linear axis the test moves over its stroke (repeat for more; min feed default 10 %%)")
+    s.add_argument("--feed-levels", type=count, default=4, dest="feed_levels", metavar="N",
+                   help="feed levels per axis (default 4)")
+    s.add_argument("--seed", type=int, default=0, help="the pseudo-random order's seed (default 0)")
+    s.add_argument("--gcode", choices=("linuxcnc", "fanuc", "siemens"), default=None,
+                   help="also write the program for this control")
+    s.add_argument("--program", default=None, metavar="FILE", help="the program's file (with --gcode)")
+    s.add_argument("--probe-call", default=None, dest="probe_call", metavar="TEXT",
+                   help="the line that calls your measuring routine (default: linuxcnc 'o<probe> call',"
+                        " fanuc 'M98 P9000', siemens 'PROBE_Z': placeholders for your own routine)")
+
+
+@command("testplan", args_testplan)
+def cmd_testplan(args: argparse.Namespace) -> int:
+    from compd.commissioning import testplan as tp
+
+    if (args.gcode is None) != (args.program is None):
+        raise BadInput("give --gcode and --program together", path="--program" if args.gcode else "--gcode")
+    if args.probe_call is not None and args.gcode is None:
+        raise BadInput("the measuring call goes into a program: give --gcode and --program", path="--probe-call")
+    call = tp.check_probe_call(args.probe_call or tp.PROBE_CALLS[args.gcode], args.gcode) if args.gcode else ""
+    axes = [tp.parse_axis(a) for a in args.axis or []]
+    check_output(args.out, "--out")
+    check_output(args.program, "--program")
+    plan = tp.design(args.max_rpm, args.hours, min_rpm=args.min_rpm, probe_every_min=args.probe_every_min,
+                     step_min=args.step_min, time_constant_min=args.time_constant_min, levels=args.levels,
+                     feed_levels=args.feed_levels, axes=axes, idle_hours=args.idle_hours, seed=args.seed)
+    with writing(args.out, "--out"):
+        plan.write_csv(args.out)
+    for line in tp.summary_lines(plan):
+        print(f"compd testplan: {line}")
+    done = f"compd testplan: {len(plan)} rows -> {args.out}"
+    if args.gcode:
+        text = tp.PROGRAMS[args.gcode](plan, call, Path(args.out).name)
+        with writing(args.program, "--program"), open(args.program, "w", encoding="ascii", newline="\n") as fh:
+            fh.write(text)
+        done += f"; {args.gcode} program -> {args.program} (measuring call: {call})"
+    print(done)
+    for w in tp.warnings(plan):
+        print(f"compd: warning: {w}", file=sys.stderr)
+    return 0
 
 
 def _fit_options_help() -> str:
@@ -64,14 +139,21 @@ def cmd_fit(args: argparse.Namespace) -> int:
     check_output(args.report, "--report")
     check_plot(args.plot)
     _not_over_a_model_before(args)
-    check_output(args.out, "--out", folder=args.kind == "all")  # last: it may create the folder
+    # --kind all --out MODEL.yaml: the recommended model there, every kind's in MODEL.candidates/;
+    # --out FOLDER: every kind's in the folder, the recommended one as FOLDER/recommended.yaml
+    one_file = args.kind == "all" and Path(args.out).suffix in (".yaml", ".yml")
+    folder = Path(args.out).with_suffix(".candidates") if one_file else Path(args.out)
+    check_output(args.out, "--out", folder=args.kind == "all" and not one_file)  # last: it may create the folder
+    if one_file:
+        check_output(str(folder), "--out", folder=True)
     log = fitting.read_fit_log(args.log)
     stage = fitting.residual_stage(log, args.on_residual_of, args.target) if args.on_residual_of else None
     if stage is not None:
         print(fitting.stage_line(stage))
     if args.kind == "all":
         rows = fitting.fit_all(log, args.inputs, args.target, options, stage)
-        out = Path(args.out)
+        pick, sums = fitting.recommendation(stage.log if stage else log, rows, args.target, stage)
+        out = folder
         for _, label, oc, _ in rows:
             if oc is not None:
                 with writing(out / f"{label}.yaml", "--out"):
@@ -83,11 +165,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
                         report.plot_fit(oc, stage.log if stage else log, p)
                 fitting.warn(oc.warnings)
         print(fitting.comparison_table(rows))
+        for line in fitting.recommendation_lines(pick, sums):
+            print(line)
+        for so in sums:
+            fitting.warn(so.warnings)
+        recommended = Path(args.out) if one_file else folder / "recommended.yaml"
+        if pick is not None:
+            with writing(recommended, "--out"):
+                fitting.write_recommended(pick, stage.log if stage else log, recommended)
+            print(f"recommended model -> {recommended}" + (f" (every kind's in {folder}/)" if one_file else ""))
         if args.report:
             with writing(args.report, "--report"):
                 report.write_json(args.report, {
-                    label: oc.report if oc else {"skipped": why} for _, label, oc, why in rows
+                    **{label: oc.report if oc else {"skipped": why} for _, label, oc, why in rows},
+                    **fitting.recommendation_report(pick, sums, recommended),
                 })
+        if pick is None:
+            print("compd: no model to recommend: every fit warns or could not be scored held out", file=sys.stderr)
+            return 1
         return 0
     oc = fitting.fit_model(args.kind, log, args.inputs, args.target, options, stage=stage)
     if stage is not None:
@@ -294,8 +389,9 @@ def args_report(sub: Any) -> None:
         "report", help="one self-contained HTML commissioning record from a fit and a replay report",
         description="Write one self-contained HTML page for the machine's file: the record (machine, operator,"
                     " measuring instrument, ambient temperature, the time the logs cover, the date), the fit,"
-                    " the unseen-day score, the plots, the config and lines to sign on paper. A record field"
-                    " left out is printed as not given, with the option that gives it.",
+                    " the thermal test (per axis the drift from the first measurement, as ISO 230-3 states it,"
+                    " beside the model's residual), the unseen-day score, the plots, the config and lines to"
+                    " sign on paper. A record field left out is printed as not given, with the option that gives it.",
         epilog="example:\n  compd report --fit fit.json --replay replay.json --out report.html --config compensate.yaml"
                " \\\n      --machine 'DMU 50 s/n 1234' --operator 'A. Meier' --ambient-c 20.5 22.0"
                " \\\n      --instrument 'Renishaw XL-80 s/n 9876, resolution 0.001 um'",
@@ -317,19 +413,53 @@ def args_report(sub: Any) -> None:
     rec.add_argument("--instrument", default=None, metavar="TEXT",
                      help="what measured the error, with its serial number and resolution"
                           " (e.g. 'Renishaw XL-80 s/n 9876' or 'dial gauge, 1 um')")
+    test = s.add_argument_group("the thermal test (per axis the drift from the first measurement, its largest"
+                                " value and range, as ISO 230-3 gives them, beside the model's residual)")
+    test.add_argument("--test-log", default=None, dest="test_log", metavar="LOG.csv",
+                      help="the test's log: probe_<axis>_um at the measurements, or err_<axis>_um"
+                           " (default: the log the fit report names)")
+    test.add_argument("--model", default=None, metavar="MODEL.yaml",
+                      help="the model whose prediction and residual the test shows (default: the fit report's)")
+    test.add_argument("--test-every-min", type=positive, default=None, dest="test_every_min", metavar="N",
+                      help="where the log has no probe rows, err_<axis>_um is taken every N minutes from the"
+                           " first measurement (default 10)")
+    test.add_argument("--test-json", default=None, dest="test_json", metavar="FILE",
+                      help="write the thermal test's figures as JSON too")
 
 
 @command("report", args_report)
 def cmd_report(args: argparse.Namespace) -> int:
-    from compd.commissioning.htmlreport import make_record, write_report
+    from compd.commissioning import thermaltest
+    from compd.commissioning.htmlreport import build_page, make_record, render
+    from compd.commissioning.report import write_json
 
     record = make_record(args.machine, args.operator, args.instrument, args.ambient_c)
+    every_min = thermaltest.DEFAULT_EVERY_MIN if args.test_every_min is None else args.test_every_min
+    every_s = thermaltest.check_every_min(every_min)
     check_output(args.out, "--out")
+    check_output(args.test_json, "--test-json")
+    page = build_page(args.fit, args.replay, args.config, args.png, record, test_log=args.test_log,
+                      test_model=args.model, every_s=every_s)
+    if args.test_json and page.thermal is None:
+        raise BadInput(f"no thermal test to write: {page.thermal_why_not}", path="--test-json")
     with writing(args.out, "--out"):
-        page = write_report(args.out, args.fit, args.replay, args.config, args.png, record)
+        Path(args.out).write_text(render(page), encoding="utf-8")
     drawn = sum(f.png is not None for f in page.figures)
     print(f"compd report: {page.fit['kind']} fit, replay of {', '.join(page.replay['axes'])},"
           f" {drawn} plots -> {args.out}")
+    tt = page.thermal
+    for ax in tt.axes if tt is not None else []:
+        d, r = ax.drift(), ax.residual()
+        left = (f"; residual RMS {r.rms_um:.2f} um, range {r.range_um:.2f} um" if r is not None
+                else f"; no residual ({ax.why_no_prediction})")
+        print(f"compd report: thermal test of {Path(tt.log).name}, axis {ax.axis}: {ax.rows.size} measurements"
+              f" ({ax.source}), largest drift {d.max_abs_um:.2f} um at {(d.at_t_s - tt.t0_s) / 3600:.2f} h,"
+              f" range {d.range_um:.2f} um{left}")
+    if tt is None:
+        print(f"compd: the thermal test is not shown: {page.thermal_why_not}", file=sys.stderr)
+    elif args.test_json:
+        with writing(args.test_json, "--test-json"):
+            write_json(args.test_json, tt.as_dict())
     for f in page.figures:
         if f.png is None:
             print(f"compd: {f.caption}: {f.why_not}", file=sys.stderr)

@@ -17,7 +17,9 @@ import yaml
 from pydantic import ValidationError
 
 from compd import version
+from compd.commissioning.recommend import SUM_MARGIN
 from compd.commissioning.scoring import score_residual
+from compd.commissioning.thermaltest import thermal_test
 from compd.errors import BadInput
 from compd.identify import FITS, KINDS, holdout, identify, option_names
 from compd.identify.data import (
@@ -39,6 +41,12 @@ class FitOutcome:
     report: dict[str, Any]
     pred: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    # the warnings that rule the model out of `--kind all`'s recommendation (it did not converge, it
+    # predicts almost nothing); the others only advise (compd.commissioning.recommend)
+    blocking: list[str] = field(default_factory=list)
+    fit_inputs: list[str] = field(default_factory=list)  # what the fit took as --inputs (its own choice)
+    held_options: dict[str, Any] = field(default_factory=dict)  # the options a fold's refit takes (the kept lead, form)
+    fold_rms_um: dict[str, list[float]] = field(default_factory=dict)  # per axis, each held-out fold's RMS
 
 
 def parse_options(pairs: list[str] | None) -> dict[str, Any]:
@@ -94,19 +102,41 @@ def held_out_rmse(
 ) -> np.ndarray:
     """RMSE per target (µm) on rows the fit did not see: compd.identify.holdout's folds (days or
     duty segments), every fold fitted (ValueError naming the fold that cannot be)."""
-    return holdout.held_out_rmse(log, targets, lambda lg: identify(kind, lg, inputs, targets, **options))
+    return holdout.pooled_rmse(held_out_scores(kind, log, inputs, targets, options), len(targets))
+
+
+def held_out_scores(
+    kind: str, log: Log, inputs: list[str] | None, targets: list[str], options: dict[str, Any]
+) -> list[holdout.FoldScore]:
+    """Per held-out fold (`held_out_rmse`'s), the squared errors and rows per target, or why it could not be fitted."""
+    return holdout.fold_errors(log, targets, lambda lg: identify(kind, lg, inputs, targets, **options))
+
+
+def _fold_rms(scores: list[holdout.FoldScore], n_targets: int) -> list[list[float]]:
+    """Per target, each fold's RMS (µm; the folds with rows for it)."""
+    out: list[list[float]] = [[] for _ in range(n_targets)]
+    for f in scores:
+        if isinstance(f, str):
+            continue
+        for k in range(n_targets):
+            if f[1][k] > 0:
+                out[k].append(float(np.sqrt(f[0][k] / f[1][k])))
+    return out
 
 
 def compare_with_mlr(
     kind: str, log: Log, inputs: list[str], targets: list[str], options: dict[str, Any], axes: list[str],
-    warnings: list[str], ours: np.ndarray | None = None,
+    warnings: list[str], ours: np.ndarray | None = None, folds_out: dict[str, list[float]] | None = None,
 ) -> dict[str, Any]:
     """The fitted kind against MLR on the same log and the same inputs, both scored held out
     (`held_out_rmse`; `ours`, the kind's, when already computed on the same folds); a warning per
-    axis where MLR predicts the unseen rows better."""
+    axis where MLR predicts the unseen rows better. `folds_out` gets each fold's RMS per axis."""
     try:
         if ours is None:
-            ours = held_out_rmse(kind, log, inputs, targets, options)
+            scores = held_out_scores(kind, log, inputs, targets, options)
+            ours = holdout.pooled_rmse(scores, len(targets))
+            if folds_out is not None:
+                folds_out.update(zip(axes, _fold_rms(scores, len(targets)), strict=True))
         # MLR on temperature rises (the papers' baseline): a speed, position or current input stays out;
         # a model that takes none (the analytic feed axis) is compared with MLR on every one
         mlr_inputs = [c for c in inputs if c in log.temperature_columns()] or log.temperature_columns()
@@ -346,6 +376,17 @@ def stagewise_lines(oc: FitOutcome) -> list[str]:
 REMOVES_NOTHING = 0.9
 
 
+def rows_fitted(details: dict[str, Any], log: Log, targets: list[str], inputs: list[str]) -> int:
+    """The rows a fit's loss counted: the kind's own count where it has one (LVR's library of
+    differences), else the rows with an error measured and every input read."""
+    if isinstance(details.get("fit_rows"), int):
+        return int(details["fit_rows"])
+    ok = np.isfinite(log.matrix(targets)).any(axis=1)
+    if inputs:
+        ok &= np.isfinite(log.matrix(inputs)).all(axis=1)
+    return int(ok.sum())
+
+
 def _rms(v: np.ndarray) -> float:
     v = v[np.isfinite(v)]
     return float(np.sqrt(np.mean(v * v))) if v.size else 0.0
@@ -385,23 +426,32 @@ def fit_model(
     pred = predict_log(model, log)
     axes = scores(model, log, tcols, pred)
     warnings: list[str] = []
+    blocking: list[str] = []  # what rules the model out of --kind all's recommendation
     if result.report.get("converged") is False:
-        warnings.append(f"{kind}: the fit did not converge ({result.report.get('optimizer', 'see report')})")
+        blocking.append(f"{kind}: the fit did not converge ({result.report.get('optimizer', 'see report')})")
+        warnings.append(blocking[-1])
     if result.report.get("warning"):
         warnings.append(f"{kind}: {result.report['warning']}")
-    for why in result.report.get("at_bounds", []) + result.report.get("lag", {}).get("at_bounds", []):
+    for why in result.report.get("at_bounds", []):
         warnings.append(f"{kind}: {why}")
+    for why in result.report.get("lag", {}).get("at_bounds", []):
+        warnings.append(f"{kind}: {why}: the sensor may lag more than the lead goes; the lead kept still predicts"
+                        " the held-out folds better than none (its held-out RMSE below says by how much): keep it,"
+                        " or mount the sensor closer to the heat")
     for axis, s in axes.items():
         before = _rms(log.matrix([t for t in tcols if error_axis(t) == axis] or tcols[:1])[:, 0])
         if before > 0 and s["rmse_um"] > REMOVES_NOTHING * before:
-            warnings.append(
+            blocking.append(
                 f"{kind}: axis {axis}: the model removes almost nothing of the error it was fitted to"
                 f" (RMSE {s['rmse_um']:.3f} um of {before:.3f} um in sample)"
             )
+            warnings.append(blocking[-1])
+    rows = rows_fitted(result.report, log, tcols, list(model.inputs))
     report: dict[str, Any] = {
         "kind": kind,
         "log": log.file,
-        "rows": len(log),
+        "rows": rows,
+        "log_rows": len(log),
         "inputs": model.inputs,
         "targets": tcols,
         "fit_time_s": fit_s,
@@ -419,6 +469,7 @@ def fit_model(
     fit_inputs = inputs or result.report.get("fit_inputs")
     fit_inputs = list(model.inputs if fit_inputs is None else fit_inputs)
     ours: np.ndarray | None = None  # the kind's held-out RMSE, once (the stagewise sum is the same figure)
+    fold_rms: dict[str, list[float]] = {}
     if stage is not None:
         report["on_residual_of"] = stage.info
         if baseline:
@@ -426,19 +477,29 @@ def fit_model(
                                                           model.outputs, warnings)
     if baseline and kind != "mlr":
         report["baseline_mlr"] = compare_with_mlr(kind, log, fit_inputs, tcols, held_options,
-                                                  model.outputs, warnings, ours)
+                                                  model.outputs, warnings, ours, fold_rms)
     if baseline and kind == "mlr":  # the baseline's own held-out figure (the probe adapter's σ_m, the tables)
         try:
-            held = ours if ours is not None else held_out_rmse("mlr", log, inputs, tcols, options)
+            if ours is not None:
+                held = ours
+            else:
+                folds = held_out_scores("mlr", log, inputs, tcols, options)
+                held = holdout.pooled_rmse(folds, len(tcols))
+                fold_rms.update(zip(model.outputs, _fold_rms(folds, len(tcols)), strict=True))
             report["held_out_rmse_um"] = dict(zip(model.outputs, map(float, held), strict=True))
         except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
             report["held_out_rmse_um"] = {"skipped": f"the held-out comparison could not fit a fold: {e}"}
+    if fold_rms:
+        report["held_out_fold_rmse_um"] = fold_rms
+    if stage is None:  # the test's own figures, ISO 230-3's drift beside this model's residual (in sample)
+        report["thermal_test"] = thermal_test_block(log, model, pred)
     report["warnings"] = warnings
     fit_info: dict[str, Any] = {
         "fitted_at": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
         "compd_version": version(),
         "log": Path(log.file).name,
-        "rows": len(log),
+        "rows": rows,
+        "log_rows": len(log),
         "rmse_um": {a: s["rmse_um"] for a, s in axes.items()},
         "max_abs_err_um": {a: s["max_abs_err_um"] for a, s in axes.items()},
     }
@@ -462,7 +523,16 @@ def fit_model(
         if before:
             fit_info["on_residual_of"] = before
     model.fit_info = json.loads(json.dumps(fit_info))
-    return FitOutcome(kind, model, report, pred, warnings)
+    return FitOutcome(kind, model, report, pred, warnings, blocking, fit_inputs, held_options, fold_rms)
+
+
+def thermal_test_block(log: Log, model: Model, pred: np.ndarray) -> dict[str, Any]:
+    """The fit report's `thermal_test` (compd.commissioning.thermaltest) of the log the model was
+    fitted on, or `skipped` with the reason (a log that measures no axis)."""
+    try:
+        return thermal_test(log, list(model.outputs), pred).as_dict()
+    except BadInput as e:
+        return {"skipped": e.message}
 
 
 def score_model(model: Model, log: Log) -> dict[str, Any]:
@@ -585,26 +655,10 @@ def held_out_of(oc: FitOutcome, axis: str) -> float | None:
     return oc.report.get("baseline_mlr", {}).get("axes", {}).get(axis, {}).get("held_out_rmse_um")
 
 
-def recommend(rows: list[Row]) -> dict[str, tuple[str, float]]:
-    """Per axis, the fit with the smallest held-out RMSE among those without a warning: {axis: (label, µm)}.
-
-    A fit that warns (a parameter at the edge of its search range, worse than MLR held out, removes
-    almost nothing, did not converge) is never the recommendation."""
-    best: dict[str, tuple[str, float]] = {}
-    for _, label, oc, _ in rows:
-        if oc is None or oc.warnings:
-            continue
-        for axis in oc.report["axes"]:
-            v = held_out_of(oc, axis)
-            if v is not None and (axis not in best or v < best[axis][1]):
-                best[axis] = (label, v)
-    return best
-
-
 def comparison_table(rows: list[Row]) -> str:
     """One line per model and axis: RMSE in sample (the rows it was fitted to) and held out
-    (compd.identify.holdout), MLR held out on the same inputs, max error, fit time; then the
-    recommendation per axis."""
+    (compd.identify.holdout), MLR held out on the same inputs, max error, fit time (the
+    recommendation follows: `recommendation_lines`)."""
     lines = [f"{'model':<16} {'axis':<8} {'in-sample':>10} {'held-out':>9} {'MLR held':>9} {'max_um':>8}"
              f" {'fit_s':>7}  (RMSE um)"]
     for _, label, oc, why in rows:
@@ -617,17 +671,12 @@ def comparison_table(rows: list[Row]) -> str:
             if oc.kind == "mlr":
                 mlr = held
             f = lambda v: f"{v:>9.3f}" if v is not None else f"{'-':>9}"  # noqa: E731
-            note = f"  {len(oc.warnings)} warning(s)" if oc.warnings else ""
+            note = (f"  ruled out: {len(oc.blocking)} warning(s)" if oc.blocking
+                    else f"  {len(oc.warnings)} warning(s)" if oc.warnings else "")
             lines.append(
                 f"{label:<16} {axis:<8} {s['rmse_um']:>10.3f} {f(held)} {f(mlr)} {s['max_abs_err_um']:>8.3f}"
                 f" {oc.report['fit_time_s']:>7.2f}{note}"
             )
-    best = recommend(rows)
-    for axis, (label, v) in best.items():
-        lines.append(f"recommended for {axis}: {label} (held-out RMSE {v:.3f} um, no warning)")
-    axes = {a for _, _, oc, _ in rows if oc is not None for a in oc.report["axes"]}
-    for axis in sorted(axes - set(best)):
-        lines.append(f"no recommendation for {axis}: every fit warns or could not be scored held out")
     return "\n".join(lines + _stagewise_table(rows))
 
 
@@ -682,3 +731,118 @@ def read_profile(file: str | Path) -> tuple[np.ndarray, np.ndarray]:
 def warn(lines: list[str]) -> None:
     for w in lines:
         print(f"compd: warning: {w}", file=sys.stderr)
+
+
+# --- `--kind all`'s recommendation (compd.commissioning.recommend) ---------------------------------
+
+STAGE_NAMES = ("spindle", "structure")  # the contributions of a recommended sum: the spindle's heat, then the rest
+
+
+def recommendation(log: Log, rows: list[Row], targets: list[str] | None, stage: Stage | None = None) -> tuple[
+        Any, list[Any]]:
+    """`--kind all`'s pick over every target (compd.commissioning.recommend.choose) and the sums it
+    weighed: for each spindle kind fitted (xi_spindle, ar1), that kind then MLR on the other
+    temperatures, scored nested held out. (None, sums) when no candidate covers every target."""
+    from compd.commissioning import recommend as rec
+
+    tcols = default_targets(log, targets)
+    firsts = []
+    if stage is None:  # a sum of stages on a log already less other models' predictions: not proposed
+        for kind, _, oc, _ in rows:
+            if oc is not None and kind in rec.SPINDLE_KINDS and not oc.blocking:
+                for t in oc.report["targets"]:
+                    firsts.append((kind, t, list(oc.fit_inputs), list(oc.model.inputs), dict(oc.held_options)))
+    sums = rec.propose_sums(log, firsts)
+    axes = [error_axis(t) or t for t in tcols]
+    before = {a: _rms(log.col(t)) for a, t in zip(axes, tcols, strict=True)}
+    return rec.choose(rec.candidates(rows, sums, held_out_of), axes, before), sums
+
+
+def recommended_model_dict(pick: Any, log: Log) -> dict[str, Any]:
+    """The model file of `--kind all`'s pick: the fitted kind's own file, or a file of two contributions
+    (kind `contributions`: docs/formats.md) — each with its fit — and in either `fit.expected_unseen`:
+    per axis the stated RMS and reduction with their ranges (compd.commissioning.recommend.Stated)."""
+    cand = pick.candidate
+    expected = {a: s.as_dict() for a, s in pick.stated.items()}
+    selection = {"method": "held out (compd fit --kind all): the smallest held-out RMSE among the fits no warning rules"
+                           " out; a sum of two stages only where it beats the best single model by"
+                           f" {round((1 - SUM_MARGIN) * 100):g} %",
+                 "label": cand.label,
+                 "held_out_rmse_um": {a: round(v, 4) for a, v in cand.axes.items()}}
+    if pick.runner_up is not None:
+        selection["runner_up"] = {"label": pick.runner_up.label,
+                                  "held_out_rmse_um": {a: round(v, 4) for a, v in pick.runner_up.axes.items()}}
+    if cand.single is not None:
+        doc = json.loads(json.dumps(cand.single.model.to_dict()))
+        doc["fit"] = {**doc.get("fit", {}), "expected_unseen": expected, "recommended": selection}
+        return doc
+    so = cand.sum
+    assert so is not None
+    stamp = datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+    parts = []
+    for name, res, target in ((STAGE_NAMES[0], so.first, so.target), (STAGE_NAMES[1], so.second, so.target)):
+        m = res.model
+        d = json.loads(json.dumps(m.to_dict()))
+        d["fit"] = {"fitted_at": stamp, "log": Path(log.file).name, "stage": 1 if name == STAGE_NAMES[0] else 2,
+                    "target": target if name == STAGE_NAMES[0] else f"{target} less the {STAGE_NAMES[0]} stage",
+                    "input_range": _input_range(m, log)}
+        parts.append({"name": name, **d})
+    inputs = list(dict.fromkeys(n for p in parts for n in p["inputs"]))
+    fit = {"fitted_at": stamp, "compd_version": version(), "log": Path(log.file).name,
+           "rows": int(np.isfinite(log.col(so.target)).sum()), "log_rows": len(log),
+           "held_out_rmse_um": {so.axis: round(so.held_out_um, 4)}, "held_out_method": "nested: in each fold both"
+           " stages fitted without it (the second on what the first leaves), the fold predicted by their sum",
+           "cancel_ratio": round(so.cancel_ratio, 3), "expected_unseen": expected, "recommended": selection,
+           "input_range": {k: v for p in parts for k, v in p["fit"]["input_range"].items()}}
+    return {"kind": "contributions", "inputs": inputs, "outputs": [so.axis],
+            "params": {"contributions": parts}, "fit": fit}
+
+
+def _input_range(model: Model, log: Log) -> dict[str, list[float]]:
+    out = {}
+    for name in model.inputs:
+        col = log.col(name)
+        seen = col[np.isfinite(col)]
+        if seen.size:
+            out[name] = [float(seen.min()), float(seen.max())]
+    return out
+
+
+def write_recommended(pick: Any, log: Log, path: str | Path) -> None:
+    data = recommended_model_dict(pick, log)
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False, allow_unicode=True), encoding="utf-8")
+
+
+def recommendation_lines(pick: Any, sums: list[Any]) -> list[str]:
+    """What `--kind all` prints of its pick: the sums weighed, the recommendation, what it will do."""
+    lines = []
+    for so in sums:
+        lines.append(f"{so.label:<16} {so.axis:<8} {'-':>10} {so.held_out_um:>9.3f} {'-':>9} {'-':>8} {'-':>7}"
+                     f"  nested held out: {so.first_kind} on {', '.join(so.first.model.inputs)}, then mlr on"
+                     f" {', '.join(so.second_inputs)}" + (f"; cancels ({so.cancel_ratio:.1f})" if so.cancel_ratio > 2 else ""))
+    if pick is None:
+        return lines + ["no recommendation: no fit without a blocking warning covers every axis"]
+    cand = pick.candidate
+    held = ", ".join(f"{a} {v:.3f} um" for a, v in cand.axes.items())
+    lines.append(f"recommended: {cand.label} (held-out RMSE {held})")
+    lines += [s.line(a) for a, s in pick.stated.items()]
+    return lines
+
+
+def recommendation_report(pick: Any, sums: list[Any], path: Path) -> dict[str, Any]:
+    """The `--kind all` report's `recommended` (the pick, its held-out figures and what it will do per
+    axis, the runner-up) and `sums` (each sum weighed: its stages and nested held-out RMSE)."""
+    out: dict[str, Any] = {"sums": {
+        so.label: {"axis": so.axis, "first": {"kind": so.first_kind, "inputs": list(so.first.model.inputs)},
+                   "second": {"kind": "mlr", "inputs": list(so.second_inputs)},
+                   "held_out_rmse_um": so.held_out_um, "cancel_ratio": so.cancel_ratio, "warnings": so.warnings}
+        for so in sums}}
+    if pick is not None:
+        cand = pick.candidate
+        out["recommended"] = {
+            "label": cand.label, "file": str(path), "held_out_rmse_um": cand.axes,
+            "expected_unseen": {a: s.as_dict() for a, s in pick.stated.items()},
+            "runner_up": None if pick.runner_up is None else {"label": pick.runner_up.label,
+                                                              "held_out_rmse_um": pick.runner_up.axes},
+        }
+    return out

@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from compd.commissioning.thermaltest import DEFAULT_EVERY_MIN, ThermalTest, plot_png, thermal_test
 from compd.errors import BadInput
 
 MAX_JSON_BYTES = 16 * 1024 * 1024
@@ -233,6 +234,10 @@ class Page:
     figures: list[Figure] = field(default_factory=list)
     record: Record = field(default_factory=Record)
     logs: list[LogFacts] = field(default_factory=list)
+    thermal: ThermalTest | None = None  # the thermal test's figures, None: not shown (thermal_why_not)
+    thermal_why_not: str = ""
+    thermal_from: str = ""  # where its log came from, in words
+    thermal_png: bytes | None = None
 
 
 def _png(fig: Any) -> bytes:
@@ -308,15 +313,75 @@ def replay_figure(replay: dict[str, Any], replay_file: str) -> Figure:
     return Figure(caption, buf.getvalue())
 
 
+def thermal_from_files(log_file: str | Path, model_file: str | Path | None, every_s: float) -> ThermalTest:
+    """The thermal test's figures of a log file and a model file (its prediction over the whole log,
+    from a cold start as `compd predict` gives it); BadInput for a bad file, or a model input the log lacks."""
+    from compd.commissioning import fitting
+
+    log = fitting.read_fit_log(log_file)
+    if len(log) == 0:
+        raise BadInput("the log has no rows", file=str(log_file))
+    if model_file is None:
+        return thermal_test(log, every_s=every_s)
+    model = fitting.load_model(model_file)
+    for name in model.inputs:
+        if name not in log.columns:
+            raise BadInput(f"column {name!r}, an input of {Path(model_file).name}, is not in the log",
+                           file=str(log_file))
+    return thermal_test(log, list(model.outputs), fitting.predict_log(model, log), str(model_file), every_s)
+
+
+def load_thermal(page: Page, test_log: str | None, test_model: str | None, every_s: float) -> None:
+    """The thermal test's figures on `page`: from `test_log` (default: the log the fit report
+    names) and `test_model` (default: the fit report's model file). What the options name and
+    cannot be read is BadInput; what the fit report names and is gone, the section says."""
+    fit, fit_file = page.fit, page.fit_file
+    given = test_log is not None or test_model is not None
+    if test_log is None:
+        found = find_beside(fit.get("log"), fit_file)
+        if found is None:
+            why = (f"the log {fit['log']!r} that {fit_file} names is not found (looked up as written and beside"
+                   f" {fit_file}): give it with --test-log" if isinstance(fit.get("log"), str)
+                   else f"{fit_file} names no log: give the test's log with --test-log")
+            if given:
+                raise BadInput(why, path="--test-log")
+            page.thermal_why_not = why
+            return
+        log_file, page.thermal_from = str(found), f"the log the fit report {fit_file} names"
+    else:
+        log_file, page.thermal_from = test_log, "--test-log"
+    model_file: str | None = test_model
+    no_model = ""
+    if model_file is None:
+        found = find_beside(fit.get("model"), fit_file)
+        model_file = str(found) if found else None
+        if found is None:
+            no_model = (f"no model: the model file {fit['model']!r} that {fit_file} names is not found (give --model)"
+                        if isinstance(fit.get("model"), str) else f"no model: {fit_file} names none (give --model)")
+    try:
+        tt = thermal_from_files(log_file, model_file, every_s)
+    except BadInput as e:
+        if given:
+            raise
+        page.thermal_why_not = f"the test's figures could not be computed: {e}"
+        return
+    for ax in tt.axes:
+        if ax.predicted_um is None and no_model:
+            ax.why_no_prediction = no_model
+    page.thermal = tt
+
+
 def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
-               pngs: list[str] | None = None, record: Record | None = None) -> Page:
-    """Read and check both reports (BadInput on the first bad key), read what their logs cover
-    and draw the figures."""
+               pngs: list[str] | None = None, record: Record | None = None, *, test_log: str | None = None,
+               test_model: str | None = None, every_s: float = DEFAULT_EVERY_MIN * 60.0) -> Page:
+    """Read and check both reports (BadInput on the first bad key), compute the thermal test's
+    figures (`load_thermal`), read what the logs cover and draw the figures."""
     fit = read_report(fit_file, "--fit")
     check_fit(fit, fit_file)
     replay = read_report(replay_file, "--replay")
     check_replay(replay, replay_file)
     page = Page(fit, fit_file, replay, replay_file, record=record or Record())
+    load_thermal(page, test_log, test_model, every_s)  # before any drawing: a bad --test-log fails at once
     if config_file is None and isinstance(replay.get("config"), str):
         found = find_beside(replay["config"], replay_file)
         config_file = str(found) if found else None
@@ -353,6 +418,10 @@ def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
         page.figures.append(Figure(Path(png).name, data))
     if not pngs:
         page.figures = [fit_figure(fit, fit_file), replay_figure(replay, replay_file)]
+    if page.thermal is not None:
+        page.thermal_png = plot_png(page.thermal)
+        if test_log is not None:
+            page.logs.append(log_facts("thermal test", {"log": test_log}, "./", "--test-log"))
     return page
 
 
@@ -444,6 +513,7 @@ table.sign{width:100%;margin-top:1em}table.sign th,table.sign td{text-align:left
 table.sign td{height:3.2em;vertical-align:middle}table.sign td.role{width:24%}table.sign td.name{width:30%}
 table.sign td.date{width:16%}table.sign td.signature{width:30%}
 .remarks{border:1px solid #ccc;height:6em;padding:.3em .7em;color:#666;margin-top:1em}
+table.measure{font-size:.85em}table.measure td,table.measure th{padding:.1em .5em}
 @page{size:A4;margin:14mm 12mm 14mm 12mm}
 @media print{
 body{max-width:none;margin:0;padding:0;font-size:9.5pt;line-height:1.3;color:#000}
@@ -480,13 +550,14 @@ def _f(v: Any, digits: int = 2, why: str = "not in the report") -> str:
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
-def _table(head: list[str], rows: list[list[str]], left: int = 1) -> str:
+def _table(head: list[str], rows: list[list[str]], left: int = 1, cls: str = "") -> str:
     th = "".join(f'<th class="l">{h}</th>' if i < left else f"<th>{h}</th>" for i, h in enumerate(head))
     body = "".join(
         "<tr>" + "".join(f'<td class="l">{c}</td>' if i < left else f"<td>{c}</td>" for i, c in enumerate(r)) + "</tr>"
         for r in rows
     )
-    return f"<table><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
+    attr = f' class="{cls}"' if cls else ""
+    return f"<table{attr}><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
 
 
 def _flat(d: Any, prefix: str = "") -> list[tuple[str, Any]]:
@@ -681,6 +752,115 @@ def fit_section(page: Page) -> str:
     return "\n".join(out)
 
 
+IDLE_WHERE = {
+    "start": "at the start: the machine at rest, the environment alone",
+    "end": "at the end: the cool-down after the last run, with the environment",
+    "whole": "the whole log: the spindle never ran, the environment alone",
+}
+
+
+def _hours(t_s: float, t0_s: float) -> str:
+    return f"{(t_s - t0_s) / 3600.0:.2f}"
+
+
+def thermal_section(page: Page) -> str:
+    """The thermal test as ISO 230-3 evaluates it: per axis the drift from the first measurement,
+    its largest value and range, the idle stretches' drift, and beside them the model's residual
+    (what the machine would still show with the model compensating); the plot; every measurement."""
+    out = ["<h2>The thermal test: drift per axis (ISO 230-3)</h2>"]
+    tt = page.thermal
+    if tt is None:
+        out.append(f'<p class="warn">Not shown: {_e(page.thermal_why_not)}.</p>')
+        return "\n".join(out)
+    model = f"model <code>{_e(tt.model)}</code>" if tt.model else _none("no model")
+    out.append(f'<p class="muted">log <code>{_e(tt.log)}</code> ({_e(page.thermal_from)}), {tt.rows} rows; {model};'
+               " times from the log's first row.</p>")
+    out.append("<p>Per axis, the <b>drift</b> is each measurement less the first one, and the test's figures are"
+               " its largest absolute value (and when) and its range, the largest less the smallest measurement."
+               " The <b>residual</b> is each measurement less the model's prediction at that row (the model run"
+               " over the whole log from its first row): what the machine would still show with the model"
+               " compensating. Its range is the same figure after compensation.</p>")
+    head = ["axis", "measured", "measurements", "first measurement / µm", "largest |drift| / µm", "at / h",
+            "drift range / µm", "residual RMS / µm", "largest |residual| / µm", "residual range / µm"]
+    rows = []
+    for ax in tt.axes:
+        d, r = ax.drift(), ax.residual()
+        row = [_e(ax.axis), f"<code>{_e(ax.source)}</code>, {_e(ax.sampled)}", str(ax.rows.size),
+               _f(ax.first_um), _f(d.max_abs_um), _hours(d.at_t_s, tt.t0_s), _f(d.range_um)]
+        if r is None:
+            why = ax.why_no_prediction or "the model's prediction is not finite at any measurement"
+            row += [_none(why)] * 3
+        else:
+            row += [_f(r.rms_um), _f(r.max_abs_um), _f(r.range_um)]
+        rows.append(row)
+    out.append(_table(head, rows, left=2))
+    for axis, why in tt.not_measured.items():
+        out.append(f'<p class="warn">The model\'s axis {_e(axis)} is not measured: {_e(why)}.</p>')
+    out.append("<h3>Idle stretches: the spindle stopped</h3>")
+    if tt.idle:
+        few = _none("fewer than two measurements in the stretch")
+        rows = []
+        for st in tt.idle:
+            for ax in tt.axes:
+                f = st.figures(ax)
+                rng = few if f.range_um is None else _f(f.range_um)
+                change = few if f.change_um is None else _f(f.change_um)
+                res = (_f(f.residual_range_um) if f.residual_range_um is not None else few if f.range_um is None
+                       else _none(ax.why_no_prediction or "no finite prediction in the stretch"))
+                rows.append([_e(IDLE_WHERE[st.where]), _hours(st.from_t_s, tt.t0_s), _hours(st.to_t_s, tt.t0_s),
+                             _e(ax.axis), str(f.measurements), rng, change, res])
+        out.append(_table(["stretch", "from / h", "to / h", "axis", "measurements", "range / µm",
+                           "last − first / µm", "residual range / µm"], rows))
+        out.append('<p class="muted">The stretch at the start, before the spindle first runs, is the environment\'s'
+                   " drift (ISO 230-3's environmental temperature variation error, for as long as the log has it);"
+                   " the stretch after the last run is mostly the machine cooling down.</p>")
+    else:
+        out.append(f'<p class="muted">{_e(tt.idle_why_not)}.</p>')
+    uri = "data:image/png;base64," + base64.b64encode(page.thermal_png or b"").decode("ascii")
+    caption = "The thermal test: drift and residual over time per axis (µm)" + (
+        ", under the spindle speed" if tt.speed_rpm is not None else "")
+    out.append(f'<figure><img src="{uri}" alt="{_e(caption)}"><figcaption>{_e(caption)}</figcaption></figure>')
+    out.append(_measurements(tt))
+    return "\n".join(out)
+
+
+def _measurements(tt: ThermalTest) -> str:
+    """Every measurement: time, the speed then, and per axis its drift, the model's prediction and
+    the residual (an axis not measured at that row says so)."""
+    import numpy as np
+
+    every = np.unique(np.concatenate([ax.rows for ax in tt.axes]))
+    speed = tt.speed_rpm
+    head = ["time / h", "t_s / s"] + (["speed / rpm"] if speed is not None else [])
+    for ax in tt.axes:  # an axis without a prediction has its drift only (the caption says why)
+        head += [f"{_e(ax.axis)} drift / µm"]
+        if ax.predicted_um is not None:
+            head += [f"{_e(ax.axis)} model / µm", f"{_e(ax.axis)} residual / µm"]
+    at = [dict(zip(ax.rows.tolist(), range(ax.rows.size), strict=True)) for ax in tt.axes]
+    rows = []
+    for i in every.tolist():
+        row = [_hours(float(tt.t_s[i]), tt.t0_s), f"{tt.t_s[i]:.1f}"]
+        if speed is not None:
+            v = float(speed[i])
+            row.append(_f(v if math.isfinite(v) else None, 0, why="not logged"))
+        for ax, where in zip(tt.axes, at, strict=True):
+            k = where.get(i)
+            cols = 1 if ax.predicted_um is None else 3
+            if k is None:
+                row += [_none("not measured")] * cols
+                continue
+            row.append(_f(float(ax.drift_um[k])))
+            if ax.predicted_um is not None:
+                row += [_f(float(ax.predicted_um[k])), _f(float(ax.residual_um[k]))]  # type: ignore[index]
+        rows.append(row)
+    sources = "; ".join(f"{_e(ax.axis)}: <code>{_e(ax.source)}</code>, first measurement {ax.first_um:.2f} µm"
+                        + (f" (no model or residual: {_e(ax.why_no_prediction)})" if ax.predicted_um is None else "")
+                        for ax in tt.axes)
+    return (f"<h3>The measurements ({every.size})</h3>"
+            f'<p class="muted">{sources}. The drift is the measurement less the first one; the residual is the'
+            " measurement less the model.</p>" + _table(head, rows, left=0, cls="measure"))
+
+
 def _limits(rep: dict[str, Any]) -> str:
     """The replayed device's limits (the report's device_limits), an absent one said as what it means."""
     lim = rep.get("device_limits")
@@ -756,6 +936,12 @@ def summary_section(page: Page) -> str:
                        else '<span class="bad">not better than</span>')
             items.append(f"<li>axis {_e(axis)}, fit: held-out RMSE {own:.2f} µm, {verdict} the MLR baseline"
                          f" ({mlr:.2f} µm)</li>")
+    tt = page.thermal
+    for ax in tt.axes if tt is not None else []:
+        d, r = ax.drift(), ax.residual()
+        left = f"; left with the model: range {r.range_um:.2f} µm, RMS {r.rms_um:.2f} µm" if r is not None else ""
+        items.append(f"<li>axis {_e(ax.axis)}, thermal test: largest drift <b>{d.max_abs_um:.2f} µm</b>,"
+                     f" range {d.range_um:.2f} µm{left}</li>")
     faults = {k: v for k, v in (page.replay.get("faults") or {}).items() if str(k).startswith(("fault", "bad"))}
     if faults:
         items.append(f'<li class="warn">the replay had guard faults or bad inputs: '
@@ -795,15 +981,18 @@ def render(page: Page) -> str:
         f"<title>{_e(title)}</title><style>{CSS}</style></head><body>",
         f"<h1>{_e(title)}</h1>",
         f'<p class="muted">Thermal-error compensation: the record of its commissioning, made {_when(made_at)}.</p>',
-        record_section(page, made_at), summary_section(page), fit_section(page), replay_section(page),
+        record_section(page, made_at), summary_section(page), fit_section(page), thermal_section(page),
+        replay_section(page),
         figures_section(page), config_section(page), signoff_section(page),
         "</body></html>",
     ]) + "\n"
 
 
 def write_report(out: str | Path, fit_file: str, replay_file: str, config_file: str | None = None,
-                 pngs: list[str] | None = None, record: Record | None = None) -> Page:
+                 pngs: list[str] | None = None, record: Record | None = None, *, test_log: str | None = None,
+                 test_model: str | None = None, every_s: float = DEFAULT_EVERY_MIN * 60.0) -> Page:
     """Build the page and write it to `out`."""
-    page = build_page(fit_file, replay_file, config_file, pngs, record)
+    page = build_page(fit_file, replay_file, config_file, pngs, record, test_log=test_log,
+                      test_model=test_model, every_s=every_s)
     Path(out).write_text(render(page), encoding="utf-8")
     return page

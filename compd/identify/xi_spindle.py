@@ -108,6 +108,10 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     E = target_columns(log, targets)
     ok = measured_rows(E)  # the loss counts the rows with every target measured
     rise = X[:, 0] - X[0, 0]  # from the reading at start, as the model's T0
+    # the direction the spindle grows in on the axis (machine coordinates): the sign of the error's
+    # slope on the sensor's rise; the fit then works on the growth, s·error
+    sign = _axial_sign(rise[ok], E[ok, 0])
+    E[:, 0] *= sign
     gain, length = _axial_gain(log, opt, rise[ok], E[ok, 0], temps[0])
     report: dict[str, Any] = {}
     lift = None
@@ -131,11 +135,12 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
             rad = rad.model_copy(update={"outer_gain": g_out, "inner_gain": g_in})
             report["outer_gain"], report["inner_gain"] = g_out, g_in
         report["radial_form"] = "ring_gains" if opt.ring_gains else "paper"
-    report = {"gain_um_per_k": gain, "length_mm": length, **report}
+    report = {"gain_um_per_k": gain, "length_mm": length, "axial_sign": sign, **report}
     if chosen is not None:
         report["inputs_chosen"] = chosen
     params = XiSpindleParams(
-        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, lift=lift, radial=rad
+        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, lift=lift, radial=rad,
+        axial_sign=sign,
     )
     model = XiSpindle(params, temps + ([speed] if speed else []), axis_names(targets))
     return FitResult(model, report)
@@ -233,6 +238,13 @@ def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> l
             " (another speed column: --option speed_input=COL)", path="--inputs",
         )
     return list(inputs)
+
+
+def _axial_sign(rise: np.ndarray, e: np.ndarray) -> int:
+    """+1 when the error grows with the ξ sensor's rise (the spindle grows toward the axis's +
+    direction), −1 when it falls (toward −: a vertical spindle growing down, logged in machine
+    coordinates); +1 when the rise says nothing."""
+    return -1 if float(rise @ e) < 0.0 else 1
 
 
 def _axial_gain(log: Log, opt: Options, rise: np.ndarray, e: np.ndarray, name: str) -> tuple[float, float]:

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -180,6 +180,11 @@ class XiSpindleParams(LeadParams):
     xi_mm: float | None = Field(
         None, ge=0, le=MAX_LENGTH_MM, description="where the sensor sits (documentation)"
     )
+    axial_sign: Literal[1, -1] = Field(
+        1, description="the direction the spindle grows in on the axis, in machine coordinates: +1 toward the"
+        " axis's + direction (the papers' case), -1 toward its - direction (e.g. a vertical spindle growing"
+        " down toward the table, Z+ pointing away from the workpiece as ISO 841 has it)",
+    )
     lift: LiftParams | None = Field(
         None, description="add the centrifugal lift to the axial output; takes the speed input it names"
     )
@@ -218,6 +223,7 @@ class XiSpindle(Model):
     def __init__(self, params: XiSpindleParams, inputs: list[str], outputs: list[str], fit=None):
         super().__init__(params, inputs, outputs, fit)
         self._gain_um_per_k = params.alpha_per_k * params.length_mm * 1000.0
+        self._sign = float(params.axial_sign)  # the growth's direction on the axis (and the lift's with it)
         self.t0_c: float | None = params.t0_c
         self.ref_c: np.ndarray | None = None  # references of the ring sensors
         self._ref: list[float] = []  # the same, as Python floats for evaluate
@@ -253,7 +259,8 @@ class XiSpindle(Model):
             self._ref = self.ref_c.tolist()
 
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
-        """Axial ΔL = α L (T(ξ) − T0) [+ min(k n², share·ΔL)]; radial E = g_C u_C − g_B u_B + c(ΔL) (paper 003), µm.
+        """Axial s·(ΔL [+ min(k n², share·ΔL)]), ΔL = α L (T(ξ) − T0), s = `axial_sign`; radial
+        E = g_C u_C − g_B u_B + c(ΔL) (paper 003), µm.
 
         An older file's radial `k_um_per_rpm2` adds k n² uncapped to E instead.
         """
@@ -262,12 +269,12 @@ class XiSpindle(Model):
         dl = self._gain_um_per_k * (xs[p[0]] - self.t0_c)
         lift = self.params.lift
         if lift is None:
-            out[0] = dl
+            out[0] = self._sign * dl
         else:  # lift_um inlined: min(k n², share·max(ΔL, 0)), k ≥ 0
             n = xs[self._speed]
             kn2 = lift.k_um_per_rpm2 * n * n
             cap = lift.preload_share * dl if dl > 0.0 else 0.0
-            out[0] = dl + (kn2 if kn2 < cap else cap)
+            out[0] = self._sign * (dl + (kn2 if kn2 < cap else cap))
         rad = self.params.radial
         if rad is None:
             return

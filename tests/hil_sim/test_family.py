@@ -410,3 +410,49 @@ def test_harness_bad_arguments_exit_2(capsys):
     assert h.main(["--kinds", "mill"]) == 2
     assert h.main(["--seeds", "x"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 2
+
+
+# --- compd testplan's plan as the training day -------------------------------------------
+@pytest.mark.parametrize("kind", family.ALL_KINDS)
+def test_the_plan_replaces_the_training_day_and_nothing_else(kind):
+    for seed in (1, 2):
+        day, plan = family.draw(kind, seed), family.draw(kind, seed, train="plan")
+        assert plan.train.segments != day.train.segments
+        # the same machine, unseen day and ambient: only the training duty differs
+        assert plan.params == day.params and plan.unseen.to_dict() == day.unseen.to_dict()
+        assert plan.train.ambient.to_dict() == day.train.ambient.to_dict() and plan.train.seed == day.train.seed
+        assert {k: v for k, v in plan.drawn.items() if k != "plan"} == day.drawn
+        assert plan.train.duration_s == 24 * 3600
+        lo, hi = family.DUTY[kind]["limits"]
+        level = "feed_mm_min" if kind in family.PLAN["axis"] else "speed_rpm"
+        levels = sorted({getattr(s, level) for s in plan.train.segments} - {0.0})
+        assert levels[0] == lo and levels[-1] == hi and len(levels) == (4 if level == "feed_mm_min" else 7)
+        assert plan.train.segments[0].speed_rpm == plan.train.segments[0].feed_mm_min == 0.0  # idle first
+        info = plan.drawn["plan"]
+        assert info["probes"] == 145 and info["seed"] == seed and info["holds"] >= 8
+        if level == "feed_mm_min":  # over the machine's whole travel
+            travel = tuple(float(v) for v in day.params.get("stroke_mm", PLANTS.get(kind).DEFAULTS["stroke_mm"]))
+            assert {s.stroke_mm for s in plan.train.segments if s.feed_mm_min > 0} == {travel}
+
+
+def test_a_short_plan_day_scales_the_plan_and_keeps_a_round_trip_within_a_step():
+    m = family.draw("gantry", 1, day_h=2.4, train="plan")
+    info = m.drawn["plan"]
+    assert m.train.duration_s == 2.4 * 3600 and info["probe_every_min"] == 1.0 and info["time_constant_min"] == 6.0
+    stroke = m.train.segments[1].stroke_mm or (0.0, 1000.0)
+    low = min(s.feed_mm_min for s in m.train.segments if s.feed_mm_min > 0)
+    assert 2 * (stroke[1] - stroke[0]) / low * 60 <= 60.0  # one stroke out and back fits a 1 min step
+
+
+def test_family_command_trains_on_the_plan(tmp_path, capsys):
+    out = tmp_path / "f"
+    assert main(["family", "--kind", "spindle", "--seeds", "3", "--out", str(out), "--rate-s", "600",
+                 "--train", "plan"]) == 0
+    doc = yaml.safe_load((out / "spindle_3_machine.yaml").read_text())
+    assert doc["drawn"]["plan"]["levels"][-1] == 18000.0
+    log = read_log(out / "spindle_3_train.csv")
+    assert log.t_s[-1] == 86400.0 and set(log.col("speed_rpm")) >= set(doc["drawn"]["plan"]["levels"])
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["family", "--kind", "spindle", "--seeds", "3", "--out", str(out), "--train", "week"])
+    assert e.value.code == 2 and "--train: invalid choice" in capsys.readouterr().err

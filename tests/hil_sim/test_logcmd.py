@@ -96,3 +96,87 @@ def test_module_entry_point(tmp_path):
         "T_xi", "T_amb", "T_brg_front", "T_brg_rear", "T_coolant", "speed_rpm", "err_z_um",
         "err_radial_um",
     ]
+
+
+# --- a compd testplan plan instead of the scenario's segments ----------------------------
+def _plan_file(tmp_path: Path, **kw) -> tuple[Path, object]:
+    from compd.commissioning.testplan import design
+
+    max_rpm, hours = kw.pop("max_rpm"), kw.pop("hours")
+    plan = design(max_rpm, hours, **kw)
+    f = tmp_path / "plan.csv"
+    plan.write_csv(f)
+    return f, plan
+
+
+def test_a_plan_drives_the_spindle_and_its_measurements_are_probes(tmp_path, capsys):
+    f, plan = _plan_file(tmp_path, max_rpm=15000, hours=4.5, levels=4, probe_every_min=5, time_constant_min=20,
+                         idle_hours=0.5)
+    out = tmp_path / "log.csv"
+    assert main(["log", "--scenario", str(SCENARIOS / "spindle_train.yaml"), "--plan", str(f), "--out", str(out),
+                 "--rate-s", "120"]) == 0
+    assert f"plan {f}: 55 probes" in capsys.readouterr().out
+    log = read_log(out, allow_nan=True)
+    assert log.t_s[-1] == plan.t_s[-1] == 4.5 * 3600
+    # the speed in force at every row is the plan's row's from its t_s on
+    k = np.searchsorted(plan.t_s, log.t_s, side="right") - 1
+    np.testing.assert_array_equal(log.col("speed_rpm")[:-1], plan.speed_rpm[k][:-1])
+    assert set(np.unique(log.col("speed_rpm"))) == {0.0, *plan.info["speeds_rpm"]}
+    for axis in ("z", "radial"):
+        z = log.col(f"probe_{axis}_um")
+        at = np.isfinite(z)
+        np.testing.assert_array_equal(log.t_s[at], plan.probe_times_s())  # every measurement, and only those
+        miss = z[at] - log.col(f"err_{axis}_um")[at]
+        assert np.all(np.abs(miss) < 5 * 0.3) and np.std(miss) > 0.1  # the true error plus the probe's noise
+    assert np.ptp(log.col("err_z_um")) > 5.0  # the plan warms the machine
+
+
+def test_a_plan_with_a_feed_moves_the_linear_axes_over_the_stroke(tmp_path):
+    from compd.commissioning.testplan import parse_axis
+
+    f, plan = _plan_file(tmp_path, max_rpm=0, hours=6, axes=[parse_axis("y:400:12000:1200")], time_constant_min=20)
+    out = tmp_path / "log.csv"
+    assert main(["log", "--scenario", str(SCENARIOS / "feed_axis_train.yaml"), "--plan", str(f), "--out", str(out),
+                 "--rate-s", "7", "--stroke-mm", "100", "500", "--probe-sigma-um", "0"]) == 0
+    log = read_log(out, allow_nan=True)
+    feed = plan.feeds_mm_min["y"][np.searchsorted(plan.t_s, log.t_s, side="right") - 1]
+    pos = log.col("pos_y_mm")
+    moving = feed > 0
+    inside = np.r_[False, moving[1:] & moving[:-1]]  # a hold's first row: the axis is where it stood
+    assert 100.0 <= pos[inside].min() < 150.0 and 450.0 < pos[inside].max() <= 500.0
+    # standing: the axis stays where the last feed hold left it, row after row
+    still = ~moving[1:] & ~moving[:-1]
+    assert np.all(np.diff(pos)[still] == 0.0)
+    at = np.isfinite(log.col("probe_y_um"))
+    np.testing.assert_array_equal(log.t_s[at], plan.probe_times_s())
+    np.testing.assert_array_equal(log.col("probe_y_um")[at], log.col("err_y_um")[at])  # σ 0: the error itself
+    np.testing.assert_array_equal(log.col("probe_pos_y_mm")[at], pos[at])
+
+
+@pytest.mark.parametrize("extra, says", [
+    (["--plan-axis", "x"], "--plan-axis: the plan has no feed_x_mm_min (its feed columns: none)"),
+    (["--stroke-mm", "0", "100"], "--plan: --plan-axis and --stroke-mm go with --plan"),
+    (["--probe-sigma-um", "-1"], "--probe-sigma-um must be >= 0"),
+])
+def test_plan_options_bad_input_one_line_exit_2(extra, says, tmp_path, capsys):
+    f, _ = _plan_file(tmp_path, max_rpm=6000, hours=5)
+    argv = ["log", "--scenario", str(SCENARIOS / "lathe_train.yaml"), "--out", str(tmp_path / "x.csv"), *extra]
+    if "--stroke-mm" not in extra:
+        argv += ["--plan", str(f)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and says in err, err
+
+
+def test_a_plan_the_plant_cannot_follow_or_a_bad_plan_file_exit_2(tmp_path, capsys):
+    f, _ = _plan_file(tmp_path, max_rpm=6000, hours=5)
+    assert main(["log", "--scenario", str(SCENARIOS / "feed_axis_train.yaml"), "--plan", str(f),
+                 "--out", str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the feed_axis plant follows nothing this plan changes" in err
+    f.write_text("t_s,speed_rpm,probe\n0,100,1\n0,0,1\n")
+    assert main(["log", "--scenario", str(SCENARIOS / "lathe_train.yaml"), "--plan", str(f),
+                 "--out", str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{f}:3: t_s: t_s must increase" in err
+    assert not (tmp_path / "x.csv").exists()

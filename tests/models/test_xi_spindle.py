@@ -93,6 +93,26 @@ def test_fit_axial_length():
     assert m.params.length_mm == pytest.approx(165.0)
 
 
+def test_a_spindle_growing_toward_the_axis_minus_is_fitted_with_its_sign() -> None:
+    """A vertical spindle growing down toward the table, logged in machine coordinates (Z+ away from
+    the workpiece: the error is negative): fitted with axial_sign −1 and the same length, the lift
+    on the same side; it was refused ("the error falls as T_xi rises")."""
+    t = np.arange(200.0)
+    T = 22.5 + 8 * (1 - np.exp(-t / 30))
+    n = np.where(t < 100, 6000.0, 9000.0)
+    growth = 13.6e-6 * 165e3 * (T - T[0])
+    lift = np.minimum(2e-8 * n * n, 0.8 * growth)
+    for sign in (1, -1):
+        log = Log("x.csv", ["t_s", "T_xi", "speed_rpm", "err_z_um"], np.column_stack([t, T, n, sign * (growth + lift)]))
+        res = FITS.get(XiSpindle.kind)(log, ["T_xi", "speed_rpm"], None)
+        m = res.model
+        assert m.params.axial_sign == sign and res.report["axial_sign"] == sign
+        assert m.params.length_mm == pytest.approx(165.0, rel=1e-3)
+        assert m.params.lift.k_um_per_rpm2 == pytest.approx(2e-8, rel=1e-3)
+        np.testing.assert_allclose(m.predict(log.matrix(["T_xi", "speed_rpm"]), t)[:, 0], sign * (growth + lift),
+                                   atol=1e-6)
+
+
 # paper 003, Table 1: T(ξ) °C → modelled ΔL µm (α = 13.6e-6 /K, L = 165 mm, T0 = 22.5 °C).
 # The paper prints 18.50 for 30.7 °C; α L ΔT gives 18.40.
 TABLE_1 = [
