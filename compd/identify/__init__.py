@@ -47,6 +47,8 @@ def identify(
     fit = FITS.get(kind, path="--kind")
     options = dict(options)
     lag = options.pop("lag", default_lag(kind))
+    if "lag" in OPTIONS.get(kind).model_fields:  # the kind chooses its lead itself (with its sensors, in one pass)
+        return fit(log, inputs, targets, lag=lag, **options)
     return fit_with_lag(
         log, targets, lambda lg, opts: fit(lg, inputs, targets, **opts), options, lag, CHOICES.get(kind)
     )

@@ -54,6 +54,10 @@ SCAN_POINTS = 120  # the selection's C1 grid (then a parabola): within 1 % of th
 LAW_RATIOS = (1.0, 1.25, 1.6, 2.0, 2.5, 3.2, 4.0, 5.0, 6.5, 8.0)  # the speed law's grid of ρ: cooling at n_ref / at rest
 RATE_RATIO_MAX = 50.0  # ρ at most
 LAW_Z_POINTS = 30  # the speed law's grid of C1 at standstill
+# the selection's grid of the speed law where the log has stops (C1 at rest and turning differ: the
+# convection grows with speed, and a sensor's worth shows only with the spindle's own time constants)
+SELECT_Z_POINTS = 16
+SELECT_RATIOS = (1.0, 1.6, 2.5, 4.0, 6.5)
 
 
 def c1_grid(dt_s: float, points: int = GRID_POINTS) -> np.ndarray:
@@ -458,10 +462,11 @@ def too_few(fold: FoldRows, roles: Roles, n_c2: int, k: int) -> str:
     return f"fold {k}: {have} rows are too few: ar1 needs at least {need}" if have < need else ""
 
 
-def score_quick(scan: Scan, many: Sequence[Roles]) -> list[list[FoldScore]]:
-    """Per candidate and fold the held-out (SSE, rows) at the fold's best C1 of the scan's grid of
-    the paper's form, the held-out SSE read off the parabola through the best grid point and its
-    neighbours (`_parabola`): no filter beyond the scan's, for ranking many candidates."""
+def score_quick(scan: Scan, many: Sequence[Roles], parabola: bool = True) -> list[list[FoldScore]]:
+    """Per candidate and fold the held-out (SSE, rows) at the fold's best C1 of the scan's grid, the
+    held-out SSE read off the parabola through the best grid point and its neighbours (`_parabola`:
+    a 1-D grid of the paper's form; else the best point's): no filter beyond the scan's, for ranking
+    many candidates."""
     out: list[list[FoldScore]] = [[] for _ in many]
     for j, (k, fold) in enumerate(scan.folds):
         if fold.why:
@@ -473,7 +478,8 @@ def score_quick(scan: Scan, many: Sequence[Roles]) -> list[list[FoldScore]]:
             _, cost, held = scan.solve([many[i] for i in members], j)
             for m, i in enumerate(members):
                 why = too_few(fold, many[i], n_c2, k)
-                value = _parabola(cost[m], held[m], int(np.argmin(cost[m])))
+                best = int(np.argmin(cost[m]))
+                value = _parabola(cost[m], held[m], best) if parabola else float(held[m][best])
                 out[i].append(why or (np.array([max(value, 0.0)]), np.array([fold.rows])))
     return out
 
@@ -559,7 +565,7 @@ def score_exact(steps: Steps, roles: Roles, folds: bool = True) -> tuple[list[Fo
         i = int(np.argmin(cost))
         search = Search(steps, roles, fold, c1_of_z, c2)
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-        res = optimize.minimize_scalar(lambda z: search.cost(np.array([z])), bounds=(min(lo, hi), max(lo, hi)),
+        res = optimize.minimize_scalar(lambda z, search=search: search.cost(np.array([z])), bounds=(min(lo, hi), max(lo, hi)),
                                        method="bounded", options={"xatol": 1e-6})
         z = float(res.x) if res.fun <= cost[i] else float(grid[i])
         best = search.at(np.array([z]))

@@ -19,7 +19,7 @@ logged speed and interpolated linearly in n between them (held past the last);
 an empty table is the paper's single C1. For a log that runs at many speeds (a spectrum)
 compd fits both coefficients as smooth functions of the speed instead (`speed_law`):
 b(n) = b(0) + k (|n|/n_ref)^p, so C1(n) = C1(0)·e^(−Δτ k (|n|/n_ref)^p), and C2(n) =
-C2(n_ref)·(|n|/n_ref)^e (the heat input's power law). The fit is compd.identify.ar1.
+a·|n|/n_ref + q·(|n|/n_ref)² (a, q ≥ 0: the heat input grows with speed, the bearings' faster). The fit is compd.identify.ar1.
 """
 
 from __future__ import annotations
@@ -65,21 +65,26 @@ SpeedRpm = Annotated[float, Field(gt=0, le=MAX_SPEED_RPM)]
 
 
 class SpeedLaw(Strict):
-    """C1 and C2 as smooth functions of the speed n (compd's form for a log at many speeds):
-    C1(n) = c1·e^(−Δτ·rate_per_s·(|n|/ref_rpm)^rate_exponent), C2(n) = c2_um·(|n|/ref_rpm)^c2_exponent."""
+    """C1 and C2 as smooth functions of the speed n (compd's form for a log at many speeds), x = |n|/ref_rpm:
+    C1(n) = c1·e^(−Δτ·rate_per_s·x^rate_exponent), C2(n) = c2_um·x + c2_quad_um·x²."""
 
     ref_rpm: SpeedRpm = Field(description="the speed the law is stated at (the fastest fitted)")
-    c2_um: float = Field(ge=0, le=MAX_ERROR_UM, description="C2 at ref_rpm, µm per step")
-    c2_exponent: float = Field(ge=0.25, le=4.0, description="e: C2 ∝ |n|^e (the heat input's growth with speed)")
+    c2_um: float = Field(ge=0, le=MAX_ERROR_UM, description="C2's term linear in speed, µm per step at ref_rpm")
+    c2_quad_um: float = Field(
+        0.0, ge=0, le=MAX_ERROR_UM,
+        description="C2's term in the speed squared, µm per step at ref_rpm (the bearings' friction heat grows"
+        " faster than the speed)",
+    )
     rate_per_s: float = Field(
         ge=0, le=1.0, description="k: how much faster the spindle cools at ref_rpm than at standstill, 1/s"
-        " (1/τ(n) = −ln(c1)/Δτ + k (|n|/ref_rpm)^p: the convection grows with speed)",
+        " (1/τ(n) = −ln(c1)/Δτ + k x^p: the convection grows with speed)",
     )
-    rate_exponent: float = Field(ge=0.25, le=4.0, description="p: the cooling's growth with speed")
+    rate_exponent: float = Field(1.0, ge=0.25, le=4.0, description="p: the cooling's growth with speed")
 
     def c2_um_at(self, speed_rpm: float) -> float:
         """C2(n), µm per step."""
-        return self.c2_um * (abs(speed_rpm) / self.ref_rpm) ** self.c2_exponent
+        x = abs(speed_rpm) / self.ref_rpm
+        return self.c2_um * x + self.c2_quad_um * x * x
 
     def c1_at(self, c1_standstill: float, dt_s: float, speed_rpm: float) -> float:
         """C1(n) from C1 at standstill."""
@@ -124,7 +129,7 @@ class AR1Params(LeadParams):
         None,
         description="C1 and C2 as smooth functions of the speed (compd's form for a log at many speeds; "
         "c2_table and c1_table then empty): C1(n) = c1·e^(−Δτ·rate_per_s·(|n|/ref_rpm)^rate_exponent), "
-        "C2(n) = c2_um·(|n|/ref_rpm)^c2_exponent; none = the tables",
+        "C2(n) = c2_um·|n|/ref_rpm + c2_quad_um·(|n|/ref_rpm)²; none = the tables",
     )
     recursion_start: Literal["zero", "c2"] = Field(
         "zero",
