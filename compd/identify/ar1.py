@@ -707,6 +707,7 @@ class _Problem:
                         np.full(int(ambient), -np.inf), np.zeros(n_exchange)]
         self.ub = np.full(L + nb + na, np.inf)
         self.rpm = rpm
+        self._last: np.ndarray | None = None
 
     def design(self, c1: float | np.ndarray) -> np.ndarray:
         L, sign = self.L, self.sign
@@ -716,8 +717,11 @@ class _Problem:
     def solve(self, c1: float | np.ndarray) -> tuple[float, np.ndarray]:
         """(sum of squared errors, [δ, bed gains, C3]) at this C1."""
         A = self.design(c1)[self.ok]
-        r = optimize.lsq_linear(A, self.Es, bounds=(self.lb, self.ub), method="bvls")
-        return float(np.sum((A @ r.x - self.Es) ** 2)), r.x
+        # the bounded least squares on the Gram (Lawson–Hanson from the last solve's active set:
+        # compd.identify.ar1_design.bounded_lstsq), a few small solves instead of BVLS on the rows
+        x = design.bounded_lstsq(A.T @ A, A.T @ self.Es, self.lb == 0.0, self._last)
+        self._last = x
+        return float(np.sum((A @ x - self.Es) ** 2)), x
 
     def search_c1(self) -> tuple[float, int, Any]:
         """(z = log(1 − C1), grid index of the best start, the bounded search's result)."""
