@@ -79,8 +79,9 @@ class Options(Strict):
     ambient: str | None = Field(
         "auto",
         description="ambient sensor column (enables C3); auto = chosen held out among every temperature column"
-        " with the structure and exchange sensors (a name such as amb, room or air only breaks a tie), none if"
-        " no column predicts the held-out folds clearly better; none (or null) = the paper's constant shop",
+        " with the structure and exchange sensors (a column named for the air, amb/room/air, is no structure"
+        " sensor and only wins a tie), none if no column predicts the held-out folds clearly better; none (or"
+        " null) = the paper's constant shop",
     )
     structure: list[str] | Literal["auto"] = Field(
         "auto",

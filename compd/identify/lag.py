@@ -145,9 +145,14 @@ def fit_with_lag(
 
     def score(lags: dict[str, float]) -> float:
         lead, filt = lead_lists(inputs, lags, dt)
+        # the inputs led once for every fold: a fold hides only its targets, which the lead does not touch
+        led_log = led(log, inputs, lead, filt)
+        hidden = [log.index(t) for t in target]
 
         def fit_on(lg: Log) -> FitResult:
-            return with_lead(fit(led(lg, inputs, lead, filt), fixed), lead, filt)
+            data = led_log.data.copy()
+            data[:, hidden] = lg.data[:, hidden]
+            return with_lead(fit(Log(lg.file, lg.columns, data), fixed), lead, filt)
 
         try:
             rmse = holdout.held_out_rmse(log, target, fit_on)

@@ -86,40 +86,57 @@ class InputLead:
         t = np.asarray(t_s, dtype=float)
         prev = self.t_s if self.t_s == self.t_s else t[0]
         dt = np.maximum(np.diff(np.r_[prev, t]), 0.0)
-        for k, i in enumerate(self.idx_list):
-            v = X[:, i]
-            h = dt / self.filter_s[k]
-            a = np.exp(-h)
-            y1_0 = self.y1[k] if self.y1[k] == self.y1[k] else v[0]
-            y2_0 = self.y2[k] if self.y2[k] == self.y2[k] else v[0]
+        groups: dict[float, list[int]] = {}  # the inputs with one low-pass share its blocks: filtered together
+        for k, f in enumerate(self.filter_s):
+            groups.setdefault(f, []).append(k)
+        for f, ks in groups.items():
+            cols = [self.idx_list[k] for k in ks]
+            v = X[:, cols]
+            h = dt / f
+            a = np.exp(-h)[:, None]
+            y1_0 = np.array([self.y1[k] if self.y1[k] == self.y1[k] else v[0, j] for j, k in enumerate(ks)])
+            y2_0 = np.array([self.y2[k] if self.y2[k] == self.y2[k] else v[0, j] for j, k in enumerate(ks)])
             # y1 = v + (y1 − v) a, i.e. y1_k = a y1_(k−1) + (1 − a) v_k
             y1 = _first_order(a, (1.0 - a) * v, h, y1_0)
-            y1_prev = np.r_[y1_0, y1[:-1]]
+            y1_prev = np.vstack([y1_0, y1[:-1]])
             # y2_k = a y2_(k−1) + (1 − a) v_k + (y1_(k−1) − v_k) h a
-            y2 = _first_order(a, (1.0 - a) * v + (y1_prev - v) * h * a, h, y2_0)
-            out[:, i] = y2 + self.ratio[k] * (y1 - y2)
-            self.y1[k], self.y2[k] = float(y1[-1]), float(y2[-1])
+            y2 = _first_order(a, (1.0 - a) * v + (y1_prev - v) * h[:, None] * a, h, y2_0)
+            out[:, cols] = y2 + np.array([self.ratio[k] for k in ks]) * (y1 - y2)
+            for j, k in enumerate(ks):
+                self.y1[k], self.y2[k] = float(y1[-1, j]), float(y2[-1, j])
         self.t_s = float(t[-1])
         return out
 
 
-def _first_order(a: np.ndarray, c: np.ndarray, h: np.ndarray, y0: float) -> np.ndarray:
-    """y_k = a_k y_(k−1) + c_k from y_(−1) = y0, with a_k = e^(−h_k): vectorised in blocks.
+def _first_order(a: np.ndarray, c: np.ndarray, h: np.ndarray, y0: float | np.ndarray) -> np.ndarray:
+    """y_k = a_k y_(k−1) + c_k from y_(−1) = y0, with a_k = e^(−h_k): vectorised in blocks, for
+    one column c (n) or several with the same a (n × m, a n × 1, y0 per column).
 
     Within a block y_k = P_k (y_start + Σ_j c_j / P_j), P_k = Π a = e^(−Σ h); a block ends
     before Σ h passes BLOCK_DECAY, so 1/P stays below e^10 and the sum keeps its digits."""
-    n = a.size
-    y = np.empty(n)
+    y = np.empty(c.shape)
     cum = np.cumsum(h)
+    ends = _block_ends(cum)
     start, carry = 0, y0
-    while start < n:
+    for end in ends:
         # the block's first row alone (its own decay may be any size: a gap in the log)
         y[start] = a[start] * carry + c[start]
-        base = cum[start]
-        end = max(int(np.searchsorted(cum, base + BLOCK_DECAY, side="right")), start + 1)
         if end > start + 1:
-            p = np.exp(-(cum[start + 1:end] - base))
-            y[start + 1:end] = p * (y[start] + np.cumsum(c[start + 1:end] / p))
-        carry = float(y[end - 1])
+            p = np.exp(-(cum[start + 1:end] - cum[start]))
+            if c.ndim == 2:
+                p = p[:, None]
+            y[start + 1:end] = p * (y[start] + np.cumsum(c[start + 1:end] / p, axis=0))
+        carry = y[end - 1]
         start = end
     return y
+
+
+def _block_ends(cum: np.ndarray) -> list[int]:
+    """The end (exclusive) of each block of `_first_order` over the cumulative decay `cum`."""
+    ends: list[int] = []
+    start, n = 0, cum.size
+    while start < n:
+        end = max(int(np.searchsorted(cum, cum[start] + BLOCK_DECAY, side="right")), start + 1)
+        ends.append(end)
+        start = end
+    return ends
