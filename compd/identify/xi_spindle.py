@@ -320,18 +320,20 @@ def _argmin_piecewise(
     order = np.argsort(knot, kind="stable")
     kn = knot[order]
     # rows already past their knot: 0..j-1 (hi), the rest lo; j runs over the intervals
-    def cum(a: np.ndarray, rev: bool) -> np.ndarray:
+    zero = np.zeros(1)
+
+    def cum(a: np.ndarray, rev: bool) -> np.ndarray:  # np.concatenate: np.r_ costs more than the sums here
         if rev:
-            return np.r_[np.cumsum(a[::-1])[::-1], 0.0]
-        return np.r_[0.0, np.cumsum(a)]
+            return np.concatenate((np.cumsum(a[::-1])[::-1], zero))
+        return np.concatenate((zero, np.cumsum(a)))
 
     rh, rl = y[order] - c_hi[order], y[order] - c_lo[order]
     sh, sl = s_hi[order], s_lo[order]
     q = cum(sh * sh, False) + cum(sl * sl, True)
     b = cum(sh * rh, False) + cum(sl * rl, True)
     c = cum(rh * rh, False) + cum(rl * rl, True)
-    left = np.maximum(np.r_[-np.inf, kn], lo_bound)
-    right = np.r_[kn, np.inf]
+    left = np.maximum(np.concatenate(((-np.inf,), kn)), lo_bound)
+    right = np.concatenate((kn, (np.inf,)))
     ok = (right >= left) & np.isfinite(left)
     with np.errstate(divide="ignore", invalid="ignore"):
         p = np.where(q > 0, b / q, left)
