@@ -453,6 +453,7 @@ def test_a_speed_spectrum_fits_c1_and_c2_as_functions_of_speed():
     assert law.c2_um_at(3600.0) == pytest.approx(0.20, rel=0.05)
     assert law.c2_um_at(1800.0) == pytest.approx(0.05 * 0.5 + 0.15 * 0.25, rel=0.1)
     assert p.bed_gain_um_per_k[0] == pytest.approx(8.0, rel=0.03)
+    assert set(res.model.coefficients()["speed_law"]) >= {"ref_rpm", "c2_um", "c2_quad_um", "rate_per_s"}  # status
     m = AR1(p, res.model.inputs, res.model.outputs)
     X = log.matrix(res.model.inputs)
     P = AR1(p, m.inputs, m.outputs).predict(X, log.t_s)
