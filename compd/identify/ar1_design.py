@@ -54,10 +54,6 @@ SCAN_POINTS = 120  # the selection's C1 grid (then a parabola): within 1 % of th
 LAW_RATIOS = (1.0, 1.25, 1.6, 2.0, 2.5, 3.2, 4.0, 5.0, 6.5, 8.0)  # the speed law's grid of ρ: cooling at n_ref / at rest
 RATE_RATIO_MAX = 50.0  # ρ at most
 LAW_Z_POINTS = 30  # the speed law's grid of C1 at standstill
-# the selection's grid of the speed law where the log has stops (C1 at rest and turning differ: the
-# convection grows with speed, and a sensor's worth shows only with the spindle's own time constants)
-SELECT_Z_POINTS = 16
-SELECT_RATIOS = (1.0, 1.6, 2.5, 4.0, 6.5)
 
 
 def c1_grid(dt_s: float, points: int = GRID_POINTS) -> np.ndarray:
