@@ -110,6 +110,9 @@ def with_lead(result: FitResult, lead_s: list[float], filter_s: list[float]) -> 
 
 
 FitFn = Callable[[Log, dict[str, Any]], FitResult]
+# the option key by which the search hands a refit the inputs the first fit chose (compd.identify.identify
+# takes it out and passes them as the fit's inputs): a refit per lag per fold chooses nothing again
+HELD_INPUTS = "__inputs__"
 # a fit's report of the choices its kind makes beyond the coefficients (what `choices` holds fixed)
 CHOICE_KEYS = ("selection", "q2", "press", "cv", "q2_limit", "n_components", "c1_form", "form", "form_selection",
                "degree", "inputs_chosen", "ambient_chosen", "exchange_chosen", "at_bounds")
@@ -142,6 +145,8 @@ def fit_with_lag(
         return first
     target = default_targets(log, targets)
     fixed = {**options, **choices(first)}
+    if isinstance(first.report.get("inputs_chosen"), dict):  # the inputs it chose are held too (the ξ sensor)
+        fixed[HELD_INPUTS] = list(first.report["inputs_chosen"]["inputs"])
 
     def score(lags: dict[str, float]) -> float:
         lead, filt = lead_lists(inputs, lags, dt)
