@@ -108,3 +108,27 @@ def test_only_a_warning_that_rules_a_fit_out_keeps_it_from_the_recommendation(wa
     pick = rec.choose(rec.candidates(rows, [], fitting.held_out_of), ["z"], {"z": 10.0})
     assert pick.candidate.label == ("mlr" if warned == "blocking" else "ar1")
     assert pick.stated["z"].rms_um == (0.9 if warned == "blocking" else 0.5)
+
+
+def test_a_named_structure_sensor_the_fit_pins_at_zero_warns(tmp_path, capsys):
+    # the error shrinks as T5 warms (its gain would be negative): the bound (≥ 0) pins it at 0 and it
+    # contributes nothing; the fit says which sensor and what to do, on stderr and in the report
+    log = _lathe()
+    h = log.t_s / 3600
+    t5 = 20.0 + 0.5 * np.sin(h / 2.5) + np.random.default_rng(4).normal(0, 0.02, h.size)
+    err = log.col("err_z_um") - 3.0 * (t5 - t5[0])
+    f = tmp_path / "lathe.csv"
+    write_log(f, [*log.columns[:-1], "T5", "err_z_um"], np.column_stack([log.data[:, :-1], t5, err]))
+    rep = tmp_path / "r.json"
+    rc = main(["fit", "--kind", "ar1", "--log", str(f), "--inputs", "T3", "T5", "--option", "lag=off",
+               "--option", "c1_by_speed=false", "--option", "ambient=none", "--out", str(tmp_path / "m.yaml"),
+               "--report", str(rep)])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    line = next(x for x in err.splitlines() if "T5" in x)
+    assert line.startswith("compd: warning: ar1: the structure sensor T5 (named with --inputs) has gain 0")
+    assert "drop it from --inputs" in line and "bed_gains=free" in line
+    assert "T3" not in line  # the sensor the fit uses is not warned about
+    import json
+
+    assert any("structure sensor T5" in w for w in json.loads(rep.read_text())["warnings"])

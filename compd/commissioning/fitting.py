@@ -21,7 +21,7 @@ from compd.commissioning.recommend import SUM_MARGIN
 from compd.commissioning.scoring import score_residual
 from compd.commissioning.thermaltest import thermal_test
 from compd.errors import BadInput
-from compd.identify import FITS, KINDS, holdout, identify, option_names
+from compd.identify import CHOICES, FITS, KINDS, holdout, identify, option_names
 from compd.identify.data import (
     HELD_OUT_METHOD,
     columns,
@@ -461,6 +461,9 @@ def fit_model(
     held_options = dict(options)
     if "form" in result.report:  # score the form the fit kept (feed_axis form: auto)
         held_options["form"] = result.report["form"]
+    if kind == "ar1":  # ... and AR(1)'s C1 form, ambient and exchange sensors (as its structure sensors)
+        chosen = CHOICES.get(kind)(result)
+        held_options.update({k: chosen[k] for k in ("c1_by_speed", "ambient", "exchange") if k in chosen})
     # ... and the lead it kept: a fold refits the coefficients, not the lag search
     lead = result.model.params.model_dump().get("lead_s")
     led = {n: v for n, v in zip(model.inputs, lead or [], strict=False) if v > 0}

@@ -47,9 +47,16 @@ def identify(
     fit = FITS.get(kind, path="--kind")
     options = dict(options)
     lag = options.pop("lag", default_lag(kind))
-    return fit_with_lag(
-        log, targets, lambda lg, opts: fit(lg, inputs, targets, **opts), options, lag, CHOICES.get(kind)
-    )
+    if "lag" in OPTIONS.get(kind).model_fields:  # the kind chooses its lead itself (with its sensors, in one pass)
+        return fit(log, inputs, targets, lag=lag, **options)
+    from compd.identify.lag import HELD_INPUTS
+
+    def run(lg: Log, opts: dict[str, Any]) -> FitResult:
+        opts = dict(opts)
+        held = opts.pop(HELD_INPUTS, None)
+        return fit(lg, inputs if held is None else held, targets, **opts)
+
+    return fit_with_lag(log, targets, run, options, lag, CHOICES.get(kind))
 
 
 def option_names(kind: str) -> set[str]:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
@@ -12,14 +12,15 @@ from scipy import optimize, signal, stats
 
 from compd.config import Strict
 from compd.errors import BadInput
+from compd.identify import ar1_design as design
 from compd.identify import holdout
+from compd.identify import lag as lag_mod
 from compd.identify.data import (
     HELD_OUT_METHOD,
     FitResult,
     ambient_columns,
     axis_names,
     columns,
-    compare_forms,
     default_targets,
     measured_rows,
     progress,
@@ -28,7 +29,7 @@ from compd.identify.data import (
     validate_options,
 )
 from compd.log import Log
-from compd.models.ar1 import AR1, AR1Params, c2_of_speed
+from compd.models.ar1 import AR1, AR1Params, SpeedLaw, c2_of_speed
 from compd.models.ar1 import ar_filter as stepwise_filter
 from compd.models.base import step_rows
 
@@ -77,19 +78,26 @@ class Options(Strict):
     dt_s: float | None = Field(None, gt=0, description="Δτ; none = the log's median sample period")
     ambient: str | None = Field(
         "auto",
-        description="ambient sensor column (enables C3); auto = the column whose name says air (amb, room, air),"
-        " else the temperature column the spindle's duty warms least, kept unless it predicts the held-out folds"
-        " clearly worse; none (or null) = the paper's constant shop",
+        description="ambient sensor column (enables C3); auto = chosen held out among every temperature column"
+        " with the structure and exchange sensors (a column named for the air, amb/room/air, is no structure"
+        " sensor and only wins a tie), none if no column predicts the held-out folds clearly better; none (or"
+        " null) = the paper's constant shop",
+    )
+    structure: list[str] | Literal["auto"] = Field(
+        "auto",
+        description="the structure (bed) sensors when --inputs names none: auto = chosen held out among every"
+        " temperature column (at most 3); a list = these (what a refit of a chosen fit holds)",
     )
     speed_column: str = "speed_rpm"
     speed_round_rpm: float = Field(50.0, gt=0, description="speeds this close form one level")
     stopped_below_rpm: float = Field(1.0, ge=0, description="slower than this counts as stopped")
     spindle_sign: Literal[1, -1] | None = Field(None, description="none: −1 with bed inputs, else +1")
-    c1_by_speed: bool | Literal["auto"] = Field(
+    c1_by_speed: bool | Literal["auto", "law"] = Field(
         "auto",
-        description="fit C1 at standstill and at each logged speed (compd's form; needs stops in the log);"
-        " false = one C1 (the paper's); auto = compd's form where it predicts the later blocks of the log"
-        " at least 5 % better held out, else the paper's",
+        description="true = C1 at standstill and at each logged speed (compd's form; needs stops in the log);"
+        " law = C1 and C2 smooth functions of the speed fitted in one pass (compd's form for a log at many"
+        " speeds: the model's speed_law); false = one C1 (the paper's); auto = compd's form (by level up to"
+        " 4 levels, the law from 3) where it predicts the held-out folds at least 5 % better, else the paper's",
     )
     c2_rise: dict[str, Any] | None = Field(
         None,
@@ -114,9 +122,14 @@ class Options(Strict):
     exchange: list[str] | Literal["auto", "none"] = Field(
         "none",
         description="the sensors the spindle exchanges heat with besides the air (its housing, where its bearings"
-        " sit), entering the recursion with a gain ≥ 0 each (compd's form); auto = chosen held out among the"
-        " temperature columns that are neither --inputs nor the ambient (at most 2, each kept while it cuts the"
+        " sit), entering the recursion with a gain ≥ 0 each (compd's form); auto = chosen held out among every"
+        " temperature column with the structure sensors and the ambient (at most 2, each kept while it cuts the"
         " held-out RMSE by 5 %); none = the paper's recursion",
+    )
+    lag: Any = Field(
+        "auto",
+        description="the inputs' sensor lag: auto (chosen held out with the sensors; off where it does not help),"
+        " off, seconds for every temperature input, or {input: seconds}",
     )
     bed_gains: Literal["positive", "free"] = Field(
         "positive",
@@ -125,173 +138,323 @@ class Options(Strict):
     )
 
 
-AUTO_MARGIN = 0.95  # compd's form must cut the held-out RMSE by 5 % to replace the paper's
+AUTO_MARGIN = 0.95  # a sensor or compd's C1 form must cut the held-out RMSE by 5 % to be kept
+STRUCTURE_MAX = 3  # structure (bed) sensors the automatic choice takes at most
+EXCHANGE_MAX = 2  # exchange sensors the automatic choice takes at most
+LEVELS_MAX = 4  # C1 per level is tried up to this many speed levels; beyond, the speed law (one pass)
+LAW_MIN_LEVELS = 3  # the speed law is tried from this many speed levels (a spectrum)
 
 
 def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = None, **options: Any) -> FitResult:
-    """The AR(1) model; with `c1_by_speed: auto` the paper's single C1 unless C1 by speed predicts
-    the later blocks of the log clearly better (compd.identify.data.compare_forms)."""
+    """The AR(1) model. The sensors the options leave to the fit (`ambient: auto`, `exchange: auto`, the
+    structure sensors when --inputs names none) and the inputs' lead (`lag: auto`) are chosen together
+    by held-out error among every temperature column at every lag of compd.identify.lag's grid
+    (`choose_sensors`), then the C1 form (`c1_by_speed: auto`) the same way, both on the log's columns
+    prepared once (compd.identify.ar1_design); then the fit of what was chosen on the led log."""
     opt = validate_options("ar1", Options, options)
-    chosen_ambient: dict[str, Any] | None = None
-    if opt.ambient in ("auto", "none", None):
-        name, chosen_ambient = (None, None) if opt.ambient != "auto" else ambient_sensor(log, inputs, targets, opt)
-        opt = opt.model_copy(update={"ambient": name})
-    chosen_inputs: dict[str, Any] | None = None
-    if not inputs and opt.spindle_sign != 1:
-        inputs, chosen_inputs = structure_sensors(log, targets, opt)
-    chosen_exchange: dict[str, Any] | None = None
-    if opt.exchange == "auto":
-        names, chosen_exchange = exchange_sensors(log, inputs, targets, opt)
-        opt = opt.model_copy(update={"exchange": names})
-    result = _fit_form(log, inputs, targets, opt)
-    if chosen_inputs is not None:
-        result.report["inputs_chosen"] = chosen_inputs
-    if chosen_exchange is not None:
-        result.report["exchange_chosen"] = chosen_exchange
-    if chosen_ambient is not None:
-        result.report["ambient_chosen"] = chosen_ambient
+    if isinstance(opt.structure, list):
+        if inputs:
+            raise BadInput("give the structure sensors with --inputs or the structure option, not both",
+                           path="--option structure")
+        inputs = list(opt.structure)
+    temps = log.temperature_columns()
+    spec = lag_mod.parse(opt.lag, temps)
+    lags = {} if isinstance(spec, str) else {n: spec.get(n, spec.get("*", 0.0)) for n in temps}
+    need_bed = not inputs and opt.spindle_sign != 1
+    chosen: dict[str, Any] | None = None
+    lag_report: dict[str, Any] = {"method": "off"} if spec == "off" else {}
+    if need_bed or opt.ambient == "auto" or opt.exchange == "auto" or spec == "auto":
+        inputs, opt, chosen = choose_sensors(log, list(inputs or []), targets, opt, need_bed, lags, spec == "auto")
+        if spec == "auto":
+            lags, lag_report = chosen.pop("lags"), chosen.pop("lag")
+    elif opt.ambient == "none":
+        opt = opt.model_copy(update={"ambient": None})
+    names = [*(inputs or []), *([opt.ambient] if opt.ambient else []),
+             *([] if isinstance(opt.exchange, str) else opt.exchange)]
+    step = lag_mod.step_s(log)
+    lead, filt = lag_mod.lead_lists(names, lags, step)
+    result = _fit_form(lag_mod.led(log, names, lead, filt), inputs, targets, opt)
+    lead, filt = lag_mod.lead_lists(result.model.inputs, lags, step)
+    result = lag_mod.with_lead(result, lead, filt)
+    if isinstance(spec, dict):
+        lag_report = {"method": "given", "lead_s": {n: v for n, v in zip(result.model.inputs, lead, strict=True)
+                                                    if v > 0}}
+    result.report["lag"] = lag_report
+    if chosen is not None:
+        result.report["sensors_chosen"] = chosen
+        if need_bed:
+            result.report["inputs_chosen"] = {"inputs": list(inputs or []), "method": chosen["method"]}
+    result.report["at_bounds"] = result.report.get("at_bounds", []) + pinned_inputs(result, opt, chosen)
     return result
 
 
-def ambient_sensor(
-    log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Options
-) -> tuple[str | None, dict[str, Any]]:
-    """The ambient (C3) for `ambient: auto`: the one temperature column named for the air (amb, room,
-    air) that is not a structure input, kept unless the AR(1) with it predicts the held-out folds
-    clearly worse (by 5 %) than without: the paper's limit is a constant shop, and the air is what
-    breaks it. A machine's data alone does not tell the air from a sensor far from the heat (the
-    shop's swings follow the shift as the duty does), so an unnamed ambient is `--ambient COL`."""
-    bed = set(inputs or [])
-    named = [c for c in ambient_columns(log) if c not in bed]
-    if len(named) != 1:
-        return None, {"ambient": None, "reason": f"{len(named)} columns named for the air (amb, room, air):"
-                      " name it with --ambient"}
-    name = named[0]
-    info: dict[str, Any] = {"found": "by name"}
+def pinned_inputs(result: FitResult, opt: Options, chosen: dict[str, Any] | None) -> list[str]:
+    """A named input the fit pinned at its bound (0): a structure gain (`bed_gains: positive`) or an
+    exchange gain. The sensor was named but contributes nothing: say which, and what to do."""
+    p = result.model.params
+    given = set((chosen or {}).get("given", result.report.get("fit_inputs", [])))
+    out = []
+    bed = result.report.get("fit_inputs", [])
+    if opt.bed_gains == "positive" and p.spindle_sign == -1:
+        for name, gain in zip(bed, p.bed_gain_um_per_k, strict=False):
+            if gain <= PINNED_UM_PER_K:
+                how = "named with --inputs" if name in given else "chosen held out"
+                out.append(f"the structure sensor {name} ({how}) has gain 0, its bound (bed_gains: positive): it"
+                           " contributes nothing; drop it from --inputs, check that the error is bed − spindle"
+                           " (a bed that grows away from the tool), or allow either sign with --option bed_gains=free")
+    exch = [] if isinstance(opt.exchange, str) else list(opt.exchange)
+    for name, gain in zip(exch, p.exchange_um_per_k, strict=False):
+        if gain <= PINNED_UM_PER_K:
+            out.append(f"the exchange sensor {name} has gain 0, its bound (a warmer housing warms the spindle):"
+                       " it contributes nothing; drop it from --option exchange (or let exchange=auto choose)")
+    return out
+
+
+PINNED_UM_PER_K = 1e-9  # a bounded gain this small is at its bound (the solver leaves round-off)
+
+
+SELECT_LAGS_S = (0.0, 30.0, 120.0, 480.0)  # the lags (of compd.identify.lag's grid) the selection tries
+
+
+def _lagged(name: str, tau_s: float) -> str:
+    """A candidate column: the sensor `name` led by τ (compd.identify.lag), the name itself for none."""
+    return name if tau_s <= 0 else f"{name}@{tau_s:g}s"
+
+
+def choose_sensors(
+    log: Log, bed: list[str], targets: list[str] | None, opt: Options, need_bed: bool,
+    lags: dict[str, float], auto_lag: bool,
+) -> tuple[list[str], Options, dict[str, Any]]:
+    """The structure, ambient and exchange sensors the options leave to the fit (and with `auto_lag`
+    each input's lead), by forward selection among every temperature column (none privileged by its
+    name): each step tries every column not yet used, at every lag of compd.identify.lag's grid
+    (`auto_lag`; else at its lag in `lags`), in every role still open (a structure sensor while fewer
+    than STRUCTURE_MAX, the ambient while none, an exchange sensor while fewer than EXCHANGE_MAX) and
+    takes the one whose AR(1) predicts the held-out folds (compd.identify.holdout) best, kept while it
+    beats the set before clearly (AUTO_MARGIN); a first structure sensor is always taken where one is
+    needed. A column named for the air (amb, room, air) is no structure sensor and wins a tie (within
+    holdout.FLOOR_UM) as the ambient, nothing more. With `auto_lag` the chosen inputs' lags are then
+    refined one input at a time (the others held), and kept only where they beat no lead clearly
+    (compd.identify.lag.MARGIN), as compd.identify.lag does for the other kinds. Every candidate is
+    scored on the log's columns prepared once (compd.identify.ar1_design: every column filtered once
+    per C1 of a grid, the folds' Gram blocks shared), at the paper's single C1. Returns (structure
+    sensors, the options with the ambient and exchange set, the report; with `auto_lag` its `lags`
+    {input: τ} and `lag` report)."""
     target = default_targets(log, targets)
-    quick = opt.model_copy(update={"c1_by_speed": False, "exchange": []})
-    held = {}
-    for key, amb in (("with", name), ("without", None)):
-        o = quick.model_copy(update={"ambient": amb})
-        try:
-            held[key] = float(holdout.held_out_rmse(log, target, lambda lg, o=o: _fit(lg, inputs, targets, o))[0])
-        except ValueError:
-            held[key] = math.inf
-    info["held_out_rmse_um"] = held
-    if held["with"] * AUTO_MARGIN > held["without"]:
-        return None, {**info, "ambient": None, "candidate": name,
-                      "reason": "the AR(1) with it predicts the held-out folds clearly worse"}
-    return name, {**info, "ambient": name}
-
-
-def forward_select(
-    candidates: list[str], score: Callable[[list[str]], float], most: int, start_um: float = math.inf
-) -> tuple[list[str], list[dict[str, float]]]:
-    """Forward selection: each step adds the candidate whose set scores best (held-out RMSE, µm), kept
-    while it beats the set before clearly (holdout.clearly_better, AUTO_MARGIN), at most `most`; the
-    first is always taken when `start_um` is inf. Returns (the chosen, every step's scores)."""
-    chosen: list[str] = []
-    steps: list[dict[str, float]] = [] if math.isinf(start_um) else [{"": start_um}]
-    best = start_um
-    while len(chosen) < min(most, len(candidates)):
-        tried = {c: score([*chosen, c]) for c in candidates if c not in chosen}
-        steps.append(tried)
-        name = min(tried, key=tried.__getitem__)
-        if not math.isinf(best) and not holdout.clearly_better(tried[name], best, AUTO_MARGIN):
-            break
-        chosen.append(name)
-        best = tried[name]
-    return chosen, steps
-
-
-EXCHANGE_MAX = 2  # exchange sensors the auto choice takes at most
-
-
-def exchange_sensors(
-    log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Options
-) -> tuple[list[str], dict[str, Any]]:
-    """The exchange sensors for `exchange: auto`: forward selection among the temperature columns that
-    are neither structure sensors nor the ambient, each step the one whose recursion input predicts the
-    held-out folds best, kept while it cuts the held-out RMSE clearly (5 %), at most EXCHANGE_MAX."""
-    bed = list(inputs or [])
-    candidates = [c for c in log.temperature_columns() if c not in bed and c != opt.ambient]
-    target = default_targets(log, targets)
-    quick = opt.model_copy(update={"c1_by_speed": False})
-
-    def score(names: list[str]) -> float:
-        o = quick.model_copy(update={"exchange": names})
-        try:
-            return float(holdout.held_out_rmse(log, target, lambda lg: _fit(lg, bed, targets, o))[0])
-        except ValueError:
-            return math.inf
-
-    chosen, steps = forward_select(candidates, score, EXCHANGE_MAX, score([]))
-    return chosen, {
-        "exchange": chosen,
-        "method": HELD_OUT_METHOD + f"; forward selection from none among the temperature columns that are neither"
-        f" structure sensors nor the ambient, each kept while it cuts the held-out RMSE below {AUTO_MARGIN:g} ×,"
-        f" at most {EXCHANGE_MAX}",
-        "held_out_rmse_um": steps,
-    }
-
-
-STRUCTURE_MAX = 3  # structure (bed) sensors the default inputs take at most
-
-
-def structure_sensors(log: Log, targets: list[str] | None, opt: Options) -> tuple[list[str], dict[str, Any]]:
-    """The structure (bed) sensors when --inputs names none: forward selection among the log's
-    temperature columns (not the ambient), each step the sensor whose AR(1) predicts the held-out
-    folds best (compd.identify.holdout), kept while it cuts the held-out RMSE clearly (5 %), at
-    most STRUCTURE_MAX. BadInput when the log has no temperature column to choose."""
-    air = set(ambient_columns(log)) | {opt.ambient}
-    candidates = [c for c in log.temperature_columns() if c not in air]
-    if not candidates:
+    if len(target) != 1:
+        raise BadInput(f"ar1 fits one axis at a time; targets: {', '.join(target)}", path="--target")
+    temps = log.temperature_columns()
+    fixed_amb = opt.ambient if opt.ambient not in ("auto", "none", None) else None
+    fixed_exch = tuple(opt.exchange) if isinstance(opt.exchange, list) else ()
+    given = [*bed, *([fixed_amb] if fixed_amb else []), *fixed_exch]
+    for name in given:
+        if name not in log.columns:
+            raise BadInput("no such column in the log", file=log.file, path=name)
+    dt = opt.dt_s if opt.dt_s is not None else _median_step_s(log)
+    rows = step_rows(log.t_s, dt)
+    usable = [c for c in temps if c in given or bool(np.isfinite(log.col(c)[rows]).all())]
+    usable += [c for c in given if c not in usable]
+    air = set(ambient_columns(log))
+    if need_bed and not [c for c in usable if c not in given and c not in air]:
         raise BadInput(
             "ar1 needs a bed (structure) sensor whose growth adds to the spindle's, and the log has no"
-            " temperature column but the ambient's: name it with --inputs (a spindle alone: --option"
-            " spindle_sign=1)",
+            " temperature column to choose: name it with --inputs (a spindle alone: --option spindle_sign=1)",
             file=log.file, path="--inputs",
         )
-    target = default_targets(log, targets)
-    quick = opt.model_copy(update={"c1_by_speed": False})
+    grid = SELECT_LAGS_S if auto_lag else (0.0,)
+    step = lag_mod.step_s(log)
+    cols, data = [], []
+    for tau in grid:
+        if auto_lag:
+            lead, filt = lag_mod.lead_lists(usable, dict.fromkeys(usable, tau), step)
+        else:
+            lead, filt = lag_mod.lead_lists(usable, lags, step)
+        X = lag_mod.led(log, usable, lead, filt).matrix(usable)
+        for j, c in enumerate(usable):
+            cols.append(_lagged(c, tau if auto_lag else lags.get(c, 0.0)))
+            data.append(X[:, j])
+    keep = [k for k, c in enumerate(log.columns) if c not in cols]
+    ext = Log(log.file, [log.columns[k] for k in keep] + cols, np.column_stack([log.data[:, keep], *data]))
+    base = dict(zip(cols, [c for _ in grid for c in usable], strict=True))
+    exponent = None if opt.c2_exponent == "linear" else float(opt.c2_exponent)
+    cut = holdout.folds(log)[0]
+    steps = design.prepare(ext, target[0], cols, opt.speed_column, dt, opt.speed_round_rpm,
+                           opt.stopped_below_rpm, exponent, cut)
+    if not steps.levels:
+        raise BadInput(f"the spindle never turns in {opt.speed_column!r}: C2 cannot be fitted", file=log.file)
+    # each candidate scored at the paper's single C1 (a grid, a parabola between), as main's selection
+    # scored it: scored at the speed law's C1 too (the better of the two), the held-out RMSE of the
+    # family's lathes fell by half but their unseen days (other speeds, another shop) got worse
+    scans = [(design.Scan(steps, 1.0 - np.exp(design.c1_grid(dt, design.SCAN_POINTS))), True)]
+    sign = opt.spindle_sign if opt.spindle_sign is not None else (-1 if bed or need_bed else 1)
+    positive = opt.bed_gains == "positive" and sign == -1
+    auto_amb, auto_exch = opt.ambient == "auto", opt.exchange == "auto"
 
-    def score(names: list[str]) -> float:
-        try:
-            return float(holdout.held_out_rmse(log, target, lambda lg: _fit(lg, names, targets, quick))[0])
-        except ValueError:
-            return math.inf
+    def held(many: list[design.Roles]) -> list[float]:
+        out = np.full(len(many), math.inf)
+        for scan, parabola in scans:
+            for i, scores in enumerate(design.score_quick(scan, many, parabola)):
+                if not any(isinstance(f, str) for f in scores):  # a fold that cannot be fitted: inf
+                    out[i] = min(out[i], float(holdout.pooled_rmse(scores, 1)[0]))
+        return [float(v) for v in out]
 
-    chosen, steps = forward_select(candidates, score, STRUCTURE_MAX)
-    return chosen, {
-        "inputs": chosen,
-        "method": HELD_OUT_METHOD + f"; forward selection among the temperature columns, each sensor kept while"
-        f" it cuts the held-out RMSE below {AUTO_MARGIN:g} ×, at most {STRUCTURE_MAX}",
-        "held_out_rmse_um": steps,
+    def at(roles: design.Roles, tau: dict[str, float]) -> design.Roles:
+        """The roles with each sensor at its lag in `tau` (0 where none)."""
+        def m(c: str) -> str:
+            b = base.get(c, c)
+            return _lagged(b, tau.get(b, 0.0))
+        return replace(roles, bed=tuple(map(m, roles.bed)), ambient=m(roles.ambient) if roles.ambient else None,
+                       exchange=tuple(map(m, roles.exchange)))
+
+    start = design.Roles(tuple(bed), fixed_amb, fixed_exch, sign, positive)
+    history: list[dict[str, float]] = []
+    if given and auto_lag:  # the named sensors' one lag, the others' chosen with them
+        tried = {f"{tau:g}": s for tau, s in zip(grid, held([at(start, dict.fromkeys(given, tau)) for tau in grid]),
+                                                 strict=True)}
+        history.append({f"lag {k} s": v for k, v in tried.items()})
+        tau0 = float(min(tried, key=tried.__getitem__))
+        current, best = at(start, dict.fromkeys(given, tau0)), min(tried.values())
+    else:
+        current = at(start, lags)
+        best = math.inf if need_bed else held([current])[0]
+        if not need_bed:
+            history.append({"": best})
+    if need_bed:
+        best = math.inf  # the first structure sensor is taken whatever it scores
+    while True:
+        used = {base[c] for c in current.sensors}
+        free = [c for c in cols if base[c] not in used]
+        moves: list[tuple[str, design.Roles]] = []
+        for c in free:
+            if need_bed and len(current.bed) < STRUCTURE_MAX and base[c] not in air:  # the air is no structure
+                moves.append((f"structure {c}", replace(current, bed=(*current.bed, c))))
+            if current.bed or not need_bed:
+                if auto_amb and current.ambient is None:
+                    moves.append((f"ambient {c}", replace(current, ambient=c)))
+                if auto_exch and len(current.exchange) < EXCHANGE_MAX:
+                    moves.append((f"exchange {c}", replace(current, exchange=(*current.exchange, c))))
+        if not moves:
+            break
+        scores = held([r for _, r in moves])
+        history.append({name: s for (name, _), s in zip(moves, scores, strict=True)})
+        i = int(np.argmin(scores))
+        for j, (name, roles) in enumerate(moves):  # the air's name breaks a tie for the ambient
+            if (name.startswith("ambient ") and base[roles.ambient or ""] in air and scores[j] - scores[i]
+                    <= holdout.FLOOR_UM and not moves[i][0].startswith("ambient ")):
+                i = j
+                break
+        if math.isinf(scores[i]) or not math.isinf(best) and not holdout.clearly_better(scores[i], best, AUTO_MARGIN):
+            break
+        current, best = moves[i][1], scores[i]
+    if need_bed and not current.bed:
+        raise BadInput("no structure sensor can be fitted held out: name them with --inputs", file=log.file,
+                       path="--inputs")
+    chosen_lags = {base[c]: _lag_of(c, base[c]) for c in current.sensors}
+    report_lag: dict[str, Any] = {}
+    if auto_lag:
+        per_input: dict[str, dict[str, float]] = {}
+        for name in list(chosen_lags):  # each input's own lag, the others held
+            others = [tau for tau in grid if tau != chosen_lags[name]]
+            trial = held([at(current, {**chosen_lags, name: tau}) for tau in others])
+            per_input[name] = {f"{tau:g}": s for tau, s in zip(others, trial, strict=True)}
+            k = int(np.argmin(trial))
+            if trial[k] < best:
+                best, chosen_lags = trial[k], {**chosen_lags, name: others[k]}
+                current = at(current, chosen_lags)
+        none = held([at(current, {})])[0]
+        kept = any(v > 0 for v in chosen_lags.values()) and holdout.clearly_better(best, none, lag_mod.MARGIN)
+        report_lag = {
+            "method": holdout.METHOD + f"; chosen with the sensors (each candidate column at every lag of"
+            f" {list(grid)} s), then each input's own with the others held, τ_f = {lag_mod.FILTER_RATIO:g} τ (≥ 2 log"
+            f" steps); kept below {lag_mod.MARGIN:g} × the held-out RMSE without",
+            "held_out_rmse_um": {"none": none, "chosen": best}, "per_input_rmse_um": per_input, "kept": kept,
+        }
+        if not kept:
+            report_lag["reason"] = "no lead predicts the held-out folds clearly better than the readings as they are"
+            chosen_lags = {}
+        else:
+            lead, filt = lag_mod.lead_lists(list(chosen_lags), chosen_lags, step)
+            report_lag["lead_s"] = {n: v for n, v in chosen_lags.items() if v > 0}
+            report_lag["lead_filter_s"] = {n: f for n, f in zip(chosen_lags, filt, strict=True) if f > 0}
+            top = [n for n, v in chosen_lags.items() if v >= grid[-1]]
+            if top:
+                report_lag["at_bounds"] = [f"the lag of {', '.join(top)} is the longest tried ({grid[-1]:g} s)"]
+    bed_out = [base[c] for c in current.bed]
+    amb_out = base[current.ambient] if current.ambient else None
+    exch_out = [base[c] for c in current.exchange]
+    update: dict[str, Any] = {"ambient": amb_out}
+    if auto_exch:
+        update["exchange"] = exch_out
+    report: dict[str, Any] = {
+        "inputs": bed_out, "ambient": amb_out, "exchange": exch_out, "given": given,
+        "method": HELD_OUT_METHOD + "; forward selection among every temperature column" + (
+            " at every lag" if auto_lag else "") + ", each step the column and role (structure ≤"
+        f" {STRUCTURE_MAX}, ambient ≤ 1, exchange ≤ {EXCHANGE_MAX}: those the options leave to the fit) that"
+        f" predicts best, kept while it cuts the held-out RMSE below {AUTO_MARGIN:g} ×; a column named for the"
+        f" air is no structure sensor and wins a tie as the ambient; scored at the paper's single C1 on a grid of"
+        f" {design.SCAN_POINTS} (a parabola between)",
+        "held_out_rmse_um": history,
     }
+    if auto_lag:
+        report["lags"] = {n: v for n, v in chosen_lags.items() if v > 0}
+        report["lag"] = report_lag
+    return bed_out, opt.model_copy(update=update), report
+
+
+def _lag_of(column: str, name: str) -> float:
+    """The lag (s) of a candidate column (`_lagged`)."""
+    return 0.0 if column == name else float(column[len(name) + 1 : -1])
 
 
 def _fit_form(log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Options) -> FitResult:
-    """The AR(1) fit of `opt`'s C1 form; `auto`: the paper's single C1 unless C1 by speed predicts
-    the held-out folds clearly better."""
+    """The AR(1) fit of `opt`'s C1 form; `auto`: the paper's single C1 unless compd's form (C1 per
+    speed level with few levels, the speed law on a spectrum) predicts the held-out folds clearly
+    better, every form scored on the log's columns prepared once (compd.identify.ar1_design)."""
     if opt.c1_by_speed != "auto":
         return _fit(log, inputs, targets, opt)
+    bed = list(inputs or [])
+    exchange = [] if isinstance(opt.exchange, str) else list(opt.exchange)
+    target = default_targets(log, targets)
+    if len(target) != 1:
+        raise BadInput(f"ar1 fits one axis at a time; targets: {', '.join(target)}", path="--target")
+    dt = opt.dt_s if opt.dt_s is not None else _median_step_s(log)
+    exponent = None if opt.c2_exponent == "linear" else float(opt.c2_exponent)
     paper = opt.model_copy(update={"c1_by_speed": False})
-    by_speed = opt.model_copy(update={"c1_by_speed": True})
     result = _fit(log, inputs, targets, paper)
-    target = default_targets(log, targets)[0]
-    held, blocks = compare_forms(log, target, {
-        "constant": lambda lg: _fit(lg, inputs, targets, paper),
-        "by_speed": lambda lg: _fit(lg, inputs, targets, by_speed),
-    })
+    sensors = [*bed, *([opt.ambient] if opt.ambient else []), *exchange]
+    cut = holdout.folds(log)[0]
+    sign = result.model.params.spindle_sign
+    roles = design.Roles(tuple(bed), opt.ambient, tuple(exchange), sign, opt.bed_gains == "positive" and sign == -1)
+    steps = design.prepare(log, target[0], sensors, opt.speed_column, dt, opt.speed_round_rpm,
+                           opt.stopped_below_rpm, exponent, cut)
+    stops = bool((steps.speed < max(opt.stopped_below_rpm, 1e-12)).any())
+    const, zs = design.score_exact(steps, roles)
+    forms: dict[str, list[design.FoldScore]] = {"constant": const}
+    if stops and 1 <= len(steps.levels) <= LEVELS_MAX:
+        forms["by_speed"] = design.fold_scores(design.fit_levels(steps, roles, zs), steps)
+    if stops and len(steps.levels) >= LAW_MIN_LEVELS:
+        law_steps = design.prepare(log, target[0], sensors, opt.speed_column, dt, opt.speed_round_rpm,
+                                   opt.stopped_below_rpm, exponent, cut, law=True)
+        forms["speed_law"] = design.fold_scores(design.fit_law(law_steps, roles, exact=False), law_steps)
+    usable = [k for k in range(len(cut)) if all(not isinstance(f[k], str) for f in forms.values())]
+    held: dict[str, float | str] = {}
+    for name, f in forms.items():
+        used = [f[k] for k in usable]
+        count = sum(int(c[0]) for _, c in used)  # type: ignore[misc]
+        held[name] = (math.sqrt(sum(float(s[0]) for s, _ in used) / count) if count  # type: ignore[misc]
+                      else "; ".join(x for x in f if isinstance(x, str)) or "no held-out rows")
     chosen = "constant"
-    if all(isinstance(v, float) for v in held.values()) and holdout.clearly_better(
-            float(held["by_speed"]), float(held["constant"]), AUTO_MARGIN):
-        chosen = "by_speed"
-        result = _fit(log, inputs, targets, by_speed)
+    for name in ("by_speed", "speed_law"):
+        if name in held and isinstance(held[name], float) and isinstance(held[chosen], float) and \
+                holdout.clearly_better(float(held[name]), float(held[chosen]), AUTO_MARGIN):
+            chosen = name
+    if chosen != "constant":
+        result = _fit(log, inputs, targets, opt.model_copy(update={"c1_by_speed": chosen == "by_speed" or "law"}))
     result.report["c1_form"] = {
         "chosen": chosen,
-        "method": HELD_OUT_METHOD + f"; C1 by speed is kept only below {AUTO_MARGIN:g} × the paper's RMSE",
-        "held_out_blocks": blocks,
+        "method": HELD_OUT_METHOD + f"; compd's form (C1 by speed up to {LEVELS_MAX} levels, the speed law from"
+        f" {LAW_MIN_LEVELS}) is kept only below {AUTO_MARGIN:g} × the paper's (or the other's) RMSE",
+        "held_out_blocks": [k + 1 for k in usable],
         "held_out_rmse_um": held,
     }
     return result
@@ -327,6 +490,8 @@ def _fit(log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Opt
     sign = opt.spindle_sign if opt.spindle_sign is not None else (-1 if bed else 1)
     exponent = None if opt.c2_exponent == "linear" else float(opt.c2_exponent)
     positive = opt.bed_gains == "positive" and sign == -1
+    if opt.c1_by_speed == "law":
+        return _fit_law(log, bed, targets, opt, names, Xs, Es, dt, sign, positive, exponent)
     problem = _Problem(Xs, Es, speed, rpm, len(bed), bool(opt.ambient), sign, c1_grid(dt), positive, exponent,
                        len(exchange))
     z, i, res = problem.search_c1()
@@ -389,8 +554,12 @@ def _fit(log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Opt
         t0_c=None,
         recursion_start="zero",
     )
-    model = AR1(params, names, axis_names(targets))
-    model.start(Xs[0], float(t[rows[0]]))
+    return _finish(AR1(params, names, axis_names(targets)), Xs, Es, float(t[rows[0]]), report)
+
+
+def _finish(model: AR1, Xs: np.ndarray, Es: np.ndarray, t0_s: float, report: dict[str, Any]) -> FitResult:
+    """The fitted model's residual at the steps: Ljung–Box and the step RMSE in the report."""
+    model.start(Xs[0], t0_s)
     resid = Es - model._response(Xs, model._c1_rows(Xs[:, 0]))
     resid = resid[np.isfinite(resid)]
     lags = max(1, min(10, resid.size // 5))
@@ -399,6 +568,63 @@ def _fit(log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Opt
     report["step_rmse_um"] = float(np.sqrt(np.mean(resid**2)))
     model.x0 = None  # the run-time reference is the reading at start
     return FitResult(model, report)
+
+
+def _fit_law(
+    log: Log, bed: list[str], targets: list[str], opt: Options, names: list[str], Xs: np.ndarray, Es: np.ndarray,
+    dt: float, sign: int, positive: bool, exponent: float | None,
+) -> FitResult:
+    """compd's form for a log at many speeds: C1 and C2 smooth functions of the speed (the model's
+    `speed_law`), fitted in one pass: the cooling rate b(n) = b0 (1 + (ρ − 1) n/n_ref) (the convection
+    grows with speed) and C2(n) = a n/n_ref + q (n/n_ref)² (a, q ≥ 0: the heat input), n_ref the fastest
+    level; (b0, ρ) the best of a grid then Nelder–Mead, the rest a bounded least squares at each
+    (compd.identify.ar1_design.fit_law)."""
+    if not (Xs[:, 0] < max(opt.stopped_below_rpm, 1e-12)).any():
+        raise BadInput("c1_by_speed: law needs the spindle to stand still in the log (C1 at standstill)",
+                       file=log.file, path="--option c1_by_speed")
+    if opt.c2_rise or opt.rise_sensor:
+        raise BadInput("c1_by_speed: law fits C2 as a function of speed: c2_rise and rise_sensor do not apply",
+                       path="--option")
+    amb = opt.ambient or None
+    exchange = [] if isinstance(opt.exchange, str) else list(opt.exchange)
+    sensors = [*bed, *([amb] if amb else []), *exchange]
+    steps = design.prepare(log, targets[0], sensors, opt.speed_column, dt, opt.speed_round_rpm,
+                           opt.stopped_below_rpm, exponent, None, law=True)
+    roles = design.Roles(tuple(bed), amb, tuple(exchange), sign, positive)
+    fitted = design.fit_law(steps, roles, folds=False, exact=True)[0]
+    if isinstance(fitted, str):
+        raise BadInput(f"ar1 speed law: {fitted}", file=log.file)
+    law = design.LawC1(steps)
+    phi = fitted.phi
+    b0 = float(design.b_of_z(min(max(float(phi[0]), law.z_lo), law.z_hi)))
+    ratio = math.exp(min(max(float(phi[1]), 0.0), law.gamma_max))
+    theta = fitted.fit.theta
+    nb, na = len(bed), int(amb is not None)
+    ref = steps.levels[-1]
+    speed_law = SpeedLaw(ref_rpm=ref, c2_um=float(theta[0]), c2_quad_um=float(theta[1]),
+                         rate_per_s=b0 * (ratio - 1.0) / dt)
+    params = AR1Params(
+        dt_s=dt, c1=math.exp(-b0), c2_table=[], speed_law=speed_law,
+        c3_um_per_k=float(theta[2 + nb]) if amb else None,
+        exchange_um_per_k=[float(v) for v in theta[2 + nb + na:]],
+        bed_gain_um_per_k=[float(v) for v in theta[2 : 2 + nb]], spindle_sign=sign, t0_c=None,
+        recursion_start="zero",
+    )
+    at_bounds = []
+    if b0 * ratio >= law.b_hi * (1 - 1e-6) or b0 <= law.b_lo * (1 + 1e-6):
+        at_bounds.append(f"the speed law's time constant ({dt / b0:.4g} s at rest, {dt / (b0 * ratio):.4g} s at"
+                         f" {ref:g} rpm) is at the edge of its range ({_grid_tau_s(dt)})")
+    if theta[0] + theta[1] <= 1e-6:
+        at_bounds.append("C2 is 0 at every speed: the spindle term predicts nothing (is the error bed − spindle?"
+                         " name the bed sensors with --inputs)")
+    report: dict[str, Any] = {
+        "fit_inputs": bed, "dt_s": dt, "step_rows": int(steps.rows.size), "speed_levels_rpm": steps.levels,
+        "converged": fitted.converged,
+        "speed_law": {"time_constant_s": {"0": dt / b0, f"{ref:g}": dt / (b0 * ratio)},
+                      "cooling_ratio": ratio, "c2_um_at_ref": float(theta[0] + theta[1])},
+        "at_bounds": at_bounds,
+    }
+    return _finish(AR1(params, names, axis_names(targets)), Xs, Es, float(log.t_s[steps.rows[0]]), report)
 
 
 def _median_step_s(log: Log) -> float:
@@ -477,6 +703,7 @@ class _Problem:
                         np.full(int(ambient), -np.inf), np.zeros(n_exchange)]
         self.ub = np.full(L + nb + na, np.inf)
         self.rpm = rpm
+        self._last: np.ndarray | None = None
 
     def design(self, c1: float | np.ndarray) -> np.ndarray:
         L, sign = self.L, self.sign
@@ -486,8 +713,11 @@ class _Problem:
     def solve(self, c1: float | np.ndarray) -> tuple[float, np.ndarray]:
         """(sum of squared errors, [δ, bed gains, C3]) at this C1."""
         A = self.design(c1)[self.ok]
-        r = optimize.lsq_linear(A, self.Es, bounds=(self.lb, self.ub), method="bvls")
-        return float(np.sum((A @ r.x - self.Es) ** 2)), r.x
+        # the bounded least squares on the Gram (Lawson–Hanson from the last solve's active set:
+        # compd.identify.ar1_design.bounded_lstsq), a few small solves instead of BVLS on the rows
+        x = design.bounded_lstsq(A.T @ A, A.T @ self.Es, self.lb == 0.0, self._last)
+        self._last = x
+        return float(np.sum((A @ x - self.Es) ** 2)), x
 
     def search_c1(self) -> tuple[float, int, Any]:
         """(z = log(1 − C1), grid index of the best start, the bounded search's result)."""
@@ -631,6 +861,15 @@ def _rise_from_runs(
 
 def choices(result: FitResult) -> dict[str, Any]:
     """What this fit chose beyond its coefficients, as options that make a refit choose the same
-    (compd.identify.lag holds them while it searches a lag): the C1 form."""
+    (compd.identify.lag holds them while it searches a lag): the C1 form and the sensors it chose."""
+    out: dict[str, Any] = {}
     form = result.report.get("c1_form")
-    return {"c1_by_speed": form["chosen"] == "by_speed"} if form else {}
+    if form:
+        out["c1_by_speed"] = {"by_speed": True, "speed_law": "law"}.get(form["chosen"], False)
+    chosen = result.report.get("sensors_chosen")
+    if chosen:
+        if "inputs_chosen" in result.report:
+            out["structure"] = list(chosen["inputs"])
+        out["ambient"] = chosen["ambient"] or "none"
+        out["exchange"] = list(chosen["exchange"]) or "none"
+    return out

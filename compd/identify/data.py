@@ -134,7 +134,12 @@ def check_not_constant(log: Log, X: np.ndarray, names: Sequence[str]) -> None:
 
 
 def progress(iterable: Iterable[Any], desc: str, total: int | None = None) -> Iterable[Any]:
-    """A progress bar on stderr that appears only when the work takes over a second (tqdm)."""
+    """A progress bar on stderr that appears only when the work takes over a second (tqdm), and only
+    when stderr is a terminal: into a file or a pipe (a log, a unit's journal) its redraws would be
+    thousands of lines, so there the iterable is returned as it is."""
+    isatty = getattr(sys.stderr, "isatty", None)
+    if not (callable(isatty) and isatty()):
+        return iterable
     try:
         from tqdm import tqdm
     except ImportError:  # pragma: no cover - tqdm is a core dependency

@@ -110,6 +110,9 @@ def with_lead(result: FitResult, lead_s: list[float], filter_s: list[float]) -> 
 
 
 FitFn = Callable[[Log, dict[str, Any]], FitResult]
+# the option key by which the search hands a refit the inputs the first fit chose (compd.identify.identify
+# takes it out and passes them as the fit's inputs): a refit per lag per fold chooses nothing again
+HELD_INPUTS = "__inputs__"
 # a fit's report of the choices its kind makes beyond the coefficients (what `choices` holds fixed)
 CHOICE_KEYS = ("selection", "q2", "press", "cv", "q2_limit", "n_components", "c1_form", "form", "form_selection",
                "degree", "inputs_chosen", "ambient_chosen", "exchange_chosen", "at_bounds")
@@ -142,12 +145,19 @@ def fit_with_lag(
         return first
     target = default_targets(log, targets)
     fixed = {**options, **choices(first)}
+    if isinstance(first.report.get("inputs_chosen"), dict):  # the inputs it chose are held too (the ξ sensor)
+        fixed[HELD_INPUTS] = list(first.report["inputs_chosen"]["inputs"])
 
     def score(lags: dict[str, float]) -> float:
         lead, filt = lead_lists(inputs, lags, dt)
+        # the inputs led once for every fold: a fold hides only its targets, which the lead does not touch
+        led_log = led(log, inputs, lead, filt)
+        hidden = [log.index(t) for t in target]
 
         def fit_on(lg: Log) -> FitResult:
-            return with_lead(fit(led(lg, inputs, lead, filt), fixed), lead, filt)
+            data = led_log.data.copy()
+            data[:, hidden] = lg.data[:, hidden]
+            return with_lead(fit(Log(lg.file, lg.columns, data), fixed), lead, filt)
 
         try:
             rmse = holdout.held_out_rmse(log, target, fit_on)

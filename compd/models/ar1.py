@@ -16,7 +16,10 @@ proportional), files before it the line through (0, 0) below and the last level 
 compd's speed-dependent form (`c1_table`): C1 = e^(−b Δτ) with b = 2h/(ρcR), and a turning
 spindle's convection h grows with its speed, so b is fitted at standstill and at each
 logged speed and interpolated linearly in n between them (held past the last);
-an empty table is the paper's single C1. The fit is compd.identify.ar1.
+an empty table is the paper's single C1. For a log that runs at many speeds (a spectrum)
+compd fits both coefficients as smooth functions of the speed instead (`speed_law`):
+b(n) = b(0) + k (|n|/n_ref)^p, so C1(n) = C1(0)·e^(−Δτ k (|n|/n_ref)^p), and C2(n) =
+a·|n|/n_ref + q·(|n|/n_ref)² (a, q ≥ 0: the heat input grows with speed, the bearings' faster). The fit is compd.identify.ar1.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
+from compd.config import Strict
 from compd.errors import BadInput
 from compd.models.base import (
     MAX_ERROR_UM,
@@ -58,6 +62,33 @@ def coefficients_from_physics(
 
 
 SpeedRpm = Annotated[float, Field(gt=0, le=MAX_SPEED_RPM)]
+
+
+class SpeedLaw(Strict):
+    """C1 and C2 as smooth functions of the speed n (compd's form for a log at many speeds), x = |n|/ref_rpm:
+    C1(n) = c1·e^(−Δτ·rate_per_s·x^rate_exponent), C2(n) = c2_um·x + c2_quad_um·x²."""
+
+    ref_rpm: SpeedRpm = Field(description="the speed the law is stated at (the fastest fitted)")
+    c2_um: float = Field(ge=0, le=MAX_ERROR_UM, description="C2's term linear in speed, µm per step at ref_rpm")
+    c2_quad_um: float = Field(
+        0.0, ge=0, le=MAX_ERROR_UM,
+        description="C2's term in the speed squared, µm per step at ref_rpm (the bearings' friction heat grows"
+        " faster than the speed)",
+    )
+    rate_per_s: float = Field(
+        ge=0, le=1.0, description="k: how much faster the spindle cools at ref_rpm than at standstill, 1/s"
+        " (1/τ(n) = −ln(c1)/Δτ + k x^p: the convection grows with speed)",
+    )
+    rate_exponent: float = Field(1.0, ge=0.25, le=4.0, description="p: the cooling's growth with speed")
+
+    def c2_um_at(self, speed_rpm: float) -> float:
+        """C2(n), µm per step."""
+        x = abs(speed_rpm) / self.ref_rpm
+        return self.c2_um * x + self.c2_quad_um * x * x
+
+    def c1_at(self, c1_standstill: float, dt_s: float, speed_rpm: float) -> float:
+        """C1(n) from C1 at standstill."""
+        return c1_standstill * math.exp(-dt_s * self.rate_per_s * (abs(speed_rpm) / self.ref_rpm) ** self.rate_exponent)
 
 
 class AR1Params(LeadParams):
@@ -94,6 +125,12 @@ class AR1Params(LeadParams):
     t0_c: list[Annotated[float, Field(ge=TEMP_MIN_C, le=TEMP_MAX_C)]] | None = Field(
         None, description="reference readings of bed and ambient inputs (−40..150 °C)"
     )
+    speed_law: SpeedLaw | None = Field(
+        None,
+        description="C1 and C2 as smooth functions of the speed (compd's form for a log at many speeds; "
+        "c2_table and c1_table then empty): C1(n) = c1·e^(−Δτ·rate_per_s·(|n|/ref_rpm)^rate_exponent), "
+        "C2(n) = c2_um·|n|/ref_rpm + c2_quad_um·(|n|/ref_rpm)²; none = the tables",
+    )
     recursion_start: Literal["zero", "c2"] = Field(
         "zero",
         description="first step after a cold start: `zero` S(0) = 0 (paper 001, eq. 17); `c2` S(0) = C2(n_0), "
@@ -115,6 +152,8 @@ class AR1Params(LeadParams):
             rpm = [n for n, _ in table]
             if any(b <= a for a, b in zip(rpm, rpm[1:], strict=False)):
                 raise ValueError(f"{key} speeds must be positive and strictly increasing")
+        if self.speed_law is not None and (self.c2_table or self.c1_table):
+            raise ValueError("speed_law gives C1 and C2 at every speed: c2_table and c1_table must be empty")
         return self
 
 
@@ -158,8 +197,8 @@ class AR1(Model):
     """AR(1) spindle growth stepped every Δτ, plus linear bed terms (paper 001)."""
 
     kind = "ar1"
-    summary_keys = ("c1", "c2_table", "c3_um_per_k", "c1_table", "bed_gain_um_per_k", "exchange_um_per_k",
-                    "spindle_sign", "dt_s")
+    summary_keys = ("c1", "c2_table", "c3_um_per_k", "c1_table", "speed_law", "bed_gain_um_per_k",
+                    "exchange_um_per_k", "spindle_sign", "dt_s")
     Params = AR1Params
 
     def __init__(self, params: AR1Params, inputs: list[str], outputs: list[str], fit=None):
@@ -171,6 +210,7 @@ class AR1(Model):
         self._nb = len(params.bed_gain_um_per_k)
         self._gain = np.asarray(params.bed_gain_um_per_k, dtype=float)
         self._c3 = params.c3_um_per_k
+        self._law = params.speed_law
         self._rpm1 = [float(n) for n, _ in params.c1_table]
         self._b1 = [-math.log(c) for _, c in params.c1_table]  # b Δτ at each node
         self._b0 = -math.log(params.c1)
@@ -213,7 +253,7 @@ class AR1(Model):
         if self._fresh:
             self._fresh = False  # ΔL(0) = 0 (eq. 17): the first step adds nothing
         else:
-            u = c2_of_speed(x[0], self._rpm, self._c2, 0.0, self._c2_exp)
+            u = self._c2_at(x[0])
             if self._amb > 0:
                 u += self._c3 * (x[self._amb] - self.x0[self._amb - 1])
             ix = self._ix
@@ -227,10 +267,18 @@ class AR1(Model):
         out[0] = e
 
     def c1_at(self, speed_rpm: float) -> float:
-        """C1 at this speed: `c1`, or e^(−b Δτ) with b interpolated in speed (`c1_table`)."""
+        """C1 at this speed: `c1`, e^(−b Δτ) with b interpolated in speed (`c1_table`), or the speed law's."""
+        if self._law is not None:
+            return self._law.c1_at(self.params.c1, self.params.dt_s, speed_rpm)
         if not self._rpm1:
             return self.params.c1
         return math.exp(-c2_of_speed(speed_rpm, self._rpm1, self._b1, self._b0))
+
+    def _c2_at(self, speed_rpm: float) -> float:
+        """C2 at this speed (µm per step): the table's, or the speed law's."""
+        if self._law is not None:
+            return self._law.c2_um_at(speed_rpm)
+        return c2_of_speed(speed_rpm, self._rpm, self._c2, 0.0, self._c2_exp)
 
     def predict_rows(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         """Vectorised batch prediction, stepping every Δτ and holding between steps."""
@@ -247,12 +295,12 @@ class AR1(Model):
         return out
 
     def _c1_rows(self, speed_rpm: np.ndarray) -> float | np.ndarray:
-        if not self._rpm1:
+        if not self._rpm1 and self._law is None:
             return self.params.c1
         return np.array([self.c1_at(v) for v in speed_rpm])
 
     def _response(self, Xs: np.ndarray, c1: float | np.ndarray, s0: float = 0.0) -> np.ndarray:
-        u = np.array([c2_of_speed(v, self._rpm, self._c2, 0.0, self._c2_exp) for v in Xs[:, 0]])
+        u = np.array([self._c2_at(v) for v in Xs[:, 0]])
         if self._amb > 0:
             u += self._c3 * (Xs[:, self._amb] - self.x0[self._amb - 1])
         if self._xgain:

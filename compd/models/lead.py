@@ -84,25 +84,31 @@ class InputLead:
         t = np.asarray(t_s, dtype=float)
         prev = self.t_s if self.t_s == self.t_s else t[0]
         dt = np.maximum(np.diff(np.r_[prev, t]), 0.0)
-        for k, i in enumerate(self.idx_list):
-            v = X[:, i]
-            h = dt / self.filter_s[k]
-            a = np.exp(-h)
-            y1_0 = self.y1[k] if self.y1[k] == self.y1[k] else v[0]
-            y2_0 = self.y2[k] if self.y2[k] == self.y2[k] else v[0]
+        groups: dict[float, list[int]] = {}  # the inputs with one low-pass share its blocks: filtered together
+        for k, f in enumerate(self.filter_s):
+            groups.setdefault(f, []).append(k)
+        for f, ks in groups.items():
+            cols = [self.idx_list[k] for k in ks]
+            v = X[:, cols]
+            h = dt / f
+            a = np.exp(-h)[:, None]
+            y1_0 = np.array([self.y1[k] if self.y1[k] == self.y1[k] else v[0, j] for j, k in enumerate(ks)])
+            y2_0 = np.array([self.y2[k] if self.y2[k] == self.y2[k] else v[0, j] for j, k in enumerate(ks)])
             # y1 = v + (y1 − v) a, i.e. y1_k = a y1_(k−1) + (1 − a) v_k
             y1 = _first_order(a, (1.0 - a) * v, y1_0)
-            y1_prev = np.r_[y1_0, y1[:-1]]
+            y1_prev = np.vstack([y1_0, y1[:-1]])
             # y2_k = a y2_(k−1) + (1 − a) v_k + (y1_(k−1) − v_k) h a
-            y2 = _first_order(a, (1.0 - a) * v + (y1_prev - v) * h * a, y2_0)
-            out[:, i] = y2 + self.ratio[k] * (y1 - y2)
-            self.y1[k], self.y2[k] = float(y1[-1]), float(y2[-1])
+            y2 = _first_order(a, (1.0 - a) * v + (y1_prev - v) * h[:, None] * a, y2_0)
+            out[:, cols] = y2 + np.array([self.ratio[k] for k in ks]) * (y1 - y2)
+            for j, k in enumerate(ks):
+                self.y1[k], self.y2[k] = float(y1[-1, j]), float(y2[-1, j])
         self.t_s = float(t[-1])
         return out
 
 
-def _first_order(a: np.ndarray, c: np.ndarray, y0: float) -> np.ndarray:
-    """y_k = a_k y_(k−1) + c_k from y_(−1) = y0 (0 ≤ a_k ≤ 1), vectorised as a prefix scan.
+def _first_order(a: np.ndarray, c: np.ndarray, y0: float | np.ndarray) -> np.ndarray:
+    """y_k = a_k y_(k−1) + c_k from y_(−1) = y0 (0 ≤ a_k ≤ 1), vectorised as a prefix scan, for one
+    column c (n) or several with the same decay (c n × m, a n × 1, y0 per column).
 
     Each step is the affine map y ↦ a_k y + c_k; maps compose, (a, c) ∘ (a', c') = (a a', a c' + c),
     so log2(n) passes of whole-array products give every prefix (a doubling scan). Only
@@ -112,7 +118,7 @@ def _first_order(a: np.ndarray, c: np.ndarray, y0: float) -> np.ndarray:
     C = np.array(c, dtype=float)
     C[0] += A[0] * y0
     shift = 1
-    n = C.size
+    n = C.shape[0]
     while shift < n:
         C[shift:] += A[shift:] * C[:-shift]
         A[shift:] *= A[:-shift]

@@ -401,3 +401,70 @@ def test_c2_outside_the_levels_follows_the_bearings_friction_and_exchange_enters
     np.testing.assert_allclose(batch, stepped, rtol=0, atol=1e-9)
     with pytest.raises(BadInput, match="exchange"):
         AR1(params, ["n", "bed", "amb"], ["z"])  # the exchange sensor missing from the inputs
+
+
+def test_an_unnamed_ambient_is_found_held_out():
+    # the drifting shop's air sensor under a name that says nothing (issue 40: the ambient was found by
+    # its name only): chosen held out among the temperature columns, C3 fitted
+    rod = _drifting_rod_log()
+    log = Log("rod.csv", ["t_s", "speed_rpm", "T9", "err_z_um"], rod.data)
+    res = FITS.get(AR1.kind)(log, None, None, spindle_sign=1, lag="off")
+    assert res.model.inputs == ["speed_rpm", "T9"] and res.model.params.c3_um_per_k is not None
+    assert res.report["sensors_chosen"]["ambient"] == "T9"
+    none = FITS.get(AR1.kind)(log, None, None, spindle_sign=1, lag="off", ambient="none")
+    e = log.col("err_z_um")
+    rmse = {k: float(np.sqrt(np.mean((predict_log(r.model, log)[:, 0] - e) ** 2))) for k, r in
+            (("none", none), ("found", res))}
+    assert rmse["found"] < 0.6 * rmse["none"], rmse
+
+
+def _speed_spectrum_lathe(noise_um=0.05, seed=2):
+    """A 10-hour day at a dozen speeds (30 s rows) with stops: the spindle cools faster the faster it
+    turns (b(n) = b0 (1 + 1.5 n/3600)), its heat input C2(n) = 0.05 x + 0.15 x² (x = n/3600)."""
+    rng = np.random.default_rng(seed)
+    dt = 30.0
+    levels = rng.permutation(np.arange(300.0, 3601.0, 300.0))
+    speed = np.concatenate([np.zeros(60)] + [np.r_[np.full(70, n), np.zeros(30 if i % 3 == 2 else 0)]
+                                             for i, n in enumerate(levels)])
+    K = speed.size
+    t = np.arange(K) * dt
+    bed = 20 + 1.5 * (1 - np.exp(-t / 15000))
+    b0 = dt / (2.5 * 3600)
+    s, E = 0.0, np.zeros(K)
+    for k in range(1, K):
+        x = speed[k] / 3600.0
+        s = np.exp(-b0 * (1 + 1.5 * x)) * s + 0.05 * x + 0.15 * x * x
+        E[k] = 8.0 * (bed[k] - bed[0]) - s
+    E += rng.normal(0, noise_um, K)
+    return Log("spectrum.csv", ["t_s", "speed_rpm", "T3", "err_z_um"], np.column_stack([t, speed, bed, E]))
+
+
+def test_a_speed_spectrum_fits_c1_and_c2_as_functions_of_speed():
+    # issue 40: on a spectrum C1 and C2 are functions of speed fitted in one pass (c1_by_speed: law),
+    # not a search per level; the runtime model evaluates the law step by step as it predicts
+    log = _speed_spectrum_lathe()
+    res = FITS.get(AR1.kind)(log, ["T3"], None, c1_by_speed="law", lag="off")
+    p = res.model.params
+    assert p.speed_law is not None and not p.c2_table and not p.c1_table
+    law = p.speed_law
+    assert law.ref_rpm == pytest.approx(3600.0, abs=1.0)
+    assert -30.0 / np.log(p.c1) == pytest.approx(2.5 * 3600, rel=0.05)  # τ at rest
+    assert -30.0 / np.log(res.model.c1_at(3600.0)) == pytest.approx(2.5 * 3600 / 2.5, rel=0.05)  # τ at 3600 rpm
+    assert law.c2_um_at(3600.0) == pytest.approx(0.20, rel=0.05)
+    assert law.c2_um_at(1800.0) == pytest.approx(0.05 * 0.5 + 0.15 * 0.25, rel=0.1)
+    assert p.bed_gain_um_per_k[0] == pytest.approx(8.0, rel=0.03)
+    assert set(res.model.coefficients()["speed_law"]) >= {"ref_rpm", "c2_um", "c2_quad_um", "rate_per_s"}  # status
+    m = AR1(p, res.model.inputs, res.model.outputs)
+    X = log.matrix(res.model.inputs)
+    P = AR1(p, m.inputs, m.outputs).predict(X, log.t_s)
+    m.start(X[0], log.t_s[0])
+    out, stepped = np.zeros(1), []
+    for i in range(len(log)):
+        m.evaluate(X[i], log.t_s[i], out)
+        stepped.append(out[0])
+    np.testing.assert_allclose(stepped, P[:, 0], atol=1e-9)
+    # the default chooses the form held out: on a dozen levels the law, not a C1 per level
+    auto = FITS.get(AR1.kind)(log, ["T3"], None, lag="off")
+    form = auto.report["c1_form"]
+    assert "by_speed" not in form["held_out_rmse_um"] and form["chosen"] == "speed_law", form
+    assert auto.model.params.speed_law is not None
