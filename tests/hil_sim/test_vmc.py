@@ -14,7 +14,7 @@ from compd.config import GuardConfig
 from compd.cycle.frame import Frame, Quality
 from compd.cycle.guard import Guard
 from compd.errors import BadInput
-from compd.log import error_axis, is_temperature_column, read_log
+from compd.log import error_axis, is_axis_error, is_temperature_column, read_log
 from compd.sources import SOURCES
 from hil_sim import family
 from hil_sim.__main__ import main
@@ -64,7 +64,8 @@ def test_log_command_writes_the_columns_compd_reads_as_meant(tmp_path, capsys):
     assert log.temperature_columns() == SENSORS
     assert log.error_columns() == ["err_z_um"]
     for part in ("err_z_um_spindle", "err_z_um_column"):
-        assert not is_temperature_column(part) and error_axis(part) is None
+        # ... but each names its axis: a stage's target for z (compd fit --target err_z_um_spindle)
+        assert not is_temperature_column(part) and not is_axis_error(part) and error_axis(part) == "z"
     # the error is its two parts (to the log's six significant digits)
     parts = log.col("err_z_um_spindle") + log.col("err_z_um_column")
     np.testing.assert_allclose(log.col("err_z_um"), parts, rtol=0, atol=1e-5 * np.abs(parts).max() + 1e-9)
