@@ -359,7 +359,6 @@ def _argmin_piecewise(
 
 
 def choices(result: FitResult) -> dict[str, Any]:
-    """What this fit chose beyond its coefficients, as options (compd.identify.lag holds them while it
-    searches a lag): the ξ sensor, where the fit chose it."""
-    chosen = result.report.get("inputs_chosen")
-    return {"xi_sensor": chosen["inputs"][0]} if chosen else {}
+    """Nothing beyond its coefficients and inputs: the ξ sensor it chose (`inputs_chosen`) is held
+    while the lag is searched as every kind's chosen inputs are (compd.identify.lag.HELD_INPUTS)."""
+    return {}
