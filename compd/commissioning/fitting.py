@@ -478,6 +478,11 @@ def fit_model(
         if baseline:
             report["stagewise"], ours = compare_stagewise(kind, stage, fit_inputs, tcols, held_options,
                                                           model.outputs, warnings)
+    kept = result.report.get("c1_form", {}).get("held_out_folds")
+    if stage is None and kept and len(tcols) == 1:  # AR(1) scored its chosen form on these folds already
+        folds: list[holdout.FoldScore] = [(np.array([sq]), np.array([n])) for sq, n in kept]
+        ours = holdout.pooled_rmse(folds, 1)
+        fold_rms.update(zip(model.outputs, _fold_rms(folds, 1), strict=True))
     if baseline and kind != "mlr":
         report["baseline_mlr"] = compare_with_mlr(kind, log, fit_inputs, tcols, held_options,
                                                   model.outputs, warnings, ours, fold_rms)

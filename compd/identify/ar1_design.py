@@ -50,7 +50,7 @@ BLOCK_ROWS = 512  # rows per block of filter_rows: C1 ≥ e^(−1/2) keeps the p
 TAU_MIN_STEPS = 2.0
 TAU_MAX_S = 86400.0
 GRID_POINTS = 40  # the fit's C1 grid (then a bounded search between the best point's neighbours)
-SCAN_POINTS = 120  # the selection's C1 grid (then a parabola): within 1 % of the bounded search
+SCAN_POINTS = 90  # the selection's C1 grid (then a parabola): within 1.5 % of the bounded search
 LAW_RATIOS = (1.0, 1.25, 1.6, 2.0, 2.5, 3.2, 4.0, 5.0, 6.5, 8.0)  # the speed law's grid of ρ: cooling at n_ref / at rest
 RATE_RATIO_MAX = 50.0  # ρ at most
 LAW_Z_POINTS = 30  # the speed law's grid of C1 at standstill
@@ -369,6 +369,16 @@ class Roles:
 FoldScore = holdout.FoldScore
 
 
+def _mask(index: np.ndarray, size: int) -> np.ndarray:
+    """A boolean mask of `size` from an index array (or the mask itself)."""
+    index = np.asarray(index)
+    if index.dtype == bool:
+        return index
+    out = np.zeros(size, dtype=bool)
+    out[index] = True
+    return out
+
+
 class Scan:
     """Every fold's Gram blocks at every C1 of a grid (`c1s`: one C1 each, or one per step each), for
     all the temperature columns of `steps` at once: C2's columns, then each temperature's rise (as a
@@ -387,38 +397,65 @@ class Scan:
         E = np.where(np.isfinite(steps.E), steps.E, 0.0)
         self.train_c = np.array([float(np.sum(E[f.train] ** 2)) for _, f in self.folds])
         self.held_c = np.array([f.held_sq for _, f in self.folds])
+        self._c2: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
         full = steps.full.train
+        gone = [np.flatnonzero(full & ~f.train) for _, f in self.folds]  # the measured steps each fold hides
+        hidden = np.concatenate(gone) if gone else np.zeros(0, dtype=np.intp)
+        same = [g.size == f.held_count.size and np.array_equal(np.flatnonzero(_mask(f.held_steps, full.size)), g)
+                and bool(np.all(f.held_count == 1)) for g, (_, f) in zip(gone, self.folds, strict=True)]
+        # the Grams are most of a selection's time: the folds' hidden steps are disjoint, so the whole log's
+        # Gram is theirs summed (and the rest's), and a fold held out step by step (one row each) has its
+        # hidden steps' Gram as its held-out one
+        disjoint = np.unique(hidden).size == hidden.size
+        rest = np.setdiff1d(np.flatnonzero(full), hidden)
         for i, c1 in enumerate(c1s):
             F = filter_c1(c1, U)
             A = np.hstack([F[:, :Lw], steps.rise, F[:, Lw:]])
-            Am = A[full]
-            G_all, g_all = Am.T @ Am, Am.T @ E[full]
+            Gs = [A[g].T @ A[g] for g in gone]
+            if disjoint:
+                Ar = A[rest]
+                G_all = sum(Gs, Ar.T @ Ar)
+            else:
+                Am = A[full]
+                G_all = Am.T @ Am
+            g_all = A[full].T @ E[full]
             for j, (_, f) in enumerate(self.folds):
-                gone = full & ~f.train  # measured steps this fold hides
-                Ag = A[gone]
-                self.train_G[j, i] = G_all - Ag.T @ Ag
-                self.train_g[j, i] = g_all - Ag.T @ E[gone]
-                Ah = A[f.held_steps]
-                self.held_G[j, i] = (Ah * f.held_count[:, None]).T @ Ah
-                self.held_g[j, i] = Ah.T @ f.held_sum
+                self.train_G[j, i] = G_all - Gs[j]
+                self.train_g[j, i] = g_all - A[gone[j]].T @ E[gone[j]]
+                if same[j]:
+                    self.held_G[j, i] = Gs[j]
+                else:
+                    Ah = A[f.held_steps]
+                    self.held_G[j, i] = (Ah * f.held_count[:, None]).T @ Ah
+                self.held_g[j, i] = A[f.held_steps].T @ f.held_sum
+
+    def _c2_part(self, j: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Fold j's C2 rows of its (train, held) Grams mapped to the fold's coefficients, the same for every
+        candidate: (C2 × C2, C2 × every column, C2 of g) at every grid C1, made once."""
+        if j not in self._c2:
+            M = self.steps.c2_map(self.folds[j][1])
+            Lw = self.Lw
+            self._c2[j] = [(M.T @ G[:, :Lw, :Lw] @ M, M.T @ G[:, :Lw], g[:, :Lw] @ M)
+                           for G, g in ((self.train_G[j], self.train_g[j]), (self.held_G[j], self.held_g[j]))]
+        return self._c2[j]
 
     def blocks(self, roles: Roles, j: int) -> tuple[np.ndarray, ...]:
         """(train G, train g, held G, held g) of `roles` in the scan's fold j at every grid C1, C2's
         columns mapped to the fold's coefficients and the spindle's sign applied."""
         st = self.steps
-        M = st.c2_map(self.folds[j][1])
         Lw, T = self.Lw, self.T
         J = np.array([Lw + st.names.index(n) for n in roles.bed] + [Lw + T + st.names.index(n) for n in roles.recursion],
                      dtype=np.intp)
-        sign = np.r_[np.full(M.shape[1], float(roles.sign)), np.ones(len(roles.bed)),
-                     np.full(len(roles.recursion), float(roles.sign))]
         out = []
-        for G, g in ((self.train_G[j], self.train_g[j]), (self.held_G[j], self.held_g[j])):
-            Gcj = M.T @ G[:, :Lw][:, :, J]
-            top = np.concatenate([M.T @ G[:, :Lw, :Lw] @ M, Gcj], axis=2)
+        for (G, g), (cc, cx, cg) in zip(((self.train_G[j], self.train_g[j]), (self.held_G[j], self.held_g[j])),
+                                        self._c2_part(j), strict=True):
+            sign = np.r_[np.full(cc.shape[-1], float(roles.sign)), np.ones(len(roles.bed)),
+                         np.full(len(roles.recursion), float(roles.sign))]
+            Gcj = cx[:, :, J]
+            top = np.concatenate([cc, Gcj], axis=2)
             bottom = np.concatenate([np.swapaxes(Gcj, 1, 2), G[:, J][:, :, J]], axis=2)
             out.append(np.concatenate([top, bottom], axis=1) * sign[None, :, None] * sign[None, None, :])
-            out.append(np.concatenate([g[:, :Lw] @ M, g[:, J]], axis=1) * sign)
+            out.append(np.concatenate([cg, g[:, J]], axis=1) * sign)
         return tuple(out)
 
     def solve(self, many: Sequence[Roles], j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -633,8 +670,8 @@ class FormFit:
 
 def fit_law(steps: Steps, roles: Roles, folds: bool = True, exact: bool = True) -> list[FormFit | str]:
     """The speed law per fold (or on the whole log): φ = (z0, γ) the best of the law's grid (every
-    fold's Gram blocks at once, `Scan`), then Nelder–Mead from there (`exact`: to 1e-5 in φ; else
-    a parabola's worth: 1e-2)."""
+    fold's Gram blocks at once, `Scan`), then Nelder–Mead from there (`exact`: to 1e-5 in φ and 1e-10
+    of the train SSE; else a parabola's worth for scoring: 1e-2 in φ or 1e-5 of the SSE)."""
     law = LawC1(steps)
     grid = law.grid()
     scan = Scan(steps.only(roles.sensors), [law(phi) for phi in grid], folds)
@@ -649,8 +686,8 @@ def fit_law(steps: Steps, roles: Roles, folds: bool = True, exact: bool = True) 
         _, cost, _ = scan.solve([roles], j)
         best = grid[int(np.argmin(cost[0]))]
         search = Search(steps, roles, fold, law, c2)
-        tol = 1e-5 if exact else 1e-2
-        res = _nelder_mead(search.cost, best, np.array([dz, 0.25]), tol, 1e-10 * max(float(cost[0].min()), 1e-12),
+        tol, ftol = (1e-5, 1e-10) if exact else (1e-2, 1e-5)  # φ, and the train SSE relative
+        res = _nelder_mead(search.cost, best, np.array([dz, 0.25]), tol, ftol * max(float(cost[0].min()), 1e-12),
                            400)
         phi = res.x if res.fun <= float(cost[0].min()) else best
         out.append(FormFit(np.asarray(phi, dtype=float), search.at(phi), bool(res.success)))
