@@ -229,6 +229,10 @@ class ModbusClient:
         if self._client is not None:
             self._client.close()
 
+    def release(self) -> None:
+        """For good (the link's worker stops): the connection closed."""
+        self.close()
+
     def _after_link_fault(self) -> None:
         """TCP: close (the stream may hold a late reply); RTU: discard the input buffer."""
         c = self._client

@@ -8,5 +8,6 @@ SINKS = Registry(
         "pci1756": ("compd.sinks.pci1756", "Pci1756Sink"),
         "fanuc_pmc": ("compd.sinks.fanuc_pmc", "FanucPmcSink"),
         "siemens": ("compd.sinks.siemens", "SiemensSink"),
+        "linuxcnc": ("compd.sinks.linuxcnc", "LinuxcncSink"),
     },
 )

@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, Protocol
 
 from compd.cycle.histogram import DurationHist
 from compd.io.child import hosting_now
@@ -37,12 +38,25 @@ from compd.io.worker import DeviceWork, IoWorker, LinkDown, stall_after
 log = logging.getLogger("compd.io")
 
 
+class RegisterDevice(Protocol):
+    """What a link's worker talks to: a Modbus client (`ModbusClient`), or a device that shows
+    itself as registers the same way (compd.sinks.hal_link: LinuxCNC's HAL)."""
+
+    last_error: str | None
+
+    def connect(self) -> bool: ...
+    def close(self) -> None: ...
+    def release(self) -> None: ...
+    def read_registers(self, address: int, count: int) -> list[int] | ModbusFault: ...
+    def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault: ...
+
+
 class LinkWork(OverModbus, DeviceWork):
     """The device half of a link (the worker's thread): send what is queued, read the status."""
 
     def __init__(
         self,
-        client: ModbusClient,
+        client: RegisterDevice,
         queue: WriteQueue,
         status_out: SharedRegisters,
         status_range: tuple[int, int] | None,
@@ -66,6 +80,10 @@ class LinkWork(OverModbus, DeviceWork):
 
     def counters(self) -> dict[str, Any]:
         return {"writes": self.writes, "reply_errors": self.reply_errors, "bad_replies": self.bad_replies}
+
+    def close(self) -> None:
+        """The worker stops: the device released for good."""
+        self.client.release()
 
     max_writes_per_round = 64  # a round ends, so requests and stop are seen, however busy the queue
 
@@ -163,7 +181,9 @@ class ModbusLink:
         reconnect_max_s: float = 5.0,
         name: str = "sink",
         sync: list[tuple[int, int]] | None = None,
+        device: RegisterDevice | None = None,
     ) -> None:
+        """`device`: what the registers are, when not a Modbus TCP device at host:port."""
         self.host, self.port, self.device_id = host, port, device_id
         self.timeout_s = timeout_s
         self.status_range = status
@@ -175,7 +195,7 @@ class ModbusLink:
         # what the device holds at each connect, before anything is written (None: no such read)
         self.sync = Sync(sync) if sync is not None else None
         self._work = LinkWork(
-            ModbusClient.tcp(host, port, device_id=device_id, timeout_s=timeout_s),
+            device if device is not None else ModbusClient.tcp(host, port, device_id=device_id, timeout_s=timeout_s),
             self._queue, self._status, status, status_period_s, self.sync,
         )
         self._worker = IoWorker(

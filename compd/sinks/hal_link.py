@@ -1,0 +1,230 @@
+"""LinuxCNC's HAL as the device behind a sink's link: compd's HAL component, its pins shown as registers.
+
+The linuxcnc sink speaks the register map of compd.plc.eoffsets through the same link as every
+sink (compd.sinks.modbus_link: its worker, epochs, read-back before the first write, back-off).
+`HalRegisters` is that link's device: it runs on the link's worker (a thread, or the I/O child
+process), never in the cycle.
+
+At connect it makes compd's HAL userspace component (`sink.component`, default `compd`) with,
+per axis L, `<comp>.L.eoffset-counts` (s32 out), `.L.eoffset-enable` (bit out), `.L.eoffset-scale`
+(float out: machine units per count) and `.L.eoffset` (float in: what LinuxCNC applies), and
+nets them to LinuxCNC's `axis.L.eoffset-counts`/`-enable`/`-scale` and from `axis.L.eoffset`:
+to the signals those pins are on (the HAL file's nets; found with halcmd), or to new signals
+`<comp>-L-eoffset-counts` … when they are on none. Each output pin takes its signal's value
+before it is linked, so linking moves nothing: a compd started again (its counts pin back at 0)
+joins the counts where the last one left them and the axis does not move. A signal another
+component writes is never fought: the link stays down and says which.
+
+The link is up only while LinuxCNC runs, the machine is on (`motion.motion-enabled`) and homed
+(`motion.is-all-homed`): counts act only then (LinuxCNC ignores them otherwise and moves the
+baseline). Whenever one of these ends the link goes down (its last error says why) and, when
+they hold again, a new epoch reads back what LinuxCNC applies before anything is written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import subprocess
+from collections.abc import Sequence
+from types import ModuleType
+from typing import Any
+
+from compd.errors import BadInput
+from compd.io import hal_modules
+from compd.io.modbus_client import BadReply, LinkFault, ModbusFault
+from compd.plc.eoffsets import (
+    BLOCK,
+    COUNTS,
+    HOMED,
+    LIMITED,
+    NETTED,
+    ON,
+    S32_MAX,
+    S32_MIN,
+    f32_regs,
+    regs_s32,
+    s32_regs,
+)
+
+MM_PER_UNIT = {"mm": 1.0, "inch": 25.4}
+HALCMD_TIMEOUT_S = 10.0
+
+
+def halcmd(*args: str) -> subprocess.CompletedProcess[str]:
+    """Run LinuxCNC's halcmd (its script-friendly output), never for longer than HALCMD_TIMEOUT_S."""
+    return subprocess.run(["halcmd", "-s", *args], capture_output=True, text=True, timeout=HALCMD_TIMEOUT_S,
+                          check=False, env=os.environ.copy())
+
+
+def linked_signal(pin: str) -> str | None:
+    """The signal `pin` is linked to (halcmd's `show pin`), None when it is on none; LookupError when
+    the pin does not exist (or HAL does not run)."""
+    done = halcmd("show", "pin", pin)
+    for line in done.stdout.splitlines():
+        words = line.split()
+        if pin in words:
+            k = words.index(pin)
+            if k + 2 < len(words) and words[k + 1] in ("<==", "==>", "<=>"):
+                return words[k + 2]
+            return None
+    raise LookupError(f"HAL has no pin {pin}" + (f" ({done.stderr.strip()})" if done.stderr.strip() else ""))
+
+
+class HalRegisters:
+    """compd's HAL component as a register device (compd.plc.eoffsets' map) for ModbusLink's worker."""
+
+    def __init__(self, component: str, axes: Sequence[str], units: str, count_um: float) -> None:
+        self.component = component
+        self.axes = list(axes)
+        self.count_um = count_um
+        self.scale = count_um / 1000.0 / MM_PER_UNIT[units]  # machine units per count
+        self.unit_um = 1000.0 * MM_PER_UNIT[units]
+        self.last_error: str | None = None
+        self.limited = False
+        self._hal: ModuleType | None = None
+        self._comp: Any = None
+
+    # ------------------------------------------------------------ the link's connect / close
+    def connect(self) -> bool:
+        """Ready when LinuxCNC runs, compd's pins are netted to its axes, and the machine is on and homed."""
+        why = self._connect()
+        self.last_error = why
+        return why is None
+
+    def _connect(self) -> str | None:
+        try:
+            hal, _ = hal_modules.load()
+        except BadInput as e:
+            return str(e)
+        self._hal = hal
+        try:  # LinuxCNC's own component: compd never makes HAL where LinuxCNC does not run
+            linked_signal("motion.motion-enabled")
+        except (LookupError, OSError, subprocess.SubprocessError):
+            return "LinuxCNC is not running (HAL has no motion.motion-enabled)"
+        if self._comp is None:
+            try:
+                self._comp = self._make(hal)
+            except Exception as e:  # HAL says why in its own words (a name in use, no HAL)
+                return f"cannot make the HAL component {self.component!r}: {e}"
+        try:
+            why = self._net(hal)
+        except (LookupError, OSError, subprocess.SubprocessError, RuntimeError) as e:
+            return f"cannot net {self.component}'s pins: {e}"
+        return why or self._machine()
+
+    def _make(self, hal: ModuleType) -> Any:
+        c = hal.component(self.component)
+        for a in self.axes:
+            c.newpin(f"{a}.eoffset-counts", hal.HAL_S32, hal.HAL_OUT)
+            c.newpin(f"{a}.eoffset-enable", hal.HAL_BIT, hal.HAL_OUT)
+            c.newpin(f"{a}.eoffset-scale", hal.HAL_FLOAT, hal.HAL_OUT)
+            c.newpin(f"{a}.eoffset", hal.HAL_FLOAT, hal.HAL_IN)
+        c.ready()
+        return c
+
+    def _net(self, hal: ModuleType) -> str | None:
+        """Each pin of compd's on LinuxCNC's signal (see the module); why not, or None."""
+        comp = self.component
+        for a in self.axes:
+            for part, kind in (("counts", hal.HAL_S32), ("enable", hal.HAL_BIT), ("scale", hal.HAL_FLOAT)):
+                ours, theirs = f"{comp}.{a}.eoffset-{part}", f"axis.{a}.eoffset-{part}"
+                mine, sig = linked_signal(ours), linked_signal(theirs)
+                if mine is not None:
+                    if mine != sig:
+                        return f"{ours} is netted to {mine}, not to {theirs}'s signal ({sig or 'none'})"
+                    continue
+                if sig is None:
+                    sig = f"{comp}-{a}-eoffset-{part}"
+                    hal.new_sig(sig, kind)
+                    halcmd("sets", sig, str(hal.get_value(theirs)))
+                    hal.connect(theirs, sig)
+                elif hal.pin_has_writer(theirs):
+                    return f"{theirs} is driven through signal {sig} by another component: compd will not fight it"
+                value = hal.get_value(sig)
+                self._comp[f"{a}.eoffset-{part}"] = value  # linking moves nothing
+                hal.connect(ours, sig)
+            ours, theirs = f"{comp}.{a}.eoffset", f"axis.{a}.eoffset"
+            mine, sig = linked_signal(ours), linked_signal(theirs)
+            if mine is not None:
+                if mine != sig:
+                    return f"{ours} is netted to {mine}, not to {theirs}'s signal ({sig or 'none'})"
+                continue
+            if sig is None:
+                sig = f"{comp}-{a}-eoffset"
+                hal.new_sig(sig, hal.HAL_FLOAT)
+                hal.connect(theirs, sig)
+            hal.connect(ours, sig)
+        for a in self.axes:  # the scale compd counts in (counts are reckoned from what is applied)
+            if not math.isclose(float(self._comp[f"{a}.eoffset-scale"]), self.scale, rel_tol=1e-12):
+                if self._comp[f"{a}.eoffset-enable"] and int(self._comp[f"{a}.eoffset-counts"]) != 0:
+                    return (f"axis.{a}.eoffset-scale is {self._comp[f'{a}.eoffset-scale']} with the offset enabled:"
+                            f" compd counts in {self.scale:g} (sink.count_um); clear the offset first")
+                self._comp[f"{a}.eoffset-scale"] = self.scale
+        return None
+
+    def _machine(self) -> str | None:
+        """Why counts would not act now (machine off, not homed), or None."""
+        hal = self._hal
+        assert hal is not None
+        try:
+            on, homed = bool(hal.get_value("motion.motion-enabled")), bool(hal.get_value("motion.is-all-homed"))
+        except Exception as e:
+            return f"LinuxCNC does not answer ({e})"
+        if not on:
+            return "LinuxCNC: the machine is off (estop or not on): the offset is held, compd waits"
+        if not homed:
+            return "LinuxCNC: the machine is not homed: the offset is held, compd waits"
+        return None
+
+    def close(self) -> None:
+        """The link's disconnect: the component stays (its pins keep what they carry) until `release`."""
+
+    def release(self) -> None:
+        """The component leaves HAL (after the safe output): LinuxCNC keeps the offset its counts left."""
+        if self._comp is not None:
+            with contextlib.suppress(Exception):  # already gone with LinuxCNC
+                self._comp.exit()
+            self._comp = None
+
+    # ------------------------------------------------------------ registers
+    def read_registers(self, address: int, count: int, **_: Any) -> list[int] | ModbusFault:
+        """The map's registers now; a LinkFault when counts would no longer act (see the module)."""
+        if self._comp is None or self._hal is None:
+            return LinkFault("the HAL component is not made")
+        why = self._machine()
+        if why is not None:
+            self.last_error = why
+            return LinkFault(why)
+        try:
+            self.limited = bool(self._hal.get_value("motion.eoffset-limited"))
+        except Exception as e:
+            return LinkFault(f"LinuxCNC does not answer ({e})")
+        regs: list[int] = []
+        flags = NETTED | ON | HOMED | (LIMITED if self.limited else 0)
+        for a in self.axes:
+            applied = float(self._comp[f"{a}.eoffset"]) * self.unit_um
+            regs += [*s32_regs(int(self._comp[f"{a}.eoffset-counts"])), int(bool(self._comp[f"{a}.eoffset-enable"])),
+                     *f32_regs(applied if math.isfinite(applied) else math.nan), flags, 0, 0]
+        if address < 0 or address + count > len(regs):
+            return BadReply(f"registers {address}+{count} are not in the map", "range")
+        return regs[address : address + count]
+
+    def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault:
+        """COUNTS (and ENABLE) of one axis: counts first, then enable (see compd.plc.eoffsets)."""
+        i, off = divmod(address, BLOCK)
+        if self._comp is None or not 0 <= i < len(self.axes) or off != COUNTS or len(values) not in (2, 3):
+            return BadReply(f"registers {address}+{len(values)} are not writable", "range")
+        counts = regs_s32(values[0], values[1])
+        if not S32_MIN <= counts <= S32_MAX:
+            return BadReply(f"counts {counts} out of range", "range")
+        why = self._machine()
+        if why is not None:
+            return LinkFault(why)
+        a = self.axes[i]
+        self._comp[f"{a}.eoffset-counts"] = counts
+        if len(values) == 3:
+            self._comp[f"{a}.eoffset-enable"] = bool(values[2])
+        return None
+
