@@ -9,8 +9,10 @@ TEST_STAMP := $(VENV)/.test-installed
 # verify and security checks, headless Chromium for compd report's page, the MQTT broker of the plant tests,
 # dpkg-dev and lintian to build and check the Debian package); COMMAND:PACKAGE where the command is not named like its package.
 APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell mosquitto dpkg-shlibdeps:dpkg-dev lintian
-# ... and those installed without their recommends: LinuxCNC's standalone G-code interpreter `rs274`, which
-# reads compd testplan's programs back (linuxcnc-uspace; its recommends would bring a desktop)
+# ... and those installed without their recommends: LinuxCNC (linuxcnc-uspace; its recommends would bring a
+# desktop). Its standalone G-code interpreter `rs274` reads compd testplan's programs back; the same package's
+# `linuxcnc`, `halcmd`, `halrun` and Python modules (hal, linuxcnc: compd.io.hal_modules) run the headless sim
+# mill of tests/linuxcnc/sim.py, so `rs274` stands for them all here
 APT_PACKAGES_BARE := rs274:linuxcnc-uspace
 
 .PHONY: venv demo test accept bench lint sysdeps clean install deb docs reliability
