@@ -6,6 +6,7 @@ as registers, per axis a block of `BLOCK`:
 
   COUNTS  (2, s32, high word first)  the counts compd's `eoffset-counts` pin carries       read/write
   ENABLE  (1)                        compd's `eoffset-enable` pin                          read/write
+                                     (a write of its own: a link's queue merges writes to one address)
   APPLIED (2, float32 µm)            `axis.L.eoffset`: the offset LinuxCNC applies          read
   FLAGS   (1)                        NETTED, ON (motion enabled), HOMED (all joints), LIMITED read
 
@@ -77,18 +78,20 @@ class Eoffsets(VirtualDevice):
         return regs[address : address + count]
 
     def write_registers(self, address: int, values: list[int]) -> bool:
-        """Counts and enable of one axis (COUNTS with ENABLE, or COUNTS alone): the register takes
-        Δcounts while the offset is enabled and the machine on and homed, else nothing moves."""
+        """COUNTS of one axis (two registers), or its ENABLE (one): the register takes Δcounts while
+        the offset is enabled and the machine on and homed, else nothing moves."""
         i, off = divmod(address, BLOCK)
-        if not 0 <= i < self.n or off != COUNTS or len(values) not in (2, 3):
+        if not 0 <= i < self.n:
+            return False
+        if off == ENABLE and len(values) == 1 and values[0] in (0, 1):
+            self.enable[i] = int(values[0])
+            return True
+        if off != COUNTS or len(values) != 2:
             return False
         counts = regs_s32(values[0], values[1])
-        enable = int(values[2]) if len(values) == 3 else self.enable[i]
-        if enable not in (0, 1):
-            return False
-        if enable and self.on and self.homed:
+        if self.enable[i] and self.on and self.homed:
             self.register[i] += counts - self.counts[i]
-        self.counts[i], self.enable[i] = counts, enable
+        self.counts[i] = counts
         self.applied_um[i] = self.register[i] * self.count_um
         return True
 

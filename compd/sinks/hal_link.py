@@ -19,17 +19,27 @@ The link is up only while LinuxCNC runs, the machine is on (`motion.motion-enabl
 (`motion.is-all-homed`): counts act only then (LinuxCNC ignores them otherwise and moves the
 baseline). Whenever one of these ends the link goes down (its last error says why) and, when
 they hold again, a new epoch reads back what LinuxCNC applies before anything is written.
+
+The component lives in a process of its own, the agent (`python -m compd.sinks.hal_link`, `HalPins`),
+which `HalRegisters` (on the link's worker) starts at connect and asks over a pipe, one JSON line
+each way per request. A HAL component belongs to the process that made it: LinuxCNC's shutdown
+(`halcmd unload all`) SIGTERMs that process, and a process whose HAL went away cannot join the
+next one (its view of HAL is the old memory). So the agent ends with LinuxCNC, the link goes down,
+and the next connect starts a fresh agent in the new HAL; compd's daemon and its I/O process run on.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
+import signal
 import subprocess
+import sys
 from collections.abc import Sequence
 from types import ModuleType
-from typing import Any
+from typing import Any, TextIO
 
 from compd.errors import BadInput
 from compd.io import hal_modules
@@ -37,6 +47,7 @@ from compd.io.modbus_client import BadReply, LinkFault, ModbusFault
 from compd.plc.eoffsets import (
     BLOCK,
     COUNTS,
+    ENABLE,
     HOMED,
     LIMITED,
     NETTED,
@@ -72,8 +83,8 @@ def linked_signal(pin: str) -> str | None:
     raise LookupError(f"HAL has no pin {pin}" + (f" ({done.stderr.strip()})" if done.stderr.strip() else ""))
 
 
-class HalRegisters:
-    """compd's HAL component as a register device (compd.plc.eoffsets' map) for ModbusLink's worker."""
+class HalPins:
+    """compd's HAL component as a register device (compd.plc.eoffsets' map), in the agent's process."""
 
     def __init__(self, component: str, axes: Sequence[str], units: str, count_um: float) -> None:
         self.component = component
@@ -85,6 +96,7 @@ class HalRegisters:
         self.limited = False
         self._hal: ModuleType | None = None
         self._comp: Any = None
+        self.stale = False  # the component's HAL is gone: the agent must end
 
     # ------------------------------------------------------------ the link's connect / close
     def connect(self) -> bool:
@@ -103,6 +115,12 @@ class HalRegisters:
             linked_signal("motion.motion-enabled")
         except (LookupError, OSError, subprocess.SubprocessError):
             return "LinuxCNC is not running (HAL has no motion.motion-enabled)"
+        if self._comp is not None:
+            try:
+                linked_signal(f"{self.component}.{self.axes[0]}.eoffset-counts")
+            except LookupError:  # made in a HAL that is gone (LinuxCNC restarted): this process cannot join
+                self.stale = True  # the next one; the agent ends and a fresh one is started
+                return f"the HAL {self.component} was made in is gone (LinuxCNC restarted): a new agent joins the new one"
         if self._comp is None:
             try:
                 self._comp = self._make(hal)
@@ -178,9 +196,6 @@ class HalRegisters:
             return "LinuxCNC: the machine is not homed: the offset is held, compd waits"
         return None
 
-    def close(self) -> None:
-        """The link's disconnect: the component stays (its pins keep what they carry) until `release`."""
-
     def release(self) -> None:
         """The component leaves HAL (after the safe output): LinuxCNC keeps the offset its counts left."""
         if self._comp is not None:
@@ -212,19 +227,159 @@ class HalRegisters:
         return regs[address : address + count]
 
     def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault:
-        """COUNTS (and ENABLE) of one axis: counts first, then enable (see compd.plc.eoffsets)."""
+        """COUNTS of one axis (two registers), or its ENABLE (one)."""
         i, off = divmod(address, BLOCK)
-        if self._comp is None or not 0 <= i < len(self.axes) or off != COUNTS or len(values) not in (2, 3):
+        ok = (off == COUNTS and len(values) == 2) or (off == ENABLE and len(values) == 1 and values[0] in (0, 1))
+        if self._comp is None or not 0 <= i < len(self.axes) or not ok:
             return BadReply(f"registers {address}+{len(values)} are not writable", "range")
-        counts = regs_s32(values[0], values[1])
-        if not S32_MIN <= counts <= S32_MAX:
-            return BadReply(f"counts {counts} out of range", "range")
         why = self._machine()
         if why is not None:
             return LinkFault(why)
         a = self.axes[i]
+        if off == ENABLE:
+            self._comp[f"{a}.eoffset-enable"] = bool(values[0])
+            return None
+        counts = regs_s32(values[0], values[1])
+        if not S32_MIN <= counts <= S32_MAX:
+            return BadReply(f"counts {counts} out of range", "range")
         self._comp[f"{a}.eoffset-counts"] = counts
-        if len(values) == 3:
-            self._comp[f"{a}.eoffset-enable"] = bool(values[2])
         return None
 
+
+
+class HalRegisters:
+    """The linuxcnc sink's register device on the link's worker: `HalPins` in an agent process (see the module)."""
+
+    def __init__(self, component: str, axes: Sequence[str], units: str, count_um: float) -> None:
+        self.args = [component, units, repr(count_um), *axes]
+        self.last_error: str | None = None
+        self._agent: subprocess.Popen[str] | None = None
+
+    def _ask(self, *request: Any) -> Any:
+        """One request to the agent and its reply; LinkFault text when the agent is gone."""
+        agent = self._agent
+        if agent is None or agent.poll() is not None:
+            return None
+        try:
+            assert agent.stdin is not None and agent.stdout is not None
+            agent.stdin.write(json.dumps(request) + "\n")
+            agent.stdin.flush()
+            line = agent.stdout.readline()
+        except (OSError, ValueError):
+            return None
+        try:
+            return json.loads(line) if line else None
+        except ValueError:
+            return None
+
+    def connect(self) -> bool:
+        """A fresh agent unless the running one still answers; ready as `HalPins.connect` says."""
+        if self._agent is None or self._agent.poll() is not None:
+            self._end_agent()
+            env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+            try:
+                self._agent = subprocess.Popen([sys.executable, "-m", "compd.sinks.hal_link", *self.args],
+                                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                               text=True, env=env, start_new_session=True)
+            except OSError as e:
+                self.last_error = f"cannot start compd's HAL agent: {e}"
+                return False
+        got = self._ask("connect")
+        if got is None:
+            self.last_error = "compd's HAL agent ended (LinuxCNC's shutdown ends it): a new one at the next try"
+            self._end_agent()
+            return False
+        self.last_error = got.get("why")
+        return bool(got.get("ok"))
+
+    def close(self) -> None:
+        """The link's disconnect: the agent stays (its component's pins keep what they carry)."""
+
+    def release(self) -> None:
+        """For good (after the safe output): the agent's component leaves HAL, the agent ends."""
+        self._ask("release")
+        self._end_agent()
+
+    def _end_agent(self) -> None:
+        agent, self._agent = self._agent, None
+        if agent is None:
+            return
+        with contextlib.suppress(OSError, ValueError):
+            assert agent.stdin is not None
+            agent.stdin.close()
+        try:
+            agent.wait(HALCMD_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            agent.kill()
+            agent.wait(HALCMD_TIMEOUT_S)
+        for f in (agent.stdout,):
+            with contextlib.suppress(OSError, ValueError):
+                if f is not None:
+                    f.close()
+
+    def read_registers(self, address: int, count: int, **_: Any) -> list[int] | ModbusFault:
+        return self._answer(self._ask("read", address, count))
+
+    def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault:
+        got = self._answer(self._ask("write", address, [int(v) for v in values]))
+        return None if isinstance(got, list) else got
+
+    def _answer(self, got: Any) -> list[int] | ModbusFault:
+        if got is None:
+            return LinkFault("compd's HAL agent ended (LinuxCNC's shutdown ends it)")
+        if "regs" in got and isinstance(got["regs"], list) and all(isinstance(v, int) for v in got["regs"]):
+            return list(got["regs"])
+        if got.get("fault") == "reply":
+            return BadReply(str(got.get("why")), "range")
+        return LinkFault(str(got.get("why", "compd's HAL agent gave no answer")))
+
+
+def serve(pins: HalPins, requests: TextIO, replies: TextIO) -> None:
+    """The agent's loop: a JSON request per line, a JSON reply per line, until the pipe closes."""
+    for line in requests:
+        try:
+            what, *args = json.loads(line)
+        except (ValueError, TypeError):
+            replies.write(json.dumps({"fault": "reply", "why": "not a request"}) + "\n")
+            replies.flush()
+            continue
+        if what == "connect":
+            ok = pins.connect()
+            out: dict[str, Any] = {"ok": ok, "why": pins.last_error}
+            if pins.stale:
+                replies.write(json.dumps(out) + "\n")
+                replies.flush()
+                return
+        elif what == "read":
+            got = pins.read_registers(int(args[0]), int(args[1]))
+            out = {"regs": got} if isinstance(got, list) else _fault(got)
+        elif what == "write":
+            done = pins.write_registers(int(args[0]), [int(v) for v in args[1]])
+            out = {"regs": []} if done is None else _fault(done)
+        elif what == "release":
+            pins.release()
+            out = {"ok": True}
+        else:
+            out = {"fault": "reply", "why": f"unknown request {what!r}"}
+        replies.write(json.dumps(out) + "\n")
+        replies.flush()
+    pins.release()
+
+
+def _fault(f: ModbusFault) -> dict[str, Any]:
+    return {"fault": "link" if isinstance(f, LinkFault) else "reply", "why": f.detail}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m compd.sinks.hal_link COMPONENT UNITS COUNT_UM AXIS...`: the agent (see the module)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's Ctrl-C is the daemon's: it releases us
+    args = sys.argv[1:] if argv is None else argv
+    component, units, count_um, *axes = args
+    replies = os.fdopen(os.dup(1), "w")  # the replies' own descriptor: whatever HAL prints goes to stderr
+    os.dup2(2, 1)
+    serve(HalPins(component, axes, units, float(count_um)), sys.stdin, replies)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -10,8 +10,8 @@ Counts act like a jog wheel (LinuxCNC moves the offset by Δcounts × scale whil
 enabled and the machine on and homed). So the sink never reckons from counts alone: at every
 connect the link reads back the counts on compd's pin and the offset LinuxCNC applies, and the
 sink counts from there (compd.sinks.base, "what the device holds"): counts = counts read +
-round((correction − offset read) / count_um). It turns the offset's enable on in a write that
-moves no count. The safe output walks the counts to an offset of 0 at `safe_ramp_um_per_s` and
+round((correction − offset read) / count_um). It turns the offset's enable on before it moves a
+count (a write of its own, sent first). The safe output walks the counts to an offset of 0 at `safe_ramp_um_per_s` and
 waits until `axis.L.eoffset` reads 0 (within a count), then the component leaves HAL.
 
 With `in_process: true` (replay, tests) the offsets are compd.plc.eoffsets' emulation on the
@@ -165,9 +165,9 @@ class LinuxcncSink(Sink):
             held[a] = um
         self._held_um = held
         assert self.link is not None
-        for k in range(len(self.hal_axes)):
+        for k in range(len(self.hal_axes)):  # its own register: the queue never merges it into a count's write
             if not self.enabled[k]:
-                self.link.submit(BLOCK * k + COUNTS, [*s32_regs(int(self.sent_counts[k])), 1])
+                self.link.submit(BLOCK * k + ENABLE, [1])
                 self.enabled[k] = True
 
     def _counts(self, k: int, um: float) -> int:
