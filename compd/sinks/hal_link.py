@@ -20,29 +20,23 @@ The link is up only while LinuxCNC runs, the machine is on (`motion.motion-enabl
 baseline). Whenever one of these ends the link goes down (its last error says why) and, when
 they hold again, a new epoch reads back what LinuxCNC applies before anything is written.
 
-The component lives in a process of its own, the agent (`python -m compd.sinks.hal_link`, `HalPins`),
-which `HalRegisters` (on the link's worker) starts at connect and asks over a pipe, one JSON line
-each way per request. A HAL component belongs to the process that made it: LinuxCNC's shutdown
-(`halcmd unload all`) SIGTERMs that process, and a process whose HAL went away cannot join the
-next one (its view of HAL is the old memory). So the agent ends with LinuxCNC, the link goes down,
-and the next connect starts a fresh agent in the new HAL; compd's daemon and its I/O process run on.
+The component lives in an agent process of its own (compd.io.hal_agent: `HalPins` there,
+`HalRegisters` on the link's worker): LinuxCNC's shutdown ends the agent, the link goes down,
+and the next connect starts a fresh one in the new HAL; compd's daemon and its I/O process run on.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import math
-import os
-import signal
 import subprocess
-import sys
 from collections.abc import Sequence
 from types import ModuleType
-from typing import Any, TextIO
+from typing import Any
 
 from compd.errors import BadInput
 from compd.io import hal_modules
+from compd.io.hal_agent import Agent, Component, halcmd, linked_signal, linuxcnc_runs
 from compd.io.modbus_client import BadReply, LinkFault, ModbusFault
 from compd.plc.eoffsets import (
     BLOCK,
@@ -60,43 +54,22 @@ from compd.plc.eoffsets import (
 )
 
 MM_PER_UNIT = {"mm": 1.0, "inch": 25.4}
-HALCMD_TIMEOUT_S = 10.0
 
 
-def halcmd(*args: str) -> subprocess.CompletedProcess[str]:
-    """Run LinuxCNC's halcmd (its script-friendly output), never for longer than HALCMD_TIMEOUT_S."""
-    return subprocess.run(["halcmd", "-s", *args], capture_output=True, text=True, timeout=HALCMD_TIMEOUT_S,
-                          check=False, env=os.environ.copy())
+class HalPins(Component):
+    """compd's HAL component as a register device (compd.plc.eoffsets' map), in its agent's process
+    (arguments as the agent's command line gives them)."""
 
-
-def linked_signal(pin: str) -> str | None:
-    """The signal `pin` is linked to (halcmd's `show pin`), None when it is on none; LookupError when
-    the pin does not exist (or HAL does not run)."""
-    done = halcmd("show", "pin", pin)
-    for line in done.stdout.splitlines():
-        words = line.split()
-        if pin in words:
-            k = words.index(pin)
-            if k + 2 < len(words) and words[k + 1] in ("<==", "==>", "<=>"):
-                return words[k + 2]
-            return None
-    raise LookupError(f"HAL has no pin {pin}" + (f" ({done.stderr.strip()})" if done.stderr.strip() else ""))
-
-
-class HalPins:
-    """compd's HAL component as a register device (compd.plc.eoffsets' map), in the agent's process."""
-
-    def __init__(self, component: str, axes: Sequence[str], units: str, count_um: float) -> None:
+    def __init__(self, component: str, units: str, count_um: str | float, *axes: str) -> None:
+        super().__init__()
         self.component = component
         self.axes = list(axes)
-        self.count_um = count_um
+        self.count_um = count_um = float(count_um)
         self.scale = count_um / 1000.0 / MM_PER_UNIT[units]  # machine units per count
         self.unit_um = 1000.0 * MM_PER_UNIT[units]
-        self.last_error: str | None = None
         self.limited = False
         self._hal: ModuleType | None = None
         self._comp: Any = None
-        self.stale = False  # the component's HAL is gone: the agent must end
 
     # ------------------------------------------------------------ the link's connect / close
     def connect(self) -> bool:
@@ -111,10 +84,9 @@ class HalPins:
         except BadInput as e:
             return str(e)
         self._hal = hal
-        try:  # LinuxCNC's own component: compd never makes HAL where LinuxCNC does not run
-            linked_signal("motion.motion-enabled")
-        except (LookupError, OSError, subprocess.SubprocessError):
-            return "LinuxCNC is not running (HAL has no motion.motion-enabled)"
+        why = linuxcnc_runs()  # compd never makes a HAL where LinuxCNC does not run
+        if why is not None:
+            return why
         if self._comp is not None:
             try:
                 linked_signal(f"{self.component}.{self.axes[0]}.eoffset-counts")
@@ -203,6 +175,16 @@ class HalPins:
                 self._comp.exit()
             self._comp = None
 
+    def answer(self, what: str, args: list[Any]) -> dict[str, Any]:
+        """`read ADDRESS COUNT` and `write ADDRESS VALUES` (compd.plc.eoffsets' map)."""
+        if what == "read":
+            got = self.read_registers(int(args[0]), int(args[1]))
+            return {"regs": got} if isinstance(got, list) else _fault(got)
+        if what == "write":
+            done = self.write_registers(int(args[0]), [int(v) for v in args[1]])
+            return {"regs": []} if done is None else _fault(done)
+        return {"fault": "reply", "why": f"unknown request {what!r}"}
+
     # ------------------------------------------------------------ registers
     def read_registers(self, address: int, count: int, **_: Any) -> list[int] | ModbusFault:
         """The map's registers now; a LinkFault when counts would no longer act (see the module)."""
@@ -247,47 +229,27 @@ class HalPins:
 
 
 
+def _fault(f: ModbusFault) -> dict[str, Any]:
+    return {"fault": "link" if isinstance(f, LinkFault) else "reply", "why": f.detail}
+
+
 class HalRegisters:
-    """The linuxcnc sink's register device on the link's worker: `HalPins` in an agent process (see the module)."""
+    """The linuxcnc sink's register device on the link's worker: `HalPins` in an agent (compd.io.hal_agent)."""
 
     def __init__(self, component: str, axes: Sequence[str], units: str, count_um: float) -> None:
-        self.args = [component, units, repr(count_um), *axes]
+        self.agent = Agent("compd.sinks.hal_link:HalPins", [component, units, repr(count_um), *axes])
         self.last_error: str | None = None
-        self._agent: subprocess.Popen[str] | None = None
-
-    def _ask(self, *request: Any) -> Any:
-        """One request to the agent and its reply; LinkFault text when the agent is gone."""
-        agent = self._agent
-        if agent is None or agent.poll() is not None:
-            return None
-        try:
-            assert agent.stdin is not None and agent.stdout is not None
-            agent.stdin.write(json.dumps(request) + "\n")
-            agent.stdin.flush()
-            line = agent.stdout.readline()
-        except (OSError, ValueError):
-            return None
-        try:
-            return json.loads(line) if line else None
-        except ValueError:
-            return None
 
     def connect(self) -> bool:
         """A fresh agent unless the running one still answers; ready as `HalPins.connect` says."""
-        if self._agent is None or self._agent.poll() is not None:
-            self._end_agent()
-            env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-            try:
-                self._agent = subprocess.Popen([sys.executable, "-m", "compd.sinks.hal_link", *self.args],
-                                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                               text=True, env=env, start_new_session=True)
-            except OSError as e:
-                self.last_error = f"cannot start compd's HAL agent: {e}"
-                return False
-        got = self._ask("connect")
+        why = self.agent.start()
+        if why is not None:
+            self.last_error = why
+            return False
+        got = self.agent.ask("connect")
         if got is None:
             self.last_error = "compd's HAL agent ended (LinuxCNC's shutdown ends it): a new one at the next try"
-            self._end_agent()
+            self.agent.end()
             return False
         self.last_error = got.get("why")
         return bool(got.get("ok"))
@@ -297,89 +259,22 @@ class HalRegisters:
 
     def release(self) -> None:
         """For good (after the safe output): the agent's component leaves HAL, the agent ends."""
-        self._ask("release")
-        self._end_agent()
-
-    def _end_agent(self) -> None:
-        agent, self._agent = self._agent, None
-        if agent is None:
-            return
-        with contextlib.suppress(OSError, ValueError):
-            assert agent.stdin is not None
-            agent.stdin.close()
-        try:
-            agent.wait(HALCMD_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            agent.kill()
-            agent.wait(HALCMD_TIMEOUT_S)
-        for f in (agent.stdout,):
-            with contextlib.suppress(OSError, ValueError):
-                if f is not None:
-                    f.close()
+        self.agent.ask("release")
+        self.agent.end()
 
     def read_registers(self, address: int, count: int, **_: Any) -> list[int] | ModbusFault:
-        return self._answer(self._ask("read", address, count))
+        return self._answer(self.agent.ask("read", address, count))
 
     def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault:
-        got = self._answer(self._ask("write", address, [int(v) for v in values]))
+        got = self._answer(self.agent.ask("write", address, [int(v) for v in values]))
         return None if isinstance(got, list) else got
 
-    def _answer(self, got: Any) -> list[int] | ModbusFault:
+    def _answer(self, got: dict[str, Any] | None) -> list[int] | ModbusFault:
         if got is None:
             return LinkFault("compd's HAL agent ended (LinuxCNC's shutdown ends it)")
-        if "regs" in got and isinstance(got["regs"], list) and all(isinstance(v, int) for v in got["regs"]):
-            return list(got["regs"])
+        regs = got.get("regs")
+        if isinstance(regs, list) and all(isinstance(v, int) for v in regs):
+            return list(regs)
         if got.get("fault") == "reply":
             return BadReply(str(got.get("why")), "range")
         return LinkFault(str(got.get("why", "compd's HAL agent gave no answer")))
-
-
-def serve(pins: HalPins, requests: TextIO, replies: TextIO) -> None:
-    """The agent's loop: a JSON request per line, a JSON reply per line, until the pipe closes."""
-    for line in requests:
-        try:
-            what, *args = json.loads(line)
-        except (ValueError, TypeError):
-            replies.write(json.dumps({"fault": "reply", "why": "not a request"}) + "\n")
-            replies.flush()
-            continue
-        if what == "connect":
-            ok = pins.connect()
-            out: dict[str, Any] = {"ok": ok, "why": pins.last_error}
-            if pins.stale:
-                replies.write(json.dumps(out) + "\n")
-                replies.flush()
-                return
-        elif what == "read":
-            got = pins.read_registers(int(args[0]), int(args[1]))
-            out = {"regs": got} if isinstance(got, list) else _fault(got)
-        elif what == "write":
-            done = pins.write_registers(int(args[0]), [int(v) for v in args[1]])
-            out = {"regs": []} if done is None else _fault(done)
-        elif what == "release":
-            pins.release()
-            out = {"ok": True}
-        else:
-            out = {"fault": "reply", "why": f"unknown request {what!r}"}
-        replies.write(json.dumps(out) + "\n")
-        replies.flush()
-    pins.release()
-
-
-def _fault(f: ModbusFault) -> dict[str, Any]:
-    return {"fault": "link" if isinstance(f, LinkFault) else "reply", "why": f.detail}
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m compd.sinks.hal_link COMPONENT UNITS COUNT_UM AXIS...`: the agent (see the module)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's Ctrl-C is the daemon's: it releases us
-    args = sys.argv[1:] if argv is None else argv
-    component, units, count_um, *axes = args
-    replies = os.fdopen(os.dup(1), "w")  # the replies' own descriptor: whatever HAL prints goes to stderr
-    os.dup2(2, 1)
-    serve(HalPins(component, axes, units, float(count_um)), sys.stdin, replies)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

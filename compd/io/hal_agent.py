@@ -1,0 +1,178 @@
+"""compd's HAL components in agent processes: one per component, asked over a pipe by the device I/O worker that owns it.
+
+A HAL userspace component belongs to the process that made it: LinuxCNC's shutdown (`halcmd
+unload all`) SIGTERMs that process, and a process whose HAL went away cannot join the next one
+(its view of HAL is the old memory). So each of compd's components (the linuxcnc sink's, the hal
+source's) lives in an agent (`python -m compd.io.hal_agent MODULE:CLASS ARGS…`), a process of its
+own that the worker starts at connect (`Agent`) and asks one JSON line per request, one JSON line
+back. When LinuxCNC stops, the agent ends; the worker's link goes down and its next connect
+starts a fresh agent, which joins the new HAL. When compd is killed, its agent sees the pipe
+close, takes its component out of HAL and ends.
+
+The agent's work is a `Component` (the sink's pins, the source's pins): `connect` (make the
+component, net it, check LinuxCNC), `answer` (a request of its own), `release`; `stale` when the
+HAL it was made in is gone (the agent then ends after its reply).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import json
+import os
+import signal
+import subprocess
+import sys
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from typing import Any, TextIO
+
+HALCMD_TIMEOUT_S = 10.0
+AGENT_WAIT_S = 10.0  # how long an agent is given to end when its pipe closes
+
+
+def halcmd(*args: str) -> subprocess.CompletedProcess[str]:
+    """Run LinuxCNC's halcmd (its script-friendly output), never for longer than HALCMD_TIMEOUT_S."""
+    return subprocess.run(["halcmd", "-s", *args], capture_output=True, text=True, timeout=HALCMD_TIMEOUT_S,
+                          check=False, env=os.environ.copy())
+
+
+def linked_signal(pin: str) -> str | None:
+    """The signal `pin` is linked to (halcmd's `show pin`), None when it is on none; LookupError when
+    the pin does not exist (or HAL does not run: halcmd then shows nothing, and makes no HAL)."""
+    done = halcmd("show", "pin", pin)
+    for line in done.stdout.splitlines():
+        words = line.split()
+        if pin in words:
+            k = words.index(pin)
+            if k + 2 < len(words) and words[k + 1] in ("<==", "==>", "<=>"):
+                return words[k + 2]
+            return None
+    raise LookupError(f"HAL has no pin {pin}" + (f" ({done.stderr.strip()})" if done.stderr.strip() else ""))
+
+
+def linuxcnc_runs() -> str | None:
+    """None when LinuxCNC's motion controller is in HAL, else why not (compd never makes a HAL of its own)."""
+    try:
+        linked_signal("motion.motion-enabled")
+    except (LookupError, OSError, subprocess.SubprocessError):
+        return "LinuxCNC is not running (HAL has no motion.motion-enabled)"
+    return None
+
+
+class Component(ABC):
+    """The agent's work: one HAL component of compd's."""
+
+    def __init__(self) -> None:
+        self.last_error: str | None = None
+        self.stale = False  # the HAL it was made in is gone: the agent ends
+
+    @abstractmethod
+    def connect(self) -> bool:
+        """Make the component (once), net it, check LinuxCNC; why not in `last_error`."""
+
+    @abstractmethod
+    def answer(self, what: str, args: list[Any]) -> dict[str, Any]:
+        """A request of the component's own (a read, a write)."""
+
+    @abstractmethod
+    def release(self) -> None:
+        """The component leaves HAL."""
+
+
+class Agent:
+    """The worker's side: the agent process of `component_class` (a "module:Class" of compd's) and its pipe."""
+
+    def __init__(self, component_class: str, args: Sequence[str]) -> None:
+        self.argv = [sys.executable, "-m", "compd.io.hal_agent", component_class, *args]
+        self._proc: subprocess.Popen[str] | None = None
+
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def start(self) -> str | None:
+        """A fresh agent unless one runs; why not, or None."""
+        if self.alive():
+            return None
+        self.end()
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+        try:
+            self._proc = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                          stderr=subprocess.DEVNULL, text=True, env=env, start_new_session=True)
+        except OSError as e:
+            return f"cannot start compd's HAL agent: {e}"
+        return None
+
+    def ask(self, *request: Any) -> dict[str, Any] | None:
+        """One request and its reply; None when the agent is gone (LinuxCNC's shutdown ends it)."""
+        proc = self._proc
+        if proc is None or proc.poll() is not None or proc.stdin is None or proc.stdout is None:
+            return None
+        try:
+            proc.stdin.write(json.dumps(request) + "\n")
+            proc.stdin.flush()
+            line = proc.stdout.readline()
+            got = json.loads(line) if line else None
+        except (OSError, ValueError):
+            return None
+        return got if isinstance(got, dict) else None
+
+    def end(self) -> None:
+        """Close the pipe (the agent releases its component and ends) and wait for it."""
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        for f in (proc.stdin, proc.stdout):
+            with contextlib.suppress(OSError, ValueError):
+                if f is not None:
+                    f.close()
+        try:
+            proc.wait(AGENT_WAIT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(AGENT_WAIT_S)
+
+
+def serve(component: Component, requests: TextIO, replies: TextIO) -> None:
+    """The agent's loop: a JSON request per line, a JSON reply per line, until the pipe closes (or the
+    component's HAL is gone); the component released at the end."""
+    try:
+        for line in requests:
+            try:
+                what, *args = json.loads(line)
+            except (ValueError, TypeError):
+                out: dict[str, Any] = {"fault": "reply", "why": "not a request"}
+            else:
+                if what == "connect":
+                    out = {"ok": component.connect(), "why": component.last_error}
+                elif what == "release":
+                    component.release()
+                    out = {"ok": True}
+                else:
+                    out = component.answer(str(what), args)
+            replies.write(json.dumps(out) + "\n")
+            replies.flush()
+            if component.stale:
+                return
+    finally:
+        component.release()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m compd.io.hal_agent compd.MODULE:CLASS ARGS…`: the agent (see the module)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's Ctrl-C is the daemon's: it ends us
+    args = sys.argv[1:] if argv is None else argv
+    spec, *rest = args
+    module, _, name = spec.partition(":")
+    if not module.startswith("compd.") or not name:
+        print(f"not a component of compd's: {spec}", file=sys.stderr)
+        return 2
+    cls = getattr(importlib.import_module(module), name)
+    replies = os.fdopen(os.dup(1), "w")  # the replies' own descriptor: whatever HAL prints goes to stderr
+    os.dup2(2, 1)
+    serve(cls(*rest), sys.stdin, replies)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
