@@ -14,6 +14,7 @@ SOURCES = Registry(
         "dcon": ("compd.sources.dcon", "DconSource"),
         "can": ("compd.sources.can", "CanSource"),
         "probe": ("compd.sources.probe", "ProbeSource"),
+        "hal": ("compd.sources.hal", "HalSource"),
     },
     group="compd.sources",
 )
