@@ -12,6 +12,9 @@ The file is a list of devices (like pyvisa-sim's device files), each a mapping w
   `scan_s`, `step_limit_um`, `device_id`).
 * `siemens_nc` — compd's software PLC NC temperature-compensation data (compd.plc) served on
   Modbus TCP (`axes`, `ipo_s`, `max_velo_mm_min`, `velo_factor`).
+* `linuxcnc_hal` — a running LinuxCNC seen through HAL (hil_sim.devices.linuxcnc_hal: `axes`,
+  `component`, `speed_pin`): a plant that names it as `cnc` turns at LinuxCNC's spindle speed
+  and gets the external offsets LinuxCNC applies (read from HAL).
 * `plant` — a live plant for the closed loop (hil_sim.devices.plant): `scenario` (file),
   `speedup` (plant s per wall s), `start` (immediate / on_clock_read), `log_path` and
   `log_period_s` (the residual log), `duration_s`, `seed`, `cnc` (name of the PMC or NC
@@ -40,7 +43,7 @@ from typing import Any, TextIO
 
 import yaml
 
-KINDS = ("pt100_modbus", "dcon", "can_pt100", "fanuc_pmc", "siemens_nc", "plant")
+KINDS = ("pt100_modbus", "dcon", "can_pt100", "fanuc_pmc", "siemens_nc", "linuxcnc_hal", "plant")
 CLOCKS = ("wall", "plant")
 
 
@@ -110,6 +113,13 @@ def start_device(cfg: dict[str, Any]) -> Running:
             run.device = tx
             run.start(mod)
             run.where = lambda: mod.where() + (f" (compd opens {link})" if link else "")
+        elif kind == "linuxcnc_hal":
+            from hil_sim.devices.linuxcnc_hal import LinuxcncHal
+
+            hal_dev = LinuxcncHal(**cfg)
+            run.device = hal_dev
+            run.start(hal_dev)
+            run.where = hal_dev.where
         elif kind == "can_pt100":
             from hil_sim.devices import can_pt100
 
@@ -159,9 +169,11 @@ def start_plant(cfg: dict[str, Any], others: dict[str, Running], base_dir: Path)
     dev = PlantDevice(plant, **cfg)
     if cnc_name is not None:
         cnc = others.get(cnc_name)
-        if cnc is None or cnc.kind not in ("fanuc_pmc", "siemens_nc"):
-            raise ValueError(f"plant {name!r}: cnc {cnc_name!r} is not a fanuc_pmc or siemens_nc device")
+        if cnc is None or cnc.kind not in ("fanuc_pmc", "siemens_nc", "linuxcnc_hal"):
+            raise ValueError(f"plant {name!r}: cnc {cnc_name!r} is not a fanuc_pmc, siemens_nc or linuxcnc_hal device")
         dev.attach_cnc(cnc.device, cnc.kind, cnc_axes, cnc.clock == "plant")
+        if cnc.kind == "linuxcnc_hal":  # LinuxCNC runs the program: the plant turns at its spindle's speed
+            plant.speed_from = cnc.device.speed_rpm
     for other in others.values():
         if other.feed_plant == name:
             other.device.feed = dev.feed_for(other.device.names)

@@ -151,7 +151,7 @@ class PlantDevice:
         self.cnc_axes = [axes.get(a, -1) for a in self.plant.axes]
         extras = list(self.plant.extra_names)
         self._pos_idx = [extras.index(f"pos_{a}_mm") if f"pos_{a}_mm" in extras else -1 for a in self.plant.axes]
-        if on_plant_clock:
+        if on_plant_clock and kind != "linuxcnc_hal":
             cnc.start_at(self.plant.t_s)
         if self._probe_axes is None:
             self._probe_axes = [a for a, k in zip(self.plant.axes, self.cnc_axes, strict=True) if k >= 0]
@@ -211,7 +211,7 @@ class PlantDevice:
         if self.cnc_kind == "fanuc_pmc":
             vals = cnc.applied_um()
             scale = 1.0
-        else:
+        else:  # the Siemens NC's ΔK, LinuxCNC's axis.L.eoffset: mm
             vals = cnc.applied_mm()
             scale = 1000.0
         for a, k in enumerate(self.cnc_axes):

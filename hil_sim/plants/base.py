@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -72,6 +73,7 @@ class Plant:
             raise ValueError(f"{self.name} plant param dt_s: must be > 0")
         self.p = p
         self.scenario = scenario
+        self.speed_from: Callable[[], float] | None = None  # the controller's spindle speed (rpm), when it runs
         self.rng = np.random.default_rng(scenario.seed)
         self.t_s = 0.0
         self.dt_s = float(p["dt_s"])
@@ -125,7 +127,12 @@ class Plant:
         return self.scenario.ambient.at(self.t_s if t_s is None else t_s)
 
     def segment(self) -> Segment:
-        return self.scenario.segment_at(self.t_s)
+        """What the machine does now: the scenario's segment, its speed the controller's when
+        `speed_from` is set (a real controller runs the program: hil_sim.devices.linuxcnc_hal)."""
+        seg = self.scenario.segment_at(self.t_s)
+        if self.speed_from is None:
+            return seg
+        return replace(seg, speed_rpm=max(0.0, float(self.speed_from())))
 
     def advance_to(self, t_s: float) -> None:
         """Step the plant until its time reaches `t_s` (whole steps of dt); the sensor
@@ -136,7 +143,7 @@ class Plant:
             # the elements see their surroundings as at the step's start, held over the step
             # (as the network sees the ambient): a step of T reaches 63 % exactly at τ_s
             target = None if lag is None else self._blend(self.true_temperatures_c())
-            self._step(self.scenario.segment_at(self.t_s), self.scenario.ambient.at(self.t_s))
+            self._step(self.segment(), self.scenario.ambient.at(self.t_s))
             self.t_s += dt
             if target is not None:
                 lag.step(target)
