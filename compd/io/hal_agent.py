@@ -51,6 +51,20 @@ def linked_signal(pin: str) -> str | None:
     raise LookupError(f"HAL has no pin {pin}" + (f" ({done.stderr.strip()})" if done.stderr.strip() else ""))
 
 
+def net_input(hal: Any, ours: str, theirs: str, new_signal: str) -> str | None:
+    """The float input pin `ours` on the signal the pin `theirs` is on (a new float signal `new_signal`,
+    linked to `theirs`, when it is on none); why not, or None."""
+    mine, sig = linked_signal(ours), linked_signal(theirs)
+    if mine is not None:
+        return None if mine == sig else f"{ours} is netted to {mine}, not to {theirs}'s signal ({sig or 'none'})"
+    if sig is None:
+        sig = new_signal
+        hal.new_sig(sig, hal.HAL_FLOAT)
+        hal.connect(theirs, sig)
+    hal.connect(ours, sig)
+    return None
+
+
 def linuxcnc_runs() -> str | None:
     """None when LinuxCNC's motion controller is in HAL, else why not (compd never makes a HAL of its own)."""
     try:

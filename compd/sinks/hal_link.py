@@ -36,7 +36,7 @@ from typing import Any
 
 from compd.errors import BadInput
 from compd.io import hal_modules
-from compd.io.hal_agent import Agent, Component, halcmd, linked_signal, linuxcnc_runs
+from compd.io.hal_agent import Agent, Component, halcmd, linked_signal, linuxcnc_runs, net_input
 from compd.io.modbus_client import BadReply, LinkFault, ModbusFault
 from compd.plc.eoffsets import (
     BLOCK,
@@ -135,17 +135,9 @@ class HalPins(Component):
                 value = hal.get_value(sig)
                 self._comp[f"{a}.eoffset-{part}"] = value  # linking moves nothing
                 hal.connect(ours, sig)
-            ours, theirs = f"{comp}.{a}.eoffset", f"axis.{a}.eoffset"
-            mine, sig = linked_signal(ours), linked_signal(theirs)
-            if mine is not None:
-                if mine != sig:
-                    return f"{ours} is netted to {mine}, not to {theirs}'s signal ({sig or 'none'})"
-                continue
-            if sig is None:
-                sig = f"{comp}-{a}-eoffset"
-                hal.new_sig(sig, hal.HAL_FLOAT)
-                hal.connect(theirs, sig)
-            hal.connect(ours, sig)
+            why = net_input(hal, f"{comp}.{a}.eoffset", f"axis.{a}.eoffset", f"{comp}-{a}-eoffset")
+            if why is not None:
+                return why
         for a in self.axes:  # the scale compd counts in (counts are reckoned from what is applied)
             if not math.isclose(float(self._comp[f"{a}.eoffset-scale"]), self.scale, rel_tol=1e-12):
                 if self._comp[f"{a}.eoffset-enable"] and int(self._comp[f"{a}.eoffset-counts"]) != 0:

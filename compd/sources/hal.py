@@ -26,7 +26,7 @@ from compd.config import SourceConfig, Strict
 from compd.cycle.frame import Quality
 from compd.errors import BadInput
 from compd.io import hal_modules
-from compd.io.hal_agent import Agent, Component, linked_signal, linuxcnc_runs
+from compd.io.hal_agent import Agent, Component, linked_signal, linuxcnc_runs, net_input
 from compd.io.mailbox import Snapshot
 from compd.io.worker import LinkDown
 from compd.sources.base import PolledSource, Poller
@@ -104,15 +104,9 @@ class HalInputs(Component):
                 return f"cannot make the HAL component {self.component!r}: {e}"
         try:
             for name, pin in self.signals:
-                ours = f"{self.component}.{name}"
-                if pin is None or linked_signal(ours) is not None:
-                    continue
-                sig = linked_signal(pin)
-                if sig is None:
-                    sig = f"{self.component}-{name}"
-                    hal.new_sig(sig, hal.HAL_FLOAT)
-                    hal.connect(pin, sig)
-                hal.connect(ours, sig)
+                why = None if pin is None else net_input(hal, f"{self.component}.{name}", pin, f"{self.component}-{name}")
+                if why is not None:
+                    return why
         except Exception as e:  # halcmd, or HAL in its own words
             return f"cannot net {self.component}'s pins: {e}"
         loose = [f"{self.component}.{n}" for n, _ in self.signals if not hal.pin_has_writer(f"{self.component}.{n}")]

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from compd.io import hal_modules
-from compd.io.hal_agent import linked_signal, linuxcnc_runs
+from compd.io.hal_agent import linuxcnc_runs, net_input
 
 
 class LinuxcncHal:
@@ -41,12 +41,9 @@ class LinuxcncHal:
         c.ready()
         self._comp = c
         for ours, theirs in [("speed", self.speed_pin), *((f"{a}.eoffset", f"axis.{a}.eoffset") for a in self.axes)]:
-            sig = linked_signal(theirs)
-            if sig is None:
-                sig = f"{self.component}-{ours.replace('.', '-')}"
-                hal.new_sig(sig, hal.HAL_FLOAT)
-                hal.connect(theirs, sig)
-            hal.connect(f"{self.component}.{ours}", sig)
+            why = net_input(hal, f"{self.component}.{ours}", theirs, f"{self.component}-{ours.replace('.', '-')}")
+            if why is not None:
+                raise RuntimeError(why)
         return self
 
     def speed_rpm(self) -> float:
