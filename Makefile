@@ -77,7 +77,8 @@ test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU) $(NODE_OPCUA)
 # drawn training day (not gated: the comparison) (scripts/family.py); closed loop on every machine's unseen day (issue 5):
 # hil_sim serve + compd run over Modbus TCP; the vmc's spindle and column contributions summed on Z, in
 # closed loop and with a sensor unplugged (issue 32, scripts/accept_contributions.py); then 200 telemetry
-# publishers into one mosquitto for 10 min, and with the broker killed for 60 s (issue 20). Every step
+# publishers into one mosquitto for 10 min, and with the broker killed for 60 s (issue 20); the closed loop on a
+# headless LinuxCNC over compd testplan's 24 h test beside the same plan in process (issue 41). Every step
 # runs; any that fails fails accept.
 accept: $(TEST_STAMP) sysdeps
 	@status=0; \
@@ -90,6 +91,7 @@ accept: $(TEST_STAMP) sysdeps
 	$(PY) scripts/plant_scale.py --json build/accept/plant.json || status=1; \
 	$(PY) scripts/plant_scale.py --duration-s 300 --outage-at-s 120 --outage-s 60 \
 	  --workdir build/accept/plant_outage --json build/accept/plant_outage.json || status=1; \
+	$(PY) scripts/accept_linuxcnc.py --workdir build/accept/linuxcnc --json build/accept/linuxcnc.json || status=1; \
 	exit $$status
 
 bench: $(TEST_STAMP) sysdeps
