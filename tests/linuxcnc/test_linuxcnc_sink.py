@@ -209,3 +209,29 @@ def test_output_test_reads_back_what_linuxcnc_applies(tmp_path: Path) -> None:
         assert "safe state: applied +0.000 um" in done.stdout
         assert abs(sim.getp("axis.z.eoffset")) < 0.15 * UM
         assert "compd" not in sim.halcmd("show", "comp")
+
+
+def test_without_linuxcnc_check_config_refuses_the_sink_and_the_source_in_one_line(tmp_path: Path) -> None:
+    """A machine without LinuxCNC's Python modules (here: $COMPD_LINUXCNC_PYTHON an empty folder) runs
+    everything else; a config that needs them is refused at check-config, exit 2, one line naming what is missing."""
+    cfgs = {
+        "sink": "loop: {clock: sim, period_s: 1.0}\nsources: [{kind: replay, name: log, path: day.csv}]\n"
+                "model: {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 1.3e-5, length_mm: 165}}\n"
+                "sink: {kind: linuxcnc, axes: [z]}\n",
+        "sources[1]": "loop: {clock: sim, period_s: 1.0}\nsources:\n  - {kind: replay, name: log, path: day.csv}\n"
+                      "  - {kind: hal, name: cnc, signals: [{name: speed_rpm, pin: spindle.0.speed-out}]}\n"
+                      "model: {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 1.3e-5,"
+                      " length_mm: 165}}\nsink: {kind: pci1756}\n",
+    }
+    (tmp_path / "day.csv").write_text("t_s,T_xi\n0,20\n1,20\n")
+    empty = tmp_path / "no-linuxcnc"
+    empty.mkdir()
+    for key, text in cfgs.items():
+        path = tmp_path / f"{key[:4]}.yaml"
+        path.write_text(text)
+        done = subprocess.run([sys.executable, "-m", "compd", "check-config", str(path)], capture_output=True,
+                              text=True, env={**os.environ, "PYTHONPATH": str(ROOT), "COMPD_LINUXCNC_PYTHON": str(empty)},
+                              timeout=120)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(lines) == 1, done.stderr
+        assert f"{path.name}:" in lines[0] and f"{key}:" in lines[0] and "make sysdeps" in lines[0], lines[0]
