@@ -235,3 +235,31 @@ def test_without_linuxcnc_check_config_refuses_the_sink_and_the_source_in_one_li
         lines = done.stderr.strip().splitlines()
         assert done.returncode == 2 and len(lines) == 1, done.stderr
         assert f"{path.name}:" in lines[0] and f"{key}:" in lines[0] and "make sysdeps" in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("policy", ["ramp_to_zero", "disable"])
+def test_a_sensor_fault_takes_linuxcnc_s_offset_to_zero_through_counts(tmp_path: Path, policy: str) -> None:
+    """The ξ sensor burns out under a running daemon: with fault_policy ramp_to_zero the correction ramps to 0, with
+    disable it is dropped; either way LinuxCNC's applied offset goes to 0 through compd's counts (the link stays up)."""
+    require()
+    tx = Pt100Transmitter([SENSOR], [25.0])
+    with Sim() as sim, ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
+        cfg = _config(server.port)
+        cfg["sink"] = {"kind": "linuxcnc", "axes": ["z"], "count_um": 0.1}
+        cfg["model"]["params"]["t0_c"] = 20.0
+        cfg["guard"]["fault_policy"] = policy
+        path = tmp_path / "c.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        err = tmp_path / "stderr.txt"
+        proc = _start(path, err)
+        try:
+            wait_running(tmp_path / "status.json", proc)
+            wait_for(lambda: abs(sim.getp("axis.z.eoffset") * 1000.0 + 11.22) < 0.5, "the offset at -11.2 um")
+            tx.set_fault(SENSOR, "burnout")
+            wait_for(lambda: abs(sim.getp("axis.z.eoffset")) < 0.15 * UM, f"the offset at 0 ({policy})")
+            assert json.loads((tmp_path / "status.json").read_text())["sink"]["link"] == "up"
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            code = proc.wait(60)
+        assert code == 0, err.read_text()
+        assert abs(sim.getp("axis.z.eoffset")) < 0.15 * UM
