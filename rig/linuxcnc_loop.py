@@ -86,7 +86,9 @@ def run(controller: Any, workdir: Path, hours: float, speedup: float, timeout_s:
                  "channels": [{"name": "T_xi", "address": 0}]},
                 {"kind": "hal", "name": "cnc", "signals": [{"name": "speed_rpm", "pin": "spindle.0.speed-out"}]},
             ],
-            "model": MODEL, "guard": GUARD,
+            # the guard's times are the loop's (wall) seconds, the plant's are `speedup` times faster: its
+            # recovery after an input blip (5 s of plant time, as in process) shrinks with them
+            "model": MODEL, "guard": {**GUARD, "recovery_s": 5.0 / speedup},
             "sink": {"kind": "linuxcnc", "axes": ["z"]},
             "status": {"path": "status.json", "period_s": 0.05},
         }
@@ -155,7 +157,7 @@ def in_process(workdir: Path, hours: float) -> dict[str, Any]:
         raise RuntimeError(f"hil_sim log: {done.stderr.strip()}")
     config = {"loop": {"clock": "sim", "period_s": 1.0},
               "sources": [{"kind": "replay", "name": "day", "path": str(day)}],
-              "model": MODEL, "guard": {**GUARD, "stale_after_s": 60.0},
+              "model": MODEL, "guard": {**GUARD, "stale_after_s": 60.0, "recovery_s": 5.0},
               "sink": {"kind": "linuxcnc", "axes": ["z"], "in_process": True}}
     cfg = workdir / "replay.yaml"
     cfg.write_text(yaml.safe_dump(config))
