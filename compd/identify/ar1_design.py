@@ -369,16 +369,6 @@ class Roles:
 FoldScore = holdout.FoldScore
 
 
-def _mask(index: np.ndarray, size: int) -> np.ndarray:
-    """A boolean mask of `size` from an index array (or the mask itself)."""
-    index = np.asarray(index)
-    if index.dtype == bool:
-        return index
-    out = np.zeros(size, dtype=bool)
-    out[index] = True
-    return out
-
-
 class Scan:
     """Every fold's Gram blocks at every C1 of a grid (`c1s`: one C1 each, or one per step each), for
     all the temperature columns of `steps` at once: C2's columns, then each temperature's rise (as a
@@ -401,8 +391,8 @@ class Scan:
         full = steps.full.train
         gone = [np.flatnonzero(full & ~f.train) for _, f in self.folds]  # the measured steps each fold hides
         hidden = np.concatenate(gone) if gone else np.zeros(0, dtype=np.intp)
-        same = [g.size == f.held_count.size and np.array_equal(np.flatnonzero(_mask(f.held_steps, full.size)), g)
-                and bool(np.all(f.held_count == 1)) for g, (_, f) in zip(gone, self.folds, strict=True)]
+        same = [np.array_equal(f.held_steps, g) and bool(np.all(f.held_count == 1))  # held_steps: sorted, unique
+                for g, (_, f) in zip(gone, self.folds, strict=True)]
         # the Grams are most of a selection's time: the folds' hidden steps are disjoint, so the whole log's
         # Gram is theirs summed (and the rest's), and a fold held out step by step (one row each) has its
         # hidden steps' Gram as its held-out one
@@ -411,7 +401,8 @@ class Scan:
         for i, c1 in enumerate(c1s):
             F = filter_c1(c1, U)
             A = np.hstack([F[:, :Lw], steps.rise, F[:, Lw:]])
-            Gs = [A[g].T @ A[g] for g in gone]
+            Ag = [A[g] for g in gone]
+            Gs = [a.T @ a for a in Ag]
             if disjoint:
                 Ar = A[rest]
                 G_all = sum(Gs, Ar.T @ Ar)
@@ -421,7 +412,7 @@ class Scan:
             g_all = A[full].T @ E[full]
             for j, (_, f) in enumerate(self.folds):
                 self.train_G[j, i] = G_all - Gs[j]
-                self.train_g[j, i] = g_all - A[gone[j]].T @ E[gone[j]]
+                self.train_g[j, i] = g_all - Ag[j].T @ E[gone[j]]
                 if same[j]:
                     self.held_G[j, i] = Gs[j]
                 else:

@@ -9,9 +9,9 @@ back. When LinuxCNC stops, the agent ends; the worker's link goes down and its n
 starts a fresh agent, which joins the new HAL. When compd is killed, its agent sees the pipe
 close, takes its component out of HAL and ends.
 
-The agent's work is a `Component` (the sink's pins, the source's pins): `connect` (make the
-component, net it, check LinuxCNC), `answer` (a request of its own), `release`; `stale` when the
-HAL it was made in is gone (the agent then ends after its reply).
+The agent's work is a `Component` (the sink's pins, the source's pins): `make`, `net` and `ready`
+(what `connect` does around them is the same for every component), `answer` (a request of its
+own), `release`; `stale` when the HAL it was made in is gone (the agent then ends after its reply).
 """
 
 from __future__ import annotations
@@ -26,6 +26,9 @@ import sys
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import Any, TextIO
+
+from compd.errors import BadInput
+from compd.io import hal_modules
 
 HALCMD_TIMEOUT_S = 10.0
 AGENT_WAIT_S = 10.0  # how long an agent is given to end when its pipe closes
@@ -75,23 +78,73 @@ def linuxcnc_runs() -> str | None:
 
 
 class Component(ABC):
-    """The agent's work: one HAL component of compd's."""
+    """The agent's work: one HAL component of compd's. `connect` is the same for every component:
+    LinuxCNC's modules loaded, LinuxCNC running (compd never makes a HAL of its own), the component
+    made once (`make`), a component whose HAL is gone found `stale`, then its pins netted (`net`) and
+    whatever else must hold (`ready`); each says why not in one line."""
 
-    def __init__(self) -> None:
+    def __init__(self, name: str) -> None:
+        self.name = name
         self.last_error: str | None = None
         self.stale = False  # the HAL it was made in is gone: the agent ends
+        self.hal: Any = None
+        self.comp: Any = None
+
+    def connect(self) -> bool:
+        self.last_error = self._connect()
+        return self.last_error is None
+
+    def _connect(self) -> str | None:
+        try:
+            self.hal, _ = hal_modules.load()
+        except BadInput as e:
+            return str(e)
+        why = linuxcnc_runs()
+        if why is not None:
+            return why
+        if self.comp is not None:
+            try:
+                linked_signal(self.first_pin())
+            except LookupError:  # made in a HAL that is gone (LinuxCNC restarted): this process cannot join the next
+                self.stale = True
+                return f"the HAL {self.name} was made in is gone (LinuxCNC restarted): a new agent joins the new one"
+        if self.comp is None:
+            try:
+                self.comp = self.make(self.hal)
+            except Exception as e:  # HAL says why in its own words (a name in use, no HAL)
+                return f"cannot make the HAL component {self.name!r}: {e}"
+        try:
+            why = self.net(self.hal)
+        except Exception as e:  # halcmd, or HAL in its own words
+            return f"cannot net {self.name}'s pins: {e}"
+        return why or self.ready()
 
     @abstractmethod
-    def connect(self) -> bool:
-        """Make the component (once), net it, check LinuxCNC; why not in `last_error`."""
+    def make(self, hal: Any) -> Any:
+        """The component with its pins, ready."""
+
+    @abstractmethod
+    def first_pin(self) -> str:
+        """A pin of the component (whether HAL still has it tells a HAL that went away)."""
+
+    @abstractmethod
+    def net(self, hal: Any) -> str | None:
+        """The component's pins netted; why not, or None."""
+
+    def ready(self) -> str | None:
+        """What else must hold before the link is up; why not, or None."""
+        return None
 
     @abstractmethod
     def answer(self, what: str, args: list[Any]) -> dict[str, Any]:
         """A request of the component's own (a read, a write)."""
 
-    @abstractmethod
     def release(self) -> None:
-        """The component leaves HAL."""
+        """The component leaves HAL (LinuxCNC keeps what its pins left on their signals)."""
+        if self.comp is not None:
+            with contextlib.suppress(Exception):  # already gone with LinuxCNC
+                self.comp.exit()
+            self.comp = None
 
 
 class Agent:
@@ -130,6 +183,22 @@ class Agent:
         except (OSError, ValueError):
             return None
         return got if isinstance(got, dict) else None
+
+    def connect(self) -> str | None:
+        """A fresh agent unless one runs, its component connected; why not, or None."""
+        why = self.start()
+        if why is not None:
+            return why
+        got = self.ask("connect")
+        if got is None:
+            self.end()
+            return "compd's HAL agent ended (LinuxCNC's shutdown ends it): a new one at the next try"
+        return None if got.get("ok") else str(got.get("why"))
+
+    def release(self) -> None:
+        """For good: the agent's component leaves HAL, the agent ends."""
+        self.ask("release")
+        self.end()
 
     def end(self) -> None:
         """Close the pipe (the agent releases its component and ends) and wait for it."""

@@ -19,14 +19,12 @@ OFFSET_AV_RATIO share of its velocity: fast against compd's steps).
 
 from __future__ import annotations
 
-import struct
-
 from compd.plc.link import VirtualDevice
+from compd.plc.siemens_nc import f32_regs
 
 BLOCK = 8  # registers per axis
 COUNTS, ENABLE, APPLIED, FLAGS = 0, 2, 3, 5
 NETTED, ON, HOMED, LIMITED = 1, 2, 4, 8  # FLAGS bits
-READY = NETTED | ON | HOMED  # counts act only then
 
 
 def s32_regs(v: int) -> list[int]:
@@ -39,17 +37,6 @@ def regs_s32(hi: int, lo: int) -> int:
     """The signed 32-bit value two registers hold (high word first)."""
     u = ((int(hi) & 0xFFFF) << 16) | (int(lo) & 0xFFFF)
     return u - (1 << 32) if u & 0x80000000 else u
-
-
-def f32_regs(v: float) -> list[int]:
-    """A float32 as two registers, high word first."""
-    b = struct.pack(">f", v)
-    return [int.from_bytes(b[0:2], "big"), int.from_bytes(b[2:4], "big")]
-
-
-def regs_f32(hi: int, lo: int) -> float:
-    """The float32 two registers hold (high word first)."""
-    return float(struct.unpack(">f", int(hi).to_bytes(2, "big") + int(lo).to_bytes(2, "big"))[0])
 
 
 S32_MIN, S32_MAX = -(1 << 31), (1 << 31) - 1

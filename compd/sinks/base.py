@@ -130,9 +130,13 @@ class Sink(ABC):
         a device the running one holds: the old sink is released first."""
         return None
 
-    @abstractmethod
     def link_state(self) -> LinkState:
-        """Whether what `write` sends reaches the machine (see LINK_STATES)."""
+        """Whether what `write` sends reaches the machine (see LINK_STATES): the link's state,
+        `connecting` while it is up but what the device holds is not yet read back (`sync`)."""
+        if self.link is None:
+            return "closed"
+        st = self.link.state
+        return "connecting" if st == "up" and not self.link.synced() else st  # type: ignore[return-value]
 
     @abstractmethod
     def write(

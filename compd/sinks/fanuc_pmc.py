@@ -34,7 +34,7 @@ from pydantic import Field, model_validator
 
 from compd.config import SinkConfig
 from compd.cycle.codec import MAX_MAG, codes_from_word, word_bytes, word_from_codes
-from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
+from compd.sinks.base import SAFE_TIMEOUT_S, Sink
 from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
@@ -182,13 +182,6 @@ class FanucPmcSink(Sink):
         if cfg.reset_alarm_on_start and not self.syncs:
             self.link.submit(cfg.status_address + 3, [1])
             self._dirty = True  # a replay's next settle lets the PMC scan it
-
-    def link_state(self) -> LinkState:
-        """The link's; `connecting` while it is up but what the PMC applies is not yet read back."""
-        if self.link is None:
-            return "closed"
-        st = self.link.state
-        return "connecting" if st == "up" and not self.link.synced() else st  # type: ignore[return-value]
 
     def device_key(self) -> Any:
         return None if self.cfg.host is None else ("modbus", self.cfg.host, self.cfg.port)

@@ -27,16 +27,11 @@ and the next connect starts a fresh one in the new HAL; compd's daemon and its I
 
 from __future__ import annotations
 
-import contextlib
 import math
-import subprocess
 from collections.abc import Sequence
-from types import ModuleType
 from typing import Any
 
-from compd.errors import BadInput
-from compd.io import hal_modules
-from compd.io.hal_agent import Agent, Component, halcmd, linked_signal, linuxcnc_runs, net_input
+from compd.io.hal_agent import Agent, Component, halcmd, linked_signal, net_input
 from compd.io.modbus_client import BadReply, LinkFault, ModbusFault
 from compd.plc.eoffsets import (
     BLOCK,
@@ -48,10 +43,10 @@ from compd.plc.eoffsets import (
     ON,
     S32_MAX,
     S32_MIN,
-    f32_regs,
     regs_s32,
     s32_regs,
 )
+from compd.plc.siemens_nc import f32_regs
 
 MM_PER_UNIT = {"mm": 1.0, "inch": 25.4}
 
@@ -61,51 +56,15 @@ class HalPins(Component):
     (arguments as the agent's command line gives them)."""
 
     def __init__(self, component: str, units: str, count_um: str | float, *axes: str) -> None:
-        super().__init__()
-        self.component = component
+        super().__init__(component)
         self.axes = list(axes)
         self.count_um = count_um = float(count_um)
         self.scale = count_um / 1000.0 / MM_PER_UNIT[units]  # machine units per count
         self.unit_um = 1000.0 * MM_PER_UNIT[units]
         self.limited = False
-        self._hal: ModuleType | None = None
-        self._comp: Any = None
 
-    # ------------------------------------------------------------ the link's connect / close
-    def connect(self) -> bool:
-        """Ready when LinuxCNC runs, compd's pins are netted to its axes, and the machine is on and homed."""
-        why = self._connect()
-        self.last_error = why
-        return why is None
-
-    def _connect(self) -> str | None:
-        try:
-            hal, _ = hal_modules.load()
-        except BadInput as e:
-            return str(e)
-        self._hal = hal
-        why = linuxcnc_runs()  # compd never makes a HAL where LinuxCNC does not run
-        if why is not None:
-            return why
-        if self._comp is not None:
-            try:
-                linked_signal(f"{self.component}.{self.axes[0]}.eoffset-counts")
-            except LookupError:  # made in a HAL that is gone (LinuxCNC restarted): this process cannot join
-                self.stale = True  # the next one; the agent ends and a fresh one is started
-                return f"the HAL {self.component} was made in is gone (LinuxCNC restarted): a new agent joins the new one"
-        if self._comp is None:
-            try:
-                self._comp = self._make(hal)
-            except Exception as e:  # HAL says why in its own words (a name in use, no HAL)
-                return f"cannot make the HAL component {self.component!r}: {e}"
-        try:
-            why = self._net(hal)
-        except (LookupError, OSError, subprocess.SubprocessError, RuntimeError) as e:
-            return f"cannot net {self.component}'s pins: {e}"
-        return why or self._machine()
-
-    def _make(self, hal: ModuleType) -> Any:
-        c = hal.component(self.component)
+    def make(self, hal: Any) -> Any:
+        c = hal.component(self.name)
         for a in self.axes:
             c.newpin(f"{a}.eoffset-counts", hal.HAL_S32, hal.HAL_OUT)
             c.newpin(f"{a}.eoffset-enable", hal.HAL_BIT, hal.HAL_OUT)
@@ -114,9 +73,12 @@ class HalPins(Component):
         c.ready()
         return c
 
-    def _net(self, hal: ModuleType) -> str | None:
+    def first_pin(self) -> str:
+        return f"{self.name}.{self.axes[0]}.eoffset-counts"
+
+    def net(self, hal: Any) -> str | None:
         """Each pin of compd's on LinuxCNC's signal (see the module); why not, or None."""
-        comp = self.component
+        comp = self.name
         for a in self.axes:
             for part, kind in (("counts", hal.HAL_S32), ("enable", hal.HAL_BIT), ("scale", hal.HAL_FLOAT)):
                 ours, theirs = f"{comp}.{a}.eoffset-{part}", f"axis.{a}.eoffset-{part}"
@@ -132,24 +94,22 @@ class HalPins(Component):
                     hal.connect(theirs, sig)
                 elif hal.pin_has_writer(theirs):
                     return f"{theirs} is driven through signal {sig} by another component: compd will not fight it"
-                value = hal.get_value(sig)
-                self._comp[f"{a}.eoffset-{part}"] = value  # linking moves nothing
+                self.comp[f"{a}.eoffset-{part}"] = hal.get_value(sig)  # linking moves nothing
                 hal.connect(ours, sig)
             why = net_input(hal, f"{comp}.{a}.eoffset", f"axis.{a}.eoffset", f"{comp}-{a}-eoffset")
             if why is not None:
                 return why
         for a in self.axes:  # the scale compd counts in (counts are reckoned from what is applied)
-            if not math.isclose(float(self._comp[f"{a}.eoffset-scale"]), self.scale, rel_tol=1e-12):
-                if self._comp[f"{a}.eoffset-enable"] and int(self._comp[f"{a}.eoffset-counts"]) != 0:
-                    return (f"axis.{a}.eoffset-scale is {self._comp[f'{a}.eoffset-scale']} with the offset enabled:"
+            if not math.isclose(float(self.comp[f"{a}.eoffset-scale"]), self.scale, rel_tol=1e-12):
+                if self.comp[f"{a}.eoffset-enable"] and int(self.comp[f"{a}.eoffset-counts"]) != 0:
+                    return (f"axis.{a}.eoffset-scale is {self.comp[f'{a}.eoffset-scale']} with the offset enabled:"
                             f" compd counts in {self.scale:g} (sink.count_um); clear the offset first")
-                self._comp[f"{a}.eoffset-scale"] = self.scale
+                self.comp[f"{a}.eoffset-scale"] = self.scale
         return None
 
-    def _machine(self) -> str | None:
+    def ready(self) -> str | None:
         """Why counts would not act now (machine off, not homed), or None."""
-        hal = self._hal
-        assert hal is not None
+        hal = self.hal
         try:
             on, homed = bool(hal.get_value("motion.motion-enabled")), bool(hal.get_value("motion.is-all-homed"))
         except Exception as e:
@@ -159,13 +119,6 @@ class HalPins(Component):
         if not homed:
             return "LinuxCNC: the machine is not homed: the offset is held, compd waits"
         return None
-
-    def release(self) -> None:
-        """The component leaves HAL (after the safe output): LinuxCNC keeps the offset its counts left."""
-        if self._comp is not None:
-            with contextlib.suppress(Exception):  # already gone with LinuxCNC
-                self._comp.exit()
-            self._comp = None
 
     def answer(self, what: str, args: list[Any]) -> dict[str, Any]:
         """`read ADDRESS COUNT` and `write ADDRESS VALUES` (compd.plc.eoffsets' map)."""
@@ -180,21 +133,21 @@ class HalPins(Component):
     # ------------------------------------------------------------ registers
     def read_registers(self, address: int, count: int, **_: Any) -> list[int] | ModbusFault:
         """The map's registers now; a LinkFault when counts would no longer act (see the module)."""
-        if self._comp is None or self._hal is None:
+        if self.comp is None:
             return LinkFault("the HAL component is not made")
-        why = self._machine()
+        why = self.ready()
         if why is not None:
             self.last_error = why
             return LinkFault(why)
         try:
-            self.limited = bool(self._hal.get_value("motion.eoffset-limited"))
+            self.limited = bool(self.hal.get_value("motion.eoffset-limited"))
         except Exception as e:
             return LinkFault(f"LinuxCNC does not answer ({e})")
         regs: list[int] = []
         flags = NETTED | ON | HOMED | (LIMITED if self.limited else 0)
         for a in self.axes:
-            applied = float(self._comp[f"{a}.eoffset"]) * self.unit_um
-            regs += [*s32_regs(int(self._comp[f"{a}.eoffset-counts"])), int(bool(self._comp[f"{a}.eoffset-enable"])),
+            applied = float(self.comp[f"{a}.eoffset"]) * self.unit_um
+            regs += [*s32_regs(int(self.comp[f"{a}.eoffset-counts"])), int(bool(self.comp[f"{a}.eoffset-enable"])),
                      *f32_regs(applied if math.isfinite(applied) else math.nan), flags, 0, 0]
         if address < 0 or address + count > len(regs):
             return BadReply(f"registers {address}+{count} are not in the map", "range")
@@ -204,19 +157,19 @@ class HalPins(Component):
         """COUNTS of one axis (two registers), or its ENABLE (one)."""
         i, off = divmod(address, BLOCK)
         ok = (off == COUNTS and len(values) == 2) or (off == ENABLE and len(values) == 1 and values[0] in (0, 1))
-        if self._comp is None or not 0 <= i < len(self.axes) or not ok:
+        if self.comp is None or not 0 <= i < len(self.axes) or not ok:
             return BadReply(f"registers {address}+{len(values)} are not writable", "range")
-        why = self._machine()
+        why = self.ready()
         if why is not None:
             return LinkFault(why)
         a = self.axes[i]
         if off == ENABLE:
-            self._comp[f"{a}.eoffset-enable"] = bool(values[0])
+            self.comp[f"{a}.eoffset-enable"] = bool(values[0])
             return None
         counts = regs_s32(values[0], values[1])
         if not S32_MIN <= counts <= S32_MAX:
             return BadReply(f"counts {counts} out of range", "range")
-        self._comp[f"{a}.eoffset-counts"] = counts
+        self.comp[f"{a}.eoffset-counts"] = counts
         return None
 
 
@@ -233,26 +186,16 @@ class HalRegisters:
         self.last_error: str | None = None
 
     def connect(self) -> bool:
-        """A fresh agent unless the running one still answers; ready as `HalPins.connect` says."""
-        why = self.agent.start()
-        if why is not None:
-            self.last_error = why
-            return False
-        got = self.agent.ask("connect")
-        if got is None:
-            self.last_error = "compd's HAL agent ended (LinuxCNC's shutdown ends it): a new one at the next try"
-            self.agent.end()
-            return False
-        self.last_error = got.get("why")
-        return bool(got.get("ok"))
+        """A fresh agent unless the running one still answers; ready as `HalPins` says."""
+        self.last_error = self.agent.connect()
+        return self.last_error is None
 
     def close(self) -> None:
         """The link's disconnect: the agent stays (its component's pins keep what they carry)."""
 
     def release(self) -> None:
         """For good (after the safe output): the agent's component leaves HAL, the agent ends."""
-        self.agent.ask("release")
-        self.agent.end()
+        self.agent.release()
 
     def read_registers(self, address: int, count: int, **_: Any) -> list[int] | ModbusFault:
         return self._answer(self.agent.ask("read", address, count))

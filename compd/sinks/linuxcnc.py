@@ -35,11 +35,11 @@ from compd.plc.eoffsets import (
     ENABLE,
     FLAGS,
     LIMITED,
-    regs_f32,
     regs_s32,
     s32_regs,
 )
-from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
+from compd.plc.siemens_nc import regs_f32
+from compd.sinks.base import SAFE_TIMEOUT_S, Sink
 from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
@@ -117,13 +117,6 @@ class LinuxcncSink(Sink):
 
     def device_key(self) -> Any:
         return None if self.cfg.in_process else ("linuxcnc", self.cfg.component)
-
-    def link_state(self) -> LinkState:
-        """The link's; `connecting` while it is up but what LinuxCNC applies not yet read back."""
-        if self.link is None:
-            return "closed"
-        st = self.link.state
-        return "connecting" if st == "up" and not self.link.synced() else st  # type: ignore[return-value]
 
     def _connect(self) -> ModbusLink | VirtualLink:
         n = len(self.hal_axes)

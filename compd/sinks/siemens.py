@@ -28,7 +28,7 @@ from pydantic import Field
 
 from compd.config import SinkConfig
 from compd.plc.siemens_nc import APPLIED, BLOCK, K0, TARGET, TYPE, f32_regs, regs_f32
-from compd.sinks.base import SAFE_TIMEOUT_S, LinkState, Sink
+from compd.sinks.base import SAFE_TIMEOUT_S, Sink
 from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
@@ -94,13 +94,6 @@ class SiemensSink(Sink):
 
     def device_key(self) -> Any:
         return None if self.cfg.host is None else ("modbus", self.cfg.host, self.cfg.port)
-
-    def link_state(self) -> LinkState:
-        """The link's; `connecting` while it is up but the NC's data not yet read back."""
-        if self.link is None:
-            return "closed"
-        st = self.link.state
-        return "connecting" if st == "up" and not self.link.synced() else st  # type: ignore[return-value]
 
     def _connect(self) -> ModbusLink | VirtualLink:
         """The link to the NC's data (the status block: every axis the sink writes)."""

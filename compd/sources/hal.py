@@ -15,7 +15,6 @@ marks an old sample STALE; the guard's `signals` limits judge plausibility.
 
 from __future__ import annotations
 
-import contextlib
 import math
 from typing import Any
 
@@ -24,9 +23,8 @@ from pydantic import Field, model_validator
 
 from compd.config import SourceConfig, Strict
 from compd.cycle.frame import Quality
-from compd.errors import BadInput
 from compd.io import hal_modules
-from compd.io.hal_agent import Agent, Component, linked_signal, linuxcnc_runs, net_input
+from compd.io.hal_agent import Agent, Component, net_input
 from compd.io.mailbox import Snapshot
 from compd.io.worker import LinkDown
 from compd.sources.base import PolledSource, Poller
@@ -67,67 +65,38 @@ class HalInputs(Component):
     """The input component in its agent: `COMPONENT NAME[=PIN]…` from the agent's command line."""
 
     def __init__(self, component: str, *specs: str) -> None:
-        super().__init__()
-        self.component = component
+        super().__init__(component)
         self.signals = [(name, pin or None) for name, _, pin in (s.partition("=") for s in specs)]
-        self._hal: Any = None
-        self._comp: Any = None
 
-    def connect(self) -> bool:
-        self.last_error = self._connect()
-        return self.last_error is None
+    def make(self, hal: Any) -> Any:
+        c = hal.component(self.name)
+        for name, _ in self.signals:
+            c.newpin(name, hal.HAL_FLOAT, hal.HAL_IN)
+        c.ready()
+        return c
 
-    def _connect(self) -> str | None:
-        try:
-            hal, _ = hal_modules.load()
-        except BadInput as e:
-            return str(e)
-        self._hal = hal
-        why = linuxcnc_runs()
-        if why is not None:
-            return why
-        first = f"{self.component}.{self.signals[0][0]}"
-        if self._comp is not None:
-            try:
-                linked_signal(first)
-            except LookupError:  # made in a HAL that is gone: a fresh agent joins the new one
-                self.stale = True
-                return f"the HAL {self.component} was made in is gone (LinuxCNC restarted): a new agent joins the new one"
-        if self._comp is None:
-            try:
-                c = hal.component(self.component)
-                for name, _ in self.signals:
-                    c.newpin(name, hal.HAL_FLOAT, hal.HAL_IN)
-                c.ready()
-                self._comp = c
-            except Exception as e:
-                return f"cannot make the HAL component {self.component!r}: {e}"
-        try:
-            for name, pin in self.signals:
-                why = None if pin is None else net_input(hal, f"{self.component}.{name}", pin, f"{self.component}-{name}")
-                if why is not None:
-                    return why
-        except Exception as e:  # halcmd, or HAL in its own words
-            return f"cannot net {self.component}'s pins: {e}"
-        loose = [f"{self.component}.{n}" for n, _ in self.signals if not hal.pin_has_writer(f"{self.component}.{n}")]
+    def first_pin(self) -> str:
+        return f"{self.name}.{self.signals[0][0]}"
+
+    def net(self, hal: Any) -> str | None:
+        """Each signal that names a pin on that pin's signal; every input written by something."""
+        for name, pin in self.signals:
+            why = None if pin is None else net_input(hal, f"{self.name}.{name}", pin, f"{self.name}-{name}")
+            if why is not None:
+                return why
+        loose = [f"{self.name}.{n}" for n, _ in self.signals if not hal.pin_has_writer(f"{self.name}.{n}")]
         if loose:
             return f"not netted to anything that writes it: {', '.join(loose)} (net it in the HAL file, or give its pin)"
         return None
 
     def answer(self, what: str, args: list[Any]) -> dict[str, Any]:
         """`values`: each signal's pin now."""
-        if what != "values" or self._comp is None:
+        if what != "values" or self.comp is None:
             return {"fault": "reply", "why": f"unknown request {what!r}"}
         try:
-            return {"values": [float(self._comp[name]) for name, _ in self.signals]}
+            return {"values": [float(self.comp[name]) for name, _ in self.signals]}
         except Exception as e:
             return {"fault": "link", "why": f"LinuxCNC does not answer ({e})"}
-
-    def release(self) -> None:
-        if self._comp is not None:
-            with contextlib.suppress(Exception):
-                self._comp.exit()
-            self._comp = None
 
 
 class HalSource(PolledSource):
@@ -161,13 +130,9 @@ class HalPoller(Poller):
         self.agent = Agent("compd.sources.hal:HalInputs", [cfg.component, *specs])
 
     def connect(self) -> None:
-        why = self.agent.start()
-        got = self.agent.ask("connect") if why is None else None
-        if got is None:
-            self.agent.end()
-            raise LinkDown(why or "compd's HAL agent ended (LinuxCNC's shutdown ends it): a new one at the next try")
-        if not got.get("ok"):
-            raise LinkDown(str(got.get("why")))
+        why = self.agent.connect()
+        if why is not None:
+            raise LinkDown(why)
 
     def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
         got = self.agent.ask("values")
@@ -184,5 +149,4 @@ class HalPoller(Poller):
 
     def close(self) -> None:
         """For good: the agent's component leaves HAL, the agent ends."""
-        self.agent.ask("release")
-        self.agent.end()
+        self.agent.release()

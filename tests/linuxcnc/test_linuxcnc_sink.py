@@ -59,6 +59,17 @@ def _applied(sink: LinuxcncSink) -> float:
     return float(out[0])
 
 
+def _daemon_config(tmp_path: Path, port: int, **guard: object) -> Path:
+    """The service tests' daemon (a PT100 module's ξ sensor, t0 20 °C) with the linuxcnc sink on Z."""
+    cfg = _config(port)
+    cfg["sink"] = {"kind": "linuxcnc", "axes": ["z"], "count_um": 0.1}
+    cfg["model"]["params"]["t0_c"] = 20.0
+    cfg["guard"].update(guard)
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
 def test_the_offset_follows_the_correction_a_restart_moves_nothing_and_safe_leaves_zero():
     require()
     with Sim() as sim:
@@ -112,11 +123,7 @@ def test_the_daemon_compensates_through_linuxcnc_and_sigterm_leaves_zero(tmp_pat
     require()
     tx = Pt100Transmitter([SENSOR], [20.0])
     with Sim() as sim, ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
-        cfg = _config(server.port)
-        cfg["sink"] = {"kind": "linuxcnc", "axes": ["z"], "count_um": 0.1}
-        cfg["model"]["params"]["t0_c"] = 20.0
-        path = tmp_path / "c.yaml"
-        path.write_text(yaml.safe_dump(cfg))
+        path = _daemon_config(tmp_path, server.port)
         err = tmp_path / "stderr.txt"
         proc = _start(path, err)
         try:
@@ -152,11 +159,7 @@ def test_linuxcnc_stopping_under_the_daemon_is_a_link_down_and_its_return_is_com
     require()
     tx = Pt100Transmitter([SENSOR], [22.0])
     with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
-        cfg = _config(server.port)
-        cfg["sink"] = {"kind": "linuxcnc", "axes": ["z"], "count_um": 0.1}
-        cfg["model"]["params"]["t0_c"] = 20.0
-        path = tmp_path / "c.yaml"
-        path.write_text(yaml.safe_dump(cfg))
+        path = _daemon_config(tmp_path, server.port)
         err = tmp_path / "stderr.txt"
         status = tmp_path / "status.json"
 
@@ -244,12 +247,7 @@ def test_a_sensor_fault_takes_linuxcnc_s_offset_to_zero_through_counts(tmp_path:
     require()
     tx = Pt100Transmitter([SENSOR], [25.0])
     with Sim() as sim, ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
-        cfg = _config(server.port)
-        cfg["sink"] = {"kind": "linuxcnc", "axes": ["z"], "count_um": 0.1}
-        cfg["model"]["params"]["t0_c"] = 20.0
-        cfg["guard"]["fault_policy"] = policy
-        path = tmp_path / "c.yaml"
-        path.write_text(yaml.safe_dump(cfg))
+        path = _daemon_config(tmp_path, server.port, fault_policy=policy)
         err = tmp_path / "stderr.txt"
         proc = _start(path, err)
         try:
