@@ -7,7 +7,7 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 
 def _serve(args: argparse.Namespace) -> int:

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from compd.commissioning.testplan import Axis, design
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from hil_sim.scenario import Ambient, Scenario, Segment, plan_segments
 
 KINDS = ("lathe", "spindle", "gantry", "feed_axis")  # the families scripts/family.py fits and gates

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 PROBE_SIGMA_UM = 0.3  # a touch probe's repeatability, as the live plant's probing has it
 

@@ -6,8 +6,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from compd.config import PlantClockConfig
-from compd.cycle.clock import Clock
+from compd.core.clock import Clock
+from compd.core.config import PlantClockConfig
 from compd.io.mailbox import Latest
 from compd.io.modbus_client import LinkFault, ModbusClient, ModbusFault, OverModbus
 from compd.io.worker import DeviceWork, IoWorker, LinkDown

@@ -217,8 +217,8 @@ class Scenario:
     @classmethod
     def load(cls, file: str | Path) -> Scenario:
         """Read a scenario YAML; errors are ValueError starting with the file name."""
-        from compd.config import load_yaml
-        from compd.errors import BadInput
+        from compd.core.config import load_yaml
+        from compd.core.errors import BadInput
 
         try:  # compd's reader: bounded size, nesting and alias expansion
             data = load_yaml(file).data

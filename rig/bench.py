@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from compd.cycle.clock import WallClock
-from compd.cycle.histogram import percentile_text
-from compd.errors import BadInput
+from compd.core.clock import WallClock
+from compd.core.errors import BadInput
 from compd.identify import FITS
+from compd.io.histogram import percentile_text
 from hil_sim.plants import PLANTS
 from hil_sim.scenario import SCENARIOS, Scenario
 
@@ -272,8 +272,8 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     from pymodbus.client import ModbusTcpClient
     from pymodbus.exceptions import ModbusException
 
+    from compd.codec import encode, word_bytes
     from compd.commissioning.fitting import load_model
-    from compd.cycle.codec import encode, word_bytes
 
     _quiet_pymodbus()
     model = load_model(str(model_path))
@@ -459,7 +459,7 @@ def run_bench(
 
     `load`: CPU-bound processes started beside both loops (and stopped after). `late_us`:
     cycles later than this are matched against the spans of the other threads' work
-    (compd.cycle.activity) and counted per thread in `late_attribution`. `io`: loop.io of
+    (compd.io.activity) and counted per thread in `late_attribution`. `io`: loop.io of
     compd's config (device I/O and the service in processes of their own, or threads).
     `bare_cycles` (default: as many as compd's): the bare loop's cycles, the machine's limit.
     `trace`: a JSON file for the causes of compd's late and slow cycles (rig.late_trace, perf)."""

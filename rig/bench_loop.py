@@ -5,7 +5,7 @@ simulator): none of that belongs in the resident size or the interpreter of the 
 it measures. `python -m rig.bench_loop CONFIG CYCLES LATE_US OUT.json` runs compd's
 loop for CYCLES cycles against the devices the config names and writes its timing,
 resident size, I/O round trips, host figures and the late cycles' attribution
-(compd.cycle.activity) as JSON.
+(compd.io.activity) as JSON.
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def memory_of_kb(pid: int) -> dict[str, int]:
 def io_processes(app: Any) -> list[dict[str, Any]]:
     """The device I/O workers and the service that run in processes of their own: name, pid,
     resident and proportional size (kB)."""
-    from compd.sinks.modbus_link import ModbusLink
+    from compd.io.modbus_link import ModbusLink
     from compd.sources.base import PolledSource
 
     out = []
@@ -96,7 +96,7 @@ def io_stats(app: Any) -> dict[str, dict[str, float]]:
     """Modbus TCP round trips of compd's I/O threads: every poll of the PT100 modules
     (8 registers in one request), every write to the PMC, and the output latency from
     the cycle queueing a word to the PMC acknowledging it."""
-    from compd.cycle.histogram import DurationHist
+    from compd.io.histogram import DurationHist
 
     polls = [s.poll_hist for s in app.sources if s.poll_hist is not None]
     link = app.sink.link
@@ -167,7 +167,7 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     rss["samples"] = len(samples)
     stats = app.loop.stats
     out = stats.as_dict()
-    from compd.cycle.histogram import range_limit_us
+    from compd.io.histogram import range_limit_us
     from compd.service.status import timing_over_range
 
     # the percentiles over the histogram's range (their value is its limit, not a measurement)
@@ -191,7 +191,7 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
 
 def main(argv: list[str]) -> int:
     config, cycles, late_us, out, *flags = argv
-    from compd.cycle import activity
+    from compd.io import activity
     activity.enable(float(late_us))
     try:
         result = run_compd_loop(Path(config), int(cycles))

@@ -412,7 +412,7 @@ def word_floor_pct(residual_log: Path, machine: Machine) -> dict[str, float]:
     no-chatter band, which no model can remove. An axis with small errors (the spindle's
     radial, ~3 µm RMS) cannot reach 85 % through a 1 µm word.
     """
-    from compd.cycle.codec import Encoder
+    from compd.codec import Encoder
     from compd.log import read_log
 
     log = read_log(residual_log)

@@ -4,7 +4,7 @@
 wake-ups, the cycle thread's page faults, the local timer interrupt; CLOCK_MONOTONIC
 time stamps, the clock of `time.perf_counter_ns`). The loop marks every cycle that woke
 more than `--late-us` after its deadline (from the deadline to the cycle's first
-bytecode) and every cycle whose own work took longer than that (compd.cycle.activity). Each
+bytecode) and every cycle whose own work took longer than that (compd.io.activity). Each
 marked window gets the causes the trace shows in it:
 
 | cause | what the trace shows |
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 EVENTS = ("sched:sched_switch", "sched:sched_waking", "exceptions:page_fault_user", "irq_vectors:local_timer_entry")
 TIMER_SLACK_S = 100e-6  # a wake-up this much later than due counts as a late timer

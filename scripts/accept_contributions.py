@@ -237,7 +237,7 @@ class Checks:
 
 def guard_of(result: dict[str, Any]) -> dict[str, float]:
     """The run's guard: slew (from the config compd ran with), ramp and loop period."""
-    from compd.config import GuardConfig
+    from compd.core.config import GuardConfig
 
     work = Path(result["residual_log"]).parent
     cfg = yaml.safe_load((work / f"compd_{result['machine']}_{result['model']}.yaml").read_text())

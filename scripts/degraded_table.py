@@ -26,7 +26,8 @@ sys.path.insert(0, str(ROOT))
 
 from compd.cli import main as compd_main  # noqa: E402
 from compd.commissioning.faultdoc import replace_block  # noqa: E402
-from compd.config import Document, resolve_model  # noqa: E402
+from compd.config import resolve_model  # noqa: E402
+from compd.core.config import Document  # noqa: E402
 from compd.cycle.pipeline import build_model  # noqa: E402
 from compd.log import read_log  # noqa: E402
 from hil_sim.__main__ import main as hil_main  # noqa: E402

@@ -69,7 +69,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from compd.errors import BadInput  # noqa: E402
+from compd.core.errors import BadInput  # noqa: E402
 from hil_sim import family  # noqa: E402
 
 PHYSICS = {"lathe": "ar1", "spindle": "xi_spindle", "gantry": "lvr", "feed_axis": "feed_axis"}
@@ -150,7 +150,7 @@ def replay(kind: str, model: Any, log: Any) -> dict[str, Any]:
     """compd's replay of `log` through `model` into the machine's sink: the report."""
     from compd.commissioning.fitting import clone
     from compd.commissioning.replay import replay_log
-    from compd.config import CodecConfig, GuardConfig
+    from compd.core.config import CodecConfig, GuardConfig
 
     axes = list(model.outputs)
     guard = GuardConfig(max_slew_um_per_s=SLEW_UM_PER_S, stale_after_s=STALE_AFTER_S)

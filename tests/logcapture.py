@@ -1,5 +1,5 @@
 """The daemon's log lines as a test sees them, from every process of it: the service and the device I/O write
-their own lines (compd/service/host.py, compd/io/child.py), so a test reads stderr at the descriptor, as the journal
+their own lines (compd/daemon/host.py, compd/io/child.py), so a test reads stderr at the descriptor, as the journal
 would, and parses the key=value lines back into records."""
 
 from __future__ import annotations

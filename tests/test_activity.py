@@ -1,10 +1,10 @@
-"""compd.cycle.activity: late cycles matched with the spans of other threads' work (the bench's attribution)."""
+"""compd.io.activity: late cycles matched with the spans of other threads' work (the bench's attribution)."""
 
 from __future__ import annotations
 
 import pytest
 
-from compd.cycle import activity
+from compd.io import activity
 
 
 @pytest.fixture()

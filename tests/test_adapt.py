@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from compd.config import AdaptConfig
-from compd.cycle.adapt import Adapter, Probe
+from compd.core.config import AdaptConfig
+from compd.core.probe import Probe
+from compd.cycle.adapt import Adapter
 
 
 def _run(adapter: Adapter, pred: float, t_s: float) -> float:
@@ -161,7 +162,7 @@ def test_a_slope_over_the_position_is_learnt_from_probes_at_several_positions():
 
 
 def test_slope_position_must_name_a_signal_and_an_axis():
-    from compd.errors import BadInput
+    from compd.core.errors import BadInput
 
     with pytest.raises(BadInput, match="not a signal"):
         Adapter(AdaptConfig(slope_position={"y": "pos_q_mm"}), ["y"]).bind({"pos_y_mm": 0})

@@ -206,8 +206,8 @@ def test_can_open_errors_name_the_key(monkeypatch, tmp_path, exc, key):
     import can
 
     from compd.config import load_config
+    from compd.core.errors import BadInput
     from compd.daemon.app import App
-    from compd.errors import BadInput
 
     def no_bus(**kw):
         raise exc

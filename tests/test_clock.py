@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from compd.cycle.frame import Frame
+from compd.core.frame import Frame
 from compd.sources.modbus import ModbusConfig, ModbusSource
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.plant_clock import LockstepPlantClock, PlantClock

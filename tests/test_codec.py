@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from compd import codec
 from compd.cli import main
-from compd.cycle import codec
 
 finite = st.floats(min_value=-200, max_value=200, allow_nan=False, allow_infinity=False)
 lsbs = st.sampled_from([0.1, 0.5, 1.0, 2.0])
@@ -240,7 +240,7 @@ def test_cli_decode_bad_word(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_tiny_lsb_saturates_instead_of_overflowing():
     """|c|/LSB overflows to inf for a denormal LSB: the byte saturates, nothing raises."""
-    from compd.cycle.codec import encode_ex
+    from compd.codec import encode_ex
 
     word, s1, s2 = encode_ex(5.0, -5.0, lsb_um=1e-320, deadband_um=0.0)
     assert word == 0xFF7F and s1 and s2

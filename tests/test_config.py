@@ -10,8 +10,8 @@ import pytest
 
 from compd.cli import main
 from compd.config import load_config
+from compd.core.errors import ConfigError
 from compd.daemon.app import App
-from compd.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))

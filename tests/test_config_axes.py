@@ -11,8 +11,8 @@ import pytest
 
 from compd.cli import main
 from compd.config import load_config
+from compd.core.errors import ConfigError
 from compd.daemon.run import reload
-from compd.errors import ConfigError
 from compd.log import write_log
 
 

@@ -13,17 +13,16 @@ from pathlib import Path
 
 import pytest
 
-from compd.config import (
+from compd.config import load_config, load_model_file
+from compd.core.config import (
     CONFIG_MAX_BYTES,
     CONFIG_MAX_VALUES,
     MAX_ALIAS_VALUES,
     MAX_DEPTH,
     MODEL_MAX_BYTES,
-    load_config,
-    load_model_file,
     load_yaml,
 )
-from compd.errors import ConfigError
+from compd.core.errors import ConfigError
 from tests.conftest import ROOT
 
 LAUGHS = "a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(

@@ -22,10 +22,10 @@ from pydantic import BaseModel
 
 from compd import config as c
 from compd.cli import main
+from compd.codec import MAX_MAG
 from compd.config import load_config
-from compd.cycle.codec import MAX_MAG
+from compd.core.errors import ConfigError
 from compd.daemon.app import App
-from compd.errors import ConfigError
 from compd.log import read_log
 from compd.sinks import SINKS
 from compd.sources import SOURCES

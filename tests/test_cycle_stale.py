@@ -26,9 +26,10 @@ from typing import Any
 import yaml
 
 from compd.config import load_config
+from compd.cycle.statusblock import STALE_MIN_S
 from compd.daemon.app import App
 from compd.service.notify import socket_address
-from compd.service.status import STALE_MIN_S, liveness, render
+from compd.service.status import liveness, render
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.pt100 import Pt100Transmitter
 from hil_sim.devices.pt100_modbus import Pt100ModbusDevice

@@ -184,7 +184,8 @@ def test_a_fit_records_its_input_range_and_a_fitted_model_passes_the_remote_clam
     """`fit.input_range` is each input's finite readings in the fit's log; the remote-model check
     (compd.plant.remote_model.clamp_check) evaluates the model over it: a model fitted on the log
     stays inside a clamp its errors fit in, and is refused under one they do not."""
-    from compd.config import GuardConfig, load_model_file, resolve_model
+    from compd.config import load_model_file, resolve_model
+    from compd.core.config import GuardConfig
     from compd.plant.remote_model import clamp_check
 
     log = tmp_path / "log.csv"

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from compd.config import GuardConfig, SignalLimits
-from compd.cycle.frame import Frame, Quality
+from compd.core.config import GuardConfig, SignalLimits
+from compd.core.frame import Frame, Quality
 from compd.cycle.guard import Guard
 
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from compd.cycle.histogram import DurationHist, percentile_text
 from compd.cycle.loop import TimingStats
+from compd.io.histogram import DurationHist, percentile_text
 from compd.service.status import render, timing
 
 

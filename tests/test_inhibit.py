@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 import yaml
 
-from compd.config import GuardConfig, InhibitConfig, load_config
-from compd.cycle.frame import Frame, Quality
+from compd.config import load_config
+from compd.core.config import GuardConfig, InhibitConfig
+from compd.core.errors import BadInput
+from compd.core.frame import Frame, Quality
 from compd.cycle.guard import Guard
 from compd.cycle.inhibit import INHIBITED, NONE, WAITING, Inhibit
 from compd.daemon.app import App
-from compd.errors import BadInput
 from compd.plc.fanuc_pmc import FanucPmc
 from compd.service.status import render, snapshot
 from hil_sim.devices.modbus_server import ModbusServerThread
@@ -33,7 +34,7 @@ def _guard_with_hold(slew: float = SLEW) -> Guard:
 
 def test_guard_ramps_a_held_axis_to_zero_at_the_slew_and_back(caplog):
     from compd.cycle.publish import with_causes
-    from compd.service.host import log_guard_event
+    from compd.daemon.host import log_guard_event
 
     g = _guard_with_hold()
     pred = np.array([20.0])  # target −20 µm

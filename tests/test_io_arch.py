@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from compd.config import load_config
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from tests.conftest import ROOT
 
 

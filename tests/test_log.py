@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from compd.errors import BadInput
-from compd.log import LogWriter, is_temperature_column, read_log, write_log
+from compd.core.errors import BadInput
+from compd.log import is_temperature_column, read_log, write_log
+from compd.service.logwriter import LogWriter
 
 
 def csv(tmp_path: Path, text: str) -> Path:

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from compd.codec import decode
 from compd.config import load_config
-from compd.cycle.clock import Clock
-from compd.cycle.codec import decode
+from compd.core.clock import Clock
 from compd.daemon.app import App
 from tests.service_helpers import wait_running
 

@@ -7,8 +7,8 @@ import urllib.request
 import pytest
 
 from compd.config import load_config
+from compd.core.errors import BadInput
 from compd.daemon.app import App
-from compd.errors import BadInput
 from compd.service.metrics import MetricsServer
 from compd.service.status import snapshot
 from tests.service_helpers import sim_config
@@ -165,7 +165,7 @@ def test_connections_beyond_the_cap_are_closed_not_queued():
 
 
 def test_the_adaptation_estimate_and_probe_counts(tmp_path):
-    from compd.cycle.adapt import Probe
+    from compd.core.probe import Probe
 
     app = App(load_config(sim_config(tmp_path, "adapt: {}", duration_s=600)))
     app.run()

@@ -160,7 +160,7 @@ def test_observe_mode_takes_a_correction_found_at_the_card_to_zero_one_lsb_at_a_
     """A card still holding the word of a run that was killed: observe mode does not drop it to
     0x0000 at once (a step at the machine) but walks it down at the guard's ramp, one LSB at a
     time, then holds the safe word."""
-    from compd.cycle.codec import codes_from_word, encode
+    from compd.codec import codes_from_word, encode
     from compd.plc.pci1756 import Pci1756Card
     from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
 

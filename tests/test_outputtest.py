@@ -144,7 +144,7 @@ def test_refuses_beside_a_running_daemon_of_the_config(tmp_path, capsys):
     import time
 
     path = _config(tmp_path, {"kind": "fanuc_pmc"})
-    from compd.service.status import SCHEMA
+    from compd.cycle.statusblock import SCHEMA
 
     with open(path, encoding="utf-8") as fh:
         doc = yaml.safe_load(fh)

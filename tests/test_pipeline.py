@@ -9,11 +9,12 @@ import pytest
 
 import compd.cycle.pipeline
 from compd.commissioning.replay import replay_config
-from compd.config import CodecConfig, GuardConfig, load_config
-from compd.cycle.clock import SimClock
+from compd.config import load_config
+from compd.core.clock import SimClock
+from compd.core.config import CodecConfig, GuardConfig
+from compd.core.errors import BadInput
 from compd.cycle.pipeline import build_model, build_pipeline
 from compd.daemon.app import App
-from compd.errors import BadInput
 from compd.log import write_log
 from compd.sinks.observe import ObserveSink
 from compd.sources.replay import ReplayConfig, ReplaySource

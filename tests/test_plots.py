@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from compd.cli import main
+from compd.codec import decode, encode
 from compd.commissioning.plots import _runs, decode_words, trend_from_log, write_trend
-from compd.cycle.codec import decode, encode
 from compd.log import read_log, write_log
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.service import control
 from tests.service_helpers import sim_config
 
@@ -244,7 +244,7 @@ def test_a_path_that_is_not_a_socket_is_refused(tmp_path):
 
 def test_a_reload_keeps_the_socket_and_the_estimate(tmp_path):
     from compd.config import load_config
-    from compd.cycle.adapt import Probe
+    from compd.core.probe import Probe
     from compd.daemon.app import App
 
     cfg = sim_config(tmp_path, EXTRA.format(), duration_s=600)
@@ -274,7 +274,7 @@ def test_a_reload_that_changes_the_estimates_terms_starts_it_fresh_and_says_so(t
     """adapt.gain switched on by a reload: the running estimate (offset only) does not fit the new
     one; it starts fresh with an adapt_reset event (it was dropped without a word)."""
     from compd.config import load_config
-    from compd.cycle.adapt import Probe
+    from compd.core.probe import Probe
     from compd.daemon.app import App
 
     cfg = sim_config(tmp_path, EXTRA.format(), duration_s=600)

@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from compd.config import load_config
-from compd.cycle.adapt import Probe
+from compd.core.probe import Probe
 from compd.cycle.realtime import unshare_pages
 from compd.daemon.app import App
 from tests.service_helpers import sim_config

@@ -6,9 +6,9 @@ from importlib.metadata import EntryPoint
 
 import pytest
 
-from compd import registry
-from compd.errors import BadInput
-from compd.registry import Registry
+from compd.core import registry
+from compd.core.errors import BadInput
+from compd.core.registry import Registry
 from compd.sources.replay import ReplaySource
 
 TABLE = {"replay": ("compd.sources.replay", "ReplaySource")}

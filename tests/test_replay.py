@@ -448,7 +448,7 @@ BAD_GUARD = {"fault_policy": "ramp_to_zero", "recovery_s": 30.0,
 def test_staged_replay_equals_the_loops_cycles_with_bad_inputs(machines, sink):
     """Stale/range/rate faults, a degraded stretch and their recovery, through every sink: the
     rows where the guard's checks matter run them (and the model row by row after the first)."""
-    from compd.config import GuardConfig
+    from compd.core.config import GuardConfig
 
     d, logs = machines
     log = _bad_inputs(logs["gantry"], 5400)
@@ -460,7 +460,7 @@ def test_staged_replay_equals_the_loops_cycles_with_bad_inputs(machines, sink):
 
 def test_staged_replay_equals_the_loops_cycles_when_the_first_row_is_bad(machines):
     """A bad first row: no batch at all, the model started on the first good row."""
-    from compd.config import GuardConfig
+    from compd.core.config import GuardConfig
     from compd.log import Log
 
     d, logs = machines
@@ -472,7 +472,7 @@ def test_staged_replay_equals_the_loops_cycles_when_the_first_row_is_bad(machine
 
 def test_staged_replay_equals_the_loops_cycles_with_frozen_limits(machines):
     """A frozen-input limit looks further back than one row: every row is checked for real."""
-    from compd.config import GuardConfig
+    from compd.core.config import GuardConfig
     from compd.log import Log
 
     d, logs = machines
@@ -504,7 +504,7 @@ def test_staged_replay_equals_the_loops_cycles_with_probes(machines, tmp_path):
 
 def test_staged_replay_equals_the_loops_cycles_with_inhibit(machines):
     """The log's inhibit and referenced columns hold the axis off and release it."""
-    from compd.config import InhibitConfig
+    from compd.core.config import InhibitConfig
     from compd.log import Log
 
     d, logs = machines
@@ -590,7 +590,7 @@ def test_fanuc_replay_of_10_s_rows_is_not_limited_to_one_step_per_row(tmp_path):
     does, so both score the same."""
     from compd.commissioning.fitting import load_model
     from compd.commissioning.replay import replay_log
-    from compd.config import CodecConfig, GuardConfig
+    from compd.core.config import CodecConfig, GuardConfig
     from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink
     from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
 

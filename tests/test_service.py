@@ -10,12 +10,13 @@ import time
 
 import numpy as np
 
-from compd.config import RealtimeConfig, load_config
+from compd.config import load_config
+from compd.core.config import RealtimeConfig
 from compd.cycle.publish import Tail
 from compd.cycle.realtime import apply_realtime
 from compd.daemon.app import App
-from compd.service.host import status_path
 from compd.service.logsetup import KeyValueFormatter
+from compd.service.status import status_path
 from tests.service_helpers import fault_config, sim_config
 
 

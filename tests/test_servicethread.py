@@ -40,7 +40,7 @@ def test_the_services_threads_are_service_threads(tmp_path) -> None:  # noqa: AN
     """The data log's and the state file's writers (the others are built the same way: grep-able)."""
     from pathlib import Path
 
-    from compd.log import LogWriter
+    from compd.service.logwriter import LogWriter
     from compd.service.state import StateWriter
 
     lw = LogWriter(Path(tmp_path) / "a.csv", ["t_s", "x"], 0.05)

@@ -15,7 +15,7 @@ from compd.cli import main
 from compd.commissioning.promote import promoted_text
 from compd.commissioning.replay import replay_config
 from compd.config import load_config
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.log import read_log
 from tests.service_helpers import sim_config
 from tests.test_contributions import plant  # noqa: F401  (the fixture: two fitted contributions, an unseen day)

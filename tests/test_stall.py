@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from compd.config import load_config
-from compd.cycle.clock import Clock
-from compd.cycle.frame import Quality
+from compd.core.clock import Clock
+from compd.core.frame import Quality
 from compd.cycle.guard import Guard
 from compd.daemon.app import App
-from compd.service.host import log_guard_event
+from compd.daemon.host import log_guard_event
 from tests.test_guard import make, run
 from tests.test_loop import CONFIG, ScriptedClock
 

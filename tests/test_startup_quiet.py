@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from compd.cli import main
-from compd.config import GuardConfig
-from compd.cycle.frame import Frame, Quality
+from compd.core.config import GuardConfig
+from compd.core.frame import Frame, Quality
 from compd.cycle.guard import Guard
 from compd.log import write_log
 

@@ -14,11 +14,11 @@ import pytest
 
 from compd.cli import main
 from compd.config import load_config
+from compd.core.errors import BadInput
 from compd.cycle.loop import TimingStats
+from compd.cycle.statusblock import STALE_MIN_S
 from compd.daemon.app import App
-from compd.errors import BadInput
 from compd.service.status import (
-    STALE_MIN_S,
     held,
     liveness,
     mark_stale,

@@ -16,7 +16,7 @@ import pytest
 
 from compd.cli import main
 from compd.commissioning import testplan as tp
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGE = ROOT / "docs" / "testplan.md"

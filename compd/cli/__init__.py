@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 from compd.cli import commissioning, daemon, plant, tools  # noqa: F401  (their commands register themselves)
 from compd.cli.args import ARGUMENTS, COMMANDS, Parser, writing
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 __all__ = ["build_parser", "main", "writing"]
 

@@ -20,7 +20,7 @@ from compd.cli.args import (
     positive,
     writing,
 )
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 log = logging.getLogger("compd")
 

@@ -18,7 +18,7 @@ from compd.cli.args import (
     positive,
     writing,
 )
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 log = logging.getLogger("compd")
 
@@ -36,7 +36,7 @@ def probe_socket(config: str | None) -> str:
     if cfg.top.adapt is None:
         raise BadInput("has no adapt section, so its daemon takes no probes (add `adapt: {}`, or"
                        " `adapt: {apply: false}` to estimate without applying)", file=config, path="adapt")
-    from compd.service.host import daemon_status_path
+    from compd.service.status import daemon_status_path
 
     return str(socket_path(cfg, env={}) or sock_beside(daemon_status_path(cfg)))
 
@@ -70,8 +70,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     loop = result["loop"]
     if result.get("observe"):
         print("compd: observe mode: the output was held disabled (no correction reached the machine)")
-    from compd.cycle.histogram import percentile_text
     from compd.cycle.loop import HIST_US
+    from compd.io.histogram import percentile_text
 
     late, comp_us = loop["lateness_us"]["p99"], loop["cycle_compute_us"]["p99"]
     print(
@@ -108,12 +108,12 @@ def args_check_config(sub: Any) -> None:
 @command("check-config", args_check_config)
 def cmd_check_config(args: argparse.Namespace) -> int:
     from compd.config import load_config
-    from compd.cycle import pipeline
+    from compd.daemon.host import check_status_folder, check_status_free
+    from compd.plant.spec import check_config
     from compd.service.control import check_socket_path
-    from compd.service.host import check_status_folder, check_status_free
 
     cfg = load_config(args.config)
-    pipeline.check(cfg)  # the wiring, by building the pipeline (opens no device)
+    check_config(cfg)  # the wiring, by building the pipeline (opens no device)
     check_status_folder(cfg)  # the status file can be written where it goes
     check_status_free(cfg)  # no other running compd writes its status file
     check_socket_path(cfg)  # the probe socket can be bound where it goes
@@ -138,13 +138,14 @@ def args_status(sub: Any) -> None:
 
 @command("status", args_status)
 def cmd_status(args: argparse.Namespace) -> int:
-    from compd.service.status import DEFAULT_PATH, liveness, read_status, render
+    from compd.cycle.statusblock import DEFAULT_PATH
+    from compd.service.status import liveness, read_status, render
 
     if args.status:
         path = args.status
     elif args.config:
         from compd.config import load_config
-        from compd.service.host import daemon_status_path
+        from compd.service.status import daemon_status_path
 
         path = str(daemon_status_path(load_config(args.config)))
     else:
@@ -196,7 +197,7 @@ def shown(value: Any, spec: str = ".2f") -> str:
 
 @command("probe", args_probe)
 def cmd_probe(args: argparse.Namespace) -> int:
-    from compd.cycle.adapt import probe_problem
+    from compd.core.probe import probe_problem
     from compd.service.control import NoDaemon, send_probe
 
     bad = probe_problem(args.error_um, args.sigma_um, args.position_mm)
@@ -247,7 +248,7 @@ def args_arm_model(sub: Any) -> None:
 def cmd_arm_model(args: argparse.Namespace) -> int:
     from compd.config import load_config
     from compd.service.control import NoDaemon, send_probe, sock_beside, socket_path
-    from compd.service.host import daemon_status_path
+    from compd.service.status import daemon_status_path
 
     cfg = load_config(args.config)
     tel = cfg.top.telemetry
@@ -345,7 +346,7 @@ def args_opcua_cert(sub: Any) -> None:
 def cmd_opcua_cert(args: argparse.Namespace) -> int:
 
     try:
-        from compd.plant.opcua import generate_certificate
+        from compd.plant.material import generate_certificate
     except ImportError:
         raise BadInput("needs the plant extra: pip install 'compd[plant]'") from None
     for path, key in ((args.cert, "--cert"), (args.key, "--key")):

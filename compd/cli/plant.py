@@ -11,7 +11,7 @@ import time
 from typing import Any, TextIO
 
 from compd.cli.args import command, positive
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 CONNECT_TIMEOUT_S = 10.0  # for the broker to accept the connection
 

@@ -16,7 +16,7 @@ from compd.cli.args import (
     positive,
     writing,
 )
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 log = logging.getLogger("compd")
 
@@ -34,7 +34,7 @@ def _parse_word(text: str) -> int:
 def installed_command(name: str, needs: str) -> Callable[[argparse.Namespace], int]:
     """The command another installed package provides (entry point group `compd.commands`),
     or BadInput (exit 2) naming what is missing."""
-    from compd.registry import entry_point
+    from compd.core.registry import entry_point
 
     ep = entry_point("compd.commands", name)
     if ep is None:
@@ -59,7 +59,7 @@ def args_encode(sub: Any) -> None:
 
 @command("encode", args_encode)
 def cmd_encode(args: argparse.Namespace) -> int:
-    from compd.cycle.codec import decode, encode_ex
+    from compd.codec import decode, encode_ex
 
     try:
         word, s1, s2 = encode_ex(args.c1_um, args.c2_um, args.lsb_um, args.deadband_um)
@@ -87,7 +87,7 @@ def args_decode(sub: Any) -> None:
 
 @command("decode", args_decode)
 def cmd_decode(args: argparse.Namespace) -> int:
-    from compd.cycle.codec import decode
+    from compd.codec import decode
 
     word = _parse_word(args.word)
     for name, code in zip(("X1", "X2"), decode(word), strict=True):

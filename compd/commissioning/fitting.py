@@ -18,12 +18,11 @@ from pydantic import ValidationError
 
 from compd import version
 from compd.commissioning.recommend import SUM_MARGIN
-from compd.commissioning.scoring import score_residual
 from compd.commissioning.thermaltest import thermal_test
-from compd.errors import BadInput
+from compd.core.errors import BadInput
+from compd.core.scoring import score_residual
 from compd.identify import CHOICES, FITS, KINDS, holdout, identify, option_names
 from compd.identify.data import (
-    HELD_OUT_METHOD,
     columns,
     default_targets,
     progress,
@@ -144,7 +143,7 @@ def compare_with_mlr(
     except (BadInput, ValidationError, np.linalg.LinAlgError, ValueError) as e:
         return {"skipped": f"the held-out comparison could not fit a fold: {e}"}
     out: dict[str, Any] = {
-        "method": HELD_OUT_METHOD,
+        "method": holdout.METHOD,
         "inputs": mlr_inputs,
         "axes": {},
     }
@@ -331,7 +330,7 @@ def compare_stagewise(
             warnings.append(f"{kind}: axis {axis}: {first} + {kind} predicts held out worse ({total:.3f} um)"
                             f" than MLR on {', '.join(mlr_inputs)} ({mlr:.3f} um)")
     block: dict[str, Any] = {
-        "method": HELD_OUT_METHOD,
+        "method": holdout.METHOD,
         "folds": how,
         "first": [i["file"] for i in stage.info],
         "first_refitted_per_fold": False,
@@ -547,9 +546,9 @@ def score_model(model: Model, log: Log) -> dict[str, Any]:
     """`compd score`: a fitted model on a log with the measured errors (a day it has not seen).
 
     Per axis the error before (`err_<axis>_um`) and after (error − prediction), scored as every
-    report is (compd.commissioning.scoring); blank error cells between measurements are left out. The baseline
+    report is (compd.core.scoring); blank error cells between measurements are left out. The baseline
     is the fit report's: MLR on the model's temperature inputs (all the log's temperatures if it
-    has none), each fold of this log predicted by an MLR fitted on the others (HELD_OUT_METHOD),
+    has none), each fold of this log predicted by an MLR fitted on the others (holdout.METHOD),
     beside the model's RMS on the same rows."""
     targets = [f"err_{a}_um" for a in model.outputs]
     Y = log.matrix(targets)  # a missing err_<axis>_um column is BadInput naming it
@@ -561,7 +560,7 @@ def score_model(model: Model, log: Log) -> dict[str, Any]:
                            path=f"err_{axis}_um")
     temps = log.temperature_columns()
     mlr_inputs = [c for c in model.inputs if c in temps] or temps
-    baseline: dict[str, Any] = {"method": HELD_OUT_METHOD, "inputs": mlr_inputs}
+    baseline: dict[str, Any] = {"method": holdout.METHOD, "inputs": mlr_inputs}
     measured = np.isfinite(Y).all(axis=1)  # MLR scores the rows with every error measured
     try:
         mlr = held_out_rmse("mlr", log, mlr_inputs, targets, {})

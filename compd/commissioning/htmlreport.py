@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from compd.commissioning.thermaltest import DEFAULT_EVERY_MIN, ThermalTest, plot_png, thermal_test
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 MAX_JSON_BYTES = 16 * 1024 * 1024
 RECORD_TEXT_MAX = 200  # characters of one record field (--machine, --operator, --instrument): one line
@@ -393,7 +393,7 @@ def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
         page.config_file = config_file
     model_file = find_beside(fit.get("model"), fit_file)
     if model_file is not None:
-        from compd.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml
+        from compd.core.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml
 
         doc = load_yaml(model_file, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
         if isinstance(doc.data, dict) and isinstance(doc.data.get("params"), dict):

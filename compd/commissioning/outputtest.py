@@ -21,10 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from compd.config import Config, Strict
-from compd.cycle.clock import Clock, SimClock, WallClock
+from compd.config import Config
+from compd.core.clock import Clock, SimClock, WallClock
+from compd.core.config import Strict
+from compd.core.errors import BadInput
 from compd.cycle.pipeline import build_pipeline
-from compd.errors import BadInput
 from compd.models.base import Model
 from compd.sinks.base import Sink
 
@@ -131,8 +132,7 @@ def running_daemon(cfg: Config) -> str | None:
     """Why a daemon of this config seems to hold the sink's device now (its status file is
     fresh, its process exists; also with its cycle stale: stopped, it may run again), or None:
     the test must not write beside a running loop."""
-    from compd.service.host import daemon_status_path
-    from compd.service.status import held, read_status
+    from compd.service.status import daemon_status_path, held, read_status
 
     path = daemon_status_path(cfg)
     if not path.is_file():

@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from compd.cycle.codec import byte_to_um, decode_byte
-from compd.errors import BadInput
+from compd.codec import byte_to_um, decode_byte
+from compd.core.errors import BadInput
 from compd.log import Log, is_temperature_column
 
 # the colours every trend uses, so a reader learns them once
@@ -51,7 +51,7 @@ class Trend:
 def decode_words(word: np.ndarray, lsb_um: float) -> tuple[np.ndarray, np.ndarray]:
     """Per row and byte (high, low): the correction the word commands (µm) and its enable bit.
 
-    Decoded with compd.cycle.codec (byte_to_um, decode_byte) through a 256-entry table."""
+    Decoded with compd.codec (byte_to_um, decode_byte) through a 256-entry table."""
     table_um = np.array([byte_to_um(b, lsb_um) for b in range(256)])
     table_en = np.array([decode_byte(b).enable for b in range(256)])
     w = np.asarray(word, dtype=np.int64) & 0xFFFF

@@ -47,7 +47,7 @@ from typing import Any
 
 import yaml
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 MIN_PROBES = 3  # probes per axis the daemon must have scored the shadow on (`--min-probes`)
 
@@ -157,8 +157,7 @@ def score_refusal(status: dict[str, Any] | None, shadow_sha256: str, axes: list[
 
 def _daemon_status(cfg: Any) -> tuple[Path | None, dict[str, Any] | None]:
     """The status file of the daemon running `cfg`, and its record when that daemon runs (else None)."""
-    from compd.service.host import daemon_status_path
-    from compd.service.status import liveness, read_status
+    from compd.service.status import daemon_status_path, liveness, read_status
 
     status_path = daemon_status_path(cfg)
     if status_path is None or not Path(status_path).exists():
@@ -236,8 +235,8 @@ def promote(config: str | Path, *, force: bool = False, reload: bool = True, wai
     before anything is checked against it or written; what was done, for the command to print. A
     refusal is BadInput (exit 2)."""
     from compd.config import load_config, model_sha256
-    from compd.cycle import pipeline
     from compd.plant.remote_model import drive_check
+    from compd.plant.spec import check_config
 
     path = Path(config)
     cfg = load_config(path)  # the file as it is must be valid, with a shadow
@@ -251,7 +250,7 @@ def promote(config: str | Path, *, force: bool = False, reload: bool = True, wai
     text = path.read_bytes()
     new = promoted_text(text.decode("utf-8"), str(path), stamp)
     new_cfg = load_config(path, text=new)  # what check-config checks (the kind's parameter bounds), on the new text
-    pipeline.check(new_cfg)
+    check_config(new_cfg)
     why = drive_check(new_cfg, new_cfg.model, list(cfg.model.outputs))  # as a model sent to be applied
     if why is not None:
         raise cfg.doc.error(f"the shadow cannot be made the model: {why}", ("shadow",))

@@ -6,7 +6,7 @@ time since the row before: the guard's slew, the codec's walk, the sink's update
 and the device's scans, steps and ramps all follow that simulated time, not the number
 of rows (a row after dt does what the daemon's cycles would have done in dt: the word
 walks what the slew licensed, the PMC takes as many steps as `min_update_s` allows, each
-two scans after the one before, the NC ramps toward K0 over dt; compd.sinks.device_time).
+two scans after the one before, the NC ramps toward K0 over dt; compd.io.device_time).
 After each row the device has acted (the PMC two scans past its last write, the NC its
 IPO cycles up to the row), and what it then reports as applied is what the report
 counts: residual = logged error + applied correction. A config replays through its own
@@ -33,12 +33,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from compd.commissioning.scoring import score_applied
-from compd.config import AdaptConfig, CodecConfig, Document, GuardConfig, InhibitConfig
-from compd.cycle.adapt import Probe
-from compd.cycle.clock import SimClock
+from compd.core.clock import SimClock
+from compd.core.config import AdaptConfig, CodecConfig, Document, GuardConfig, InhibitConfig
+from compd.core.errors import BadInput
+from compd.core.probe import Probe
+from compd.core.scoring import score_applied
 from compd.cycle.pipeline import build_model, build_pipeline
-from compd.errors import BadInput
 from compd.log import Log, read_log
 from compd.models.base import Model, step_rows
 from compd.sinks.base import Sink
@@ -520,7 +520,8 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
 
 def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
     """Replay with a model file, the default guard and codec and the PMC in process."""
-    from compd.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml, resolve_model
+    from compd.config import resolve_model
+    from compd.core.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml
 
     path = Path(model_file)
     doc = load_yaml(path, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)

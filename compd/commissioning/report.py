@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.log import Log
 
 

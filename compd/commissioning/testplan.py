@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 LINEAR_AXES = "xyzuvw"  # axis letters the three controllers share for linear axes
 FEED_COLUMN = re.compile(r"feed_([a-z][a-z0-9]*)_mm_min")

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.log import Log, error_axis
 
 DEFAULT_EVERY_MIN = 10.0  # the sampling of a continuous err_<axis>_um where the log has no probe rows

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from compd.config import GuardConfig
-from compd.cycle.frame import QUALITY_NAMES, Frame, Quality
+from compd.core.config import GuardConfig
+from compd.core.frame import QUALITY_NAMES, Frame, Quality
 from compd.cycle.inhibit import HOLD_NAMES
 
 GOOD = int(Quality.GOOD)

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from compd.config import InhibitConfig
-from compd.cycle.frame import Frame, Quality
-from compd.errors import BadInput
+from compd.core.config import InhibitConfig
+from compd.core.errors import BadInput
+from compd.core.frame import Frame, Quality
 
 NONE, INHIBITED, WAITING = 0, 1, 2
 HOLD_NAMES = {NONE: None, INHIBITED: "inhibited", WAITING: "waiting for reference"}

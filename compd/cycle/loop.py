@@ -22,16 +22,16 @@ from typing import Any
 
 import numpy as np
 
-from compd.cycle import activity
+from compd.codec import Encoder
+from compd.core.clock import Clock
+from compd.core.frame import Frame
 from compd.cycle.adapt import Adapter
-from compd.cycle.clock import Clock
-from compd.cycle.codec import Encoder
-from compd.cycle.frame import Frame
 from compd.cycle.guard import Guard
-from compd.cycle.histogram import bin_percentiles
 from compd.cycle.inhibit import Inhibit
 from compd.cycle.shadow import Shadow
+from compd.io import activity
 from compd.io.child import hosting
+from compd.io.histogram import bin_percentiles
 from compd.io.mailbox import shared_buffer
 from compd.models.base import Model, ModelStage
 from compd.sinks.base import Sink

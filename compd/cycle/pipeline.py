@@ -15,26 +15,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from compd.config import (
-    AdaptConfig,
-    CodecConfig,
-    Config,
-    GuardConfig,
-    InhibitConfig,
-    LoopConfig,
-    model_sha256,
-)
+from compd.codec import Encoder
+from compd.config import Config, model_sha256
+from compd.core.clock import Clock, SimClock, WallClock
+from compd.core.config import AdaptConfig, CodecConfig, GuardConfig, InhibitConfig, LoopConfig
+from compd.core.errors import BadInput
+from compd.core.frame import Frame
+from compd.core.registry import entry_point
 from compd.cycle.adapt import Adapter
-from compd.cycle.clock import Clock, SimClock, WallClock
-from compd.cycle.codec import Encoder
-from compd.cycle.frame import Frame
 from compd.cycle.guard import Guard
 from compd.cycle.inhibit import Inhibit
 from compd.cycle.loop import Loop
 from compd.cycle.shadow import Shadow
-from compd.errors import BadInput
 from compd.models.base import Model
-from compd.registry import entry_point
 from compd.sinks.base import Sink
 from compd.sources.base import Source
 
@@ -212,18 +205,3 @@ def from_config(cfg: Config, *, observe: bool | None = None) -> tuple[Pipeline, 
     return p, clock
 
 
-def check(cfg: Config) -> None:
-    """Validate a config as far as it can be without running it (`compd check-config`, a model
-    the plant sends): every stage built and wired (`from_config`), the plant's telemetry and
-    OPC UA sections read and checked against the signals and axes. Opens nothing; BadInput
-    names the file, line and key of the first problem."""
-    p, _ = from_config(cfg)
-    top = cfg.top
-    if top.telemetry is not None or top.opcua is not None:
-        from compd.plant import spec as plant_spec
-
-        period_s = min(top.status.period_s, *(sec.period_s for sec in (top.telemetry, top.opcua) if sec is not None))
-        if top.telemetry is not None:
-            plant_spec.telemetry_spec(cfg, list(p.frame.names), list(p.model.outputs), period_s)
-        if top.opcua is not None:
-            plant_spec.opcua_spec(cfg)

@@ -2,7 +2,7 @@
 
 The service work (status file, metrics, event log lines, the data log, model state,
 the probe socket) runs beside the loop, in a process of its own on the wall clock
-(compd/service/host.py). It never reads the pipeline's objects: the cycle's thread hands
+(compd/daemon/host.py). It never reads the pipeline's objects: the cycle's thread hands
 it what it needs, in shared memory, so there is never a second thread of Python in
 the cycle's interpreter and nothing the cycle writes is read half-written.
 
@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from compd.cycle.adapt import Probe
+from compd.core.probe import Probe
 from compd.cycle.statusblock import StatusBlock, describe_devices
 from compd.io.ring import MessageRing
 from compd.io.supervisor import Supervised, Supervisor

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from compd.config import GuardConfig
-from compd.cycle.frame import Frame
+from compd.core.config import GuardConfig
+from compd.core.frame import Frame
 from compd.cycle.guard import Guard
 from compd.models.base import Model, ModelStage
 

@@ -6,7 +6,7 @@ sequence number (odd while writing). No dict, no pickle, nothing that waits. The
 histograms and stage times live in shared memory of their own (compd.cycle.loop.TimingStats)
 and are read beside the record.
 
-The service (compd/service/host.py, a process of its own or a thread) takes a consistent
+The service (compd/daemon/host.py, a process of its own or a thread) takes a consistent
 copy with `StatusBlock.read` whenever it wants one and `compose`s the status snapshot
 (the dict written to status.json, exported as metrics, Sparkplug and OPC UA) from it
 and a `Description`: what does not change every cycle (the model, the devices' own
@@ -35,14 +35,30 @@ from typing import Any
 import numpy as np
 
 from compd import version
-from compd.cycle.frame import QUALITY_NAMES
+from compd.core.frame import QUALITY_NAMES
 from compd.cycle.guard import POLICIES, STATE_NAMES
-from compd.cycle.histogram import bin_percentiles, over_range, range_limit_us
 from compd.cycle.inhibit import HOLD_NAMES
+from compd.io.histogram import bin_percentiles, over_range, range_limit_us
 from compd.io.mailbox import READ_TRIES, shared_buffer
-from compd.service.status import RELOAD_STALE_S, SCHEMA, STALE, STALE_MIN_S, STALE_PERIODS, UNSEEN_S
-from compd.sinks.base import LINK_STATES
+from compd.io.worker import LINK_STATES
 from compd.sinks.observe import ObserveSink
+
+# the status file's schema: its version (`schema`), where the packaged unit writes it, and when a record is stale
+SCHEMA = 1
+DEFAULT_PATH = "/run/compd/status.json"
+
+STALE = "stale"  # the status's state when the cycle's record stopped moving (the record itself never says it)
+# The cycle writes its record after every cycle. Unwritten for STALE_PERIODS loop periods, and at
+# least STALE_MIN_S, it is stale: a running cycle on a busy 2-core host never pauses that long (160 ms
+# at the most, measured at a load of 13: docs/reliability.md), a stopped one is seen within it.
+STALE_PERIODS = 5.0
+STALE_MIN_S = 1.0
+# A reload stops the loop while it builds and opens the new pipeline (state `reloading`): its record
+# is stale only past this, far above the longest reload measured (docs/reliability.md).
+RELOAD_STALE_S = 60.0
+# A turn of the service's loop this much later than its poll: the time between is not counted in the
+# record's age (the service did not watch; on a host that busy the cycle may not have run either).
+UNSEEN_S = 0.1
 
 # the daemon's state, as its record names it (`reloading`: the loop paused while a reload builds the
 # new pipeline); the status says `stale` instead when the record stopped moving (compd.service.status)

@@ -11,13 +11,13 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from compd.commissioning.scoring import RunningScore
 from compd.config import Config
-from compd.cycle.clock import SimClock
+from compd.core.clock import SimClock
+from compd.core.errors import BadInput
+from compd.core.scoring import RunningScore
 from compd.cycle.loop import Loop
 from compd.cycle.pipeline import from_config
-from compd.errors import BadInput
-from compd.service.host import LogSpec, Service, StateSpec
+from compd.daemon.host import LogSpec, Service, StateSpec
 from compd.service.state import load_saved, params_digest
 from compd.sinks.base import SAFE_TIMEOUT_S
 
@@ -26,7 +26,7 @@ log = logging.getLogger("compd")
 
 class LogObserver:
     """Hands a log row to `push` every `period_s` of loop time and on every change of the
-    word (the service's data log writes it: compd/service/host.py)."""
+    word (the service's data log writes it: compd/daemon/host.py)."""
 
     def __init__(self, loop: Loop, push: Callable[[tuple[float, ...]], Any], period_s: float) -> None:
         self.columns = self.columns_of(loop)
@@ -86,7 +86,7 @@ class LogObserver:
 
 
 class CompensationSummary:
-    """The run's before/after score (compd.commissioning.scoring), fed every cycle.
+    """The run's before/after score (compd.core.scoring), fed every cycle.
 
     Only where the sources publish the true error `err_<axis>_um` (simulator,
     replay of a measured log); residual = error + applied correction.

@@ -7,7 +7,7 @@ import signal
 import sys
 from typing import Any
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 log = logging.getLogger("compd")
 

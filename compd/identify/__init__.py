@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from compd.registry import Registry
+from compd.core.registry import Registry
 
 if TYPE_CHECKING:
     from compd.identify.data import FitResult

@@ -11,13 +11,12 @@ import numpy as np
 from pydantic import Field
 from scipy import optimize, signal, stats
 
-from compd.config import Strict
-from compd.errors import BadInput
+from compd.core.config import Strict
+from compd.core.errors import BadInput
 from compd.identify import ar1_design as design
 from compd.identify import holdout
 from compd.identify import lag as lag_mod
 from compd.identify.data import (
-    HELD_OUT_METHOD,
     FitResult,
     ambient_columns,
     axis_names,
@@ -416,7 +415,7 @@ def choose_sensors(
         update["exchange"] = exch_out
     report: dict[str, Any] = {
         "inputs": bed_out, "ambient": amb_out, "exchange": exch_out, "given": given,
-        "method": HELD_OUT_METHOD + "; forward selection among every temperature column" + (
+        "method": holdout.METHOD + "; forward selection among every temperature column" + (
             " at every lag" if auto_lag else "") + ", each step the column and role (structure ≤"
         f" {STRUCTURE_MAX}, ambient ≤ 1, exchange ≤ {EXCHANGE_MAX}: those the options leave to the fit) that"
         f" predicts best, kept while it cuts the held-out RMSE below {AUTO_MARGIN:g} ×; a column named for the"
@@ -483,7 +482,7 @@ def _fit_form(log: Log, inputs: list[str] | None, targets: list[str] | None, opt
         result = _fit(log, inputs, targets, opt.model_copy(update={"c1_by_speed": chosen == "by_speed" or "law"}))
     result.report["c1_form"] = {
         "chosen": chosen,
-        "method": HELD_OUT_METHOD + f"; compd's form (C1 by speed up to {LEVELS_MAX} levels, the speed law from"
+        "method": holdout.METHOD + f"; compd's form (C1 by speed up to {LEVELS_MAX} levels, the speed law from"
         f" {LAW_MIN_LEVELS}) is kept only below {AUTO_MARGIN:g} × the paper's (or the other's) RMSE",
         "held_out_blocks": [k + 1 for k in usable],
         "held_out_rmse_um": held,

@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import re
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 from pydantic import ValidationError
 
-from compd.config import Strict
-from compd.errors import BadInput
-from compd.identify import holdout
+from compd.core.config import Strict
+from compd.core.errors import BadInput
 from compd.log import Log, error_axis
 
 if TYPE_CHECKING:
@@ -146,15 +145,3 @@ def progress(iterable: Iterable[Any], desc: str, total: int | None = None) -> It
         return iterable
     tqdm.monitor_interval = 0  # no monitor thread: a fit leaves nothing running behind it
     return tqdm(iterable, desc=desc, total=total, delay=1.0, leave=False, file=sys.stderr)
-
-
-# every held-out figure of a fit or a report: compd.identify.holdout (folds at days or duty changes)
-HELD_OUT_METHOD = holdout.METHOD
-
-
-def compare_forms(
-    log: Log, target: str, forms: dict[str, Callable[[Log], FitResult]]
-) -> tuple[dict[str, float | str], list[int]]:
-    """Held-out RMSE (µm) of each form over the folds every form could be fitted on
-    (compd.identify.holdout.compare). Returns ({form: RMSE or why not}, the folds used, 1-based)."""
-    return holdout.compare(log, target, forms)

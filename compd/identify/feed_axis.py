@@ -36,15 +36,14 @@ import numpy as np
 from pydantic import Field
 from scipy import optimize, special
 
-from compd.config import Strict
-from compd.errors import BadInput
+from compd.core.config import Strict
+from compd.core.errors import BadInput
+from compd.identify import holdout
 from compd.identify.data import (
     AMBIENT_NAME,
-    HELD_OUT_METHOD,
     FitResult,
     axis_names,
     columns,
-    compare_forms,
     default_targets,
     measured_rows,
     progress,
@@ -144,7 +143,7 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         ((name, fit_on),) = forms.items()
         how = "asked" if opt.form != "auto" else "the only form the log carries"
         return _named(fit_on(log), name, {"method": how})
-    held, blocks = compare_forms(log, targets[0], forms)
+    held, blocks = holdout.compare(log, targets[0], forms)
     scored = {k: v for k, v in held.items() if isinstance(v, float)}
     if not scored:  # e.g. the axis stands still until the log's last block: physics first
         best = next(iter(forms))
@@ -158,7 +157,7 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     lowest = min(scored.values())
     best = next(k for k in SIMPLEST_FIRST if k in scored and scored[k] * FORM_MARGIN <= lowest)
     return _named(forms[best](log), best, {
-        "method": HELD_OUT_METHOD + f"; the form with the fewest coefficients within {1 / FORM_MARGIN - 1:.0%} of"
+        "method": holdout.METHOD + f"; the form with the fewest coefficients within {1 / FORM_MARGIN - 1:.0%} of"
                   " the smallest RMSE is kept (analytic, field, position_poly1, position_poly2)",
         "held_out_blocks": blocks,
         "held_out_rmse_um": held,

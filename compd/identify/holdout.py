@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import ValidationError
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.log import Log, error_axis
 
 if TYPE_CHECKING:

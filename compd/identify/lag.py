@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.identify import holdout
 from compd.identify.data import FitResult, default_targets
 from compd.log import Log

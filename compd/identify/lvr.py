@@ -39,8 +39,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from compd.config import Strict
-from compd.errors import BadInput
+from compd.core.config import Strict
+from compd.core.errors import BadInput
 from compd.identify import holdout
 from compd.identify.data import FitResult, axis_names, measured_rows, require_rows, validate_options
 from compd.identify.mlr import linear_data, rise_stats, rises

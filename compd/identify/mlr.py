@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.config import Strict
+from compd.core.config import Strict
 from compd.identify.data import (
     FitResult,
     axis_names,

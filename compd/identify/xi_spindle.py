@@ -8,8 +8,8 @@ import numpy as np
 from pydantic import Field
 from scipy import optimize
 
-from compd.config import Strict
-from compd.errors import BadInput
+from compd.core.config import Strict
+from compd.core.errors import BadInput
 from compd.identify.data import (
     FitResult,
     axis_names,

@@ -336,7 +336,7 @@ class Child:
         _normal_scheduling(avoid_cpus)
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
-        from compd.cycle import activity
+        from compd.io import activity
         activity.disable()
 
     def send(self, msg: Any) -> None:

@@ -27,7 +27,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import Any, TextIO
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.io import hal_modules
 
 HALCMD_TIMEOUT_S = 10.0

@@ -36,7 +36,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 ENV = "COMPD_LINUXCNC_PYTHON"
 DEFAULT_FOLDER = "/usr/lib/python3/dist-packages"

@@ -28,7 +28,7 @@ from typing import Generic, TypeVar
 
 import numpy as np
 
-from compd.cycle.frame import Frame, Quality
+from compd.core.frame import Frame, Quality
 
 T = TypeVar("T")
 
@@ -170,7 +170,7 @@ class Latest(Generic[T]):
 
 
 class Sync:
-    """What a device held at each connect of a sink's link (compd.sinks.modbus_link), in memory
+    """What a device held at each connect of a sink's link (compd.io.modbus_link), in memory
     shared with the link's worker: the connection's epoch, the registers read at its start (the
     held block), and the epoch the sink has taken.
 

@@ -50,7 +50,7 @@ log = logging.getLogger("compd.io")
 
 class Supervised(Protocol):
     """What the supervisor watches: an I/O worker (compd.io.worker.IoWorker) or the service's
-    process (compd.service.host)."""
+    process (compd.daemon.host)."""
 
     name: str
     lost_event: str  # the event of its loss (io_process_lost, service_lost) ...

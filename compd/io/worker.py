@@ -70,19 +70,22 @@ import time
 import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
-from compd.cycle import activity
-from compd.cycle.histogram import DurationHist
+from compd.io import activity
 from compd.io.child import Child, ChildGone, Heartbeat, exit_text
+from compd.io.histogram import DurationHist
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import SharedBlob
 
 log = logging.getLogger("compd.io")
 
 WORKER_STATES = ("closed", "connecting", "up", "down")
+# a sink's link to its device, as the status names it (compd.sinks.base.Sink.link_state)
+LinkState = Literal["up", "connecting", "down", "closed"]
+LINK_STATES: tuple[LinkState, ...] = ("up", "connecting", "down", "closed")
 
 # a device's recovery is logged once its rounds have gone through without an error this long
 # (a device that flaps between an error and a good round logs the error once, not every flap)

@@ -1,6 +1,6 @@
 """Thermal-error models, one module each, found by YAML `kind`."""
 
-from compd.registry import Registry
+from compd.core.registry import Registry
 
 MODELS = Registry(
     "model",

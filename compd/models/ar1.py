@@ -30,8 +30,8 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.config import Strict
-from compd.errors import BadInput
+from compd.core.config import Strict
+from compd.core.errors import BadInput
 from compd.models.base import (
     MAX_ERROR_UM,
     MAX_GAIN_UM_PER_K,

@@ -10,8 +10,8 @@ from typing import Annotated, Any, ClassVar
 import numpy as np
 from pydantic import ConfigDict, Field, model_validator
 
-from compd.config import Strict
-from compd.errors import BadInput
+from compd.core.config import Strict
+from compd.core.errors import BadInput
 from compd.models.lead import InputLead
 
 

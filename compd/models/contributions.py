@@ -25,7 +25,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from compd.config import Strict
+from compd.core.config import Strict
 from compd.models.base import Model, ModelStage
 
 STARTING, NORMAL, FAULT, RECOVERING = 0, 1, 2, 3

@@ -70,7 +70,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.models.base import MAX_GAIN_UM_PER_K, MAX_LENGTH_MM, LeadParams, Model, ModelParams
 from compd.models.erf import erf, erf_inplace
 

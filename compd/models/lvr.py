@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 from pydantic import Field
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.models.mlr import RiseLinear, RiseLinearParams
 
 if TYPE_CHECKING:

@@ -17,7 +17,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.models.base import MAX_LENGTH_MM, TEMP_MAX_C, TEMP_MIN_C, LeadParams, Model, ModelParams
 
 

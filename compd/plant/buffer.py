@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 log = logging.getLogger("compd.telemetry")
 

@@ -78,7 +78,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.plant.spec import RemoteSpec, file_sha256
 
 log = logging.getLogger("compd.telemetry")
@@ -286,7 +286,7 @@ def validate(spec: RemoteSpec, candidate: Path, target: str = "model") -> str | 
     the shadow's ("shadow") file (None: it can), checked as a reload would: the config read
     again with its model (or shadow) section pointing at `candidate`."""
     from compd.config import load_config, resolve_model
-    from compd.cycle import pipeline
+    from compd.plant.spec import check_config
 
     shadow = target == "shadow"
     try:
@@ -309,7 +309,7 @@ def validate(spec: RemoteSpec, candidate: Path, target: str = "model") -> str | 
     if (why := _shadow_read_by_model(spec, cfg)) is not None:
         return why
     try:
-        pipeline.check(dataclasses.replace(cfg, shadow=model))  # wiring, signals (opens no device)
+        check_config(dataclasses.replace(cfg, shadow=model))  # wiring, signals (opens no device)
     except BadInput as e:
         return _private(str(e), spec, candidate)
     return None  # it drives nothing: no clamp to keep inside
@@ -322,12 +322,12 @@ def drive_check(cfg: Any, model: Any, outputs: list[str]) -> str | None:
     `outputs` (the running model's, in order: the word's bytes follow them), the pipeline must
     build with it as the model (wiring, signals; opens no device), and it must keep inside the
     guard's clamp over the readings it was fitted on (`clamp_check`)."""
-    from compd.cycle import pipeline
+    from compd.plant.spec import check_config
 
     if list(model.outputs) != list(outputs):
         return f"its axes {model.outputs} are not the running model's {list(outputs)}"
     try:
-        pipeline.check(dataclasses.replace(cfg, model=model))
+        check_config(dataclasses.replace(cfg, model=model))
     except BadInput as e:
         return str(e)
     return clamp_check(model, cfg.top.guard)

@@ -18,9 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from compd import version
-from compd.errors import BadInput
-
-MAX_SECRET_BYTES = 4096
+from compd.config import Config
+from compd.core.config import MAX_SECRET_BYTES
+from compd.core.errors import BadInput
+from compd.cycle import pipeline
 
 
 def read_secret(cfg: Any, rel: str, key: tuple[str | int, ...]) -> str:
@@ -224,7 +225,9 @@ def opcua_spec(cfg: Any) -> OpcUaSpec:
         raise cfg.doc.error(f"{cfg.resolve_path(ua.trusted_clients)} is not a folder", ("opcua", "trusted_clients"))
     _check_bind(cfg, ua.bind)
     base = Path(cfg.file).parent
-    from compd.plant.opcua import check_material  # what the server reads at start, read now
+    from compd.plant.material import (
+        check_material,  # what the server reads at start, read now (cryptography)
+    )
 
     try:
         check_material(ua, base)
@@ -259,3 +262,18 @@ def _check_bind(cfg: Any, bind: str) -> None:
             s.bind((addr[0], 0))
     except OSError as e:
         raise cfg.doc.error(f"cannot listen on {bind}: {e.strerror or e}", ("opcua", "bind")) from None
+
+
+def check_config(cfg: Config) -> None:
+    """Validate a config as far as it can be without running it (`compd check-config`, a model
+    the plant sends): every stage built and wired (`from_config`), the plant's telemetry and
+    OPC UA sections read and checked against the signals and axes. Opens nothing; BadInput
+    names the file, line and key of the first problem."""
+    p, _ = pipeline.from_config(cfg)
+    top = cfg.top
+    if top.telemetry is not None or top.opcua is not None:
+        period_s = min(top.status.period_s, *(sec.period_s for sec in (top.telemetry, top.opcua) if sec is not None))
+        if top.telemetry is not None:
+            telemetry_spec(cfg, list(p.frame.names), list(p.model.outputs), period_s)
+        if top.opcua is not None:
+            opcua_spec(cfg)

@@ -2,7 +2,7 @@
 
 One `Telemetry` is one Sparkplug edge node (this compd) with one device (the machine
 it compensates). It runs on a thread of its own ("compd-telemetry") in the service
-process (compd/service/host.py), never on the cycle: the service hands it each status
+process (compd/daemon/host.py), never on the cycle: the service hands it each status
 snapshot (`sample`) and each event (`event`) and returns at once.
 
 Every sample and event goes first into the store-and-forward buffer (an SQLite file,
@@ -66,8 +66,8 @@ import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from compd.core.errors import BadInput
 from compd.cycle.statusblock import signal_unit
-from compd.errors import BadInput
 from compd.plant import sandbox
 from compd.plant.buffer import MEMORY_MAX_BYTES, Counters, MemoryBuffer, StoreAndForward
 from compd.plant.sparkplug import (

@@ -1,7 +1,7 @@
 """LinuxCNC's external offsets as a register map: the map compd's linuxcnc sink reads and writes, and a device of the software PLC that emulates them.
 
 compd drives LinuxCNC through HAL pins (compd.sinks.hal_link), but its sinks speak registers
-through one link interface (compd.sinks.modbus_link, compd.plc.link). So the pins are shown
+through one link interface (compd.io.modbus_link, compd.plc.link). So the pins are shown
 as registers, per axis a block of `BLOCK`:
 
   COUNTS  (2, s32, high word first)  the counts compd's `eoffset-counts` pin carries       read/write

@@ -3,7 +3,7 @@
 `VirtualDevice` is what the software PLC's devices share: a holding-register map
 (the same map they show over Modbus) and a clock that runs their scans or IPO cycles
 on simulated time. `VirtualLink` gives such a device the public interface of
-`compd.sinks.modbus_link.ModbusLink` (start, submit, pending, flush, drain, read_now,
+`compd.io.modbus_link.ModbusLink` (start, submit, pending, flush, drain, read_now,
 status, state, get_status, stop), so a sink writes to the PLC in process exactly as
 it writes to one over the network. The device follows the sink's `LoopTime`: before
 every access it runs whatever its clock has due by then.
@@ -15,9 +15,9 @@ import math
 from abc import ABC, abstractmethod
 from typing import Any
 
-from compd.cycle.histogram import DurationHist
+from compd.io.device_time import DeviceTime
+from compd.io.histogram import DurationHist
 from compd.io.mailbox import Sync
-from compd.sinks.device_time import DeviceTime
 
 
 def last_due(t0_s: float, period_s: float, t_s: float) -> int:

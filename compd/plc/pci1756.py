@@ -1,10 +1,74 @@
-"""Advantech PCI-1756 as a virtual card: 32 isolated DI and 32 isolated DO, latching outputs."""
+"""The PCI-1756 card: what the sink needs of a driver (DoCard), and the card as a virtual device (32 DI, 32 DO, latching)."""
 
 from __future__ import annotations
 
 import threading
+from abc import ABC, abstractmethod
 
-from compd.sinks.pci1756 import DoCard
+from compd.io.worker import LinkState
+
+
+class DoCard(ABC):
+    """What the sink needs of a PCI-1756 driver (the software PLC's card, the card over
+    Modbus, a real driver): 16-bit words on two DO bytes (low byte at `port`), single DO bits."""
+
+    def start(self) -> None:
+        """Connect (a card reached over a network); called when the sink opens. A card in this
+        process has its lines read back at once (`held`)."""
+        self._held_epoch += 1
+
+    def link_state(self) -> LinkState:
+        """Whether what is written reaches the lines: a card in this process always does."""
+        return "up"
+
+    def flush(self, timeout_s: float) -> bool:
+        """Wait until every write so far has reached the lines (in process: at once)."""
+        return True
+
+    def ensure_serving(self) -> bool:
+        """Before the safe output: a card reached through a worker gets a fresh one when its
+        worker is gone (see ModbusLink.ensure_serving); in process: nothing to do."""
+        return True
+
+    # what the DO lines hold when the card is reached (at the start, after its link is restored):
+    # a card in this process reads its latch at once; a card over a link, at every connect
+    _held_epoch = 0
+    _taken_epoch = 0
+
+    def held(self) -> tuple[int, int] | None:
+        """(epoch, the 32 DO lines as read back) for a connection whose lines the sink has not
+        yet taken; None otherwise. Never waits. A card in this process: its latch, once per start."""
+        if self._held_epoch == self._taken_epoch:
+            return None
+        return self._held_epoch, self.read_do()
+
+    def accept(self, epoch: int, lines: int) -> None:
+        """The sink takes the lines read back (and writes from them from now on)."""
+        self._taken_epoch = epoch
+
+    def synced(self) -> bool:
+        """Whether the lines have been taken for the current connection: what is written is sent."""
+        return self._held_epoch > 0 and self._taken_epoch == self._held_epoch
+
+    def await_held(self, timeout_s: float) -> bool:
+        """Outside the cycle: wait until `held` (or the card is synced); in process: at once."""
+        return True
+
+    def read_do(self) -> int:
+        """All 32 DO lines as one integer (bit 0 = DO0): the card's output latch read back."""
+        raise NotImplementedError
+
+    @abstractmethod
+    def write_do_word(self, port: int, value: int) -> None: ...
+
+    @abstractmethod
+    def write_do_bit(self, bit: int, on: bool) -> None: ...
+
+    @abstractmethod
+    def read_do_word(self, port: int) -> int: ...
+
+    def close(self) -> None:
+        """Release the connection; called when the sink closes."""
 
 
 class Pci1756Card(DoCard):

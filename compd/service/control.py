@@ -1,6 +1,6 @@
 """The probe socket: how `compd probe` hands a measurement to the running daemon.
 
-The daemon (`ControlServer`, bound by compd/service/host.py when the config has an
+The daemon (`ControlServer`, bound by compd/daemon/host.py when the config has an
 `adapt` section) listens on a Unix domain socket; a thread of the service (a process
 of its own on the wall clock) serves it through a `ProbeLink`: it hands the probe to
 the cycle (a message ring the cycle reads between cycles: the cycle never waits) and
@@ -41,8 +41,8 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any
 
-from compd.cycle.adapt import Probe, brief, finite_number, probe_problem
-from compd.errors import BadInput
+from compd.core.errors import BadInput
+from compd.core.probe import Probe, brief, finite_number, probe_problem
 from compd.service.threads import ServiceThread
 
 log = logging.getLogger("compd.control")
@@ -61,7 +61,7 @@ class NoDaemon(Exception):
 def socket_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
     """The probe socket of a config with an `adapt` section: `adapt.socket_path`, else next
     to the status file (its suffix replaced by `.sock`); None without either."""
-    from compd.service.host import status_path
+    from compd.service.status import status_path
 
     ad = cfg.top.adapt
     tel = cfg.top.telemetry

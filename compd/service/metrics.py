@@ -1,7 +1,7 @@
 """Prometheus metrics on an opt-in HTTP endpoint (127.0.0.1 by default), via prometheus-client.
 
 Nothing here runs in the cycle, nor in the cycle's process: the daemon binds the
-endpoint, and the service (compd/service/host.py, a process of its own on the wall clock)
+endpoint, and the service (compd/daemon/host.py, a process of its own on the wall clock)
 serves it and hands `MetricsServer.update_buckets` the latest snapshot (compd/service/status.py)
 about once a second; a scrape renders the metric families from that snapshot. Metric names end
 in their base unit (Prometheus: `_seconds`, `_meters`, `_celsius`, `_hertz`, …; a correction of
@@ -19,9 +19,8 @@ import threading
 from typing import Any
 
 from compd import version
-from compd.cycle.statusblock import AXIS, PART, STATES, A, P, signal_unit
-from compd.errors import BadInput
-from compd.service.status import STALE
+from compd.core.errors import BadInput
+from compd.cycle.statusblock import AXIS, PART, STALE, STATES, A, P, signal_unit
 from compd.service.threads import ServiceThread
 
 # cycle lateness histogram bounds, µs (a 2 ms cycle: "late" starts around 1000)
@@ -152,7 +151,7 @@ class SnapshotCollector:
         yield from (corr, pred, applied, en, sat, st, held)
         yield from _contribution_families(snap)
         yield from _shadow_families(snap)
-        from compd.sinks.base import LINK_STATES
+        from compd.io.worker import LINK_STATES
 
         link = snap["sink"].get("link")
         link_up = GaugeMetricFamily("compd_sink_link_up", "1 when the sink reaches the machine (link up)")

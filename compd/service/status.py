@@ -1,7 +1,7 @@
 """Live status of a running daemon: a JSON snapshot written atomically, and `compd status`.
 
 The cycle writes its status record every cycle (compd/cycle/statusblock.py); the service
-(compd/service/host.py, a process of its own on the wall clock) composes the snapshot from
+(compd/daemon/host.py, a process of its own on the wall clock) composes the snapshot from
 it about once a second and writes it with `write_atomic` (temp file + rename, so a
 reader never sees half a file). `snapshot` composes one in process, through the same
 record. `compd status` reads it back with `read_status`, judges whether the daemon is
@@ -24,24 +24,19 @@ from typing import Any
 
 import numpy as np
 
-from compd.cycle.histogram import bin_percentiles, over_range, percentile_text, range_limit_us
-from compd.errors import BadInput
-
-SCHEMA = 1
-DEFAULT_PATH = "/run/compd/status.json"
-
-STALE = "stale"  # the status's state when the cycle's record stopped moving (the record itself never says it)
-# The cycle writes its record after every cycle. Unwritten for STALE_PERIODS loop periods, and at
-# least STALE_MIN_S, it is stale: a running cycle on a busy 2-core host never pauses that long (160 ms
-# at the most, measured at a load of 13: docs/reliability.md), a stopped one is seen within it.
-STALE_PERIODS = 5.0
-STALE_MIN_S = 1.0
-# A reload stops the loop while it builds and opens the new pipeline (state `reloading`): its record
-# is stale only past this, far above the longest reload measured (docs/reliability.md).
-RELOAD_STALE_S = 60.0
-# A turn of the service's loop this much later than its poll: the time between is not counted in the
-# record's age (the service did not watch; on a host that busy the cycle may not have run either).
-UNSEEN_S = 0.1
+from compd.core.errors import BadInput
+from compd.cycle.statusblock import (
+    DEFAULT_PATH,
+    RELOAD_STALE_S,
+    SCHEMA,
+    STALE,
+    STALE_MIN_S,
+    STALE_PERIODS,
+    StatusBlock,
+    compose,
+    describe,
+)
+from compd.io.histogram import bin_percentiles, over_range, percentile_text, range_limit_us
 
 
 def stale_after_s(period_s: float, state: str) -> float | None:
@@ -127,8 +122,6 @@ def lateness_buckets(
 def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The status of `loop` now, composed in this process the way the service composes it
     (a record written and read back, the devices described from the pipeline's objects)."""
-    from compd.cycle.statusblock import StatusBlock, compose, describe
-
     block = StatusBlock(loop)
     block.state = state
     block.write()
@@ -501,3 +494,23 @@ def _process_lines(data: dict[str, Any]) -> list[str]:
             n = p["restarts"]
             out.append(f"process {p.get('name')} restarted {n} time{'s' if n != 1 else ''} (last lost: {p.get('lost')})")
     return out
+
+
+def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
+    """The status file: `status.path` (relative to the config), else $RUNTIME_DIRECTORY/status.json."""
+    env = dict(os.environ) if env is None else env
+    if cfg.top.status.path:
+        return cfg.resolve_path(cfg.top.status.path)
+    runtime = env.get("RUNTIME_DIRECTORY", "").split(":")[0]
+    return Path(runtime) / "status.json" if runtime else None
+
+
+def daemon_status_path(cfg: Any) -> Path:
+    """Where the daemon of `cfg` writes its status, as another process finds it: `status.path`,
+    else where the systemd units put it (RuntimeDirectory `compd` for compd.yaml, `compd/NAME`
+    for the instance compd@NAME)."""
+    found = status_path(cfg, env={})
+    if found is not None:
+        return found
+    stem = Path(cfg.file).stem
+    return Path(DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json")

@@ -1,6 +1,6 @@
 """The one thread base of the service's threads: named, started once, joined with a deadline, and never dying silently.
 
-The service (compd/service/host.py) runs its work on threads of its own process: the message
+The service (compd/daemon/host.py) runs its work on threads of its own process: the message
 taker (`compd-service`), the data log's writer (`compd-log`), the state file's writer
 (`compd-state`), the probe socket (`compd-control`), the metrics endpoint
 (`compd-metrics`), the MQTT client (`compd-telemetry`) and the OPC UA server

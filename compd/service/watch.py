@@ -8,7 +8,7 @@ import time
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.service.status import liveness, read_status, render
 
 CLEAR = "\x1b[H\x1b[2J"  # cursor home, clear the screen

@@ -1,6 +1,6 @@
 """Correction sinks, one module per output, found by YAML `kind`."""
 
-from compd.registry import Registry
+from compd.core.registry import Registry
 
 SINKS = Registry(
     "sink",

@@ -4,24 +4,23 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Hashable
-from typing import TYPE_CHECKING, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from compd.config import SinkConfig
+from compd.core.config import SinkConfig
+from compd.io.worker import LinkState
 
 if TYPE_CHECKING:
+    from compd.io.modbus_link import ModbusLink
     from compd.models.base import Model
     from compd.plc.link import VirtualLink
-    from compd.sinks.modbus_link import ModbusLink
 
 # What a sink knows of its connection to the machine (`Sink.link_state`):
 #   up          the device answers (or it is in process: nothing can be lost on the way)
 #   connecting  opened, no answer yet
 #   down        the device does not answer: nothing the loop computes reaches the machine
 #   closed      not open
-LinkState = Literal["up", "connecting", "down", "closed"]
-LINK_STATES: tuple[LinkState, ...] = ("up", "connecting", "down", "closed")
 SAFE_TIMEOUT_S = 2.0  # how long the safe output waits for each write to be acknowledged
 
 
@@ -79,7 +78,7 @@ class Sink(ABC):
         """Every cycle, before the guard (never waits): True in the cycle the sink has just learned
         what its device holds — at its open, and after its link to the device was restored — and
         reckons from it from now on; `held_um` then says what. The base reads its link's held
-        block (compd.sinks.modbus_link: read at every connect, before anything is sent) and hands
+        block (compd.io.modbus_link: read at every connect, before anything is sent) and hands
         it to `take_held`."""
         link = self.link
         if link is None:

@@ -32,15 +32,15 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.config import SinkConfig
-from compd.cycle.codec import MAX_MAG, codes_from_word, word_bytes, word_from_codes
+from compd.codec import MAX_MAG, codes_from_word, word_bytes, word_from_codes
+from compd.core.config import SinkConfig
+from compd.io.device_time import DeviceTime, LoopTime, WallTime
 from compd.sinks.base import SAFE_TIMEOUT_S, Sink
-from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
+    from compd.io.modbus_link import ModbusLink
     from compd.plc.fanuc_pmc import FanucPmc
     from compd.plc.link import VirtualLink
-    from compd.sinks.modbus_link import ModbusLink
 
 POLL_S = 0.002  # between two reads of the scan counter while waiting for the PMC to scan
 
@@ -139,7 +139,7 @@ class FanucPmcSink(Sink):
             self.pmc.write_registers(LSB_NM, [int(round(self.lsb_um * 1000))])
             return VirtualLink(self.pmc, self.time, status=(cfg.status_address, 8), name="fanuc_pmc",
                                sync=self._sync_ranges())
-        from compd.sinks.modbus_link import ModbusLink
+        from compd.io.modbus_link import ModbusLink
 
         return ModbusLink(
             cfg.host or "",

@@ -1,7 +1,7 @@
 """LinuxCNC's HAL as the device behind a sink's link: compd's HAL component, its pins shown as registers.
 
 The linuxcnc sink speaks the register map of compd.plc.eoffsets through the same link as every
-sink (compd.sinks.modbus_link: its worker, epochs, read-back before the first write, back-off).
+sink (compd.io.modbus_link: its worker, epochs, read-back before the first write, back-off).
 `HalRegisters` is that link's device: it runs on the link's worker (a thread, or the I/O child
 process), never in the cycle.
 

@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.config import SinkConfig
+from compd.core.config import SinkConfig
+from compd.io.device_time import DeviceTime, LoopTime, WallTime
 from compd.plc.eoffsets import (
     APPLIED,
     BLOCK,
@@ -40,13 +41,12 @@ from compd.plc.eoffsets import (
 )
 from compd.plc.siemens_nc import regs_f32
 from compd.sinks.base import SAFE_TIMEOUT_S, Sink
-from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
+    from compd.io.modbus_link import ModbusLink
     from compd.models.base import Model
     from compd.plc.eoffsets import Eoffsets
     from compd.plc.link import VirtualLink
-    from compd.sinks.modbus_link import ModbusLink
 
 HAL_NAME = r"^[A-Za-z][A-Za-z0-9_-]*$"
 AXIS_LETTERS = ("x", "y", "z", "a", "b", "c", "u", "v", "w")
@@ -128,8 +128,8 @@ class LinuxcncSink(Sink):
             if self.device is None:
                 self.device = Eoffsets(n, self.cfg.count_um)
             return VirtualLink(self.device, self.time, status=block, name="linuxcnc", sync=[block])
+        from compd.io.modbus_link import ModbusLink
         from compd.sinks.hal_link import HalRegisters
-        from compd.sinks.modbus_link import ModbusLink
 
         device = HalRegisters(self.cfg.component, self.hal_axes, self.cfg.units, self.cfg.count_um)
         return ModbusLink("", 0, status=block, status_period_s=self.cfg.status_period_s, name="linuxcnc",

@@ -18,8 +18,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from compd.cycle.codec import Encoder
-from compd.sinks.base import LinkState, Sink
+from compd.codec import Encoder
+from compd.io.worker import LinkState
+from compd.sinks.base import Sink
 
 if TYPE_CHECKING:
     from compd.models.base import Model

@@ -26,16 +26,16 @@ from typing import TYPE_CHECKING, Annotated, Any
 import numpy as np
 from pydantic import Field
 
-from compd.config import SinkConfig
+from compd.core.config import SinkConfig
+from compd.io.device_time import DeviceTime, LoopTime, WallTime
 from compd.plc.siemens_nc import APPLIED, BLOCK, K0, TARGET, TYPE, f32_regs, regs_f32
 from compd.sinks.base import SAFE_TIMEOUT_S, Sink
-from compd.sinks.device_time import DeviceTime, LoopTime, WallTime
 
 if TYPE_CHECKING:
+    from compd.io.modbus_link import ModbusLink
     from compd.models.base import Model
     from compd.plc.link import VirtualLink
     from compd.plc.siemens_nc import SiemensNc
-    from compd.sinks.modbus_link import ModbusLink
 
 
 class SiemensConfig(SinkConfig):
@@ -103,7 +103,7 @@ class SiemensSink(Sink):
 
             status = (0, min(count, BLOCK * self.nc.n))
             return VirtualLink(self.nc, self.time, status=status, name="siemens", sync=[status])
-        from compd.sinks.modbus_link import ModbusLink
+        from compd.io.modbus_link import ModbusLink
 
         return ModbusLink(self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, count),
                           name="siemens", sync=[(0, count)])

@@ -4,7 +4,7 @@ Other packages add source kinds through the `compd.sources` entry-point group (t
 simulator's `sim` source is one).
 """
 
-from compd.registry import Registry
+from compd.core.registry import Registry
 
 SOURCES = Registry(
     "source",

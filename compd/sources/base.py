@@ -7,12 +7,12 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from compd.config import SourceConfig
-from compd.cycle.clock import Clock
-from compd.cycle.frame import Frame, Quality
-from compd.cycle.histogram import DurationHist
-from compd.errors import BadInput
+from compd.core.clock import Clock
+from compd.core.config import SourceConfig
+from compd.core.errors import BadInput
+from compd.core.frame import Frame, Quality
 from compd.io.child import hosting_now
+from compd.io.histogram import DurationHist
 from compd.io.mailbox import Snapshot
 from compd.io.ring import MessageRing
 from compd.io.worker import STALL_AFTER_S, DeviceWork, IoWorker, LinkDown
@@ -20,7 +20,7 @@ from compd.io.worker import STALL_AFTER_S, DeviceWork, IoWorker, LinkDown
 if TYPE_CHECKING:
     from collections import deque
 
-    from compd.cycle.adapt import Probe
+    from compd.core.probe import Probe
 
 
 def check_serial_port(port: str, config_path: tuple[str | int, ...], key: str = "serial_port") -> None:

@@ -20,10 +20,10 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from compd.config import SourceConfig, Strict
-from compd.cycle.clock import Clock
-from compd.cycle.frame import Frame, Quality
-from compd.errors import BadInput
+from compd.core.clock import Clock
+from compd.core.config import SourceConfig, Strict
+from compd.core.errors import BadInput
+from compd.core.frame import Frame, Quality
 from compd.io.child import hosting_now
 from compd.io.mailbox import Snapshot
 from compd.io.worker import DeviceWork, IoWorker

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.config import SourceConfig
-from compd.cycle.frame import Quality
+from compd.core.config import SourceConfig
+from compd.core.frame import Quality
 from compd.io.mailbox import Snapshot
 from compd.io.worker import LinkDown, stall_after
 from compd.sources.base import PolledSource, Poller, check_serial_port

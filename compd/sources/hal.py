@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.config import SourceConfig, Strict
-from compd.cycle.frame import Quality
+from compd.core.config import SourceConfig, Strict
+from compd.core.frame import Quality
 from compd.io import hal_modules
 from compd.io.hal_agent import Agent, Component, net_input
 from compd.io.mailbox import Snapshot

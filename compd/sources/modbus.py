@@ -25,8 +25,8 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.config import SourceConfig, Strict
-from compd.cycle.frame import Quality
+from compd.core.config import SourceConfig, Strict
+from compd.core.frame import Quality
 from compd.io.mailbox import Snapshot
 from compd.io.modbus_client import (
     BadReply,

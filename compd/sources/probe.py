@@ -24,9 +24,9 @@ from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
-from compd.config import SourceConfig
-from compd.cycle.adapt import Probe
-from compd.cycle.frame import Frame
+from compd.core.config import SourceConfig
+from compd.core.frame import Frame
+from compd.core.probe import Probe
 from compd.io.modbus_client import (
     BadReply,
     ExceptionReply,

@@ -7,9 +7,9 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from compd.config import SourceConfig
-from compd.cycle.frame import Frame, Quality
-from compd.errors import BadInput
+from compd.core.config import SourceConfig
+from compd.core.errors import BadInput
+from compd.core.frame import Frame, Quality
 from compd.log import Log, read_log
 from compd.sources.base import Source
 

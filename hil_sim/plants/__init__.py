@@ -1,6 +1,6 @@
 """The simulated machines, found by name."""
 
-from compd.registry import Registry
+from compd.core.registry import Registry
 
 PLANTS = Registry(
     "plant",

@@ -22,9 +22,9 @@ from typing import Any
 
 import yaml
 
+from compd.codec import decode
 from compd.config import load_config
-from compd.cycle.clock import WallClock
-from compd.cycle.codec import decode
+from compd.core.clock import WallClock
 from compd.cycle.guard import AxisState
 from compd.daemon.app import App
 from tests.faults.matrix import MATRIX

@@ -16,9 +16,9 @@ from hypothesis import strategies as st
 
 from compd.cli import main
 from compd.config import load_config
-from compd.cycle.frame import Quality
+from compd.core.errors import BadInput
+from compd.core.frame import Quality
 from compd.daemon.app import App
-from compd.errors import BadInput
 from compd.io.mailbox import Snapshot
 from compd.sources.can import CanConfig, CanSource
 from compd.sources.dcon import DconConfig, DconSource, parse_reply

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from compd.io.modbus_link import ModbusLink
 from compd.plc.fanuc_pmc import APPLIED, COMMAND, FanucPmc
-from compd.sinks.modbus_link import ModbusLink
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.plant import PlantDevice
 from hil_sim.logcmd import load_plant

@@ -10,10 +10,10 @@ import pytest
 import yaml
 
 from compd.commissioning.fitting import fit_model
-from compd.config import GuardConfig
-from compd.cycle.frame import Frame, Quality
+from compd.core.config import GuardConfig
+from compd.core.errors import BadInput
+from compd.core.frame import Frame, Quality
 from compd.cycle.guard import Guard
-from compd.errors import BadInput
 from compd.log import error_axis, is_axis_error, is_temperature_column, read_log
 from compd.sources import SOURCES
 from hil_sim import family

@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
-from compd.cycle.clock import WallClock
-from compd.cycle.frame import Frame
+from compd.core.clock import WallClock
+from compd.core.frame import Frame
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 from compd.sources.dcon import DconConfig, DconSource
 from compd.sources.modbus import ModbusConfig, ModbusSource
@@ -159,7 +159,7 @@ def test_each_change_of_the_error_is_logged_and_a_flapping_one_only_once(caplog)
 
 def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
     from compd.cycle.publish import with_causes
-    from compd.service.host import log_guard_event
+    from compd.daemon.host import log_guard_event
 
     class Guard:
         events = [(1.0, "T_xi", "bad", "comms_lost"), (2.0, "T_amb", "bad", "out_of_range"),
@@ -188,7 +188,7 @@ def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
 
 
 def test_a_sink_link_to_a_closed_port_logs_connection_refused_once(caplog) -> None:
-    from compd.sinks.modbus_link import ModbusLink
+    from compd.io.modbus_link import ModbusLink
 
     port = _free_port()
     link = ModbusLink("127.0.0.1", port, name="pmc", status_period_s=0.01, reconnect_min_s=0.01,

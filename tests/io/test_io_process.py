@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from compd.cycle.frame import Frame, Quality
-from compd.errors import BadInput
+from compd.core.errors import BadInput
+from compd.core.frame import Frame, Quality
 from compd.io.mailbox import Snapshot, WriteQueue
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 

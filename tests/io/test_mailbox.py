@@ -9,7 +9,7 @@ import threading
 
 import numpy as np
 
-from compd.cycle.frame import Frame, Quality
+from compd.core.frame import Frame, Quality
 from compd.io.mailbox import READ_TRIES, Latest, SharedRegisters, Snapshot, WriteQueue
 
 

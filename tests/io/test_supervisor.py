@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from compd.cycle.frame import Quality
+from compd.core.frame import Quality
 from compd.io.mailbox import Snapshot, WriteQueue
 from compd.io.supervisor import Supervisor
 from compd.io.worker import DeviceWork, IoWorker

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.io.worker import DeviceWork, IoWorker, LinkDown
 
 WAIT_S = 20.0  # generous: the machine may be busy

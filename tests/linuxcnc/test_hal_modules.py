@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.io import hal_modules
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -54,7 +54,7 @@ def test_an_empty_folder_is_one_line_of_bad_input_and_a_later_good_load_still_wo
     # a fresh interpreter whose first attempt fails: nothing of it may be cached or left in sys.modules
     done = child(f"""
         import os, sys
-        from compd.errors import BadInput
+        from compd.core.errors import BadInput
         from compd.io import hal_modules
         line = hal_modules.available()
         print(line)
@@ -86,7 +86,7 @@ def test_a_folder_without_linuxcnc_names_it_and_leaves_no_half_loaded_modules(tm
     (tmp_path / hal_so.name).symlink_to(hal_so)
     done = child(f"""
         import os, sys
-        from compd.errors import BadInput
+        from compd.core.errors import BadInput
         from compd.io import hal_modules
         print(hal_modules.available())
         assert not {{"hal", "_hal", "linuxcnc"}} & set(sys.modules), sorted(sys.modules)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from compd.cycle.frame import Quality
+from compd.core.frame import Quality
 from compd.io.mailbox import Snapshot
 from compd.io.worker import LinkDown
 from compd.sources.hal import HalConfig, HalPoller

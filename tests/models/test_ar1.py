@@ -8,7 +8,7 @@ import yaml
 from statsmodels.stats.diagnostic import acorr_ljungbox
 
 from compd.commissioning.fitting import predict_log
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.identify import FITS
 from compd.identify.ar1 import ljung_box, scale_c2_by_rise
 from compd.log import Log

@@ -108,7 +108,7 @@ def test_copper_loss():
 def test_needs_a_motor_loss():
     log, _ = _paper_runs()
     no_current = Log("f.csv", ["t_s", "pos_x_mm", "err_x_um"], log.data[:, [0, 1, 3]])
-    from compd.errors import BadInput
+    from compd.core.errors import BadInput
 
     with pytest.raises(BadInput, match="power_w"):
         FITS.get(FeedAxis.kind)(no_current, None, None)

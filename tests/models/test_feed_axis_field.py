@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.identify import feed_axis as fit_fa
 from compd.log import Log
 from compd.models.feed_axis import (

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from compd.commissioning import fitting
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.log import Log
 from compd.models.lead import InputLead
 from compd.models.xi_spindle import XiSpindle, XiSpindleParams

@@ -7,7 +7,7 @@ import pytest
 from scipy.signal import lfilter
 from sklearn.cross_decomposition import PLSRegression
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.identify import FITS
 from compd.identify.lvr import (
     Q2_LIMIT,

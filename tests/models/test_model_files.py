@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from compd.cli import main
-from compd.config import load_yaml
-from compd.errors import format_path
+from compd.core.config import load_yaml
+from compd.core.errors import format_path
 from compd.log import write_log
 from tests.conftest import ROOT
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.identify import FITS
 from compd.identify.xi_spindle import find_xi
 from compd.log import Log

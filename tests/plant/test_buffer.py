@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.plant.buffer import Record, StoreAndForward
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -27,9 +27,10 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256, Secur
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
-from compd.config import GuardConfig, OpcUaConfig
-from compd.errors import BadInput
-from compd.plant.opcua import OpcUaServer, generate_certificate
+from compd.core.config import GuardConfig, OpcUaConfig
+from compd.core.errors import BadInput
+from compd.plant.material import generate_certificate
+from compd.plant.opcua import OpcUaServer
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "plant.md"
 NS_URI = "urn:compd:test"

@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from compd.config import GuardConfig, ModelSpec, load_model_file, resolve_model
+from compd.config import ModelSpec, load_model_file, resolve_model
+from compd.core.config import GuardConfig
 from compd.models.ar1 import AR1, AR1Params
 from compd.models.feed_axis import FeedAxis, FeedAxisParams, PositionPoly
 from compd.models.mlr import MLR, RiseLinearParams

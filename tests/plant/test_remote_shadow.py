@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from compd.config import load_config
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 from compd.plant import remote_model
 from compd.plant.remote_model import RemoteModels
 from compd.plant.sparkplug import DataType, MetricDef, encode, topic

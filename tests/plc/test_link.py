@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import inspect
 
+from compd.io.device_time import LoopTime
+from compd.io.modbus_link import ModbusLink
 from compd.plc.fanuc_pmc import APPLIED, COMMAND, SCAN_LO, STEP_LIMIT, FanucPmc
 from compd.plc.link import VirtualLink
-from compd.sinks.device_time import LoopTime
-from compd.sinks.modbus_link import ModbusLink
 
 
 def _link() -> tuple[VirtualLink, FanucPmc, LoopTime]:

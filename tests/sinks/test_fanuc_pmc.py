@@ -8,10 +8,10 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from compd.cycle.codec import encode, word_from_codes
+from compd.codec import encode, word_from_codes
+from compd.io.device_time import DeviceTime
 from compd.plc.fanuc_pmc import FanucPmc
 from compd.sinks.base import Sink
-from compd.sinks.device_time import DeviceTime
 from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink, step_toward
 from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.scan import PmcScanThread

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from compd.sinks.modbus_link import ModbusLink
+from compd.io.modbus_link import ModbusLink
 from tests.sources.rawmodbus import RawModbusServer
 
 TABLE = [7, 0, 0, 0, 0xFFFB, 3, 0, 0]  # scan lo/hi, alarm, reset, applied 1 (−5), applied 2, alarm counts

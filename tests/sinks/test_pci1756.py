@@ -43,7 +43,7 @@ def test_heartbeat_may_not_overlap_the_word() -> None:
 def test_write_rows_equals_writing_row_by_row() -> None:
     """`write_rows` writes only the rows with a new word (and the heartbeat as often as every row
     would have): the applied and commanded word and the card's lines as writing every row."""
-    from compd.cycle.codec import word_from_codes
+    from compd.codec import word_from_codes
     from compd.sinks.base import Sink
 
     rng = np.random.default_rng(5)

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from compd.cycle.codec import encode
+from compd.codec import encode
 from compd.plc.fanuc_pmc import FanucPmc
 from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
 from hil_sim.devices.modbus_server import ModbusServerThread

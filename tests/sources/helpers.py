@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import time
 
-from compd.cycle.clock import WallClock
-from compd.cycle.frame import Frame, Quality
+from compd.core.clock import WallClock
+from compd.core.frame import Frame, Quality
 
 
 class Harness:

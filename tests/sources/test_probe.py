@@ -10,9 +10,10 @@ from collections import deque
 import numpy as np
 import pytest
 
-from compd.config import AdaptConfig, load_config
+from compd.config import load_config
+from compd.core.config import AdaptConfig
+from compd.core.errors import ConfigError
 from compd.cycle.adapt import Adapter
-from compd.errors import ConfigError
 from compd.plc.fanuc_pmc import FanucPmc
 from compd.plc.probe_block import encode_result
 from compd.plc.siemens_nc import SiemensNc
@@ -216,7 +217,7 @@ adapt: {{sigma_um: {sigma}}}
         p = tmp_path / f"c{k}.yaml"
         p.write_text(text.format(sigma=sigma))
         paths.append(p)
-    from compd.cycle.adapt import Probe
+    from compd.core.probe import Probe
 
     old, new = App(load_config(paths[0])), App(load_config(paths[1]))
     src = old.sources[1]

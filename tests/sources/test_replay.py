@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from compd.config import SourceConfig  # noqa: F401  (import check)
-from compd.cycle.frame import Frame, Quality
+from compd.core.config import SourceConfig  # noqa: F401  (import check)
+from compd.core.frame import Frame, Quality
 from compd.sources.replay import ReplayConfig, ReplaySource
 
 

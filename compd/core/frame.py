@@ -11,7 +11,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 
 class Quality(enum.IntEnum):

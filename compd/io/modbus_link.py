@@ -29,8 +29,8 @@ import time
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from compd.cycle.histogram import DurationHist
 from compd.io.child import hosting_now
+from compd.io.histogram import DurationHist
 from compd.io.mailbox import SharedRegisters, Sync, WriteQueue
 from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault, OverModbus
 from compd.io.worker import DeviceWork, IoWorker, LinkDown, stall_after

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
-from compd.errors import BadInput
+from compd.core.errors import BadInput
 
 
 def entry_point(group: str, name: str) -> EntryPoint | None:

@@ -45,23 +45,23 @@ from typing import Any
 
 import numpy as np
 
-from compd.cycle import activity
-from compd.cycle.adapt import Probe
+from compd.core.errors import BadInput
+from compd.core.probe import Probe
 from compd.cycle.publish import Publisher
 from compd.cycle.realtime import apply_realtime, unshare_pages
 from compd.cycle.statusblock import Description, compose, describe_static
-from compd.errors import BadInput
+from compd.io import activity
 from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import MessageRing, SharedBlob
-from compd.log import LogWriter
 from compd.service import logsetup  # noqa: F401  (installs the library's NullHandler)
 from compd.service import status as status_mod
 from compd.service.control import ControlServer, ProbeLink, socket_key, socket_path
+from compd.service.logwriter import LogWriter
 from compd.service.metrics import LATENESS_BOUNDS_US, MetricsServer
 from compd.service.notify import Notifier, WatchdogObserver, watchdog_interval_s
 from compd.service.state import StateWriter
-from compd.service.status import lateness_buckets
+from compd.service.status import lateness_buckets, status_path
 from compd.service.threads import ServiceThread
 
 log = logging.getLogger("compd.service")
@@ -86,26 +86,6 @@ STOP_TIMEOUT_S = 15.0  # a service that has not written its last rows by then is
 OPCUA_RETRY_MIN_S = 5.0  # an OPC UA server that did not start is tried again after this, doubling ...
 OPCUA_RETRY_MAX_S = 300.0  # ... up to this
 SERVICE_STALL_S = 10.0  # a service process that has not taken a turn of its loop this long has stalled
-
-
-def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
-    """The status file: `status.path` (relative to the config), else $RUNTIME_DIRECTORY/status.json."""
-    env = dict(os.environ) if env is None else env
-    if cfg.top.status.path:
-        return cfg.resolve_path(cfg.top.status.path)
-    runtime = env.get("RUNTIME_DIRECTORY", "").split(":")[0]
-    return Path(runtime) / "status.json" if runtime else None
-
-
-def daemon_status_path(cfg: Any) -> Path:
-    """Where the daemon of `cfg` writes its status, as another process finds it: `status.path`,
-    else where the systemd units put it (RuntimeDirectory `compd` for compd.yaml, `compd/NAME`
-    for the instance compd@NAME)."""
-    found = status_path(cfg, env={})
-    if found is not None:
-        return found
-    stem = Path(cfg.file).stem
-    return Path(status_mod.DEFAULT_PATH if stem == "compd" else f"/run/compd/{stem}/status.json")
 
 
 def log_guard_event(t: float, subject: str, event: str, reason: str, cause: str | None = None) -> None:
