@@ -18,7 +18,7 @@ in the status, unit and meaning; docs/status-fields.md is generated from these
 (`python -m compd.cycle.statusblock`).
 
 Relies on stores reaching the other CPU in program order (x86-64), like the mailboxes
-of compd.io.mailbox; `compd.cycle.pipeline.check` refuses `loop.io: process` elsewhere.
+of compd.io.mailbox; `compd.plant.spec.check_config` refuses `loop.io: process` elsewhere.
 """
 
 from __future__ import annotations
