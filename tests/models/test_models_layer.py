@@ -1,5 +1,5 @@
 """The evaluation side (compd/models/) is below identification: it imports nothing of compd.identify, not even
-lazily or for type checking."""
+lazily or for type checking, and compd ships no benchmark code (benchmarks live in rig/)."""
 
 from __future__ import annotations
 
@@ -37,3 +37,6 @@ def test_fit_pls_is_defined_in_models_lvr() -> None:
     assert lvr.fit_pls.__module__ == "compd.models.lvr" and lvr.fit_pls.__doc__
     assert identify_lvr.fit_pls is lvr.fit_pls
 
+
+def test_compd_ships_no_benchmark_code() -> None:
+    assert sorted(str(p.relative_to(ROOT)) for p in (ROOT / "compd").rglob("*bench*.py")) == []
