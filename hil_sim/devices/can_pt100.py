@@ -23,6 +23,8 @@ WIRE_FAULTS = ("none", "no_answer", "garbage", "crc_error", "slow")
 
 @dataclass
 class CanChannel:
+    """Where one channel sits: frame `can_id`, `size` bytes at `offset`, counting °C / `scale`."""
+
     name: str
     can_id: int
     offset: int = 0
