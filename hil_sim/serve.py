@@ -105,11 +105,11 @@ def start_device(cfg: dict[str, Any]) -> Running:
             run.start(srv)
             run.where = lambda: srv.where() + (f" (compd opens {link})" if link else "")
         elif kind == "dcon":
-            from hil_sim.devices import dcon
+            from hil_sim.devices.dcon import DconModule
 
             _pty(run, cfg)
             link = run.parts[0].b if run.parts else None
-            tx, mod = dcon.from_config(cfg)
+            tx, mod = DconModule.from_config(cfg)
             run.device = tx
             run.start(mod)
             run.where = lambda: mod.where() + (f" (compd opens {link})" if link else "")
@@ -121,9 +121,9 @@ def start_device(cfg: dict[str, Any]) -> Running:
             run.start(hal_dev)
             run.where = hal_dev.where
         elif kind == "can_pt100":
-            from hil_sim.devices import can_pt100
+            from hil_sim.devices.can_pt100 import CanPt100
 
-            tx, dev = can_pt100.from_config(cfg)
+            tx, dev = CanPt100.from_config(cfg)
             run.device = tx
             run.start(dev)
             run.where = dev.where

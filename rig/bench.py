@@ -463,7 +463,7 @@ def run_bench(
     compd's config (device I/O and the service in processes of their own, or threads).
     `bare_cycles` (default: as many as compd's): the bare loop's cycles, the machine's limit.
     `trace`: a JSON file for the causes of compd's late and slow cycles (rig.late_trace, perf)."""
-    from compd.models.bench import model_eval_us
+    from rig.bench_models import model_eval_us
 
     if cycles < 1:
         raise BadInput("--cycles must be at least 1", path="--cycles")

@@ -261,16 +261,6 @@ class Contributions(Model):
         fresh = type(self)(self.params, self.inputs, self.outputs, self.fit_info)
         return Model.predict_rows(fresh, np.asarray(X, dtype=float), t_s)
 
-    def predict_parts(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-        """Each contribution's model alone over a log, unlimited: rows × parts (`part_names`), µm."""
-        X = np.asarray(X, dtype=float)
-        cols = []
-        for p in self._parts:
-            fresh = type(p.model)(p.model.params, p.model.inputs, p.model.outputs, p.model.fit_info)
-            fresh.update_period_s = p.model.update_period_s
-            cols.append(fresh.predict(X[:, p.idx], t_s))
-        return np.hstack(cols) if cols else np.zeros((X.shape[0], 0))
-
     def get_state(self) -> dict[str, Any]:
         return {p.name: p.model.get_state() for p in self._parts}
 

@@ -16,14 +16,15 @@ from typing import Any
 
 import can
 
-from hil_sim.devices.pt100 import Pt100Transmitter, transmitter_from_config
-from hil_sim.devices.worker import DeviceThread
+from hil_sim.devices.pt100 import Pt100Transmitter, ThreadedTransmitter
 
 WIRE_FAULTS = ("none", "no_answer", "garbage", "crc_error", "slow")
 
 
 @dataclass
 class CanChannel:
+    """Where one channel sits: frame `can_id`, `size` bytes at `offset`, counting °C / `scale`."""
+
     name: str
     can_id: int
     offset: int = 0
@@ -33,8 +34,11 @@ class CanChannel:
     scale: float = 0.1
 
 
-class CanPt100(DeviceThread):
+class CanPt100(ThreadedTransmitter):
     """Broadcasts a transmitter's readings on a CAN bus from its own thread."""
+
+    wire_faults = WIRE_FAULTS
+    thread_name = "can-pt100"
 
     def __init__(
         self,
@@ -49,24 +53,14 @@ class CanPt100(DeviceThread):
         under_code: int = 0x8001,
         extended_id: bool = False,
     ) -> None:
-        super().__init__()
-        self.tx = transmitter
+        super().__init__(transmitter, slow_s=1.0)
         self.channels = channels
         self.interface, self.channel = interface, channel
         self.period_s = period_s
         self.codes = {"burnout": burnout_code, "over": over_code, "under": under_code}
         self.extended_id = extended_id
-        self.fault = "none"
-        self.slow_s = 1.0
         self.frames_sent = 0
         self._bus: can.BusABC | None = None
-
-    def set_fault(self, fault: str, slow_s: float | None = None) -> None:
-        if fault not in WIRE_FAULTS:
-            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(WIRE_FAULTS)})")
-        if slow_s is not None:
-            self.slow_s = slow_s
-        self.fault = fault
 
     def frames(self) -> list[can.Message]:
         """This period's data frames."""
@@ -100,8 +94,6 @@ class CanPt100(DeviceThread):
                 self.frames_sent += 1
             self._stop.wait(self.slow_s if f == "slow" else self.period_s)
 
-    thread_name = "can-pt100"
-
     def _open(self) -> None:
         self._bus = can.Bus(interface=self.interface, channel=self.channel)
 
@@ -113,15 +105,8 @@ class CanPt100(DeviceThread):
     def where(self) -> str:
         return f"can:{self.interface}:{self.channel} ids {sorted({c.can_id for c in self.channels})}"
 
+    @classmethod
+    def _from_section(cls, tx: Pt100Transmitter, channels: list[dict[str, Any]], cfg: dict[str, Any]) -> CanPt100:
+        layout = [CanChannel(**{k: v for k, v in c.items() if k not in ("value_c", "fault")}) for c in channels]
+        return cls(tx, layout, **cfg)
 
-def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, CanPt100]:
-    """Transmitter and (unstarted) broadcaster from a hil_sim device section."""
-    cfg = dict(cfg)
-    tx, chans = transmitter_from_config(cfg)
-    layout = [
-        CanChannel(**{k: v for k, v in c.items() if k not in ("value_c", "fault")}) for c in chans
-    ]
-    fault = cfg.pop("wire_fault", "none")
-    dev = CanPt100(tx, layout, **cfg)
-    dev.set_fault(fault)
-    return tx, dev

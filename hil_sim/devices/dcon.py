@@ -18,8 +18,7 @@ from typing import Any
 
 import serial
 
-from hil_sim.devices.pt100 import Pt100Transmitter, transmitter_from_config
-from hil_sim.devices.worker import DeviceThread
+from hil_sim.devices.pt100 import Pt100Transmitter, ThreadedTransmitter
 
 WIRE_FAULTS = ("none", "no_answer", "garbage", "crc_error", "slow", "invalid")
 
@@ -29,8 +28,11 @@ def checksum(text: bytes) -> bytes:
     return f"{sum(text) & 0xFF:02X}".encode()
 
 
-class DconModule(DeviceThread):
+class DconModule(ThreadedTransmitter):
     """Answers DCON commands for one address on a serial port, on its own thread."""
+
+    wire_faults = WIRE_FAULTS
+    thread_name = "dcon-module"
 
     def __init__(
         self,
@@ -44,24 +46,14 @@ class DconModule(DeviceThread):
         under_text: str = "-0000",
         burnout_text: str = "-9999.9",
     ) -> None:
-        super().__init__()
-        self.tx = transmitter
+        super().__init__(transmitter, slow_s=0.5)
         self.serial_port = serial_port
         self.address = address
         self.baudrate = baudrate
         self.use_checksum = use_checksum
         self.texts = {"over": over_text, "under": under_text, "burnout": burnout_text}
-        self.fault = "none"
-        self.slow_s = 0.5
         self.requests = 0
         self._ser: serial.Serial | None = None
-
-    def set_fault(self, fault: str, slow_s: float | None = None) -> None:
-        if fault not in WIRE_FAULTS:
-            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(WIRE_FAULTS)})")
-        if slow_s is not None:
-            self.slow_s = slow_s
-        self.fault = fault
 
     def reply(self, command: bytes) -> bytes | None:
         """The reply to one command (without the wire faults), or None for silence."""
@@ -116,8 +108,6 @@ class DconModule(DeviceThread):
                 except (serial.SerialException, OSError):
                     return
 
-    thread_name = "dcon-module"
-
     def _open(self) -> None:
         self._ser = serial.Serial(self.serial_port, self.baudrate, timeout=0.05)
 
@@ -129,12 +119,7 @@ class DconModule(DeviceThread):
     def where(self) -> str:
         return f"dcon:{self.serial_port}@{self.baudrate} address {self.address:02X}"
 
+    @classmethod
+    def _from_section(cls, tx: Pt100Transmitter, channels: list[dict[str, Any]], cfg: dict[str, Any]) -> DconModule:
+        return cls(tx, cfg.pop("serial_port"), **cfg)
 
-def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, DconModule]:
-    """Transmitter and (unstarted) module from a hil_sim device section."""
-    cfg = dict(cfg)
-    tx, channels = transmitter_from_config(cfg)
-    fault = cfg.pop("wire_fault", "none")
-    mod = DconModule(tx, cfg.pop("serial_port"), **cfg)
-    mod.set_fault(fault)
-    return tx, mod

@@ -1,17 +1,21 @@
 """A PT100 transmitter's measuring side: channels, their temperatures and sensor faults.
 
 The transport-specific devices (Modbus, DCON, CAN) wrap one `Pt100Transmitter` and
-encode what `reading` returns in their own protocol. A channel reads as:
+encode what `readings` returns in their own protocol. A channel reads as:
 `ok` (a temperature), `burnout` (open sensor), `over`/`under` (outside the
 transmitter's range). Temperatures come from the test (`set`) or from a feed
-function called on every reading (a plant).
+function called on every reading (a plant). The transports that run on a thread of
+their own (DCON, CAN) share `ThreadedTransmitter`: the wire-fault switch and building
+one from a hil_sim device section.
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Self
+
+from hil_sim.devices.worker import DeviceThread
 
 SENSOR_FAULTS = ("none", "burnout", "over", "under")
 
@@ -79,8 +83,9 @@ class Pt100Transmitter:
 
 
 def transmitter_from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, list[dict[str, Any]]]:
-    """Pop `channels` and the range keys from a device section; returns the transmitter
-    and the channel entries (for device-specific keys such as CAN ids)."""
+    """Pop `channels` and the range keys from a device section; returns the transmitter, with
+    each channel's `fault` (a sensor fault) set, and the channel entries (for device-specific
+    keys such as CAN ids)."""
     channels = cfg.pop("channels")
     tx = Pt100Transmitter(
         [c["name"] for c in channels],
@@ -88,4 +93,48 @@ def transmitter_from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, list
         range_min_c=float(cfg.pop("range_min_c", -50.0)),
         range_max_c=float(cfg.pop("range_max_c", 250.0)),
     )
+    for c in channels:
+        if c.get("fault"):
+            tx.set_fault(c["name"], c["fault"])
     return tx, channels
+
+
+class ThreadedTransmitter(DeviceThread):
+    """A transmitter that serves its readings from a thread of its own (DCON module, CAN broadcaster).
+
+    It holds the `Pt100Transmitter` it reads (`tx`) and the wire fault a test switches on
+    (`fault`, one of the subclass's `wire_faults`; `slow_s` for `slow`), and builds itself
+    from a hil_sim device section (`from_config`). Subclasses implement the protocol:
+    `_run`, `_open`/`_close` of their line, `where`, and `_from_section`.
+    """
+
+    wire_faults: tuple[str, ...] = ("none",)
+
+    def __init__(self, transmitter: Pt100Transmitter, slow_s: float) -> None:
+        super().__init__()
+        self.tx = transmitter
+        self.fault = "none"
+        self.slow_s = slow_s
+
+    def set_fault(self, fault: str, slow_s: float | None = None) -> None:
+        """Switch the wire fault (`none` clears it); `slow_s`, when given, is how late `slow` is."""
+        if fault not in self.wire_faults:
+            raise ValueError(f"unknown fault {fault!r} (known: {', '.join(self.wire_faults)})")
+        if slow_s is not None:
+            self.slow_s = slow_s
+        self.fault = fault
+
+    @classmethod
+    def _from_section(cls, tx: Pt100Transmitter, channels: list[dict[str, Any]], cfg: dict[str, Any]) -> Self:
+        """The device around `tx` from what is left of its section (`channels` as written)."""
+        raise NotImplementedError
+
+    @classmethod
+    def from_config(cls, cfg: dict[str, Any]) -> tuple[Pt100Transmitter, Self]:
+        """Transmitter and (unstarted) device from a hil_sim device section (`wire_fault` switched on)."""
+        cfg = dict(cfg)
+        tx, channels = transmitter_from_config(cfg)
+        fault = cfg.pop("wire_fault", "none")
+        dev = cls._from_section(tx, channels, cfg)
+        dev.set_fault(fault)
+        return tx, dev

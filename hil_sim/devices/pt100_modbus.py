@@ -104,10 +104,7 @@ class Pt100ModbusDevice:
 def from_config(cfg: dict[str, Any]) -> tuple[Pt100Transmitter, Pt100ModbusDevice, ModbusServerThread]:
     """Build transmitter, register map and (unstarted) server from a hil_sim device section."""
     cfg = dict(cfg)
-    tx, channels = transmitter_from_config(cfg)
-    for c in channels:
-        if c.get("fault"):
-            tx.set_fault(c["name"], c["fault"])
+    tx, _ = transmitter_from_config(cfg)
     transport = cfg.pop("transport", "tcp")
     server_kw: dict[str, Any] = {"device_id": int(cfg.pop("device_id", 1))}
     if transport == "tcp":

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from compd.identify.lvr import equal_blocks, select_blocked, select_components
-from compd.models.bench import model_eval_us
+from rig.bench_models import model_eval_us
 
 pytestmark = pytest.mark.bench
 

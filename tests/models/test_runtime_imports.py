@@ -11,7 +11,7 @@ from pathlib import Path
 
 import yaml
 
-from compd.models.bench import BUILDERS
+from rig.bench_models import BUILDERS
 
 HEAVY = ("scipy", "matplotlib", "tqdm", "sklearn", "statsmodels")
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,4 +1,9 @@
-"""Per-evaluation cost of every model kind, as the loop calls it (the bench JSON's `model_eval_us`)."""
+"""Per-evaluation cost of every model kind, as the loop calls it (the bench JSON's `model_eval_us`).
+
+`BUILDERS` makes a model of each kind with the params `compd fit` writes; `compd bench`
+(rig.bench) and tests/bench time them with `model_eval_us`, and the test that the daemon
+stays light (tests/models/test_runtime_imports.py) steps one of each.
+"""
 
 from __future__ import annotations
 
