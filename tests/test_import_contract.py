@@ -75,12 +75,8 @@ def test_every_package_imports_only_the_floors_below_it() -> None:
     assert "1 kept, 0 broken" in run.stdout
 
 
-# until the PLS algorithm leaves compd.identify.lvr (compd.models.lvr.fit_pls is the contract's name)
-KNOWN = [["compd.identify.lvr", "compd.models.lvr"]]
-
-
 def test_no_circle_of_files() -> None:
-    assert [ring for ring in circles("compd") if ring not in KNOWN] == []
+    assert circles("compd") == []
 
 
 def _copy(tmp_path: Path) -> Path:
