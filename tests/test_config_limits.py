@@ -132,7 +132,7 @@ def test_a_parser_depth_limit_reads_as_nesting(monkeypatch: pytest.MonkeyPatch) 
     the one-line error still says the document is nested too deep, with its line."""
     import yaml
 
-    import compd.config as config
+    import compd.core.config as config
 
     class DepthLimitedLoader(yaml.SafeLoader):
         def get_event(self) -> yaml.Event:
