@@ -6,6 +6,7 @@ import json
 import re
 from typing import Any
 
+from compd.cycle.statusblock import FIELDS, PER_SIGNAL
 from compd.service.metrics import (
     PROCESS_METRICS,
     SIGNAL_FAMILIES,
@@ -35,8 +36,9 @@ def test_the_catalogue_has_every_family_the_collector_defines(root) -> None:
     source = (root / "compd" / "service" / "metrics.py").read_text(encoding="utf-8")
     defined = set(re.findall(r'MetricFamily\(\s*"(compd_[a-z0-9_]+)"', source))
     assert len(defined) >= 25
-    # the families named from tables: one per signal unit, the processes' CPU and memory
+    # the families named from tables: one per signal unit, the processes' CPU and memory, a field of the status record
     defined |= {name for name, _, _ in SIGNAL_FAMILIES.values()} | {f"compd_process_{k}" for k, _, _ in PROCESS_METRICS}
+    defined |= {f.metric_name() for f in FIELDS if f.on("prometheus") and f.unit != PER_SIGNAL}
     assert {f.name for f in families()} == defined  # EXAMPLE_SNAPSHOT takes every branch
 
 
