@@ -49,7 +49,7 @@ from compd.core.errors import BadInput
 from compd.core.probe import Probe
 from compd.cycle.publish import Publisher
 from compd.cycle.realtime import apply_realtime, unshare_pages
-from compd.cycle.statusblock import Description, compose, describe_static
+from compd.cycle.statusblock import UNSEEN_S, Description, compose, describe_static
 from compd.io import activity
 from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
@@ -456,7 +456,7 @@ class ServiceWork:
         self._record_looked_s = now
         if writes != self._record_writes:
             self._record_writes, self._record_moved_s = writes, now
-        elif unseen > status_mod.UNSEEN_S:
+        elif unseen > UNSEEN_S:
             self._record_moved_s = min(now, self._record_moved_s + unseen)
         return now - self._record_moved_s
 
