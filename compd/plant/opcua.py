@@ -9,17 +9,22 @@ namespace `opcua.namespace_uri`. Every node id is a string that is also the node
 browse path: `ns=<idx>;s=compd.Axes.z.CorrectionUm` is the variable `CorrectionUm` in
 the folder `z` in the folder `Axes` in `compd`.
 
+The status record's fields are made from its schema (compd/cycle/statusblock.py FIELDS,
+`record_variables`): each field OPC UA shows is a variable named by rule (`correction_um` →
+CorrectionUm) in its scope's folder, its data type from its kind, a number in its unit; beside
+them what the status adds:
+
 * `compd.State` (String), `compd.Observe` (Boolean): the daemon's state, observe mode;
-* `compd.Axes.<axis>.` CorrectionUm, TargetUm, PredictionUm, AppliedUm (Double, µm: what
-  the device acknowledged or reads back), Word (UInt16: the 16-bit word that carries the
-  axis), Enable (Boolean: on at the machine, so false in observe mode; Bad, not confirmed,
-  while the sink's link is not up), State (String), ModelKind
-  (String), FitDate (String: the model's `fit.fitted_at`, or empty);
+* `compd.Axes.<axis>.` CorrectionUm, TargetUm, PredictionUm, CommandedUm, AppliedUm (Double,
+  µm), Enable (Boolean: on at the machine, so false in observe mode; Bad, not confirmed,
+  while the sink's link is not up), State and Inhibit (String), Saturated (Boolean), Word
+  (UInt16: the 16-bit word that carries the axis), ModelKind (String), FitDate (String: the
+  model's `fit.fitted_at`, or empty);
 * `compd.Signals.<signal>.` Value (Double, its StatusCode from the signal's quality,
   see `QUALITY_STATUS`), Quality (String);
-* `compd.Loop.` PeriodMs (Double, ms), Cycles and Misses (UInt64), LatenessP99Us,
-  LatenessMaxUs, ComputeP99Us (Double, µs; a p99 over the histogram's range is its limit,
-  20000 µs, with Uncertain_EngineeringUnitsExceeded: `OVER_RANGE_STATUS`).
+* `compd.Loop.` PeriodMs (Double, ms), Cycles, Misses, Skipped and Saturations (UInt64), Link
+  (String), LatenessP99Us, LatenessMaxUs, ComputeP99Us (Double, µs; a p99 over the histogram's
+  range is its limit, 20000 µs, with Uncertain_EngineeringUnitsExceeded: `OVER_RANGE_STATUS`).
 
 A number in a unit is an AnalogItemType with the properties EURange (the guard's clamp of the axis,
 a signal's configured limits or its unit's documented range, the timing histograms' range) and
@@ -69,6 +74,7 @@ from compd.cycle.statusblock import (
     PER_SIGNAL,
     SG,
     STALE,
+    SV,
     Field,
     instances,
     shown,
@@ -459,9 +465,9 @@ def data_values(variables: list[Variable], snap: dict[str, Any]) -> tuple[list[A
     source = now
     if isinstance(written, int | float) and not isinstance(written, bool) and math.isfinite(written):
         source = datetime.fromtimestamp(written, UTC)
-    stale = snap.get("state") == STALE
+    stale = LP.state.read(snap) == STALE
     last = source  # when the cycle last wrote its record
-    age = snap.get("record_age_s")
+    age = SV.record_age_s.read(snap)
     if stale and isinstance(age, int | float) and not isinstance(age, bool) and math.isfinite(age) and age >= 0:
         last = source - timedelta(seconds=age)
     out, problems = [], []
@@ -803,7 +809,9 @@ class OpcUaServer:
     def _count(self, problems: list[str]) -> None:
         if not problems:
             return
-        line = f"{len(problems)} value(s) missing or of the wrong type: " + "; ".join(problems[:3])
+        # a value of the wrong type first: it says more about the snapshot than a key it lacks
+        first = sorted(problems, key=lambda p: ": KeyError: " in p)[:3]
+        line = f"{len(problems)} value(s) missing or of the wrong type: " + "; ".join(first)
         with self._lock:
             self._errors += 1
             new = line != self._last_error
