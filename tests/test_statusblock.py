@@ -12,6 +12,7 @@ import numpy as np
 from compd.config import load_config
 from compd.cycle.statusblock import (
     AXIS,
+    LI,
     LOOP,
     SIGNAL,
     StatusBlock,
@@ -102,7 +103,7 @@ def test_a_reader_in_another_process_never_sees_a_half_written_record(tmp_path: 
             if got is None:
                 continue
             v = got.axes[0, 0]
-            if not (np.all(got.axes[[0, 1, 2]] == v) and np.all(got.signals[0] == v) and got.get("loop_time_s") == v):
+            if not (np.all(got.axes[[0, 1, 2]] == v) and np.all(got.signals[0] == v) and got.get(LI.loop_time_s) == v):
                 counts[1] += 1
             if v != last:
                 counts[0] += 1

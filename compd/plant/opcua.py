@@ -9,17 +9,22 @@ namespace `opcua.namespace_uri`. Every node id is a string that is also the node
 browse path: `ns=<idx>;s=compd.Axes.z.CorrectionUm` is the variable `CorrectionUm` in
 the folder `z` in the folder `Axes` in `compd`.
 
+The status record's fields are made from its schema (compd/cycle/statusblock.py FIELDS,
+`record_variables`): each field OPC UA shows is a variable named by rule (`correction_um` →
+CorrectionUm) in its scope's folder, its data type from its kind, a number in its unit; beside
+them what the status adds:
+
 * `compd.State` (String), `compd.Observe` (Boolean): the daemon's state, observe mode;
-* `compd.Axes.<axis>.` CorrectionUm, TargetUm, PredictionUm, AppliedUm (Double, µm: what
-  the device acknowledged or reads back), Word (UInt16: the 16-bit word that carries the
-  axis), Enable (Boolean: on at the machine, so false in observe mode; Bad, not confirmed,
-  while the sink's link is not up), State (String), ModelKind
-  (String), FitDate (String: the model's `fit.fitted_at`, or empty);
+* `compd.Axes.<axis>.` CorrectionUm, TargetUm, PredictionUm, CommandedUm, AppliedUm (Double,
+  µm), Enable (Boolean: on at the machine, so false in observe mode; Bad, not confirmed,
+  while the sink's link is not up), State and Inhibit (String), Saturated (Boolean), Word
+  (UInt16: the 16-bit word that carries the axis), ModelKind (String), FitDate (String: the
+  model's `fit.fitted_at`, or empty);
 * `compd.Signals.<signal>.` Value (Double, its StatusCode from the signal's quality,
   see `QUALITY_STATUS`), Quality (String);
-* `compd.Loop.` PeriodMs (Double, ms), Cycles and Misses (UInt64), LatenessP99Us,
-  LatenessMaxUs, ComputeP99Us (Double, µs; a p99 over the histogram's range is its limit,
-  20000 µs, with Uncertain_EngineeringUnitsExceeded: `OVER_RANGE_STATUS`).
+* `compd.Loop.` PeriodMs (Double, ms), Cycles, Misses, Skipped and Saturations (UInt64), Link
+  (String), LatenessP99Us, LatenessMaxUs, ComputeP99Us (Double, µs; a p99 over the histogram's
+  range is its limit, 20000 µs, with Uncertain_EngineeringUnitsExceeded: `OVER_RANGE_STATUS`).
 
 A number in a unit is an AnalogItemType with the properties EURange (the guard's clamp of the axis,
 a signal's configured limits or its unit's documented range, the timing histograms' range) and
@@ -63,7 +68,18 @@ from cryptography.hazmat.primitives import serialization
 from compd import version
 from compd.core.config import MAX_CORRECTION_UM, SIGNAL_ABS_MAX
 from compd.core.errors import BadInput
-from compd.cycle.statusblock import STALE
+from compd.cycle.statusblock import (
+    FIELDS,
+    LP,
+    PER_SIGNAL,
+    SG,
+    STALE,
+    SV,
+    Field,
+    instances,
+    shown,
+    signal_unit,
+)
 from compd.models.base import TEMP_MAX_C, TEMP_MIN_C
 from compd.plant.material import Material, read_material
 from compd.service.threads import ServiceThread
@@ -224,14 +240,6 @@ def _percentile(group: str, key: str) -> Reader:
     return read
 
 
-def _signal_value(name: str) -> Reader:
-    def read(snap: dict[str, Any]) -> tuple[Any, str]:
-        s = snap["signals"][name]
-        return s["value"], QUALITY_STATUS.get(s["quality"], OTHER_QUALITY_STATUS)
-
-    return read
-
-
 def _meaning(field: Any) -> str:
     """A status record field's meaning as an OPC UA Description: JSON's null is a Bad_NoData value
     here; a name field lists its names."""
@@ -258,8 +266,6 @@ def signal_range(guard: GuardConfig, name: str, unit: str | None) -> EuRange:
 
 def folders(snap: dict[str, Any]) -> dict[str, str]:
     """Each folder's node id → its Description, for the axes and signals of this (first) snapshot."""
-    from compd.cycle.statusblock import signal_unit
-
     out = {key: DESCRIPTIONS[key] for key in ("compd", "compd.Axes", "compd.Signals", "compd.Loop")}
     axes = snap.get("axes")
     for axis in axes if isinstance(axes, dict) else ():
@@ -277,100 +283,145 @@ def folders(snap: dict[str, Any]) -> dict[str, str]:
     return out
 
 
-def _contribution_variables(snap: dict[str, Any], axis: str, meaning: dict[str, str]) -> list[Variable]:
-    """A sum of contributions: each contribution's share of `axis`, its model's own prediction and
-    its state, under compd.Axes.<axis>.Contributions.<name>; its EURange ± its own clamp."""
-    parts = snap["axes"][axis].get("contributions")
-    if not isinstance(parts, dict):
-        return []
-    limits = {c.get("name"): (c.get("limits") or {}).get(axis) or {}
-              for c in (snap.get("model") or {}).get("contributions") or [] if isinstance(c, dict)}
-    out = []
-    for name in sorted(parts):
-        p = f"compd.Axes.{axis}.Contributions.{name}."
-        clamp = limits.get(name, {}).get("max_abs_um")
-        rng = (EuRange(-float(clamp), float(clamp), f"± the contribution {name}'s clamp (max_abs_um)")
-               if isinstance(clamp, int | float) else None)
+# a status field's kind → the data type of its variable (a count shown as a 16-bit word: UInt16)
+KIND_DATA_TYPES = {"number": "Double", "count": "UInt64", "flag": "Boolean", "name": "String", "hex": "String"}
+UNITS = {**SIGNAL_UNITS, "ms": MILLISECOND, "µs": MICROSECOND}  # a field's unit as status.json shows it
 
-        def field(key: str, name: str = name) -> Reader:
-            return _good(lambda s: s["axes"][axis]["contributions"][name][key])
 
-        out += [
-            Variable(p + "PredictionUm", "Double", MICROMETRE, field("prediction_um"), meaning["prediction_um"], rng),
-            Variable(p + "RawUm", "Double", MICROMETRE, field("raw_um"), meaning["raw_um"], rng),
-            Variable(p + "State", "String", None, field("state"), meaning["state"]),
-        ]
+def _locate(f: Field, at: dict[str, str]) -> Callable[[dict[str, Any]], Any]:
+    """How to find the instance `at` of the field's scope in a later snapshot (a KeyError or TypeError
+    when it is not there: the variable is Bad_NoData, and counted)."""
+    assert f.scope is not None
+    scope = f.scope.name
+    if scope == "axis":
+        return lambda s: s["axes"][at["axis"]]
+    if scope == "contribution":
+        return lambda s: s["axes"][at["axis"]]["contributions"][at["part"]]
+    if scope == "signal":
+        return lambda s: s["signals"][at["signal"]]
+    return lambda s: s
+
+
+def _reader(f: Field, at: dict[str, str]) -> Reader:
+    """A field's value in a snapshot, as its variable's (`KIND_DATA_TYPES`): its key must be there;
+    a signal's value takes its StatusCode from its quality (`QUALITY_STATUS`)."""
+    locate = _locate(f, at)
+
+    def read(snap: dict[str, Any]) -> tuple[Any, str]:
+        where = locate(snap)
+        value = f.exported(snap, where)
+        if value is None and (f.at or (f.key,))[-1] not in _parent(f, where):
+            raise KeyError(f.key)  # not in the snapshot at all: a snapshot of another shape
+        if f.kind == "name" and value is None:
+            value = ""  # a name that is null (no hold)
+        elif f.kind == "count" and f.hex_digits and isinstance(value, str):
+            value = int(value, 16)
+        code = "Good"
+        if f is SG.value:
+            code = QUALITY_STATUS.get(SG.quality.read(where), OTHER_QUALITY_STATUS)
+        return value, code
+
+    return read
+
+
+def _parent(f: Field, where: Any) -> Any:
+    """The dict that holds the field's value (its `at` but the last key), or an empty one."""
+    for key in (f.at or (f.key,))[:-1]:
+        where = where.get(key) if isinstance(where, dict) else None
+    return where if isinstance(where, dict) else {}
+
+
+def _field_range(f: Field, at: dict[str, str], unit: str | None, guard: GuardConfig,
+                 clamps: dict[str, dict[str, Any]], timing: EuRange) -> EuRange | None:
+    """The EURange of a field's variable: an axis's µm ± its clamp, a contribution's ± its own (none
+    without one), a signal's its limits, the loop's µs the histograms' range, anything else its unit's."""
+    scope = f.scope.name if f.scope is not None else ""
+    if scope == "axis" and unit == "µm":
+        return axis_range(guard, at["axis"])
+    if scope == "contribution" and unit == "µm":
+        clamp = clamps.get(at["part"], {}).get(at["axis"], {}).get("max_abs_um")
+        if isinstance(clamp, int | float) and not isinstance(clamp, bool):
+            return EuRange(-float(clamp), float(clamp), f"± the contribution {at['part']}'s clamp (max_abs_um)")
+        return None
+    if scope == "signal" and f.unit == PER_SIGNAL:
+        return signal_range(guard, at["signal"], unit)
+    if scope in ("loop", "service") and unit == "µs":
+        return timing
+    low, high, why = SIGNAL_RANGES.get(unit, SIGNAL_RANGES[None])
+    return EuRange(low, high, f"its unit's range: {why}")
+
+
+def record_variables(snap: dict[str, Any], guard: GuardConfig, timing: EuRange) -> dict[str, list[Variable]]:
+    """A variable per instance of each field of the status record (compd/cycle/statusblock.py FIELDS)
+    that OPC UA shows, named by its rule (`Field.opcua_name`: compd.Axes.z.CorrectionUm), its data type
+    from its kind, a number an AnalogItemType in its unit (a signal's: the one its name says) with an
+    EURange; its Description the field's meaning. By where they go: each axis's name, `signals`, `loop`."""
+    clamps: dict[str, dict[str, Any]] = {
+        c.get("name"): c.get("limits") or {}
+        for c in (snap.get("model") or {}).get("contributions") or [] if isinstance(c, dict)}
+    out: dict[str, list[Variable]] = {}
+    for f in FIELDS:
+        if not f.on("opcua"):
+            continue
+        assert f.scope is not None
+        for at, _ in instances(f.scope, snap):
+            if not shown(f, snap, at):
+                continue
+            data_type = "UInt16" if f.kind == "count" and f.hex_digits == 4 else KIND_DATA_TYPES[f.kind]
+            text = _meaning(f)
+            unit_name = signal_unit(at["signal"]) if f.unit == PER_SIGNAL else f.shown_unit or None
+            unit, rng = None, None
+            if f.kind == "number":
+                unit = UNITS.get(unit_name or "")
+                rng = _field_range(f, at, unit_name, guard, clamps, timing)
+                if f.unit == PER_SIGNAL:
+                    said = f"; in {unit_name}, as its name says" if unit_name else "; its name says no unit"
+                    text += said + "; its StatusCode follows Quality"
+                elif f.shown and f.shown != f.unit:
+                    text += f" (here in {f.shown})"
+            group = at.get("axis") or ("signals" if f.scope.name == "signal" else "loop")
+            out.setdefault(group, []).append(Variable(f.opcua_name(**at), data_type, unit, _reader(f, at), text, rng))
     return out
 
 
 def address_space(snap: dict[str, Any], guard: GuardConfig | None = None) -> list[Variable]:
     """The variables for the axes and signals of this (first) snapshot, in browse order; the ranges
-    from `guard` (the config's guard section; None: its defaults)."""
+    from `guard` (the config's guard section; None: its defaults). The status record's fields are
+    `record_variables`; beside them what the status adds (observe mode, the model, the loop's timing
+    from its histograms) and each axis's Word."""
     from compd.core.config import GuardConfig
     from compd.cycle.loop import HIST_US
-    from compd.cycle.statusblock import AXIS, LOOP, PART, SIGNAL, signal_unit
 
     guard = guard if guard is not None else GuardConfig()
-    ax = {f.key: _meaning(f) for f in AXIS}
-    pt = {f.key: _meaning(f) for f in PART}
-    sg = {f.key: _meaning(f) for f in SIGNAL}
-    lp = {f.key: _meaning(f) for f in LOOP}
-    um = MICROMETRE
     # the loop's timing figures: 0 … the range of its histograms (1 µs bins up to 20 ms); a p99 above it
     # is the range limit with Uncertain_EngineeringUnitsExceeded, the maximum is measured (can lie above)
     timing = EuRange(0.0, float(HIST_US), f"0 … {HIST_US} µs, the range of the loop's timing histograms")
-    out = [
-        Variable("compd.State", "String", None, _good(lambda s: s["state"]), lp["state"]),
-        Variable("compd.Observe", "Boolean", None, _good(lambda s: s["observe"]), DESCRIPTIONS["compd.Observe"]),
-    ]
+    fields = record_variables(snap, guard, timing)
+    loop = fields.get("loop", [])
+    out = [v for v in loop if not v.node_id.startswith("compd.Loop.")]  # compd.State
+    out.append(Variable("compd.Observe", "Boolean", None, _good(lambda s: s["observe"]), DESCRIPTIONS["compd.Observe"]))
+    word_meaning = _meaning(LP.word)
     axes = snap.get("axes")
     for axis in sorted(axes) if isinstance(axes, dict) else []:
         p = f"compd.Axes.{axis}."
-        clamp = axis_range(guard, axis)
         byte = axes[axis].get("word_byte") if isinstance(axes[axis], dict) else None
-        word = lp["word"] + (f"; it carries this axis in its {byte} byte" if byte else "; it does not carry this axis")
-
-        def field(key: str, axis: str = axis) -> Reader:
-            return _good(lambda s: s["axes"][axis][key])
-
+        word = word_meaning + (f"; it carries this axis in its {byte} byte" if byte else "; it does not carry this axis")
+        mine = fields.get(axis, [])
+        out += [v for v in mine if ".Contributions." not in v.node_id]
         out += [
-            Variable(p + "CorrectionUm", "Double", um, field("correction_um"), ax["correction_um"], clamp),
-            Variable(p + "TargetUm", "Double", um, field("target_um"), ax["target_um"], clamp),
-            # a prediction is not clamped: it can lie outside the range (clamped before it reaches the machine)
-            Variable(p + "PredictionUm", "Double", um, field("prediction_um"), ax["prediction_um"], clamp),
-            # what the device acknowledged or reads back (Bad: not known, e.g. the sink's link not up)
-            Variable(p + "AppliedUm", "Double", um, field("applied_um"), ax["applied_um"], clamp),
-            Variable(p + "Word", "UInt16", None, _good(lambda s: int(s["word"], 16)), word),
-            # on at the machine (compd/service/status.py): never in observe mode, whose word is 0
-            Variable(p + "Enable", "Boolean", None,  # None (Bad): not confirmed while the link is not up
-                     _good(lambda s, axis=axis: False if s.get("observe") else s["axes"][axis]["enable"]),
-                     ax["enable"]),
-            Variable(p + "State", "String", None, field("state"), ax["state"]),
+            Variable(p + "Word", "UInt16", None, _good(lambda s: int(LP.word.read(s), 16)), word),
             Variable(p + "ModelKind", "String", None, _good(lambda s: s["model"]["kind"]), DESCRIPTIONS["ModelKind"]),
             Variable(p + "FitDate", "String", None, _good(_fit_date), DESCRIPTIONS["FitDate"]),
         ]
-        out += _contribution_variables(snap, axis, pt)
-        if axis in ((snap.get("shadow") or {}).get("axes") or {}):  # a shadow model on the axis: what it predicts
-            out.append(Variable(p + "ShadowUm", "Double", um, field("shadow_um"), ax["shadow_um"], clamp))
-    signals = snap.get("signals")
-    for name in sorted(signals) if isinstance(signals, dict) else []:
-        p = f"compd.Signals.{name}."
-        unit = signal_unit(name)
-        said = f"; in {unit}, as its name says" if unit else "; its name says no unit"
-        out += [
-            Variable(p + "Value", "Double", SIGNAL_UNITS.get(unit or ""), _signal_value(name),
-                     sg["value"] + said + "; its StatusCode follows Quality", signal_range(guard, name, unit)),
-            Variable(p + "Quality", "String", None, _good(lambda s, n=name: s["signals"][n]["quality"]), sg["quality"]),
-        ]
+        out += [v for v in mine if ".Contributions." in v.node_id]
+    out += fields.get("signals", [])
+    out.append(Variable("compd.Loop.PeriodMs", "Double", MILLISECOND, _good(lambda s: s["loop"]["period_ms"]),
+                        DESCRIPTIONS["compd.Loop.PeriodMs"],
+                        EuRange(*PERIOD_RANGE_MS, "0 … 60 s, the longest loop.period_s")))
+    out += [v for v in loop if v.node_id.startswith("compd.Loop.")]
     out += [
-        Variable("compd.Loop.PeriodMs", "Double", MILLISECOND, _good(lambda s: s["loop"]["period_ms"]),
-                 DESCRIPTIONS["compd.Loop.PeriodMs"], EuRange(*PERIOD_RANGE_MS, "0 … 60 s, the longest loop.period_s")),
-        Variable("compd.Loop.Cycles", "UInt64", None, _good(lambda s: s["loop"]["cycles"]), lp["cycles"]),
-        Variable("compd.Loop.Misses", "UInt64", None, _good(lambda s: s["loop"]["misses"]), lp["misses"]),
         Variable("compd.Loop.LatenessP99Us", "Double", MICROSECOND, _percentile("lateness_us", "p99"),
                  DESCRIPTIONS["compd.Loop.LatenessP99Us"], timing),
-        Variable("compd.Loop.LatenessMaxUs", "Double", MICROSECOND, _good(lambda s: s["loop"]["lateness_us"]["max"]),
-                 lp["late_max_s"] + " (its wake-up lateness)", timing),
         Variable("compd.Loop.ComputeP99Us", "Double", MICROSECOND, _percentile("cycle_compute_us", "p99"),
                  DESCRIPTIONS["compd.Loop.ComputeP99Us"], timing),
     ]
@@ -414,9 +465,9 @@ def data_values(variables: list[Variable], snap: dict[str, Any]) -> tuple[list[A
     source = now
     if isinstance(written, int | float) and not isinstance(written, bool) and math.isfinite(written):
         source = datetime.fromtimestamp(written, UTC)
-    stale = snap.get("state") == STALE
+    stale = LP.state.read(snap) == STALE
     last = source  # when the cycle last wrote its record
-    age = snap.get("record_age_s")
+    age = SV.record_age_s.read(snap)
     if stale and isinstance(age, int | float) and not isinstance(age, bool) and math.isfinite(age) and age >= 0:
         last = source - timedelta(seconds=age)
     out, problems = [], []
@@ -758,7 +809,9 @@ class OpcUaServer:
     def _count(self, problems: list[str]) -> None:
         if not problems:
             return
-        line = f"{len(problems)} value(s) missing or of the wrong type: " + "; ".join(problems[:3])
+        # a value of the wrong type first: it says more about the snapshot than a key it lacks
+        first = sorted(problems, key=lambda p: ": KeyError: " in p)[:3]
+        line = f"{len(problems)} value(s) missing or of the wrong type: " + "; ".join(first)
         with self._lock:
             self._errors += 1
             new = line != self._last_error

@@ -67,7 +67,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from compd.core.errors import BadInput
-from compd.cycle.statusblock import signal_unit
+from compd.cycle.statusblock import FIELDS, PER_SIGNAL, Field, instances, shown, signal_unit
 from compd.plant import sandbox
 from compd.plant.buffer import MEMORY_MAX_BYTES, Counters, MemoryBuffer, StoreAndForward
 from compd.plant.sparkplug import (
@@ -143,50 +143,62 @@ def _count(value: Any) -> int | None:
     return int(value) if isinstance(value, int | float) and not isinstance(value, bool) and value >= 0 else None
 
 
+# a status field's kind → its Sparkplug datatype (a count shown as a 16-bit word: UInt16)
+KIND_DATATYPES = {"number": DataType.Double, "count": DataType.UInt64, "flag": DataType.Boolean,
+                  "name": DataType.String, "hex": DataType.String}
+
+
+def _datatype(f: Field) -> DataType:
+    return DataType.UInt16 if f.kind == "count" and f.hex_digits == 4 else KIND_DATATYPES[f.kind]
+
+
+def _field_value(f: Field, value: Any) -> Any:
+    """A field's value as status.json shows it, as its metric's (`_datatype`): a number not finite, or
+    anything not of the kind, is null; a name that is null (no hold) the empty string."""
+    if f.kind == "number":
+        return _num(value)
+    if f.kind == "count":
+        if isinstance(value, str) and f.hex_digits:
+            try:
+                return int(value, 16) & 0xFFFF
+            except ValueError:
+                return None
+        return _count(value)
+    if f.kind == "flag":
+        return None if value is None else bool(value)
+    return "" if value is None else str(value)
+
+
+def record_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
+    """A metric per instance of each field of the status record (compd/cycle/statusblock.py FIELDS)
+    that Sparkplug shows: named by its rule (`Field.sparkplug_name`: `Axis/z/correction_um`), its
+    datatype from its kind, its unit as status.json shows it (a signal's: the one its name says).
+    A loop field whose section the snapshot lacks (a log replayed into telemetry has no loop timing)
+    is left out."""
+    out: list[tuple[MetricDef, Any]] = []
+    for f in FIELDS:
+        if not f.on("sparkplug"):
+            continue
+        assert f.scope is not None
+        if f.scope.name in ("loop", "service") and (f.at or (f.key,))[0] not in snap:
+            continue
+        for at, where in instances(f.scope, snap):
+            if not shown(f, snap, at):
+                continue
+            unit = (signal_unit(at["signal"]) if f.unit == PER_SIGNAL else f.shown_unit) or None
+            out.append((MetricDef(f.sparkplug_name(**at), _datatype(f), unit), _field_value(f, f.exported(snap, where))))
+    return out
+
+
 def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
-    """The machine's metrics and their values in one status snapshot (compd/service/status.py).
+    """The machine's metrics and their values in one status snapshot (compd/service/status.py):
+    the status record's fields (`record_metrics`) and what the status adds beside them.
 
     A section missing from the snapshot (a log replayed into telemetry has no loop
     timing) leaves its metrics out; a value that is not a finite number is null."""
     D = DataType
-    out: list[tuple[MetricDef, Any]] = [
-        (MetricDef("State", D.String), str(snap.get("state", ""))),
-        (MetricDef("Observe", D.Boolean), bool(snap.get("observe", False))),
-    ]
-    word = snap.get("word")
-    if isinstance(word, str):
-        try:
-            out.append((MetricDef("Word", D.UInt16), int(word, 16) & 0xFFFF))
-        except ValueError:
-            out.append((MetricDef("Word", D.UInt16), None))
-    held = bool(snap.get("observe", False))  # observe mode: the machine has the word 0, every axis off
-    for axis, a in sorted((snap.get("axes") or {}).items()):
-        p = f"Axis/{axis}/"
-        out += [
-            (MetricDef(p + "correction_um", D.Double, "µm"), _num(a.get("correction_um"))),
-            (MetricDef(p + "target_um", D.Double, "µm"), _num(a.get("target_um"))),
-            (MetricDef(p + "prediction_um", D.Double, "µm"), _num(a.get("prediction_um"))),
-            (MetricDef(p + "applied_um", D.Double, "µm"), _num(a.get("applied_um"))),
-            # on at the machine; null (not confirmed) while the sink's link is not up
-            (MetricDef(p + "enable", D.Boolean), False if held else None if a.get("enable") is None
-             else bool(a["enable"])),
-            (MetricDef(p + "state", D.String), str(a.get("state", ""))),
-        ]
-        if a.get("shadow_um") is not None or axis in ((snap.get("shadow") or {}).get("axes") or {}):
-            out.append((MetricDef(p + "shadow_um", D.Double, "µm"), _num(a.get("shadow_um"))))
-        for name, c in sorted((a.get("contributions") or {}).items()):  # a sum of contributions: each one
-            q = f"{p}Contribution/{name}/"
-            out += [
-                (MetricDef(q + "prediction_um", D.Double, "µm"), _num(c.get("prediction_um"))),
-                (MetricDef(q + "raw_um", D.Double, "µm"), _num(c.get("raw_um"))),
-                (MetricDef(q + "state", D.String), str(c.get("state") or "")),
-            ]
-    for name, s in sorted((snap.get("signals") or {}).items()):
-        p = f"Signal/{name}/"
-        out += [
-            (MetricDef(p + "value", D.Double, signal_unit(name)), _num(s.get("value"))),
-            (MetricDef(p + "quality", D.String), str(s.get("quality", ""))),
-        ]
+    out: list[tuple[MetricDef, Any]] = [(MetricDef("Observe", D.Boolean), bool(snap.get("observe", False))),
+                                         *record_metrics(snap)]
     shadow = snap.get("shadow")
     if isinstance(shadow, dict):  # the shadow model and its score on the probes, per axis
         out.append((MetricDef("Shadow/kind", D.String), str((shadow.get("model") or {}).get("kind") or "")))
@@ -199,17 +211,14 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
                 (MetricDef(p + "shadow_rms_um", D.Double, "µm"), _num(sc.get("shadow_rms_um"))),
             ]
     lp = snap.get("loop")
-    if isinstance(lp, dict):
+    if isinstance(lp, dict):  # the loop's timing from its histograms (not fields of the record)
         late, comp = lp.get("lateness_us") or {}, lp.get("cycle_compute_us") or {}
         # a p99 over the histogram's range is its limit (20000 µs) and flagged: not a measurement
         over = lp.get("over_range") if isinstance(lp.get("over_range"), dict) else {}
         out += [
             (MetricDef("Loop/period_ms", D.Double, "ms"), _num(lp.get("period_ms"))),
-            (MetricDef("Loop/cycles", D.UInt64), _count(lp.get("cycles"))),
-            (MetricDef("Loop/misses", D.UInt64), _count(lp.get("misses"))),
             (MetricDef("Loop/lateness_p99_us", D.Double, "µs"), _num(late.get("p99"))),
             (MetricDef("Loop/lateness_p99_over_range", D.Boolean), "p99" in (over.get("lateness_us") or ())),
-            (MetricDef("Loop/lateness_max_us", D.Double, "µs"), _num(late.get("max"))),
             (MetricDef("Loop/compute_p99_us", D.Double, "µs"), _num(comp.get("p99"))),
             (MetricDef("Loop/compute_p99_over_range", D.Boolean), "p99" in (over.get("cycle_compute_us") or ())),
         ]

@@ -15,12 +15,30 @@ from __future__ import annotations
 
 import math
 import platform
+import re
 import threading
 from typing import Any
 
 from compd import version
 from compd.core.errors import BadInput
-from compd.cycle.statusblock import AXIS, PART, STALE, STATES, A, P, signal_unit
+from compd.cycle.statusblock import (
+    AXIS,
+    BASE_UNITS,
+    FIELDS,
+    LOOP,
+    LP,
+    PART,
+    PER_SIGNAL,
+    SERVICE,
+    SG,
+    SIGNAL,
+    SIGNAL_SERVICE,
+    STALE,
+    Field,
+    instances,
+    shown,
+    signal_unit,
+)
 from compd.service.threads import ServiceThread
 
 # cycle lateness histogram bounds, µs (a 2 ms cycle: "late" starts around 1000)
@@ -76,21 +94,12 @@ class SnapshotCollector:
         if snap is None:
             return
         lp = snap["loop"]
-        cycles = lp["cycles"]
         yield HistogramMetricFamily(
             "compd_cycle_lateness_seconds",
             "Wake-up time minus deadline of each cycle",
             buckets=[(f"{b * 1e-6:g}", n) for b, n in buckets] + [("+Inf", count)],
             sum_value=sum_s,
         )
-        yield CounterMetricFamily("compd_cycles", "Cycles run", value=cycles)
-        yield CounterMetricFamily(
-            "compd_cycle_misses", "Cycles that started over half a period late or overran", value=lp["misses"]
-        )
-        yield CounterMetricFamily("compd_cycles_skipped", "Deadlines skipped after an overrun", value=lp["skipped"])
-        g = GaugeMetricFamily("compd_cycle_compute_max_seconds", "Longest cycle compute time")
-        g.add_metric([], lp["cycle_compute_us"]["max"] * 1e-6)
-        yield g
         mean = GaugeMetricFamily("compd_stage_mean_seconds", "Mean time of a loop stage", labels=["stage"])
         worst = GaugeMetricFamily("compd_stage_max_seconds", "Worst time of a loop stage", labels=["stage"])
         for stage, t in lp["stages"].items():
@@ -98,68 +107,17 @@ class SnapshotCollector:
             worst.add_metric([stage], t["max_us"] * 1e-6)
         yield mean
         yield worst
-        daemon = GaugeMetricFamily("compd_state", "1 for the daemon's current state (stale: its cycle has not written"
-                                   " its record for stale_after_s, stopped or hung)", labels=["state"])
-        for name in (*STATES, STALE):
-            daemon.add_metric([name], 1.0 if snap.get("state") == name else 0.0)
-        yield daemon
-        age = GaugeMetricFamily("compd_cycle_record_age_seconds", "Time since the cycle last wrote its status record"
-                                " (monotonic, as the service sees it)")
-        age.add_metric([], _f(snap.get("record_age_s")))
-        yield age
+        yield from record_families(snap)
         up = GaugeMetricFamily("compd_uptime_seconds", "Loop time since the first cycle")
         up.add_metric([], snap["uptime_s"] or 0.0)
         yield up
         obs = GaugeMetricFamily("compd_observe_mode", "1 when the output is held disabled (observe mode)")
         obs.add_metric([], 1.0 if snap["observe"] else 0.0)
         yield obs
-        word = GaugeMetricFamily("compd_word", "The 16-bit compensation word the loop computed")
-        word.add_metric([], float(int(snap["word"], 16)))
-        yield word
-        corr = GaugeMetricFamily("compd_correction_meters", "Guarded correction per axis", labels=["axis"])
-        pred = GaugeMetricFamily("compd_prediction_meters", "Predicted thermal error per axis", labels=["axis"])
-        applied = GaugeMetricFamily(
-            "compd_applied_meters",
-            "What the device acknowledged or reads back as applied per axis (NaN: not known, e.g. the link not up)",
-            labels=["axis"],
-        )
-        en = GaugeMetricFamily(
-            "compd_axis_enabled",
-            "1 when the axis is enabled at the machine: its enable bit on, the sink reaching the machine, not observe"
-            " mode; NaN while the sink's link is not up (not confirmed)",
-            labels=["axis"],
-        )
-        sat = GaugeMetricFamily("compd_axis_saturated", "1 when the axis's correction is held at a limit: the guard's clamp (max_abs_um) or the word byte's 63 LSB", labels=["axis"])
-        st = GaugeMetricFamily("compd_axis_state", "1 for the axis's current guard state (stale: the cycle is stale,"
-                               " nobody computes the axis)", labels=["axis", "state"])
-        held = GaugeMetricFamily(
-            "compd_axis_held", "1 when the machine holds the axis off (inhibited, or waiting for its reference)",
-            labels=["axis", "reason"],
-        )
-        for axis, a in snap["axes"].items():
-            corr.add_metric([axis], _f(a["correction_um"]) * UM)
-            pred.add_metric([axis], _f(a.get("prediction_um")) * UM)
-            applied.add_metric([axis], _f(a.get("applied_um")) * UM)
-            on = a["enable"]
-            en.add_metric([axis], 0.0 if snap["observe"] else math.nan if on is None else 1.0 if on else 0.0)
-            sat.add_metric([axis], 1.0 if a.get("saturated") else 0.0)
-            for name in (*AXIS[A["state"]].names, STALE):
-                st.add_metric([axis, name], 1.0 if a["state"] == name else 0.0)
-            for reason in AXIS[A["inhibit"]].names:
-                if reason is not None:
-                    held.add_metric([axis, reason], 1.0 if a.get("inhibit") == reason else 0.0)
-        yield from (corr, pred, applied, en, sat, st, held)
-        yield from _contribution_families(snap)
         yield from _shadow_families(snap)
-        from compd.io.worker import LINK_STATES
-
-        link = snap["sink"].get("link")
         link_up = GaugeMetricFamily("compd_sink_link_up", "1 when the sink reaches the machine (link up)")
-        link_up.add_metric([], 1.0 if link == "up" else 0.0)
-        ls = GaugeMetricFamily("compd_sink_link", "1 for the sink's current link state", labels=["state"])
-        for state in LINK_STATES:
-            ls.add_metric([state], 1.0 if link == state else 0.0)
-        yield from (link_up, ls)
+        link_up.add_metric([], 1.0 if LP.link.read(snap) == "up" else 0.0)
+        yield link_up
         pup = GaugeMetricFamily("compd_process_up", "1 while compd's own process (a device worker, the service) runs;"
                                 " 0 while it is lost and not yet restarted", labels=["process"])
         prs = CounterMetricFamily("compd_process_restarts", "Restarts of compd's own process after it died or hung",
@@ -173,21 +131,10 @@ class SnapshotCollector:
                                  labels=["version", "python"])
         info.add_metric([version(), platform.python_version()], 1.0)
         yield info
-        yield CounterMetricFamily("compd_saturations", "Words with a clamped axis byte", value=snap["saturations"])
-        vals: dict[str, Any] = {}
-        for fam, _, what in SIGNAL_FAMILIES.values():
-            if fam not in vals:
-                vals[fam] = GaugeMetricFamily(fam, f"Last value of a signal: {what}", labels=["signal"])
         good = GaugeMetricFamily("compd_signal_good", "1 when the signal's quality is good", labels=["signal"])
-        qual = GaugeMetricFamily("compd_signal_quality", "1 for the signal's current quality", labels=["signal", "quality"])
-        age = GaugeMetricFamily("compd_signal_age_seconds", "Age of the signal's last sample", labels=["signal"])
-        for name, s in snap["signals"].items():
-            fam, factor, _ = SIGNAL_FAMILIES[signal_unit(name)]
-            vals[fam].add_metric([name], _f(s["value"]) * factor)
-            good.add_metric([name], 1.0 if s["quality"] == "good" else 0.0)
-            qual.add_metric([name, s["quality"]], 1.0)
-            age.add_metric([name], _f(s["age_s"]))
-        yield from (*vals.values(), good, qual, age)
+        for at, s in instances(SG.quality.scope, snap):
+            good.add_metric([at["signal"]], 1.0 if SG.quality.read(s) == "good" else 0.0)
+        yield good
         faults = CounterMetricFamily("compd_faults", "Guard events by kind (event:reason)", labels=["kind"])
         for kind, n in sorted(snap["faults"].items()):
             faults.add_metric([kind], n)
@@ -213,48 +160,87 @@ class SnapshotCollector:
             yield from (off, sd, acc, rej, slope)
 
 
-def _contribution_families(snap: dict[str, Any]) -> list[Any]:
-    """A sum of contributions: each one's share of its axis, its model's own prediction and its state."""
-    from prometheus_client.core import GaugeMetricFamily
+def _help(f: Field) -> str:
+    """A field's meaning as a family's help: JSON's null is NaN here; a name's or a flag's family is 0 or 1."""
+    text = re.sub(r"\bnull\b", "NaN", f.meaning)
+    if f.kind == "name":
+        return f"1 for the current {f.label or f.key}: {text}" + (f" ({STALE}: the cycle is stale)"
+                                                                  if f.stale and STALE not in text else "")
+    if f.kind == "flag":
+        return f"1 when {text}"
+    return text[:1].upper() + text[1:]
 
-    share = GaugeMetricFamily("compd_contribution_meters", "What a contribution adds to its axis's prediction"
-                              " (after its own clamp, slew and fault policy)", labels=["axis", "contribution"])
-    raw = GaugeMetricFamily("compd_contribution_raw_meters", "A contribution's model's own prediction (NaN: an"
-                            " input bad and the model cannot predict from the others)", labels=["axis", "contribution"])
-    state = GaugeMetricFamily("compd_contribution_state", "1 for a contribution's current state on its axis"
-                              " (stale: the cycle is stale)", labels=["axis", "contribution", "state"])
-    found = False
-    for axis, a in snap["axes"].items():
-        for name, c in (a.get("contributions") or {}).items():
-            found = True
-            share.add_metric([axis, name], _f(c.get("prediction_um")) * UM)
-            raw.add_metric([axis, name], _f(c.get("raw_um")) * UM)
-            for st in (*PART[P["state"]].names, STALE):
-                state.add_metric([axis, name, st], 1.0 if c.get("state") == st else 0.0)
-    return [share, raw, state] if found else []
+
+def _sample(f: Field, value: Any) -> float:
+    """A field's value (as status.json shows it) as a sample: in the base unit, a flag 0 or 1, NaN: none."""
+    if f.kind == "flag":
+        return math.nan if value is None else 1.0 if value else 0.0
+    if isinstance(value, str) and (f.hex_digits or f.kind == "hex"):
+        return float(int(value, 16))
+    return _f(value) * BASE_UNITS.get(f.shown_unit, ("", 1.0))[1]
+
+
+def record_families(snap: dict[str, Any]) -> list[Any]:
+    """A family per field of the status record (compd/cycle/statusblock.py FIELDS) that Prometheus
+    shows, named by its rule (`Field.metric_name`), labelled by its scope; a name field is one
+    sample per name (1 for the current one), a signal's value is in the family of its unit
+    (SIGNAL_FAMILIES). A family of a scope the snapshot has no instance of (no contributions, no
+    shadow) is left out, the signals' families never."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+    out: list[Any] = []
+    for f in FIELDS:
+        if not f.on("prometheus"):
+            continue
+        scope = f.scope
+        assert scope is not None
+        found = [(at, d) for at, d in instances(scope, snap) if shown(f, snap, at)]
+        labels = list(scope.labels)
+        if f.unit == PER_SIGNAL:
+            fams = {}
+            for fam, _, what in SIGNAL_FAMILIES.values():
+                fams.setdefault(fam, GaugeMetricFamily(fam, f"Last value of a signal: {what}", labels=labels))
+            for at, d in found:
+                fam, factor, _ = SIGNAL_FAMILIES[signal_unit(at["signal"])]
+                fams[fam].add_metric([at["signal"]], _f(f.read(d)) * factor)
+            out += fams.values()
+            continue
+        if not found:
+            continue
+        cls = CounterMetricFamily if f.metric_kind() == "counter" else GaugeMetricFamily
+        if f.kind == "name":
+            fam = cls(f.metric_name(), _help(f), labels=[*labels, f.label or f.key])
+        else:
+            fam = cls(f.metric_name(), _help(f), labels=labels)
+        for at, d in found:
+            names = [at[k] for k in ("axis", "part", "signal") if k in at]
+            value = f.exported(snap, d)
+            if f.kind == "name":
+                for name in (*(n for n in f.names if n is not None), *((STALE,) if f.stale else ())):
+                    fam.add_metric([*names, name], 1.0 if value == name else 0.0)
+            else:
+                fam.add_metric(names, _sample(f, value))
+        out.append(fam)
+    return out
 
 
 def _shadow_families(snap: dict[str, Any]) -> list[Any]:
-    """A shadow model: its prediction per axis, the probes it was scored on, and what each model left."""
+    """A shadow model: the probes it was scored on, and what each model left (its prediction is a
+    field of the record: `record_families`)."""
     from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
     shadow = snap.get("shadow")
     if not shadow:
         return []
-    pred = GaugeMetricFamily("compd_shadow_prediction_meters", "The shadow model's predicted thermal error per axis"
-                             " (it drives nothing; NaN: no good input vector)", labels=["axis"])
     probes = CounterMetricFamily("compd_shadow_probes", "Probes the active and the shadow model were scored on",
                                  labels=["axis"])
     rms = GaugeMetricFamily("compd_shadow_probe_rms_meters", "RMS over the probes of the measured error minus the"
                             " model's prediction, for the active and the shadow model", labels=["axis", "model"])
-    for axis, a in snap["axes"].items():
-        if "shadow_um" in a and axis in (shadow.get("axes") or {}):
-            pred.add_metric([axis], _f(a.get("shadow_um")) * UM)
     for axis, sc in (shadow.get("axes") or {}).items():
         probes.add_metric([axis], sc.get("probes", 0))
         rms.add_metric([axis, "active"], _f(sc.get("active_rms_um")) * UM)
         rms.add_metric([axis, "shadow"], _f(sc.get("shadow_rms_um")) * UM)
-    return [pred, probes, rms]
+    return [probes, rms]
 
 
 def _process_families(snap: dict[str, Any]) -> list[Any]:
@@ -282,25 +268,49 @@ def _f(value: Any) -> float:
     return float("nan") if value is None else float(value)
 
 
-# A snapshot that takes every branch of `SnapshotCollector.collect` (one axis, one signal,
-# one fault kind, an adaptation estimate with a slope): what the catalogue is generated from.
-EXAMPLE_SNAPSHOT: dict[str, Any] = {
-    "loop": {"cycles": 1, "misses": 0, "skipped": 0, "cycle_compute_us": {"max": 1.0},
-             "stages": {"model": {"mean_us": 1.0, "max_us": 1.0}}},
-    "state": "running", "record_age_s": 0.0, "uptime_s": 1.0, "observe": False, "word": "0x0000",
-    "axes": {"z": {"correction_um": 0.0, "prediction_um": 0.0, "enable": True, "saturated": False,
-                   "state": "normal",
-                   "contributions": {"spindle": {"prediction_um": 0.0, "raw_um": 0.0, "state": "normal"}},
-                   "shadow_um": 0.0}},
-    "shadow": {"model": {"kind": "mlr"}, "axes": {"z": {"probes": 1, "active_rms_um": 1.0, "shadow_rms_um": 0.5}}},
-    "sink": {"link": "up"}, "saturations": 0,
-    "processes": [{"name": "modbus-link-fanuc_pmc", "pid": 1, "up": True, "restarts": 0, "lost": None}],
-    "signals": {name: {"value": 1.0, "quality": "good", "age_s": 0.0}  # one of each unit's family
-                for name in ("T_xi", "T_rise_k", "err_z_um", "speed_rpm", "cycle_s", "current_a", "supply_v",
-                             "coolant_pct", "coolant_bar", "spindle_load")},
-    "faults": {"bad:stale": 1},
-    "adapt": {"z": {"offset_um": 0.0, "offset_sigma_um": 1.0, "accepted": 0, "rejected": 0, "slope_um_per_m": 0.0}},
-}
+def _example(f: Field) -> Any:
+    """A value of the field as status.json shows it (the catalogue's snapshot)."""
+    if f.kind == "count":
+        return f"0x{0:0{f.hex_digits}X}" if f.hex_digits else 1
+    if f.kind == "flag":
+        return True
+    if f.kind == "name":
+        return next(n for n in f.names if n is not None)
+    return "0x00" if f.kind == "hex" else 0.0
+
+
+def _put(where: dict[str, Any], f: Field) -> None:
+    *path, last = f.at or (f.key,)
+    for key in path:
+        where = where.setdefault(key, {})
+    where[last] = _example(f)
+
+
+def example_snapshot() -> dict[str, Any]:
+    """A snapshot that takes every branch of `SnapshotCollector.collect` (one axis with a contribution
+    and a shadow, a signal of each unit's family, one fault kind, an adaptation estimate with a slope),
+    every field of the status record in it (compd/cycle/statusblock.py FIELDS): what the catalogue is
+    generated from."""
+    snap: dict[str, Any] = {
+        "loop": {"stages": {"model": {"mean_us": 1.0, "max_us": 1.0}}},
+        "uptime_s": 1.0, "observe": False,
+        "shadow": {"model": {"kind": "mlr"}, "axes": {"z": {"probes": 1, "active_rms_um": 1.0, "shadow_rms_um": 0.5}}},
+        "processes": [{"name": "modbus-link-fanuc_pmc", "pid": 1, "up": True, "restarts": 0, "lost": None}],
+        "faults": {"bad:stale": 1},
+        "adapt": {"z": {"offset_um": 0.0, "offset_sigma_um": 1.0, "accepted": 0, "rejected": 0, "slope_um_per_m": 0.0}},
+    }
+    for f in (*LOOP, *SERVICE):
+        _put(snap, f)
+    axis = {f.key: _example(f) for f in AXIS}
+    axis["contributions"] = {"spindle": {f.key: _example(f) for f in PART}}
+    snap["axes"] = {"z": axis}
+    snap["signals"] = {name: {f.key: _example(f) for f in (*SIGNAL, *SIGNAL_SERVICE)}  # one of each unit's family
+                       for name in ("T_xi", "T_rise_k", "err_z_um", "speed_rpm", "cycle_s", "current_a", "supply_v",
+                                    "coolant_pct", "coolant_bar", "spindle_load")}
+    return snap
+
+
+EXAMPLE_SNAPSHOT: dict[str, Any] = example_snapshot()
 
 # a metric's unit from its name (Prometheus: the base unit ends the name); others by name
 _UNIT_SUFFIXES = (("_meters", "m"), ("_seconds", "s"), ("_celsius", "°C"), ("_kelvin", "K"), ("_hertz", "Hz"),

@@ -46,10 +46,12 @@ SNAP: dict[str, Any] = {
     "written_unix_s": 1795541065.5,
     "word": "0x4512",
     "axes": {
-        "x": {"correction_um": -3.25, "target_um": -3.5, "prediction_um": 3.5, "applied_um": -3.0, "enable": True,
-              "state": "normal", "byte": "0x12", "word_byte": "low"},
-        "z": {"correction_um": 0.0, "target_um": -5.375, "prediction_um": 5.375, "applied_um": None,
-              "enable": False, "state": "starting", "byte": "0x45", "word_byte": "high"},
+        "x": {"correction_um": -3.25, "target_um": -3.5, "prediction_um": 3.5, "commanded_um": -3.25,
+              "applied_um": -3.0, "enable": True, "state": "normal", "inhibit": None, "saturated": False,
+              "byte": "0x12", "word_byte": "low"},
+        "z": {"correction_um": 0.0, "target_um": -5.375, "prediction_um": 5.375, "commanded_um": None,
+              "applied_um": None, "enable": False, "state": "starting", "inhibit": "waiting for reference",
+              "saturated": True, "byte": "0x45", "word_byte": "high"},
     },
     "signals": {
         "T_spindle": {"value": 22.4, "quality": "good", "age_s": 0.0},
@@ -58,11 +60,13 @@ SNAP: dict[str, Any] = {
         "coolant": {"value": 3.0, "quality": "good", "age_s": 0.0},  # its name says no unit
     },
     "loop": {
-        "period_ms": 50.0, "cycles": 12001, "misses": 3,
+        "period_ms": 50.0, "cycles": 12001, "misses": 3, "skipped": 1,
         "lateness_us": {"p50": 1.0, "p99": 12.5, "p999": 30.0, "max": 44.0},
         "cycle_compute_us": {"p50": 144.0, "p99": 278.0, "max": 1058.9},
     },
     "model": {"kind": "xi_spindle", "file": None, "fit": {"fitted_at": "2026-01-01T00:00:00Z"}},
+    "sink": {"link": "up"},
+    "saturations": 7,
 }
 
 # a signal's quality → the StatusCode of its Value (docs/plant.md, "Status codes")
@@ -82,6 +86,9 @@ def expected(snap: dict[str, Any]) -> dict[str, tuple[Any, str]]:
         out[p + "TargetUm"] = num(a["target_um"])
         out[p + "PredictionUm"] = num(a["prediction_um"])
         out[p + "AppliedUm"] = num(a.get("applied_um"))
+        out[p + "CommandedUm"] = num(a.get("commanded_um"))
+        out[p + "Inhibit"] = (a["inhibit"] or "", "Good")  # no hold: the empty string
+        out[p + "Saturated"] = (a["saturated"], "Good")
         out[p + "Word"] = (int(snap["word"], 16), "Good")
         out[p + "Enable"] = (False, "Good") if snap["observe"] else num(a["enable"])
         out[p + "State"] = (a["state"], "Good")
@@ -95,6 +102,9 @@ def expected(snap: dict[str, Any]) -> dict[str, tuple[Any, str]]:
     out["compd.Loop.PeriodMs"] = num(lp["period_ms"])
     out["compd.Loop.Cycles"] = (lp["cycles"], "Good")
     out["compd.Loop.Misses"] = (lp["misses"], "Good")
+    out["compd.Loop.Skipped"] = (lp["skipped"], "Good")
+    out["compd.Loop.Link"] = (snap["sink"]["link"], "Good")
+    out["compd.Loop.Saturations"] = (snap["saturations"], "Good")
     out["compd.Loop.LatenessP99Us"] = num(lp["lateness_us"]["p99"])
     out["compd.Loop.LatenessMaxUs"] = num(lp["lateness_us"]["max"])
     out["compd.Loop.ComputeP99Us"] = num(lp["cycle_compute_us"]["p99"])
@@ -359,8 +369,8 @@ def test_browse_matches_the_documented_address_space(served: Any, pki: Pki) -> N
     _, url = served
     want = documented(SNAP)
     _, units, _ = doc_tables()
-    # compd, State, Observe; Axes, 2 × (folder + 9); Signals, 4 × (folder + 2); Loop + 6
-    assert len(want) == 3 + (1 + 2 * 10) + (1 + 4 * 3) + (1 + 6)
+    # compd, State, Observe; Axes, 2 × (folder + 12); Signals, 4 × (folder + 2); Loop + 9
+    assert len(want) == 3 + (1 + 2 * 13) + (1 + 4 * 3) + (1 + 9)
     read_only = ua.AccessLevel.CurrentRead.mask
     type_names = {ua.NodeId(ua.ObjectIds.FolderType): "Folder",
                   ua.NodeId(ua.ObjectIds.AnalogItemType): "AnalogItemType",
