@@ -71,6 +71,7 @@ $(NODE_OPCUA):
 test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU) $(NODE_OPCUA)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports --no-cache
+	$(VENV)/bin/mypy
 	$(PY) -m pytest -q -m "not accept and not bench"
 
 # the randomized family: 20 machines per type, fitted on a training day and replayed on an unseen one,
@@ -127,6 +128,7 @@ reliability: $(TEST_STAMP) sysdeps
 lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports --no-cache
+	$(VENV)/bin/mypy
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -14,7 +14,7 @@ import importlib.util
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from compd.core.config import (
     MODEL_MAX_BYTES,
@@ -37,6 +37,14 @@ from compd.core.config import (
     validate,
 )
 from compd.core.errors import BadInput, ConfigError, format_path
+
+if TYPE_CHECKING:  # the kinds' modules are imported when a config names them (compd.core.registry)
+    from compd.core.registry import Registry
+    from compd.models.base import Model
+    from compd.sinks.base import Sink
+    from compd.sources.base import Source
+
+    Device = TypeVar("Device", Source, Sink)
 
 
 @dataclass(frozen=True)
@@ -64,8 +72,8 @@ class DrivenAxes:
 class ModelSpec:
     """A resolved model: its class, validated params and wiring."""
 
-    cls: type
-    params: Any
+    cls: type[Model]
+    params: Strict
     inputs: list[str]
     outputs: list[str]
     update_period_s: float | None
@@ -96,9 +104,9 @@ class Config:
     file: str
     doc: Document
     top: ConfigModel
-    sources: list[tuple[type, Any, PathT]]
+    sources: list[tuple[type[Source], SourceConfig, PathT]]
     model: ModelSpec
-    sink: tuple[type, Any, PathT]
+    sink: tuple[type[Sink], SinkConfig, PathT]
     shadow: ModelSpec | None = None
 
     @property
@@ -119,7 +127,7 @@ class Config:
         return path if path.is_absolute() else Path(self.file).parent / path
 
 
-def _plugin(registry: Any, data: Any, doc: Document, path: PathT) -> tuple[type, Any]:
+def _plugin(registry: Registry[type[Device]], data: Any, doc: Document, path: PathT) -> tuple[type[Device], Any]:
     if not isinstance(data, dict):
         raise doc.error("expected a mapping with a 'kind'", path)
     if "kind" not in data:
@@ -391,7 +399,7 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
     top = validate(ConfigModel, doc.data, doc, (), what="config")
     _check_timings(top, doc)
     _check_optional(top, doc)
-    sources = []
+    sources: list[tuple[type[Source], SourceConfig, PathT]] = []
     names: set[str] = set()
     for i, sec in enumerate(top.sources):
         cls, cfg = _plugin(SOURCES, sec, doc, ("sources", i))

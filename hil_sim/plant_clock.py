@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
-from compd.core.clock import Clock
+from compd.core.clock import Clock, DrivenSink, DrivenSource
 from compd.core.config import PlantClockConfig
 from compd.io.mailbox import Latest
 from compd.io.modbus_client import LinkFault, ModbusClient, ModbusFault, OverModbus
@@ -25,6 +25,8 @@ class PlantTimeWork(OverModbus, DeviceWork):
     """The device half of a plant clock (its I/O worker's thread): read the plant time
     (ms, uint32, high word first, at `address`); in lockstep, run the plant to a time and
     read it back in the same request."""
+
+    client: ModbusClient
 
     def __init__(self, client: ModbusClient, address: int, out: Latest[tuple[float, float, float]]) -> None:
         super().__init__()
@@ -166,7 +168,7 @@ class LockstepPlantClock(PlantClock):
     clock's I/O worker to write the deadline to the plant's run-to registers and read the
     plant time back in the same request (Modbus function 23: the plant steps its physics
     and its CNC up to the deadline before it answers), then polls every polled source once,
-    stamped with that time (`PolledSource.poll_now`: their workers poll only when asked).
+    stamped with that time (`DrivenSource.poll_now`: their workers poll only when asked).
     So the cycle at plant time t sees the plant's signals at t, and the plant sees the
     output of every cycle before t. Every wait is for a reply, never for wall time: a
     request that fails is retried until `lost_s` (60 s) of wall time without an answer,
@@ -178,8 +180,8 @@ class LockstepPlantClock(PlantClock):
         super().__init__(host, port, device_id=device_id, address=address, timeout_s=lost_s, lost_s=lost_s)
         self._worker.reconnect_min_s = self._worker.reconnect_max_s = 0.01
         self.t_s = 0.0
-        self.sink: Any = None
-        self.sources: list[Any] = []
+        self.sink: DrivenSink | None = None
+        self.sources: list[DrivenSource] = []
         self.finished = False
         self.releases = 0
         self._reads = 0
@@ -193,13 +195,13 @@ class LockstepPlantClock(PlantClock):
     def errors(self) -> int:
         return self._errors
 
-    def adopt_poller(self, source: Any) -> bool:
+    def adopt_poller(self, source: DrivenSource) -> bool:
         """A polled source this clock polls between cycles (its worker polls only when asked)."""
         if not any(source is s for s in self.sources):
             self.sources.append(source)
         return True
 
-    def bind(self, sink: Any, sources: list[Any]) -> None:
+    def bind(self, sink: DrivenSink, sources: Sequence[object]) -> None:
         """The sink whose writes a release waits for; the sources still polled (after a reload)."""
         self.sink = sink
         self.sources = [s for s in self.sources if any(s is x for x in sources)]

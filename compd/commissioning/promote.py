@@ -43,11 +43,14 @@ import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from compd.core.errors import BadInput
+
+if TYPE_CHECKING:
+    from compd.config import Config
 
 MIN_PROBES = 3  # probes per axis the daemon must have scored the shadow on (`--min-probes`)
 
@@ -155,7 +158,7 @@ def score_refusal(status: dict[str, Any] | None, shadow_sha256: str, axes: list[
     return None
 
 
-def _daemon_status(cfg: Any) -> tuple[Path | None, dict[str, Any] | None]:
+def _daemon_status(cfg: Config) -> tuple[Path | None, dict[str, Any] | None]:
     """The status file of the daemon running `cfg`, and its record when that daemon runs (else None)."""
     from compd.service.status import daemon_status_path, liveness, read_status
 
@@ -179,12 +182,13 @@ def _origin(fit: Any) -> str:
     return "fitted" + (f" {str(when)[:40]}" if when else "") + (f" on {str(log)[:120]}" if log else "")
 
 
-def describe(cfg: Any, status: dict[str, Any] | None, shadow_sha256: str) -> list[str]:
+def describe(cfg: Config, status: dict[str, Any] | None, shadow_sha256: str) -> list[str]:
     """What `promote` is about to make the model, a line each: the shadow's kind, file and sha256,
     where it came from, and what it and the active model predict now (the running daemon's status)."""
     from compd.plant.remote_model import read_shadow_record
 
     spec = cfg.shadow
+    assert spec is not None  # `promote` refuses a config without a shadow before it describes one
     kind = spec.cls.kind
     parts = getattr(spec.params, "contributions", None)
     if spec.file is not None:
@@ -298,7 +302,7 @@ def _put_back(path: Path, before: bytes, new: str, stamp: str, pid: int) -> str:
     return str(kept)
 
 
-def _wait_reloaded(status_path: str, cfg: Any, before: Any, wait_s: float) -> bool:
+def _wait_reloaded(status_path: str, cfg: Config, before: Any, wait_s: float) -> bool:
     """Whether the daemon's status shows the promoted model (its kind and file, and no shadow) within `wait_s`."""
     from compd.service.status import read_status
 

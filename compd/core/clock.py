@@ -4,7 +4,25 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from typing import Any
+from collections.abc import Sequence
+from typing import Protocol
+
+
+class DrivenSink(Protocol):
+    """What a clock that drives the I/O between cycles asks of the sink (compd.sinks.base.Sink):
+    that its device's held output is known and its writes acknowledged, each within `timeout_s`."""
+
+    def await_held(self, timeout_s: float) -> bool: ...
+    def flush(self, timeout_s: float) -> bool: ...
+
+
+class DrivenSource(Protocol):
+    """What such a clock asks of a polled source it adopted (compd.sources.base.PolledSource): one
+    poll at the loop time `stamp`, True once done."""
+
+    name: str
+
+    def poll_now(self, stamp: float) -> bool: ...
 
 
 class Clock(ABC):
@@ -28,11 +46,11 @@ class Clock(ABC):
     def now(self) -> float:
         """Loop time, s."""
 
-    def bind(self, sink: Any, sources: list[Any]) -> None:
+    def bind(self, sink: DrivenSink, sources: Sequence[object]) -> None:
         """The pipeline's sink and sources, for a clock that drives their I/O between cycles
-        (a lockstep plant clock); others ignore them."""
+        (a lockstep plant clock: it polls those of them it adopted); others ignore them."""
 
-    def adopt_poller(self, source: Any) -> bool:
+    def adopt_poller(self, source: DrivenSource) -> bool:
         """A polled source asks whether the clock drives its polls (a lockstep plant clock
         polls every source once per cycle at the plant time). False: its I/O worker polls at
         its own pace."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Sequence
 from importlib.metadata import EntryPoint, entry_points
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from compd.core.errors import BadInput
 
@@ -21,8 +21,12 @@ def entry_point(group: str, name: str) -> EntryPoint | None:
     return next(iter(entry_points(group=group, name=name)), None)
 
 
-class Registry:
-    """A table of kinds; `get(kind)` imports the class on first use."""
+T = TypeVar("T")
+
+
+class Registry(Generic[T]):
+    """A table of kinds; `get(kind)` imports the class on first use. `T` is what a kind names:
+    a class (`Registry[type[Model]]`) or a function (the fits')."""
 
     def __init__(self, what: str, table: dict[str, tuple[str, str]], group: str | None = None) -> None:
         self.what = what
@@ -38,7 +42,7 @@ class Registry:
     def kinds(self) -> list[str]:
         return sorted({*self.table, *self.plugins()})
 
-    def get(self, kind: Any, *, path: Sequence[str | int] | None = None) -> type:
+    def get(self, kind: Any, *, path: Sequence[str | int] | None = None) -> T:
         if kind in self.table:
             module_name, class_name = self.table[kind]
             return getattr(importlib.import_module(module_name), class_name)

@@ -10,15 +10,23 @@ caller to place in its file.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import overload
 
 from compd.codec import Encoder
-from compd.config import Config, model_sha256
+from compd.config import Config, ModelSpec, model_sha256
 from compd.core.clock import Clock, SimClock, WallClock
-from compd.core.config import AdaptConfig, CodecConfig, GuardConfig, InhibitConfig, LoopConfig
+from compd.core.config import (
+    AdaptConfig,
+    CodecConfig,
+    GuardConfig,
+    InhibitConfig,
+    LoopConfig,
+    SinkConfig,
+    SourceConfig,
+)
 from compd.core.errors import BadInput
 from compd.core.frame import Frame
 from compd.core.registry import entry_point
@@ -32,7 +40,7 @@ from compd.sinks.base import Sink
 from compd.sources.base import Source
 
 
-def build_model(spec: Any) -> Model:
+def build_model(spec: ModelSpec) -> Model:
     """Instantiate the model of a resolved model section (a config's or a model file's)."""
     model = spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
     model.file = spec.file
@@ -167,8 +175,16 @@ def build_pipeline(
     return Pipeline(sources, frame, model, guard, encoder, sink, loop, word_names, loop.shadow)
 
 
-def _built(cfg: Config, path: tuple[str | int, ...], cls: Any, section: Any, base: str) -> Any:
-    """A source or sink from its section; its own BadInput names the config file and key."""
+@overload
+def _built(cfg: Config, path: tuple[str | int, ...], cls: type[Source], section: SourceConfig, base: str) -> Source: ...
+@overload
+def _built(cfg: Config, path: tuple[str | int, ...], cls: type[Sink], section: SinkConfig, base: str) -> Sink: ...
+def _built(
+    cfg: Config, path: tuple[str | int, ...], cls: Callable[..., Source | Sink], section: SourceConfig | SinkConfig,
+    base: str,
+) -> Source | Sink:
+    """A source or sink from its section (a source's class with a source's, a sink's with a sink's);
+    its own BadInput names the config file and key."""
     try:
         built = cls(section, base_dir=base)
     except BadInput as e:

@@ -12,7 +12,8 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
-from typing import Any
+
+from compd.core.config import RealtimeConfig
 
 MCL_CURRENT = 1
 MCL_FUTURE = 2
@@ -36,7 +37,7 @@ def _mlockall() -> tuple[int, bool]:
     return 0, False
 
 
-def apply_realtime(cfg: Any) -> list[tuple[bool, str]]:
+def apply_realtime(cfg: RealtimeConfig) -> list[tuple[bool, str]]:
     """Apply a RealtimeConfig to the calling thread; returns (ok, what) for each option tried."""
     done: list[tuple[bool, str]] = []
     if cfg.cpu_affinity:

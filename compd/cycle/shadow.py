@@ -53,7 +53,8 @@ class ShadowScore:
         act = math.sqrt(self.active_sq[a] / n) if n else None
         sha = math.sqrt(self.shadow_sq[a] / n) if n else None
         return {"probes": n, "active_rms_um": act, "shadow_rms_um": sha,
-                "better": None if not n else ("shadow" if sha < act else "active"), "last": self.last[a]}
+                "better": None if act is None or sha is None else ("shadow" if sha < act else "active"),
+                "last": self.last[a]}
 
 
 class Shadow:

@@ -41,7 +41,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -49,7 +49,7 @@ from compd.core.errors import BadInput
 from compd.core.probe import Probe
 from compd.cycle.publish import Publisher
 from compd.cycle.realtime import apply_realtime, unshare_pages
-from compd.cycle.statusblock import UNSEEN_S, Description, compose, describe_static
+from compd.cycle.statusblock import UNSEEN_S, Description, StatusBlock, compose, describe_static
 from compd.io import activity
 from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
@@ -63,6 +63,13 @@ from compd.service.notify import Notifier, WatchdogObserver, watchdog_interval_s
 from compd.service.state import StateWriter
 from compd.service.status import lateness_buckets, status_path
 from compd.service.threads import ServiceThread
+
+if TYPE_CHECKING:
+    from compd.config import Config
+    from compd.core.frame import Frame
+    from compd.cycle.loop import Loop
+    from compd.models.base import Model
+    from compd.plant.spec import OpcUaSpec, TelemetrySpec
 
 log = logging.getLogger("compd.service")
 
@@ -123,7 +130,7 @@ def log_probe_event(ev: dict[str, Any]) -> None:
         log.warning("probe %s ignored: %s", axis, kind, extra=extra)
 
 
-def check_status_free(cfg: Any) -> None:
+def check_status_free(cfg: Config) -> None:
     """BadInput when another compd that is alive (or whose cycle is stale: stopped, it may run
     again) writes the status file of `cfg`: two instances on one file overwrite each other's
     state (and `compd status` shows either)."""
@@ -144,7 +151,7 @@ def check_status_free(cfg: Any) -> None:
     raise BadInput(msg, file=str(path))
 
 
-def check_status_folder(cfg: Any) -> None:
+def check_status_folder(cfg: Config) -> None:
     """A config error naming `status.path` when the status file's folder is missing or not
     writable by this user (the file is written through a temporary file beside it)."""
     path = status_path(cfg)
@@ -191,11 +198,11 @@ class ServiceSpec:
     log: LogSpec | None = None
     state: StateSpec | None = None
     adapt_axes: list[str] | None = None
-    telemetry: Any = None  # compd.plant.spec.TelemetrySpec: MQTT Sparkplug B (config `telemetry`)
-    opcua: Any = None  # compd.plant.spec.OpcUaSpec: the OPC UA server (config `opcua`)
+    telemetry: TelemetrySpec | None = None  # MQTT Sparkplug B (config `telemetry`)
+    opcua: OpcUaSpec | None = None  # the OPC UA server (config `opcua`)
     reload: bool = False  # this pipeline replaces another (a reload), not a start
-    block: Any = None  # compd.cycle.statusblock.StatusBlock: the cycle's status record (shared memory)
-    description: Any = None  # compd.cycle.statusblock.Description: what the record does not hold, at the start
+    block: StatusBlock | None = None  # the cycle's status record (shared memory)
+    description: Description | None = None  # what the record does not hold, at the start
     status_period_s: float = 1.0
     extra: dict[str, Any] | None = None  # into every status: config, status_period_s, metrics_url
     t0_s: float = 0.0  # monotonic time the daemon's service began (wall_uptime_s)
@@ -304,7 +311,7 @@ class ServiceWork:
         self._next_status_s = 0.0  # the first status at once, from the record the cycle keeps writing
         self._going.set()
 
-    def _start_telemetry(self, tspec: Any) -> None:
+    def _start_telemetry(self, tspec: TelemetrySpec) -> None:
         """The MQTT client (its own thread) and, when allowed, the remote model handler."""
         from compd.plant.telemetry import Telemetry
 
@@ -465,7 +472,8 @@ class ServiceWork:
         out: status file, metrics, STATUS= line, the plant; the next a period later. A record that
         has not moved for its `stale_after_s` is `stale` (compd.service.status.mark_stale)."""
         spec = self.spec
-        if spec.block is None:
+        description = self.description
+        if spec.block is None or description is None:  # the service of a cycle hands both over
             return
         self._next_status_s = time.monotonic() + spec.status_period_s
         reading = spec.block.read()
@@ -474,11 +482,11 @@ class ServiceWork:
             if reading is None:
                 return
         self._reading = reading
-        snap = compose(reading, self.description)
+        snap = compose(reading, description)
         snap.update(spec.extra or {})
         snap["wall_uptime_s"] = time.monotonic() - spec.t0_s
         age = self.record_age_s()
-        limit = status_mod.stale_after_s(float(self.description.static["period_s"]), snap["state"])
+        limit = status_mod.stale_after_s(float(description.static["period_s"]), snap["state"])
         snap["record_age_s"] = round(age, 3)
         snap["stale_after_s"] = limit
         stale = limit is not None and age > limit
@@ -713,19 +721,32 @@ class _ServiceHost:
         return self.final
 
 
+class Served(Protocol):
+    """What the service reads of the App it serves (compd.daemon.app.App, which imports this module)."""
+
+    @property
+    def cfg(self) -> Config: ...
+    @property
+    def loop(self) -> Loop: ...
+    @property
+    def frame(self) -> Frame: ...
+    @property
+    def model(self) -> Model: ...
+
+
 class Service:
     """The daemon's side of the service for one App: binds the sockets, builds the
     publisher the loop feeds, starts and stops the service (see the module)."""
 
-    def __init__(self, app: Any, observe: bool = False) -> None:
+    def __init__(self, app: Served, observe: bool = False) -> None:
         self.app = app
         self.loop = app.loop
         top = app.cfg.top
         self.observe = observe
         self.period_s = top.status.period_s
         # the plant's (config telemetry, opcua): files read and checked now, so check-config finds what is wrong
-        self.telemetry_spec: Any = None
-        self.opcua_spec: Any = None
+        self.telemetry_spec: TelemetrySpec | None = None
+        self.opcua_spec: OpcUaSpec | None = None
         if top.telemetry is not None or top.opcua is not None:
             from compd.plant import spec as plant_spec
 

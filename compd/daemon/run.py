@@ -5,14 +5,17 @@ from __future__ import annotations
 import logging
 import signal
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from compd.core.errors import BadInput
+
+if TYPE_CHECKING:
+    from compd.daemon.app import App
 
 log = logging.getLogger("compd")
 
 
-def reload(app: Any, config_path: str, remaining: float | None, observe: bool | None) -> Any:
+def reload(app: App, config_path: str, remaining: float | None, observe: bool | None) -> App:
     """One config reload; returns the App that runs on: the new one, or `app` unchanged.
 
     The new pipeline is built and opened (everything that can fail: plant clock, metrics
@@ -84,7 +87,7 @@ def run_with_reload(
     """
     # set only by the signal handlers (which run on this thread, between statements)
     requests = {"stop": False, "reload": 0}
-    current: list[Any] = [None]  # the App that runs, once there is one
+    current: list[App | None] = [None]  # the App that runs, once there is one
 
     def on_stop(signum: int, frame: object) -> None:
         requests["stop"] = True
@@ -107,7 +110,7 @@ def run_with_reload(
 
 def _run(
     config_path: str, duration_s: float | None, observe: bool, log_level: str | None,
-    requests: dict[str, Any], current: list[Any],
+    requests: dict[str, Any], current: list[App | None],
 ) -> dict[str, Any] | None:
     """`run_with_reload` once its handlers are in place: the config read, the App built and run."""
     from compd.config import load_config

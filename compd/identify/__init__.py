@@ -13,14 +13,21 @@ from typing import TYPE_CHECKING, Any
 from compd.core.registry import Registry
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from compd.core.config import Strict
     from compd.identify.data import FitResult
     from compd.log import Log
 
 KINDS = ("feed_axis", "lvr", "xi_spindle", "ar1", "mlr")
 
-FITS = Registry("model", {kind: (f"compd.identify.{kind}", "fit") for kind in KINDS})
-OPTIONS = Registry("model", {kind: (f"compd.identify.{kind}", "Options") for kind in KINDS})
-CHOICES = Registry("model", {kind: (f"compd.identify.{kind}", "choices") for kind in KINDS})
+FITS: Registry[Callable[..., FitResult]] = Registry(
+    "model", {kind: (f"compd.identify.{kind}", "fit") for kind in KINDS}
+)
+OPTIONS: Registry[type[Strict]] = Registry("model", {kind: (f"compd.identify.{kind}", "Options") for kind in KINDS})
+CHOICES: Registry[Callable[[FitResult], dict[str, Any]]] = Registry(
+    "model", {kind: (f"compd.identify.{kind}", "choices") for kind in KINDS}
+)
 # the fit option every kind takes: the inputs' sensor lag (compd.identify.lag); the MLR baseline
 # stays the papers' model unless asked
 COMMON_OPTIONS = {"lag": "the inputs' sensor lag: auto (chosen held out; off where it does not help), off,"

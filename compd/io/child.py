@@ -368,6 +368,6 @@ class Child:
             except Exception as e:
                 value, ok = e, False
             try:
-                self._conn.send(("reply", seq, ok, value))
+                conn.send(("reply", seq, ok, value))
             except Exception as e:  # an answer that does not pickle
                 self.send(("reply", seq, False, RuntimeError(f"{type(e).__name__}: {e}")))

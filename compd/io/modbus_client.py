@@ -33,7 +33,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 from compd.io.worker import LinkDown
 
@@ -311,6 +311,7 @@ class ModbusClient:
             problem = self._tap.tcp_error(getattr(rr, "transaction_id", 0), count, bits=True)
         if problem is not None:
             return self._bad(f"malformed reply to {table} {address}+{count}: {problem}", problem)
+        assert bits is not None  # no problem: the reply had its bits
         return [1 if b else 0 for b in bits[:count]]
 
     def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault:
@@ -396,11 +397,22 @@ def _client_classes() -> tuple[type, type]:
     return _CLASSES
 
 
+class Connectable(Protocol):
+    """What OverModbus connects and closes: a `ModbusClient`, or a device that behaves as one
+    (compd.io.modbus_link.RegisterDevice)."""
+
+    last_error: str | None
+
+    def connect(self) -> bool: ...
+    def close(self) -> None: ...
+
+
 class OverModbus:
     """The connect and disconnect of a device work (compd.io.worker.DeviceWork) whose device
-    is reached through `self.client`; mixed in before the work's base class."""
+    is reached through `self.client`; mixed in before the work's base class (which names the
+    client's own type)."""
 
-    client: ModbusClient
+    client: Connectable
 
     def connect(self) -> None:
         if not self.client.connect():

@@ -32,20 +32,23 @@ from typing import Any, Protocol
 from compd.io.child import hosting_now
 from compd.io.histogram import DurationHist
 from compd.io.mailbox import SharedRegisters, Sync, WriteQueue
-from compd.io.modbus_client import BadReply, LinkFault, ModbusClient, ModbusFault, OverModbus
+from compd.io.modbus_client import (
+    BadReply,
+    Connectable,
+    LinkFault,
+    ModbusClient,
+    ModbusFault,
+    OverModbus,
+)
 from compd.io.worker import DeviceWork, IoWorker, LinkDown, stall_after
 
 log = logging.getLogger("compd.io")
 
 
-class RegisterDevice(Protocol):
+class RegisterDevice(Connectable, Protocol):
     """What a link's worker talks to: a Modbus client (`ModbusClient`), or a device that shows
     itself as registers the same way (compd.sinks.hal_link: LinuxCNC's HAL)."""
 
-    last_error: str | None
-
-    def connect(self) -> bool: ...
-    def close(self) -> None: ...
     def release(self) -> None: ...
     def read_registers(self, address: int, count: int) -> list[int] | ModbusFault: ...
     def write_registers(self, address: int, values: Sequence[int]) -> None | ModbusFault: ...
@@ -53,6 +56,8 @@ class RegisterDevice(Protocol):
 
 class LinkWork(OverModbus, DeviceWork):
     """The device half of a link (the worker's thread): send what is queued, read the status."""
+
+    client: RegisterDevice
 
     def __init__(
         self,

@@ -1,8 +1,15 @@
 """Thermal-error models, one module each, found by YAML `kind`."""
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 from compd.core.registry import Registry
 
-MODELS = Registry(
+if TYPE_CHECKING:
+    from compd.models.base import Model
+
+MODELS: Registry[type[Model]] = Registry(
     "model",
     {
         "xi_spindle": ("compd.models.xi_spindle", "XiSpindle"),

@@ -200,6 +200,7 @@ class AR1(Model):
     summary_keys = ("c1", "c2_table", "c3_um_per_k", "c1_table", "speed_law", "bed_gain_um_per_k",
                     "exchange_um_per_k", "spindle_sign", "dt_s")
     Params = AR1Params
+    params: AR1Params
 
     def __init__(self, params: AR1Params, inputs: list[str], outputs: list[str], fit=None):
         super().__init__(params, inputs, outputs, fit)
@@ -250,19 +251,21 @@ class AR1(Model):
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
         """One Δτ step: S = C1 S + C2(n) + C3 ΔT_amb + Σ C_x ΔT_x (S(0) = 0 at a cold start);
         E = Σ g ΔT_bed + s S (µm)."""
+        x0 = self.x0
+        assert x0 is not None  # `start` latched it
         if self._fresh:
             self._fresh = False  # ΔL(0) = 0 (eq. 17): the first step adds nothing
         else:
             u = self._c2_at(x[0])
             if self._amb > 0:
-                u += self._c3 * (x[self._amb] - self.x0[self._amb - 1])
+                u += self._c3 * (x[self._amb] - x0[self._amb - 1])
             ix = self._ix
             for j, g in enumerate(self._xgain):
-                u += g * (x[ix + j] - self.x0[ix - 1 + j])
+                u += g * (x[ix + j] - x0[ix - 1 + j])
             self.s_um = self.c1_at(x[0]) * self.s_um + u
         e = self._sign * self.s_um
         if self._nb:
-            np.subtract(x[1 : 1 + self._nb], self.x0[: self._nb], out=self._rise)
+            np.subtract(x[1 : 1 + self._nb], x0[: self._nb], out=self._rise)
             e += float(self._rise @ self._gain)
         out[0] = e
 
@@ -300,12 +303,14 @@ class AR1(Model):
         return np.array([self.c1_at(v) for v in speed_rpm])
 
     def _response(self, Xs: np.ndarray, c1: float | np.ndarray, s0: float = 0.0) -> np.ndarray:
+        x0 = self.x0
+        assert x0 is not None  # `start` latched it
         u = np.array([self._c2_at(v) for v in Xs[:, 0]])
         if self._amb > 0:
-            u += self._c3 * (Xs[:, self._amb] - self.x0[self._amb - 1])
+            u += self._c3 * (Xs[:, self._amb] - x0[self._amb - 1])
         if self._xgain:
             ix = self._ix
-            u += (Xs[:, ix:] - self.x0[ix - 1:]) @ self._xgain_arr
+            u += (Xs[:, ix:] - x0[ix - 1:]) @ self._xgain_arr
         if self._fresh and u.size:
             # ΔL(0) = 0 (eq. 17): the first row keeps S; only a cold start has _fresh, so S = s0 = 0
             u[0] = 0.0
@@ -315,7 +320,7 @@ class AR1(Model):
         self._last_s = s[-1]
         e = self._sign * s
         if self._nb:
-            e = e + (Xs[:, 1 : 1 + self._nb] - self.x0[: self._nb]) @ self._gain
+            e = e + (Xs[:, 1 : 1 + self._nb] - x0[: self._nb]) @ self._gain
         return e
 
     def get_state(self) -> dict[str, Any]:

@@ -64,7 +64,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -77,6 +77,13 @@ from compd.models.erf import erf, erf_inplace
 ErfFn = Callable[[np.ndarray], np.ndarray]
 
 Role = Literal["position", "current", "motor_temp", "ambient", "slide", "offset", "rise"]
+
+
+def _position_only() -> list[Role]:
+    """The default input_roles: one input, the position."""
+    return ["position"]
+
+
 FIELD_ROLES = ("slide", "offset", "rise")  # roles several inputs may have (the measured forms)
 
 
@@ -172,7 +179,7 @@ class FeedAxisParams(LeadParams):
         0.00393, ge=0, le=0.1, description="ζ, copper resistance temperature coefficient (copper 0.00393)"
     )
     input_roles: list[Role] = Field(
-        default_factory=lambda: ["position"], description="what each input is, in input order"
+        default_factory=_position_only, description="what each input is, in input order"
     )
     cooling_time_s: float | None = Field(
         None,
@@ -358,6 +365,7 @@ def position_weights(pos_mm: np.ndarray, p: FeedAxisParams) -> np.ndarray:
 
 def error_um(t_s, q_j, pos_mm, p: FeedAxisParams) -> np.ndarray:
     """E(t, y) in µm for arrays of heating time, heat and position (paper 000, eq. 21)."""
+    assert p.chi_per_m is not None, "the analytic form's params (FeedAxisParams checks they are all given)"
     f = error_basis(np.atleast_1d(t_s), np.atleast_1d(q_j), np.atleast_1d(pos_mm), p, p.chi_per_m, p.diffusivity_m2_s)
     return p.xi * (f @ np.array([p.u1_k, p.u2_k, p.eta]))
 
@@ -457,7 +465,7 @@ class _Measured:
         return self.rise
 
 
-def _role_indices(roles: list[str], role: str) -> np.ndarray:
+def _role_indices(roles: Sequence[str], role: str) -> np.ndarray:
     return np.array([i for i, r in enumerate(roles) if r == role], dtype=np.intp)
 
 
@@ -485,9 +493,9 @@ class _FieldForm(_Measured):
         self.off = np.zeros(self.i_off.size)
         self.v = np.zeros(self.i_slide.size + 1 + self.i_off.size)
         if p.linear_p0_mm is not None:
-            self.lin = self._linear_matrix(p)
+            self.lin = self._linear_matrix(p, p.linear_p0_mm)
 
-    def _linear_matrix(self, p: FeedAxisParams) -> np.ndarray:
+    def _linear_matrix(self, p: FeedAxisParams, p0_mm: float) -> np.ndarray:
         """M with (K0, tanβ) = M v, v = (slide rises, ambient rise, offset rises): E is linear in v."""
         y = np.linspace(0.0, p.length_mm, p.segments + 1)
         k = self.i_slide.size
@@ -499,7 +507,7 @@ class _FieldForm(_Measured):
         cols.append(field_terms(np.zeros((y.size, k)), y, np.ones_like(y), p) @ self.gain)
         cols += [np.full_like(y, b) for b in self.b_off]
         W = np.column_stack(cols)
-        P = np.c_[np.ones_like(y), p.stroke_start_mm + y - p.linear_p0_mm]
+        P = np.c_[np.ones_like(y), p.stroke_start_mm + y - p0_mm]
         return np.linalg.pinv(P) @ W
 
     def start(self, x: np.ndarray) -> None:
@@ -598,6 +606,7 @@ class FeedAxis(Model):
     summary_keys = ("eta", "u1_k", "u2_k", "chi_per_m", "xi", "alpha_per_k", "length_mm", "cooling_time_s",
                     "linear_p0_mm", "field", "position_poly")
     Params = FeedAxisParams
+    params: FeedAxisParams
 
     def __init__(self, params: FeedAxisParams, inputs: list[str], outputs: list[str], fit=None):
         super().__init__(params, inputs, outputs, fit)
@@ -626,7 +635,10 @@ class FeedAxis(Model):
         self._scale = p.xi * p.alpha_per_k * self._seg_mm * 1000.0
         self._inv_rho_c = (p.eta or 0.0) / _heat_capacity(p)
         self._tau = p.cooling_time_s
-        self._steady_per_j = 1.0 / (p.cooling_time_s * p.ref_power_w) if p.cooling_time_s else 0.0
+        # (the params give ref_power_w with cooling_time_s)
+        self._steady_per_j = 1.0 / (p.cooling_time_s * p.ref_power_w) if p.cooling_time_s and p.ref_power_w else 0.0
+        # the motor's loss without a current input: constant (the params give power_w then)
+        self._power_w = 0.0 if p.power_w is None else float(p.power_w)
         self._hds_now = self._hds.copy()
         self.t_start_s: float | None = None
         self.heat_j = 0.0
@@ -657,7 +669,7 @@ class FeedAxis(Model):
         if self._field is not None:
             return 0.0
         if self._i_cur < 0:
-            return float(p.power_w)
+            return self._power_w
         i = x[self._i_cur]
         corr = 1.0
         if self._i_mot >= 0 and self._i_amb >= 0:
@@ -696,6 +708,7 @@ class FeedAxis(Model):
             self.heat_j = decay * self.heat_j + self._tau * (1.0 - decay) * 0.5 * (pw + self._p_prev)
         self._p_prev = pw
         self._t_prev = t_s
+        assert self.t_start_s is not None  # `start` set it
         t = t_s - self.t_start_s
         if t <= 0.0:
             out[0] = 0.0

@@ -123,6 +123,7 @@ class LVR(RiseLinear):
     summary_keys = ("n_components", "coef_um_per_k", "intercept_um")
     per_axis_keys = ("intercept_um",)
     Params = LVRParams
+    params: LVRParams
 
     @classmethod
     def check_wiring(cls, params, inputs, outputs) -> None:

@@ -6,11 +6,12 @@ ordinary least squares (compd.identify.mlr). `RiseLinear` is the shared run-time
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 from pydantic import Field, model_validator
 
+from compd.core.config import Strict
 from compd.models.base import (
     MAX_ERROR_UM,
     MAX_GAIN_UM_PER_K,
@@ -62,7 +63,8 @@ class RiseLinearParams(LeadParams):
 class RiseLinear(Model):
     """Run-time form shared by mlr and lvr: out = b0 + (x − x0) B, allocation-free."""
 
-    Params = RiseLinearParams
+    Params: ClassVar[type[Strict]] = RiseLinearParams  # LVR's adds a field: its own Params
+    params: RiseLinearParams
 
     def __init__(self, params: RiseLinearParams, inputs: list[str], outputs: list[str], fit=None):
         super().__init__(params, inputs, outputs, fit)
@@ -126,6 +128,7 @@ class RiseLinear(Model):
             self._deg_key = key
             self._deg_B, self._deg_b0, self.degraded_sigma_um = self._degraded_form(good.copy())
             self._deg_bad = ~good.copy()
+        assert self.x0 is not None  # `start` latched it
         np.subtract(x, self.x0, out=self._rise)
         np.copyto(self._rise, 0.0, where=self._deg_bad)
         np.dot(self._rise, self._deg_B, out=out)
@@ -137,6 +140,7 @@ class RiseLinear(Model):
             self.x0 = np.array(x, dtype=float)
 
     def evaluate(self, x: np.ndarray, t_s: float, out: np.ndarray) -> None:
+        assert self.x0 is not None  # `start` latched it
         np.subtract(x, self.x0, out=self._rise)
         np.dot(self._rise, self.B, out=out)
         out += self.b0

@@ -219,6 +219,7 @@ class XiSpindle(Model):
     kind = "xi_spindle"
     summary_keys = ("alpha_per_k", "length_mm", "xi_mm", "t0_c", "lift")
     Params = XiSpindleParams
+    params: XiSpindleParams
 
     def __init__(self, params: XiSpindleParams, inputs: list[str], outputs: list[str], fit=None):
         super().__init__(params, inputs, outputs, fit)

@@ -35,9 +35,9 @@ The probe result (500–507) is not the ladder's: the CNC's probing cycle writes
 from __future__ import annotations
 
 import threading
-from typing import Any
 
 from compd.plc.link import VirtualDevice, last_due
+from compd.plc.pci1756 import DoCard
 from compd.plc.probe_block import PROBE_COUNT, ProbeBlock
 
 X_BASE, Y_BASE, R_BASE, D_BASE, S_BASE, PROBE_BASE = 0, 100, 200, 300, 400, 500
@@ -73,7 +73,7 @@ class FanucPmc(VirtualDevice):
         word_x: int = 0,
         strobe_x: int = 2,
         strobe_bit: int = 0,
-        card: Any = None,
+        card: DoCard | None = None,
     ) -> None:
         self.scan_s = scan_s
         self.mem = [0] * PROBE_BASE  # X..status; the probe block lives in `probe`

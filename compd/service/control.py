@@ -39,11 +39,14 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from compd.core.errors import BadInput
 from compd.core.probe import Probe, brief, finite_number, probe_problem
 from compd.service.threads import ServiceThread
+
+if TYPE_CHECKING:
+    from compd.config import Config
 
 log = logging.getLogger("compd.control")
 
@@ -58,7 +61,7 @@ class NoDaemon(Exception):
     """Nothing answers on the socket: no file, a stale file, or no answer in time."""
 
 
-def socket_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
+def socket_path(cfg: Config, env: dict[str, str] | None = None) -> Path | None:
     """The probe socket of a config with an `adapt` section: `adapt.socket_path`, else next
     to the status file (its suffix replaced by `.sock`); None without either."""
     from compd.service.status import status_path
@@ -73,7 +76,7 @@ def socket_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
     return None if status is None else sock_beside(status)
 
 
-def socket_key(cfg: Any) -> tuple[str, ...]:
+def socket_key(cfg: Config) -> tuple[str, ...]:
     """The config key the probe socket's path comes from: `adapt.socket_path`, else `status.path`
     (the socket lies beside the status file; under systemd beside $RUNTIME_DIRECTORY/status.json)."""
     ad = cfg.top.adapt
@@ -98,7 +101,7 @@ def unbindable(path: Path) -> str | None:
     return None if stat.S_ISSOCK(mode) else f"{path} exists and is not a socket"
 
 
-def check_socket_path(cfg: Any, env: dict[str, str] | None = None) -> None:
+def check_socket_path(cfg: Config, env: dict[str, str] | None = None) -> None:
     """A config error naming the key (`socket_key`) when the probe socket of `cfg` cannot be
     bound where it would be (`unbindable`): what `compd check-config` accepts, `compd run` binds."""
     path = socket_path(cfg, env)

@@ -14,9 +14,12 @@ import os
 import socket
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from compd.io.ring import SharedBlob
+
+if TYPE_CHECKING:
+    from compd.cycle.loop import Loop
 
 
 def socket_address(value: str) -> str:
@@ -120,7 +123,7 @@ class WatchdogObserver:
             self.notifier.send(WATCHDOG=1)
             self.pings += 1
 
-    def __call__(self, loop: Any, now_s: float) -> None:
+    def __call__(self, loop: Loop, now_s: float) -> None:
         t = self.clock()
         if t >= self._next_status_s and self.ready:
             self._next_status_s = t + self.status_every_s

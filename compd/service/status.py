@@ -20,7 +20,7 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,6 +37,10 @@ from compd.cycle.statusblock import (
     describe,
 )
 from compd.io.histogram import bin_percentiles, over_range, percentile_text, range_limit_us
+
+if TYPE_CHECKING:
+    from compd.config import Config
+    from compd.cycle.loop import Loop
 
 
 def stale_after_s(period_s: float, state: str) -> float | None:
@@ -119,7 +123,7 @@ def lateness_buckets(
     return out, int(cum[-1]), total_us * 1e-6
 
 
-def snapshot(loop: Any, *, state: str, observe: bool, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+def snapshot(loop: Loop, *, state: str, observe: bool, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The status of `loop` now, composed in this process the way the service composes it
     (a record written and read back, the devices described from the pipeline's objects)."""
     block = StatusBlock(loop)
@@ -496,7 +500,7 @@ def _process_lines(data: dict[str, Any]) -> list[str]:
     return out
 
 
-def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
+def status_path(cfg: Config, env: dict[str, str] | None = None) -> Path | None:
     """The status file: `status.path` (relative to the config), else $RUNTIME_DIRECTORY/status.json."""
     env = dict(os.environ) if env is None else env
     if cfg.top.status.path:
@@ -505,7 +509,7 @@ def status_path(cfg: Any, env: dict[str, str] | None = None) -> Path | None:
     return Path(runtime) / "status.json" if runtime else None
 
 
-def daemon_status_path(cfg: Any) -> Path:
+def daemon_status_path(cfg: Config) -> Path:
     """Where the daemon of `cfg` writes its status, as another process finds it: `status.path`,
     else where the systemd units put it (RuntimeDirectory `compd` for compd.yaml, `compd/NAME`
     for the instance compd@NAME)."""

@@ -1,8 +1,15 @@
 """Correction sinks, one module per output, found by YAML `kind`."""
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 from compd.core.registry import Registry
 
-SINKS = Registry(
+if TYPE_CHECKING:
+    from compd.sinks.base import Sink
+
+SINKS: Registry[type[Sink]] = Registry(
     "sink",
     {
         "pci1756": ("compd.sinks.pci1756", "Pci1756Sink"),

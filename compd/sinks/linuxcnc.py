@@ -220,8 +220,10 @@ class LinuxcncSink(Sink):
     def limited(self) -> bool:
         """LinuxCNC limited the offsets' motion by a soft limit (`motion.eoffset-limited`)."""
         regs = self.link.status if self.link is not None else None
-        return bool(regs) and any(regs[BLOCK * k + FLAGS] & LIMITED for k in range(len(self.hal_axes))
-                                  if BLOCK * k + FLAGS < len(regs))
+        if not regs:
+            return False
+        return any(regs[BLOCK * k + FLAGS] & LIMITED for k in range(len(self.hal_axes))
+                   if BLOCK * k + FLAGS < len(regs))
 
     def safe(self) -> bool:
         """Walk each axis's counts to an offset of 0 at `safe_ramp_um_per_s` and wait until LinuxCNC

@@ -131,6 +131,7 @@ class Pci1756Sink(Sink):
 
     def __init__(self, cfg: Pci1756Config, base_dir: str = ".", card: DoCard | None = None) -> None:
         super().__init__(cfg, base_dir)
+        self.cfg: Pci1756Config = cfg
         if card is None and cfg.device == "modbus":
             card = ModbusDoCard(cfg.host, cfg.port, cfg.device_id, cfg.x_register)
         elif card is None:

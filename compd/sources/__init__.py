@@ -4,9 +4,16 @@ Other packages add source kinds through the `compd.sources` entry-point group (t
 simulator's `sim` source is one).
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 from compd.core.registry import Registry
 
-SOURCES = Registry(
+if TYPE_CHECKING:
+    from compd.sources.base import Source
+
+SOURCES: Registry[type[Source]] = Registry(
     "source",
     {
         "replay": ("compd.sources.replay", "ReplaySource"),

@@ -111,7 +111,7 @@ class HalSource(PolledSource):
         self.stale_after_s = cfg.stale_after_s
 
     def signal_names(self) -> list[str]:
-        return [s.name for s in self.cfg.signals]  # type: ignore[attr-defined]
+        return [s.name for s in self.cfg.signals]
 
     def make_poller(self, snapshot: Snapshot) -> HalPoller:
         return HalPoller(self.cfg, snapshot)

@@ -257,6 +257,8 @@ class ModbusPoller(OverModbus, Poller):
     """The device half of a Modbus source: the planned requests, read through the Modbus
     client, decoded into temperatures and qualities (runs on the worker's thread)."""
 
+    client: ModbusClient
+
     def __init__(
         self, cfg: ModbusConfig, channels: list[_Channel], requests: list[tuple[int, int]], snapshot: Snapshot,
         name: str,
@@ -313,9 +315,9 @@ class ModbusPoller(OverModbus, Poller):
                 )
             regs.update(zip(range(start, start + count), r, strict=True))
         for i, ch in enumerate(self._channels):
-            words = [regs.get(ch.address + k) for k in range(ch.width)]
+            words = [regs[a] for a in range(ch.address, ch.address + ch.width) if a in regs]
             status = regs.get(ch.status_address) if ch.status_address is not None else 0
-            if any(w is None for w in words) or status is None:
+            if len(words) < ch.width or status is None:
                 quality[i] = Quality.COMMS_LOST
                 continue
             raw, number = decode_registers(words, ch.data_type, ch.byte_order, ch.word_order)

@@ -138,6 +138,8 @@ class ProbePoller(OverModbus, DeviceWork):
     """The device half, on the worker's thread: read the block, compare its sequence number,
     hand a new result on."""
 
+    client: ModbusClient
+
     def __init__(self, cfg: ProbeConfig, address: int, out: MessageRing, name: str) -> None:
         super().__init__()
         self.cfg = cfg

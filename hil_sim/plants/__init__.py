@@ -1,8 +1,15 @@
 """The simulated machines, found by name."""
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 from compd.core.registry import Registry
 
-PLANTS = Registry(
+if TYPE_CHECKING:
+    from hil_sim.plants.base import Plant
+
+PLANTS: Registry[type[Plant]] = Registry(
     "plant",
     {
         "spindle": ("hil_sim.plants.spindle", "SpindlePlant"),
