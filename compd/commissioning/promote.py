@@ -185,7 +185,7 @@ def describe(cfg: Any, status: dict[str, Any] | None, shadow_sha256: str) -> lis
     from compd.plant.remote_model import read_shadow_record
 
     spec = cfg.shadow
-    kind = spec.cls.kind
+    kind = spec.kind
     parts = getattr(spec.params, "contributions", None)
     if spec.file is not None:
         what = f"{kind}, file {spec.file}, sha256 {shadow_sha256}"
@@ -258,7 +258,7 @@ def promote(config: str | Path, *, force: bool = False, reload: bool = True, wai
         why = score_refusal(status, sha, list(cfg.shadow.outputs), min_probes)
         if why is not None:
             raise cfg.doc.error(f"not promoted: {why} (give --force to promote it anyway)", ("shadow",))
-    result: dict[str, Any] = {"config": str(path), "model": new_cfg.model.cls.kind,
+    result: dict[str, Any] = {"config": str(path), "model": new_cfg.model.kind,
                               "model_file": new_cfg.model.file, "text": new, "sha256": sha}
     if dry_run:
         return result
@@ -302,7 +302,7 @@ def _wait_reloaded(status_path: str, cfg: Any, before: Any, wait_s: float) -> bo
     """Whether the daemon's status shows the promoted model (its kind and file, and no shadow) within `wait_s`."""
     from compd.service.status import read_status
 
-    want_kind, want_file = cfg.model.cls.kind, cfg.model.file
+    want_kind, want_file = cfg.model.kind, cfg.model.file
     deadline = time.monotonic() + wait_s
     while time.monotonic() < deadline:
         try:
