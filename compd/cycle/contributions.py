@@ -47,7 +47,7 @@ from compd.models.base import Model, ModelStage
 
 
 class _Part:
-    """One contribution's model and its per-axis limiter state (arrays made once)."""
+    """One contribution's model, where its inputs and outputs sit in the sum's, and its buffers (made once)."""
 
     def __init__(self, p: ContributionParams, model: Model, idx: np.ndarray, axes: list[int]) -> None:
         self.name = p.name

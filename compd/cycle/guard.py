@@ -4,9 +4,11 @@ Per cycle the guard (1) marks implausible model inputs (range, rate of change,
 staleness) in the frame, (2) turns the predicted error into a target correction
 (−prediction, clamped), and (3) moves each axis's output toward its target no
 faster than the slew limit, or — when an input the axis needs is bad — applies the
-axis's fault policy (the three, one limiter per guard: compd.cycle.limiter): `hold` the last correction, `ramp_to_zero` at a set rate, or
+axis's fault policy: `hold` the last correction, `ramp_to_zero` at a set rate, or
 `disable` (enable bit off). Recovery waits until the inputs have been good for
 `recovery_s` and then slews from wherever the output is, so nothing ever steps.
+(2) and (3) are compd.cycle.limiter's, one channel per axis: the limiter every
+contribution of a sum is limited by too.
 An axis the machine holds off (`hold`, set each cycle by compd.cycle.inhibit: inhibited, or
 waiting for its reference) targets zero at its slew limit, whatever its state, and
 slews back to its target once released.
