@@ -19,9 +19,12 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from compd.core.config import (
     MODEL_MAX_BYTES,
     MODEL_MAX_VALUES,
+    SUM_KIND,
     CodecConfig,
     ConfigModel,
+    ContributionParams,
     ContributionSection,
+    ContributionSetParams,
     ContributionsSection,
     Document,
     GuardConfig,
@@ -70,9 +73,12 @@ class DrivenAxes:
 
 @dataclass
 class ModelSpec:
-    """A resolved model: its class, validated params and wiring."""
+    """A resolved model: its class, validated params and wiring.
 
-    cls: type[Model]
+    A sum of contributions has no class here (`cls` None, params a ContributionSetParams): it is a
+    stage of the cycle, which compd.cycle.pipeline.build_model builds from the params."""
+
+    cls: type[Model] | None
     params: Strict
     inputs: list[str]
     outputs: list[str]
@@ -83,6 +89,11 @@ class ModelSpec:
     file: str | None = None  # the model file (absolute), None for inline params
     sha256: str | None = None  # the model file's bytes as read (`sha256sum` prints it), None without a file
 
+    @property
+    def kind(self) -> str:
+        """The model's kind (`contributions` for a sum)."""
+        return SUM_KIND if self.cls is None else str(self.cls.kind)
+
 
 def model_sha256(spec: ModelSpec) -> str:
     """What a resolved model is, as one sha256: its model file's (the bytes it was read from), else
@@ -91,7 +102,7 @@ def model_sha256(spec: ModelSpec) -> str:
     `compd promote`'s reading of the config are compared by it."""
     if spec.sha256 is not None:
         return spec.sha256
-    definition = {"kind": spec.cls.kind, "inputs": list(spec.inputs), "outputs": list(spec.outputs),
+    definition = {"kind": spec.kind, "inputs": list(spec.inputs), "outputs": list(spec.outputs),
                   "update_period_s": spec.update_period_s, "params": spec.params.model_dump(mode="json")}
     text = json.dumps(definition, sort_keys=True, default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
@@ -240,9 +251,6 @@ def resolve_model(
     return ModelSpec(cls, params, list(inputs), list(outputs), sec.update_period_s, fit, pdoc, path, mfile, sha256)
 
 
-SUM_KIND = "contributions"  # a model file of several contributions summed (`compd fit --kind all` may write one)
-
-
 def _resolve_sum_file(
     section: dict[str, Any], doc: Document, path: PathT, base_dir: Path, guard: GuardConfig,
     axes: DrivenAxes | None,
@@ -289,10 +297,9 @@ def _resolve_contributions(
     axes: DrivenAxes | None = None, fits: list[dict[str, Any]] | None = None,
 ) -> ModelSpec:
     """`model.contributions`: each item resolved as a model section; the sum's spec (kind
-    `contributions`: compd.models.contributions) with each one's limits settled. Each one's
-    outputs are among `axes`; without them, the first contribution's outputs declare the axes."""
-    from compd.models.contributions import ContributionParams, Contributions, ContributionSetParams
-
+    `contributions`, no class: the cycle's stage compd.cycle.contributions, built by the pipeline)
+    with each one's limits settled. Each one's outputs are among `axes`; without them, the first
+    contribution's outputs declare the axes."""
     sec = validate(ContributionsSection, section, doc, path)
     parts: list[ContributionParams] = []
     names: set[str] = set()
@@ -307,13 +314,13 @@ def _resolve_contributions(
         spec = resolve_model(own, doc, where, base_dir, axes=axes)
         if axes is None:  # declared by none: the first contribution's outputs declare them
             axes = DrivenAxes(tuple(spec.outputs), f"the outputs of {format_path(where)}; codec.axes declares more")
-        name = csec.name or spec.cls.kind
+        name = csec.name or spec.kind
         if name in names:
             raise doc.error(f"contribution name {name!r} is used twice (give each a `name`)", (*where, "name"))
         names.add(name)
         outs = list(spec.outputs)
         parts.append(ContributionParams(
-            name=name, kind=spec.cls.kind, inputs=list(spec.inputs), outputs=outs,
+            name=name, kind=spec.kind, inputs=list(spec.inputs), outputs=outs,
             params=spec.params.model_dump(mode="json"), fit=dict(fits[i] if fits else spec.fit), file=spec.file,
             update_period_s=spec.update_period_s,
             max_abs_um=[csec.max_abs_um or guard.clamp_um(a)[0] for a in outs],
@@ -324,7 +331,7 @@ def _resolve_contributions(
                                    recovery_s=guard.recovery_s)
     inputs = list(dict.fromkeys(n for p in parts for n in p.inputs))
     outputs = list(dict.fromkeys(a for p in parts for a in p.outputs))
-    return ModelSpec(Contributions, params, inputs, outputs, None, {}, doc, path, None)
+    return ModelSpec(None, params, inputs, outputs, None, {}, doc, path, None)
 
 
 def _axis_policy(guard: GuardConfig, axis: str) -> str:

@@ -138,7 +138,7 @@ def test_replay_trend_has_the_guards_fault_spans_and_the_words_bytes(tmp_path):
     trend's fault mask is the guard's state, and the commanded line is the word decoded."""
     from compd.commissioning.plots import trend_from_replay
     from compd.commissioning.replay import replay_config, write_plot
-    from compd.cycle.guard import FAULT, RECOVERING
+    from compd.cycle.limiter import FAULT, RECOVERING
 
     n = 200
     t = np.arange(n) * 10.0

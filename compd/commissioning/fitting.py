@@ -21,6 +21,7 @@ from compd.commissioning.recommend import SUM_MARGIN
 from compd.commissioning.thermaltest import thermal_test
 from compd.core.errors import BadInput
 from compd.core.scoring import score_residual
+from compd.cycle.contributions import Contributions
 from compd.identify import CHOICES, FITS, KINDS, holdout, identify, option_names
 from compd.identify.data import (
     columns,
@@ -592,7 +593,8 @@ def load_model(path: str | Path) -> Model:
     doc, data = load_model_file(path)
     p = Path(path).resolve()
     spec = resolve_model({"kind": data["kind"], "file": str(p)}, doc, (), p.parent)
-    return spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
+    cls = Contributions if spec.cls is None else spec.cls  # a sum: the cycle's stage (compd.cycle.pipeline)
+    return cls(spec.params, spec.inputs, spec.outputs, spec.fit)
 
 
 def write_prediction(path: str | Path, t_s: np.ndarray, axes: list[str], pred: np.ndarray) -> None:

@@ -372,7 +372,7 @@ def probe_matrix(log: Log, axes: list[str]) -> np.ndarray | None:
 def trend_from_replay(result: Any) -> Trend:
     """The trend of a `compd replay` (a compd.commissioning.replay.ReplayResult): the guard's states give the
     fault bands (fault and recovering)."""
-    from compd.cycle.guard import FAULT, RECOVERING
+    from compd.cycle.limiter import FAULT, RECOVERING
 
     ex = result.extra
     state = ex.get("guard_state")

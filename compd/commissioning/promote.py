@@ -189,7 +189,7 @@ def describe(cfg: Config, status: dict[str, Any] | None, shadow_sha256: str) -> 
 
     spec = cfg.shadow
     assert spec is not None  # `promote` refuses a config without a shadow before it describes one
-    kind = spec.cls.kind
+    kind = spec.kind
     parts = getattr(spec.params, "contributions", None)
     if spec.file is not None:
         what = f"{kind}, file {spec.file}, sha256 {shadow_sha256}"
@@ -262,7 +262,7 @@ def promote(config: str | Path, *, force: bool = False, reload: bool = True, wai
         why = score_refusal(status, sha, list(cfg.shadow.outputs), min_probes)
         if why is not None:
             raise cfg.doc.error(f"not promoted: {why} (give --force to promote it anyway)", ("shadow",))
-    result: dict[str, Any] = {"config": str(path), "model": new_cfg.model.cls.kind,
+    result: dict[str, Any] = {"config": str(path), "model": new_cfg.model.kind,
                               "model_file": new_cfg.model.file, "text": new, "sha256": sha}
     if dry_run:
         return result
@@ -306,7 +306,7 @@ def _wait_reloaded(status_path: str, cfg: Config, before: Any, wait_s: float) ->
     """Whether the daemon's status shows the promoted model (its kind and file, and no shadow) within `wait_s`."""
     from compd.service.status import read_status
 
-    want_kind, want_file = cfg.model.cls.kind, cfg.model.file
+    want_kind, want_file = cfg.model.kind, cfg.model.file
     deadline = time.monotonic() + wait_s
     while time.monotonic() < deadline:
         try:

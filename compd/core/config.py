@@ -497,10 +497,15 @@ class SignalLimits(Strict):
         return self
 
 
+# what an axis or a contribution does when an input it needs goes bad (compd.cycle.limiter.Policy:
+# the enum these names stand for)
+FaultPolicy = Literal["hold", "ramp_to_zero", "disable"]
+
+
 class AxisGuardConfig(Strict):
     """Per-axis overrides of the guard."""
 
-    fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = Field(
+    fault_policy: FaultPolicy | None = Field(
         None, description="this axis's fault policy; none = guard.fault_policy"
     )
     max_abs_um: float | None = Field(
@@ -523,7 +528,7 @@ class GuardConfig(Strict):
         5.0, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
         description="largest rate of change (thermal errors drift by µm per minute)",
     )
-    fault_policy: Literal["hold", "ramp_to_zero", "disable"] = Field(
+    fault_policy: FaultPolicy = Field(
         "hold", description="what an axis does when an input it needs goes bad"
     )
     ramp_um_per_s: float = Field(
@@ -931,7 +936,7 @@ class ContributionSection(ModelSection):
         None, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
         description="how fast this contribution may change; none = its axis's slew limit",
     )
-    fault_policy: Literal["hold", "ramp_to_zero", "disable"] | None = Field(
+    fault_policy: FaultPolicy | None = Field(
         None, description="what this contribution does when one of its inputs goes bad and its model cannot"
         " predict from the rest (mlr and lvr with their fit's statistics go on from the others: `degraded`), while"
         " the others keep compensating; disable takes its axes to their own fault policy; none = its axis's",
@@ -944,6 +949,35 @@ class ContributionsSection(Strict):
     contributions: list[dict[str, Any]] = Field(
         min_length=1, max_length=16, description="the contributions, each a model section with a name and limits"
     )
+
+
+SUM_KIND = "contributions"  # the kind of a sum of contributions (a model file `compd fit --kind all` may write)
+
+
+class ContributionParams(Strict):
+    """One contribution as the config resolved it: its model (kind, wiring, params as in its
+    file) and its limits per output axis (its own, or its axis's)."""
+
+    name: str
+    kind: str
+    inputs: list[str]
+    outputs: list[str]
+    params: dict[str, Any]
+    fit: dict[str, Any] = Field(default_factory=dict)
+    file: str | None = None
+    update_period_s: float | None = None
+    max_abs_um: list[float]
+    max_slew_um_per_s: list[float]
+    fault_policy: list[FaultPolicy]
+
+
+class ContributionSetParams(Strict):
+    """The params of a sum of contributions (compd.cycle.contributions): the contributions and what
+    their fault policies share with the guard."""
+
+    contributions: list[ContributionParams]
+    ramp_um_per_s: float = 1.0
+    recovery_s: float = 5.0
 
 
 def did_you_mean(name: str, known: list[str] | tuple[str, ...]) -> str:

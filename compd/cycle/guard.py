@@ -7,6 +7,8 @@ faster than the slew limit, or — when an input the axis needs is bad — appli
 axis's fault policy: `hold` the last correction, `ramp_to_zero` at a set rate, or
 `disable` (enable bit off). Recovery waits until the inputs have been good for
 `recovery_s` and then slews from wherever the output is, so nothing ever steps.
+(2) and (3) are compd.cycle.limiter's, one channel per axis: the limiter every
+contribution of a sum is limited by too.
 An axis the machine holds off (`hold`, set each cycle by compd.cycle.inhibit: inhibited, or
 waiting for its reference) targets zero at its slew limit, whatever its state, and
 slews back to its target once released.
@@ -14,7 +16,6 @@ slews back to its target once released.
 
 from __future__ import annotations
 
-import enum
 import math
 from typing import Any
 
@@ -23,6 +24,19 @@ import numpy as np
 from compd.core.config import GuardConfig
 from compd.core.frame import QUALITY_NAMES, Frame, Quality
 from compd.cycle.inhibit import HOLD_NAMES
+from compd.cycle.limiter import (
+    CLAMPED,
+    NORMAL,
+    STATE_NAMES,
+    TO_FAULT,
+    TO_NORMAL,
+    TO_RECOVERING,
+    UNCLAMPED,
+    Limiter,
+    Policy,
+    clamp_um,
+    toward_um,
+)
 
 GOOD = int(Quality.GOOD)
 STALE = int(Quality.STALE)
@@ -30,18 +44,6 @@ OUT_OF_RANGE = int(Quality.OUT_OF_RANGE)
 IMPLAUSIBLE = int(Quality.IMPLAUSIBLE)
 FROZEN = int(Quality.FROZEN)
 NO_DATA = int(Quality.NO_DATA)
-STARTING, NORMAL, FAULT, RECOVERING = 0, 1, 2, 3
-
-
-class AxisState(enum.IntEnum):
-    STARTING = 0  # no good prediction yet: output 0 (or, from what the machine applied, to 0 at the ramp)
-    NORMAL = 1
-    FAULT = 2
-    RECOVERING = 3  # inputs good again, waiting recovery_s
-
-
-STATE_NAMES = {s.value: s.name.lower() for s in AxisState}
-POLICIES = ("hold", "ramp_to_zero", "disable")
 
 
 class Guard:
@@ -53,46 +55,46 @@ class Guard:
         n = len(axes)
         self.max_abs_um = np.array([cfg.clamp_um(a)[0] for a in axes])
         self.slew_um_per_s = np.array([cfg.slew_um_per_s(a) for a in axes])
-        self.policy = [
-            POLICIES.index((cfg.axes.get(a) and cfg.axes[a].fault_policy) or cfg.fault_policy)
-            for a in axes
-        ]
+        # each axis's clamp, slew limit and fault policy (compd.cycle.limiter: its state and output)
+        self.limiter = lim = Limiter(
+            self.max_abs_um.tolist(), self.slew_um_per_s.tolist(),
+            [Policy.named((cfg.axes.get(a) and cfg.axes[a].fault_policy) or cfg.fault_policy) for a in axes],
+            cfg.ramp_um_per_s, cfg.recovery_s,
+        )
+        self.policy = lim.policy
         self._n_axes = n
-        self._max_abs = [float(v) for v in self.max_abs_um]
-        self._slew = [float(v) for v in self.slew_um_per_s]
-        self._ramp = float(cfg.ramp_um_per_s)
-        self._recovery_s = float(cfg.recovery_s)
-        self.out_um = np.zeros(n)
-        self.enable = np.zeros(n, dtype=bool)
-        self.target_um = np.zeros(n)
-        self.state = np.full(n, STARTING, dtype=np.uint8)
+        self._max_abs = lim.max_abs_um
+        self._slew = lim.slew_um_per_s
+        self.out_um = lim.value_um
+        self.enable = lim.enable
+        self.target_um = lim.target_um
+        self.state = lim.state
         # the target is held at ±max_abs_um this cycle: the model asks for more than the clamp lets
         # through (an event `clamped` when it starts, `unclamped` when it ends)
-        self.clamped = np.zeros(n, dtype=bool)  # for the status record
-        self._clamped = [False] * n  # the same, as the cycle reads it (a list: no numpy scalar per cycle)
+        self.clamped = lim.clamped  # for the status record
+        self._clamped = lim.clamped_list  # the same, as the cycle reads it (a list: no numpy scalar per cycle)
         # why the machine holds an axis off this cycle (compd.cycle.inhibit: 0 none, 1 inhibited,
         # 2 waiting for reference); written before `update`, which ramps a held axis to 0
         self.hold = np.zeros(n, dtype=np.uint8)
         self._held = np.zeros(n, dtype=np.uint8)
-        self._good_since = np.full(n, math.nan)
         self._last_t = math.nan
         self.dt_s = 0.0  # the time the last update licensed (what the codec may spend too)
         # plausibility of the model inputs
         self.input_idx = frame.indices(inputs)
-        lim = [cfg.signals.get(name) for name in inputs]
-        self._min = np.array([lm.min if lm else -math.inf for lm in lim])
-        self._max = np.array([lm.max if lm else math.inf for lm in lim])
+        limits = [cfg.signals.get(name) for name in inputs]
+        self._min = np.array([lm.min if lm else -math.inf for lm in limits])
+        self._max = np.array([lm.max if lm else math.inf for lm in limits])
         self._rate = np.array(
-            [lm.max_rate_per_s if lm and lm.max_rate_per_s else math.inf for lm in lim]
+            [lm.max_rate_per_s if lm and lm.max_rate_per_s else math.inf for lm in limits]
         )
-        self._rate_allow = np.array([lm.rate_allowance if lm else 0.0 for lm in lim])
+        self._rate_allow = np.array([lm.rate_allowance if lm else 0.0 for lm in limits])
         self._stale = np.array(
-            [lm.stale_after_s if lm and lm.stale_after_s else cfg.stale_after_s for lm in lim]
+            [lm.stale_after_s if lm and lm.stale_after_s else cfg.stale_after_s for lm in limits]
         )
         self._frozen_after = np.array(
-            [lm.frozen_after_s if lm and lm.frozen_after_s else math.inf for lm in lim]
+            [lm.frozen_after_s if lm and lm.frozen_after_s else math.inf for lm in limits]
         )
-        self._frozen_band = np.array([lm.frozen_band if lm else 0.0 for lm in lim])
+        self._frozen_band = np.array([lm.frozen_band if lm else 0.0 for lm in limits])
         self._moved_val = np.full(len(inputs), math.nan)  # value at the last real change
         self._moved_t = np.full(len(inputs), -math.inf)  # time of the last real change
         self.max_dt_s = math.inf  # a cycle never licenses more slew than this much time
@@ -327,74 +329,31 @@ class Guard:
             dt = self.max_dt_s
         self._last_t = now_s
         self.dt_s = dt
-        recovery_s = self._recovery_s
+        lim = self.limiter
         hold, held = self.hold, self._held
         for a in range(self._n_axes):
             if hold[a] != held[a]:
                 self._hold_event(now_s, a, int(hold[a]), int(held[a]))
                 held[a] = hold[a]
             if hold[a]:  # held off by the machine: to 0 at the slew, never a step
-                if self._clamped[a]:
-                    self._clamp_event(now_s, a, 0.0)
-                self.target_um[a] = 0.0
-                out = float(self.out_um[a])
-                step = self._slew[a] * dt
-                out = out - step if out > step else (out + step if out < -step else 0.0)
-                self.out_um[a] = out
-                self.enable[a] = out != 0.0
+                if lim.held_off(a, dt):
+                    self._said(now_s, a, UNCLAMPED, 0.0, inputs_ok)
                 continue
             p = float(pred_um[a])
-            good = inputs_ok and math.isfinite(p)
-            lim = self._max_abs[a]
-            target = -p if good else 0.0
-            if target > lim or target < -lim:
-                target = lim if target > 0 else -lim
-                if not self._clamped[a]:
-                    self._clamp_event(now_s, a, p)
-            elif self._clamped[a]:
-                self._clamp_event(now_s, a, p)
-            self.target_um[a] = target
-            st = int(self.state[a])
-            if good:
-                if st == FAULT:
-                    self.state[a] = st = RECOVERING
-                    self._good_since[a] = now_s
-                    self._event(now_s, self.axes[a], "recovering", "inputs good")
-                if st == RECOVERING and now_s - self._good_since[a] >= recovery_s:
-                    self.state[a] = st = NORMAL
-                    self._event(now_s, self.axes[a], "normal", "recovered")
-                if st == STARTING:
-                    self.state[a] = st = NORMAL
-            elif st != FAULT:
-                if st != STARTING:
-                    reason = "prediction not finite" if inputs_ok else "input bad"
-                    self._event(now_s, self.axes[a], "fault", reason)
-                    self.state[a] = st = FAULT
-                else:  # no prediction yet: what the machine applied at the start (`seed`) to 0 at the ramp
-                    out = float(self.out_um[a])
-                    if out != 0.0:
-                        step = self._ramp * dt
-                        out = out - step if out > step else (out + step if out < -step else 0.0)
-                        self.out_um[a] = out
-                    self.enable[a] = out != 0.0
-                    continue
-            out = float(self.out_um[a])
-            if st == NORMAL:
-                step = self._slew[a] * dt
-                d = target - out
-                out = out + (step if d > step else (-step if d < -step else d))
-                self.enable[a] = True
-            else:  # FAULT or RECOVERING: the axis's policy
-                pol = self.policy[a]
-                if pol == 1:  # ramp_to_zero
-                    step = self._ramp * dt
-                    out = out - step if out > step else (out + step if out < -step else 0.0)
-                    self.enable[a] = True
-                elif pol == 2:  # disable
-                    out = 0.0
-                    self.enable[a] = False
-                # hold: out unchanged
-            self.out_um[a] = out
+            said = lim.step(a, -p if inputs_ok else math.nan, dt, now_s)
+            if said:
+                self._said(now_s, a, said, p, inputs_ok)
+
+    def _said(self, now_s: float, a: int, said: int, pred_um: float, inputs_ok: bool) -> None:
+        """The events of what the limiter said of axis `a` this cycle (its bits), in order."""
+        if said & (CLAMPED | UNCLAMPED):
+            self._clamp_event(now_s, a, pred_um, bool(said & CLAMPED))
+        if said & TO_RECOVERING:
+            self._event(now_s, self.axes[a], "recovering", "inputs good")
+        if said & TO_NORMAL:
+            self._event(now_s, self.axes[a], "normal", "recovered")
+        if said & TO_FAULT:
+            self._event(now_s, self.axes[a], "fault", "prediction not finite" if inputs_ok else "input bad")
 
     def update_rows(
         self,
@@ -435,7 +394,8 @@ class Guard:
         was_degraded = self.degraded
         normal = self._all_normal()
         axes = range(n_axes)
-        clamped = self._clamped  # _clamp_event flips it: the float path reads it in place
+        limiter = self.limiter
+        clamped = self._clamped  # the limiter flips it: the float path reads it in place
         for i, now in enumerate(ts):
             if normal and plains[i] and degs[i] == was_degraded:
                 p = pred[i]
@@ -446,20 +406,13 @@ class Guard:
                 elif dt > max_dt:
                     dt = max_dt
                 last_t = now
-                for a in axes:
-                    tg = -p[a]
-                    m = lim[a]
-                    if tg > m or tg < -m:
-                        if not clamped[a]:
-                            self._clamp_event(now, a, p[a])
-                        tg = m if tg > 0 else -m
-                    elif clamped[a]:
-                        self._clamp_event(now, a, p[a])
+                for a in axes:  # the limiter's step of a NORMAL axis, on floats
+                    want = -p[a]
+                    tg = clamp_um(want, lim[a])
+                    if (tg != want) != clamped[a]:
+                        self._clamp_event(now, a, p[a], limiter.flip_clamped(a) == CLAMPED)
                     target[a] = tg
-                    step = slew[a] * dt
-                    o = out[a]
-                    d = tg - o
-                    o = o + (step if d > step else (-step if d < -step else d))
+                    o = toward_um(out[a], tg, slew[a] * dt)
                     out[a] = o
                     cols[a][i] = o
                 dts[i] = dt
@@ -494,13 +447,11 @@ class Guard:
 
     def _all_normal(self) -> bool:
         """Every axis NORMAL and none held off (what the float path of `update_rows` needs)."""
-        return bool((self.state == NORMAL).all()) and not self._held.any()
+        return self.limiter.all_normal() and not self._held.any()
 
-    def _clamp_event(self, now_s: float, a: int, pred_um: float) -> None:
-        """The axis's target starts (or stops) being held at the clamp: flag and event."""
+    def _clamp_event(self, now_s: float, a: int, pred_um: float, on: bool) -> None:
+        """The axis's target started (`on`) or stopped being held at the clamp: the event."""
         lim = self._max_abs[a]
-        self._clamped[a] = on = not self._clamped[a]
-        self.clamped[a] = on
         if on:
             self._event(now_s, self.axes[a], "clamped",
                         f"the model predicts {pred_um:.1f} um, beyond the clamp of {lim:g} um", key="clamped")
@@ -520,15 +471,12 @@ class Guard:
         model's first prediction it goes to 0 at `ramp_um_per_s`."""
         if not math.isfinite(um):
             return
-        self.out_um[a] = um
-        if int(self.state[a]) == STARTING:
-            self.enable[a] = um != 0.0
+        self.limiter.seed(a, um)
         self._event(now_s, self.axes[a], "synced",
                     f"the machine applies {um:+.3f} um: the output goes on from there", key=None)
 
     def safe(self) -> None:
-        self.out_um[:] = 0.0
-        self.enable[:] = False
+        self.limiter.safe()
 
     def get_status(self) -> dict[str, Any]:
         return {
@@ -537,7 +485,7 @@ class Guard:
                 "target_um": float(self.target_um[i]),
                 "enable": bool(self.enable[i]),
                 "state": STATE_NAMES[int(self.state[i])],
-                "policy": POLICIES[self.policy[i]],
+                "policy": self.policy[i].label,
                 "degraded": self.degraded,
                 "inhibit": HOLD_NAMES[int(self.hold[i])],
             }

@@ -31,6 +31,7 @@ from compd.core.errors import BadInput
 from compd.core.frame import Frame
 from compd.core.registry import entry_point
 from compd.cycle.adapt import Adapter
+from compd.cycle.contributions import Contributions
 from compd.cycle.guard import Guard
 from compd.cycle.inhibit import Inhibit
 from compd.cycle.loop import Loop
@@ -41,8 +42,10 @@ from compd.sources.base import Source
 
 
 def build_model(spec: ModelSpec) -> Model:
-    """Instantiate the model of a resolved model section (a config's or a model file's)."""
-    model = spec.cls(spec.params, spec.inputs, spec.outputs, spec.fit)
+    """Instantiate the model of a resolved model section (a config's or a model file's); a sum of
+    contributions (no class in the spec: compd.config) is the cycle's stage `Contributions`."""
+    cls = Contributions if spec.cls is None else spec.cls
+    model = cls(spec.params, spec.inputs, spec.outputs, spec.fit)
     model.file = spec.file
     if spec.update_period_s is not None:
         model.update_period_s = spec.update_period_s

@@ -36,8 +36,8 @@ import numpy as np
 
 from compd import version
 from compd.core.frame import QUALITY_NAMES
-from compd.cycle.guard import POLICIES, STATE_NAMES
 from compd.cycle.inhibit import HOLD_NAMES
+from compd.cycle.limiter import STATE_NAMES
 from compd.io.histogram import bin_percentiles, over_range, range_limit_us
 from compd.io.mailbox import READ_TRIES, shared_buffer
 from compd.io.worker import LINK_STATES
@@ -570,7 +570,7 @@ def describe_static(loop: Any, observe: bool) -> dict[str, Any]:
         "period_s": float(loop.period_s),
         "axes": list(loop.model.outputs),
         "signals": list(loop.frame.names),
-        "policy": [POLICIES[p] for p in loop.guard.policy],
+        "policy": [p.label for p in loop.guard.policy],
         "word_byte": [("high", "low")[slot_of[i]] if i in slot_of else None for i in range(len(loop.model.outputs))],
         # the (contribution, axis) pairs of a sum of contributions, in the record's order
         "parts": [list(p) for p in loop.model.part_names],

@@ -46,7 +46,7 @@ class LogObserver:
             ["t_s"]
             + list(loop.frame.names)
             + [f"pred_{a}_um" for a in outs]
-            # each contribution's share of a sum of contributions (compd.models.contributions)
+            # each contribution's share of a sum of contributions (compd.cycle.contributions)
             + [f"pred_{a}_{name}_um" for name, a in loop.model.part_names]
             + [f"corr_{a}_um" for a in outs]
             + [f"applied_{a}_um" for a in outs]

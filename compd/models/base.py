@@ -118,7 +118,7 @@ class Model(ABC):
     emit: Callable[[float, str, str, str], None] | None = None
     # the parts summed into each axis's prediction, (name, axis) each, and per part what it adds (after
     # its own limits), its model's own prediction, its state and clamp flag: none for one model
-    # (compd.models.contributions has them)
+    # (compd.cycle.contributions has them)
     part_names: tuple[tuple[str, str], ...] = ()
     part_um: np.ndarray = np.zeros(0)
     part_raw_um: np.ndarray = np.zeros(0)
@@ -291,7 +291,7 @@ class ModelStage:
     """The rule by which a cycle steps one model: started on its first good input vector, run when
     due and held until `update_period_s` has passed, predicting from the good inputs where it can
     when some are bad (`degraded`), else NaN. The loop's model stage, each contribution of a sum
-    (compd.models.contributions) and the shadow (compd.cycle.shadow) step their models by it."""
+    (compd.cycle.contributions) and the shadow (compd.cycle.shadow) step their models by it."""
 
     def __init__(self, model: Model) -> None:
         self.model = model

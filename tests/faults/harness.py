@@ -25,7 +25,7 @@ import yaml
 from compd.codec import decode
 from compd.config import load_config
 from compd.core.clock import WallClock
-from compd.cycle.guard import AxisState
+from compd.cycle.limiter import AxisState
 from compd.daemon.app import App
 from tests.faults.matrix import MATRIX
 from tests.logcapture import log_lines

@@ -1,4 +1,4 @@
-"""Several contributions summed per axis, each a model on its own inputs with its own clamp, slew and fault policy.
+"""The stage that sums several contributions per axis, each a model on its own inputs with its own clamp, slew and fault policy.
 
 A machine's axis has several heat sources: a vertical machining centre's Z grows with the
 spindle (its own model on its own sensor) and with the column (a structure model on column
@@ -9,8 +9,15 @@ before the sum: its prediction clamped to its `max_abs_um`, moved no faster than
 (`hold` its last value, `ramp_to_zero` at the guard's ramp rate, or `disable`: the axis
 faults and its own policy applies) while the other contributions go on compensating; back
 to normal once its inputs have been good for the guard's `recovery_s`, slewing from where it
-stands. The axis guard still clamps and slews the sum. A contribution that has had no good
-input vector yet contributes 0 (under `disable`: the axis waits for it).
+stands. Each contribution on each of its axes is a channel of one limiter (compd.cycle.limiter),
+the guard's: the same clamp, slew and policies, the same states. The axis guard still clamps and
+slews the sum. A contribution that has had no good input vector yet contributes 0 (under
+`disable`: the axis waits for it).
+
+A sum of contributions is a `Model` for the loop (the model stage runs it), but it is a stage of
+the cycle: its params (`ContributionSetParams`, compd.core.config) are what compd.config resolves
+`model.contributions` or a model file of kind `contributions` to, and compd.cycle.pipeline's
+`build_model` builds it from them (compd.config sits below the cycle and never names this class).
 
 The per-contribution values (`part_um`, what each adds; `part_raw_um`, its model's own
 prediction) and states are read by the status record, the data log (`pred_<axis>_<name>_um`)
@@ -20,46 +27,27 @@ and the replay report.
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import Field
 
-from compd.core.config import Strict
+from compd.core.config import SUM_KIND, ContributionParams, ContributionSetParams, Strict
+from compd.cycle.limiter import (
+    CLAMPED,
+    NORMAL,
+    TO_FAULT,
+    TO_NORMAL,
+    TO_RECOVERING,
+    UNCLAMPED,
+    Limiter,
+    Policy,
+)
+from compd.models import MODELS
 from compd.models.base import Model, ModelStage
-
-STARTING, NORMAL, FAULT, RECOVERING = 0, 1, 2, 3
-POLICIES = ("hold", "ramp_to_zero", "disable")
-Policy = Literal["hold", "ramp_to_zero", "disable"]
-
-
-class ContributionParams(Strict):
-    """One contribution as the config resolved it: its model (kind, wiring, params as in its
-    file) and its limits per output axis (its own, or its axis's)."""
-
-    name: str
-    kind: str
-    inputs: list[str]
-    outputs: list[str]
-    params: dict[str, Any]
-    fit: dict[str, Any] = Field(default_factory=dict)
-    file: str | None = None
-    update_period_s: float | None = None
-    max_abs_um: list[float]
-    max_slew_um_per_s: list[float]
-    fault_policy: list[Policy]
-
-
-class ContributionSetParams(Strict):
-    """The contributions and what their fault policies share with the guard."""
-
-    contributions: list[ContributionParams]
-    ramp_um_per_s: float = 1.0
-    recovery_s: float = 5.0
 
 
 class _Part:
-    """One contribution's model and its per-axis limiter state (arrays made once)."""
+    """One contribution's model, where its inputs and outputs sit in the sum's, and its buffers (made once)."""
 
     def __init__(self, p: ContributionParams, model: Model, idx: np.ndarray, axes: list[int]) -> None:
         self.name = p.name
@@ -69,16 +57,13 @@ class _Part:
         self.x = np.zeros(len(idx))
         self.good = np.ones(len(idx), dtype=bool)
         self.raw = np.full(len(axes), math.nan)
-        self.clamp = [float(v) for v in p.max_abs_um]
-        self.slew = [float(v) for v in p.max_slew_um_per_s]
-        self.policy = [POLICIES.index(v) for v in p.fault_policy]
         self.stage = ModelStage(model)  # its own start, update period and degraded mode
 
 
 class Contributions(Model):
     """The sum of several contributions per axis (see the module)."""
 
-    kind: ClassVar[str] = "contributions"
+    kind: ClassVar[str] = SUM_KIND
     Params: ClassVar[type[Strict]] = ContributionSetParams
 
     def __init__(
@@ -88,13 +73,14 @@ class Contributions(Model):
         outputs: list[str],
         fit: dict[str, Any] | None = None,
     ) -> None:
-        from compd.models import MODELS
-
         assert isinstance(params, ContributionSetParams)
         super().__init__(params, inputs, outputs, fit)
         self.set_params = params
         self._parts: list[_Part] = []
         names: list[tuple[str, str]] = []
+        clamps: list[float] = []
+        slews: list[float] = []
+        policies: list[Policy] = []
         for p in params.contributions:
             cls = MODELS.get(p.kind)
             model = cls(cls.Params.model_validate(p.params), list(p.inputs), list(p.outputs), dict(p.fit))
@@ -104,18 +90,18 @@ class Contributions(Model):
             idx = np.array([self.inputs.index(n) for n in p.inputs], dtype=np.intp)
             self._parts.append(_Part(p, model, idx, [self.outputs.index(a) for a in p.outputs]))
             names += [(p.name, a) for a in p.outputs]
+            clamps += p.max_abs_um
+            slews += p.max_slew_um_per_s
+            policies += [Policy.named(v) for v in p.fault_policy]
         self.part_names = tuple(names)  # (contribution, axis) per part, in order
         n = len(names)
+        # each part a channel of the limiter: its clamp, slew, policy, state
+        self.limiter = Limiter(clamps, slews, policies, params.ramp_um_per_s, params.recovery_s)
+        self._disables = [p is Policy.DISABLE for p in policies]  # a part under `disable` faults its axis
         self.part_um = np.zeros(n)  # what each part adds to its axis (after its own limits)
         self.part_raw_um = np.full(n, math.nan)  # its model's own prediction
-        self.part_state = np.full(n, STARTING, dtype=np.uint8)
-        self.part_clamped = np.zeros(n, dtype=bool)
-        self._value = [0.0] * n
-        self._state = [STARTING] * n
-        self._clamped = [False] * n
-        self._good_since = [math.nan] * n
-        self._ramp = float(params.ramp_um_per_s)
-        self._recovery_s = float(params.recovery_s)
+        self.part_state = self.limiter.state
+        self.part_clamped = self.limiter.clamped
         self._last_t = math.nan
         held = self._held_out()
         if held:
@@ -185,60 +171,29 @@ class Contributions(Model):
             if t_s >= part.stage.next_s and part.stage.step(part.x, part.good, ok, t_s, part.raw):
                 self.state_dirty = True  # its T0 and memory are worth keeping now
             for j, a in enumerate(part.axes):
-                v = self._limit(k, part, j, float(part.raw[j]), t_s, dt)
+                v = self._limit(k, float(part.raw[j]), t_s, dt)
                 self.part_raw_um[k] = part.raw[j]
                 self.part_um[k] = v
-                self.part_state[k] = self._state[k]
                 out[a] += v
                 k += 1
 
-    def _limit(self, k: int, part: _Part, j: int, raw: float, t_s: float, dt: float) -> float:
-        """Part k's value this step: its clamp, slew and fault policy (the guard's rules, per part)."""
-        st = self._state[k]
-        value = self._value[k]
-        pol = part.policy[j]
-        finite = raw == raw and raw not in (math.inf, -math.inf)
-        if finite:
-            lim = part.clamp[j]
-            target = raw
-            if raw > lim or raw < -lim:
-                target = lim if raw > 0 else -lim
-                if not self._clamped[k]:
-                    self._clamp_event(k, t_s, raw, lim, True)
-            elif self._clamped[k]:
-                self._clamp_event(k, t_s, raw, lim, False)
-            if st == FAULT:
-                st = RECOVERING
-                self._good_since[k] = t_s
+    def _limit(self, k: int, raw: float, t_s: float, dt: float) -> float:
+        """Part k's value this step: the limiter's (its clamp, slew and fault policy), NaN while
+        a part under `disable` is not normal (its axis then faults: the axis's own policy)."""
+        lim = self.limiter
+        said = lim.step(k, raw, dt, t_s)
+        if said:
+            if said & (CLAMPED | UNCLAMPED):
+                self._clamp_event(k, t_s, raw, lim.max_abs_um[k], bool(said & CLAMPED))
+            if said & TO_RECOVERING:
                 self._event(t_s, k, "recovering", "inputs good")
-            if st == RECOVERING and t_s - self._good_since[k] >= self._recovery_s:
-                st = NORMAL
+            if said & TO_NORMAL:
                 self._event(t_s, k, "normal", "recovered")
-            if st == STARTING:
-                st = NORMAL
-            if st == NORMAL:
-                step = part.slew[j] * dt
-                d = target - value
-                value = value + (step if d > step else (-step if d < -step else d))
-        elif st in (NORMAL, RECOVERING):
-            if st == NORMAL:
+            if said & TO_FAULT:
                 self._event(t_s, k, "fault", "input bad")
-            st = FAULT
-        elif st == STARTING:
-            self._state[k] = st
-            return math.nan if pol == 2 else 0.0
-        if st != NORMAL:  # FAULT or RECOVERING: the part's policy
-            if pol == 1:
-                step = self._ramp * dt
-                value = value - step if value > step else (value + step if value < -step else 0.0)
-            elif pol == 2:
-                value = 0.0
-                self._state[k] = st
-                self._value[k] = value
-                return math.nan
-        self._state[k] = st
-        self._value[k] = value
-        return value
+        if self._disables[k] and lim.state[k] != NORMAL:
+            return math.nan
+        return float(lim.value_um[k])
 
     def _subject(self, k: int) -> str:
         name, axis = self.part_names[k]
@@ -249,8 +204,6 @@ class Contributions(Model):
             self.emit(t_s, self._subject(k), event, reason)
 
     def _clamp_event(self, k: int, t_s: float, raw: float, lim: float, on: bool) -> None:
-        self._clamped[k] = on
-        self.part_clamped[k] = on
         if on:
             self._event(t_s, k, "clamped", f"the contribution predicts {raw:.1f} um, beyond its clamp of {lim:g} um")
         else:
