@@ -13,7 +13,15 @@ from compd.core.config import ContributionParams, ContributionSetParams, FaultPo
 from compd.core.frame import Frame
 from compd.cycle.contributions import Contributions
 from compd.cycle.guard import Guard
-from compd.cycle.limiter import NORMAL, POLICY_NAMES, STATE_NAMES, AxisState, Limiter, Policy
+from compd.cycle.limiter import (
+    NORMAL,
+    POLICY_NAMES,
+    STATE_NAMES,
+    TO_NORMAL,
+    AxisState,
+    Limiter,
+    Policy,
+)
 from compd.cycle.statusblock import AXIS, PART
 
 POLICY_LABELS = [p.label for p in Policy]
@@ -232,3 +240,17 @@ def test_the_limiter_never_moves_faster_than_its_slew_or_ramp() -> None:
     assert list(lim.value_um) == [10.0, 9.5, 0.0] and list(lim.enable) == [True, True, False]
     assert all(lim.state == AxisState.FAULT) and not lim.clamped.any()
 
+
+
+def test_a_channel_taken_over_while_recovering_recovers_after_a_whole_wait() -> None:
+    """A reload hands the new guard the old one's state (compd.daemon.app.App.adopt): a channel
+    taken over while recovering has no start of its wait here; the wait starts at its first step,
+    so it goes normal recovery_s later (before, it stayed recovering until it faulted again)."""
+    lim = Limiter([10.0], [2.0], [Policy.HOLD], 0.5, 3.0)
+    lim.state[0] = AxisState.RECOVERING  # as App.adopt copies it
+    lim.value_um[0] = 1.0
+    lim.step(0, 1.0, 1.0, 100.0)
+    lim.step(0, 1.0, 1.0, 102.0)
+    assert lim.state[0] == AxisState.RECOVERING  # 2 s of a 3 s wait
+    said = lim.step(0, 1.0, 1.0, 103.0)
+    assert lim.state[0] == NORMAL and said & TO_NORMAL

@@ -130,6 +130,10 @@ class Limiter:
                 self.state[k] = st = RECOVERING
                 self._good_since[k] = now_s
                 said |= TO_RECOVERING
+            if st == RECOVERING and self._good_since[k] != self._good_since[k]:
+                # recovering without a start (an axis a reload took over while it recovered): the
+                # wait starts now, never shorter than recovery_s
+                self._good_since[k] = now_s
             if st == RECOVERING and now_s - self._good_since[k] >= self.recovery_s:
                 self.state[k] = st = NORMAL
                 said |= TO_NORMAL
