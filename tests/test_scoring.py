@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compd.commissioning.scoring import RunningScore, score_applied, score_residual
+from compd.core.scoring import RunningScore, score_applied, score_residual
 
 
 def test_a_hand_computed_axis() -> None:

@@ -18,8 +18,8 @@ from pydantic import ValidationError
 
 from compd import version
 from compd.commissioning.recommend import SUM_MARGIN
-from compd.commissioning.scoring import score_residual
 from compd.commissioning.thermaltest import thermal_test
+from compd.core.scoring import score_residual
 from compd.errors import BadInput
 from compd.identify import CHOICES, FITS, KINDS, holdout, identify, option_names
 from compd.identify.data import (
@@ -547,7 +547,7 @@ def score_model(model: Model, log: Log) -> dict[str, Any]:
     """`compd score`: a fitted model on a log with the measured errors (a day it has not seen).
 
     Per axis the error before (`err_<axis>_um`) and after (error − prediction), scored as every
-    report is (compd.commissioning.scoring); blank error cells between measurements are left out. The baseline
+    report is (compd.core.scoring); blank error cells between measurements are left out. The baseline
     is the fit report's: MLR on the model's temperature inputs (all the log's temperatures if it
     has none), each fold of this log predicted by an MLR fitted on the others (HELD_OUT_METHOD),
     beside the model's RMS on the same rows."""

@@ -33,8 +33,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from compd.commissioning.scoring import score_applied
 from compd.config import AdaptConfig, CodecConfig, Document, GuardConfig, InhibitConfig
+from compd.core.scoring import score_applied
 from compd.cycle.adapt import Probe
 from compd.cycle.clock import SimClock
 from compd.cycle.pipeline import build_model, build_pipeline

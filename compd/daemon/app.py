@@ -11,8 +11,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from compd.commissioning.scoring import RunningScore
 from compd.config import Config
+from compd.core.scoring import RunningScore
 from compd.cycle.clock import SimClock
 from compd.cycle.loop import Loop
 from compd.cycle.pipeline import from_config
@@ -86,7 +86,7 @@ class LogObserver:
 
 
 class CompensationSummary:
-    """The run's before/after score (compd.commissioning.scoring), fed every cycle.
+    """The run's before/after score (compd.core.scoring), fed every cycle.
 
     Only where the sources publish the true error `err_<axis>_um` (simulator,
     replay of a measured log); residual = error + applied correction.

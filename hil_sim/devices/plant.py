@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from compd.commissioning.scoring import score_residual
+from compd.core.scoring import score_residual
 
 SIGNAL_BASE = 16
 
