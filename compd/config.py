@@ -26,6 +26,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from compd.errors import BadInput, ConfigError, format_path
+from compd.registry import install_hint
 
 PathT = tuple[str | int, ...]
 
@@ -1284,7 +1285,7 @@ def _check_optional(top: ConfigModel, doc: Document) -> None:
             found = False
         if not found:
             raise doc.error(
-                f"needs the Python module {module}, which is not installed: pip install 'compd[{extra}]'",
+                f"needs the Python module {module}, which is not installed: {install_hint(extra)}",
                 path,
             ) from None
 

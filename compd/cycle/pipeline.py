@@ -34,7 +34,7 @@ from compd.cycle.loop import Loop
 from compd.cycle.shadow import Shadow
 from compd.errors import BadInput
 from compd.models.base import Model
-from compd.registry import entry_point
+from compd.registry import entry_point, load_entry_point
 from compd.sinks.base import Sink
 from compd.sources.base import Source
 
@@ -61,7 +61,7 @@ def build_clock(lp: LoopConfig, sources: Sequence[Source]) -> Clock:
             raise BadInput("loop.clock: plant needs the simulator's plant clock, which is not installed (no 'plant'"
                            " in entry point group compd.clocks: install compd from its source tree)",
                            path=("loop", "clock"))
-        return ep.load()(pc)
+        return load_entry_point(ep, "the plant clock", path=("loop", "clock"))(pc)
     return WallClock(lp.spin_margin_s)
 
 
