@@ -10,6 +10,9 @@ scans every file of the staged tree, binary or not, and every symlink's target f
 staging path and the build folder; any left is an error naming the files.
 
     python packaging/relocate.py --destdir STAGE --venv /opt/compd/venv [--forbid DIR ...] [--check-only]
+        [--also TREE ...]
+
+(--also: another staged tree to scan alike, e.g. the second package split off the stage.)
 """
 
 from __future__ import annotations
@@ -104,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--venv", required=True, help="the venv's final path, e.g. /opt/compd/venv")
     ap.add_argument("--forbid", action="append", default=[], help="another path no file may name (the build folder)")
     ap.add_argument("--check-only", action="store_true", help="change nothing: only look for files naming the folders")
+    ap.add_argument("--also", action="append", default=[], type=Path, help="another staged tree to scan (split off DESTDIR)")
     args = ap.parse_args(argv)
     destdir = args.destdir.resolve()
     final = "/" + args.venv.strip("/")
@@ -118,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         drop_local_direct_urls(venv)
         drop_bytecode(venv)
     needles = [os.fsencode(str(destdir))] + [os.fsencode(str(Path(f).resolve())) for f in args.forbid]
-    left = offenders(destdir, needles)
+    needles += [os.fsencode(str(tree.resolve())) for tree in args.also]
+    left = offenders(destdir, needles) + [f for tree in args.also for f in offenders(tree.resolve(), needles)]
     if left:
         shown = ", ".join(left[:5]) + (f" and {len(left) - 5} more" if len(left) > 5 else "")
         print(f"relocate: {len(left)} staged files still name the staging or build folder: {shown}", file=sys.stderr)
