@@ -44,6 +44,8 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Path], Pa
     """({package: its .deb}, the folder they were built in) from scripts/build_deb.sh, into a temp folder of its own."""
     tool("dpkg-shlibdeps", "dpkg-dev")
     out = tmp_path_factory.mktemp("debbuild")
+    # the source's date the build takes (the last commit's): read now, a commit during the build would move it
+    (out / "epoch").write_text(last_commit_time())
     env = {k: v for k, v in os.environ.items()
            if k not in {"PYTHONPATH", "VIRTUAL_ENV", "KEEP_STAGE", "SOURCE_DATE_EPOCH"}}
     # xz at level 1: the same files as `make deb`'s level 6, in a tenth of the compression time
@@ -233,11 +235,15 @@ def test_sizes_the_daemon_a_third_of_the_one_package(deb: Path, cdeb: Path, tree
     assert int(field(cdeb, "Installed-Size")) > int(field(deb, "Installed-Size"))
 
 
+def last_commit_time() -> str:
+    return subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%ct"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
 def test_every_time_in_the_packages_is_the_sources_at_most(built: tuple[dict[str, Path], Path]) -> None:
     """The reproducible build's cheap half: the ar members dated SOURCE_DATE_EPOCH (the last commit's),
     no file newer (the full check, two builds and their sha256, is `make deb-twice`)."""
-    epoch = int(subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%ct"], capture_output=True,
-                               text=True, check=True).stdout)
+    epoch = int((built[1] / "epoch").read_text())
     for deb in built[0].values():
         data = deb.read_bytes()
         assert data.startswith(b"!<arch>\n")
@@ -362,10 +368,12 @@ def test_installs_and_runs_in_a_throw_away_root(deb: Path, cdeb: Path, tmp_path:
     had_user = b"\ncompd:" in b"\n" + passwd
     script = tmp_path / "ns.sh"
     script.write_text(NS_SCRIPT)
+    # the packages' python must see the packages only: no checkout on PYTHONPATH (pytest's, make's)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV", "COMPD"))}
     r = subprocess.run(
         ["unshare", "--mount", "--propagation", "private", "sh", str(script), str(x), str(c), str(upper), str(work),
          str(res)],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, text=True, timeout=600, env=env,
     )
     assert r.returncode == 0, r.stdout + r.stderr
 
