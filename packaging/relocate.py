@@ -3,7 +3,9 @@
 
 pip and venv write the path they ran at into the venv: console scripts' ``#!`` lines,
 ``bin/activate*``, ``pyvenv.cfg``'s ``command``, a local wheel's ``direct_url.json`` and
-every ``.pyc`` (its source path). This rewrites the text ones to the final path, drops
+every ``.pyc`` (its source path). This rewrites the text ones to the final path (and the
+rewritten scripts' hashes and sizes in their distributions' RECORD, which would otherwise
+be those of the staged text: wrong, and different for every staging folder), drops
 ``direct_url.json`` of wheels installed from a local file (it names the build folder) and
 all byte code (the installer compiles at the final path: Debian's postinst does), then
 scans every file of the staged tree, binary or not, and every symlink's target for the
@@ -18,6 +20,8 @@ staging path and the build folder; any left is an error naming the files.
 from __future__ import annotations
 
 import argparse
+import base64
+import hashlib
 import json
 import os
 import shutil
@@ -46,6 +50,26 @@ def rewrite_scripts(bindir: Path, staged: bytes, final: bytes) -> list[Path]:
         path.write_bytes(data.replace(staged, final))
         changed.append(path)
     return changed
+
+
+def fix_records(venv: Path, changed: list[Path]) -> int:
+    """Each RECORD line of a file in `changed` gets the file's hash and size as they are now; the lines changed."""
+    now = {path.resolve(): path for path in changed}
+    count = 0
+    for record in sorted(venv.glob("lib/python*/site-packages/*.dist-info/RECORD")):
+        site = record.parent.parent
+        lines = record.read_bytes().split(b"\n")
+        for i, line in enumerate(lines):
+            name, sep, _ = line.partition(b",")
+            path = (site / os.fsdecode(name)).resolve() if sep else None
+            if path in now:
+                data = now[path].read_bytes()
+                digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=")
+                end = b"\r" if line.endswith(b"\r") else b""
+                lines[i] = b"%s,sha256=%s,%d%s" % (name, digest, len(data), end)
+                count += 1
+        record.write_bytes(b"\n".join(lines))
+    return count
 
 
 def rewrite_cfg(venv: Path, staged: bytes, final: bytes) -> None:
@@ -117,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if not args.check_only:
         staged_b, final_b = os.fsencode(str(venv)), os.fsencode(final)
-        rewrite_scripts(venv / "bin", staged_b, final_b)
+        fix_records(venv, rewrite_scripts(venv / "bin", staged_b, final_b))
         rewrite_cfg(venv, staged_b, final_b)
         drop_local_direct_urls(venv)
         drop_bytecode(venv)
