@@ -15,7 +15,7 @@ APT_PACKAGES := socat mbpoll systemd-analyze:systemd chromium-headless-shell mos
 # mill of tests/linuxcnc/sim.py, so `rs274` stands for them all here
 APT_PACKAGES_BARE := rs274:linuxcnc-uspace
 
-.PHONY: venv demo test accept bench lint sysdeps clean install deb docs reliability
+.PHONY: venv demo test accept bench lint sysdeps clean install deb deb-twice docs reliability
 
 $(BASE_STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -80,8 +80,8 @@ test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU) $(NODE_OPCUA)
 # hil_sim serve + compd run over Modbus TCP; the vmc's spindle and column contributions summed on Z, in
 # closed loop and with a sensor unplugged (issue 32, scripts/accept_contributions.py); then 200 telemetry
 # publishers into one mosquitto for 10 min, and with the broker killed for 60 s (issue 20); the closed loop on a
-# headless LinuxCNC over compd testplan's 24 h test beside the same plan in process (issue 41). Every step
-# runs; any that fails fails accept.
+# headless LinuxCNC over compd testplan's 24 h test beside the same plan in process (issue 41); the Debian
+# packages built twice, the same bytes (issue 42, make deb-twice). Every step runs; any that fails fails accept.
 accept: $(TEST_STAMP) sysdeps
 	@status=0; \
 	$(PY) scripts/family.py --seeds 1-20 --train plan --workdir build/accept/family-plan \
@@ -94,6 +94,7 @@ accept: $(TEST_STAMP) sysdeps
 	$(PY) scripts/plant_scale.py --duration-s 300 --outage-at-s 120 --outage-s 60 \
 	  --workdir build/accept/plant_outage --json build/accept/plant_outage.json || status=1; \
 	$(PY) scripts/accept_linuxcnc.py --workdir build/accept/linuxcnc --json build/accept/linuxcnc.json || status=1; \
+	scripts/deb_twice.sh --out build/accept/deb-twice || status=1; \
 	exit $$status
 
 bench: $(TEST_STAMP) sysdeps
@@ -107,10 +108,15 @@ bench: $(TEST_STAMP) sysdeps
 install: $(BASE_STAMP)
 	PYTHON="$(abspath $(PY))" scripts/install.sh
 
-# builds build/compd_<version>-1_<arch>.deb (scripts/build_deb.sh, packaging/deb/): `make install`
+# builds build/compd_<version>-1_<arch>.deb, the daemon, and build/compd-commissioning_<version>-1_<arch>.deb
+# (scripts/build_deb.sh, packaging/deb/; split.py's table decides which file goes where): `make install`
 # staged at /opt/compd on Debian's python3, plus a postinst that creates the user and never starts compd
 deb:
 	scripts/build_deb.sh --out build
+
+# builds both packages twice and compares their sha256: the same commit gives the same bytes (make accept runs it)
+deb-twice:
+	scripts/deb_twice.sh --out build/deb-twice
 
 # regenerates the configuration reference from the config schema and the metrics reference
 # from compd/service/metrics.py (tests check both are current)

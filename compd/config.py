@@ -40,6 +40,7 @@ from compd.core.config import (
     validate,
 )
 from compd.core.errors import BadInput, ConfigError, format_path
+from compd.core.registry import install_hint
 
 if TYPE_CHECKING:  # the kinds' modules are imported when a config names them (compd.core.registry)
     from compd.core.registry import Registry
@@ -379,7 +380,7 @@ def _check_optional(top: ConfigModel, doc: Document) -> None:
             found = False
         if not found:
             raise doc.error(
-                f"needs the Python module {module}, which is not installed: pip install 'compd[{extra}]'",
+                f"needs the Python module {module}, which is not installed: {install_hint(extra)}",
                 path,
             ) from None
 

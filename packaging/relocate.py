@@ -3,18 +3,25 @@
 
 pip and venv write the path they ran at into the venv: console scripts' ``#!`` lines,
 ``bin/activate*``, ``pyvenv.cfg``'s ``command``, a local wheel's ``direct_url.json`` and
-every ``.pyc`` (its source path). This rewrites the text ones to the final path, drops
+every ``.pyc`` (its source path). This rewrites the text ones to the final path (and the
+rewritten scripts' hashes and sizes in their distributions' RECORD, which would otherwise
+be those of the staged text: wrong, and different for every staging folder), drops
 ``direct_url.json`` of wheels installed from a local file (it names the build folder) and
 all byte code (the installer compiles at the final path: Debian's postinst does), then
 scans every file of the staged tree, binary or not, and every symlink's target for the
 staging path and the build folder; any left is an error naming the files.
 
     python packaging/relocate.py --destdir STAGE --venv /opt/compd/venv [--forbid DIR ...] [--check-only]
+        [--also TREE ...]
+
+(--also: another staged tree to scan alike, e.g. the second package split off the stage.)
 """
 
 from __future__ import annotations
 
 import argparse
+import base64
+import hashlib
 import json
 import os
 import shutil
@@ -43,6 +50,26 @@ def rewrite_scripts(bindir: Path, staged: bytes, final: bytes) -> list[Path]:
         path.write_bytes(data.replace(staged, final))
         changed.append(path)
     return changed
+
+
+def fix_records(venv: Path, changed: list[Path]) -> int:
+    """Each RECORD line of a file in `changed` gets the file's hash and size as they are now; the lines changed."""
+    now = {path.resolve(): path for path in changed}
+    count = 0
+    for record in sorted(venv.glob("lib/python*/site-packages/*.dist-info/RECORD")):
+        site = record.parent.parent
+        lines = record.read_bytes().split(b"\n")
+        for i, line in enumerate(lines):
+            name, sep, _ = line.partition(b",")
+            path = (site / os.fsdecode(name)).resolve() if sep else None
+            if path in now:
+                data = now[path].read_bytes()
+                digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=")
+                end = b"\r" if line.endswith(b"\r") else b""
+                lines[i] = b"%s,sha256=%s,%d%s" % (name, digest, len(data), end)
+                count += 1
+        record.write_bytes(b"\n".join(lines))
+    return count
 
 
 def rewrite_cfg(venv: Path, staged: bytes, final: bytes) -> None:
@@ -104,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--venv", required=True, help="the venv's final path, e.g. /opt/compd/venv")
     ap.add_argument("--forbid", action="append", default=[], help="another path no file may name (the build folder)")
     ap.add_argument("--check-only", action="store_true", help="change nothing: only look for files naming the folders")
+    ap.add_argument("--also", action="append", default=[], type=Path, help="another staged tree to scan (split off DESTDIR)")
     args = ap.parse_args(argv)
     destdir = args.destdir.resolve()
     final = "/" + args.venv.strip("/")
@@ -113,12 +141,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if not args.check_only:
         staged_b, final_b = os.fsencode(str(venv)), os.fsencode(final)
-        rewrite_scripts(venv / "bin", staged_b, final_b)
+        fix_records(venv, rewrite_scripts(venv / "bin", staged_b, final_b))
         rewrite_cfg(venv, staged_b, final_b)
         drop_local_direct_urls(venv)
         drop_bytecode(venv)
     needles = [os.fsencode(str(destdir))] + [os.fsencode(str(Path(f).resolve())) for f in args.forbid]
-    left = offenders(destdir, needles)
+    needles += [os.fsencode(str(tree.resolve())) for tree in args.also]
+    left = offenders(destdir, needles) + [f for tree in args.also for f in offenders(tree.resolve(), needles)]
     if left:
         shown = ", ".join(left[:5]) + (f" and {len(left) - 5} more" if len(left) > 5 else "")
         print(f"relocate: {len(left)} staged files still name the staging or build folder: {shown}", file=sys.stderr)

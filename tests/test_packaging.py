@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import json
 import os
 import re
@@ -57,8 +59,15 @@ def fake_venv(stage: Path, final: str) -> Path:
     dist = site / "pkg-1.0.dist-info"
     dist.mkdir()
     (dist / "direct_url.json").write_text(json.dumps({"url": f"file://{stage.parent}/build/pkg-1.0-py3-none-any.whl"}))
-    (dist / "RECORD").write_text("pkg/__init__.py,sha256=x,0\npkg-1.0.dist-info/direct_url.json,,\n")
+    script = record_line("../../../bin/compd", (venv / "bin/compd").read_bytes())  # pip's, of the staged text
+    (dist / "RECORD").write_text(f"pkg/__init__.py,sha256=x,0\n{script}\npkg-1.0.dist-info/direct_url.json,,\n")
     return venv
+
+
+def record_line(name: str, data: bytes) -> str:
+    """A RECORD line as pip writes it: the path, the urlsafe base64 sha256 without padding, the size."""
+    digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+    return f"{name},sha256={digest},{len(data)}"
 
 
 def test_relocate_points_a_staged_venv_at_its_final_path(tmp_path: Path) -> None:
@@ -75,7 +84,9 @@ def test_relocate_points_a_staged_venv_at_its_final_path(tmp_path: Path) -> None
     site = venv / "lib/python3.11/site-packages"
     assert not (site / "pkg/__pycache__").exists()
     assert not (site / "pkg-1.0.dist-info/direct_url.json").exists()
-    assert (site / "pkg-1.0.dist-info/RECORD").read_text() == "pkg/__init__.py,sha256=x,0\n"
+    # the rewritten script's line says what it holds now, whatever the staging folder's name was
+    script = record_line("../../../bin/compd", (venv / "bin/compd").read_bytes())
+    assert (site / "pkg-1.0.dist-info/RECORD").read_text() == f"pkg/__init__.py,sha256=x,0\n{script}\n"
     assert naming(stage, [str(tmp_path)]) == []
 
 

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from compd.cli import commissioning, daemon, plant, tools  # noqa: F401  (their commands register themselves)
 from compd.cli.args import ARGUMENTS, COMMANDS, Parser, writing
 from compd.core.errors import BadInput
+from compd.core.registry import NOT_INSTALLED, commissioning_missing
 
 __all__ = ["build_parser", "main", "writing"]
 
@@ -56,17 +57,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BadInput as e:
         print(f"compd: {e}", file=sys.stderr)
         return 2
+    except ModuleNotFoundError as e:
+        if not commissioning_missing(e):
+            return internal_error(e)
+        # the Debian daemon package alone: the command is the other package's (a lazy import of it failed)
+        print(f"compd {args.command}: {NOT_INSTALLED}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 0
     except BrokenPipeError:
         return 0
-    except Exception as e:  # anything else: one line, exit 1 (traceback with COMPD_DEBUG=1)
-        import os
+    except Exception as e:
+        return internal_error(e)
 
-        if os.environ.get("COMPD_DEBUG"):
-            raise
-        print(f"compd: internal error: {type(e).__name__}: {e}", file=sys.stderr)
-        return 1
+
+def internal_error(e: Exception) -> int:
+    """Anything but bad input: one line, exit 1 (the traceback with COMPD_DEBUG=1)."""
+    import os
+
+    if os.environ.get("COMPD_DEBUG"):
+        raise e
+    print(f"compd: internal error: {type(e).__name__}: {e}", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

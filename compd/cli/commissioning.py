@@ -100,8 +100,14 @@ def cmd_testplan(args: argparse.Namespace) -> int:
 
 def _fit_options_help() -> str:
     """`compd fit --help`'s list of the options of every kind (from compd.identify, imported here only)."""
-    from compd.identify import options_help
+    from compd.core.registry import NOT_INSTALLED, commissioning_missing
 
+    try:
+        from compd.identify import options_help
+    except ModuleNotFoundError as e:
+        if not commissioning_missing(e):
+            raise
+        return f"compd fit is {NOT_INSTALLED}."
     return options_help()
 
 

@@ -348,7 +348,9 @@ def cmd_opcua_cert(args: argparse.Namespace) -> int:
     try:
         from compd.plant.material import generate_certificate
     except ImportError:
-        raise BadInput("needs the plant extra: pip install 'compd[plant]'") from None
+        from compd.core.registry import install_hint
+
+        raise BadInput(f"needs the plant extra: {install_hint('plant')}") from None
     for path, key in ((args.cert, "--cert"), (args.key, "--key")):
         folder = Path(path).parent
         if not folder.exists():  # a folder of its own for the pair: readable by its owner only

@@ -140,7 +140,9 @@ def cmd_sparkplug_watch(args: argparse.Namespace) -> int:
         from compd.plant.spec import BrokerSpec
         from compd.plant.telemetry import log_in
     except ImportError:
-        raise BadInput("needs the plant extra: pip install 'compd[plant]'") from None
+        from compd.core.registry import install_hint
+
+        raise BadInput(f"needs the plant extra: {install_hint('plant')}") from None
     if args.config is not None:
         broker, group, node = _watched(args.config)
     else:

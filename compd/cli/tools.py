@@ -34,16 +34,13 @@ def _parse_word(text: str) -> int:
 def installed_command(name: str, needs: str) -> Callable[[argparse.Namespace], int]:
     """The command another installed package provides (entry point group `compd.commands`),
     or BadInput (exit 2) naming what is missing."""
-    from compd.core.registry import entry_point
+    from compd.core.registry import entry_point, load_entry_point
 
     ep = entry_point("compd.commands", name)
     if ep is None:
         raise BadInput(f"`compd {name}` {needs}, which is not installed (no '{name}' in entry point group"
                        " compd.commands): install compd from its source tree, with the rig, to run it")
-    try:
-        return ep.load()
-    except (ImportError, AttributeError) as e:
-        raise BadInput(f"`compd {name}` comes from {ep.value}, which cannot be loaded: {e}") from None
+    return load_entry_point(ep, f"`compd {name}`")
 
 
 def args_encode(sub: Any) -> None:

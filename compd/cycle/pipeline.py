@@ -29,7 +29,7 @@ from compd.core.config import (
 )
 from compd.core.errors import BadInput
 from compd.core.frame import Frame
-from compd.core.registry import entry_point
+from compd.core.registry import entry_point, load_entry_point
 from compd.cycle.adapt import Adapter
 from compd.cycle.contributions import Contributions
 from compd.cycle.guard import Guard
@@ -65,7 +65,7 @@ def build_clock(lp: LoopConfig, sources: Sequence[Source]) -> Clock:
             raise BadInput("loop.clock: plant needs the simulator's plant clock, which is not installed (no 'plant'"
                            " in entry point group compd.clocks: install compd from its source tree)",
                            path=("loop", "clock"))
-        return ep.load()(pc)
+        return load_entry_point(ep, "the plant clock", path=("loop", "clock"))(pc)
     return WallClock(lp.spin_margin_s)
 
 

@@ -1,8 +1,11 @@
-# Writes the Debian package's copyright file: compd's own terms, then each distribution in its venv.
-"""usr/share/doc/compd/copyright for the package scripts/build_deb.sh builds.
+# Writes a Debian package's copyright file: compd's own terms, then each distribution the package puts in the venv.
+"""usr/share/doc/PACKAGE/copyright for the packages scripts/build_deb.sh builds (compd, compd-commissioning).
 
-    python packaging/deb/copyright.py --site-packages STAGED_SITE --years 2026 \
+    python packaging/deb/copyright.py --package compd --site-packages STAGED_SITE --years 2026 \
         --final-site /opt/compd/venv/lib/python3.11/site-packages
+
+The distributions are those whose .dist-info folder the package's staged site-packages holds
+(packaging/deb/split.py moves each with its files).
 
 Each distribution's license is what its own metadata says (License-Expression, else a
 one-line License field, else its License classifiers); the texts are in its .dist-info
@@ -18,20 +21,22 @@ from importlib.metadata import Distribution, distributions
 from pathlib import Path
 
 HEAD = """\
-This is the Debian package of compd, built by `make deb` (scripts/build_deb.sh).
+This is the Debian package {package} of compd, built by `make deb` (scripts/build_deb.sh).
 
 compd (everything under /opt/compd except /opt/compd/venv, /usr/bin/compd, the
-systemd units, /usr/lib/sysusers.d/compd.conf and /etc/compd/compd.yaml):
+systemd units, /usr/lib/sysusers.d/compd.conf and /etc/compd/compd.yaml; and
+compd's own modules in /opt/compd/venv):
 
   Copyright (C) {years} the compd authors
   License: proprietary (pyproject.toml: license = "LicenseRef-Proprietary").
   This file grants no rights: compd's terms are those agreed with its authors.
 
 /opt/compd/venv holds compd and the Python distributions it runs on, installed
-from their published wheels by pip, unmodified. Each is under its own license;
-the list below gives, for each one, its version, the license its metadata
-states, and the folder holding its license texts. The native libraries some
-wheels bundle (numpy.libs, scipy.libs, pillow.libs and the like: OpenBLAS,
+from their published wheels by pip, unmodified; this package ships those listed
+below. Each is under its own license; the list gives, for each one, its version,
+the license its metadata states, and the folder holding its license texts. The
+native libraries some wheels bundle (numpy.libs, scipy.libs, pillow.libs and the
+like: OpenBLAS,
 the GCC Fortran and quadmath runtimes under the GCC Runtime Library Exception,
 image codecs) are covered by the license texts of the wheel that bundles them.
 Debian ships the common ones in /usr/share/common-licenses/ as well, e.g.
@@ -67,8 +72,8 @@ def dist_info(dist: Distribution) -> Path | None:
     return None
 
 
-def render(site: Path, final_site: str, years: str) -> str:
-    lines = [HEAD.format(years=years), "Distributions in /opt/compd/venv:", ""]
+def render(site: Path, final_site: str, years: str, package: str = "compd") -> str:
+    lines = [HEAD.format(years=years, package=package), f"Distributions {package} puts in /opt/compd/venv:", ""]
     dists = sorted(distributions(path=[str(site)]), key=lambda d: str(d.metadata["Name"]).lower())
     for dist in dists:
         meta = dist.metadata
@@ -91,11 +96,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--site-packages", required=True, type=Path, help="the staged venv's site-packages")
     ap.add_argument("--final-site", required=True, help="the same folder's path once installed")
     ap.add_argument("--years", required=True, help="compd's copyright years, e.g. 2025-2026")
+    ap.add_argument("--package", default="compd", help="the Debian package (compd or compd-commissioning)")
     args = ap.parse_args(argv)
     if not args.site_packages.is_dir():
         print(f"copyright: no folder {args.site_packages}", file=sys.stderr)
         return 2
-    sys.stdout.write(render(args.site_packages, args.final_site.rstrip("/"), args.years))
+    sys.stdout.write(render(args.site_packages, args.final_site.rstrip("/"), args.years, args.package))
     return 0
 
 

@@ -62,8 +62,10 @@ def render(help_text: str, version: str, date: str) -> str:
         "the config compd.service runs (compd@NAME.service runs /etc/compd/NAME.yaml)",
         ".TP",
         "\\fI/opt/compd/venv\\fR",
-        "compd and its Python dependencies with every extra (a venv: its pip is for inspection; a newer compd comes"
-        " as a newer package, never through pip)",
+        "compd and its Python dependencies (a venv: its pip is for inspection; a newer compd comes as a newer"
+        " package, never through pip). The package compd holds the daemon and what it needs; compd\\-commissioning"
+        " adds the fits, plots, reports, the simulator and the OPC UA server's stack: without it those commands say"
+        " so",
         ".TP",
         "\\fI/opt/compd/docs\\fR",
         "the documentation: commissioning.md, configuration.md, troubleshooting.md and the rest",
