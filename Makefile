@@ -68,9 +68,14 @@ $(NODE_OPCUA):
 	npm install --prefix build/tools/node-opcua --no-save --no-audit --no-fund --silent \
 	  node-opcua-client@2.186.4 node-opcua-certificate-manager@2.186.4
 
+# the suite on one more worker than the machine has cores (pytest-xdist: most tests wait on compd's
+# processes, sockets and brokers more than they compute; TEST_WORKERS=N to choose), the
+# tests of tests/linuxcnc on one worker (tests/conftest.py's pytest_xdist_make_scheduler); the 25 slowest
+# setups, calls and teardowns listed at the end
+TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU) $(NODE_OPCUA)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q -m "not accept and not bench"
+	$(PY) -m pytest -q -m "not accept and not bench" -n $(TEST_WORKERS) --dist loadgroup --durations=25
 
 # the randomized family: 20 machines per type, fitted on a training day and replayed on an unseen one,
 # gated on issue 40's goals with compd testplan's plan as each machine's training day, beside the
