@@ -68,11 +68,19 @@ $(NODE_OPCUA):
 	npm install --prefix build/tools/node-opcua --no-save --no-audit --no-fund --silent \
 	  node-opcua-client@2.186.4 node-opcua-certificate-manager@2.186.4
 
+# the suite on one more worker than the machine has cores (pytest-xdist: most tests wait on compd's
+# processes, sockets and brokers more than they compute; TEST_WORKERS=N to choose), the
+# tests of tests/linuxcnc on one worker (tests/conftest.py's pytest_xdist_make_scheduler); the 25 slowest
+# setups, calls and teardowns listed at the end. The checkout's byte code is compiled first: under
+# PYTHONDONTWRITEBYTECODE=1 every `compd` and `hil_sim` process the tests start would compile it again
+# (about 0.3 s of CPU each; Python reads the .pyc files whatever that variable says)
+TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU) $(NODE_OPCUA)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports --no-cache
 	$(VENV)/bin/mypy
-	$(PY) -m pytest -q -m "not accept and not bench"
+	$(PY) -m compileall -q compd hil_sim rig
+	$(PY) -m pytest -q -m "not accept and not bench" -n $(TEST_WORKERS) --dist loadgroup --durations=25
 
 # the randomized family: 20 machines per type, fitted on a training day and replayed on an unseen one,
 # gated on issue 40's goals with compd testplan's plan as each machine's training day, beside the

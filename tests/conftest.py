@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import ast
+import functools
 import os
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -38,6 +41,50 @@ def _children() -> set[int]:
         if int(fields[1]) == me and fields[0] != "Z":
             kids.add(int(pid))
     return kids
+
+
+@functools.cache
+def _modules_sharing_a_fixture() -> frozenset[str]:
+    """The test modules (paths from the checkout) that define a fixture made once for many tests:
+    `@pytest.fixture(scope=...)` with any scope but function."""
+    out = set()
+    for file in (ROOT / "tests").rglob("test_*.py"):
+        for node in ast.walk(ast.parse(file.read_text(encoding="utf-8"))):
+            if not (isinstance(node, ast.Call) and ast.unparse(node.func) in ("pytest.fixture", "fixture")):
+                continue
+            scope = next((k.value for k in node.keywords if k.arg == "scope"), None)
+            if scope is not None and not (isinstance(scope, ast.Constant) and scope.value == "function"):
+                out.add(file.relative_to(ROOT).as_posix())
+    return frozenset(out)
+
+
+def xdist_scope(nodeid: str) -> str:
+    """The unit of work a test belongs to under `make test`'s `-n N --dist loadgroup`: every test of
+    tests/linuxcnc together (one LinuxCNC per machine: a second worker's Sim would only wait on
+    tests/linuxcnc/sim.py's lock), the tests of a module with a module-scoped (or wider) fixture together
+    (the fixture is made once, not once per worker), any other test alone."""
+    path = nodeid.split("::", 1)[0]
+    if path.startswith("tests/linuxcnc/"):
+        return "linuxcnc"
+    return path if path in _modules_sharing_a_fixture() else nodeid
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """`--dist loadgroup` grouped by `xdist_scope` as well as by xdist_group marks: pytest-xdist 3.8
+    reads the marks through the node id, which pytest 9.2 no longer lets it change (pytest-xdist
+    issue 1386), and a mark on every test of a module would be easy to forget. Groups of many tests
+    are handed out first (xdist's loadscope reorder), single tests last, to even out the workers."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class Scheduling(LoadGroupScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            marked = super()._split_scope(nodeid)
+            return marked if marked != nodeid else xdist_scope(nodeid)
+
+    return Scheduling(config, log)
 
 
 @pytest.fixture(autouse=True)
