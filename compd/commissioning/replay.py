@@ -49,7 +49,7 @@ if TYPE_CHECKING:
     from compd.sinks.fanuc_pmc import FanucPmcSink
 
 # the model classes whose `predict` over a log equals stepping `evaluate` row by row
-# from its first row (tests/test_replay.py checks each on a day of its machine); others
+# from its first row (tests/commissioning/test_replay.py checks each on a day of its machine); others
 # (a kind from another package) are stepped. A model with linear terms is stepped too:
 # the Siemens sink sends the terms of the row it writes, and feed_axis's `predict` gives
 # the error at each row's position, not at P0.

@@ -6,7 +6,7 @@ serves it and hands `MetricsServer.update_buckets` the latest snapshot (compd/se
 about once a second; a scrape renders the metric families from that snapshot. Metric names end
 in their base unit (Prometheus: `_seconds`, `_meters`, `_celsius`, `_hertz`, …; a correction of
 12 µm is 1.2e-05 meters), one family per unit; `promtool check metrics` passes on a scrape
-(tests/test_promtool.py). Beside them: `compd_build_info`, the standard `process_*` metrics of
+(tests/service/test_promtool.py). Beside them: `compd_build_info`, the standard `process_*` metrics of
 the process that serves the scrape (the service's), and `compd_process_*` for each of compd's
 processes by name.
 """

@@ -74,7 +74,7 @@ def test_a_day_of_1_s_rows_through_compd_replay(days, what, args):
 def test_bench_day_of_1hz_log(tmp_path):
     """86 400 rows (a day at 1 Hz) through the PMC: the target is seconds, not minutes."""
     from compd.commissioning.replay import replay_model
-    from tests.test_replay import ALPHA, LENGTH_MM, spindle_log
+    from tests.commissioning.test_replay import ALPHA, LENGTH_MM, spindle_log
 
     model = tmp_path / "xi.yaml"
     model.write_text(yaml.safe_dump({"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],

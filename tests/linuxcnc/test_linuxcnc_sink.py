@@ -22,9 +22,9 @@ from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.pt100 import Pt100Transmitter
 from hil_sim.devices.pt100_modbus import Pt100ModbusDevice
 from tests.conftest import ROOT
+from tests.daemon.test_service_process import SENSOR, _config, _start
 from tests.linuxcnc.sim import Sim, require, wait_for
 from tests.service_helpers import wait_running
-from tests.test_service_process import SENSOR, _config, _start
 
 UM = 1e-3  # mm
 

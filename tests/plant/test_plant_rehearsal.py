@@ -23,8 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.commissioning.test_commissioning import blocks, doc_folder, free_port
 from tests.service_helpers import wait_running
-from tests.test_commissioning import blocks, doc_folder, free_port
 
 pytestmark = pytest.mark.slow
 

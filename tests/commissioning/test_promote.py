@@ -16,10 +16,10 @@ import pytest
 from compd.cli import main
 from compd.config import load_config
 from compd.plant.remote_model import clamp_check
+from tests.cycle.test_shadow import EXTRA, SHADOW, _probe_at, daemon  # noqa: F401  (the fixture: a daemon with a shadow)
 from tests.plant.test_remote_model import ABSURD, SANE
+from tests.service.test_probe import ENV, compd, status_of, until
 from tests.service_helpers import sim_config
-from tests.test_probe import ENV, compd, status_of, until
-from tests.test_shadow import EXTRA, SHADOW, _probe_at, daemon  # noqa: F401  (the fixture: a daemon with a shadow)
 
 CLAMP_40 = "guard: {max_abs_um: 40}\n"
 

@@ -15,7 +15,7 @@ from compd.cli import main
 from compd.commissioning import fitting
 from compd.commissioning import recommend as rec
 from compd.log import Log, write_log
-from tests.test_fit_warnings import _lathe
+from tests.commissioning.test_fit_warnings import _lathe
 
 
 @pytest.fixture(scope="module")

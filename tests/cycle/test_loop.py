@@ -18,7 +18,7 @@ from compd.core.clock import Clock
 from compd.daemon.app import App
 from tests.service_helpers import wait_running
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 CONFIG = """\
 loop:

@@ -20,7 +20,7 @@ import pytest
 from compd.service.notify import socket_address
 from tests.service_helpers import sim_config
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 UNITS = ("compd.service", "compd@.service")
 COMPD = "/opt/compd/venv/bin/compd"
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_packaging import naming
+from tests.packaging.test_packaging import naming
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 VERSION = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["version"]
 UNITDIR = "lib/systemd/system"
 VENV = "/opt/compd/venv"

@@ -19,7 +19,7 @@ from compd.log import read_log, write_log
 from compd.plant.opcua import address_space
 from compd.plant.telemetry import device_metrics
 from compd.service.metrics import SnapshotCollector
-from tests.test_fit_residual import COLUMNS, _day
+from tests.commissioning.test_fit_residual import COLUMNS, _day
 
 SLEW_UM_PER_S = 0.05  # the axis guard's (per log second: a row a minute)
 RAMP_UM_PER_S = 0.002

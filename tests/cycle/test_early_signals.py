@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_reload import CONFIG, wait_for
+from tests.daemon.test_reload import CONFIG, wait_for
 
 IN_OPEN = 0x20  # <sys/inotify.h>
 

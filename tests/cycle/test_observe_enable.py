@@ -22,7 +22,7 @@ from compd.service.status import jsonable, render, snapshot
 from compd.sinks.observe import ObserveSink
 from tests.service_helpers import sim_config
 
-CYCLE = 3000  # the sim spindle is warm and the axis normal by then (tests/test_status.py)
+CYCLE = 3000  # the sim spindle is warm and the axis normal by then (tests/service/test_status.py)
 
 
 def _mid_run(tmp_path: Path, *, observe: bool, flag: bool | None = None) -> dict[str, Any]:

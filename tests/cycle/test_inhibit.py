@@ -192,7 +192,7 @@ def test_pmc_bits_over_modbus_hold_the_axis_and_ramp_at_the_slew(tmp_path: Path)
 def test_check_config_names_an_unknown_inhibit_signal(tmp_path: Path, capsys):
     from compd.cli import main
 
-    text = (Path(__file__).parent.parent / "configs" / "inhibit_fanuc.yaml").read_text()
+    text = (Path(__file__).parents[2] / "configs" / "inhibit_fanuc.yaml").read_text()
     bad = tmp_path / "bad.yaml"
     bad.write_text(text.replace("{referenced: z_referenced}", "{referenced: z_refd}"))
     assert main(["check-config", str(bad)]) == 2

@@ -24,7 +24,7 @@ from compd.daemon.app import App
 from compd.io.mailbox import shared_buffer
 from tests.service_helpers import sim_config
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _ran(tmp_path: Path, cycles: int = 3000) -> App:

@@ -35,7 +35,7 @@ import yaml
 
 from tests.service_helpers import wait_running
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 GUIDE = ROOT / "docs" / "commissioning.md"
 README = ROOT / "README.md"
 CONCURRENT = "run by the test while the command before it runs"

@@ -10,7 +10,7 @@ import pytest
 
 from compd.cli import main
 from compd.service import status as status_mod
-from tests.test_config import GOOD
+from tests.core.test_config import GOOD
 
 CONFIG = GOOD + "status: {path: shared.json}\n"
 

@@ -17,8 +17,8 @@ from compd.core.frame import Quality
 from compd.cycle.guard import Guard
 from compd.daemon.app import App
 from compd.daemon.host import log_guard_event
-from tests.test_guard import make, run
-from tests.test_loop import CONFIG, ScriptedClock
+from tests.cycle.test_guard import make, run
+from tests.cycle.test_loop import CONFIG, ScriptedClock
 
 PERIOD_S = 0.1  # the loop's threshold: max(20 periods, 0.5 s) = 2 s
 

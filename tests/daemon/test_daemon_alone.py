@@ -26,7 +26,7 @@ import pytest
 
 from tests.service_helpers import wait_running
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 WAIT_S = 120.0
 
 

@@ -17,9 +17,9 @@ from compd.commissioning.replay import replay_config
 from compd.config import load_config
 from compd.core.errors import BadInput
 from compd.log import read_log
+from tests.cycle.test_contributions import plant  # noqa: F401  (the fixture: two fitted contributions, an unseen day)
+from tests.service.test_probe import ENV, compd, status_of, until
 from tests.service_helpers import sim_config
-from tests.test_contributions import plant  # noqa: F401  (the fixture: two fitted contributions, an unseen day)
-from tests.test_probe import ENV, compd, status_of, until
 
 # the shadow: the same spindle, another length, fitted over 20…45 °C (34 µm at most: inside the guard's 63 µm clamp)
 SHADOW = """kind: xi_spindle

@@ -123,7 +123,7 @@ def test_inline_params_say_so_and_a_model_without_t0_before_start(tmp_path):
 
 def test_a_running_daemon_s_status_shows_them(tmp_path):
     """`compd run` as a real process (the log replayed at 20x), `compd status --config` beside it."""
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(root)}
     model = _fitted(tmp_path)
     cfg = _config(tmp_path, model, loop="{clock: sim, period_s: 1.0, speedup: 20}",

@@ -34,9 +34,9 @@ from hil_sim.devices.modbus_server import ModbusServerThread
 from hil_sim.devices.pt100 import Pt100Transmitter
 from hil_sim.devices.pt100_modbus import Pt100ModbusDevice
 from tests.conftest import ROOT
+from tests.daemon.test_service_process import SENSOR, _config
 from tests.plant.broker import Listener, Mosquitto, metric
 from tests.service_helpers import sim_config
-from tests.test_service_process import SENSOR, _config
 
 WAIT_S = 60.0
 

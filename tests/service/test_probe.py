@@ -22,7 +22,7 @@ from compd.core.errors import BadInput
 from compd.service import control
 from tests.service_helpers import sim_config
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 WAIT_S = 60.0  # an upper bound for a condition to become true, never a sleep
 

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import yaml
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 NOT_OURS = ("compd", "hil_sim", "rig", "__editable__")
 
 # 4 K above T0: error α L ΔT = 13.6e-6 × 165 mm × 4 K = 8.98 µm; correction −8.98 µm

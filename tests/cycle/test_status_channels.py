@@ -13,7 +13,7 @@ from compd.cycle import statusblock
 from compd.cycle.statusblock import AI, AXIS_SCOPE, FIELDS, LI, Field, _by_key, _scoped
 from compd.service import metrics
 from compd.service.metrics import EXAMPLE_SNAPSHOT, SnapshotCollector
-from tests.test_promtool import _check
+from tests.service.test_promtool import _check
 
 # one field more, declared as statusblock declares its own: everything below comes from it alone
 NEW = _scoped(AXIS_SCOPE, Field("spindle_growth_um", "µm", "how far the spindle grew (a test's field)"))[0]
@@ -118,7 +118,7 @@ def test_the_exporters_type_no_key_of_the_record() -> None:
     from pathlib import Path
 
     keys = {f.key for f in FIELDS}
-    root = Path(__file__).resolve().parent.parent / "compd"
+    root = Path(__file__).resolve().parents[2] / "compd"
     for path in ("service/metrics.py", "plant/telemetry.py", "plant/opcua.py"):
         source = (root / path).read_text(encoding="utf-8")
         typed = sorted({k for k in keys if f'"{k}"' in source or f"'{k}'" in source} - _ALSO_ELSEWHERE)

@@ -13,7 +13,7 @@ from compd.config import load_config
 from compd.core.errors import ConfigError
 from compd.daemon.app import App
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
 
 GOOD = """\

@@ -9,7 +9,7 @@ import pytest
 
 from compd.cli import main
 from compd.config import OPTIONAL_MODULES
-from tests.test_config import GOOD
+from tests.core.test_config import GOOD
 
 METRICS = GOOD + "metrics: {enabled: true, bind: 127.0.0.1, port: 0}\n"
 
@@ -48,7 +48,7 @@ def test_every_optional_module_has_its_extra_in_the_documented_setup() -> None:
     """`make demo` / `make install` install what the documented configs may enable."""
     import tomllib
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     extras = tomllib.loads((root / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     makefile = (root / "Makefile").read_text()
     installed = makefile.split("pip install -q -e '.[", 1)[1].split("]'", 1)[0].split(",")

@@ -18,7 +18,7 @@ from compd.cli import main
 from compd.commissioning import testplan as tp
 from compd.core.errors import BadInput
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PAGE = ROOT / "docs" / "testplan.md"
 
 
