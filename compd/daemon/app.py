@@ -24,6 +24,8 @@ from compd.sinks.base import SAFE_TIMEOUT_S
 log = logging.getLogger("compd")
 
 
+CATCH_UP_PERIODS = 2.0  # the slew a late cycle may spend: two periods' worth (jitter), never the whole pause
+
 class LogObserver:
     """Hands a log row to `push` every `period_s` of loop time and on every change of the
     word (the service's data log writes it: compd/daemon/host.py)."""
@@ -173,6 +175,10 @@ class App:
         p, self.clock = from_config(cfg, observe=self.observe)
         self.sources, self.frame, self.model, self.guard = p.sources, p.frame, p.model, p.guard
         self.encoder, self.sink, self.loop = p.encoder, p.sink, p.loop
+        # a late cycle licenses at most CATCH_UP_PERIODS of slew: after a pause of the process shorter
+        # than the loop's stall threshold (0.5 s) the output goes on at the slew, never steps the gap's
+        # worth at once (a longer one is a stall: one period, compd.cycle.guard.Guard.stall)
+        self.guard.max_dt_s = CATCH_UP_PERIODS * lp.period_s
         self.loop.gil_switch_interval_s = lp.gil_switch_interval_s
         self.loop.io_process = lp.io == "process"
         self.loop.cycle_cpus = frozenset(lp.realtime.cpu_affinity or ())

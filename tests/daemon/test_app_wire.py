@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 
+import numpy as np
 import yaml
 
 from compd.config import load_config
@@ -53,3 +54,23 @@ def test_run_loop_reads_modbus_and_drives_pmc(tmp_path):
             assert pmc.applied_um() == [0.0, 0.0]
     finally:
         scan.stop()
+
+
+def test_a_late_cycle_never_spends_the_pause_s_slew_at_once(tmp_path):
+    """A pause of the daemon shorter than the loop's stall threshold (here 0.15 s at a 2 ms period):
+    the next cycle moves the output by at most two periods' slew, never the pause's worth at once."""
+    from tests.service_helpers import sim_config
+
+    app = App(load_config(sim_config(tmp_path, period_s=0.002)), duration_s=1.0)
+    try:
+        guard = app.guard
+        slew = guard.cfg.max_slew_um_per_s
+        pred = np.full(len(guard.out_um), 50.0)
+        guard.update(pred, True, 0.0)
+        guard.update(pred, True, 0.002)
+        before = guard.out_um.copy()
+        guard.update(pred, True, 0.152)  # 150 ms late
+        assert np.abs(guard.out_um - before).max() <= 2 * 0.002 * slew + 1e-12
+        assert np.abs(guard.out_um - before).max() > 0.0
+    finally:
+        app.close()
