@@ -41,6 +41,9 @@ from compd.core.config import (
 )
 from compd.core.errors import BadInput, ConfigError, format_path
 from compd.core.registry import install_hint
+from compd.models import MODELS
+from compd.sinks import SINKS
+from compd.sources import SOURCES
 
 if TYPE_CHECKING:  # the kinds' modules are imported when a config names them (compd.core.registry)
     from compd.core.registry import Registry
@@ -176,8 +179,6 @@ def resolve_model(
     """Resolve a model section (inline, from a file, or `contributions`: several summed) to a
     ModelSpec; a contribution's limits default to its axes' in `guard`. With `axes`, every output
     (each contribution's) must be one of them; without, a sum's first contribution declares them."""
-    from compd.models import MODELS
-
     if isinstance(section, dict) and "contributions" in section:
         return _resolve_contributions(section, doc, path, base_dir, guard or GuardConfig(), axes)
     if isinstance(section, dict) and section.get("kind") == SUM_KIND:
@@ -398,9 +399,6 @@ def _declared_axes(top: ConfigModel, sink: SinkConfig) -> DrivenAxes | None:
 
 def load_config(file: str | Path, text: str | None = None) -> Config:
     """Load and validate a config file; raises ConfigError (exit 2) on any problem."""
-    from compd.sinks import SINKS
-    from compd.sources import SOURCES
-
     doc = load_yaml(file, text)
     if doc.data is None:
         raise ConfigError("the config is empty", file=doc.file)

@@ -1,9 +1,11 @@
 """The house's import contract: packages import only the floors below them (pyproject's
-[tool.importlinter], run by `lint-imports`), and no circle of files, counting imports made
-inside functions and under TYPE_CHECKING as well."""
+[tool.importlinter], run by `lint-imports`), no circle of files, counting imports made
+inside functions and under TYPE_CHECKING as well, and an import of compd's own made inside a
+function only for an optional dependency."""
 
 from __future__ import annotations
 
+import ast
 import os
 import shutil
 import subprocess
@@ -14,6 +16,26 @@ import grimp
 
 ROOT = Path(__file__).resolve().parent.parent
 LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
+
+# The modules of compd that a function may import where it needs them (an import inside a
+# function), and why: what the daemon's package lacks or what only some configs need. Each key
+# stands for itself and its submodules; the modules named after the reason (that ship with it, or
+# need its dependency anyway) import it at the top like any other. Any other import of compd's own
+# belongs at the top of its module: a lazy import is for an optional dependency, never to dodge a
+# circle. compd/cli/ is apart: the command line imports each command's modules when that command
+# runs (the start-up of `compd status` and the rest).
+OPTIONAL: dict[str, tuple[str, tuple[str, ...]]] = {
+    "compd.commissioning": ("compd-commissioning's: the daemon's package lacks it",
+                            ("compd.commissioning",)),
+    "compd.identify": ("compd-commissioning's (scipy): the daemon's package lacks it",
+                       ("compd.identify", "compd.commissioning")),
+    "compd.plant.telemetry": ("paho-mqtt and protobuf: only a config with `telemetry` starts MQTT", ()),
+    "compd.plant.sparkplug": ("protobuf: only a config with `telemetry` speaks Sparkplug B",
+                              ("compd.plant.telemetry",)),
+    "compd.plant.opcua": ("asyncua and cryptography: only a config with `opcua` serves OPC UA", ()),
+    "compd.plant.material": ("cryptography: only a config with `opcua` has certificate files",
+                             ("compd.plant.opcua",)),
+}
 
 
 def circles(package: str) -> list[list[str]]:
@@ -110,3 +132,89 @@ def test_a_circle_inside_one_floor_is_found(tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=600, cwd=tree)
     assert run.returncode == 0, run.stderr
     assert "['compd.core.clock', 'compd.core.frame']" in run.stdout
+
+
+def _module_name(path: Path, root: Path) -> tuple[str, str]:
+    """The dotted name of a module file under `root` and the package its relative imports start from."""
+    parts = path.relative_to(root).with_suffix("").parts
+    if parts[-1] == "__init__":
+        name = ".".join(parts[:-1])
+        return name, name
+    name = ".".join(parts)
+    return name, name.rpartition(".")[0]
+
+
+def _imported(node: ast.Import | ast.ImportFrom, package: str) -> list[str]:
+    """The modules an import statement names (`from X import y` names X), relative ones resolved."""
+    if isinstance(node, ast.Import):
+        return [alias.name for alias in node.names]
+    if node.level:
+        base = package.split(".")[: len(package.split(".")) - node.level + 1]
+        return [".".join(base + ([node.module] if node.module else []))]
+    return [node.module or ""]
+
+
+def lazy_imports(root: Path) -> list[tuple[str, int, str, str]]:
+    """Every import of a compd module made inside a function in `root`/compd outside compd/cli/:
+    (file, line, importing module, imported module)."""
+    found = []
+    for path in sorted((root / "compd").rglob("*.py")):
+        rel = path.relative_to(root)
+        if rel.parts[1] == "cli":
+            continue
+        importer, package = _module_name(path, root)
+        functions = [n for n in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+                     if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+        seen = set()
+        for fn in functions:
+            for node in ast.walk(fn):
+                if isinstance(node, (ast.Import, ast.ImportFrom)) and id(node) not in seen:
+                    seen.add(id(node))  # an import in a nested function is walked from both
+                    for module in _imported(node, package):
+                        if module == "compd" or module.startswith("compd."):
+                            found.append((str(rel), node.lineno, importer, module))
+    return sorted(found)
+
+
+def _within(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
+def not_optional(root: Path) -> list[str]:
+    """The lazy imports of compd modules (`lazy_imports`) that OPTIONAL does not allow, as
+    `file:line: importer imports module`."""
+    bad = []
+    for file, line, importer, module in lazy_imports(root):
+        allowed = any(_within(module, key) and not any(_within(importer, home) for home in homes)
+                      for key, (_, homes) in OPTIONAL.items())
+        if not allowed:
+            bad.append(f"{file}:{line}: {importer} imports {module} inside a function")
+    return bad
+
+
+def test_a_lazy_import_is_for_an_optional_dependency() -> None:
+    """compd's own modules are imported inside a function only where OPTIONAL says why."""
+    assert not_optional(ROOT) == []
+
+
+def test_the_optional_modules_exist() -> None:
+    """Every key of OPTIONAL names a module or package of compd (a renamed one is not allowed by a stale name)."""
+    for key in OPTIONAL:
+        path = ROOT / Path(*key.split("."))
+        assert path.with_suffix(".py").is_file() or (path / "__init__.py").is_file(), key
+
+
+def test_a_lazy_import_of_the_daemons_own_is_named(tmp_path: Path) -> None:
+    """A function importing a module the daemon always has (compd.config) fails with its file and
+    line; the same import of an optional module (compd.plant.opcua from the host) does not, nor
+    one inside compd/cli/, nor compd.identify imported lazily from compd.commissioning's home."""
+    tree = _copy(tmp_path)
+    frame = tree / "compd" / "cycle" / "publish.py"
+    lines = frame.read_text().count("\n")
+    frame.write_text(frame.read_text() + "\n\ndef _late() -> None:\n    from compd.config import load_config  # noqa: F401\n"
+                     "    from compd.plant.opcua import OpcUaServer  # noqa: F401\n")
+    cli = tree / "compd" / "cli" / "tools.py"
+    cli.write_text(cli.read_text() + "\n\ndef _late() -> None:\n    from compd.config import load_config  # noqa: F401\n")
+    found = not_optional(tree)
+    assert found == [f"compd/cycle/publish.py:{lines + 4}: compd.cycle.publish imports compd.config inside a function"]
+    assert (str(Path("compd/cycle/publish.py")), lines + 5, "compd.cycle.publish", "compd.plant.opcua") in lazy_imports(tree)

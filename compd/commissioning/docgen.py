@@ -20,6 +20,11 @@ from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
+from compd.core import config as core_config
+from compd.models import MODELS
+from compd.sinks import SINKS
+from compd.sources import SOURCES
+
 # key-name suffix → unit, longest first (STYLE: `period_s`, `max_step_um`, ...)
 UNIT_SUFFIXES = (
     ("_w_m2k_per_krpm", "W/(m²·K) per 1000 rpm"),
@@ -211,11 +216,6 @@ def _kinds(registry: Any) -> Iterator[tuple[str, type]]:
 
 def generate() -> str:
     """The whole of docs/configuration.md."""
-    from compd.core import config as c
-    from compd.models import MODELS
-    from compd.sinks import SINKS
-    from compd.sources import SOURCES
-
     d = _Doc()
     d.lines += [
         "# Configuration reference",
@@ -236,19 +236,19 @@ def generate() -> str:
         "limits longer than `loop.period_s`), its description says so.",
         "",
         "Limits of the YAML reader (config and model files alike; exceeding one is a one-line error,",
-        f"exit 2): a config is a regular file of at most {c.CONFIG_MAX_BYTES} bytes holding at most",
-        f"{c.CONFIG_MAX_VALUES} values; a model file (`model.file`) at most {c.MODEL_MAX_BYTES} bytes",
-        f"and {c.MODEL_MAX_VALUES} values; mappings and lists nest at most {c.MAX_DEPTH} levels; aliases",
-        f"(`*name`, `<<: *name`) expand to at most {c.MAX_ALIAS_VALUES} values in all; one YAML document",
+        f"exit 2): a config is a regular file of at most {core_config.CONFIG_MAX_BYTES} bytes holding at most",
+        f"{core_config.CONFIG_MAX_VALUES} values; a model file (`model.file`) at most {core_config.MODEL_MAX_BYTES} bytes",
+        f"and {core_config.MODEL_MAX_VALUES} values; mappings and lists nest at most {core_config.MAX_DEPTH} levels; aliases",
+        f"(`*name`, `<<: *name`) expand to at most {core_config.MAX_ALIAS_VALUES} values in all; one YAML document",
         "per file. A merge (`<<`) is overridden by the mapping's own keys.",
         "",
     ]
     sections = []
-    for key, f in c.ConfigModel.model_fields.items():
+    for key, f in core_config.ConfigModel.model_fields.items():
         for model in _models_in(f.annotation):
             d.titles[model] = key
             sections.append((key, model))
-    d.section("Top level", c.ConfigModel, 2)
+    d.section("Top level", core_config.ConfigModel, 2)
     for key, model in sections:
         d.section(key, model, 2)
     d.lines += [
@@ -266,9 +266,9 @@ def generate() -> str:
                       f" `{kind} = {plugins[kind].value}` (group `{SOURCES.group}`).")
         d.section(f"sources: kind {kind}", cls.Config, 3, intro)
     d.lines += ["## Models", ""]
-    d.section("model", c.ModelSection, 3)
-    d.section("model: contributions", c.ContributionsSection, 3, CONTRIBUTIONS_INTRO)
-    d.section("model: contributions, each item", c.ContributionSection, 3,
+    d.section("model", core_config.ModelSection, 3)
+    d.section("model: contributions", core_config.ContributionsSection, 3, CONTRIBUTIONS_INTRO)
+    d.section("model: contributions, each item", core_config.ContributionSection, 3,
               "A model section as above (kind, file or params, inputs, outputs, update_period_s) with these"
               " further keys.")
     for kind, cls in _kinds(MODELS):

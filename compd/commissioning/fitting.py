@@ -17,8 +17,10 @@ import yaml
 from pydantic import ValidationError
 
 from compd import version
+from compd.commissioning import recommend as rec
 from compd.commissioning.recommend import SUM_MARGIN
 from compd.commissioning.thermaltest import thermal_test
+from compd.config import load_model_file, resolve_model
 from compd.core.errors import BadInput
 from compd.core.scoring import score_residual
 from compd.cycle.contributions import Contributions
@@ -28,7 +30,7 @@ from compd.identify.data import (
     default_targets,
     progress,
 )
-from compd.log import Log, error_axis, read_log
+from compd.log import Log, error_axis, read_log, write_log
 from compd.models.base import Model
 
 
@@ -588,8 +590,6 @@ def write_model(model: Model, path: str | Path) -> None:
 
 def load_model(path: str | Path) -> Model:
     """A model from its YAML file, validated like a config's `model: {kind, file}`."""
-    from compd.config import load_model_file, resolve_model
-
     doc, data = load_model_file(path)
     p = Path(path).resolve()
     spec = resolve_model({"kind": data["kind"], "file": str(p)}, doc, (), p.parent)
@@ -599,8 +599,6 @@ def load_model(path: str | Path) -> Model:
 
 def write_prediction(path: str | Path, t_s: np.ndarray, axes: list[str], pred: np.ndarray) -> None:
     """PRED.csv: t_s and one pred_<axis>_um column per axis."""
-    from compd.log import write_log
-
     write_log(path, ["t_s"] + [f"pred_{a}_um" for a in axes], np.column_stack([t_s, pred]))
 
 
@@ -752,8 +750,6 @@ def recommendation(log: Log, rows: list[Row], targets: list[str] | None, stage: 
     """`--kind all`'s pick over every target (compd.commissioning.recommend.choose) and the sums it
     weighed: for each spindle kind fitted (xi_spindle, ar1), that kind then MLR on the other
     temperatures, scored nested held out. (None, sums) when no candidate covers every target."""
-    from compd.commissioning import recommend as rec
-
     tcols = default_targets(log, targets)
     firsts = []
     if stage is None:  # a sum of stages on a log already less other models' predictions: not proposed

@@ -13,8 +13,15 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from compd import __version__
+from compd.commissioning import fitting
+from compd.commissioning.plots import pyplot, trend_from_replay, write_trend
+from compd.commissioning.replay import replay_config, replay_model
 from compd.commissioning.thermaltest import DEFAULT_EVERY_MIN, ThermalTest, plot_png, thermal_test
+from compd.core.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml
 from compd.core.errors import BadInput
+from compd.identify.data import ambient_columns
+from compd.log import read_log
 
 MAX_JSON_BYTES = 16 * 1024 * 1024
 RECORD_TEXT_MAX = 200  # characters of one record field (--machine, --operator, --instrument): one line
@@ -186,9 +193,6 @@ def log_facts(role: str, report: dict[str, Any], report_file: str, flag: str) ->
         return LogFacts(role, name, why_not=f"not found (looked up as written and beside {report_file})")
     import numpy as np
 
-    from compd.identify.data import ambient_columns
-    from compd.log import read_log
-
     try:
         log = read_log(path, allow_nan=True)
     except BadInput as e:
@@ -241,8 +245,6 @@ class Page:
 
 
 def _png(fig: Any) -> bytes:
-    from compd.commissioning.plots import pyplot
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     pyplot().close(fig)
@@ -261,9 +263,6 @@ def fit_figure(fit: dict[str, Any], fit_file: str) -> Figure:
         missing = "model" if model_file is None else "log"
         return Figure(caption, why_not=f"not drawn: the fit report's {missing} file {fit.get(missing)!r} is not found")
     import numpy as np
-
-    from compd.commissioning import fitting
-    from compd.commissioning.plots import pyplot
 
     model = fitting.load_model(model_file)
     log = fitting.read_fit_log(log_file)
@@ -303,9 +302,6 @@ def replay_figure(replay: dict[str, Any], replay_file: str) -> Figure:
             return Figure(caption + f" ({given.name}, from compd replay --plot)", given.read_bytes())
         missing = "log" if log_file is None else what
         return Figure(caption, why_not=f"not drawn: the replay report's {missing} file {replay.get(missing)!r} is not found")
-    from compd.commissioning.plots import pyplot, trend_from_replay, write_trend
-    from compd.commissioning.replay import replay_config, replay_model
-
     result = (replay_config if what == "config" else replay_model)(source, log_file)
     pyplot()
     buf = io.BytesIO()
@@ -316,8 +312,6 @@ def replay_figure(replay: dict[str, Any], replay_file: str) -> Figure:
 def thermal_from_files(log_file: str | Path, model_file: str | Path | None, every_s: float) -> ThermalTest:
     """The thermal test's figures of a log file and a model file (its prediction over the whole log,
     from a cold start as `compd predict` gives it); BadInput for a bad file, or a model input the log lacks."""
-    from compd.commissioning import fitting
-
     log = fitting.read_fit_log(log_file)
     if len(log) == 0:
         raise BadInput("the log has no rows", file=str(log_file))
@@ -393,8 +387,6 @@ def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
         page.config_file = config_file
     model_file = find_beside(fit.get("model"), fit_file)
     if model_file is not None:
-        from compd.core.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml
-
         doc = load_yaml(model_file, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
         if isinstance(doc.data, dict) and isinstance(doc.data.get("params"), dict):
             page.model_params = doc.data["params"]
@@ -656,8 +648,6 @@ def _model_made(page: Page) -> str:
 
 def record_section(page: Page, made_at: datetime) -> str:
     """Who, which machine, with what, in what air, when: the facts a plant files the page by."""
-    from compd import __version__
-
     rec = page.record
 
     def given(value: str | None, flag: str) -> str:

@@ -27,6 +27,7 @@ from compd.core.config import Strict
 from compd.core.errors import BadInput
 from compd.cycle.pipeline import build_pipeline
 from compd.models.base import Model
+from compd.service.status import daemon_status_path, held, read_status
 from compd.sinks.base import Sink
 
 SETTLE_CYCLES = 3  # cycles run after a ramp reached its goal, so the sink delivers the last step
@@ -132,8 +133,6 @@ def running_daemon(cfg: Config) -> str | None:
     """Why a daemon of this config seems to hold the sink's device now (its status file is
     fresh, its process exists; also with its cycle stale: stopped, it may run again), or None:
     the test must not write beside a running loop."""
-    from compd.service.status import daemon_status_path, held, read_status
-
     path = daemon_status_path(cfg)
     if not path.is_file():
         return None

@@ -10,7 +10,9 @@ from typing import Any
 import numpy as np
 
 from compd.codec import byte_to_um, decode_byte
+from compd.config import load_config
 from compd.core.errors import BadInput
+from compd.cycle.limiter import FAULT, RECOVERING
 from compd.log import Log, is_temperature_column
 
 # the colours every trend uses, so a reader learns them once
@@ -311,8 +313,6 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
     notes = []
     k0_sink = False  # the config's sink sends the guard's correction (K0), not the word
     if config is not None:
-        from compd.config import load_config
-
         cfg = load_config(config)
         k0_sink = cfg.sink[1].kind == "siemens"
         lsb_um = cfg.codec.lsb_um
@@ -372,8 +372,6 @@ def probe_matrix(log: Log, axes: list[str]) -> np.ndarray | None:
 def trend_from_replay(result: Any) -> Trend:
     """The trend of a `compd replay` (a compd.commissioning.replay.ReplayResult): the guard's states give the
     fault bands (fault and recovering)."""
-    from compd.cycle.limiter import FAULT, RECOVERING
-
     ex = result.extra
     state = ex.get("guard_state")
     fault = None if state is None else (state == FAULT) | (state == RECOVERING)

@@ -43,14 +43,15 @@ import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import yaml
 
+from compd.config import Config, load_config, model_sha256
 from compd.core.errors import BadInput
-
-if TYPE_CHECKING:
-    from compd.config import Config
+from compd.plant.remote_model import drive_check, read_shadow_record
+from compd.plant.spec import check_config
+from compd.service.status import daemon_status_path, liveness, read_status
 
 MIN_PROBES = 3  # probes per axis the daemon must have scored the shadow on (`--min-probes`)
 
@@ -160,8 +161,6 @@ def score_refusal(status: dict[str, Any] | None, shadow_sha256: str, axes: list[
 
 def _daemon_status(cfg: Config) -> tuple[Path | None, dict[str, Any] | None]:
     """The status file of the daemon running `cfg`, and its record when that daemon runs (else None)."""
-    from compd.service.status import daemon_status_path, liveness, read_status
-
     status_path = daemon_status_path(cfg)
     if status_path is None or not Path(status_path).exists():
         return status_path, None
@@ -185,8 +184,6 @@ def _origin(fit: Any) -> str:
 def describe(cfg: Config, status: dict[str, Any] | None, shadow_sha256: str) -> list[str]:
     """What `promote` is about to make the model, a line each: the shadow's kind, file and sha256,
     where it came from, and what it and the active model predict now (the running daemon's status)."""
-    from compd.plant.remote_model import read_shadow_record
-
     spec = cfg.shadow
     assert spec is not None  # `promote` refuses a config without a shadow before it describes one
     kind = spec.kind
@@ -238,10 +235,6 @@ def promote(config: str | Path, *, force: bool = False, reload: bool = True, wai
     """Promote the config's shadow (see the module): `say` is given what it is about to do, line by line,
     before anything is checked against it or written; what was done, for the command to print. A
     refusal is BadInput (exit 2)."""
-    from compd.config import load_config, model_sha256
-    from compd.plant.remote_model import drive_check
-    from compd.plant.spec import check_config
-
     path = Path(config)
     cfg = load_config(path)  # the file as it is must be valid, with a shadow
     if cfg.shadow is None:
@@ -304,8 +297,6 @@ def _put_back(path: Path, before: bytes, new: str, stamp: str, pid: int) -> str:
 
 def _wait_reloaded(status_path: str, cfg: Config, before: Any, wait_s: float) -> bool:
     """Whether the daemon's status shows the promoted model (its kind and file, and no shadow) within `wait_s`."""
-    from compd.service.status import read_status
-
     want_kind, want_file = cfg.model.kind, cfg.model.file
     deadline = time.monotonic() + wait_s
     while time.monotonic() < deadline:

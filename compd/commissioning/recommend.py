@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from compd.identify import holdout, identify
-from compd.identify.data import FitResult
+from compd.identify.data import FitResult, columns
 from compd.log import Log, error_axis
 from compd.models.base import Model
 
@@ -132,8 +132,6 @@ class SumOutcome:
 
 def predict_fresh(model: Model, log: Log) -> np.ndarray:
     """A model's prediction over the log from a cold start (n × outputs), NaN where an input is blank."""
-    from compd.identify.data import columns
-
     fresh = type(model)(model.params, model.inputs, model.outputs, model.fit_info)
     return fresh.predict(columns(log, model.inputs), log.t_s)
 

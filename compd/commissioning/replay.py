@@ -33,20 +33,32 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from compd.commissioning.plots import probe_matrix, trend_from_replay, write_trend
+from compd.config import load_config, resolve_model
 from compd.core.clock import SimClock
-from compd.core.config import AdaptConfig, CodecConfig, Document, GuardConfig, InhibitConfig
+from compd.core.config import (
+    MODEL_MAX_BYTES,
+    MODEL_MAX_VALUES,
+    AdaptConfig,
+    CodecConfig,
+    Document,
+    GuardConfig,
+    InhibitConfig,
+    load_yaml,
+)
 from compd.core.errors import BadInput
 from compd.core.probe import Probe
 from compd.core.scoring import score_applied
 from compd.cycle.pipeline import build_model, build_pipeline
+from compd.io.modbus_client import ModbusClient
 from compd.log import Log, read_log
 from compd.models.base import Model, step_rows
 from compd.sinks.base import Sink
+from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink
 from compd.sources.replay import ReplayConfig, ReplaySource
 
 if TYPE_CHECKING:
     from compd.cycle.loop import Loop
-    from compd.sinks.fanuc_pmc import FanucPmcSink
 
 # the model classes whose `predict` over a log equals stepping `evaluate` row by row
 # from its first row (tests/commissioning/test_replay.py checks each on a day of its machine); others
@@ -213,8 +225,6 @@ def replay_log(
         "parts": [(name, axis, rows.parts[:, k]) for k, (name, axis) in enumerate(parts)],
     }
     if probes:
-        from compd.commissioning.plots import probe_matrix
-
         extra["probe_um"] = probe_matrix(log, list(model.outputs))
     return ReplayResult(report, np.asarray(t, float), list(model.outputs), err, rows.applied, words, extra)
 
@@ -462,8 +472,6 @@ def copy_model(model: Model) -> Model:
 
 
 def _pmc_sink(host: str | None = None) -> FanucPmcSink:
-    from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink
-
     return FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", host=host))
 
 
@@ -475,8 +483,6 @@ def inhibit_signals(cfg: InhibitConfig) -> list[str]:
 
 def _check_reachable(host: str, port: int, device_id: int, doc: Document) -> None:
     """BadInput naming `sink.host` when nothing answers there (a replay would wait on every row)."""
-    from compd.io.modbus_client import ModbusClient
-
     client = ModbusClient.tcp(host, port, device_id=device_id, timeout_s=1.0)
     try:
         if not client.connect():
@@ -490,9 +496,6 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     """Replay with a config's model, guard, codec and sink: the sink's own device of the
     software PLC in process (a fanuc_pmc that names a host: that PMC over Modbus TCP); the
     config's sources are replaced by the log."""
-    from compd.config import load_config
-    from compd.sinks.fanuc_pmc import FanucPmcSink
-
     cfg = load_config(config_file)
     log = read_log(log_file, allow_nan=True)
     model = build_model(cfg.model)
@@ -520,9 +523,6 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
 
 def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
     """Replay with a model file, the default guard and codec and the PMC in process."""
-    from compd.config import resolve_model
-    from compd.core.config import MODEL_MAX_BYTES, MODEL_MAX_VALUES, load_yaml
-
     path = Path(model_file)
     doc = load_yaml(path, max_bytes=MODEL_MAX_BYTES, max_values=MODEL_MAX_VALUES)
     if not isinstance(doc.data, dict) or "kind" not in doc.data:
@@ -541,6 +541,4 @@ def replay_model(model_file: str | Path, log_file: str | Path) -> ReplayResult:
 def write_plot(result: ReplayResult, path: str | Path) -> None:
     """The replay's trend (compd.commissioning.plots): inputs, per axis error without and with compensation,
     commanded (the word decoded) and applied correction in µm, enable and fault bands."""
-    from compd.commissioning.plots import trend_from_replay, write_trend
-
     write_trend(trend_from_replay(result), path)

@@ -8,8 +8,11 @@ from typing import Any
 
 import numpy as np
 
+from compd.commissioning.fitting import clone
 from compd.core.errors import BadInput
+from compd.identify.data import columns
 from compd.log import Log
+from compd.models.feed_axis import error_profile_um
 
 
 def write_json(path: str | Path, data: Any) -> None:
@@ -38,8 +41,6 @@ def _pyplot():
 
 def plot_fit(outcome: Any, log: Log, path: str | Path) -> None:
     """Measured vs predicted vs residual over time per axis, plus the kind's own panel."""
-    from compd.identify.data import columns
-
     plt = _pyplot()
     model = outcome.model
     axes = model.outputs
@@ -92,9 +93,6 @@ def _curves(ax: Any, outcome: Any, log: Log, e: np.ndarray) -> None:
     for the rows logged within ±`window` of it the measured error (dots) beside the model's
     prediction at those same rows (crosses): like with like, a misfit shows as dots off their
     crosses, not as dots from another time off a line of this one."""
-    from compd.commissioning.fitting import clone
-    from compd.models.feed_axis import error_profile_um
-
     model = clone(outcome.model)
     X = log.matrix(model.inputs)
     t_rel, q = model.heating(X, log.t_s)

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from compd import version
 from compd.core.errors import BadInput
 
 LINEAR_AXES = "xyzuvw"  # axis letters the three controllers share for linear axes
@@ -519,8 +520,6 @@ def _dwells(rest_s: float, limit_s: float | None) -> list[float]:
 
 
 def _header_lines(plan: Plan, controller: str, probe_call: str, source: str) -> list[str]:
-    from compd import version
-
     i = plan.info
     lines = [f"compd {version()} testplan: the thermal test for {controller}, from {source}",
              *(summary_lines(plan) if "holds_s" in i else []),

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from compd.commissioning.plots import pyplot
 from compd.core.errors import BadInput
 from compd.log import Log, error_axis
 
@@ -309,8 +310,6 @@ C_DRIFT, C_RESIDUAL, C_IDLE = "black", "tab:green", "tab:blue"
 def plot_png(tt: ThermalTest, dpi: int = 90) -> bytes:
     """Per axis the drift and the residual over the test (µm), under the spindle's speed when the
     log has it; the idle stretches shaded. PNG bytes."""
-    from compd.commissioning.plots import pyplot
-
     plt = pyplot()
     speed = tt.speed_rpm is not None
     heights = ([0.55] if speed else []) + [1.0] * len(tt.axes)

@@ -48,6 +48,7 @@ class TimingStats:
 
     def __init__(self, period_s: float) -> None:
         self.period_s = period_s
+        self.stage_names = STAGES  # the stages' order in stage_*_ns (what the service names them by)
         # the histograms and stage times in memory shared with the service's process, which
         # reads them beside the cycle's status record (compd.cycle.statusblock)
         n = len(STAGES)

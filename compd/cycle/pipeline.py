@@ -38,6 +38,7 @@ from compd.cycle.loop import Loop
 from compd.cycle.shadow import Shadow
 from compd.models.base import Model
 from compd.sinks.base import Sink
+from compd.sinks.observe import ObserveSink
 from compd.sources.base import Source
 
 
@@ -149,8 +150,6 @@ def build_pipeline(
     encoder = Encoder(codec_cfg.lsb_um, codec_cfg.deadband_um)
     encoder.bind_axes(word_names, list(model.outputs))
     if observe:  # commissioning: the full loop, the output held disabled
-        from compd.sinks.observe import ObserveSink
-
         sink = ObserveSink(sink, guard_cfg.ramp_um_per_s, codec_cfg.deadband_um)
     sink.bind(encoder.axis_names, codec_cfg.lsb_um)
     sink.bind_model(model)  # sinks that speak per-axis values (siemens) keep it

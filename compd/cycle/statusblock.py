@@ -416,6 +416,7 @@ class Reading:
     hist: np.ndarray
     compute_hist: np.ndarray
     stages: np.ndarray  # (last, max, sum) × stage, ns
+    stage_names: tuple[str, ...]  # the loop's stages, in the order of `stages`' columns
 
     def get(self, row: int) -> float:
         """A loop field by its row (`LI.cycles`)."""
@@ -537,7 +538,8 @@ class StatusBlock:
                         np.frombuffer(st.hist, dtype=np.int64).copy(),
                         np.frombuffer(st.compute_hist, dtype=np.int64).copy(),
                         np.vstack([np.frombuffer(a, dtype=np.int64) for a in
-                                   (st.stage_last_ns, st.stage_max_ns, st.stage_sum_ns)]))
+                                   (st.stage_last_ns, st.stage_max_ns, st.stage_sum_ns)]),
+                        st.stage_names)
             if head[0] == seq:
                 return r if seq else None
         return None
@@ -623,10 +625,8 @@ def timing(r: Reading, period_s: float) -> dict[str, Any]:
     compute = {"p50": c50, "p99": c99, "max": round(r.get(LI.compute_max_ns) / 1000, 1)}
     limit = range_limit_us(r.hist)
     n = max(int(r.get(LI.cycles)), 1)
-    from compd.cycle.loop import STAGES
-
     stages = {name: {"last_us": int(r.stages[0, i]) / 1000, "mean_us": int(r.stages[2, i]) / n / 1000,
-                     "max_us": int(r.stages[1, i]) / 1000} for i, name in enumerate(STAGES)}
+                     "max_us": int(r.stages[1, i]) / 1000} for i, name in enumerate(r.stage_names)}
     return {
         "period_ms": period_s * 1000.0,
         "cycles": int(r.get(LI.cycles)),

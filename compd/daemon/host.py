@@ -54,6 +54,10 @@ from compd.io import activity
 from compd.io.child import Child, ChildGone, Heartbeat
 from compd.io.mailbox import shared_buffer
 from compd.io.ring import MessageRing, SharedBlob
+from compd.plant import spec as plant_spec
+from compd.plant.remote_model import RemoteModels
+from compd.plant.sandbox import listening_hint
+from compd.plant.spec import OpcUaSpec, TelemetrySpec
 from compd.service import logsetup  # noqa: F401  (installs the library's NullHandler)
 from compd.service import status as status_mod
 from compd.service.control import ControlServer, ProbeLink, socket_key, socket_path
@@ -69,7 +73,6 @@ if TYPE_CHECKING:
     from compd.core.frame import Frame
     from compd.cycle.loop import Loop
     from compd.models.base import Model
-    from compd.plant.spec import OpcUaSpec, TelemetrySpec
 
 log = logging.getLogger("compd.service")
 
@@ -316,8 +319,6 @@ class ServiceWork:
         from compd.plant.telemetry import Telemetry
 
         if tspec.remote is not None:
-            from compd.plant.remote_model import RemoteModels
-
             self.remote = self.link.remote = RemoteModels(tspec.remote)
         remote = self.remote
         self.telemetry = Telemetry(tspec, commands=remote.handle if remote is not None else None,
@@ -587,8 +588,6 @@ class ServiceWork:
             return
         self.opcua, self.opcua_error, self._opcua_attempts = server, None, 0
         log.info("OPC UA on %s", url, extra={"event": "opcua", "url": url})
-        from compd.plant.sandbox import listening_hint
-
         hint = listening_hint("the OPC UA server", ua.cfg.bind)
         if hint is not None:  # the sandbox drops other hosts' packets unseen: said once, at the start
             log.warning("%s", hint, extra={"event": "opcua_sandbox", "url": url})
@@ -748,8 +747,6 @@ class Service:
         self.telemetry_spec: TelemetrySpec | None = None
         self.opcua_spec: OpcUaSpec | None = None
         if top.telemetry is not None or top.opcua is not None:
-            from compd.plant import spec as plant_spec
-
             self.period_s = min(self.period_s, *(sec.period_s for sec in (top.telemetry, top.opcua) if sec is not None))
             if top.telemetry is not None:
                 self.telemetry_spec = plant_spec.telemetry_spec(app.cfg, list(app.frame.names),

@@ -5,12 +5,12 @@ from __future__ import annotations
 import logging
 import signal
 import sys
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from compd.config import load_config
 from compd.core.errors import BadInput
-
-if TYPE_CHECKING:
-    from compd.daemon.app import App
+from compd.daemon.app import App
+from compd.service.logsetup import setup_logging
 
 log = logging.getLogger("compd")
 
@@ -22,9 +22,6 @@ def reload(app: App, config_path: str, remaining: float | None, observe: bool | 
     bind, state, log, sources, sink) before the running one is closed; if any of that
     fails the new one is undone and the old one goes on compensating, without a step.
     """
-    from compd.config import load_config
-    from compd.daemon.app import App
-
     try:
         new = App(load_config(config_path), duration_s=remaining, observe=observe)
     except BadInput as e:
@@ -113,10 +110,6 @@ def _run(
     requests: dict[str, Any], current: list[App | None],
 ) -> dict[str, Any] | None:
     """`run_with_reload` once its handlers are in place: the config read, the App built and run."""
-    from compd.config import load_config
-    from compd.daemon.app import App
-    from compd.service.logsetup import setup_logging
-
     cfg = load_config(config_path)
     setup_logging(log_level or cfg.top.logging.level)
     observe_flag = True if observe else None

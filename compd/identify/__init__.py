@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from compd.core.registry import Registry
+from compd.identify.lag import HELD_INPUTS, fit_with_lag
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -49,14 +50,11 @@ def identify(
     report holds what is specific to the kind (Q², Ljung–Box, convergence, the lag); compd.commissioning.fitting
     adds the common figures (rows, RMSE, max error, fit time).
     """
-    from compd.identify.lag import fit_with_lag
-
     fit = FITS.get(kind, path="--kind")
     options = dict(options)
     lag = options.pop("lag", default_lag(kind))
     if "lag" in OPTIONS.get(kind).model_fields:  # the kind chooses its lead itself (with its sensors, in one pass)
         return fit(log, inputs, targets, lag=lag, **options)
-    from compd.identify.lag import HELD_INPUTS
 
     def run(lg: Log, opts: dict[str, Any]) -> FitResult:
         opts = dict(opts)

@@ -28,7 +28,7 @@ from compd.identify.data import (
     target_columns,
     validate_options,
 )
-from compd.log import Log
+from compd.log import Log, read_log
 from compd.models.ar1 import AR1, AR1Params, SpeedLaw, c2_of_speed
 from compd.models.ar1 import ar_filter as stepwise_filter
 from compd.models.base import step_rows
@@ -862,8 +862,6 @@ def _rise_from_runs(
     rises: dict[float, float] = {}
     sources = [log]
     if opt.rise_log is not None:
-        from compd.log import read_log
-
         sources.append(read_log(opt.rise_log, allow_nan=True))
     for src in sources:
         X = columns(src, [opt.speed_column, opt.rise_sensor])

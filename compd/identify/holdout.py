@@ -27,16 +27,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import ValidationError
 
 from compd.core.errors import BadInput
+from compd.identify.data import FitResult, columns
 from compd.log import Log, error_axis
-
-if TYPE_CHECKING:
-    from compd.identify.data import FitResult
 
 FOLDS = 4  # an unseen day against three quarters of the training data
 GAP_S = 3600.0  # a pause in t_s this long (and 10 logging periods) separates two days
@@ -215,8 +212,6 @@ def fold_errors(
     """Per fold, (sum of squared errors µm², rows) per target on the fold's rows with the error
     measured, the fold predicted by `fit_on` the log with that fold's errors hidden; or why the
     fold could not be fitted."""
-    from compd.identify.data import columns
-
     cut = folds(log)[0] if cut is None else cut
     Y = log.matrix(list(targets))
     out: list[FoldScore] = []

@@ -34,6 +34,7 @@ from compd.core.errors import BadInput
 from compd.identify import holdout
 from compd.identify.data import FitResult, default_targets
 from compd.log import Log
+from compd.models.lead import InputLead
 
 LAG_GRID_S = (0.0, 15.0, 30.0, 60.0, 120.0, 240.0, 480.0)
 FILTER_RATIO = 0.2  # τ_f = 0.2 τ: the led input keeps a lag of 0.4 τ, its noise gain stays near 2.5
@@ -87,8 +88,6 @@ def lead_lists(inputs: list[str], lags: dict[str, float], log_step_s: float) -> 
 
 def led(log: Log, inputs: list[str], lead_s: list[float], filter_s: list[float]) -> Log:
     """A copy of the log whose input columns are led as the model will lead them at run time."""
-    from compd.models.lead import InputLead
-
     lead = InputLead(lead_s, filter_s)
     if not lead.idx_list:
         return log

@@ -10,6 +10,7 @@ from scipy import optimize
 
 from compd.core.config import Strict
 from compd.core.errors import BadInput
+from compd.identify import holdout
 from compd.identify.data import (
     FitResult,
     axis_names,
@@ -199,8 +200,6 @@ def _xi_sensor(log: Log, targets: list[str], opt: Options) -> tuple[list[str], d
     """The ξ sensor when --inputs names none and the log has several temperatures: the one whose
     axial model (with the lift where the log has the speed) predicts the held-out folds best
     (compd.identify.holdout). Returns (inputs, what the report says)."""
-    from compd.identify import holdout
-
     speed = [opt.speed_input] if opt.speed_input in log.columns else []
     tried: dict[str, float | str] = {}
     for c in log.temperature_columns():

@@ -55,6 +55,8 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, Pipe
 from typing import Any
 
+from compd.io import activity
+
 log = logging.getLogger("compd.io")
 
 PARENT_CHECK_S = 0.5  # how often a child checks that its parent is still there
@@ -336,7 +338,6 @@ class Child:
         _normal_scheduling(avoid_cpus)
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
-        from compd.io import activity
         activity.disable()
 
     def send(self, msg: Any) -> None:

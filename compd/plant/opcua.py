@@ -66,8 +66,9 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
 from compd import version
-from compd.core.config import MAX_CORRECTION_UM, SIGNAL_ABS_MAX
+from compd.core.config import MAX_CORRECTION_UM, SIGNAL_ABS_MAX, GuardConfig
 from compd.core.errors import BadInput
+from compd.cycle.loop import HIST_US
 from compd.cycle.statusblock import (
     FIELDS,
     LP,
@@ -85,7 +86,7 @@ from compd.plant.material import Material, read_material
 from compd.service.threads import ServiceThread
 
 if TYPE_CHECKING:
-    from compd.core.config import GuardConfig, OpcUaConfig
+    from compd.core.config import OpcUaConfig
 
 log = logging.getLogger("compd.opcua")
 
@@ -389,9 +390,6 @@ def address_space(snap: dict[str, Any], guard: GuardConfig | None = None) -> lis
     from `guard` (the config's guard section; None: its defaults). The status record's fields are
     `record_variables`; beside them what the status adds (observe mode, the model, the loop's timing
     from its histograms) and each axis's Word."""
-    from compd.core.config import GuardConfig
-    from compd.cycle.loop import HIST_US
-
     guard = guard if guard is not None else GuardConfig()
     # the loop's timing figures: 0 … the range of its histograms (1 µs bins up to 20 ms); a p99 above it
     # is the range limit with Uncertain_EngineeringUnitsExceeded, the maximum is measured (can lie above)

@@ -78,8 +78,11 @@ from typing import Any
 
 import numpy as np
 
+from compd.config import ModelSpec, load_config, resolve_model
 from compd.core.errors import BadInput
-from compd.plant.spec import RemoteSpec, file_sha256
+from compd.cycle.pipeline import build_model
+from compd.models import MODELS
+from compd.plant.spec import RemoteSpec, check_config, file_sha256
 
 log = logging.getLogger("compd.telemetry")
 
@@ -285,9 +288,6 @@ def validate(spec: RemoteSpec, candidate: Path, target: str = "model") -> str | 
     """Why the model file `candidate` cannot replace the running model's (`target` "model") or
     the shadow's ("shadow") file (None: it can), checked as a reload would: the config read
     again with its model (or shadow) section pointing at `candidate`."""
-    from compd.config import load_config, resolve_model
-    from compd.plant.spec import check_config
-
     shadow = target == "shadow"
     try:
         cfg = load_config(spec.config)
@@ -322,8 +322,6 @@ def drive_check(cfg: Any, model: Any, outputs: list[str]) -> str | None:
     `outputs` (the running model's, in order: the word's bytes follow them), the pipeline must
     build with it as the model (wiring, signals; opens no device), and it must keep inside the
     guard's clamp over the readings it was fitted on (`clamp_check`)."""
-    from compd.plant.spec import check_config
-
     if list(model.outputs) != list(outputs):
         return f"its axes {model.outputs} are not the running model's {list(outputs)}"
     try:
@@ -403,8 +401,6 @@ def _shadow_read_by_model(spec: RemoteSpec, cfg: Any = None) -> str | None:
     """Why the shadow's file cannot be replaced without arming: the active model (of `cfg`, else of
     the config read now) reads it too; None when it does not (or the config cannot be read: the
     check as a reload would check it says why)."""
-    from compd.config import load_config
-
     if spec.shadow_file is None:
         return None
     if cfg is None:
@@ -493,9 +489,6 @@ def clamp_check(model: Any, guard: Any) -> str | None:
     parts = getattr(model.params, "contributions", None)
     if parts is None:
         return _clamp_check(model, guard, guard.clamp_um, "", "the guard's")
-    from compd.config import ModelSpec
-    from compd.models import MODELS
-
     for p in parts:
         cls = MODELS.get(p.kind)
         spec = ModelSpec(cls, cls.Params.model_validate(p.params), list(p.inputs), list(p.outputs),
@@ -544,8 +537,6 @@ def _dynamic(model: Any) -> bool:
 def largest_predictions(spec: Any, ranges: dict[str, tuple[float, float]]) -> list[tuple[float, np.ndarray, np.ndarray]]:
     """Per output axis the prediction (µm) of largest magnitude over the ranges (`clamp_check`),
     with the reference readings and the readings it comes at; NaN or ±inf wins over any number."""
-    from compd.cycle.pipeline import build_model
-
     def fresh() -> Any:
         return build_model(spec)  # a model as the loop builds it, fresh for each combination
 

@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 from compd.core.errors import BadInput
 from compd.core.probe import Probe, brief, finite_number, probe_problem
+from compd.service.status import status_path
 from compd.service.threads import ServiceThread
 
 if TYPE_CHECKING:
@@ -64,8 +65,6 @@ class NoDaemon(Exception):
 def socket_path(cfg: Config, env: dict[str, str] | None = None) -> Path | None:
     """The probe socket of a config with an `adapt` section: `adapt.socket_path`, else next
     to the status file (its suffix replaced by `.sock`); None without either."""
-    from compd.service.status import status_path
-
     ad = cfg.top.adapt
     tel = cfg.top.telemetry
     if ad is None and (tel is None or not tel.remote_models.allow):

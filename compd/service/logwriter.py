@@ -8,6 +8,7 @@ import queue
 from collections.abc import Sequence
 from pathlib import Path
 
+from compd.io import activity
 from compd.log import Repair, _fmt, _fmt_t, _set_aside_whole, log, repair_log
 from compd.service.threads import ServiceThread
 
@@ -146,7 +147,6 @@ class LogWriter:
     def _run(self) -> None:
         import time
 
-        from compd.io import activity
         spans = activity.ring("compd-log")  # None unless the bench records who runs when
         last_flush = time.monotonic()
         while True:

@@ -39,6 +39,7 @@ from compd.cycle.statusblock import (
     shown,
     signal_unit,
 )
+from compd.service.status import lateness_buckets
 from compd.service.threads import ServiceThread
 
 # cycle lateness histogram bounds, µs (a 2 ms cycle: "late" starts around 1000)
@@ -517,8 +518,6 @@ class MetricsServer:
             self._thread = None
 
     def update(self, snap: dict[str, Any], stats: Any) -> None:
-        from compd.service.status import lateness_buckets
-
         self.update_buckets(snap, lateness_buckets(stats, LATENESS_BOUNDS_US))
 
     def update_buckets(self, snap: dict[str, Any], buckets: tuple[list[tuple[float, int]], int, float]) -> None:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -35,12 +35,10 @@ from pydantic import Field, model_validator
 from compd.codec import MAX_MAG, codes_from_word, word_bytes, word_from_codes
 from compd.core.config import SinkConfig
 from compd.io.device_time import DeviceTime, LoopTime, WallTime
+from compd.io.modbus_link import ModbusLink
+from compd.plc.fanuc_pmc import LSB_NM, FanucPmc
+from compd.plc.link import VirtualLink
 from compd.sinks.base import SAFE_TIMEOUT_S, Sink
-
-if TYPE_CHECKING:
-    from compd.io.modbus_link import ModbusLink
-    from compd.plc.fanuc_pmc import FanucPmc
-    from compd.plc.link import VirtualLink
 
 POLL_S = 0.002  # between two reads of the scan counter while waiting for the PMC to scan
 
@@ -101,8 +99,6 @@ class FanucPmcSink(Sink):
         # the PMC in this process (given, or the software PLC's when no host is set) runs on
         # the loop's time; one over Modbus on its own
         if pmc is None and cfg.host is None:
-            from compd.plc.fanuc_pmc import FanucPmc
-
             pmc = FanucPmc(scan_s=cfg.scan_s, step_limit_um=cfg.step_limit_um)
         self.pmc = pmc
         self.time: DeviceTime = LoopTime() if pmc is not None else WallTime()
@@ -133,14 +129,9 @@ class FanucPmcSink(Sink):
         """The link to the PMC: the one in this process (told the codec's LSB), or Modbus TCP."""
         cfg = self.cfg
         if self.pmc is not None:
-            from compd.plc.fanuc_pmc import LSB_NM
-            from compd.plc.link import VirtualLink
-
             self.pmc.write_registers(LSB_NM, [int(round(self.lsb_um * 1000))])
             return VirtualLink(self.pmc, self.time, status=(cfg.status_address, 8), name="fanuc_pmc",
                                sync=self._sync_ranges())
-        from compd.io.modbus_link import ModbusLink
-
         return ModbusLink(
             cfg.host or "",
             cfg.port,

@@ -29,6 +29,8 @@ from pydantic import Field, model_validator
 
 from compd.core.config import SinkConfig
 from compd.io.device_time import DeviceTime, LoopTime, WallTime
+from compd.io.hal_modules import available
+from compd.io.modbus_link import ModbusLink
 from compd.plc.eoffsets import (
     APPLIED,
     BLOCK,
@@ -36,17 +38,17 @@ from compd.plc.eoffsets import (
     ENABLE,
     FLAGS,
     LIMITED,
+    Eoffsets,
     regs_s32,
     s32_regs,
 )
+from compd.plc.link import VirtualLink
 from compd.plc.siemens_nc import regs_f32
 from compd.sinks.base import SAFE_TIMEOUT_S, Sink
+from compd.sinks.hal_link import HalRegisters
 
 if TYPE_CHECKING:
-    from compd.io.modbus_link import ModbusLink
     from compd.models.base import Model
-    from compd.plc.eoffsets import Eoffsets
-    from compd.plc.link import VirtualLink
 
 HAL_NAME = r"^[A-Za-z][A-Za-z0-9_-]*$"
 AXIS_LETTERS = ("x", "y", "z", "a", "b", "c", "u", "v", "w")
@@ -72,8 +74,6 @@ class LinuxcncConfig(SinkConfig):
     @model_validator(mode="after")
     def _linuxcnc_here(self) -> LinuxcncConfig:
         if not self.in_process:
-            from compd.io.hal_modules import available
-
             why = available()
             if why is not None:
                 raise ValueError(why)
@@ -122,15 +122,9 @@ class LinuxcncSink(Sink):
         n = len(self.hal_axes)
         block = (0, BLOCK * n)
         if self.cfg.in_process:
-            from compd.plc.eoffsets import Eoffsets
-            from compd.plc.link import VirtualLink
-
             if self.device is None:
                 self.device = Eoffsets(n, self.cfg.count_um)
             return VirtualLink(self.device, self.time, status=block, name="linuxcnc", sync=[block])
-        from compd.io.modbus_link import ModbusLink
-        from compd.sinks.hal_link import HalRegisters
-
         device = HalRegisters(self.cfg.component, self.hal_axes, self.cfg.units, self.cfg.count_um)
         return ModbusLink("", 0, status=block, status_period_s=self.cfg.status_period_s, name="linuxcnc",
                           sync=[block], device=device)

@@ -14,10 +14,11 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from compd.codec import byte_to_um, word_to_um
+from compd.codec import MAX_MAG, byte_to_um, word_to_um
 from compd.core.config import SinkConfig
+from compd.io.modbus_link import ModbusLink
 from compd.io.worker import LinkState
-from compd.plc.pci1756 import DoCard
+from compd.plc.pci1756 import DoCard, Pci1756Card
 from compd.sinks.base import SAFE_TIMEOUT_S, Sink
 
 
@@ -60,8 +61,6 @@ class ModbusDoCard(DoCard):
     four X registers over Modbus TCP (queued; the cycle never waits on the network)."""
 
     def __init__(self, host: str, port: int, device_id: int = 1, x_register: int = 0) -> None:
-        from compd.io.modbus_link import ModbusLink
-
         self._do = bytearray(4)
         self.x_register = x_register
         # the four X registers the DO bytes are written to are read back at every connect
@@ -135,8 +134,6 @@ class Pci1756Sink(Sink):
         if card is None and cfg.device == "modbus":
             card = ModbusDoCard(cfg.host, cfg.port, cfg.device_id, cfg.x_register)
         elif card is None:
-            from compd.plc.pci1756 import Pci1756Card
-
             card = Pci1756Card()
         self.card = card
         self._heartbeat = False
@@ -249,8 +246,6 @@ class Pci1756Sink(Sink):
         """`Sink.write_rows`; on the software PLC's card only the rows with a new word are
         written (the heartbeat then toggled as often as the rows between would have): the
         card's lines hold each word from its row on, and the word is what they apply."""
-        from compd.plc.pci1756 import Pci1756Card
-
         n = len(t_s)
         if not isinstance(self.card, Pci1756Card) or type(self).write is not Pci1756Sink.write or n == 0:
             super().write_rows(t_s, words, changed, corr_um, enable, applied_um, commanded_um, terms,
@@ -281,8 +276,6 @@ class Pci1756Sink(Sink):
 
     def device_info(self) -> dict[str, Any]:
         """The word on the DO lines: the codec's LSB, full scale 63 LSB, no rate limit of its own."""
-        from compd.codec import MAX_MAG
-
         cfg = self.cfg
         where = "in process" if cfg.device == "emulated" else f"over modbus at {cfg.host}:{cfg.port}"
         return {"device": f"pci1756 card {where}", "resolution_um": self.lsb_um,

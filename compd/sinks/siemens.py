@@ -28,14 +28,13 @@ from pydantic import Field
 
 from compd.core.config import SinkConfig
 from compd.io.device_time import DeviceTime, LoopTime, WallTime
-from compd.plc.siemens_nc import APPLIED, BLOCK, K0, TARGET, TYPE, f32_regs, regs_f32
+from compd.io.modbus_link import ModbusLink
+from compd.plc.link import VirtualLink
+from compd.plc.siemens_nc import APPLIED, BLOCK, K0, TARGET, TYPE, SiemensNc, f32_regs, regs_f32
 from compd.sinks.base import SAFE_TIMEOUT_S, Sink
 
 if TYPE_CHECKING:
-    from compd.io.modbus_link import ModbusLink
     from compd.models.base import Model
-    from compd.plc.link import VirtualLink
-    from compd.plc.siemens_nc import SiemensNc
 
 
 class SiemensConfig(SinkConfig):
@@ -70,8 +69,6 @@ class SiemensSink(Sink):
         # the NC in this process (given, or the software PLC's when no host is set) runs on
         # the loop's time; one over Modbus on its own
         if nc is None and cfg.host is None:
-            from compd.plc.siemens_nc import SiemensNc
-
             n = max(2, len(cfg.axes or {}), max((cfg.axes or {}).values(), default=0) + 1)
             nc = SiemensNc(n, ipo_s=cfg.ipo_s, velo_factor=cfg.velo_factor)
         self.nc = nc
@@ -99,12 +96,8 @@ class SiemensSink(Sink):
         """The link to the NC's data (the status block: every axis the sink writes)."""
         count = BLOCK * (max(self.nc_axis, default=0) + 1)
         if self.nc is not None:
-            from compd.plc.link import VirtualLink
-
             status = (0, min(count, BLOCK * self.nc.n))
             return VirtualLink(self.nc, self.time, status=status, name="siemens", sync=[status])
-        from compd.io.modbus_link import ModbusLink
-
         return ModbusLink(self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, count),
                           name="siemens", sync=[(0, count)])
 
