@@ -28,8 +28,10 @@ def _stalled_stats() -> TimingStats:
 
 
 def _snap(st: TimingStats) -> dict[str, Any]:
+    # what compose gives beside the loop's timing: the sink's link and the loop's counters at the top
     return jsonable({"state": "running", "observe": False, "word": "0x0000", "axes": {}, "signals": {},
-                     "loop": timing(st), "model": {"kind": "xi_spindle", "fit": {}}})
+                     "loop": timing(st), "model": {"kind": "xi_spindle", "fit": {}}, "sink": {"link": "up"},
+                     "saturations": 0})
 
 
 def test_the_loops_p99_is_the_range_limit_and_flagged() -> None:
