@@ -77,6 +77,7 @@ $(NODE_OPCUA):
 TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 test: $(TEST_STAMP) sysdeps $(PROMTOOL) $(TAHU) $(NODE_OPCUA)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports --no-cache
 	$(VENV)/bin/mypy
 	$(PY) -m compileall -q compd hil_sim rig
@@ -141,6 +142,7 @@ reliability: $(TEST_STAMP) sysdeps
 
 lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports --no-cache
 	$(VENV)/bin/mypy
 

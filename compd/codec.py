@@ -69,9 +69,7 @@ def encode_byte(c_um: float, lsb_um: float = 1.0, deadband_um: float = 1.0) -> t
     return byte, saturated
 
 
-def encode_ex(
-    c1_um: float, c2_um: float, lsb_um: float = 1.0, deadband_um: float = 1.0
-) -> tuple[int, bool, bool]:
+def encode_ex(c1_um: float, c2_um: float, lsb_um: float = 1.0, deadband_um: float = 1.0) -> tuple[int, bool, bool]:
     """Encode two corrections; returns (word, saturated_1, saturated_2)."""
     if not lsb_um > 0:
         raise ValueError(f"lsb_um must be > 0, got {lsb_um}")
@@ -355,9 +353,7 @@ class Encoder:
         m = math.floor(r + 0.5) if r < MAX_MAG + 1 else MAX_MAG + 1
         return min(m, MAX_MAG) * (1 if c_um > 0 else -1)
 
-    def update(
-        self, c1_um: float, c2_um: float, en1: bool = True, en2: bool = True, dt_s: float = math.inf
-    ) -> bool:
+    def update(self, c1_um: float, c2_um: float, en1: bool = True, en2: bool = True, dt_s: float = math.inf) -> bool:
         """Offer the guarded corrections of one cycle; returns True when the word changed.
 
         `dt_s` is the time this cycle licenses (the guard's: one period after a clock

@@ -71,7 +71,8 @@ class DrivenAxes:
         if axis not in self.names:
             raise doc.error(
                 f"{axis!r} is not an axis {self.who} drives ({', '.join(self.names)}: {self.origin}){note}"
-                f"{did_you_mean(axis, self.names)}", path,
+                f"{did_you_mean(axis, self.names)}",
+                path,
             )
 
 
@@ -106,8 +107,13 @@ def model_sha256(spec: ModelSpec) -> str:
     `compd promote`'s reading of the config are compared by it."""
     if spec.sha256 is not None:
         return spec.sha256
-    definition = {"kind": spec.kind, "inputs": list(spec.inputs), "outputs": list(spec.outputs),
-                  "update_period_s": spec.update_period_s, "params": spec.params.model_dump(mode="json")}
+    definition = {
+        "kind": spec.kind,
+        "inputs": list(spec.inputs),
+        "outputs": list(spec.outputs),
+        "update_period_s": spec.update_period_s,
+        "params": spec.params.model_dump(mode="json"),
+    }
     text = json.dumps(definition, sort_keys=True, default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
@@ -173,7 +179,11 @@ def load_model_file(file: str | Path, text: str | None = None) -> tuple[Document
 
 
 def resolve_model(
-    section: Any, doc: Document, path: PathT, base_dir: Path, guard: GuardConfig | None = None,
+    section: Any,
+    doc: Document,
+    path: PathT,
+    base_dir: Path,
+    guard: GuardConfig | None = None,
     axes: DrivenAxes | None = None,
 ) -> ModelSpec:
     """Resolve a model section (inline, from a file, or `contributions`: several summed) to a
@@ -201,9 +211,7 @@ def resolve_model(
         mdoc, mdata = load_model_file(fpath, ftext)
         sha256 = hashlib.sha256(ftext.encode("utf-8")).hexdigest()  # the bytes read (strict UTF-8 round-trips)
         if mdata["kind"] != sec.kind:
-            raise doc.error(
-                f"model file {fpath} is of kind {mdata['kind']!r}, not {sec.kind!r}", (*path, "kind")
-            )
+            raise doc.error(f"model file {fpath} is of kind {mdata['kind']!r}, not {sec.kind!r}", (*path, "kind"))
         raw_params, pdoc, ppath = mdata["params"], mdoc, ("params",)
         inputs = sec.inputs or mdata["inputs"]
         outputs = sec.outputs or mdata["outputs"]
@@ -254,7 +262,11 @@ def resolve_model(
 
 
 def _resolve_sum_file(
-    section: dict[str, Any], doc: Document, path: PathT, base_dir: Path, guard: GuardConfig,
+    section: dict[str, Any],
+    doc: Document,
+    path: PathT,
+    base_dir: Path,
+    guard: GuardConfig,
     axes: DrivenAxes | None,
 ) -> ModelSpec:
     """`{kind: contributions, file: SUM.yaml}`: a model file that sums several contributions (each
@@ -262,8 +274,11 @@ def _resolve_sum_file(
     recommended sum), resolved as a config's `model.contributions` would be, the limits the guard's."""
     extra = set(section) - {"kind", "file", "update_period_s"}
     if extra:
-        raise doc.error(f"a model file of contributions takes only kind and file here (got {sorted(extra)[0]!r});"
-                        " limits per contribution: write model.contributions in the config", (*path, sorted(extra)[0]))
+        raise doc.error(
+            f"a model file of contributions takes only kind and file here (got {sorted(extra)[0]!r});"
+            " limits per contribution: write model.contributions in the config",
+            (*path, sorted(extra)[0]),
+        )
     if not isinstance(section.get("file"), str):
         raise doc.error(f"kind {SUM_KIND!r} names a model file of contributions: give 'file'", (*path, "file"))
     fpath = Path(section["file"])
@@ -279,8 +294,9 @@ def _resolve_sum_file(
     items, fits = [], []
     for i, item in enumerate(params["contributions"]):
         if not isinstance(item, dict):
-            raise mdoc.error("a contribution is a model (name, kind, inputs, outputs, params, fit)",
-                             ("params", "contributions", i))
+            raise mdoc.error(
+                "a contribution is a model (name, kind, inputs, outputs, params, fit)", ("params", "contributions", i)
+            )
         fits.append(item.get("fit") or {})
         items.append({k: v for k, v in item.items() if k != "fit"})
     spec = _resolve_contributions({"contributions": items}, mdoc, ("params",), fpath.parent, guard, axes, fits)
@@ -295,8 +311,13 @@ def _resolve_sum_file(
 
 
 def _resolve_contributions(
-    section: dict[str, Any], doc: Document, path: PathT, base_dir: Path, guard: GuardConfig,
-    axes: DrivenAxes | None = None, fits: list[dict[str, Any]] | None = None,
+    section: dict[str, Any],
+    doc: Document,
+    path: PathT,
+    base_dir: Path,
+    guard: GuardConfig,
+    axes: DrivenAxes | None = None,
+    fits: list[dict[str, Any]] | None = None,
 ) -> ModelSpec:
     """`model.contributions`: each item resolved as a model section; the sum's spec (kind
     `contributions`, no class: the cycle's stage compd.cycle.contributions, built by the pipeline)
@@ -321,16 +342,22 @@ def _resolve_contributions(
             raise doc.error(f"contribution name {name!r} is used twice (give each a `name`)", (*where, "name"))
         names.add(name)
         outs = list(spec.outputs)
-        parts.append(ContributionParams(
-            name=name, kind=spec.kind, inputs=list(spec.inputs), outputs=outs,
-            params=spec.params.model_dump(mode="json"), fit=dict(fits[i] if fits else spec.fit), file=spec.file,
-            update_period_s=spec.update_period_s,
-            max_abs_um=[csec.max_abs_um or guard.clamp_um(a)[0] for a in outs],
-            max_slew_um_per_s=[csec.max_slew_um_per_s or guard.slew_um_per_s(a) for a in outs],
-            fault_policy=[csec.fault_policy or _axis_policy(guard, a) for a in outs],
-        ))
-    params = ContributionSetParams(contributions=parts, ramp_um_per_s=guard.ramp_um_per_s,
-                                   recovery_s=guard.recovery_s)
+        parts.append(
+            ContributionParams(
+                name=name,
+                kind=spec.kind,
+                inputs=list(spec.inputs),
+                outputs=outs,
+                params=spec.params.model_dump(mode="json"),
+                fit=dict(fits[i] if fits else spec.fit),
+                file=spec.file,
+                update_period_s=spec.update_period_s,
+                max_abs_um=[csec.max_abs_um or guard.clamp_um(a)[0] for a in outs],
+                max_slew_um_per_s=[csec.max_slew_um_per_s or guard.slew_um_per_s(a) for a in outs],
+                fault_policy=[csec.fault_policy or _axis_policy(guard, a) for a in outs],
+            )
+        )
+    params = ContributionSetParams(contributions=parts, ramp_um_per_s=guard.ramp_um_per_s, recovery_s=guard.recovery_s)
     inputs = list(dict.fromkeys(n for p in parts for n in p.inputs))
     outputs = list(dict.fromkeys(a for p in parts for a in p.outputs))
     return ModelSpec(None, params, inputs, outputs, None, {}, doc, path, None)
@@ -354,8 +381,11 @@ def _check_timings(top: ConfigModel, doc: Document) -> None:
             if tuple(path) in doc.lines:
                 raise doc.error(f"{value:g} s is not longer than one cycle (loop.period_s = {period:g} s)", path)
             # a default the file does not write: the line is the period's, and the message names the key to add
-            raise doc.error(f"the default {format_path(path)} ({value:g} s) is not longer than one cycle: set"
-                            f" {format_path(path)} above {period:g} s in the guard section", ("loop", "period_s"))
+            raise doc.error(
+                f"the default {format_path(path)} ({value:g} s) is not longer than one cycle: set"
+                f" {format_path(path)} above {period:g} s in the guard section",
+                ("loop", "period_s"),
+            )
 
 
 # An optional feature a config can switch on: the key that switches it on, the module it
@@ -424,8 +454,11 @@ def load_config(file: str | Path, text: str | None = None) -> Config:
     if declared is None:
         first = ("model", "contributions", 0) if "contributions" in top.model else ("model",)
         declared = DrivenAxes(tuple(model.outputs), f"the outputs of {format_path(first)}")
-    driven = declared if set(declared.names) == set(model.outputs) else DrivenAxes(
-        tuple(model.outputs), "its outputs", who="the model")
+    driven = (
+        declared
+        if set(declared.names) == set(model.outputs)
+        else DrivenAxes(tuple(model.outputs), "its outputs", who="the model")
+    )
     for i, axis in enumerate(top.codec.axes or []):
         declared.check(axis, doc, ("codec", "axes", i))
         driven.check(axis, doc, ("codec", "axes", i))

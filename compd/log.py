@@ -142,12 +142,12 @@ def read_log(file: str | Path, *, allow_nan: bool = False) -> Log:
                     raise BadInput(
                         "NUL bytes in the row (a power cut during a write?); compd run repairs"
                         " its own log when it opens it again",
-                        file=file, line=lineno, path=header[nul] if nul < ncol else None,
+                        file=file,
+                        line=lineno,
+                        path=header[nul] if nul < ncol else None,
                     )
                 if len(row) != ncol:
-                    raise BadInput(
-                        f"row has {len(row)} cells, the header has {ncol}", file=file, line=lineno
-                    )
+                    raise BadInput(f"row has {len(row)} cells, the header has {ncol}", file=file, line=lineno)
                 values = []
                 for name, cell in zip(header, row, strict=True):
                     cell = cell.strip()
@@ -157,9 +157,7 @@ def read_log(file: str | Path, *, allow_nan: bool = False) -> Log:
                     try:
                         v = float(cell)
                     except ValueError:
-                        raise BadInput(
-                            f"not a number: {_short(cell)}", file=file, line=lineno, path=name
-                        ) from None
+                        raise BadInput(f"not a number: {_short(cell)}", file=file, line=lineno, path=name) from None
                     if not math.isfinite(v) and not allow_nan:
                         raise BadInput(f"not a finite number: {cell!r}", file=file, line=lineno, path=name)
                     values.append(v)
@@ -169,17 +167,20 @@ def read_log(file: str | Path, *, allow_nan: bool = False) -> Log:
                 if abs(t) > MAX_T_S:
                     raise BadInput(
                         f"t_s {cell_t(row)} is beyond ±{MAX_T_S:.0e} s (three centuries): not a time",
-                        file=file, line=lineno, path="t_s",
+                        file=file,
+                        line=lineno,
+                        path="t_s",
                     )
                 if rows and t - rows[0][0] > MAX_T_S:
                     raise BadInput(
                         f"t_s {cell_t(row)} is {t - rows[0][0]:.3g} s after the first row: the log spans"
-                        f" more than {MAX_T_S:.0e} s", file=file, line=lineno, path="t_s",
+                        f" more than {MAX_T_S:.0e} s",
+                        file=file,
+                        line=lineno,
+                        path="t_s",
                     )
                 if t < prev_t:
-                    raise BadInput(
-                        f"time goes backwards ({t} after {prev_t})", file=file, line=lineno, path="t_s"
-                    )
+                    raise BadInput(f"time goes backwards ({t} after {prev_t})", file=file, line=lineno, path="t_s")
                 prev_t = t
                 rows.append(values)
         except csv.Error as e:
@@ -391,11 +392,19 @@ class Repair:
     def log_event(self) -> None:
         log.warning(
             "data log repaired: %s kept %d rows; %d bytes (%d lines) of damage moved to %s",
-            self.path, self.rows_kept, self.bytes_set_aside, self.lines_set_aside, self.side_file,
+            self.path,
+            self.rows_kept,
+            self.bytes_set_aside,
+            self.lines_set_aside,
+            self.side_file,
             extra={
-                "event": "log_repaired", "path": self.path, "action": self.action,
-                "rows_kept": self.rows_kept, "lines_set_aside": self.lines_set_aside,
-                "bytes_set_aside": self.bytes_set_aside, "side_file": self.side_file,
+                "event": "log_repaired",
+                "path": self.path,
+                "action": self.action,
+                "rows_kept": self.rows_kept,
+                "lines_set_aside": self.lines_set_aside,
+                "bytes_set_aside": self.bytes_set_aside,
+                "side_file": self.side_file,
             },
         )
 

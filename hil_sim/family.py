@@ -58,46 +58,100 @@ ALPHA = ("factor", 0.9, 1.12)  # expansion coefficients: steels and cast irons d
 CURRENT = ("factor", 1.0, 2.0)
 
 _AXIS = {  # one linear-motor axis (hil_sim.plants.linear_axis), gantry sides and the feed axis
-    "base_area_m2": SIZE, "base_perimeter_m": SIZE, "base_h_w_m2k": GAIN, "base_alpha_per_k": ALPHA,
-    "support_g_w_k": GAIN, "support_restraint": ("uniform", 0.7, 1.0), "footprint_mm": SIZE,
-    "motor_cap_j_k": GAIN, "motor_surface_m2": GAIN, "gap_g_w_k": GAIN, "motor_table_g_w_k": GAIN,
-    "table_cap_j_k": GAIN, "table_surface_m2": GAIN, "table_alpha_per_k": ALPHA, "tool_offset_mm": SIZE,
-    "h_w_m2k": GAIN, "h_speed_w_m2k_per_m_s": GAIN, "block_cap_j_k": GAIN, "block_table_g_w_k": GAIN,
-    "block_rail_g_w_k": GAIN, "friction_w_per_m_min": GAIN, "head_cap_j_k": GAIN, "head_table_g_w_k": GAIN,
-    "current_a": CURRENT, "current_a_per_m_min": CURRENT, "hold_current_a": CURRENT, "r_cu_ohm": GAIN,
+    "base_area_m2": SIZE,
+    "base_perimeter_m": SIZE,
+    "base_h_w_m2k": GAIN,
+    "base_alpha_per_k": ALPHA,
+    "support_g_w_k": GAIN,
+    "support_restraint": ("uniform", 0.7, 1.0),
+    "footprint_mm": SIZE,
+    "motor_cap_j_k": GAIN,
+    "motor_surface_m2": GAIN,
+    "gap_g_w_k": GAIN,
+    "motor_table_g_w_k": GAIN,
+    "table_cap_j_k": GAIN,
+    "table_surface_m2": GAIN,
+    "table_alpha_per_k": ALPHA,
+    "tool_offset_mm": SIZE,
+    "h_w_m2k": GAIN,
+    "h_speed_w_m2k_per_m_s": GAIN,
+    "block_cap_j_k": GAIN,
+    "block_table_g_w_k": GAIN,
+    "block_rail_g_w_k": GAIN,
+    "friction_w_per_m_min": GAIN,
+    "head_cap_j_k": GAIN,
+    "head_table_g_w_k": GAIN,
+    "current_a": CURRENT,
+    "current_a_per_m_min": CURRENT,
+    "hold_current_a": CURRENT,
+    "r_cu_ohm": GAIN,
 }
 
 _SPINDLE = {  # the motorized spindle, alone (spindle) or on a VMC's column (vmc)
-    "length_mm": SIZE, "radius_mm": ("factor", 0.85, 1.15), "alpha_per_k": ALPHA,
-    "conductivity_w_mk": ("factor", 0.8, 1.25), "front_w_per_krpm": GAIN, "rear_w_per_krpm": GAIN,
-    "h_w_m2k": GAIN, "h_speed_w_m2k_per_krpm": ("uniform", 0.0, 3.0), "bearing_g_w_k": GAIN,
-    "housing_outer_mm": ("factor", 0.9, 1.2), "housing_h_w_m2k": GAIN, "stator_w_per_krpm": GAIN,
-    "coolant_g_w_k": GAIN, "coolant_offset_c": ("uniform", -1.5, 0.5),
+    "length_mm": SIZE,
+    "radius_mm": ("factor", 0.85, 1.15),
+    "alpha_per_k": ALPHA,
+    "conductivity_w_mk": ("factor", 0.8, 1.25),
+    "front_w_per_krpm": GAIN,
+    "rear_w_per_krpm": GAIN,
+    "h_w_m2k": GAIN,
+    "h_speed_w_m2k_per_krpm": ("uniform", 0.0, 3.0),
+    "bearing_g_w_k": GAIN,
+    "housing_outer_mm": ("factor", 0.9, 1.2),
+    "housing_h_w_m2k": GAIN,
+    "stator_w_per_krpm": GAIN,
+    "coolant_g_w_k": GAIN,
+    "coolant_offset_c": ("uniform", -1.5, 0.5),
     "axial_stiffness_n_per_um": ("factor", 0.7, 1.4),
 }
 
 RANGES: dict[str, dict[str, tuple[str, float, float]]] = {
     "lathe": {
-        "spindle_length_mm": SIZE, "spindle_radius_mm": SIZE, "spindle_alpha_per_k": ALPHA,
-        "spindle_h_w_m2k": GAIN, "spindle_h_w_m2k_per_krpm": GAIN, "front_bearing_w": GAIN,
-        "rear_bearing_w": GAIN, "speed_exponent": ("uniform", 1.2, 1.9), "inner_share": ("uniform", 0.35, 0.65),
-        "front_bearing_g_w_k": GAIN, "rear_bearing_g_w_k": GAIN, "headstock_area_m2": SIZE,
-        "headstock_perimeter_m": SIZE, "headstock_h_w_m2k": GAIN, "drive_w": GAIN, "headstock_bed_g_w_k": GAIN,
-        "bed_length_mm": SIZE, "bed_area_m2": SIZE, "bed_perimeter_m": SIZE, "bed_h_w_m2k": GAIN,
-        "bed_alpha_per_k": ALPHA, "saddle_cap_j_k": GAIN, "saddle_surface_m2": SIZE, "saddle_bed_g_w_k": GAIN,
+        "spindle_length_mm": SIZE,
+        "spindle_radius_mm": SIZE,
+        "spindle_alpha_per_k": ALPHA,
+        "spindle_h_w_m2k": GAIN,
+        "spindle_h_w_m2k_per_krpm": GAIN,
+        "front_bearing_w": GAIN,
+        "rear_bearing_w": GAIN,
+        "speed_exponent": ("uniform", 1.2, 1.9),
+        "inner_share": ("uniform", 0.35, 0.65),
+        "front_bearing_g_w_k": GAIN,
+        "rear_bearing_g_w_k": GAIN,
+        "headstock_area_m2": SIZE,
+        "headstock_perimeter_m": SIZE,
+        "headstock_h_w_m2k": GAIN,
+        "drive_w": GAIN,
+        "headstock_bed_g_w_k": GAIN,
+        "bed_length_mm": SIZE,
+        "bed_area_m2": SIZE,
+        "bed_perimeter_m": SIZE,
+        "bed_h_w_m2k": GAIN,
+        "bed_alpha_per_k": ALPHA,
+        "saddle_cap_j_k": GAIN,
+        "saddle_surface_m2": SIZE,
+        "saddle_bed_g_w_k": GAIN,
         "saddle_w": GAIN,
     },
     "spindle": dict(_SPINDLE),
     "gantry": {
         **_AXIS,
-        "beam_cap_j_k": GAIN, "beam_surface_m2": SIZE, "beam_table_g_w_k": GAIN,
-        "load_x1": ("uniform", 0.8, 1.2), "load_x2": ("uniform", 1.0, 1.4),
+        "beam_cap_j_k": GAIN,
+        "beam_surface_m2": SIZE,
+        "beam_table_g_w_k": GAIN,
+        "load_x1": ("uniform", 0.8, 1.2),
+        "load_x2": ("uniform", 1.0, 1.4),
     },
     "feed_axis": dict(_AXIS),
     "vmc": {
         **_SPINDLE,
-        "column_height_mm": SIZE, "column_area_m2": SIZE, "column_perimeter_m": SIZE,
-        "column_alpha_per_k": ALPHA, "column_h_w_m2k": GAIN, "column_base_g_w_k": GAIN, "headstock_g_w_k": GAIN,
+        "column_height_mm": SIZE,
+        "column_area_m2": SIZE,
+        "column_perimeter_m": SIZE,
+        "column_alpha_per_k": ALPHA,
+        "column_h_w_m2k": GAIN,
+        "column_base_g_w_k": GAIN,
+        "headstock_g_w_k": GAIN,
     },
 }
 
@@ -105,8 +159,11 @@ RANGES: dict[str, dict[str, tuple[str, float, float]]] = {
 PLACEMENT: dict[str, dict[str, Any]] = {
     "lathe": {
         # sensor offsets from the nominal places (T1, T2 on the headstock, T3-T5 on the bed)
-        "T1_mm": ("uniform", -30.0, 30.0), "T2_mm": ("uniform", -30.0, 30.0), "T3_mm": ("uniform", -150.0, 150.0),
-        "T4_mm": ("uniform", -60.0, 60.0), "T5_mm": ("uniform", -100.0, 100.0),
+        "T1_mm": ("uniform", -30.0, 30.0),
+        "T2_mm": ("uniform", -30.0, 30.0),
+        "T3_mm": ("uniform", -150.0, 150.0),
+        "T4_mm": ("uniform", -60.0, 60.0),
+        "T5_mm": ("uniform", -100.0, 100.0),
         "saddle_at_bed_share": ("uniform", 0.5, 0.7),  # where the saddle works, share of the bed
     },
     "spindle": {
@@ -114,8 +171,10 @@ PLACEMENT: dict[str, dict[str, Any]] = {
     },
     "gantry": {
         "column_p": 0.7,  # share of machines with an unmeasured column per side
-        "column_cap_j_k": ("log", 20000.0, 120000.0), "column_surface_m2": ("uniform", 0.4, 1.5),
-        "column_table_g_w_k": ("log", 1.0, 5.0), "column_beam_g_w_k": ("log", 0.3, 3.0),
+        "column_cap_j_k": ("log", 20000.0, 120000.0),
+        "column_surface_m2": ("uniform", 0.4, 1.5),
+        "column_table_g_w_k": ("log", 1.0, 5.0),
+        "column_beam_g_w_k": ("log", 0.3, 3.0),
         "column_lever_mm": ("uniform", 100.0, 400.0),
     },
     "feed_axis": {
@@ -125,7 +184,8 @@ PLACEMENT: dict[str, dict[str, Any]] = {
     "vmc": {
         "xi_offset_share": ("uniform", -0.2, 0.2),  # as the spindle's
         # the column sensors off their nominal heights (the default's, scaled with the drawn height)
-        "T_col_top_mm": ("uniform", -50.0, 50.0), "T_col_bot_mm": ("uniform", -50.0, 50.0),
+        "T_col_top_mm": ("uniform", -50.0, 50.0),
+        "T_col_bot_mm": ("uniform", -50.0, 50.0),
     },
 }
 
@@ -141,53 +201,83 @@ AMBIENT_SENSOR = {"lathe": "T7", "spindle": "T_amb", "gantry": "T0", "feed_axis"
 # ({name} is a drawn position in mm: the sensor's own place `here`, the rotor length `L`, ...)
 NEIGHBOURS: dict[str, dict[str, list[str]]] = {
     "lathe": {
-        "T1": ["T2", "spindle@{here}"], "T2": ["T1", "spindle@{here}"],
-        "T3": ["bed@{here+100}", "bed@{here-100}", "T6"], "T4": ["bed@{here+100}", "T3"],
-        "T5": ["bed@{here-100}", "T3"], "T6": ["bed@{saddle}"],
+        "T1": ["T2", "spindle@{here}"],
+        "T2": ["T1", "spindle@{here}"],
+        "T3": ["bed@{here+100}", "bed@{here-100}", "T6"],
+        "T4": ["bed@{here+100}", "T3"],
+        "T5": ["bed@{here-100}", "T3"],
+        "T6": ["bed@{saddle}"],
     },
     "spindle": {
         "T_xi": ["housing@{here}", "rotor@{here+0.15L}", "rotor@{here-0.15L}"],
-        "T_brg_front": ["rotor@{0}", "housing@{0.25L}"], "T_brg_rear": ["rotor@{L}", "housing@{0.75L}"],
+        "T_brg_front": ["rotor@{0}", "housing@{0.25L}"],
+        "T_brg_rear": ["rotor@{L}", "housing@{0.75L}"],
         "T_coolant": ["housing@{0.5L}"],
     },
     "gantry": {
-        f"T{i}{c}": nb for i in (1, 2) for c, nb in {
-            "0": [f"T{i}2"], "1": [f"T{i}2"], "2": [f"T{i}3", f"T{i}0"], "3": [f"T{i}2"], "4": [f"T{i}2"],
-            "A": [f"T{i}B", f"T{i}2"], "B": [f"T{i}A"], "C": [f"T{i}D", f"T{i}3"], "D": [f"T{i}C"],
+        f"T{i}{c}": nb
+        for i in (1, 2)
+        for c, nb in {
+            "0": [f"T{i}2"],
+            "1": [f"T{i}2"],
+            "2": [f"T{i}3", f"T{i}0"],
+            "3": [f"T{i}2"],
+            "4": [f"T{i}2"],
+            "A": [f"T{i}B", f"T{i}2"],
+            "B": [f"T{i}A"],
+            "C": [f"T{i}D", f"T{i}3"],
+            "D": [f"T{i}C"],
         }.items()
     },
     "feed_axis": {
-        "T_motor": ["T_table"], "T_table": ["T_head", "T_motor"], "T_head": ["T_table"], "T_block": ["T_table"],
+        "T_motor": ["T_table"],
+        "T_table": ["T_head", "T_motor"],
+        "T_head": ["T_table"],
+        "T_block": ["T_table"],
         "T_base_*": ["y.base@{here+60}", "y.base@{here-60}"],
     },
     # the column's sensors see more of the column, never the spindle (each source its own sensors)
     "vmc": {
         "T_xi": ["housing@{here}", "rotor@{here+0.15L}", "rotor@{here-0.15L}"],
-        "T_brg_front": ["rotor@{0}", "housing@{0.25L}"], "T_brg_rear": ["rotor@{L}", "housing@{0.75L}"],
+        "T_brg_front": ["rotor@{0}", "housing@{0.25L}"],
+        "T_brg_rear": ["rotor@{L}", "housing@{0.75L}"],
         "T_coolant": ["housing@{0.5L}"],
-        "T_col_top": ["column@{here-100}", "column@{H}"], "T_col_bot": ["column@{here+100}", "column@{0}"],
+        "T_col_top": ["column@{here-100}", "column@{H}"],
+        "T_col_bot": ["column@{here+100}", "column@{0}"],
     },
 }
 
 # the two days. `level` is speed_rpm (lathe, spindle) or feed_mm_min (gantry, feed_axis).
 DUTY: dict[str, dict[str, Any]] = {
     "lathe": {
-        "train_level": ("uniform", 1200.0, 2800.0), "step": 100.0, "limits": (300.0, 4500.0),
-        "train_run_s": ("uniform", 7200.0, 21600.0), "train_pause_s": ("uniform", 1800.0, 5400.0),
+        "train_level": ("uniform", 1200.0, 2800.0),
+        "step": 100.0,
+        "limits": (300.0, 4500.0),
+        "train_run_s": ("uniform", 7200.0, 21600.0),
+        "train_pause_s": ("uniform", 1800.0, 5400.0),
     },
     "spindle": {
-        "train_level": ("uniform", 6000.0, 12000.0), "step": 500.0, "limits": (2000.0, 18000.0),
-        "train_run_s": ("uniform", 3600.0, 10800.0), "train_pause_s": ("uniform", 1800.0, 3600.0),
+        "train_level": ("uniform", 6000.0, 12000.0),
+        "step": 500.0,
+        "limits": (2000.0, 18000.0),
+        "train_run_s": ("uniform", 3600.0, 10800.0),
+        "train_pause_s": ("uniform", 1800.0, 3600.0),
         "coolant_p": 0.7,  # machines run with coolant on; on the unseen day some runs without
         "coolant_flip_p": 0.25,
     },
     "gantry": {
-        "train_level": ("uniform", 800.0, 3000.0), "step": 100.0, "limits": (300.0, 6000.0),
-        "train_run_s": ("uniform", 2700.0, 7200.0), "train_pause_s": ("uniform", 600.0, 2700.0),
+        "train_level": ("uniform", 800.0, 3000.0),
+        "step": 100.0,
+        "limits": (300.0, 6000.0),
+        "train_run_s": ("uniform", 2700.0, 7200.0),
+        "train_pause_s": ("uniform", 600.0, 2700.0),
     },
     "feed_axis": {
-        "train_level": ("uniform", 3000.0, 9000.0), "step": 100.0, "limits": (1000.0, 15000.0),
-        "train_run_s": ("uniform", 1800.0, 5400.0), "train_pause_s": ("uniform", 300.0, 1800.0),
+        "train_level": ("uniform", 3000.0, 9000.0),
+        "step": 100.0,
+        "limits": (1000.0, 15000.0),
+        "train_run_s": ("uniform", 1800.0, 5400.0),
+        "train_pause_s": ("uniform", 300.0, 1800.0),
     },
 }
 DUTY["vmc"] = dict(DUTY["spindle"])  # the same spindle, the same work
@@ -208,7 +298,9 @@ COMMON_DUTY = {
     # strokes (gantry, feed axis): the share of machines whose training day also has partial
     # strokes, the share of training runs that then are partial, the share of unseen runs
     # that are (the first always is), and how much of the travel a partial stroke covers
-    "train_partial_machines_p": 0.5, "train_partial_runs_p": 0.4, "unseen_partial_runs_p": 0.8,
+    "train_partial_machines_p": 0.5,
+    "train_partial_runs_p": 0.4,
+    "unseen_partial_runs_p": 0.8,
     "partial_share": ("uniform", 0.25, 0.6),
 }
 
@@ -216,7 +308,12 @@ COMMON_DUTY = {
 # range (lathe, spindle, vmc) or its axis with the drawn stroke and the type's feed range (gantry: the
 # gantry's axis x, both sides; feed axis: y), the day's hours, and leaves compd's defaults (7 speed or
 # 4 feed levels, τ 60 min, idle 1 h, a measurement every 10 min); the plan's seed is the machine's
-PLAN = {"time_constant_min": 60.0, "probe_every_min": 10.0, "idle_hours": 1.0, "axis": {"gantry": "x", "feed_axis": "y"}}
+PLAN = {
+    "time_constant_min": 60.0,
+    "probe_every_min": 10.0,
+    "idle_hours": 1.0,
+    "axis": {"gantry": "x", "feed_axis": "y"},
+}
 TRAINS = ("day", "plan")
 
 AMBIENT = {
@@ -252,10 +349,16 @@ class Machine:
 
     def to_dict(self) -> dict[str, Any]:
         """The machine file's content: plain YAML types; `train` and `unseen` are scenarios."""
-        return _plain({
-            "kind": self.kind, "seed": self.seed, "drawn": self.drawn, "params": self.params,
-            "train": self.train.to_dict(), "unseen": self.unseen.to_dict(),
-        })
+        return _plain(
+            {
+                "kind": self.kind,
+                "seed": self.seed,
+                "drawn": self.drawn,
+                "params": self.params,
+                "train": self.train.to_dict(),
+                "unseen": self.unseen.to_dict(),
+            }
+        )
 
 
 def draw(kind: str, seed: int, day_h: float = 24.0, train: str = "day") -> Machine:
@@ -420,12 +523,21 @@ def _place_vmc(r: np.random.Generator, params: dict[str, Any], defaults: dict[st
     length = params["length_mm"]
     share = _value(r, t["xi_offset_share"])
     params["xi_mm"] = _round_to(min(max(xi_mm + share * length, 0.05 * length), 0.95 * length), 0.1)
-    return {**places, "xi_mean_value_point_mm": _sig(xi_mm), "xi_mm": params["xi_mm"],
-            "xi_offset_share": _sig(share, 3)}
+    return {
+        **places,
+        "xi_mean_value_point_mm": _sig(xi_mm),
+        "xi_mm": params["xi_mm"],
+        "xi_offset_share": _sig(share, 3),
+    }
 
 
-_PLACE = {"lathe": _place_lathe, "spindle": _place_spindle, "gantry": _place_gantry,
-          "feed_axis": _place_feed_axis, "vmc": _place_vmc}
+_PLACE = {
+    "lathe": _place_lathe,
+    "spindle": _place_spindle,
+    "gantry": _place_gantry,
+    "feed_axis": _place_feed_axis,
+    "vmc": _place_vmc,
+}
 
 
 def _sensor_names(kind: str, params: dict[str, Any]) -> list[str]:
@@ -437,8 +549,11 @@ def _sensor_names(kind: str, params: dict[str, Any]) -> list[str]:
         return ["T_xi", "T_amb", "T_brg_front", "T_brg_rear", "T_coolant", "T_col_top", "T_col_bot"]
     if kind == "gantry":
         return ["T0"] + [f"T{i}{c}" for i in (1, 2) for c in "01234ABCD"]
-    return ["T_motor", "T_table", "T_head", "T_block"] + [
-        f"T_base_{int(y):03d}" for y in params["base_sensors_mm"]] + ["T_amb"]
+    return (
+        ["T_motor", "T_table", "T_head", "T_block"]
+        + [f"T_base_{int(y):03d}" for y in params["base_sensors_mm"]]
+        + ["T_amb"]
+    )
 
 
 def _here_mm(kind: str, sensor: str, params: dict[str, Any]) -> dict[str, float]:
@@ -454,8 +569,7 @@ def _here_mm(kind: str, sensor: str, params: dict[str, Any]) -> dict[str, float]
         return {"here": params["xi_mm"], "L": params["length_mm"]}
     if kind == "feed_axis" and sensor.startswith("T_base_"):
         k = params["base_sensors_mm"].index(float(sensor[7:]))
-        return {"here": params["stroke_offset_mm"] + params["base_sensors_mm"][k]
-                + params["base_sensor_shift_mm"][k]}
+        return {"here": params["stroke_offset_mm"] + params["base_sensors_mm"][k] + params["base_sensor_shift_mm"][k]}
     return {}
 
 
@@ -503,16 +617,18 @@ def _ambients(r: np.random.Generator) -> tuple[Ambient, Ambient, dict[str, Any]]
     start = _sig(_value(r, t["start_c"]))
     offset = _sig(_value(r, t["unseen_offset_c"]) * (1.0 if r.uniform() < 0.5 else -1.0), 3)
     for day_start in (start, _sig(start + offset)):
-        out.append(Ambient(
-            start_c=day_start,
-            drift_c_per_h=_sig(_value(r, t["drift_k_per_day"]) / 24.0, 3),
-            daily_amplitude_c=_sig(_value(r, t["daily_amplitude_c"]), 3),
-            daily_phase_h=_sig(_value(r, t["daily_phase_h"]), 3),
-            hvac_amplitude_c=_sig(_value(r, t["hvac_amplitude_c"]), 3),
-            hvac_period_s=_round_to(_value(r, t["hvac_period_s"]), 10.0),
-            hvac_phase_s=_round_to(r.uniform(0.0, 3600.0), 10.0),
-            hvac_shape=str(t["hvac_shapes"][int(r.integers(len(t["hvac_shapes"])))]),
-        ))
+        out.append(
+            Ambient(
+                start_c=day_start,
+                drift_c_per_h=_sig(_value(r, t["drift_k_per_day"]) / 24.0, 3),
+                daily_amplitude_c=_sig(_value(r, t["daily_amplitude_c"]), 3),
+                daily_phase_h=_sig(_value(r, t["daily_phase_h"]), 3),
+                hvac_amplitude_c=_sig(_value(r, t["hvac_amplitude_c"]), 3),
+                hvac_period_s=_round_to(_value(r, t["hvac_period_s"]), 10.0),
+                hvac_phase_s=_round_to(r.uniform(0.0, 3600.0), 10.0),
+                hvac_shape=str(t["hvac_shapes"][int(r.integers(len(t["hvac_shapes"])))]),
+            )
+        )
     return out[0], out[1], {"train": out[0].to_dict(), "unseen": out[1].to_dict(), "unseen_offset_c": offset}
 
 
@@ -531,8 +647,14 @@ class _Day:
         self.t_s = 0.0
         self.axes = kind in ("gantry", "feed_axis")
 
-    def run(self, duration_s: float, level: float, load: float = 1.0, stroke: tuple[float, float] | None = None,
-            coolant: bool = False) -> None:
+    def run(
+        self,
+        duration_s: float,
+        level: float,
+        load: float = 1.0,
+        stroke: tuple[float, float] | None = None,
+        coolant: bool = False,
+    ) -> None:
         if self.axes:
             seg = Segment(duration_s, feed_mm_min=level, load=load, stroke_mm=stroke or self.travel)
         else:
@@ -574,8 +696,13 @@ def _levels(r: np.random.Generator, d: dict[str, Any]) -> list[float]:
     return [first] if second == first else [first, second]
 
 
-def _days(kind: str, r_train: np.random.Generator, r_unseen: np.random.Generator, params: dict[str, Any],
-          travel: tuple[float, float]) -> tuple[list[Segment], list[Segment], dict[str, Any]]:
+def _days(
+    kind: str,
+    r_train: np.random.Generator,
+    r_unseen: np.random.Generator,
+    params: dict[str, Any],
+    travel: tuple[float, float],
+) -> tuple[list[Segment], list[Segment], dict[str, Any]]:
     d, c = DUTY[kind], COMMON_DUTY
     lo_lim, hi_lim = d["limits"]
     levels = _levels(r_train, d)
@@ -627,27 +754,32 @@ def _days(kind: str, r_train: np.random.Generator, r_unseen: np.random.Generator
     day.night()
     duty = {
         "level": "feed_mm_min" if day.axes else "speed_rpm",
-        "train_levels": levels, "unseen_levels": sorted(set(unseen_levels)),
+        "train_levels": levels,
+        "unseen_levels": sorted(set(unseen_levels)),
         "train_runs": sum(s.speed_rpm > 0 or s.feed_mm_min > 0 for s in train),
         "unseen_runs": k,
     }
     if kind in ("spindle", "vmc"):
         duty["coolant"] = coolant
     if day.axes:
-        duty["train_partial_strokes"] = sum(
-            s.stroke_mm is not None and tuple(s.stroke_mm) != day.travel for s in train)
+        duty["train_partial_strokes"] = sum(s.stroke_mm is not None and tuple(s.stroke_mm) != day.travel for s in train)
     return train, day.segments, duty
 
 
-def _plan_day(kind: str, seed: int, params: dict[str, Any], travel: tuple[float, float],
-              day_h: float) -> tuple[list[Segment], dict[str, Any]]:
+def _plan_day(
+    kind: str, seed: int, params: dict[str, Any], travel: tuple[float, float], day_h: float
+) -> tuple[list[Segment], dict[str, Any]]:
     """The training day as compd testplan designs it for this machine (PLAN), `day_h` hours; a
     shortened day scales τ, the idle stretch and the measuring interval with it."""
     lo, hi = DUTY[kind]["limits"]
     scale = day_h / 24.0
     step_s = max(1, round(PLAN["probe_every_min"] * 60.0 * scale))  # whole seconds, as the plan's times
-    options = {"time_constant_min": _sig(PLAN["time_constant_min"] * scale, 6), "probe_every_min": step_s / 60.0,
-               "idle_hours": _sig(PLAN["idle_hours"] * scale, 6), "seed": seed}
+    options = {
+        "time_constant_min": _sig(PLAN["time_constant_min"] * scale, 6),
+        "probe_every_min": step_s / 60.0,
+        "idle_hours": _sig(PLAN["idle_hours"] * scale, 6),
+        "seed": seed,
+    }
     if kind in PLAN["axis"]:
         stroke = travel[1] - travel[0]
         # a shortened day's short steps: the lowest feed raised until one stroke out and back fits a step
@@ -656,9 +788,15 @@ def _plan_day(kind: str, seed: int, params: dict[str, Any], travel: tuple[float,
     else:
         plan = design(hi, day_h, min_rpm=lo, **options)
     info = plan.info
-    summary = {"max_rpm": hi if info["spindle"] else 0.0, "hours": float(day_h), **options,
-               "levels": info["speeds_rpm"] or {a: f for a, f in info["feeds_mm_min"].items()},
-               "holds": len(info["holds_s"]), "pauses": len(info["pauses_s"]), "probes": info["probes"]}
+    summary = {
+        "max_rpm": hi if info["spindle"] else 0.0,
+        "hours": float(day_h),
+        **options,
+        "levels": info["speeds_rpm"] or {a: f for a, f in info["feeds_mm_min"].items()},
+        "holds": len(info["holds_s"]),
+        "pauses": len(info["pauses_s"]),
+        "probes": info["probes"],
+    }
     return plan_segments(plan, stroke_mm=travel if kind in PLAN["axis"] else None), _plain(summary)
 
 
@@ -666,8 +804,11 @@ def _scaled(segments: list[Segment], scale: float) -> list[Segment]:
     """The day with every duration times `scale` (whole seconds, at least one)."""
     out = []
     for s in segments:
-        out.append(Segment(**{**s.__dict__, "duration_s": max(1.0, round(s.duration_s * scale)),
-                              "axis_load": dict(s.axis_load)}))
+        out.append(
+            Segment(
+                **{**s.__dict__, "duration_s": max(1.0, round(s.duration_s * scale)), "axis_load": dict(s.axis_load)}
+            )
+        )
     return out
 
 
@@ -720,14 +861,18 @@ def write_machine(machine: Machine, out_dir: str | Path, rate_s: float | None = 
         log = read_log(path)
         sc = machine.train if day == "train" else machine.unseen
         summary[day] = {
-            a: {"rms_um": _sig(v["rms_um"]), "max_abs_um": _sig(v["max_abs_um"]),
-                "working_rms_um": _sig(working_rms_um(log.col(f"err_{a}_um"), log.t_s, sc))}
+            a: {
+                "rms_um": _sig(v["rms_um"]),
+                "max_abs_um": _sig(v["max_abs_um"]),
+                "working_rms_um": _sig(working_rms_um(log.col(f"err_{a}_um"), log.t_s, sc)),
+            }
             for a, v in s["axes"].items()
         }
     doc = {**machine.to_dict(), "log_rate_s": float(rate), "errors_um": _plain(summary)}
     try:
         Path(f"{stem}_machine.yaml").write_text(
-            yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110), encoding="utf-8")
+            yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110), encoding="utf-8"
+        )
     except OSError as e:
         raise BadInput(f"cannot write the machine file: {e.strerror or e}", file=f"{stem}_machine.yaml") from None
     return summary
@@ -757,11 +902,18 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--kind", required=True, help=f"one of {', '.join(ALL_KINDS)}")
     p.add_argument("--seeds", required=True, help="e.g. 1-20, 7 or 1,4,9-12: one machine per seed")
     p.add_argument("--out", required=True, help="folder for the logs and machine files")
-    p.add_argument("--rate-s", type=float, default=None,
-                   help="seconds between log rows (default per kind: " +
-                   ", ".join(f"{k} {v:g}" for k, v in RATES_S.items()) + ")")
-    p.add_argument("--train", choices=TRAINS, default="day",
-                   help="the training day: the drawn day (default), or compd testplan's plan for the machine")
+    p.add_argument(
+        "--rate-s",
+        type=float,
+        default=None,
+        help="seconds between log rows (default per kind: " + ", ".join(f"{k} {v:g}" for k, v in RATES_S.items()) + ")",
+    )
+    p.add_argument(
+        "--train",
+        choices=TRAINS,
+        default="day",
+        help="the training day: the drawn day (default), or compd testplan's plan for the machine",
+    )
     p.set_defaults(func=cmd_family)
 
 
@@ -779,7 +931,10 @@ def cmd_family(args: argparse.Namespace) -> int:
     for seed in seeds:
         m = draw(args.kind, seed, train=args.train)
         s = write_machine(m, out, args.rate_s)
-        parts = [f"{day} " + ", ".join(f"{a} rms {v['rms_um']:.2f} um (working {v['working_rms_um']:.2f})"
-                                        for a, v in axes.items()) for day, axes in s.items()]
+        parts = [
+            f"{day} "
+            + ", ".join(f"{a} rms {v['rms_um']:.2f} um (working {v['working_rms_um']:.2f})" for a, v in axes.items())
+            for day, axes in s.items()
+        ]
         print(f"{out / f'{m.kind}_{seed}'}: " + "; ".join(parts), flush=True)
     return 0

@@ -25,24 +25,48 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=None, help="overrides the scenario's seed")
     p.add_argument("--duration-s", type=float, default=None, help="stop early (default: whole scenario)")
     p.add_argument(
-        "--profile", default=None,
+        "--profile",
+        default=None,
         help="also write E(y) sweeps (feed_axis, gantry): a log with one row per grid position",
     )
     p.add_argument("--profile-every-s", type=float, default=900.0, help="seconds between sweeps")
-    p.add_argument("--plan", default=None, metavar="PLAN.csv",
-                   help="run this `compd testplan` plan instead of the scenario's segments (the scenario gives"
-                        " the machine, its params and the ambient); its measurements become probe_<axis>_um")
-    p.add_argument("--plan-axis", default=None, metavar="NAME",
-                   help="the plan's axis whose feed the plant's linear axes follow (default: its only one)")
-    p.add_argument("--stroke-mm", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
-                   help="where the linear axes reciprocate in the plan's feed holds (default: the plant's stroke)")
-    p.add_argument("--probe-sigma-um", type=float, default=PROBE_SIGMA_UM,
-                   help=f"the probe's noise, 1 sigma, at the plan's measurements (default {PROBE_SIGMA_UM:g})")
+    p.add_argument(
+        "--plan",
+        default=None,
+        metavar="PLAN.csv",
+        help="run this `compd testplan` plan instead of the scenario's segments (the scenario gives"
+        " the machine, its params and the ambient); its measurements become probe_<axis>_um",
+    )
+    p.add_argument(
+        "--plan-axis",
+        default=None,
+        metavar="NAME",
+        help="the plan's axis whose feed the plant's linear axes follow (default: its only one)",
+    )
+    p.add_argument(
+        "--stroke-mm",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("LOW", "HIGH"),
+        help="where the linear axes reciprocate in the plan's feed holds (default: the plant's stroke)",
+    )
+    p.add_argument(
+        "--probe-sigma-um",
+        type=float,
+        default=PROBE_SIGMA_UM,
+        help=f"the probe's noise, 1 sigma, at the plan's measurements (default {PROBE_SIGMA_UM:g})",
+    )
     p.set_defaults(func=cmd_log)
 
 
-def load_plant(scenario_file: str, seed: int | None = None, plan: Any = None, plan_axis: str | None = None,
-               stroke_mm: tuple[float, float] | None = None) -> Any:
+def load_plant(
+    scenario_file: str,
+    seed: int | None = None,
+    plan: Any = None,
+    plan_axis: str | None = None,
+    stroke_mm: tuple[float, float] | None = None,
+) -> Any:
     """The plant named by a scenario file's `machine:` key, built with its `params:`; with `plan`
     (compd.commissioning.testplan.Plan) it runs the plan's rows instead of the file's segments."""
     from hil_sim.plants import PLANTS
@@ -87,9 +111,14 @@ def _positions(plant: Any) -> tuple[list[int], list[int]]:
 
 
 def run_log(
-    plant: Any, out: str | Path, rate_s: float, duration_s: float | None = None,
-    profile: str | Path | None = None, profile_every_s: float = 900.0,
-    probes_s: np.ndarray | None = None, probe_sigma_um: float = PROBE_SIGMA_UM,
+    plant: Any,
+    out: str | Path,
+    rate_s: float,
+    duration_s: float | None = None,
+    profile: str | Path | None = None,
+    profile_every_s: float = 900.0,
+    probes_s: np.ndarray | None = None,
+    probe_sigma_um: float = PROBE_SIGMA_UM,
 ) -> dict[str, Any]:
     """Simulate, write the log (and the sweeps), return a summary. At each time of `probes_s` the
     log has a row whose probe_<axis>_um is the true error plus the probe's noise (σ
@@ -156,8 +185,9 @@ def run_log(
     return summary
 
 
-def _with_probes(plant: Any, rows: np.ndarray, probe_rows: np.ndarray, sigma_um: float, columns: list[str],
-                 data: list[np.ndarray]) -> tuple[list[str], list[np.ndarray]]:
+def _with_probes(
+    plant: Any, rows: np.ndarray, probe_rows: np.ndarray, sigma_um: float, columns: list[str], data: list[np.ndarray]
+) -> tuple[list[str], list[np.ndarray]]:
     """The log's columns with probe_<axis>_um (and probe_pos_<axis>_mm) at `probe_rows`."""
     rng = np.random.default_rng([int(plant.scenario.seed), 40])  # the probes' own stream: the log stays put
     pos_idx, err_idx = _positions(plant)
@@ -183,15 +213,22 @@ def _plan_drives(plant: Any, plan: Any, file: str) -> None:
     moves = any(np.any(f > 0) for f in plan.feeds_mm_min.values())
     if (turns and spindle) or (moves and axes):
         if turns and not spindle:
-            print(f"hil_sim: the {plant.name} plant has no spindle: the plan's speeds are not simulated", file=sys.stderr)
+            print(
+                f"hil_sim: the {plant.name} plant has no spindle: the plan's speeds are not simulated", file=sys.stderr
+            )
         if moves and not axes:
-            print(f"hil_sim: the {plant.name} plant has no linear axis: the plan's feeds are not simulated",
-                  file=sys.stderr)
+            print(
+                f"hil_sim: the {plant.name} plant has no linear axis: the plan's feeds are not simulated",
+                file=sys.stderr,
+            )
         return
-    raise BadInput(f"the {plant.name} plant follows nothing this plan changes (it has "
-                   f"{'a spindle' if spindle else 'linear axes' if axes else 'neither spindle nor axes'};"
-                   f" the plan {'turns the spindle' if turns else 'moves axes' if moves else 'stands still'})",
-                   file=file, path="--plan")
+    raise BadInput(
+        f"the {plant.name} plant follows nothing this plan changes (it has "
+        f"{'a spindle' if spindle else 'linear axes' if axes else 'neither spindle nor axes'};"
+        f" the plan {'turns the spindle' if turns else 'moves axes' if moves else 'stands still'})",
+        file=file,
+        path="--plan",
+    )
 
 
 def cmd_log(args: argparse.Namespace) -> int:
@@ -207,11 +244,10 @@ def cmd_log(args: argparse.Namespace) -> int:
     if plan is not None:
         _plan_drives(plant, plan, args.plan)
         probes = plan.probe_times_s() - plan.t_s[0]
-    s = run_log(plant, args.out, args.rate_s, args.duration_s, args.profile, args.profile_every_s,
-                probes, args.probe_sigma_um)
-    parts = [
-        f"{a}: rms {v['rms_um']:.2f} um, max {v['max_abs_um']:.2f} um" for a, v in s["axes"].items()
-    ]
+    s = run_log(
+        plant, args.out, args.rate_s, args.duration_s, args.profile, args.profile_every_s, probes, args.probe_sigma_um
+    )
+    parts = [f"{a}: rms {v['rms_um']:.2f} um, max {v['max_abs_um']:.2f} um" for a, v in s["axes"].items()]
     extra = f", {s['profile_rows']} profile rows" if "profile_rows" in s else ""
     if plan is not None:
         extra += f", plan {args.plan}: {s['probes']} probes"

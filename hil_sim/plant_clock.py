@@ -17,8 +17,9 @@ def from_config(pc: PlantClockConfig) -> Clock:
     """The clock `loop.plant_clock` describes: in lockstep with the plant, or following it."""
     if pc.lockstep:
         return LockstepPlantClock(pc.host, pc.port, device_id=pc.device_id, address=pc.address)
-    return PlantClock(pc.host, pc.port, device_id=pc.device_id, address=pc.address,
-                      poll_period_s=pc.poll_period_s, stall_s=pc.stall_s)
+    return PlantClock(
+        pc.host, pc.port, device_id=pc.device_id, address=pc.address, poll_period_s=pc.poll_period_s, stall_s=pc.stall_s
+    )
 
 
 class PlantTimeWork(OverModbus, DeviceWork):
@@ -74,9 +75,9 @@ class PlantTimeWork(OverModbus, DeviceWork):
         """One Modbus request (function 23, write then read): run to `t_s` — the plant steps
         before it acknowledges — and read back (plant time, state)."""
         ms = int(round(t_s * 1000.0)) & 0xFFFFFFFF
-        regs = self._answer(self.client.read_write_registers(
-            self.address, 3, self.address + 4, [(ms >> 16) & 0xFFFF, ms & 0xFFFF]
-        ))
+        regs = self._answer(
+            self.client.read_write_registers(self.address, 3, self.address + 4, [(ms >> 16) & 0xFFFF, ms & 0xFFFF])
+        )
         if regs is None:
             return None
         hi, lo, state = regs
@@ -122,8 +123,13 @@ class PlantClock(Clock):
             ModbusClient.tcp(host, port, device_id=device_id, timeout_s=timeout_s), address, self._time
         )
         # a plant that does not answer is asked again every period (no back-off: it is the clock)
-        self._worker = IoWorker(self._work, name="plant-clock", period_s=poll_period_s,
-                                reconnect_min_s=poll_period_s, reconnect_max_s=poll_period_s)
+        self._worker = IoWorker(
+            self._work,
+            name="plant-clock",
+            period_s=poll_period_s,
+            reconnect_min_s=poll_period_s,
+            reconnect_max_s=poll_period_s,
+        )
 
     @property
     def reads(self) -> int:

@@ -29,9 +29,7 @@ class Pt100Bank:
         self.tolerance_u = rng.uniform(-1.0, 1.0, n) if tolerance else np.zeros(n)
         self.noise_c = noise_c
         self.resolution_c = resolution_c
-        self.drift_c_per_s = (
-            np.zeros(n) if drift_c_per_h is None else np.asarray(drift_c_per_h, float) / 3600.0
-        )
+        self.drift_c_per_s = np.zeros(n) if drift_c_per_h is None else np.asarray(drift_c_per_h, float) / 3600.0
 
     def read(self, true_c: np.ndarray, t_s: float | np.ndarray) -> np.ndarray:
         """Readings (°C) for true temperatures `true_c` at time `t_s`."""

@@ -92,8 +92,7 @@ class Ambient:
         v = (
             self.start_c
             + self.drift_c_per_h * t_s / 3600.0
-            + self.daily_amplitude_c
-            * math.sin(2 * math.pi * (t_s / 3600.0 - self.daily_phase_h) / 24.0)
+            + self.daily_amplitude_c * math.sin(2 * math.pi * (t_s / 3600.0 - self.daily_phase_h) / 24.0)
         )
         if self._ph:
             v += _interp(t_s, self._ph, self._pc)
@@ -240,17 +239,26 @@ def plan_segments(plan: Any, axis: str | None = None, stroke_mm: tuple[float, fl
     when None; 0: they stand). ValueError names what does not fit."""
     feeds = plan.feeds_mm_min
     if axis is None and len(feeds) > 1:
-        raise ValueError(f"the plan has feeds for the axes {', '.join(feeds)}: say which one the plant's"
-                         " linear axes follow")
+        raise ValueError(
+            f"the plan has feeds for the axes {', '.join(feeds)}: say which one the plant's linear axes follow"
+        )
     if axis is not None and axis not in feeds:
-        raise ValueError(f"the plan has no feed_{axis}_mm_min (its feed columns: "
-                         f"{', '.join(f'feed_{a}_mm_min' for a in feeds) or 'none'})")
+        raise ValueError(
+            f"the plan has no feed_{axis}_mm_min (its feed columns: "
+            f"{', '.join(f'feed_{a}_mm_min' for a in feeds) or 'none'})"
+        )
     feed = feeds[axis if axis is not None else next(iter(feeds))] if feeds else None
     out = []
     for i in range(len(plan.t_s) - 1):
         f = 0.0 if feed is None else float(feed[i])
-        out.append(Segment(float(plan.t_s[i + 1] - plan.t_s[i]), speed_rpm=float(plan.speed_rpm[i]), feed_mm_min=f,
-                           stroke_mm=stroke_mm if f > 0 else None))
+        out.append(
+            Segment(
+                float(plan.t_s[i + 1] - plan.t_s[i]),
+                speed_rpm=float(plan.speed_rpm[i]),
+                feed_mm_min=f,
+                stroke_mm=stroke_mm if f > 0 else None,
+            )
+        )
     return out
 
 

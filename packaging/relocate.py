@@ -131,7 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--venv", required=True, help="the venv's final path, e.g. /opt/compd/venv")
     ap.add_argument("--forbid", action="append", default=[], help="another path no file may name (the build folder)")
     ap.add_argument("--check-only", action="store_true", help="change nothing: only look for files naming the folders")
-    ap.add_argument("--also", action="append", default=[], type=Path, help="another staged tree to scan (split off DESTDIR)")
+    ap.add_argument(
+        "--also", action="append", default=[], type=Path, help="another staged tree to scan (split off DESTDIR)"
+    )
     args = ap.parse_args(argv)
     destdir = args.destdir.resolve()
     final = "/" + args.venv.strip("/")

@@ -57,8 +57,10 @@ def _modbus_fault(name: str, port: int, what: str, error: Exception, timeout_s: 
     if isinstance(error, ConnectionException):
         return DeviceSilent(f"{name} at {HOST}:{port} lost the connection during {what}: {SERVE} stopped serving")
     tried = f"{tries} tries of {timeout_s:g} s" if tries > 1 else f"{timeout_s:g} s"
-    return DeviceSilent(f"{name} at {HOST}:{port} did not answer {what} within {tried}: {SERVE} stopped"
-                        " answering; is the PC too loaded to serve them?")
+    return DeviceSilent(
+        f"{name} at {HOST}:{port} did not answer {what} within {tried}: {SERVE} stopped"
+        " answering; is the PC too loaded to serve them?"
+    )
 
 
 def _quiet_pymodbus() -> None:
@@ -89,8 +91,10 @@ def check_devices(names: list[str], ports: dict[str, int], timeout_s: float | No
         client = ModbusTcpClient(HOST, port=port, timeout=timeout_s, retries=0)
         try:
             if not client.connect():
-                raise DeviceSilent(f"{name} at {HOST}:{port}: no connection within {timeout_s:g} s (nothing"
-                                   f" listens there): {SERVE} are not serving")
+                raise DeviceSilent(
+                    f"{name} at {HOST}:{port}: no connection within {timeout_s:g} s (nothing"
+                    f" listens there): {SERVE} are not serving"
+                )
             try:
                 client.read_holding_registers(0, count=1, device_id=1)
             except ModbusException as e:
@@ -221,7 +225,12 @@ class Devices:
 
 
 def _compd_config(
-    work: Path, model_path: Path, sensors: list[str], ports: dict[str, int], scheduler: str, period_s: float,
+    work: Path,
+    model_path: Path,
+    sensors: list[str],
+    ports: dict[str, int],
+    scheduler: str,
+    period_s: float,
     io: str = "process",
 ) -> Path:
     realtime: dict[str, Any] = {"scheduler": scheduler, "priority": 50}
@@ -267,7 +276,9 @@ def _compd_config(
     return path
 
 
-def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], cycles: int, period_s: float) -> dict[str, Any]:
+def run_naive_loop(
+    model_path: Path, sensors: list[str], ports: dict[str, int], cycles: int, period_s: float
+) -> dict[str, Any]:
     """The loop a user writes by hand: one request per register, predict, write, sleep(period)."""
     from pymodbus.client import ModbusTcpClient
     from pymodbus.exceptions import ModbusException
@@ -283,8 +294,10 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
     try:
         for name, c in clients.items():
             if not c.connect():
-                raise DeviceSilent(f"{name} at {HOST}:{ports[name]}: the naive loop got no connection"
-                                   f" (nothing listens there): {SERVE} stopped serving")
+                raise DeviceSilent(
+                    f"{name} at {HOST}:{ports[name]}: the naive loop got no connection"
+                    f" (nothing listens there): {SERVE} stopped serving"
+                )
     except BaseException:
         for c in clients.values():
             c.close()
@@ -307,9 +320,14 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
                 try:
                     rr = clients[name].read_holding_registers(j % MODULE_CHANNELS, count=1, device_id=1)
                 except ModbusException as e:
-                    raise _modbus_fault(name, ports[name], f"the naive loop's read of holding register"
-                                        f" {j % MODULE_CHANNELS} (unit 1)", e, NAIVE_TIMEOUT_S,
-                                        NAIVE_RETRIES + 1) from None
+                    raise _modbus_fault(
+                        name,
+                        ports[name],
+                        f"the naive loop's read of holding register {j % MODULE_CHANNELS} (unit 1)",
+                        e,
+                        NAIVE_TIMEOUT_S,
+                        NAIVE_RETRIES + 1,
+                    ) from None
                 if not rr.isError():
                     v = rr.registers[0]
                     x[j] = (v - 65536 if v > 32767 else v) * 0.1
@@ -322,8 +340,14 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
             try:
                 pmc.write_registers(0, [low, high], device_id=1)  # X0 holds the low byte
             except ModbusException as e:
-                raise _modbus_fault("pmc", ports["pmc"], "the naive loop's write of registers 0-1 (unit 1)", e,
-                                    NAIVE_TIMEOUT_S, NAIVE_RETRIES + 1) from None
+                raise _modbus_fault(
+                    "pmc",
+                    ports["pmc"],
+                    "the naive loop's write of registers 0-1 (unit 1)",
+                    e,
+                    NAIVE_TIMEOUT_S,
+                    NAIVE_RETRIES + 1,
+                ) from None
             compute[k] = time.monotonic() - start
             time.sleep(period_s)
     finally:
@@ -356,7 +380,12 @@ def run_naive_loop(model_path: Path, sensors: list[str], ports: dict[str, int], 
 
 
 def run_compd_loop_child(
-    config: Path, cycles: int, late_us: float, out: Path, trace: Path | None = None, scheduler: str = "other",
+    config: Path,
+    cycles: int,
+    late_us: float,
+    out: Path,
+    trace: Path | None = None,
+    scheduler: str = "other",
 ) -> dict[str, Any]:
     """rig.bench_loop in a child process (compd only in its interpreter), its metrics endpoint
     scraped every second meanwhile; its JSON. `trace`: run it under perf (rig.late_trace),
@@ -367,9 +396,20 @@ def run_compd_loop_child(
     scraper = Scraper(config.parent / "status.json")
     try:
         r = subprocess.run(
-            [*prefix, sys.executable, "-m", "rig.bench_loop", str(config), str(cycles), str(late_us), str(out),
-             *(["trace"] if trace else [])],
-            cwd=Path(__file__).resolve().parent.parent, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            [
+                *prefix,
+                sys.executable,
+                "-m",
+                "rig.bench_loop",
+                str(config),
+                str(cycles),
+                str(late_us),
+                str(out),
+                *(["trace"] if trace else []),
+            ],
+            cwd=Path(__file__).resolve().parent.parent,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
             text=True,
         )
     finally:
@@ -419,9 +459,20 @@ def run_bare_loop(cycles: int, period_s: float, scheduler: str, out: Path) -> di
     """rig.bench_bare in a child process: the machine's limit, with the loop's real-time options."""
     cpu = cycle_cpu()
     r = subprocess.run(
-        [sys.executable, "-m", "rig.bench_bare", str(cycles), repr(period_s), scheduler,
-         "-" if cpu is None else str(cpu), str(out)],
-        cwd=Path(__file__).resolve().parent.parent, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "rig.bench_bare",
+            str(cycles),
+            repr(period_s),
+            scheduler,
+            "-" if cpu is None else str(cpu),
+            str(out),
+        ],
+        cwd=Path(__file__).resolve().parent.parent,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     if r.returncode != 0:
         raise RuntimeError("the bare loop failed: " + (r.stderr.strip().splitlines() or ["?"])[-1])
@@ -484,8 +535,9 @@ def run_bench(
         hogs = start_load(load)
         try:
             cfg = _compd_config(work, model_path, sensors, devices.ports, scheduler, period_s, io)
-            compd = run_compd_loop_child(cfg, cycles, late_us, work / "loop.json",
-                                         work / "perf.data" if trace else None, scheduler)
+            compd = run_compd_loop_child(
+                cfg, cycles, late_us, work / "loop.json", work / "perf.data" if trace else None, scheduler
+            )
             attribution = compd["late_attribution"]
             bare = run_bare_loop(bare_cycles, period_s, scheduler, work / "bare.json") if bare_cycles else None
             naive = run_naive_loop(model_path, sensors, devices.ports, naive_cycles, period_s)
@@ -549,8 +601,12 @@ def format_table(r: dict[str, Any]) -> str:
     """The human table `compd bench` prints."""
     c, n = r, r["naive"]
     # no bare loop this run (--bare-cycles 0): its column shows "-"
-    b = r.get("bare") or {"cycles": 0, "misses": None, "lateness_us": dict.fromkeys(("p50", "p99", "p999", "max")),
-                          "cycle_compute_us": dict.fromkeys(("p50", "p99", "max"))}
+    b = r.get("bare") or {
+        "cycles": 0,
+        "misses": None,
+        "lateness_us": dict.fromkeys(("p50", "p99", "p999", "max")),
+        "cycle_compute_us": dict.fromkeys(("p50", "p99", "max")),
+    }
 
     def rate(x: dict[str, Any]) -> float | None:
         return None if x["misses"] is None else 100 * x["misses"] / max(x["cycles"], 1)
@@ -672,8 +728,15 @@ def main(args: Any) -> int:
 
     try:
         result = run_bench(
-            args.cycles, period_s=args.period_ms / 1000.0, scheduler=args.scheduler, naive_cycles=args.naive_cycles,
-            load=args.load, late_us=args.late_us, io=args.io, bare_cycles=args.bare_cycles, trace=args.trace,
+            args.cycles,
+            period_s=args.period_ms / 1000.0,
+            scheduler=args.scheduler,
+            naive_cycles=args.naive_cycles,
+            load=args.load,
+            late_us=args.late_us,
+            io=args.io,
+            bare_cycles=args.bare_cycles,
+            trace=args.trace,
         )
     except DeviceSilent as e:
         print(f"compd bench: {e}", file=sys.stderr)

@@ -67,11 +67,16 @@ def run(cycles: int, period_s: float, scheduler: str, cpu: int | None) -> dict[s
         "misses": int(np.count_nonzero(late > period_s / 2)),
         "late_200us": int(np.count_nonzero(us > 200.0)),
         "lateness_us": {
-            "p50": float(np.percentile(us, 50)), "p99": float(np.percentile(us, 99)),
-            "p999": float(np.percentile(us, 99.9)), "max": float(us.max()),
+            "p50": float(np.percentile(us, 50)),
+            "p99": float(np.percentile(us, 99)),
+            "p999": float(np.percentile(us, 99.9)),
+            "max": float(us.max()),
         },
-        "cycle_compute_us": {"p50": float(np.percentile(cu, 50)), "p99": float(np.percentile(cu, 99)),
-                             "max": float(cu.max())},
+        "cycle_compute_us": {
+            "p50": float(np.percentile(cu, 50)),
+            "p99": float(np.percentile(cu, 99)),
+            "max": float(cu.max()),
+        },
     }
 
 

@@ -192,6 +192,7 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
 def main(argv: list[str]) -> int:
     config, cycles, late_us, out, *flags = argv
     from compd.io import activity
+
     activity.enable(float(late_us))
     try:
         result = run_compd_loop(Path(config), int(cycles))

@@ -32,7 +32,9 @@ def _xi() -> Model:
     from compd.models.xi_spindle import LiftParams, RadialParams, XiSpindle, XiSpindleParams
 
     params = XiSpindleParams(  # the form `compd fit` writes: the axial lift, fitted ring gains
-        alpha_per_k=13.6e-6, length_mm=165.0, lift=LiftParams(k_um_per_rpm2=1e-7),
+        alpha_per_k=13.6e-6,
+        length_mm=165.0,
+        lift=LiftParams(k_um_per_rpm2=1e-7),
         radial=RadialParams(outer_gain=0.72, inner_gain=0.61),
     )
     return XiSpindle(params, ["T_xi", "T_in", "T_out", "speed_rpm"], ["z", "x"])
@@ -42,8 +44,12 @@ def _ar1() -> Model:
     from compd.models.ar1 import AR1, AR1Params
 
     params = AR1Params(
-        dt_s=60.0, c1=0.9955, c2_table=[(1000.0, 0.089), (1500.0, 0.121), (2000.0, 0.22)],
-        c3_um_per_k=0.05, bed_gain_um_per_k=[12.0], spindle_sign=-1,
+        dt_s=60.0,
+        c1=0.9955,
+        c2_table=[(1000.0, 0.089), (1500.0, 0.121), (2000.0, 0.22)],
+        c3_um_per_k=0.05,
+        bed_gain_um_per_k=[12.0],
+        spindle_sign=-1,
     )
     return AR1(params, ["speed_rpm", "T3", "T_amb"], ["z"])
 
@@ -52,8 +58,15 @@ def _feed_axis() -> Model:
     from compd.models.feed_axis import FeedAxis, FeedAxisParams
 
     params = FeedAxisParams(
-        length_mm=600.0, segments=30, chi_per_m=3.0, eta=0.22, u1_k=-8.52, u2_k=-8.48, xi=1.04,
-        r_cu_ohm=0.8, input_roles=["position", "current", "motor_temp", "ambient"],
+        length_mm=600.0,
+        segments=30,
+        chi_per_m=3.0,
+        eta=0.22,
+        u1_k=-8.52,
+        u2_k=-8.48,
+        xi=1.04,
+        r_cu_ohm=0.8,
+        input_roles=["position", "current", "motor_temp", "ambient"],
     )
     return FeedAxis(params, ["pos_x_mm", "current_x_a", "T_motor", "T_amb"], ["x"])
 

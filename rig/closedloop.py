@@ -85,7 +85,13 @@ MACHINES: dict[str, Machine] = {
     # the default AR(1) fit keeps compd's form (C1 at standstill and at speed: b = 2h/(ρcR), h
     # grows with n) where it predicts the log's later blocks better; the paper's single C1 as asked
     "lathe": Machine(
-        "lathe", "siemens_nc", "siemens", "ar1", ("--inputs", "T3"), (), ("z",),
+        "lathe",
+        "siemens_nc",
+        "siemens",
+        "ar1",
+        ("--inputs", "T3"),
+        (),
+        ("z",),
         variants=(("ar1_paper", ("--option", "c1_by_speed=false")),),
     ),
     # axial from the ξ sensor plus the centrifugal lift k n² (speed_rpm, paper 003 §3.4);
@@ -94,9 +100,13 @@ MACHINES: dict[str, Machine] = {
     # the variant is the paper's radial form with nothing fitted. The PMC word carries Z
     # (high byte) and the radial shift (low byte)
     "spindle": Machine(
-        "spindle", "fanuc_pmc", "fanuc_pmc", "xi_spindle",
+        "spindle",
+        "fanuc_pmc",
+        "fanuc_pmc",
+        "xi_spindle",
         ("--inputs", "T_xi", "T_brg_front", "speed_rpm", "--target", "err_z_um", "--target", "err_radial_um"),
-        ("--target", "err_z_um", "--target", "err_radial_um"), ("z", "radial"),
+        ("--target", "err_z_um", "--target", "err_radial_um"),
+        ("z", "radial"),
         variants=(("xi_spindle_paper", ("--option", "ring_gains=false")),),
     ),
     "gantry": Machine("gantry", "fanuc_pmc", "pci1756", "lvr", (), (), ("x1", "x2")),
@@ -105,8 +115,15 @@ MACHINES: dict[str, Machine] = {
     # (compd's field form from the base sensors, or the paper's analytic one) held out;
     # the paper's form and its duty-cycle variant are fitted as asked.
     "feed_axis": Machine(
-        "feed_axis", "siemens_nc", "siemens", "feed_axis",
-        ("--option", "linear_p0_mm=300", "--option", "length_mm=600"), (), ("y",), 10.0, beats_mlr=True,
+        "feed_axis",
+        "siemens_nc",
+        "siemens",
+        "feed_axis",
+        ("--option", "linear_p0_mm=300", "--option", "length_mm=600"),
+        (),
+        ("y",),
+        10.0,
+        beats_mlr=True,
         variants=(
             ("feed_axis_analytic", ("--option", "form=analytic")),
             ("feed_axis_duty", ("--option", "form=analytic", "--option", "duty_cycle=true")),
@@ -116,8 +133,15 @@ MACHINES: dict[str, Machine] = {
     # paper's spindle model on T_xi alone cannot see the column (scripts/accept_contributions.py
     # sums a spindle and a column contribution); MLR fits err_z_um on the seven temperatures
     "vmc": Machine(
-        "vmc", "fanuc_pmc", "fanuc_pmc", "xi_spindle", ("--inputs", "T_xi", "speed_rpm", "--target", "err_z_um"),
-        ("--target", "err_z_um"), ("z",), 10.0, accept=False,
+        "vmc",
+        "fanuc_pmc",
+        "fanuc_pmc",
+        "xi_spindle",
+        ("--inputs", "T_xi", "speed_rpm", "--target", "err_z_um"),
+        ("--target", "err_z_um"),
+        ("z",),
+        10.0,
+        accept=False,
     ),
 }
 
@@ -148,8 +172,17 @@ def run_cli(args: list[str], timeout_s: float = 600.0, stderr_to: Path | None = 
 
 def log_day(machine: str, day: str, out: Path, rate_s: float = 10.0, duration_s: float | None = None) -> str:
     """`python -m hil_sim log` of the machine's `day` (train or unseen) scenario."""
-    args = ["-m", "hil_sim", "log", "--scenario", str(SCENARIOS / f"{machine}_{day}.yaml"),
-            "--out", str(out), "--rate-s", str(rate_s)]
+    args = [
+        "-m",
+        "hil_sim",
+        "log",
+        "--scenario",
+        str(SCENARIOS / f"{machine}_{day}.yaml"),
+        "--out",
+        str(out),
+        "--rate-s",
+        str(rate_s),
+    ]
     if duration_s is not None:
         args += ["--duration-s", str(duration_s)]
     return run_cli(args)
@@ -179,7 +212,12 @@ def cnc_axes(machine: str) -> dict[str, int]:
 
 
 def bench(
-    machine: str, scenario: Path, speedup: float, duration_s: float, residual_log: Path, lockstep: bool = False,
+    machine: str,
+    scenario: Path,
+    speedup: float,
+    duration_s: float,
+    residual_log: Path,
+    lockstep: bool = False,
     probing: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The `hil_sim serve` file: PT100 module fed by the plant, the CNC on plant time, the plant
@@ -190,41 +228,88 @@ def bench(
     if m.cnc == "siemens_nc":
         cnc["axes"] = len(axes)
     plant: dict[str, Any] = {
-        "kind": "plant", "name": machine, "scenario": str(scenario), "port": 0, "speedup": speedup,
-        "start": "on_clock_read", "duration_s": duration_s, "log_path": str(residual_log),
-        "log_period_s": 10.0, "cnc": "cnc", "cnc_axes": cnc_axes(machine), "lockstep": lockstep,
+        "kind": "plant",
+        "name": machine,
+        "scenario": str(scenario),
+        "port": 0,
+        "speedup": speedup,
+        "start": "on_clock_read",
+        "duration_s": duration_s,
+        "log_path": str(residual_log),
+        "log_period_s": 10.0,
+        "cnc": "cnc",
+        "cnc_axes": cnc_axes(machine),
+        "lockstep": lockstep,
     }
     if probing is not None:
-        plant.update({
-            "probe_every_s": float(probing["every_s"]), "probe_axes": list(m.axes),
-            "probe_sigma_um": float(probing.get("sigma_um", 0.3)),
-            "probe_outliers": [list(o) for o in probing.get("outliers", [])], "probe_seed": int(probing.get("seed", 0)),
-        })
-    return {"devices": [
-        {"kind": "pt100_modbus", "name": "temps", "port": 0, "plant": machine,
-         "channels": [{"name": s} for s in sensors]},
-        cnc,
-        plant,
-    ]}
+        plant.update(
+            {
+                "probe_every_s": float(probing["every_s"]),
+                "probe_axes": list(m.axes),
+                "probe_sigma_um": float(probing.get("sigma_um", 0.3)),
+                "probe_outliers": [list(o) for o in probing.get("outliers", [])],
+                "probe_seed": int(probing.get("seed", 0)),
+            }
+        )
+    return {
+        "devices": [
+            {
+                "kind": "pt100_modbus",
+                "name": "temps",
+                "port": 0,
+                "plant": machine,
+                "channels": [{"name": s} for s in sensors],
+            },
+            cnc,
+            plant,
+        ]
+    }
 
 
 def sink_section(machine: str, port: int, speedup: float) -> dict[str, Any]:
     m = MACHINES[machine]
     if m.sink == "siemens":
-        return {"kind": "siemens", "host": "127.0.0.1", "port": port,
-                "axes": {a: i for i, a in enumerate(m.axes)}, "min_change_um": 0.2, "min_update_s": 5.0}
+        return {
+            "kind": "siemens",
+            "host": "127.0.0.1",
+            "port": port,
+            "axes": {a: i for i, a in enumerate(m.axes)},
+            "min_change_um": 0.2,
+            "min_update_s": 5.0,
+        }
     if m.sink == "fanuc_pmc":
-        return {"kind": "fanuc_pmc", "mode": "word", "host": "127.0.0.1", "port": port,
-                "max_step_um": 5.0, "min_update_s": 1.0}
+        return {
+            "kind": "fanuc_pmc",
+            "mode": "word",
+            "host": "127.0.0.1",
+            "port": port,
+            "max_step_um": 5.0,
+            "min_update_s": 1.0,
+        }
     # the PCI-1756 card's DO bytes 0-3 wired to the PMC's X0-X3: word on X0/X1, strobe X2.0
-    return {"kind": "pci1756", "device": "modbus", "host": "127.0.0.1", "port": port,
-            "x_register": 0, "strobe_bit": 16, "heartbeat_bit": 24}
+    return {
+        "kind": "pci1756",
+        "device": "modbus",
+        "host": "127.0.0.1",
+        "port": port,
+        "x_register": 0,
+        "strobe_bit": 16,
+        "heartbeat_bit": 24,
+    }
 
 
 def compd_config(
-    machine: str, model_file: Path | None, ports: dict[str, int], speedup: float, log_path: Path | None = None,
-    lockstep: bool = False, probing: dict[str, Any] | None = None, *,
-    model_section: dict[str, Any] | None = None, guard: dict[str, Any] | None = None, log_period_s: float = 60.0,
+    machine: str,
+    model_file: Path | None,
+    ports: dict[str, int],
+    speedup: float,
+    log_path: Path | None = None,
+    lockstep: bool = False,
+    probing: dict[str, Any] | None = None,
+    *,
+    model_section: dict[str, Any] | None = None,
+    guard: dict[str, Any] | None = None,
+    log_period_s: float = 60.0,
 ) -> dict[str, Any]:
     """compd's config: two Modbus TCP sources, the model, the machine's sink, the plant clock;
     with `probing`, a third source, the CNC's probe-result block, and the `adapt` section.
@@ -248,14 +333,30 @@ def compd_config(
     ]
     cfg: dict[str, Any] = {
         # one cycle per ~0.5 ms of wall time at most: 2 plant s at 1200x, 4 s at 7200x
-        "loop": {"period_s": max(2.0, speedup / 1800.0), "clock": "plant",
-                 "plant_clock": {"port": ports[machine], "poll_period_s": 0.001}},
+        "loop": {
+            "period_s": max(2.0, speedup / 1800.0),
+            "clock": "plant",
+            "plant_clock": {"port": ports[machine], "poll_period_s": 0.001},
+        },
         "sources": [
-            {"kind": "modbus", "name": "temps", "port": ports["temps"], "poll_period_s": poll,
-             "channels": [{"name": s, "address": i} for i, s in enumerate(sensors)]},
-            {"kind": "modbus", "name": "machine", "port": ports[machine], "poll_period_s": poll,
-             "data_type": "float32", "scale": 1.0, "burnout_codes": [], "out_of_range_codes": [],
-             "channels": machine_channels},
+            {
+                "kind": "modbus",
+                "name": "temps",
+                "port": ports["temps"],
+                "poll_period_s": poll,
+                "channels": [{"name": s, "address": i} for i, s in enumerate(sensors)],
+            },
+            {
+                "kind": "modbus",
+                "name": "machine",
+                "port": ports[machine],
+                "poll_period_s": poll,
+                "data_type": "float32",
+                "scale": 1.0,
+                "burnout_codes": [],
+                "out_of_range_codes": [],
+                "channels": machine_channels,
+            },
         ],
         "model": model,
         # plant seconds: thermal errors move by < 0.05 um/s, so 0.2 um/s never limits a
@@ -267,10 +368,16 @@ def compd_config(
     }
     if probing is not None:
         order = sorted(cnc_axes(machine).items(), key=lambda kv: kv[1])
-        cfg["sources"].append({
-            "kind": "probe", "name": "cnc_probe", "port": ports["cnc"], "cnc": m.cnc,
-            "axes": [a for a, _ in order], "poll_period_s": poll,
-        })
+        cfg["sources"].append(
+            {
+                "kind": "probe",
+                "name": "cnc_probe",
+                "port": ports["cnc"],
+                "cnc": m.cnc,
+                "axes": [a for a, _ in order],
+                "poll_period_s": poll,
+            }
+        )
         cfg["adapt"] = dict(probing.get("adapt", {}))
     if lockstep:
         cfg["loop"]["plant_clock"] = {"port": ports[machine], "lockstep": True}
@@ -288,7 +395,11 @@ def start_serve(bench_file: Path, timeout_s: float = 60.0) -> tuple[subprocess.P
     """Start `python -m hil_sim serve`; wait for "ready"; return the process and each device's port."""
     proc = subprocess.Popen(
         [python(), "-m", "hil_sim", "serve", "--config", str(bench_file)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env(), cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env(),
+        cwd=ROOT,
     )
     ports: dict[str, int] = {}
     deadline = time.monotonic() + timeout_s
@@ -366,14 +477,27 @@ def closed_loop(
         events = workdir / f"compd_events_{machine}_{tag}.log" if compd_log else None
         if data_log is not None:
             data_log.unlink(missing_ok=True)  # compd appends to a log it finds
-        cfg = compd_config(machine, model_file, ports, speedup, data_log, lockstep=lockstep, probing=probing,
-                           model_section=model_section, guard=guard, log_period_s=log_period_s)
+        cfg = compd_config(
+            machine,
+            model_file,
+            ports,
+            speedup,
+            data_log,
+            lockstep=lockstep,
+            probing=probing,
+            model_section=model_section,
+            guard=guard,
+            log_period_s=log_period_s,
+        )
         cfg_file.write_text(yaml.safe_dump(cfg, sort_keys=False))
         summary_file = workdir / f"summary_{machine}_{tag}.json"
         # lockstep: as long as the work takes (a stall only makes it longer); a day is ~1 min
         timeout_s = 3600.0 if lockstep else dur / speedup * 4 + 120
-        run_cli(["-m", "compd", "run", str(cfg_file), "--duration", str(dur), "--json", str(summary_file)],
-                timeout_s=timeout_s, stderr_to=events)
+        run_cli(
+            ["-m", "compd", "run", str(cfg_file), "--duration", str(dur), "--json", str(summary_file)],
+            timeout_s=timeout_s,
+            stderr_to=events,
+        )
     finally:
         serve_err = stop_serve(proc)
     wall_s = time.monotonic() - t0
@@ -453,8 +577,10 @@ def closed_loops(runs: list[dict[str, Any]], jobs: int = 2) -> list[dict[str, An
 
 def table(rows: list[dict[str, Any]]) -> str:
     """machine, model, axis, RMS/max without and with compensation, reduction."""
-    head = (f"{'machine':<10} {'model':<18} {'axis':<6} {'rms_without':>11} {'rms_with':>9} "
-            f"{'max_without':>11} {'max_with':>9} {'reduction_%':>11}")
+    head = (
+        f"{'machine':<10} {'model':<18} {'axis':<6} {'rms_without':>11} {'rms_with':>9} "
+        f"{'max_without':>11} {'max_with':>9} {'reduction_%':>11}"
+    )
     lines = [head]
     for r in rows:
         for a, s in r["axes"].items():

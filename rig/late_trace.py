@@ -37,7 +37,9 @@ EVENTS = ("sched:sched_switch", "sched:sched_waking", "exceptions:page_fault_use
 TIMER_SLACK_S = 100e-6  # a wake-up this much later than due counts as a late timer
 CAUSES = ("gil", "blocked", "preempted", "page_faults", "timer_late", "host", "cpu")
 
-_LINE = re.compile(r"\s*(?P<comm>.+?)\s+(?P<tid>\d+)\s+\[(?P<cpu>\d+)\]\s+(?P<t>[\d.]+):\s+(?P<name>[\w:]+):\s*(?P<rest>.*)")
+_LINE = re.compile(
+    r"\s*(?P<comm>.+?)\s+(?P<tid>\d+)\s+\[(?P<cpu>\d+)\]\s+(?P<t>[\d.]+):\s+(?P<name>[\w:]+):\s*(?P<rest>.*)"
+)
 _KV = re.compile(r"(\w+)=(\S+)")
 
 
@@ -61,14 +63,26 @@ def parse(text: str) -> list[Event]:
         if m is None:
             continue
         rest = m.group("rest").replace(" ==> ", " ")
-        out.append(Event(float(m.group("t")), m.group("comm"), int(m.group("tid")), int(m.group("cpu")),
-                         m.group("name").split(":")[-1], dict(_KV.findall(rest))))
+        out.append(
+            Event(
+                float(m.group("t")),
+                m.group("comm"),
+                int(m.group("tid")),
+                int(m.group("cpu")),
+                m.group("name").split(":")[-1],
+                dict(_KV.findall(rest)),
+            )
+        )
     out.sort(key=lambda e: e.t_s)
     return out
 
 
 def classify(
-    events: list[Event], window: tuple[str, float, float], cycle_tid: int, process_tids: set[int], margin_s: float,
+    events: list[Event],
+    window: tuple[str, float, float],
+    cycle_tid: int,
+    process_tids: set[int],
+    margin_s: float,
 ) -> dict[str, Any]:
     """The causes of one marked window (`late`: from its deadline to its first bytecode;
     `slow`: from its first bytecode to its end), in seconds of CLOCK_MONOTONIC. A late
@@ -113,8 +127,7 @@ def classify(
     if seen["page_faults"]:
         detail.append(f"{seen['page_faults']} page faults")
     causes = [c for c in CAUSES if seen[c]] or ["host" if kind == "late" else "cpu"]
-    return {"kind": kind, "start_s": start, "us": round(1e6 * (end - start), 1), "causes": causes,
-            "detail": detail[:6]}
+    return {"kind": kind, "start_s": start, "us": round(1e6 * (end - start), 1), "causes": causes, "detail": detail[:6]}
 
 
 def record_command(data: Path, cpu: int | None) -> list[str]:
@@ -131,8 +144,9 @@ def record_command(data: Path, cpu: int | None) -> list[str]:
 
 def analyse(data: Path, loop: dict[str, Any], margin_s: float) -> dict[str, Any]:
     """The trace in `data` against the windows the loop marked (its JSON from rig.bench_loop)."""
-    r = subprocess.run(["perf", "script", "-i", str(data), "-F", "comm,tid,cpu,time,event,trace"],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        ["perf", "script", "-i", str(data), "-F", "comm,tid,cpu,time,event,trace"], capture_output=True, text=True
+    )
     if r.returncode != 0:
         raise RuntimeError("perf script failed: " + (r.stderr.strip().splitlines() or ["?"])[-1])
     events = parse(r.stdout)

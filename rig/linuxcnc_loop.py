@@ -33,12 +33,23 @@ from rig.closedloop import ROOT, env, start_serve, stop_serve
 
 SCENARIO = ROOT / "hil_sim" / "scenarios" / "spindle_demo.yaml"
 MODEL = {  # the demo's ξ-point model of hil_sim's spindle (configs/demo.yaml)
-    "kind": "xi_spindle", "inputs": ["T_xi", "speed_rpm"], "outputs": ["z"],
-    "params": {"alpha_per_k": 13.6e-6, "length_mm": 164.71, "t0_c": None, "xi_mm": 55.2,
-               "lift": {"k_um_per_rpm2": 2.611e-8, "speed_input": "speed_rpm"}},
+    "kind": "xi_spindle",
+    "inputs": ["T_xi", "speed_rpm"],
+    "outputs": ["z"],
+    "params": {
+        "alpha_per_k": 13.6e-6,
+        "length_mm": 164.71,
+        "t0_c": None,
+        "xi_mm": 55.2,
+        "lift": {"k_um_per_rpm2": 2.611e-8, "speed_input": "speed_rpm"},
+    },
 }
-GUARD = {"max_abs_um": 63.0, "max_slew_um_per_s": 50.0, "stale_after_s": 2.0,
-         "signals": {"T_xi": {"min": 0.0, "max": 80.0}, "speed_rpm": {"min": 0.0, "max": 30000.0}}}
+GUARD = {
+    "max_abs_um": 63.0,
+    "max_slew_um_per_s": 50.0,
+    "stale_after_s": 2.0,
+    "signals": {"T_xi": {"min": 0.0, "max": 80.0}, "speed_rpm": {"min": 0.0, "max": 30000.0}},
+}
 SKIP_S = 3600.0  # the first plant hour (the plan's idle stretch) is not scored
 
 
@@ -50,9 +61,32 @@ def scaled(program: str, speedup: float) -> str:
 def plan(workdir: Path, hours: float) -> tuple[Path, Path]:
     """`compd testplan` for the spindle (12000 rpm, τ 30 min): (plan.csv, plan.ngc)."""
     csv, ngc = workdir / "plan.csv", workdir / "plan.ngc"
-    done = subprocess.run([sys.executable, "-m", "compd", "testplan", "--max-rpm", "12000", "--hours", f"{hours:g}",
-                           "--time-constant-min", "30", "--out", str(csv), "--gcode", "linuxcnc", "--program",
-                           str(ngc), "--probe-call", "(probe)"], capture_output=True, text=True, env=env(), timeout=120)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "compd",
+            "testplan",
+            "--max-rpm",
+            "12000",
+            "--hours",
+            f"{hours:g}",
+            "--time-constant-min",
+            "30",
+            "--out",
+            str(csv),
+            "--gcode",
+            "linuxcnc",
+            "--program",
+            str(ngc),
+            "--probe-call",
+            "(probe)",
+        ],
+        capture_output=True,
+        text=True,
+        env=env(),
+        timeout=120,
+    )
     if done.returncode != 0:
         raise RuntimeError(f"compd testplan: {done.stderr.strip()}")
     return csv, ngc
@@ -66,13 +100,24 @@ def run(controller: Any, workdir: Path, hours: float, speedup: float, timeout_s:
     _, ngc = plan(workdir, hours)
     ngc.write_text(scaled(ngc.read_text(), speedup))
     residual = workdir / "residual.csv"
-    bench = {"devices": [
-        {"kind": "linuxcnc_hal", "name": "lcnc", "axes": ["z"]},
-        {"kind": "pt100_modbus", "name": "temps", "port": 0, "plant": "spindle", "channels": [{"name": "T_xi"}]},
-        {"kind": "plant", "name": "spindle", "scenario": str(SCENARIO), "port": 0, "speedup": speedup,
-         "duration_s": hours * 3600 + 1800, "log_path": str(residual), "log_period_s": 10.0,
-         "cnc": "lcnc", "cnc_axes": {"z": 0}},
-    ]}
+    bench = {
+        "devices": [
+            {"kind": "linuxcnc_hal", "name": "lcnc", "axes": ["z"]},
+            {"kind": "pt100_modbus", "name": "temps", "port": 0, "plant": "spindle", "channels": [{"name": "T_xi"}]},
+            {
+                "kind": "plant",
+                "name": "spindle",
+                "scenario": str(SCENARIO),
+                "port": 0,
+                "speedup": speedup,
+                "duration_s": hours * 3600 + 1800,
+                "log_path": str(residual),
+                "log_period_s": 10.0,
+                "cnc": "lcnc",
+                "cnc_axes": {"z": 0},
+            },
+        ]
+    }
     (workdir / "bench.yaml").write_text(yaml.safe_dump(bench))
     serve, ports = start_serve(workdir / "bench.yaml")
     compd: subprocess.Popen[bytes] | None = None
@@ -81,14 +126,23 @@ def run(controller: Any, workdir: Path, hours: float, speedup: float, timeout_s:
         config = {
             "loop": {"period_s": 0.005},
             "sources": [
-                {"kind": "modbus", "name": "pt", "transport": "tcp", "host": "127.0.0.1", "port": ports["temps"],
-                 "poll_period_s": 0.05, "timeout_s": 0.5, "stale_after_s": 2.0,
-                 "channels": [{"name": "T_xi", "address": 0}]},
+                {
+                    "kind": "modbus",
+                    "name": "pt",
+                    "transport": "tcp",
+                    "host": "127.0.0.1",
+                    "port": ports["temps"],
+                    "poll_period_s": 0.05,
+                    "timeout_s": 0.5,
+                    "stale_after_s": 2.0,
+                    "channels": [{"name": "T_xi", "address": 0}],
+                },
                 {"kind": "hal", "name": "cnc", "signals": [{"name": "speed_rpm", "pin": "spindle.0.speed-out"}]},
             ],
             # the guard's times are the loop's (wall) seconds, the plant's are `speedup` times faster: its
             # recovery after an input blip (5 s of plant time, as in process) shrinks with them
-            "model": MODEL, "guard": {**GUARD, "recovery_s": 5.0 / speedup},
+            "model": MODEL,
+            "guard": {**GUARD, "recovery_s": 5.0 / speedup},
             "sink": {"kind": "linuxcnc", "axes": ["z"]},
             "status": {"path": "status.json", "period_s": 0.05},
         }
@@ -96,8 +150,13 @@ def run(controller: Any, workdir: Path, hours: float, speedup: float, timeout_s:
         cfg.write_text(yaml.safe_dump(config))
         err = workdir / "compd.err"
         with open(err, "w") as fh:
-            compd = subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], cwd=workdir, env=env(),
-                                     stdout=subprocess.DEVNULL, stderr=fh)
+            compd = subprocess.Popen(
+                [sys.executable, "-m", "compd", "run", str(cfg)],
+                cwd=workdir,
+                env=env(),
+                stdout=subprocess.DEVNULL,
+                stderr=fh,
+            )
         status = workdir / "status.json"
         deadline = time.monotonic() + 120
         while True:  # compd running, LinuxCNC's offsets up
@@ -124,8 +183,12 @@ def run(controller: Any, workdir: Path, hours: float, speedup: float, timeout_s:
             time.sleep(0.1)
             s2 = json.loads(status.read_text())
             before, after = s1["axes"]["z"]["correction_um"], s2["axes"]["z"]["correction_um"]
-            if (before is not None and after is not None and abs(after - before) < 0.05
-                    and s2["loop"]["cycles"] > s1["loop"]["cycles"] + 20):
+            if (
+                before is not None
+                and after is not None
+                and abs(after - before) < 0.05
+                and s2["loop"]["cycles"] > s1["loop"]["cycles"] + 20
+            ):
                 follow.append(applied_um - 0.5 * (before + after))
             spun = spun or controller.getp("spindle.0.speed-out") > 0
             stat.poll()
@@ -151,19 +214,45 @@ def in_process(workdir: Path, hours: float) -> dict[str, Any]:
     """The same plan on the same plant, replayed in process through the same model and the linuxcnc sink's emulation."""
     csv, _ = plan(workdir, hours)
     day = workdir / "day.csv"
-    done = subprocess.run([sys.executable, "-m", "hil_sim", "log", "--scenario", str(SCENARIO), "--plan", str(csv),
-                           "--out", str(day), "--rate-s", "10"], capture_output=True, text=True, env=env(), timeout=600)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "hil_sim",
+            "log",
+            "--scenario",
+            str(SCENARIO),
+            "--plan",
+            str(csv),
+            "--out",
+            str(day),
+            "--rate-s",
+            "10",
+        ],
+        capture_output=True,
+        text=True,
+        env=env(),
+        timeout=600,
+    )
     if done.returncode != 0:
         raise RuntimeError(f"hil_sim log: {done.stderr.strip()}")
-    config = {"loop": {"clock": "sim", "period_s": 1.0},
-              "sources": [{"kind": "replay", "name": "day", "path": str(day)}],
-              "model": MODEL, "guard": {**GUARD, "stale_after_s": 60.0, "recovery_s": 5.0},
-              "sink": {"kind": "linuxcnc", "axes": ["z"], "in_process": True}}
+    config = {
+        "loop": {"clock": "sim", "period_s": 1.0},
+        "sources": [{"kind": "replay", "name": "day", "path": str(day)}],
+        "model": MODEL,
+        "guard": {**GUARD, "stale_after_s": 60.0, "recovery_s": 5.0},
+        "sink": {"kind": "linuxcnc", "axes": ["z"], "in_process": True},
+    }
     cfg = workdir / "replay.yaml"
     cfg.write_text(yaml.safe_dump(config))
     report = workdir / "replay.json"
-    done = subprocess.run([sys.executable, "-m", "compd", "replay", str(cfg), "--log", str(day), "--report",
-                           str(report)], capture_output=True, text=True, env=env(), timeout=600)
+    done = subprocess.run(
+        [sys.executable, "-m", "compd", "replay", str(cfg), "--log", str(day), "--report", str(report)],
+        capture_output=True,
+        text=True,
+        env=env(),
+        timeout=600,
+    )
     if done.returncode != 0:
         raise RuntimeError(f"compd replay: {done.stderr.strip()}")
     return json.loads(report.read_text())

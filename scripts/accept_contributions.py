@@ -133,6 +133,7 @@ def spindle_part_log(train: Path, out: Path) -> Path:
 def fit_models(work: Path, rate_s: float = 10.0, verbose: bool = True) -> dict[str, Path]:
     """Log the training day, fit the spindle contribution, the column contribution on what it
     leaves, and MLR on every temperature; returns the model files."""
+
     def say(text: str) -> None:
         if verbose and text.strip():
             print(text.strip(), flush=True)
@@ -142,11 +143,48 @@ def fit_models(work: Path, rate_s: float = 10.0, verbose: bool = True) -> dict[s
     say(cl.log_day(MACHINE, "train", train, rate_s))
     part = spindle_part_log(train, work / f"{MACHINE}_train_spindle_part.csv")
     models = {n: work / f"{MACHINE}_{n}.yaml" for n in ("spindle", "column", "mlr")}
-    say(cl.run_cli(["-m", "compd", "fit", "--kind", "xi_spindle", "--log", str(part), "--inputs", *SPINDLE_INPUTS,
-                    "--target", "err_z_um", "--out", str(models["spindle"])]))
-    say(cl.run_cli(["-m", "compd", "fit", "--kind", "mlr", "--log", str(train), "--inputs", *COLUMN_INPUTS,
-                    "--target", "err_z_um", "--on-residual-of", str(models["spindle"]),
-                    "--out", str(models["column"]), "--report", str(work / f"{MACHINE}_column_fit.json")]))
+    say(
+        cl.run_cli(
+            [
+                "-m",
+                "compd",
+                "fit",
+                "--kind",
+                "xi_spindle",
+                "--log",
+                str(part),
+                "--inputs",
+                *SPINDLE_INPUTS,
+                "--target",
+                "err_z_um",
+                "--out",
+                str(models["spindle"]),
+            ]
+        )
+    )
+    say(
+        cl.run_cli(
+            [
+                "-m",
+                "compd",
+                "fit",
+                "--kind",
+                "mlr",
+                "--log",
+                str(train),
+                "--inputs",
+                *COLUMN_INPUTS,
+                "--target",
+                "err_z_um",
+                "--on-residual-of",
+                str(models["spindle"]),
+                "--out",
+                str(models["column"]),
+                "--report",
+                str(work / f"{MACHINE}_column_fit.json"),
+            ]
+        )
+    )
     say(cl.fit(MACHINE, "mlr", train, models["mlr"]))
     return models
 
@@ -154,10 +192,12 @@ def fit_models(work: Path, rate_s: float = 10.0, verbose: bool = True) -> dict[s
 def contributions_section(models: dict[str, Path], policies: dict[str, str] | None = None) -> dict[str, Any]:
     """compd's `model:` section: the spindle and the column contribution, each with its fault policy."""
     pol = policies or POLICIES
-    return {"contributions": [
-        {"name": "spindle", "kind": "xi_spindle", "file": str(models["spindle"]), "fault_policy": pol["spindle"]},
-        {"name": "column", "kind": "mlr", "file": str(models["column"]), "fault_policy": pol["column"]},
-    ]}
+    return {
+        "contributions": [
+            {"name": "spindle", "kind": "xi_spindle", "file": str(models["spindle"]), "fault_policy": pol["spindle"]},
+            {"name": "column", "kind": "mlr", "file": str(models["column"]), "fault_policy": pol["column"]},
+        ]
+    }
 
 
 def unplug_scenario(unplug: dict[str, Any], out: Path, base: Path | None = None) -> Path:
@@ -188,7 +228,7 @@ def log_tol_um(values: np.ndarray) -> float:
 
 
 def rms(v: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(v ** 2))) if v.size else math.nan
+    return float(np.sqrt(np.mean(v**2))) if v.size else math.nan
 
 
 def axis_faults(events: str | Path) -> list[str]:
@@ -242,9 +282,11 @@ def guard_of(result: dict[str, Any]) -> dict[str, float]:
     work = Path(result["residual_log"]).parent
     cfg = yaml.safe_load((work / f"compd_{result['machine']}_{result['model']}.yaml").read_text())
     g = cfg["guard"]
-    return {"slew": float(g["max_slew_um_per_s"]),
-            "ramp": float(g.get("ramp_um_per_s", GuardConfig().ramp_um_per_s)),
-            "period": float(cfg["loop"]["period_s"])}
+    return {
+        "slew": float(g["max_slew_um_per_s"]),
+        "ramp": float(g.get("ramp_um_per_s", GuardConfig().ramp_um_per_s)),
+        "period": float(cfg["loop"]["period_s"]),
+    }
 
 
 def check_slew(run: str, result: dict[str, Any], checks: Checks) -> None:
@@ -260,17 +302,25 @@ def check_slew(run: str, result: dict[str, Any], checks: Checks) -> None:
     over = dc - (g["slew"] * dt + tol)
     worst = int(np.argmax(dc / np.maximum(dt, 1e-9))) if dt.size else 0
     rate = float(dc[worst] / dt[worst]) if dt.size else 0.0
-    checks.add(run, "slew of corr_z_um (compd log)", bool(dt.size) and bool(np.all(over <= 0.0)) and bool(np.all(dt > 0)),
-               f"max |Δcorr|/Δt {rate:.4f} um/s at t={t[worst + 1] if dt.size else math.nan:.0f} s"
-               f" (limit {g['slew']:g} um/s, {len(t)} rows)")
+    checks.add(
+        run,
+        "slew of corr_z_um (compd log)",
+        bool(dt.size) and bool(np.all(over <= 0.0)) and bool(np.all(dt > 0)),
+        f"max |Δcorr|/Δt {rate:.4f} um/s at t={t[worst + 1] if dt.size else math.nan:.0f} s"
+        f" (limit {g['slew']:g} um/s, {len(t)} rows)",
+    )
     res = read_csv(result["residual_log"])
     ta, ap = res["t_s"], res[f"applied_{AXIS}_um"]
     da, dta = np.abs(np.diff(ap)), np.diff(ta)
     lim = g["slew"] * dta + LSB_UM + 1e-9
     k = int(np.argmax(da - lim)) if da.size else 0
-    checks.add(run, "applied steps (plant log)", bool(da.size) and bool(np.all(da <= lim)),
-               f"largest |Δapplied| {float(da.max()) if da.size else 0.0:.2f} um in {float(dta[k]) if da.size else 0:.0f} s"
-               f" (limit slew·Δt + {LSB_UM:g} um LSB: {float(lim[k]) if da.size else 0.0:.2f} um)")
+    checks.add(
+        run,
+        "applied steps (plant log)",
+        bool(da.size) and bool(np.all(da <= lim)),
+        f"largest |Δapplied| {float(da.max()) if da.size else 0.0:.2f} um in {float(dta[k]) if da.size else 0:.0f} s"
+        f" (limit slew·Δt + {LSB_UM:g} um LSB: {float(lim[k]) if da.size else 0.0:.2f} um)",
+    )
     # compd's own applied_z_um is its read-back of the PMC's status, polled by the link's thread on
     # wall time: in lockstep it trails the plant by some cycles, so its steps are shown, not judged
     ca, ct = log[f"applied_{AXIS}_um"], log["t_s"]
@@ -278,9 +328,13 @@ def check_slew(run: str, result: dict[str, Any], checks: Checks) -> None:
     dca, dct = np.abs(np.diff(ca[m])), np.diff(ct[m])
     if dca.size:
         j = int(np.argmax(dca - g["slew"] * dct))
-        checks.note(run, "compd's applied_z_um read-back", f"largest step {float(dca[j]):.0f} um in {float(dct[j]):.0f} s"
-                    f" at t={float(ct[m][j + 1]):.0f} s ({int(np.sum(dca > g['slew'] * dct + LSB_UM + 1e-9))} rows over"
-                    " slew·Δt + 1 LSB; the PMC itself: the line above)")
+        checks.note(
+            run,
+            "compd's applied_z_um read-back",
+            f"largest step {float(dca[j]):.0f} um in {float(dct[j]):.0f} s"
+            f" at t={float(ct[m][j + 1]):.0f} s ({int(np.sum(dca > g['slew'] * dct + LSB_UM + 1e-9))} rows over"
+            " slew·Δt + 1 LSB; the PMC itself: the line above)",
+        )
 
 
 def span_mask(t: np.ndarray, span: tuple[float, float]) -> np.ndarray:
@@ -288,8 +342,13 @@ def span_mask(t: np.ndarray, span: tuple[float, float]) -> np.ndarray:
 
 
 def check_unplug(
-    run: str, result: dict[str, Any], plugged: dict[str, Any], lost: str, span: tuple[float, float],
-    policy: str, checks: Checks,
+    run: str,
+    result: dict[str, Any],
+    plugged: dict[str, Any],
+    lost: str,
+    span: tuple[float, float],
+    policy: str,
+    checks: Checks,
 ) -> dict[str, Any]:
     """The checks of one unplug run (the module's doc); returns the figures printed."""
     other = next(n for n in TRUTH if n != lost)
@@ -304,8 +363,12 @@ def check_unplug(
     out: dict[str, Any] = {"run": run, "lost": lost, "other": other, "span_s": list(span), "policy": policy}
 
     faults = axis_faults(result["compd_events"])
-    checks.add(run, "axis z stays enabled", not faults,
-               "no axis-level fault event" if not faults else f"{len(faults)} axis faults: {faults[0][:160]}")
+    checks.add(
+        run,
+        "axis z stays enabled",
+        not faults,
+        "no axis-level fault event" if not faults else f"{len(faults)} axis faults: {faults[0][:160]}",
+    )
 
     # the other contribution: finite, the same as in the plugged run, compensating its source
     o = share[other][inside]
@@ -316,9 +379,13 @@ def check_unplug(
     out["other_rows"] = int(o.size)
     out["other_range_um"] = float(np.nanmax(o) - np.nanmin(o)) if o.size else math.nan
     out["other_max_diff_to_plugged_um"] = float(np.max(diff))
-    checks.add(run, f"{other} share finite, as plugged", finite and bool(np.all(diff <= tol)) and common.size > 0,
-               f"{o.size} rows in the span, moving over {out['other_range_um']:.2f} um; max |Δ| to the plugged run"
-               f" {out['other_max_diff_to_plugged_um']:.2g} um over {common.size} rows")
+    checks.add(
+        run,
+        f"{other} share finite, as plugged",
+        finite and bool(np.all(diff <= tol)) and common.size > 0,
+        f"{o.size} rows in the span, moving over {out['other_range_um']:.2f} um; max |Δ| to the plugged run"
+        f" {out['other_max_diff_to_plugged_um']:.2g} um over {common.size} rows",
+    )
 
     # the axis with the lost source's uncorrected part set aside, against the other source's error
     ct, ir, il = np.intersect1d(np.round(res["t_s"], 3), np.round(t, 3), return_indices=True)
@@ -330,15 +397,26 @@ def check_unplug(
     other_err = truth[other][il]
     rest = residual - lost_left
     bound = max(0.5 * rms(other_err), LSB_UM)
-    out.update({
-        "rows": int(ir.size), "rms_uncompensated_um": rms(err), "rms_residual_um": rms(residual),
-        "rms_lost_part_um": rms(truth[lost][il]), "rms_lost_left_um": rms(lost_left),
-        "rms_other_part_um": rms(other_err), "rms_rest_um": rms(rest), "rest_bound_um": bound,
-    })
-    checks.add(run, f"{other} keeps compensating", ir.size > 0 and rms(rest) <= bound,
-               f"axis less the {lost}'s uncorrected part {rms(rest):.2f} um RMS vs the {other}'s error"
-               f" {rms(other_err):.2f} um (bound {bound:.2f}); axis {rms(err):.2f} -> {rms(residual):.2f} um"
-               f" over {ir.size} rows")
+    out.update(
+        {
+            "rows": int(ir.size),
+            "rms_uncompensated_um": rms(err),
+            "rms_residual_um": rms(residual),
+            "rms_lost_part_um": rms(truth[lost][il]),
+            "rms_lost_left_um": rms(lost_left),
+            "rms_other_part_um": rms(other_err),
+            "rms_rest_um": rms(rest),
+            "rest_bound_um": bound,
+        }
+    )
+    checks.add(
+        run,
+        f"{other} keeps compensating",
+        ir.size > 0 and rms(rest) <= bound,
+        f"axis less the {lost}'s uncorrected part {rms(rest):.2f} um RMS vs the {other}'s error"
+        f" {rms(other_err):.2f} um (bound {bound:.2f}); axis {rms(err):.2f} -> {rms(residual):.2f} um"
+        f" over {ir.size} rows",
+    )
 
     # the lost contribution: its fault policy, or its model's degraded estimate
     v = share[lost]
@@ -349,23 +427,37 @@ def check_unplug(
     if not fault_at:
         out["lost_behaviour"] = "degraded estimate (no fault policy applied)"
         ok = bool(lv.size) and bool(np.all(np.isfinite(lv)))
-        checks.add(run, f"{lost} degraded estimate", ok,
-                   f"compd kept the {lost}'s model running on its good inputs (no z/{lost} fault event), not"
-                   f" {policy}: finite on {lv.size} rows; its part's error {rms(lost_left):.2f} um RMS of"
-                   f" {rms(truth[lost][il]):.2f}")
+        checks.add(
+            run,
+            f"{lost} degraded estimate",
+            ok,
+            f"compd kept the {lost}'s model running on its good inputs (no z/{lost} fault event), not"
+            f" {policy}: finite on {lv.size} rows; its part's error {rms(lost_left):.2f} um RMS of"
+            f" {rms(truth[lost][il]):.2f}",
+        )
     elif policy == "hold":
         out["lost_behaviour"] = "hold"
         held = lv[t[inside] >= fault_at[0] + g["period"]]
         ok = bool(held.size) and bool(np.all(held == held[0]))
-        checks.add(run, f"{lost} holds", ok, f"fault at {fault_at[0]:.0f} s; held {float(held[0]) if held.size else math.nan:.2f} um"
-                   f" on {held.size} rows (spread {float(np.ptp(held)) if held.size else math.nan:.2g} um)")
+        checks.add(
+            run,
+            f"{lost} holds",
+            ok,
+            f"fault at {fault_at[0]:.0f} s; held {float(held[0]) if held.size else math.nan:.2f} um"
+            f" on {held.size} rows (spread {float(np.ptp(held)) if held.size else math.nan:.2g} um)",
+        )
     elif policy == "ramp_to_zero":
         out["lost_behaviour"] = "ramp_to_zero"
         due = fault_at[0] + abs(v0) / g["ramp"] + 2 * g["period"]
         late = lv[t[inside] >= due]
         ok = bool(late.size) and bool(np.all(late == 0.0))
-        checks.add(run, f"{lost} ramps to zero", ok, f"fault at {fault_at[0]:.0f} s from {v0:.2f} um; 0 from"
-                   f" {due:.0f} s on: {int(np.sum(late == 0.0))} of {late.size} rows")
+        checks.add(
+            run,
+            f"{lost} ramps to zero",
+            ok,
+            f"fault at {fault_at[0]:.0f} s from {v0:.2f} um; 0 from"
+            f" {due:.0f} s on: {int(np.sum(late == 0.0))} of {late.size} rows",
+        )
     else:  # disable: the axis takes its own policy (not a configuration this script runs)
         out["lost_behaviour"] = policy
         checks.add(run, f"{lost} {policy}", False, "this script runs hold and ramp_to_zero only")
@@ -380,8 +472,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=2, help="lockstep closed loops side by side")
     ap.add_argument("--speedup", type=float, default=1200.0, help="sets compd's loop period (2 s at 1200)")
     ap.add_argument("--unplug-at-s", type=float, default=43200.0, help="column sensors unplugged from (plant s)")
-    ap.add_argument("--xi-window-s", type=float, nargs=2, default=(41400.0, 43200.0), metavar=("FROM", "TO"),
-                    help="T_xi unplugged over [FROM, TO) (plant s)")
+    ap.add_argument(
+        "--xi-window-s",
+        type=float,
+        nargs=2,
+        default=(41400.0, 43200.0),
+        metavar=("FROM", "TO"),
+        help="T_xi unplugged over [FROM, TO) (plant s)",
+    )
     args = ap.parse_args(argv)
     work = Path(args.workdir).resolve()
     t_all = time.monotonic()
@@ -404,22 +502,37 @@ def main(argv: list[str] | None = None) -> int:
         dict(common, model_file=models["mlr"], tag="mlr"),
     ]
     for tag, (_, unplug, _) in unplugs.items():
-        runs.append(dict(common, model_file=None, model_section=section, tag=tag, compd_log=True,
-                         log_period_s=LOG_PERIOD_S, scenario=unplug_scenario(unplug, work / f"{MACHINE}_{tag}.yaml")))
+        runs.append(
+            dict(
+                common,
+                model_file=None,
+                model_section=section,
+                tag=tag,
+                compd_log=True,
+                log_period_s=LOG_PERIOD_S,
+                scenario=unplug_scenario(unplug, work / f"{MACHINE}_{tag}.yaml"),
+            )
+        )
     results = dict(zip([r["tag"] for r in runs], cl.closed_loops(runs, args.jobs), strict=True))
 
     table_rows = [results[k] for k in ("sum", "spindle", "column", "mlr")]
     print("\nvmc unseen day, closed loop (lockstep), FANUC PMC word:")
     print(cl.table(table_rows))
     for r in results.values():
-        print(f"  {r['model']:<15} {r['plant_s'] / 3600:.0f} plant h in {r['wall_s']:.0f} s wall; compd faults {r['faults']}")
+        print(
+            f"  {r['model']:<15} {r['plant_s'] / 3600:.0f} plant h in {r['wall_s']:.0f} s wall; compd faults {r['faults']}"
+        )
 
     checks = Checks()
     print("\nchecks:")
     after = {k: results[k]["axes"][AXIS]["rms_after_um"] for k in ("sum", "spindle", "column", "mlr")}
     for alone in ("spindle", "column"):
-        checks.add("sum", f"sum better than {alone} alone", after["sum"] < after[alone],
-                   f"RMS {after['sum']:.2f} um vs {after[alone]:.2f} um")
+        checks.add(
+            "sum",
+            f"sum better than {alone} alone",
+            after["sum"] < after[alone],
+            f"RMS {after['sum']:.2f} um vs {after[alone]:.2f} um",
+        )
     for tag in ("sum", *unplugs):
         check_slew(tag, results[tag], checks)
     figures = []
@@ -427,19 +540,29 @@ def main(argv: list[str] | None = None) -> int:
         figures.append(check_unplug(tag, results[tag], results["sum"], lost, span, POLICIES[lost], checks))
 
     print("\nunplugged spans (RMS over the span, um):")
-    print(f"  {'run':<15} {'lost':<8} {'span_h':<11} {'uncomp.':>8} {'residual':>8} {'lost part':>9}"
-          f" {'its left':>8} {'other part':>10} {'rest':>6}  lost contribution")
+    print(
+        f"  {'run':<15} {'lost':<8} {'span_h':<11} {'uncomp.':>8} {'residual':>8} {'lost part':>9}"
+        f" {'its left':>8} {'other part':>10} {'rest':>6}  lost contribution"
+    )
     for f in figures:
-        print(f"  {f['run']:<15} {f['lost']:<8} {f['span_s'][0] / 3600:4.1f}-{f['span_s'][1] / 3600:<5.1f}"
-              f" {f['rms_uncompensated_um']:>8.2f} {f['rms_residual_um']:>8.2f} {f['rms_lost_part_um']:>9.2f}"
-              f" {f['rms_lost_left_um']:>8.2f} {f['rms_other_part_um']:>10.2f} {f['rms_rest_um']:>6.2f}  {f['lost_behaviour']}")
+        print(
+            f"  {f['run']:<15} {f['lost']:<8} {f['span_s'][0] / 3600:4.1f}-{f['span_s'][1] / 3600:<5.1f}"
+            f" {f['rms_uncompensated_um']:>8.2f} {f['rms_residual_um']:>8.2f} {f['rms_lost_part_um']:>9.2f}"
+            f" {f['rms_lost_left_um']:>8.2f} {f['rms_other_part_um']:>10.2f} {f['rms_rest_um']:>6.2f}  {f['lost_behaviour']}"
+        )
     wall = time.monotonic() - t_all
     print(f"\n{len(results)} closed-loop runs, fits included, in {wall:.0f} s wall (lockstep, {args.jobs} at once)")
     if args.json:
-        doc = {"models": {k: str(v) for k, v in models.items()}, "closed_loop": table_rows,
-               "unplug_runs": [results[k] for k in unplugs], "unplug": figures, "checks": checks.items,
-               "notes": checks.notes,
-               "ok": not checks.failed, "wall_s": wall}
+        doc = {
+            "models": {k: str(v) for k, v in models.items()},
+            "closed_loop": table_rows,
+            "unplug_runs": [results[k] for k in unplugs],
+            "unplug": figures,
+            "checks": checks.items,
+            "notes": checks.notes,
+            "ok": not checks.failed,
+            "wall_s": wall,
+        }
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(doc, indent=2))
     if checks.failed:

@@ -37,15 +37,20 @@ def main(argv: list[str] | None = None) -> int:
     (work / "linuxcnc").mkdir(parents=True, exist_ok=True)
     (work / "in_process").mkdir(parents=True, exist_ok=True)
     with Sim() as sim:
-        loop = linuxcnc_loop.run(sim, work / "linuxcnc", args.hours, args.speedup,
-                                 timeout_s=args.hours * 3600 / args.speedup + 600)
+        loop = linuxcnc_loop.run(
+            sim, work / "linuxcnc", args.hours, args.speedup, timeout_s=args.hours * 3600 / args.speedup + 600
+        )
     inproc = linuxcnc_loop.in_process(work / "in_process", args.hours)["axes"]["z"]
     z = loop["z"]
-    print(f"LinuxCNC ({args.hours:g} h plan at {args.speedup:g}x): z RMS {z['rms_before_um']:.2f} ->"
-          f" {z['rms_after_um']:.2f} um ({z['reduction_pct']:.1f} %); offset - correction: {loop['follow_reads']}"
-          f" steady reads, largest {loop['follow_max_um']:.3f} um; after SIGTERM {loop['eoffset_after_um']:+.3f} um")
-    print(f"in process (the same plan, compd replay): z RMS {inproc['rms_before_um']:.2f} ->"
-          f" {inproc['rms_after_um']:.2f} um ({inproc['reduction_pct']:.1f} %)")
+    print(
+        f"LinuxCNC ({args.hours:g} h plan at {args.speedup:g}x): z RMS {z['rms_before_um']:.2f} ->"
+        f" {z['rms_after_um']:.2f} um ({z['reduction_pct']:.1f} %); offset - correction: {loop['follow_reads']}"
+        f" steady reads, largest {loop['follow_max_um']:.3f} um; after SIGTERM {loop['eoffset_after_um']:+.3f} um"
+    )
+    print(
+        f"in process (the same plan, compd replay): z RMS {inproc['rms_before_um']:.2f} ->"
+        f" {inproc['rms_after_um']:.2f} um ({inproc['reduction_pct']:.1f} %)"
+    )
     missed = []
     if not (loop["follow_reads"] > 20 and loop["follow_max_um"] <= 1.0):
         missed.append("the offset did not follow compd's correction within 1 um")

@@ -46,8 +46,18 @@ def degraded_rows(rate_s: float) -> tuple[list[str], list[dict], dict]:
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         for day in ("train", "unseen"):
-            _quiet(hil_main, ["log", "--scenario", str(SCENARIOS / f"gantry_{day}.yaml"),
-                              "--out", str(d / f"{day}.csv"), "--rate-s", str(rate_s)])
+            _quiet(
+                hil_main,
+                [
+                    "log",
+                    "--scenario",
+                    str(SCENARIOS / f"gantry_{day}.yaml"),
+                    "--out",
+                    str(d / f"{day}.csv"),
+                    "--rate-s",
+                    str(rate_s),
+                ],
+            )
         _quiet(compd_main, ["fit", "--kind", "lvr", "--log", str(d / "train.csv"), "--out", str(d / "lvr.yaml")])
         doc = Document({}, str(d / "lvr.yaml"))
         spec = resolve_model({"kind": "lvr", "file": str(d / "lvr.yaml")}, doc, ("model",), d)
@@ -78,12 +88,14 @@ def degraded_rows(rate_s: float) -> tuple[list[str], list[dict], dict]:
             xb[j] = np.nan
             model.evaluate_degraded(xb, good, 0.0, out)
             served.append(np.isfinite(out))
-        rows.append({
-            "sensor": name,
-            "rms_um": np.sqrt(np.mean((E - pred) ** 2, axis=0)),
-            "sigma_um": sigma,
-            "served": np.all(served, axis=0),
-        })
+        rows.append(
+            {
+                "sensor": name,
+                "rms_um": np.sqrt(np.mean((E - pred) ** 2, axis=0)),
+                "sigma_um": sigma,
+                "served": np.all(served, axis=0),
+            }
+        )
     return list(model.outputs), rows, {**base, "limit": limit}
 
 
@@ -104,15 +116,27 @@ def _eval(model, x: np.ndarray, out: np.ndarray) -> np.ndarray:  # noqa: ANN001
 def render(axes: list[str], rows: list[dict], base: dict, rate_s: float) -> str:
     head = ["sensor removed"] + [f"RMS {a} µm" for a in axes] + [f"added σ {a} µm" for a in axes] + ["axes served"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    lines.append("| (no compensation) | " + " | ".join(f"{v:.2f}" for v in base["none"]) + " | " + " | " * len(axes) + " |")
-    lines.append("| (none: all 19 sensors) | " + " | ".join(f"{v:.2f}" for v in base["all"]) + " | " + " | ".join("0" for _ in axes) + " | " + ", ".join(axes) + " |")
+    lines.append(
+        "| (no compensation) | " + " | ".join(f"{v:.2f}" for v in base["none"]) + " | " + " | " * len(axes) + " |"
+    )
+    lines.append(
+        "| (none: all 19 sensors) | "
+        + " | ".join(f"{v:.2f}" for v in base["all"])
+        + " | "
+        + " | ".join("0" for _ in axes)
+        + " | "
+        + ", ".join(axes)
+        + " |"
+    )
     for r in rows:
         served = [a for a, s in zip(axes, r["served"], strict=True) if s]
         cells = [r["sensor"]] + [f"{v:.2f}" for v in r["rms_um"]] + [f"{v:.2f}" for v in r["sigma_um"]]
         cells.append(", ".join(served) if served else "none (refused)")
         lines.append("| " + " | ".join(cells) + " |")
-    refused = {a: [r["sensor"] for r in rows if not r["served"][i] and not r["sensor"].startswith("all of")]
-               for i, a in enumerate(axes)}
+    refused = {
+        a: [r["sensor"] for r in rows if not r["served"][i] and not r["sensor"].startswith("all of")]
+        for i, a in enumerate(axes)
+    }
     text = [
         f"Gantry, lvr fitted on `gantry_train.yaml`, evaluated on `gantry_unseen.yaml` (24 h, one row per "
         f"{rate_s:g} s). RMS residual = RMS(error + correction) over the unseen day with that sensor removed "

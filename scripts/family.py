@@ -88,8 +88,9 @@ CALIBRATED = 0.8  # issue 40: the stated unseen-day RMS within 0.5-2x of the act
 
 # --------------------------------------------------------------------------------------
 # logs
-def machine_logs(kind: str, seed: int, work: Path, fresh: bool, day_h: float,
-                 train: str = "day") -> tuple[Path, Path, family.Machine, bool]:
+def machine_logs(
+    kind: str, seed: int, work: Path, fresh: bool, day_h: float, train: str = "day"
+) -> tuple[Path, Path, family.Machine, bool]:
     """(train log, unseen log, machine, whether they were reused) in `work`; logged again when
     --fresh or when the cached machine file is not the machine drawn now."""
     import yaml
@@ -112,7 +113,9 @@ def machine_logs(kind: str, seed: int, work: Path, fresh: bool, day_h: float,
 
 # --------------------------------------------------------------------------------------
 # fits
-def fit_plan(kind: str, m: family.Machine, temps: list[str]) -> dict[str, tuple[str, list[str] | None, list[str] | None, dict[str, Any]]]:
+def fit_plan(
+    kind: str, m: family.Machine, temps: list[str]
+) -> dict[str, tuple[str, list[str] | None, list[str] | None, dict[str, Any]]]:
     """tag → (model kind, inputs, targets, options): the type's physics model and MLR."""
     if kind == "lathe":
         physics = ("ar1", ["T3", "T4", "T5"], None, {})
@@ -138,8 +141,9 @@ def make_sink(kind: str, axes: list[str]) -> Any:
         from compd.sinks.pci1756 import Pci1756Config, Pci1756Sink
 
         # the card's DO bytes 0-3 as wired to the PMC's X0-X3: word on X0/X1, strobe X2.0
-        return Pci1756Sink(Pci1756Config(kind="pci1756", device="emulated", x_register=0, strobe_bit=16,
-                                         heartbeat_bit=24))
+        return Pci1756Sink(
+            Pci1756Config(kind="pci1756", device="emulated", x_register=0, strobe_bit=16, heartbeat_bit=24)
+        )
     from compd.sinks.siemens import SiemensConfig, SiemensSink
 
     cfg = SiemensConfig(kind="siemens", axes={a: i for i, a in enumerate(axes)}, min_change_um=0.2, min_update_s=5.0)
@@ -184,8 +188,10 @@ def with_probes(log: Any, axes: list[str], every_s: float, rng: np.random.Genera
 
 
 def _axes_figures(report: dict[str, Any]) -> dict[str, dict[str, float]]:
-    return {a: {k: float(v[k]) for k in ("reduction_pct", "rms_before_um", "rms_after_um", "max_abs_after_um")}
-            for a, v in report["axes"].items()}
+    return {
+        a: {k: float(v[k]) for k in ("reduction_pct", "rms_before_um", "rms_after_um", "max_abs_after_um")}
+        for a, v in report["axes"].items()
+    }
 
 
 def _why(stage: str, e: BaseException) -> str:
@@ -195,8 +201,16 @@ def _why(stage: str, e: BaseException) -> str:
 
 # --------------------------------------------------------------------------------------
 # one machine (in a worker process)
-def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: float, day_h: float,
-                train: str = "day", recommend: bool = True) -> dict[str, Any]:
+def run_machine(
+    kind: str,
+    seed: int,
+    work: str,
+    fresh: bool,
+    probe_every_h: float,
+    day_h: float,
+    train: str = "day",
+    recommend: bool = True,
+) -> dict[str, Any]:
     """Log, fit, replay one machine: its figures (and the reasons of what failed)."""
     os.environ["TQDM_DISABLE"] = "1"  # no progress bars from parallel fits
     from compd.commissioning import fitting
@@ -213,8 +227,11 @@ def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: flo
         out["wall_s"] = time.monotonic() - t0
         return out
     out["logs_reused"] = reused
-    out["drawn"] = {"duty": m.drawn["duty"], "placement": m.drawn["placement"],
-                    **({"plan": m.drawn["plan"]} if "plan" in m.drawn else {})}
+    out["drawn"] = {
+        "duty": m.drawn["duty"],
+        "placement": m.drawn["placement"],
+        **({"plan": m.drawn["plan"]} if "plan" in m.drawn else {}),
+    }
     out["error_um"] = {
         day: {c[4:-3]: float(np.sqrt(np.mean(lg.col(c) ** 2))) for c in lg.error_columns()}
         for day, lg in (("train", train), ("unseen", unseen))
@@ -251,8 +268,11 @@ def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: flo
             try:
                 probed = with_probes(unseen, list(oc.model.outputs), probe_h * 3600.0, rng)
                 rep = replay(kind, oc.model, probed)
-                res["probed"] = {"every_h": probe_h, "axes": _axes_figures(rep),
-                                 "adaptation": {k: rep.get("adaptation", {}).get(k) for k in ("accepted", "rejected")}}
+                res["probed"] = {
+                    "every_h": probe_h,
+                    "axes": _axes_figures(rep),
+                    "adaptation": {k: rep.get("adaptation", {}).get(k) for k in ("accepted", "rejected")},
+                }
             except Exception as e:  # noqa: BLE001
                 res["probed"] = {"every_h": probe_h, "failed": _why("probed replay", e)}
     if recommend:
@@ -264,8 +284,15 @@ def run_machine(kind: str, seed: int, work: str, fresh: bool, probe_every_h: flo
     return out
 
 
-def recommended(kind: str, seed: int, train: Any, unseen: Any, models_dir: Path, probe_h: float,
-                options: dict[str, Any] | None = None) -> dict[str, Any]:
+def recommended(
+    kind: str,
+    seed: int,
+    train: Any,
+    unseen: Any,
+    models_dir: Path,
+    probe_h: float,
+    options: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """`compd fit --kind all` on the training day (every kind with its own defaults and the machine's
     deployment `options`, the sums of two stages), its recommended model replayed on the unseen day;
     beside it what the fit stated it would leave there (fit.expected_unseen) and the ratio of what it
@@ -288,8 +315,11 @@ def recommended(kind: str, seed: int, train: Any, unseen: Any, models_dir: Path,
     res["label"] = pick.candidate.label
     res["held_out_um"] = dict(pick.candidate.axes)
     res["stated"] = {a: s.as_dict() for a, s in pick.stated.items()}
-    res["candidates"] = {label: {a: v for a, v in (oc.report.get("baseline_mlr", {}).get("axes", {}) or {}).items()}
-                         for _, label, oc, _ in rows if oc is not None}
+    res["candidates"] = {
+        label: {a: v for a, v in (oc.report.get("baseline_mlr", {}).get("axes", {}) or {}).items()}
+        for _, label, oc, _ in rows
+        if oc is not None
+    }
     res["sums"] = {so.label: so.held_out_um for so in sums}
     try:
         res["axes"] = _axes_figures(replay(kind, model, unseen))
@@ -299,10 +329,14 @@ def recommended(kind: str, seed: int, train: Any, unseen: Any, models_dir: Path,
     # the statement is the model's: judged on the model's own unseen-day RMS (compd score), not on the
     # replay, which adds the output's word resolution (a 1 um LSB alone is 0.29 um RMS) and its slew
     scored = fitting.score_model(model, unseen)["axes"]
-    res["calibration"] = {a: scored[a]["rms_after_um"] / s.rms_um for a, s in pick.stated.items()
-                          if a in scored and s.rms_um > 0}
-    res["calibration_replay"] = {a: res["axes"][a]["rms_after_um"] / s.rms_um for a, s in pick.stated.items()
-                                 if a in res["axes"] and s.rms_um > 0}
+    res["calibration"] = {
+        a: scored[a]["rms_after_um"] / s.rms_um for a, s in pick.stated.items() if a in scored and s.rms_um > 0
+    }
+    res["calibration_replay"] = {
+        a: res["axes"][a]["rms_after_um"] / s.rms_um
+        for a, s in pick.stated.items()
+        if a in res["axes"] and s.rms_um > 0
+    }
     if probe_h > 0:
         rng = np.random.default_rng([seed, 29])
         try:
@@ -365,8 +399,14 @@ def summary_rows(results: list[dict[str, Any]], kinds: list[str]) -> list[dict[s
                 mlr = [_reduction(r.get("models", {}).get("mlr"), axis) for r in mine]
                 med, p10, worst = _stats(vals)
                 row: dict[str, Any] = {
-                    "type": kind, "axis": axis, "model": tag, "machines": len(mine),
-                    "failed": sum(math.isinf(v) for v in vals), "median": med, "p10": p10, "worst": worst,
+                    "type": kind,
+                    "axis": axis,
+                    "model": tag,
+                    "machines": len(mine),
+                    "failed": sum(math.isinf(v) for v in vals),
+                    "median": med,
+                    "p10": p10,
+                    "worst": worst,
                     "mlr_median": _stats(mlr)[0],
                     "mlr_better_on": None if tag == "mlr" else sum(b > a for a, b in zip(vals, mlr, strict=True)),
                 }
@@ -379,7 +419,9 @@ def summary_rows(results: list[dict[str, Any]], kinds: list[str]) -> list[dict[s
                     losses = [a - b for a, b in zip(vals, w, strict=True) if math.isfinite(a) and math.isfinite(b)]
                     row["largest_probe_loss_pts"] = max(losses) if losses else math.nan
                 if tag == "recommended":
-                    labels = [r["models"]["recommended"].get("label", "fail") for r in mine if "recommended" in r["models"]]
+                    labels = [
+                        r["models"]["recommended"].get("label", "fail") for r in mine if "recommended" in r["models"]
+                    ]
                     row["picked"] = {k: labels.count(k) for k in sorted(set(labels))}
                     ratios = [r["models"]["recommended"].get("calibration", {}).get(axis) for r in mine]
                     row["calibrated"] = sum(1 for v in ratios if v is not None and 0.5 <= v <= 2.0)
@@ -389,23 +431,32 @@ def summary_rows(results: list[dict[str, Any]], kinds: list[str]) -> list[dict[s
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = ("| type | axis | model | median | 10th pct | worst | MLR median | MLR better on | failed "
-            "| probes every | with probes | without | largest loss |")
+    head = (
+        "| type | axis | model | median | 10th pct | worst | MLR median | MLR better on | failed "
+        "| probes every | with probes | without | largest loss |"
+    )
     lines = [head, "|" + "---|" * 13]
     for r in rows:
         better = "—" if r["mlr_better_on"] is None else f"{r['mlr_better_on']}/{r['machines']}"
         probe = ("—", "—", "—", "—")
         if "probe_every_h" in r:
-            probe = (f"{r['probe_every_h']:g} h", _fmt(r["with_probes_median"]), _fmt(r["without_probes_median"]),
-                     _fmt(r["largest_probe_loss_pts"]))
+            probe = (
+                f"{r['probe_every_h']:g} h",
+                _fmt(r["with_probes_median"]),
+                _fmt(r["without_probes_median"]),
+                _fmt(r["largest_probe_loss_pts"]),
+            )
         lines.append(
             f"| {r['type']} | {r['axis']} | {r['model']} | {_fmt(r['median'])} | {_fmt(r['p10'])} | {_fmt(r['worst'])} "
             f"| {_fmt(r['mlr_median'])} | {better} | {r['failed']}/{r['machines']} | " + " | ".join(probe) + " |"
         )
     picks = [r for r in rows if r["model"] == "recommended"]
     if picks:
-        lines += ["", "| type | axis | recommended kinds | stated within 0.5-2x of the unseen RMS | ratios (unseen / stated) |",
-                  "|---|---|---|---|---|"]
+        lines += [
+            "",
+            "| type | axis | recommended kinds | stated within 0.5-2x of the unseen RMS | ratios (unseen / stated) |",
+            "|---|---|---|---|---|",
+        ]
         for r in picks:
             kinds = ", ".join(f"{k} {n}" for k, n in r["picked"].items())
             ratios = " ".join("—" if v is None else f"{v:.2f}" for v in r["calibration_ratios"])
@@ -423,11 +474,21 @@ def _line(r: dict[str, Any]) -> str:
             continue
         fig = ", ".join(f"{a} {v['reduction_pct']:.1f} %" for a, v in res["axes"].items())
         if tag == "recommended":
-            fig = f"{res.get('label')}: " + fig + " (stated " + ", ".join(
-                f"{a} {s['rms_um']:.2f} um" for a, s in res.get("stated", {}).items()) + ", left " + ", ".join(
-                f"{a} {v['rms_after_um']:.2f} um" for a, v in res["axes"].items()) + ")"
+            fig = (
+                f"{res.get('label')}: "
+                + fig
+                + " (stated "
+                + ", ".join(f"{a} {s['rms_um']:.2f} um" for a, s in res.get("stated", {}).items())
+                + ", left "
+                + ", ".join(f"{a} {v['rms_after_um']:.2f} um" for a, v in res["axes"].items())
+                + ")"
+            )
         if "probed" in res and "axes" in res["probed"]:
-            fig += " (probed " + ", ".join(f"{a} {v['reduction_pct']:.1f} %" for a, v in res["probed"]["axes"].items()) + ")"
+            fig += (
+                " (probed "
+                + ", ".join(f"{a} {v['reduction_pct']:.1f} %" for a, v in res["probed"]["axes"].items())
+                + ")"
+            )
         parts.append(f"{tag} {fig}")
     err = ", ".join(f"{a} {v:.1f}" for a, v in r["error_um"]["unseen"].items())
     return f"{r['kind']} {r['seed']}: unseen RMS {err} um; " + "; ".join(parts) + f" ({r['wall_s']:.0f} s)"
@@ -448,20 +509,37 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kinds", nargs="+", default=list(family.KINDS), help=f"of {', '.join(family.KINDS)}")
     ap.add_argument("--seeds", default="1-20", help="e.g. 1-20 or 1,4,9-12: one machine per seed")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="machines side by side (processes)")
-    ap.add_argument("--workdir", default=None,
-                    help="logs, machine files, fitted models (default build/family, with --train plan build/family-plan)")
+    ap.add_argument(
+        "--workdir",
+        default=None,
+        help="logs, machine files, fitted models (default build/family, with --train plan build/family-plan)",
+    )
     ap.add_argument("--fresh", action="store_true", help="log every day again (default: reuse the cached logs)")
     ap.add_argument("--json", default=None, help="write every machine's figures and the table here")
-    ap.add_argument("--probe-every-h", type=float, default=-1.0,
-                    help="probe every H hours on every kind (0: no probes; default: lathe 2, feed_axis 1)")
+    ap.add_argument(
+        "--probe-every-h",
+        type=float,
+        default=-1.0,
+        help="probe every H hours on every kind (0: no probes; default: lathe 2, feed_axis 1)",
+    )
     ap.add_argument("--day-h", type=float, default=24.0, help="shorten both days to H hours (quick checks)")
-    ap.add_argument("--train", choices=family.TRAINS, default="day",
-                    help="fit on the drawn training day (default) or on compd testplan's plan for the machine")
-    ap.add_argument("--no-recommend", action="store_true",
-                    help="skip `compd fit --kind all`'s recommended model (the slowest part of a machine)")
-    ap.add_argument("--gate", action="store_true",
-                    help="exit 1 when a goal is missed: the physics model's 10th percentile (lathe, gantry, feed axis"
-                    " 85 %%, spindle 90 %%), its median below MLR's, or probes costing a machine more than 0.5 points")
+    ap.add_argument(
+        "--train",
+        choices=family.TRAINS,
+        default="day",
+        help="fit on the drawn training day (default) or on compd testplan's plan for the machine",
+    )
+    ap.add_argument(
+        "--no-recommend",
+        action="store_true",
+        help="skip `compd fit --kind all`'s recommended model (the slowest part of a machine)",
+    )
+    ap.add_argument(
+        "--gate",
+        action="store_true",
+        help="exit 1 when a goal is missed: the physics model's 10th percentile (lathe, gantry, feed axis"
+        " 85 %%, spindle 90 %%), its median below MLR's, or probes costing a machine more than 0.5 points",
+    )
     args = ap.parse_args(argv)
     try:
         unknown = [k for k in args.kinds if k not in family.KINDS]
@@ -483,9 +561,20 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     results: list[dict[str, Any]] = []
     with ProcessPoolExecutor(max_workers=min(args.jobs, len(jobs))) as pool:
-        futures = {pool.submit(run_machine, k, s, str(work), args.fresh, args.probe_every_h, args.day_h,
-                               args.train, not args.no_recommend): (k, s)
-                   for k, s in jobs}
+        futures = {
+            pool.submit(
+                run_machine,
+                k,
+                s,
+                str(work),
+                args.fresh,
+                args.probe_every_h,
+                args.day_h,
+                args.train,
+                not args.no_recommend,
+            ): (k, s)
+            for k, s in jobs
+        }
         for fut in as_completed(futures):
             k, s = futures[fut]
             try:
@@ -499,22 +588,41 @@ def main(argv: list[str] | None = None) -> int:
     rows = summary_rows(results, list(args.kinds))
     print()
     print(table(rows))
-    odd = [f"{r['kind']} {r['seed']} {day} {a} {v:.1f}" for r in results
-           for day, axes in r.get("working_error_um", {}).items() for a, v in axes.items()
-           if a in SCORED.get(r["kind"], (a,)) and not SANE_UM[0] <= v <= SANE_UM[1]]
+    odd = [
+        f"{r['kind']} {r['seed']} {day} {a} {v:.1f}"
+        for r in results
+        for day, axes in r.get("working_error_um", {}).items()
+        for a, v in axes.items()
+        if a in SCORED.get(r["kind"], (a,)) and not SANE_UM[0] <= v <= SANE_UM[1]
+    ]
     print(f"\nworking-day RMS error outside {SANE_UM[0]:g}-{SANE_UM[1]:g} um: " + ("; ".join(odd) or "none"))
-    print(f"{len(results)} machines ({', '.join(args.kinds)}; seeds {args.seeds}; trained on the"
-          f" {'drawn day' if args.train == 'day' else 'compd testplan plan'}) in {wall_s:.0f} s wall, "
-          f"{args.jobs} at once; workdir {work}")
+    print(
+        f"{len(results)} machines ({', '.join(args.kinds)}; seeds {args.seeds}; trained on the"
+        f" {'drawn day' if args.train == 'day' else 'compd testplan plan'}) in {wall_s:.0f} s wall, "
+        f"{args.jobs} at once; workdir {work}"
+    )
     missed = goals_missed(rows)
     print("goals: " + ("all met" if not missed else "missed: " + "; ".join(missed)))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(_json_safe({
-            "kinds": args.kinds, "seeds": seeds, "day_h": args.day_h, "probe_every_h": args.probe_every_h,
-            "train": args.train,
-            "wall_s": wall_s, "table": rows, "goals_missed": missed, "machines": results,
-        }), indent=1))
+        Path(args.json).write_text(
+            json.dumps(
+                _json_safe(
+                    {
+                        "kinds": args.kinds,
+                        "seeds": seeds,
+                        "day_h": args.day_h,
+                        "probe_every_h": args.probe_every_h,
+                        "train": args.train,
+                        "wall_s": wall_s,
+                        "table": rows,
+                        "goals_missed": missed,
+                        "machines": results,
+                    }
+                ),
+                indent=1,
+            )
+        )
     return 1 if args.gate and missed else 0
 
 
@@ -528,8 +636,10 @@ def goals_missed(rows: list[dict[str, Any]]) -> list[str]:
         if r["model"] != (judged or PHYSICS[r["type"]]):
             continue
         if judged and not r["calibrated"] >= CALIBRATED * r["machines"]:
-            out.append(f"{r['type']}/{r['axis']} stated accuracy within 0.5-2x on {r['calibrated']}/{r['machines']}"
-                       f" machines (< {CALIBRATED:.0%})")
+            out.append(
+                f"{r['type']}/{r['axis']} stated accuracy within 0.5-2x on {r['calibrated']}/{r['machines']}"
+                f" machines (< {CALIBRATED:.0%})"
+            )
         name = f"{r['type']}/{r['axis']}"
         goal = GOAL_P10[r["type"]]
         if not r["p10"] >= goal:

@@ -71,8 +71,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lags-s", type=float, nargs="+", default=[1.0, 60.0, 120.0, 200.0, 300.0])
     ap.add_argument("--rate-s", type=float, default=10.0, help="log period of both days (s)")
     ap.add_argument("--json", default=None, help="write the rows here")
-    ap.add_argument("--plant", default=None, metavar="YAML",
-                    help="spindle plant params over the scenario's (default: FAST_ROTOR; '{}' for the paper's spindle)")
+    ap.add_argument(
+        "--plant",
+        default=None,
+        metavar="YAML",
+        help="spindle plant params over the scenario's (default: FAST_ROTOR; '{}' for the paper's spindle)",
+    )
     args = ap.parse_args(argv)
     import yaml
 

@@ -61,13 +61,26 @@ def snapshots(log: Path) -> list[dict[str, Any]]:
     out = []
     for r in rows:
         err = float(r["err_z_um"])
-        out.append({
-            "state": "running", "observe": False, "word": f"0x{(0x4000 | (round(abs(err)) & 0x7F) << 8):04X}",
-            "axes": {"z": {"correction_um": -err, "target_um": -err, "prediction_um": err, "enable": True,
-                           "state": "normal"}},
-            "signals": {k: {"value": float(v), "quality": "good"} for k, v in r.items() if k not in ("t_s", "err_z_um")},
-            "model": {"kind": "xi_spindle", "file": "model.yaml", "fit": {"fitted_at": "2026-11-01T00:00:00Z"}},
-        })
+        out.append(
+            {
+                "state": "running",
+                "observe": False,
+                "word": f"0x{(0x4000 | (round(abs(err)) & 0x7F) << 8):04X}",
+                "axes": {
+                    "z": {
+                        "correction_um": -err,
+                        "target_um": -err,
+                        "prediction_um": err,
+                        "enable": True,
+                        "state": "normal",
+                    }
+                },
+                "signals": {
+                    k: {"value": float(v), "quality": "good"} for k, v in r.items() if k not in ("t_s", "err_z_um")
+                },
+                "model": {"kind": "xi_spindle", "file": "model.yaml", "fit": {"fitted_at": "2026-11-01T00:00:00Z"}},
+            }
+        )
     return out
 
 
@@ -83,10 +96,21 @@ def publish(args: argparse.Namespace) -> int:
     tels = []
     for i in range(args.first, args.first + args.count):
         spec = TelemetrySpec(
-            host="127.0.0.1", port=args.port, client_id=f"m{i:03d}", group_id=GROUP, edge_node_id=f"m{i:03d}",
-            device_id="machine", buffer_path=work / "buffers" / f"m{i:03d}.sqlite", buffer_max_bytes=64_000_000,
-            period_s=1.0, keepalive_s=10, reconnect_max_s=5.0, primary_host_id=HOST_ID, poll_s=args.poll_s,
-            slack_s=0.5, properties={"config": f"m{i:03d}.yaml"},
+            host="127.0.0.1",
+            port=args.port,
+            client_id=f"m{i:03d}",
+            group_id=GROUP,
+            edge_node_id=f"m{i:03d}",
+            device_id="machine",
+            buffer_path=work / "buffers" / f"m{i:03d}.sqlite",
+            buffer_max_bytes=64_000_000,
+            period_s=1.0,
+            keepalive_s=10,
+            reconnect_max_s=5.0,
+            primary_host_id=HOST_ID,
+            poll_s=args.poll_s,
+            slack_s=0.5,
+            properties={"config": f"m{i:03d}.yaml"},
         )
         tel = Telemetry(spec)
         tel.start()
@@ -171,16 +195,19 @@ class Broker:
     def __init__(self, work: Path, port: int) -> None:
         self.exe = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
         self.conf = work / "mosquitto.conf"
-        self.conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
-                             f"log_dest file {work / 'mosquitto.log'}\nmax_queued_messages 1000000\n"
-                             "max_inflight_messages 0\nset_tcp_nodelay true\n")
+        self.conf.write_text(
+            f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
+            f"log_dest file {work / 'mosquitto.log'}\nmax_queued_messages 1000000\n"
+            "max_inflight_messages 0\nset_tcp_nodelay true\n"
+        )
         self.port = port
         self.proc: subprocess.Popen[bytes] | None = None
         self.cpu_s = 0.0  # of the broker processes that have ended
 
     def start(self) -> None:
-        self.proc = subprocess.Popen([self.exe, "-c", str(self.conf)], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
+        self.proc = subprocess.Popen(
+            [self.exe, "-c", str(self.conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline:
             try:
@@ -218,9 +245,26 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for p in range(args.procs):
         first, count = p * per, min(per, args.machines - p * per)
         if count > 0:
-            pubs.append(subprocess.Popen([*me, "--role", "publish", "--first", str(first), "--count", str(count),
-                                          "--poll-s", str(args.poll_s), "--drain-s", str(args.drain_s),
-                                          "--out", str(work / f"pub{p}.json")], env=env))
+            pubs.append(
+                subprocess.Popen(
+                    [
+                        *me,
+                        "--role",
+                        "publish",
+                        "--first",
+                        str(first),
+                        "--count",
+                        str(count),
+                        "--poll-s",
+                        str(args.poll_s),
+                        "--drain-s",
+                        str(args.drain_s),
+                        "--out",
+                        str(work / f"pub{p}.json"),
+                    ],
+                    env=env,
+                )
+            )
     t0 = time.monotonic()
     outage = None
     try:
@@ -285,14 +329,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     n = args.machines
     return {
-        "machines": n, "processes": args.procs, "duration_s": round(wall, 1), "outage": outage,
-        "samples_taken": sum(taken.values()), "received": sum(len(v) for v in got["seen"].values()),
-        "lost": lost, "duplicated": dup, "out_of_order": disorder, "historical": hist_n,
+        "machines": n,
+        "processes": args.procs,
+        "duration_s": round(wall, 1),
+        "outage": outage,
+        "samples_taken": sum(taken.values()),
+        "received": sum(len(v) for v in got["seen"].values()),
+        "lost": lost,
+        "duplicated": dup,
+        "out_of_order": disorder,
+        "historical": hist_n,
         "dropped_by_buffers": sum(f.get("dropped", 0) for f in finals.values()),
         "latency_ms": {"p50": pct(0.5), "p99": pct(0.99), "max": round(lat[-1] * 1000, 1) if lat else None},
-        "cpu_pct_per_machine": {"broker": round(100 * broker_cpu / wall / n, 3),
-                                "publishers": round(100 * pub_cpu / wall / n, 3),
-                                "historian": round(100 * hist_cpu / wall / n, 3)},
+        "cpu_pct_per_machine": {
+            "broker": round(100 * broker_cpu / wall / n, 3),
+            "publishers": round(100 * pub_cpu / wall / n, 3),
+            "historian": round(100 * hist_cpu / wall / n, 3),
+        },
         "historian": got["counts"],
     }
 
@@ -324,9 +377,11 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(result, indent=1))
     ok = result["lost"] == 0 and result["duplicated"] == 0 and result["out_of_order"] == 0
-    print(f"plant: {result['machines']} machines, {result['samples_taken']} samples: lost {result['lost']},"
-          f" duplicated {result['duplicated']}, out of order {result['out_of_order']},"
-          f" latency p99 {result['latency_ms']['p99']} ms -> {'PASS' if ok else 'FAIL'}")
+    print(
+        f"plant: {result['machines']} machines, {result['samples_taken']} samples: lost {result['lost']},"
+        f" duplicated {result['duplicated']}, out of order {result['out_of_order']},"
+        f" latency p99 {result['latency_ms']['p99']} ms -> {'PASS' if ok else 'FAIL'}"
+    )
     return 0 if ok else 1
 
 

@@ -37,8 +37,9 @@ def _features(p: np.ndarray, y_m: np.ndarray, cols: tuple[int, ...]) -> np.ndarr
     return f[:, list(cols)]
 
 
-def bound_pct(day: Path, pred: Path, prof: Path, prof_pred: Path, axis: str, every_s: float,
-              cols: tuple[int, ...]) -> float:
+def bound_pct(
+    day: Path, pred: Path, prof: Path, prof_pred: Path, axis: str, every_s: float, cols: tuple[int, ...]
+) -> float:
     """RMS reduction % of the held estimate refitted to the whole profile every `every_s`."""
     d, p = read_log(day), read_log(pred)
     t, e, pr, y = d.t_s, d.col(f"err_{axis}_um"), p.col(f"pred_{axis}_um"), d.col(f"pos_{axis}_mm") / 1000.0
@@ -70,12 +71,34 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         w = Path(tmp)
         step = min(600.0, *a.every_s)
-        subprocess.run([py, "-m", "hil_sim", "log", "--scenario", a.scenario, "--out", str(w / "day.csv"),
-                        "--rate-s", "10", "--profile", str(w / "prof.csv"), "--profile-every-s", str(step)],
-                       check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+        subprocess.run(
+            [
+                py,
+                "-m",
+                "hil_sim",
+                "log",
+                "--scenario",
+                a.scenario,
+                "--out",
+                str(w / "day.csv"),
+                "--rate-s",
+                "10",
+                "--profile",
+                str(w / "prof.csv"),
+                "--profile-every-s",
+                str(step),
+            ],
+            check=True,
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+        )
         for log, out in (("day.csv", "pred.csv"), ("prof.csv", "prof_pred.csv")):
-            subprocess.run([py, "-m", "compd", "predict", "--log", str(w / log), "--out", str(w / out), a.model],
-                           check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+            subprocess.run(
+                [py, "-m", "compd", "predict", "--log", str(w / log), "--out", str(w / out), a.model],
+                check=True,
+                cwd=ROOT,
+                stdout=subprocess.DEVNULL,
+            )
         d, p = read_log(w / "day.csv"), read_log(w / "pred.csv")
         e = d.col(f"err_{a.axis}_um")
         alone = 100.0 * (1.0 - np.sqrt(np.mean((e - p.col(f"pred_{a.axis}_um")) ** 2)) / np.sqrt(np.mean(e * e)))
@@ -83,8 +106,10 @@ def main() -> int:
         print("held estimate refitted to the true profile at every probe (RMS reduction %):")
         print("  every_s " + "".join(f"{f:>8}" for f in FORMS))
         for every in a.every_s:
-            row = [bound_pct(w / "day.csv", w / "pred.csv", w / "prof.csv", w / "prof_pred.csv", a.axis, every, c)
-                   for c in FORMS.values()]
+            row = [
+                bound_pct(w / "day.csv", w / "pred.csv", w / "prof.csv", w / "prof_pred.csv", a.axis, every, c)
+                for c in FORMS.values()
+            ]
             print(f"  {every:7.0f} " + "".join(f"{v:8.1f}" for v in row))
     return 0
 

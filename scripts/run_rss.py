@@ -44,13 +44,17 @@ def main() -> int:
     model = cl.prepare_model(args.machine, cl.MACHINES[args.machine].paper_kind, work)
     scenario = cl.SCENARIOS / f"{args.machine}_unseen.yaml"
     bench = work / "bench.yaml"
-    bench.write_text(yaml.safe_dump(
-        cl.bench(args.machine, scenario, 7200.0, args.duration_s, work / "residual.csv", True), sort_keys=False))
+    bench.write_text(
+        yaml.safe_dump(
+            cl.bench(args.machine, scenario, 7200.0, args.duration_s, work / "residual.csv", True), sort_keys=False
+        )
+    )
     proc, ports = cl.start_serve(bench)
     try:
         cfg = work / "compd.yaml"
-        cfg.write_text(yaml.safe_dump(cl.compd_config(args.machine, model, ports, 7200.0, lockstep=True),
-                                      sort_keys=False))
+        cfg.write_text(
+            yaml.safe_dump(cl.compd_config(args.machine, model, ports, 7200.0, lockstep=True), sort_keys=False)
+        )
         cmd = [sys.executable, "-m", "compd", "run", str(cfg), "--duration", str(args.duration_s)]
         env = dict(os.environ, PYTHONPATH=str(Path(args.compd).resolve()))
         t0 = time.monotonic()
@@ -60,8 +64,10 @@ def main() -> int:
         while p.poll() is None:
             last = status_kb(p.pid) or last
             time.sleep(0.05)
-        print(f"{args.machine}: compd from {args.compd}, exit {p.returncode}, {time.monotonic() - t0:.1f} s wall;"
-              f" VmRSS {last.get('VmRSS', 0) / 1024:.1f} MB, VmHWM {last.get('VmHWM', 0) / 1024:.1f} MB")
+        print(
+            f"{args.machine}: compd from {args.compd}, exit {p.returncode}, {time.monotonic() - t0:.1f} s wall;"
+            f" VmRSS {last.get('VmRSS', 0) / 1024:.1f} MB, VmHWM {last.get('VmHWM', 0) / 1024:.1f} MB"
+        )
         return p.returncode
     finally:
         cl.stop_serve(proc)

@@ -59,9 +59,7 @@ sink: {{kind: pci1756}}
     return path
 
 
-def wait_running(
-    status_file: Path, proc: subprocess.Popen, timeout_s: float = 120, *, after_cycles: int = 0
-) -> dict:
+def wait_running(status_file: Path, proc: subprocess.Popen, timeout_s: float = 120, *, after_cycles: int = 0) -> dict:
     """The daemon's status once it says running with more than `after_cycles` cycles; the
     process must stay alive meanwhile."""
     end = time.monotonic() + timeout_s

@@ -129,7 +129,7 @@ def _assert_paced(codes: list[int], period_s: float, lsb_um: float, slew_um_per_
     for k in steps:
         assert abs(codes[k] - codes[k - 1]) == 1, (k, codes[k - 1], codes[k])
     for a, ka in enumerate(steps):
-        for m, kb in enumerate(steps[a + 1:], start=1):
+        for m, kb in enumerate(steps[a + 1 :], start=1):
             assert (kb - ka + 1) * period_s >= m * lsb_um / slew_um_per_s - 1e-9, (ka, kb, m)
 
 
@@ -219,9 +219,7 @@ def test_cli_encode(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_cli_encode_negative_first_argument() -> None:
-    r = subprocess.run(
-        [sys.executable, "-m", "compd", "encode", "--", "-5", "3"], capture_output=True, text=True
-    )
+    r = subprocess.run([sys.executable, "-m", "compd", "encode", "--", "-5", "3"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert r.stdout.split()[0] == "0x45C3"
 
@@ -271,7 +269,11 @@ def test_update_rows_equals_update_row_by_row() -> None:
         np.testing.assert_array_equal(w2, words)
         np.testing.assert_array_equal(ch2, changed)
         assert (got.codes, got.saturated, got.saturations, got.words_emitted) == (
-            ref.codes, ref.saturated, ref.saturations, ref.words_emitted)
+            ref.codes,
+            ref.saturated,
+            ref.saturations,
+            ref.words_emitted,
+        )
         assert got._budget == ref._budget and got._moving == ref._moving
 
 

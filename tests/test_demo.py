@@ -28,9 +28,7 @@ def demo_config(tmp_path: Path, extra: str = "") -> Path:
 
 def test_demo_reduces_rms_error(tmp_path: Path) -> None:
     cfg = demo_config(tmp_path, "log:\n  path: demo.csv\n  period_s: 60\n")
-    r = subprocess.run(
-        [sys.executable, "-m", "compd", "run", str(cfg)], capture_output=True, text=True, timeout=300
-    )
+    r = subprocess.run([sys.executable, "-m", "compd", "run", str(cfg)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
     assert lines[0].split()[:6] == ["time", "T_xi/°C", "speed_rpm", "pred_z/µm", "word", "err_z/µm"]
@@ -58,7 +56,7 @@ def test_demo_reduces_rms_error(tmp_path: Path) -> None:
     steps = t[1:][np.diff(n) != 0]
     settled = np.array([not np.any((steps <= ti) & (steps > ti - 5.0)) for ti in t])
     settled[: len(t) // 2] = False
-    assert 0 < (~settled[len(t) // 2:]).sum() < 10
+    assert 0 < (~settled[len(t) // 2 :]).sum() < 10
     # the applied correction is what the word says: −round(prediction) within the dead-band
     resid = (log.col("pred_z_um") + log.col("applied_z_um"))[settled]
     assert abs(resid).max() < 1.5
@@ -72,7 +70,9 @@ def test_duration_flag_stops_early(tmp_path: Path) -> None:
     cfg = demo_config(tmp_path)
     r = subprocess.run(
         [sys.executable, "-m", "compd", "run", str(cfg), "--duration", "600"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert r.returncode == 0, r.stderr
     m = re.search(r"compd: (\d+) cycles", r.stdout)

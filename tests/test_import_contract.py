@@ -25,16 +25,18 @@ LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
 # circle. compd/cli/ is apart: the command line imports each command's modules when that command
 # runs (the start-up of `compd status` and the rest).
 OPTIONAL: dict[str, tuple[str, tuple[str, ...]]] = {
-    "compd.commissioning": ("compd-commissioning's: the daemon's package lacks it",
-                            ("compd.commissioning",)),
-    "compd.identify": ("compd-commissioning's (scipy): the daemon's package lacks it",
-                       ("compd.identify", "compd.commissioning")),
+    "compd.commissioning": ("compd-commissioning's: the daemon's package lacks it", ("compd.commissioning",)),
+    "compd.identify": (
+        "compd-commissioning's (scipy): the daemon's package lacks it",
+        ("compd.identify", "compd.commissioning"),
+    ),
     "compd.plant.telemetry": ("paho-mqtt and protobuf: only a config with `telemetry` starts MQTT", ()),
-    "compd.plant.sparkplug": ("protobuf: only a config with `telemetry` speaks Sparkplug B",
-                              ("compd.plant.telemetry",)),
+    "compd.plant.sparkplug": (
+        "protobuf: only a config with `telemetry` speaks Sparkplug B",
+        ("compd.plant.telemetry",),
+    ),
     "compd.plant.opcua": ("asyncua and cryptography: only a config with `opcua` serves OPC UA", ()),
-    "compd.plant.material": ("cryptography: only a config with `opcua` has certificate files",
-                             ("compd.plant.opcua",)),
+    "compd.plant.material": ("cryptography: only a config with `opcua` has certificate files", ("compd.plant.opcua",)),
 }
 
 
@@ -87,8 +89,9 @@ def circles(package: str) -> list[list[str]]:
 
 def lint_imports(cwd: Path, pythonpath: Path) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(pythonpath)}
-    return subprocess.run([str(LINT_IMPORTS), "--no-cache"], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run(
+        [str(LINT_IMPORTS), "--no-cache"], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
 
 
 def test_every_package_imports_only_the_floors_below_it() -> None:
@@ -126,10 +129,17 @@ def test_a_circle_inside_one_floor_is_found(tmp_path: Path) -> None:
     clock.write_text(clock.read_text() + "\n\ndef _loop() -> None:\n    from compd.core import frame  # noqa: F401\n")
     frame = tree / "compd" / "core" / "frame.py"
     frame.write_text(frame.read_text() + "\n\ndef _back() -> None:\n    from compd.core import clock  # noqa: F401\n")
-    code = ("import sys; sys.path.insert(0, sys.argv[1]); sys.path.insert(1, sys.argv[2]);"
-            "import test_import_contract as t; print(t.circles('compd'))")
-    run = subprocess.run([sys.executable, "-c", code, str(tree), str(Path(__file__).parent)],
-                         capture_output=True, text=True, timeout=600, cwd=tree)
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]); sys.path.insert(1, sys.argv[2]);"
+        "import test_import_contract as t; print(t.circles('compd'))"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code, str(tree), str(Path(__file__).parent)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tree,
+    )
     assert run.returncode == 0, run.stderr
     assert "['compd.core.clock', 'compd.core.frame']" in run.stdout
 
@@ -163,8 +173,11 @@ def lazy_imports(root: Path) -> list[tuple[str, int, str, str]]:
         if rel.parts[1] == "cli":
             continue
         importer, package = _module_name(path, root)
-        functions = [n for n in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
-                     if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+        functions = [
+            n
+            for n in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))
+        ]
         seen = set()
         for fn in functions:
             for node in ast.walk(fn):
@@ -185,8 +198,10 @@ def not_optional(root: Path) -> list[str]:
     `file:line: importer imports module`."""
     bad = []
     for file, line, importer, module in lazy_imports(root):
-        allowed = any(_within(module, key) and not any(_within(importer, home) for home in homes)
-                      for key, (_, homes) in OPTIONAL.items())
+        allowed = any(
+            _within(module, key) and not any(_within(importer, home) for home in homes)
+            for key, (_, homes) in OPTIONAL.items()
+        )
         if not allowed:
             bad.append(f"{file}:{line}: {importer} imports {module} inside a function")
     return bad
@@ -211,10 +226,16 @@ def test_a_lazy_import_of_the_daemons_own_is_named(tmp_path: Path) -> None:
     tree = _copy(tmp_path)
     frame = tree / "compd" / "cycle" / "publish.py"
     lines = frame.read_text().count("\n")
-    frame.write_text(frame.read_text() + "\n\ndef _late() -> None:\n    from compd.config import load_config  # noqa: F401\n"
-                     "    from compd.plant.opcua import OpcUaServer  # noqa: F401\n")
+    frame.write_text(
+        frame.read_text() + "\n\ndef _late() -> None:\n    from compd.config import load_config  # noqa: F401\n"
+        "    from compd.plant.opcua import OpcUaServer  # noqa: F401\n"
+    )
     cli = tree / "compd" / "cli" / "tools.py"
-    cli.write_text(cli.read_text() + "\n\ndef _late() -> None:\n    from compd.config import load_config  # noqa: F401\n")
+    cli.write_text(
+        cli.read_text() + "\n\ndef _late() -> None:\n    from compd.config import load_config  # noqa: F401\n"
+    )
     found = not_optional(tree)
     assert found == [f"compd/cycle/publish.py:{lines + 4}: compd.cycle.publish imports compd.config inside a function"]
-    assert (str(Path("compd/cycle/publish.py")), lines + 5, "compd.cycle.publish", "compd.plant.opcua") in lazy_imports(tree)
+    assert (str(Path("compd/cycle/publish.py")), lines + 5, "compd.cycle.publish", "compd.plant.opcua") in lazy_imports(
+        tree
+    )

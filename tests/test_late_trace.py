@@ -14,8 +14,10 @@ def _waking(t: float, by: int, comm: str = "python") -> str:
 
 
 def _switch(t: float, state: str, to: int = OTHER) -> str:
-    return (f"python {CYCLE} [001] {t:.6f}: sched:sched_switch: prev_comm=python prev_pid={CYCLE} prev_prio=49"
-            f" prev_state={state} ==> next_comm=hog next_pid={to} next_prio=120")
+    return (
+        f"python {CYCLE} [001] {t:.6f}: sched:sched_switch: prev_comm=python prev_pid={CYCLE} prev_prio=49"
+        f" prev_state={state} ==> next_comm=hog next_pid={to} next_prio=120"
+    )
 
 
 def _fault(t: float) -> str:
@@ -53,8 +55,11 @@ def test_switched_out_runnable_is_preempted_and_woken_from_outside_is_blocked() 
 
 def test_the_clock_s_own_sleep_before_the_deadline_is_not_a_cause() -> None:
     deadline = 40.0
-    lines = [_switch(deadline - 0.0015, "S"), _waking(deadline - MARGIN_S + 0.00001, 0, "swapper/1"),
-             _fault(deadline - 0.0015)]
+    lines = [
+        _switch(deadline - 0.0015, "S"),
+        _waking(deadline - MARGIN_S + 0.00001, 0, "swapper/1"),
+        _fault(deadline - 0.0015),
+    ]
     assert _causes(lines, ("late", deadline, deadline + 0.0003)) == ["host"]
 
 

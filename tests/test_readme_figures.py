@@ -25,9 +25,22 @@ def test_lvr_library_span_figures(tmp_path: Path) -> None:
     assert m, "the README's library_span sentence changed: update this test"
     scenario, rate, span_a, rmse_a, axis, rmse_log, span_b, rmse_b = m.groups()
     r = subprocess.run(
-        [sys.executable, "-m", "hil_sim", "log", "--scenario", str(ROOT / scenario), "--rate-s", rate,
-         "--out", str(tmp_path / "gantry.csv")],
-        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+        [
+            sys.executable,
+            "-m",
+            "hil_sim",
+            "log",
+            "--scenario",
+            str(ROOT / scenario),
+            "--rate-s",
+            rate,
+            "--out",
+            str(tmp_path / "gantry.csv"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
     )
     assert r.returncode == 0, r.stderr
     log = fitting.read_fit_log(tmp_path / "gantry.csv")
@@ -36,8 +49,11 @@ def test_lvr_library_span_figures(tmp_path: Path) -> None:
         oc = fitting.fit_model("lvr", log, None, None, options, baseline=False)
         return oc.report["axes"][axis]["rmse_um"], oc.model.params.n_components
 
-    for options, quoted in (({}, rmse_log), ({"library_span": int(span_a)}, rmse_a),
-                            ({"library_span": int(span_b)}, rmse_b)):
+    for options, quoted in (
+        ({}, rmse_log),
+        ({"library_span": int(span_a)}, rmse_a),
+        ({"library_span": int(span_b)}, rmse_b),
+    ):
         got, n = rmse(options)
         digits = len(quoted.partition(".")[2])
         assert abs(got - float(quoted)) <= 0.51 * 10.0**-digits, (options, got, quoted)

@@ -12,14 +12,37 @@ from compd.core.registry import NOT_INSTALLED, commissioning_missing
 
 __all__ = ["build_parser", "main", "writing"]
 
-ORDER = ['run', 'status', 'probe', 'arm-model', 'promote', 'opcua-cert', 'sparkplug-watch', 'docs', 'check-config', 'replay', 'output-test', 'plot', 'report', 'encode', 'decode', 'testplan', 'fit', 'predict', 'score', 'xi', 'bench']  # as `compd --help` lists them
+ORDER = [
+    "run",
+    "status",
+    "probe",
+    "arm-model",
+    "promote",
+    "opcua-cert",
+    "sparkplug-watch",
+    "docs",
+    "check-config",
+    "replay",
+    "output-test",
+    "plot",
+    "report",
+    "encode",
+    "decode",
+    "testplan",
+    "fit",
+    "predict",
+    "score",
+    "xi",
+    "bench",
+]  # as `compd --help` lists them
 
 
 def build_parser() -> Parser:
     from compd import version
 
     p = Parser(
-        prog="compd", description="Real-time thermal-error compensation for CNC machine tools.",
+        prog="compd",
+        description="Real-time thermal-error compensation for CNC machine tools.",
         epilog="example:\n  compd check-config configs/demo.yaml\n  compd run configs/demo.yaml --observe\n"
         "  compd status --config configs/demo.yaml\n\n`compd COMMAND --help` describes a command.",
     )

@@ -21,6 +21,7 @@ ARGUMENTS: dict[str, Callable[[Any], None]] = {}  # name → what adds its parse
 def command(name: str, arguments: Callable[[Any], None]) -> Callable[[Handler], Handler]:
     """Register a command: its handler, and `arguments(sub)`, which adds its parser to the
     subparsers `sub` (written beside the handler)."""
+
     def deco(fn: Handler) -> Handler:
         COMMANDS[name] = fn
         ARGUMENTS[name] = arguments
@@ -109,9 +110,7 @@ def check_plot(path: str | None, flag: str = "--plot") -> None:
             raise BadInput(f"{flag} needs matplotlib: pip install 'compd[plot]'", path=flag) from None
         known = FigureCanvasBase.get_supported_filetypes()
         if suffix not in known:
-            raise BadInput(
-                f"cannot plot to a .{suffix} file (known: {', '.join(sorted(known))})", file=path, path=flag
-            )
+            raise BadInput(f"cannot plot to a .{suffix} file (known: {', '.join(sorted(known))})", file=path, path=flag)
     check_output(path, flag)
 
 

@@ -84,43 +84,67 @@ def describe(topic: str, data: bytes, resolver: Any, units: dict[tuple[str, str]
         alias = f", alias {m.alias}" if m.alias is not None and kind.endswith("BIRTH") else ""
         print(f"  {name} = {value}  ({m.datatype.name}{alias})", file=out)
     if unknown:
-        print(f"  (aliases {', '.join(map(str, unknown))}: no birth of this node seen since the watch began;"
-              " its next birth, or a rebirth, names them)", file=out)
+        print(
+            f"  (aliases {', '.join(map(str, unknown))}: no birth of this node seen since the watch began;"
+            " its next birth, or a rebirth, names them)",
+            file=out,
+        )
 
 
 def args_sparkplug_watch(sub: Any) -> None:
     """`compd sparkplug-watch`'s arguments."""
     s = sub.add_parser(
-        "sparkplug-watch", help="print what compd publishes on the plant's MQTT broker, decoded",
+        "sparkplug-watch",
+        help="print what compd publishes on the plant's MQTT broker, decoded",
         description="Subscribe to the Sparkplug B topics of a group (the config's telemetry section says where"
-                    " and how, or --host) and print every message decoded: births with each metric's alias,"
-                    " data by name (aliases resolved from the births seen), deaths, STATE. Exit 0 after"
-                    " --count messages, 1 when none came within --timeout-s or the broker cannot be reached.",
+        " and how, or --host) and print every message decoded: births with each metric's alias,"
+        " data by name (aliases resolved from the births seen), deaths, STATE. Exit 0 after"
+        " --count messages, 1 when none came within --timeout-s or the broker cannot be reached.",
         epilog="example:\n  compd sparkplug-watch --config /etc/compd/compd.yaml --count 3\n"
-               "  compd sparkplug-watch --host 127.0.0.1 --port 1883 --group hall2",
+        "  compd sparkplug-watch --host 127.0.0.1 --port 1883 --group hall2",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    s.add_argument("--config", default=None, metavar="CONFIG", help="take broker, TLS, user and group from its telemetry section")
+    s.add_argument(
+        "--config", default=None, metavar="CONFIG", help="take broker, TLS, user and group from its telemetry section"
+    )
     s.add_argument("--host", default=None, help="the broker (without --config; plain TCP, no user)")
     s.add_argument("--port", type=int, default=1883, help="the broker's port with --host (default 1883)")
-    s.add_argument("--group", default=None, metavar="GROUP",
-                   help="the Sparkplug group to watch (default: the config's group_id, else every group)")
-    s.add_argument("--node", default=None, metavar="EDGE_NODE",
-                   help="the edge node --rebirth asks (default: the config's edge_node_id)")
-    s.add_argument("--rebirth", action="store_true",
-                   help="ask the edge node for its births first (an NCMD Node Control/Rebirth, as a Sparkplug host"
-                        " that joins late does), so that its data can be shown by name")
+    s.add_argument(
+        "--group",
+        default=None,
+        metavar="GROUP",
+        help="the Sparkplug group to watch (default: the config's group_id, else every group)",
+    )
+    s.add_argument(
+        "--node",
+        default=None,
+        metavar="EDGE_NODE",
+        help="the edge node --rebirth asks (default: the config's edge_node_id)",
+    )
+    s.add_argument(
+        "--rebirth",
+        action="store_true",
+        help="ask the edge node for its births first (an NCMD Node Control/Rebirth, as a Sparkplug host"
+        " that joins late does), so that its data can be shown by name",
+    )
     s.add_argument("--count", type=int, default=None, metavar="N", help="stop after N messages (default: until Ctrl-C)")
-    s.add_argument("--timeout-s", type=positive, default=None, dest="timeout_s", metavar="S",
-                   help="give up (exit 1) when S seconds pass without a message")
+    s.add_argument(
+        "--timeout-s",
+        type=positive,
+        default=None,
+        dest="timeout_s",
+        metavar="S",
+        help="give up (exit 1) when S seconds pass without a message",
+    )
 
 
 def _ask_rebirth(client: Any, group: str, node: str) -> None:
     """Publish NCMD `Node Control/Rebirth` = true to the edge node, once the subscription is in place."""
     from compd.plant.sparkplug import DataType, MetricDef, encode, topic
 
-    payload = encode([(MetricDef("Node Control/Rebirth", DataType.Boolean), True)],
-                     timestamp_ms=int(time.time() * 1000), seq=None)
+    payload = encode(
+        [(MetricDef("Node Control/Rebirth", DataType.Boolean), True)], timestamp_ms=int(time.time() * 1000), seq=None
+    )
     client.publish(topic(group, "NCMD", node), payload, qos=1)
     print(f"compd: asked {group}/{node} for its births", file=sys.stderr, flush=True)
 
@@ -149,8 +173,9 @@ def cmd_sparkplug_watch(args: argparse.Namespace) -> int:
         broker, group, node = BrokerSpec(host=args.host, port=args.port), None, None
     group, node = args.group or group, args.node or node
     if args.rebirth and not (group and node):
-        raise BadInput("--rebirth needs the group and the edge node: give --config, or --group and --node",
-                       path="--rebirth")
+        raise BadInput(
+            "--rebirth needs the group and the edge node: give --config, or --group and --node", path="--rebirth"
+        )
     topic = f"{NAMESPACE}/{group}/#" if group else f"{NAMESPACE}/#"
     inbox: list[tuple[str, bytes]] = []
     connected: list[Any] = []
@@ -173,8 +198,10 @@ def cmd_sparkplug_watch(args: argparse.Namespace) -> int:
         while not connected:
             client.loop(timeout=0.1)
             if time.monotonic() > deadline:
-                print(f"compd: the broker at {where} did not accept the connection within {CONNECT_TIMEOUT_S:g} s",
-                      file=sys.stderr)
+                print(
+                    f"compd: the broker at {where} did not accept the connection within {CONNECT_TIMEOUT_S:g} s",
+                    file=sys.stderr,
+                )
                 return 1
         if connected[0].is_failure:
             print(f"compd: the broker at {where} refused the connection: {connected[0]}", file=sys.stderr)

@@ -38,16 +38,21 @@ def installed_command(name: str, needs: str) -> Callable[[argparse.Namespace], i
 
     ep = entry_point("compd.commands", name)
     if ep is None:
-        raise BadInput(f"`compd {name}` {needs}, which is not installed (no '{name}' in entry point group"
-                       " compd.commands): install compd from its source tree, with the rig, to run it")
+        raise BadInput(
+            f"`compd {name}` {needs}, which is not installed (no '{name}' in entry point group"
+            " compd.commands): install compd from its source tree, with the rig, to run it"
+        )
     return load_entry_point(ep, f"`compd {name}`")
 
 
 def args_encode(sub: Any) -> None:
     """`compd encode`'s arguments."""
-    s = sub.add_parser("encode", help="the 16-bit word for two corrections (µm)",
-                       description="Print the 16-bit compensation word for two corrections C1, C2 (µm), with what each byte means.",
-                       epilog="example:\n  compd encode 12 -3.5")
+    s = sub.add_parser(
+        "encode",
+        help="the 16-bit word for two corrections (µm)",
+        description="Print the 16-bit compensation word for two corrections C1, C2 (µm), with what each byte means.",
+        epilog="example:\n  compd encode 12 -3.5",
+    )
     s.add_argument("c1_um", type=finite, metavar="C1_UM")
     s.add_argument("c2_um", type=finite, metavar="C2_UM")
     s.add_argument("--lsb-um", type=positive, default=1.0, dest="lsb_um")
@@ -75,9 +80,12 @@ def cmd_encode(args: argparse.Namespace) -> int:
 
 def args_decode(sub: Any) -> None:
     """`compd decode`'s arguments."""
-    s = sub.add_parser("decode", help="direction, enable and magnitude of both axes of a word",
-                       description="Print direction, enable and magnitude of both axes of a 16-bit compensation word.",
-                       epilog="example:\n  compd decode 0xC543")
+    s = sub.add_parser(
+        "decode",
+        help="direction, enable and magnitude of both axes of a word",
+        description="Print direction, enable and magnitude of both axes of a 16-bit compensation word.",
+        epilog="example:\n  compd decode 0xC543",
+    )
     s.add_argument("word", metavar="WORD")
     s.add_argument("--lsb-um", type=positive, default=1.0, dest="lsb_um")
 
@@ -92,21 +100,24 @@ def cmd_decode(args: argparse.Namespace) -> int:
         state = "enabled" if code.enable else "disabled"
         value = code.direction * code.magnitude * args.lsb_um if code.enable else 0.0
         print(
-            f"{name}: direction {sign} enable {int(code.enable)} ({state}) magnitude {code.magnitude}"
-            f" -> {value:+g} um"
+            f"{name}: direction {sign} enable {int(code.enable)} ({state}) magnitude {code.magnitude} -> {value:+g} um"
         )
     return 0
 
 
 def args_docs(sub: Any) -> None:
     """`compd docs`'s arguments."""
-    s = sub.add_parser("docs", help="generate docs/configuration.md from the config schema",
-                       description="Generate the configuration reference (docs/configuration.md) from the config schema, or with --metrics the metrics reference (docs/metrics.md); --check tells whether FILE is up to date.",
-                       epilog="example:\n  compd docs --out docs/configuration.md\n  compd docs --out docs/configuration.md --check\n  compd docs --metrics --out docs/metrics.md")
+    s = sub.add_parser(
+        "docs",
+        help="generate docs/configuration.md from the config schema",
+        description="Generate the configuration reference (docs/configuration.md) from the config schema, or with --metrics the metrics reference (docs/metrics.md); --check tells whether FILE is up to date.",
+        epilog="example:\n  compd docs --out docs/configuration.md\n  compd docs --out docs/configuration.md --check\n  compd docs --metrics --out docs/metrics.md",
+    )
     s.add_argument("--out", default=None, metavar="FILE", help="write here (default: stdout)")
     s.add_argument("--check", action="store_true", help="exit 1 if FILE differs from a fresh generation")
-    s.add_argument("--metrics", action="store_true",
-                   help="the metrics reference (docs/metrics.md) instead of the configuration's")
+    s.add_argument(
+        "--metrics", action="store_true", help="the metrics reference (docs/metrics.md) instead of the configuration's"
+    )
 
 
 @command("docs", args_docs)
@@ -144,31 +155,57 @@ def cmd_docs(args: argparse.Namespace) -> int:
 
 def args_bench(sub: Any) -> None:
     """`compd bench`'s arguments."""
-    s = sub.add_parser("bench", help="time the 2 ms cycle against real Modbus devices, beside a bare and a naive loop",
-                       description="Time the 2 ms cycle against Modbus devices served by the test rig, beside a bare"
-                                   " sleep-and-spin loop (the machine's limit) and a naive loop (needs the rig installed).",
-                       epilog="example:\n  compd bench --cycles 20000 --json bench.json")
+    s = sub.add_parser(
+        "bench",
+        help="time the 2 ms cycle against real Modbus devices, beside a bare and a naive loop",
+        description="Time the 2 ms cycle against Modbus devices served by the test rig, beside a bare"
+        " sleep-and-spin loop (the machine's limit) and a naive loop (needs the rig installed).",
+        epilog="example:\n  compd bench --cycles 20000 --json bench.json",
+    )
     s.add_argument("--cycles", type=int, default=100_000, metavar="N", help="cycles of compd's loop")
     s.add_argument("--json", default=None, metavar="FILE", help="write the result as JSON (keys: docs/formats.md)")
     s.add_argument("--scheduler", choices=("other", "fifo"), default="other", help="loop.realtime.scheduler")
     s.add_argument("--period-ms", type=positive, default=2.0, dest="period_ms")
-    s.add_argument("--load", type=int, default=0, metavar="N",
-                   help="start N CPU-bound processes beside the loops for the run (default 0)")
-    s.add_argument("--io", choices=("process", "thread"), default="process",
-                   help="loop.io: device I/O and the service in processes of their own (default) or threads of"
-                        " the loop's process")
-    s.add_argument("--late-us", type=positive, default=200.0, dest="late_us", metavar="US",
-                   help="cycles later than this are matched with the other threads' work (default 200)")
     s.add_argument(
-        "--naive-cycles", type=int, default=None, dest="naive_cycles",
+        "--load",
+        type=int,
+        default=0,
+        metavar="N",
+        help="start N CPU-bound processes beside the loops for the run (default 0)",
+    )
+    s.add_argument(
+        "--io",
+        choices=("process", "thread"),
+        default="process",
+        help="loop.io: device I/O and the service in processes of their own (default) or threads of the loop's process",
+    )
+    s.add_argument(
+        "--late-us",
+        type=positive,
+        default=200.0,
+        dest="late_us",
+        metavar="US",
+        help="cycles later than this are matched with the other threads' work (default 200)",
+    )
+    s.add_argument(
+        "--naive-cycles",
+        type=int,
+        default=None,
+        dest="naive_cycles",
         help="cycles of the hand-written loop (default min(N, 5000))",
     )
     s.add_argument(
-        "--trace", default=None, metavar="FILE",
+        "--trace",
+        default=None,
+        metavar="FILE",
         help="run compd's loop under perf and write why each late or slow cycle was (needs perf; short runs)",
     )
     s.add_argument(
-        "--bare-cycles", type=int, default=None, dest="bare_cycles", metavar="N",
+        "--bare-cycles",
+        type=int,
+        default=None,
+        dest="bare_cycles",
+        metavar="N",
         help="cycles of the bare sleep-and-spin loop, the machine's limit (default: as --cycles; 0: none)",
     )
 

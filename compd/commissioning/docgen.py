@@ -262,15 +262,20 @@ def generate() -> str:
     for kind, cls in _kinds(SOURCES):
         intro = _first_paragraph(cls.Config) or _first_paragraph(cls)
         if kind in plugins:  # not compd's own: say where it comes from
-            intro += (f"\n\nNot part of compd: added by an installed package through the entry point"
-                      f" `{kind} = {plugins[kind].value}` (group `{SOURCES.group}`).")
+            intro += (
+                f"\n\nNot part of compd: added by an installed package through the entry point"
+                f" `{kind} = {plugins[kind].value}` (group `{SOURCES.group}`)."
+            )
         d.section(f"sources: kind {kind}", cls.Config, 3, intro)
     d.lines += ["## Models", ""]
     d.section("model", core_config.ModelSection, 3)
     d.section("model: contributions", core_config.ContributionsSection, 3, CONTRIBUTIONS_INTRO)
-    d.section("model: contributions, each item", core_config.ContributionSection, 3,
-              "A model section as above (kind, file or params, inputs, outputs, update_period_s) with these"
-              " further keys.")
+    d.section(
+        "model: contributions, each item",
+        core_config.ContributionSection,
+        3,
+        "A model section as above (kind, file or params, inputs, outputs, update_period_s) with these further keys.",
+    )
     for kind, cls in _kinds(MODELS):
         intro = _first_paragraph(sys.modules[cls.__module__])
         d.section(f"model: kind {kind}, params", cls.Params, 3, intro)

@@ -60,7 +60,10 @@ def render_matrix(results: Sequence[dict[str, Any]]) -> str:
             "n/a" if safe is None else f"{safe:.3f}",
             str(r["samples_lost"]),
             (r.get("event") or "—") + ("" if r.get("logged") else " (not in the log)"),
-            "—" if not r.get("word_band_um") else (  # a row that does not see the word
+            "—"
+            if not r.get("word_band_um")
+            # a row that does not see the word
+            else (
                 f"{r['word_max_step_lsb']}, {r['word_pace_ratio']:.2f},"
                 f" {r['word_max_error_um']:.2f} ({r['word_band_um']:.2f})"
             ),

@@ -127,8 +127,15 @@ def _fold_rms(scores: list[holdout.FoldScore], n_targets: int) -> list[list[floa
 
 
 def compare_with_mlr(
-    kind: str, log: Log, inputs: list[str], targets: list[str], options: dict[str, Any], axes: list[str],
-    warnings: list[str], ours: np.ndarray | None = None, folds_out: dict[str, list[float]] | None = None,
+    kind: str,
+    log: Log,
+    inputs: list[str],
+    targets: list[str],
+    options: dict[str, Any],
+    axes: list[str],
+    warnings: list[str],
+    ours: np.ndarray | None = None,
+    folds_out: dict[str, list[float]] | None = None,
 ) -> dict[str, Any]:
     """The fitted kind against MLR on the same log and the same inputs, both scored held out
     (`held_out_rmse`; `ours`, the kind's, when already computed on the same folds); a warning per
@@ -187,25 +194,34 @@ def residual_stage(log: Log, files: list[str], targets: list[str] | None) -> Sta
     seen: set[Path] = set()
     for file in files:
         if Path(file).resolve() in seen:
-            raise BadInput("given twice (its prediction would be subtracted twice)", file=str(file),
-                           path="--on-residual-of")
+            raise BadInput(
+                "given twice (its prediction would be subtracted twice)", file=str(file), path="--on-residual-of"
+            )
         seen.add(Path(file).resolve())
         model = load_model(file)
         for name in model.inputs:
             if name not in log.columns:
-                raise BadInput(f"column {name!r}, an input of {file} (--on-residual-of), is not in the log",
-                               file=log.file)
+                raise BadInput(
+                    f"column {name!r}, an input of {file} (--on-residual-of), is not in the log", file=log.file
+                )
         pred = predict_log(model, log)
         name = Path(file).name
         for k, axis in enumerate(model.outputs):
             pred_um[axis] = pred_um[axis] + pred[:, k] if axis in pred_um else pred[:, k].astype(float)
             producers.setdefault(axis, []).append(name)
         models.append(model)
-        info.append({
-            "file": name, "path": str(file), "sha256": hashlib.sha256(Path(file).read_bytes()).hexdigest(),
-            "kind": model.kind, "inputs": list(model.inputs), "outputs": list(model.outputs),
-            "fitted_at": model.fit_info.get("fitted_at"), "log": model.fit_info.get("log"),
-        })
+        info.append(
+            {
+                "file": name,
+                "path": str(file),
+                "sha256": hashlib.sha256(Path(file).read_bytes()).hexdigest(),
+                "kind": model.kind,
+                "inputs": list(model.inputs),
+                "outputs": list(model.outputs),
+                "fitted_at": model.fit_info.get("fitted_at"),
+                "log": model.fit_info.get("log"),
+            }
+        )
     covered: dict[str, list[str]] = {}
     left_out: dict[str, int] = {}
     residual, whole = log.data.copy(), log.data.copy()
@@ -223,19 +239,32 @@ def residual_stage(log: Log, files: list[str], targets: list[str] | None) -> Sta
         verb = "predicts" if len(info) == 1 else "predict"
         noun = "axis" if len(pred_um) == 1 else "axes"
         those = "that axis" if len(pred_um) == 1 else "those axes"
-        raise BadInput(f"{names} {verb} {noun} {', '.join(sorted(pred_um))}, and no target is of {those}"
-                       f" (targets: {', '.join(tcols)})", path="--on-residual-of")
-    return Stage(info, models, pred_um, covered, left_out,
-                 Log(log.file, list(log.columns), residual), Log(log.file, list(log.columns), whole))
+        raise BadInput(
+            f"{names} {verb} {noun} {', '.join(sorted(pred_um))}, and no target is of {those}"
+            f" (targets: {', '.join(tcols)})",
+            path="--on-residual-of",
+        )
+    return Stage(
+        info,
+        models,
+        pred_um,
+        covered,
+        left_out,
+        Log(log.file, list(log.columns), residual),
+        Log(log.file, list(log.columns), whole),
+    )
 
 
 def stage_line(stage: Stage) -> str:
     """One line saying what a fit `--on-residual-of` is fitted on."""
-    models = ", ".join(f"{i['file']} ({i['kind']}, fitted on {i['log'] or 'a log it does not name'})"
-                       for i in stage.info)
+    models = ", ".join(
+        f"{i['file']} ({i['kind']}, fitted on {i['log'] or 'a log it does not name'})" for i in stage.info
+    )
     its = "its" if len(stage.info) == 1 else "their"
-    parts = [f"{t} less {its} prediction" if files else f"{t} as is (no model before predicts it)"
-             for t, files in stage.covered.items()]
+    parts = [
+        f"{t} less {its} prediction" if files else f"{t} as is (no model before predicts it)"
+        for t, files in stage.covered.items()
+    ]
     left = sum(stage.left_out.values())
     tail = f"; {left} rows left out where the prediction is not finite" if left else ""
     leave = "leaves" if len(stage.info) == 1 else "leave"
@@ -247,12 +276,15 @@ def stagewise_note(stage: Stage, log_file: str) -> str:
     name = Path(log_file).name
     groups = {
         "fitted on this log: the sum and the first alone have seen every fold's errors through that fit"
-        " (which flatters both against the single-stage fits, refitted per fold)":
-            [i for i in stage.info if i["log"] == name],
-        "fitted on another log, so on this one the sum and the first alone are held out as well":
-            [i for i in stage.info if i["log"] not in (name, None)],
-        "fitted on a log its file does not name: the figures cannot say whether it saw this one":
-            [i for i in stage.info if i["log"] is None],
+        " (which flatters both against the single-stage fits, refitted per fold)": [
+            i for i in stage.info if i["log"] == name
+        ],
+        "fitted on another log, so on this one the sum and the first alone are held out as well": [
+            i for i in stage.info if i["log"] not in (name, None)
+        ],
+        "fitted on a log its file does not name: the figures cannot say whether it saw this one": [
+            i for i in stage.info if i["log"] is None
+        ],
     }
     text = "the models fitted before are used as given in every fold: their coefficients are not refitted per fold"
     for what, infos in groups.items():
@@ -264,7 +296,7 @@ def stagewise_note(stage: Stage, log_file: str) -> str:
 
 STAGEWISE_FORMS = {
     "sum_held_out_rmse_um": "the models fitted before, as given, plus the kind refitted per fold on what they"
-                            " leave in the other folds",
+    " leave in the other folds",
     "alone_held_out_rmse_um": "the kind on the same inputs fitted on the whole error, no model before it",
     "first_alone_rmse_um": "the models fitted before alone, as given, on the same rows",
     "mlr_all_inputs_held_out_rmse_um": "MLR on the temperature inputs of every model, on the whole error",
@@ -280,7 +312,12 @@ def _fold_rows(cut: list[holdout.Fold], n: int) -> np.ndarray:
 
 
 def compare_stagewise(
-    kind: str, stage: Stage, inputs: list[str], targets: list[str], options: dict[str, Any], axes: list[str],
+    kind: str,
+    stage: Stage,
+    inputs: list[str],
+    targets: list[str],
+    options: dict[str, Any],
+    axes: list[str],
     warnings: list[str],
 ) -> tuple[dict[str, Any], np.ndarray | None]:
     """The stage-by-stage fit against the single-stage ones, per axis, on the same folds as the report's
@@ -310,14 +347,20 @@ def compare_stagewise(
     out_axes: dict[str, Any] = {}
     for k, (axis, t) in enumerate(zip(axes, targets, strict=True)):
         if not stage.covered.get(t):
-            out_axes[axis] = {"on_residual": False,
-                              "note": f"{first} {'predicts' if len(stage.info) == 1 else 'predict'} no axis"
-                                      f" {axis}: {kind} fitted on {t} as is"}
+            out_axes[axis] = {
+                "on_residual": False,
+                "note": f"{first} {'predicts' if len(stage.info) == 1 else 'predict'} no axis"
+                f" {axis}: {kind} fitted on {t} as is",
+            }
             continue
         r = (Y[:, k] - stage.pred_um[error_axis(t) or t])[scored]
         r = r[np.isfinite(r)]
-        entry: dict[str, Any] = {"on_residual": True, "residual_of": stage.covered[t],
-                                 "rows_without_prediction": stage.left_out[t], "held_out_rows": int(r.size)}
+        entry: dict[str, Any] = {
+            "on_residual": True,
+            "residual_of": stage.covered[t],
+            "rows_without_prediction": stage.left_out[t],
+            "held_out_rows": int(r.size),
+        }
         for key in STAGEWISE_FORMS:  # in the order the forms are described
             if key == "first_alone_rmse_um":
                 entry[key] = float(np.sqrt(np.mean(r * r))) if r.size else None
@@ -327,11 +370,15 @@ def compare_stagewise(
         total, alone = entry["sum_held_out_rmse_um"], entry["alone_held_out_rmse_um"]
         mlr = entry["mlr_all_inputs_held_out_rmse_um"]
         if total is not None and alone is not None and total > alone:
-            warnings.append(f"{kind}: axis {axis}: {first} + {kind} predicts held out worse ({total:.3f} um)"
-                            f" than {kind} alone on the whole error ({alone:.3f} um)")
+            warnings.append(
+                f"{kind}: axis {axis}: {first} + {kind} predicts held out worse ({total:.3f} um)"
+                f" than {kind} alone on the whole error ({alone:.3f} um)"
+            )
         if total is not None and mlr is not None and total > mlr:
-            warnings.append(f"{kind}: axis {axis}: {first} + {kind} predicts held out worse ({total:.3f} um)"
-                            f" than MLR on {', '.join(mlr_inputs)} ({mlr:.3f} um)")
+            warnings.append(
+                f"{kind}: axis {axis}: {first} + {kind} predicts held out worse ({total:.3f} um)"
+                f" than MLR on {', '.join(mlr_inputs)} ({mlr:.3f} um)"
+            )
     block: dict[str, Any] = {
         "method": holdout.METHOD,
         "folds": how,
@@ -437,9 +484,11 @@ def fit_model(
     for why in result.report.get("at_bounds", []):
         warnings.append(f"{kind}: {why}")
     for why in result.report.get("lag", {}).get("at_bounds", []):
-        warnings.append(f"{kind}: {why}: the sensor may lag more than the lead goes; the lead kept still predicts"
-                        " the held-out folds better than none (its held-out RMSE below says by how much): keep it,"
-                        " or mount the sensor closer to the heat")
+        warnings.append(
+            f"{kind}: {why}: the sensor may lag more than the lead goes; the lead kept still predicts"
+            " the held-out folds better than none (its held-out RMSE below says by how much): keep it,"
+            " or mount the sensor closer to the heat"
+        )
     for axis, s in axes.items():
         before = _rms(log.matrix([t for t in tcols if error_axis(t) == axis] or tcols[:1])[:, 0])
         if before > 0 and s["rmse_um"] > REMOVES_NOTHING * before:
@@ -478,16 +527,18 @@ def fit_model(
     if stage is not None:
         report["on_residual_of"] = stage.info
         if baseline:
-            report["stagewise"], ours = compare_stagewise(kind, stage, fit_inputs, tcols, held_options,
-                                                          model.outputs, warnings)
+            report["stagewise"], ours = compare_stagewise(
+                kind, stage, fit_inputs, tcols, held_options, model.outputs, warnings
+            )
     kept = result.report.get("c1_form", {}).get("held_out_folds")
     if stage is None and kept and len(tcols) == 1:  # AR(1) scored its chosen form on these folds already
         folds: list[holdout.FoldScore] = [(np.array([sq]), np.array([n])) for sq, n in kept]
         ours = holdout.pooled_rmse(folds, 1)
         fold_rms.update(zip(model.outputs, _fold_rms(folds, 1), strict=True))
     if baseline and kind != "mlr":
-        report["baseline_mlr"] = compare_with_mlr(kind, log, fit_inputs, tcols, held_options,
-                                                  model.outputs, warnings, ours, fold_rms)
+        report["baseline_mlr"] = compare_with_mlr(
+            kind, log, fit_inputs, tcols, held_options, model.outputs, warnings, ours, fold_rms
+        )
     if baseline and kind == "mlr":  # the baseline's own held-out figure (the probe adapter's σ_m, the tables)
         try:
             if ours is not None:
@@ -523,13 +574,25 @@ def fit_model(
     held = held or {a: v for a, v in report.get("held_out_rmse_um", {}).items() if isinstance(v, float)}
     if held:  # how far off the model is on rows its fit did not see (the probe adapter's σ_m)
         fit_info["held_out_rmse_um"] = held
-    for key in ("selection", "q2", "press", "cv", "n_components", "ljung_box", "converged", "dt_s",
-                "c2_at_unseen_speeds"):
+    for key in (
+        "selection",
+        "q2",
+        "press",
+        "cv",
+        "n_components",
+        "ljung_box",
+        "converged",
+        "dt_s",
+        "c2_at_unseen_speeds",
+    ):
         if key in result.report:
             fit_info[key] = result.report[key]
     if stage is not None:  # what was subtracted before the fit: a later check can tell it is the same model
-        before = [{k: i[k] for k in ("file", "sha256", "kind", "fitted_at")}
-                  for i in stage.info if set(i["outputs"]) & set(model.outputs)]  # those on this model's axes
+        before = [
+            {k: i[k] for k in ("file", "sha256", "kind", "fitted_at")}
+            for i in stage.info
+            if set(i["outputs"]) & set(model.outputs)
+        ]  # those on this model's axes
         if before:
             fit_info["on_residual_of"] = before
     model.fit_info = json.loads(json.dumps(fit_info))
@@ -559,8 +622,7 @@ def score_model(model: Model, log: Log) -> dict[str, Any]:
     axes = {axis: score_residual(Y[:, k], Y[:, k] - pred[:, k]) for k, axis in enumerate(model.outputs)}
     for axis, s in axes.items():
         if s["rows"] == 0:
-            raise BadInput(f"no measured error to score axis {axis} against", file=log.file,
-                           path=f"err_{axis}_um")
+            raise BadInput(f"no measured error to score axis {axis} against", file=log.file, path=f"err_{axis}_um")
     temps = log.temperature_columns()
     mlr_inputs = [c for c in model.inputs if c in temps] or temps
     baseline: dict[str, Any] = {"method": holdout.METHOD, "inputs": mlr_inputs}
@@ -578,8 +640,14 @@ def score_model(model: Model, log: Log) -> dict[str, Any]:
                 "model_rmse_um": float(np.sqrt(np.mean(r * r))) if r.size else float("nan"),
                 "mlr_held_out_rmse_um": float(mlr[k]),
             }
-    return {"kind": model.kind, "log": log.file, "rows": len(log), "inputs": model.inputs,
-            "axes": axes, "baseline_mlr": baseline}
+    return {
+        "kind": model.kind,
+        "log": log.file,
+        "rows": len(log),
+        "inputs": model.inputs,
+        "axes": axes,
+        "baseline_mlr": baseline,
+    }
 
 
 def write_model(model: Model, path: str | Path) -> None:
@@ -618,7 +686,10 @@ Row = tuple[str, str, FitOutcome | None, str | None]
 
 
 def fit_all(
-    log: Log, inputs: list[str] | None, targets: list[str] | None, options: dict[str, Any],
+    log: Log,
+    inputs: list[str] | None,
+    targets: list[str] | None,
+    options: dict[str, Any],
     stage: Stage | None = None,
 ) -> list[Row]:
     """Every applicable kind on the same log: (kind, label, outcome or None, why skipped).
@@ -666,8 +737,10 @@ def comparison_table(rows: list[Row]) -> str:
     """One line per model and axis: RMSE in sample (the rows it was fitted to) and held out
     (compd.identify.holdout), MLR held out on the same inputs, max error, fit time (the
     recommendation follows: `recommendation_lines`)."""
-    lines = [f"{'model':<16} {'axis':<8} {'in-sample':>10} {'held-out':>9} {'MLR held':>9} {'max_um':>8}"
-             f" {'fit_s':>7}  (RMSE um)"]
+    lines = [
+        f"{'model':<16} {'axis':<8} {'in-sample':>10} {'held-out':>9} {'MLR held':>9} {'max_um':>8}"
+        f" {'fit_s':>7}  (RMSE um)"
+    ]
     for _, label, oc, why in rows:
         if oc is None:
             lines.append(f"{label:<16} {'-':<8} {'-':>10} {'-':>9} {'-':>9} {'-':>8} {'-':>7}  skipped: {why}")
@@ -678,8 +751,13 @@ def comparison_table(rows: list[Row]) -> str:
             if oc.kind == "mlr":
                 mlr = held
             f = lambda v: f"{v:>9.3f}" if v is not None else f"{'-':>9}"  # noqa: E731
-            note = (f"  ruled out: {len(oc.blocking)} warning(s)" if oc.blocking
-                    else f"  {len(oc.warnings)} warning(s)" if oc.warnings else "")
+            note = (
+                f"  ruled out: {len(oc.blocking)} warning(s)"
+                if oc.blocking
+                else f"  {len(oc.warnings)} warning(s)"
+                if oc.warnings
+                else ""
+            )
             lines.append(
                 f"{label:<16} {axis:<8} {s['rmse_um']:>10.3f} {f(held)} {f(mlr)} {s['max_abs_err_um']:>8.3f}"
                 f" {oc.report['fit_time_s']:>7.2f}{note}"
@@ -694,16 +772,20 @@ def _stagewise_table(rows: list[Row]) -> list[str]:
     if not fits:
         return []
     first = " + ".join(fits[0][1].report["stagewise"]["first"])
-    lines = [f"held out, each kind fitted on what {first} leaves ({first} as given, not refitted per fold):",
-             f"{'model':<16} {'axis':<8} {'sum':>9} {'alone':>9} {'first':>9} {'MLR all':>9}  (RMSE um)"]
+    lines = [
+        f"held out, each kind fitted on what {first} leaves ({first} as given, not refitted per fold):",
+        f"{'model':<16} {'axis':<8} {'sum':>9} {'alone':>9} {'first':>9} {'MLR all':>9}  (RMSE um)",
+    ]
     f = lambda v: f"{v:>9.3f}" if v is not None else f"{'-':>9}"  # noqa: E731
     for label, oc in fits:
         for axis, e in oc.report["stagewise"]["axes"].items():
             if not e["on_residual"]:
                 lines.append(f"{label:<16} {axis:<8} {e['note']}")
                 continue
-            lines.append(f"{label:<16} {axis:<8} {f(e['sum_held_out_rmse_um'])} {f(e['alone_held_out_rmse_um'])}"
-                         f" {f(e['first_alone_rmse_um'])} {f(e['mlr_all_inputs_held_out_rmse_um'])}")
+            lines.append(
+                f"{label:<16} {axis:<8} {f(e['sum_held_out_rmse_um'])} {f(e['alone_held_out_rmse_um'])}"
+                f" {f(e['first_alone_rmse_um'])} {f(e['mlr_all_inputs_held_out_rmse_um'])}"
+            )
     return lines
 
 
@@ -745,8 +827,9 @@ def warn(lines: list[str]) -> None:
 STAGE_NAMES = ("spindle", "structure")  # the contributions of a recommended sum: the spindle's heat, then the rest
 
 
-def recommendation(log: Log, rows: list[Row], targets: list[str] | None, stage: Stage | None = None) -> tuple[
-        Any, list[Any]]:
+def recommendation(
+    log: Log, rows: list[Row], targets: list[str] | None, stage: Stage | None = None
+) -> tuple[Any, list[Any]]:
     """`--kind all`'s pick over every target (compd.commissioning.recommend.choose) and the sums it
     weighed: for each spindle kind fitted (xi_spindle, ar1), that kind then MLR on the other
     temperatures, scored nested held out. (None, sums) when no candidate covers every target."""
@@ -769,14 +852,18 @@ def recommended_model_dict(pick: Any, log: Log) -> dict[str, Any]:
     per axis the stated RMS and reduction with their ranges (compd.commissioning.recommend.Stated)."""
     cand = pick.candidate
     expected = {a: s.as_dict() for a, s in pick.stated.items()}
-    selection = {"method": "held out (compd fit --kind all): the smallest held-out RMSE among the fits no warning rules"
-                           " out; a sum of two stages only where it beats the best single model by"
-                           f" {round((1 - SUM_MARGIN) * 100):g} %",
-                 "label": cand.label,
-                 "held_out_rmse_um": {a: round(v, 4) for a, v in cand.axes.items()}}
+    selection = {
+        "method": "held out (compd fit --kind all): the smallest held-out RMSE among the fits no warning rules"
+        " out; a sum of two stages only where it beats the best single model by"
+        f" {round((1 - SUM_MARGIN) * 100):g} %",
+        "label": cand.label,
+        "held_out_rmse_um": {a: round(v, 4) for a, v in cand.axes.items()},
+    }
     if pick.runner_up is not None:
-        selection["runner_up"] = {"label": pick.runner_up.label,
-                                  "held_out_rmse_um": {a: round(v, 4) for a, v in pick.runner_up.axes.items()}}
+        selection["runner_up"] = {
+            "label": pick.runner_up.label,
+            "held_out_rmse_um": {a: round(v, 4) for a, v in pick.runner_up.axes.items()},
+        }
     if cand.single is not None:
         doc = json.loads(json.dumps(cand.single.model.to_dict()))
         doc["fit"] = {**doc.get("fit", {}), "expected_unseen": expected, "recommended": selection}
@@ -788,19 +875,36 @@ def recommended_model_dict(pick: Any, log: Log) -> dict[str, Any]:
     for name, res, target in ((STAGE_NAMES[0], so.first, so.target), (STAGE_NAMES[1], so.second, so.target)):
         m = res.model
         d = json.loads(json.dumps(m.to_dict()))
-        d["fit"] = {"fitted_at": stamp, "log": Path(log.file).name, "stage": 1 if name == STAGE_NAMES[0] else 2,
-                    "target": target if name == STAGE_NAMES[0] else f"{target} less the {STAGE_NAMES[0]} stage",
-                    "input_range": _input_range(m, log)}
+        d["fit"] = {
+            "fitted_at": stamp,
+            "log": Path(log.file).name,
+            "stage": 1 if name == STAGE_NAMES[0] else 2,
+            "target": target if name == STAGE_NAMES[0] else f"{target} less the {STAGE_NAMES[0]} stage",
+            "input_range": _input_range(m, log),
+        }
         parts.append({"name": name, **d})
     inputs = list(dict.fromkeys(n for p in parts for n in p["inputs"]))
-    fit = {"fitted_at": stamp, "compd_version": version(), "log": Path(log.file).name,
-           "rows": int(np.isfinite(log.col(so.target)).sum()), "log_rows": len(log),
-           "held_out_rmse_um": {so.axis: round(so.held_out_um, 4)}, "held_out_method": "nested: in each fold both"
-           " stages fitted without it (the second on what the first leaves), the fold predicted by their sum",
-           "cancel_ratio": round(so.cancel_ratio, 3), "expected_unseen": expected, "recommended": selection,
-           "input_range": {k: v for p in parts for k, v in p["fit"]["input_range"].items()}}
-    return {"kind": "contributions", "inputs": inputs, "outputs": [so.axis],
-            "params": {"contributions": parts}, "fit": fit}
+    fit = {
+        "fitted_at": stamp,
+        "compd_version": version(),
+        "log": Path(log.file).name,
+        "rows": int(np.isfinite(log.col(so.target)).sum()),
+        "log_rows": len(log),
+        "held_out_rmse_um": {so.axis: round(so.held_out_um, 4)},
+        "held_out_method": "nested: in each fold both"
+        " stages fitted without it (the second on what the first leaves), the fold predicted by their sum",
+        "cancel_ratio": round(so.cancel_ratio, 3),
+        "expected_unseen": expected,
+        "recommended": selection,
+        "input_range": {k: v for p in parts for k, v in p["fit"]["input_range"].items()},
+    }
+    return {
+        "kind": "contributions",
+        "inputs": inputs,
+        "outputs": [so.axis],
+        "params": {"contributions": parts},
+        "fit": fit,
+    }
 
 
 def _input_range(model: Model, log: Log) -> dict[str, list[float]]:
@@ -822,9 +926,11 @@ def recommendation_lines(pick: Any, sums: list[Any]) -> list[str]:
     """What `--kind all` prints of its pick: the sums weighed, the recommendation, what it will do."""
     lines = []
     for so in sums:
-        lines.append(f"{so.label:<16} {so.axis:<8} {'-':>10} {so.held_out_um:>9.3f} {'-':>9} {'-':>8} {'-':>7}"
-                     f"  nested held out: {so.first_kind} on {', '.join(so.first.model.inputs)}, then mlr on"
-                     f" {', '.join(so.second_inputs)}" + (f"; cancels ({so.cancel_ratio:.1f})" if so.cancel_ratio > 2 else ""))
+        lines.append(
+            f"{so.label:<16} {so.axis:<8} {'-':>10} {so.held_out_um:>9.3f} {'-':>9} {'-':>8} {'-':>7}"
+            f"  nested held out: {so.first_kind} on {', '.join(so.first.model.inputs)}, then mlr on"
+            f" {', '.join(so.second_inputs)}" + (f"; cancels ({so.cancel_ratio:.1f})" if so.cancel_ratio > 2 else "")
+        )
     if pick is None:
         return lines + ["no recommendation: no fit without a blocking warning covers every axis"]
     cand = pick.candidate
@@ -837,17 +943,28 @@ def recommendation_lines(pick: Any, sums: list[Any]) -> list[str]:
 def recommendation_report(pick: Any, sums: list[Any], path: Path) -> dict[str, Any]:
     """The `--kind all` report's `recommended` (the pick, its held-out figures and what it will do per
     axis, the runner-up) and `sums` (each sum weighed: its stages and nested held-out RMSE)."""
-    out: dict[str, Any] = {"sums": {
-        so.label: {"axis": so.axis, "first": {"kind": so.first_kind, "inputs": list(so.first.model.inputs)},
-                   "second": {"kind": "mlr", "inputs": list(so.second_inputs)},
-                   "held_out_rmse_um": so.held_out_um, "cancel_ratio": so.cancel_ratio, "warnings": so.warnings}
-        for so in sums}}
+    out: dict[str, Any] = {
+        "sums": {
+            so.label: {
+                "axis": so.axis,
+                "first": {"kind": so.first_kind, "inputs": list(so.first.model.inputs)},
+                "second": {"kind": "mlr", "inputs": list(so.second_inputs)},
+                "held_out_rmse_um": so.held_out_um,
+                "cancel_ratio": so.cancel_ratio,
+                "warnings": so.warnings,
+            }
+            for so in sums
+        }
+    }
     if pick is not None:
         cand = pick.candidate
         out["recommended"] = {
-            "label": cand.label, "file": str(path), "held_out_rmse_um": cand.axes,
+            "label": cand.label,
+            "file": str(path),
+            "held_out_rmse_um": cand.axes,
             "expected_unseen": {a: s.as_dict() for a, s in pick.stated.items()},
-            "runner_up": None if pick.runner_up is None else {"label": pick.runner_up.label,
-                                                              "held_out_rmse_um": pick.runner_up.axes},
+            "runner_up": None
+            if pick.runner_up is None
+            else {"label": pick.runner_up.label, "held_out_rmse_um": pick.runner_up.axes},
         }
     return out

@@ -34,7 +34,9 @@ def read_report(path: str | Path, flag: str) -> dict[str, Any]:
     p = Path(path)
     try:
         if p.stat().st_size > MAX_JSON_BYTES:
-            raise BadInput(f"larger than {MAX_JSON_BYTES // 1024 // 1024} MiB: not a compd report", file=str(p), path=flag)
+            raise BadInput(
+                f"larger than {MAX_JSON_BYTES // 1024 // 1024} MiB: not a compd report", file=str(p), path=flag
+            )
         text = p.read_text(encoding="utf-8")
     except OSError as e:
         raise BadInput(f"cannot read: {e.strerror or e}", file=str(p), path=flag) from None
@@ -116,8 +118,12 @@ def find_beside(name: Any, report: str) -> Path | None:
 
 # ------------------------------------------------------------------- the record's own facts
 
-RECORD_OPTIONS = {"machine": "--machine", "operator": "--operator", "instrument": "--instrument",
-                  "ambient_c": "--ambient-c"}
+RECORD_OPTIONS = {
+    "machine": "--machine",
+    "operator": "--operator",
+    "instrument": "--instrument",
+    "ambient_c": "--ambient-c",
+}
 
 
 @dataclass(frozen=True)
@@ -143,8 +149,7 @@ def record_text(value: str | None, flag: str) -> str | None:
         return None
     text = value.strip()
     if not text:
-        raise BadInput("empty: give the text, or leave the option out (the page then says it was not given)",
-                       path=flag)
+        raise BadInput("empty: give the text, or leave the option out (the page then says it was not given)", path=flag)
     if any(unicodedata.category(c) in ("Cc", "Zl", "Zp") for c in text):
         raise BadInput("one line of text, without control characters (a newline, a tab)", path=flag)
     if len(text) > RECORD_TEXT_MAX:
@@ -152,20 +157,30 @@ def record_text(value: str | None, flag: str) -> str | None:
     return text
 
 
-def make_record(machine: str | None = None, operator: str | None = None, instrument: str | None = None,
-                ambient_c: list[float] | tuple[float, ...] | None = None, made_at: datetime | None = None) -> Record:
+def make_record(
+    machine: str | None = None,
+    operator: str | None = None,
+    instrument: str | None = None,
+    ambient_c: list[float] | tuple[float, ...] | None = None,
+    made_at: datetime | None = None,
+) -> Record:
     """The record from `compd report`'s options, each checked (BadInput names the option)."""
     temps = tuple(ambient_c or ())
     if len(temps) > 2:
-        raise BadInput(f"one temperature, or the lowest and the highest: {len(temps)} values given",
-                       path="--ambient-c")
+        raise BadInput(f"one temperature, or the lowest and the highest: {len(temps)} values given", path="--ambient-c")
     lo, hi = AMBIENT_LIMITS_C
     for t in temps:
         if not (math.isfinite(t) and lo <= t <= hi):
-            raise BadInput(f"{t:g} °C is not the air of a shop ({lo:g} to {hi:g} °C; in °C, not °F)",
-                           path="--ambient-c")
-    return Record(record_text(machine, "--machine"), record_text(operator, "--operator"),
-                  record_text(instrument, "--instrument"), tuple(sorted(temps)), made_at)
+            raise BadInput(
+                f"{t:g} °C is not the air of a shop ({lo:g} to {hi:g} °C; in °C, not °F)", path="--ambient-c"
+            )
+    return Record(
+        record_text(machine, "--machine"),
+        record_text(operator, "--operator"),
+        record_text(instrument, "--instrument"),
+        tuple(sorted(temps)),
+        made_at,
+    )
 
 
 @dataclass
@@ -301,7 +316,9 @@ def replay_figure(replay: dict[str, Any], replay_file: str) -> Figure:
         if given is not None and given.suffix.lower() == ".png":
             return Figure(caption + f" ({given.name}, from compd replay --plot)", given.read_bytes())
         missing = "log" if log_file is None else what
-        return Figure(caption, why_not=f"not drawn: the replay report's {missing} file {replay.get(missing)!r} is not found")
+        return Figure(
+            caption, why_not=f"not drawn: the replay report's {missing} file {replay.get(missing)!r} is not found"
+        )
     result = (replay_config if what == "config" else replay_model)(source, log_file)
     pyplot()
     buf = io.BytesIO()
@@ -320,8 +337,9 @@ def thermal_from_files(log_file: str | Path, model_file: str | Path | None, ever
     model = fitting.load_model(model_file)
     for name in model.inputs:
         if name not in log.columns:
-            raise BadInput(f"column {name!r}, an input of {Path(model_file).name}, is not in the log",
-                           file=str(log_file))
+            raise BadInput(
+                f"column {name!r}, an input of {Path(model_file).name}, is not in the log", file=str(log_file)
+            )
     return thermal_test(log, list(model.outputs), fitting.predict_log(model, log), str(model_file), every_s)
 
 
@@ -334,9 +352,12 @@ def load_thermal(page: Page, test_log: str | None, test_model: str | None, every
     if test_log is None:
         found = find_beside(fit.get("log"), fit_file)
         if found is None:
-            why = (f"the log {fit['log']!r} that {fit_file} names is not found (looked up as written and beside"
-                   f" {fit_file}): give it with --test-log" if isinstance(fit.get("log"), str)
-                   else f"{fit_file} names no log: give the test's log with --test-log")
+            why = (
+                f"the log {fit['log']!r} that {fit_file} names is not found (looked up as written and beside"
+                f" {fit_file}): give it with --test-log"
+                if isinstance(fit.get("log"), str)
+                else f"{fit_file} names no log: give the test's log with --test-log"
+            )
             if given:
                 raise BadInput(why, path="--test-log")
             page.thermal_why_not = why
@@ -350,8 +371,11 @@ def load_thermal(page: Page, test_log: str | None, test_model: str | None, every
         found = find_beside(fit.get("model"), fit_file)
         model_file = str(found) if found else None
         if found is None:
-            no_model = (f"no model: the model file {fit['model']!r} that {fit_file} names is not found (give --model)"
-                        if isinstance(fit.get("model"), str) else f"no model: {fit_file} names none (give --model)")
+            no_model = (
+                f"no model: the model file {fit['model']!r} that {fit_file} names is not found (give --model)"
+                if isinstance(fit.get("model"), str)
+                else f"no model: {fit_file} names none (give --model)"
+            )
     try:
         tt = thermal_from_files(log_file, model_file, every_s)
     except BadInput as e:
@@ -365,9 +389,17 @@ def load_thermal(page: Page, test_log: str | None, test_model: str | None, every
     page.thermal = tt
 
 
-def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
-               pngs: list[str] | None = None, record: Record | None = None, *, test_log: str | None = None,
-               test_model: str | None = None, every_s: float = DEFAULT_EVERY_MIN * 60.0) -> Page:
+def build_page(
+    fit_file: str,
+    replay_file: str,
+    config_file: str | None = None,
+    pngs: list[str] | None = None,
+    record: Record | None = None,
+    *,
+    test_log: str | None = None,
+    test_model: str | None = None,
+    every_s: float = DEFAULT_EVERY_MIN * 60.0,
+) -> Page:
     """Read and check both reports (BadInput on the first bad key), compute the thermal test's
     figures (`load_thermal`), read what the logs cover and draw the figures."""
     fit = read_report(fit_file, "--fit")
@@ -383,7 +415,9 @@ def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
         try:
             page.config_text = Path(config_file).read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as e:
-            raise BadInput(f"cannot read: {getattr(e, 'strerror', None) or e}", file=config_file, path="--config") from None
+            raise BadInput(
+                f"cannot read: {getattr(e, 'strerror', None) or e}", file=config_file, path="--config"
+            ) from None
         page.config_file = config_file
     model_file = find_beside(fit.get("model"), fit_file)
     if model_file is not None:
@@ -395,8 +429,10 @@ def build_page(fit_file: str, replay_file: str, config_file: str | None = None,
         else:
             page.model_why_not = f"{model_file} has no `params` mapping: not a compd model file"
     elif isinstance(fit.get("model"), str):
-        page.model_why_not = (f"the model file {fit['model']!r} that {fit_file} names is not found"
-                              f" (looked up as written and beside {fit_file})")
+        page.model_why_not = (
+            f"the model file {fit['model']!r} that {fit_file} names is not found"
+            f" (looked up as written and beside {fit_file})"
+        )
     else:
         page.model_why_not = f"{fit_file} names no model file (a report of compd fit --kind all, or an older compd)"
     page.logs = [log_facts("fit", fit, fit_file, "--fit"), log_facts("unseen day", replay, replay_file, "--replay")]
@@ -438,8 +474,10 @@ def why_param_empty(kind: str, name: str, params: dict[str, Any]) -> str:
         return NOT_SET_C0
     if kind == "xi_spindle":
         if name == "xi_mm":
-            return ("not recorded: where the ξ sensor sits is documentation only, the model does not use it"
-                    " (compd xi --profile finds the point)")
+            return (
+                "not recorded: where the ξ sensor sits is documentation only, the model does not use it"
+                " (compd xi --profile finds the point)"
+            )
         if name == "lift":
             return "not used: no centrifugal lift, the fit had no speed input (--inputs T_xi speed_rpm fits it)"
         if name == "radial":
@@ -448,14 +486,25 @@ def why_param_empty(kind: str, name: str, params: dict[str, Any]) -> str:
             return "not used: the lift is the model's `lift` (this key is how older files carried it)"
     if kind == "ar1":
         if name == "c2_exponent":
-            return ("not set: outside the C2 table, C2 is linear from (0, 0) below the first speed and held above"
-                    " the last (the rule of files written before the key)")
+            return (
+                "not set: outside the C2 table, C2 is linear from (0, 0) below the first speed and held above"
+                " the last (the rule of files written before the key)"
+            )
         if name == "c3_um_per_k":
             return "not used by this ar1 model: no ambient input (the paper's recursion without C3)"
     if kind == "feed_axis":
         form = _feed_axis_form(params)
-        analytic_only = ("chi_per_m", "eta", "u1_k", "u2_k", "slide_volume_m3", "power_w", "r_cu_ohm",
-                         "cooling_time_s", "ref_power_w")
+        analytic_only = (
+            "chi_per_m",
+            "eta",
+            "u1_k",
+            "u2_k",
+            "slide_volume_m3",
+            "power_w",
+            "r_cu_ohm",
+            "cooling_time_s",
+            "ref_power_w",
+        )
         if form != "analytic" and name in analytic_only:
             return f"not used by the {form} form (a parameter of the analytic form)"
         if name in ("field", "position_poly"):
@@ -471,10 +520,14 @@ def why_param_empty(kind: str, name: str, params: dict[str, Any]) -> str:
         if name == "linear_p0_mm":
             return "not used: the output is E at the axis's position (no straight line K0 + tanβ (y − P0))"
     if kind in ("lvr", "mlr") and name in ("rise_mean_k", "rise_cov_k2"):
-        return ("not recorded in the model file: without the fit data's rises the model has no degraded mode"
-                " for a bad input")
-    return (f"empty in the model file: the {kind} model takes the rule for an absent value"
-            f" (docs/configuration.md, model: kind {kind}, params)")
+        return (
+            "not recorded in the model file: without the fit data's rises the model has no degraded mode"
+            " for a bad input"
+        )
+    return (
+        f"empty in the model file: the {kind} model takes the rule for an absent value"
+        f" (docs/configuration.md, model: kind {kind}, params)"
+    )
 
 
 def why_detail_empty(name: str, value: Any) -> str:
@@ -603,8 +656,11 @@ def _span(lf: LogFacts) -> str:
         span += f": {_when(t0)} to {_when(t1)}"
     else:
         span += " on the log's own clock (compd's t_s is not a calendar time)"
-    written = (f"; the file was last written {_when(lf.modified.astimezone())}" if lf.modified else
-               "; " + _none("when the file was written is not known"))
+    written = (
+        f"; the file was last written {_when(lf.modified.astimezone())}"
+        if lf.modified
+        else "; " + _none("when the file was written is not known")
+    )
     return f"{head}, {span}{written}"
 
 
@@ -628,8 +684,12 @@ def _ambient(page: Page) -> str:
     elif len(read) == len(page.logs) > 0:
         parts.append(_none("the logs have no column named for the air (amb, room, air)"))
     elif read:
-        parts.append(_none(f"{', '.join(str(lf.name) for lf in read)} has no column named for the air"
-                           " (amb, room, air); the other log was not read"))
+        parts.append(
+            _none(
+                f"{', '.join(str(lf.name) for lf in read)} has no column named for the air"
+                " (amb, room, air); the other log was not read"
+            )
+        )
     else:
         parts.append(_none("no log read, so no logged air temperature"))
     return "<br>".join(parts)
@@ -640,8 +700,9 @@ def _model_made(page: Page) -> str:
         return _none(page.model_why_not or "no model file")
     at, version = page.model_fit.get("fitted_at"), page.model_fit.get("compd_version")
     if not isinstance(at, str) or not at:
-        return f"<code>{_e(page.model_file)}</code>: " + _none("the fit date is not recorded (a model file written"
-                                                               " before compd kept fitted_at)")
+        return f"<code>{_e(page.model_file)}</code>: " + _none(
+            "the fit date is not recorded (a model file written before compd kept fitted_at)"
+        )
     by = f" by compd {_e(version)}" if isinstance(version, str) and version else ""
     return f"<code>{_e(page.model_file)}</code>, fitted {_e(at.replace('T', ' ').replace('Z', ' UTC'))}{by}"
 
@@ -660,8 +721,11 @@ def record_section(page: Page, made_at: datetime) -> str:
         ("ambient temperature during the test", _ambient(page)),
         *[(f"data: the {lf.role} log", _span(lf)) for lf in page.logs],
         ("model", _model_made(page)),
-        ("this report", f"made {_when(made_at)} by compd {_e(__version__)} from <code>{_e(page.fit_file)}</code>"
-                        f" and <code>{_e(page.replay_file)}</code>"),
+        (
+            "this report",
+            f"made {_when(made_at)} by compd {_e(__version__)} from <code>{_e(page.fit_file)}</code>"
+            f" and <code>{_e(page.replay_file)}</code>",
+        ),
     ]
     body = "".join(f'<tr><th class="l">{_e(k)}</th><td class="l">{v}</td></tr>' for k, v in rows)
     return f'<h2>The record</h2><table class="record"><tbody>{body}</tbody></table>'
@@ -705,8 +769,11 @@ def fit_section(page: Page) -> str:
         head += ["held-out RMSE / µm", "MLR baseline held-out RMSE / µm"]
     rows = []
     for axis, s in fit["axes"].items():
-        r = [_e(axis), _f(s["rmse_um"]),
-             _f(s.get("max_abs_err_um"), why="not in the fit report (written by an older compd)")]
+        r = [
+            _e(axis),
+            _f(s["rmse_um"]),
+            _f(s.get("max_abs_err_um"), why="not in the fit report (written by an older compd)"),
+        ]
         if base:
             b = base.get(axis) or {}
             why = "not computed for this axis"
@@ -721,15 +788,18 @@ def fit_section(page: Page) -> str:
     if skipped:
         out.append(f'<p class="warn">No held-out comparison with MLR: {_e(skipped)}.</p>')
     elif not base:
-        out.append(f'<p class="warn">No held-out comparison with MLR: {_e(page.fit_file)} has no'
-                   " <code>baseline_mlr</code> figures.</p>")
+        out.append(
+            f'<p class="warn">No held-out comparison with MLR: {_e(page.fit_file)} has no'
+            " <code>baseline_mlr</code> figures.</p>"
+        )
     for w in fit.get("warnings") or []:
         out.append(f'<p class="warn">warning: {_e(w)}</p>')
     if page.model_params is not None:
         kind = str(fit["kind"])
         params = page.model_params
-        rows = [[_e(k), _none(why_param_empty(kind, k, params)) if v is None else _e(_text(v))]
-                for k, v in _flat(params)]
+        rows = [
+            [_e(k), _none(why_param_empty(kind, k, params)) if v is None else _e(_text(v))] for k, v in _flat(params)
+        ]
         out.append(f"<h3>Coefficients (<code>{_e(page.model_file)}</code>, params)</h3>")
         out.append(_table(["name", "value"], rows, left=2))
     else:
@@ -763,20 +833,41 @@ def thermal_section(page: Page) -> str:
         out.append(f'<p class="warn">Not shown: {_e(page.thermal_why_not)}.</p>')
         return "\n".join(out)
     model = f"model <code>{_e(tt.model)}</code>" if tt.model else _none("no model")
-    out.append(f'<p class="muted">log <code>{_e(tt.log)}</code> ({_e(page.thermal_from)}), {tt.rows} rows; {model};'
-               " times from the log's first row.</p>")
-    out.append("<p>Per axis, the <b>drift</b> is each measurement less the first one, and the test's figures are"
-               " its largest absolute value (and when) and its range, the largest less the smallest measurement."
-               " The <b>residual</b> is each measurement less the model's prediction at that row (the model run"
-               " over the whole log from its first row): what the machine would still show with the model"
-               " compensating. Its range is the same figure after compensation.</p>")
-    head = ["axis", "measured", "measurements", "first measurement / µm", "largest |drift| / µm", "at / h",
-            "drift range / µm", "residual RMS / µm", "largest |residual| / µm", "residual range / µm"]
+    out.append(
+        f'<p class="muted">log <code>{_e(tt.log)}</code> ({_e(page.thermal_from)}), {tt.rows} rows; {model};'
+        " times from the log's first row.</p>"
+    )
+    out.append(
+        "<p>Per axis, the <b>drift</b> is each measurement less the first one, and the test's figures are"
+        " its largest absolute value (and when) and its range, the largest less the smallest measurement."
+        " The <b>residual</b> is each measurement less the model's prediction at that row (the model run"
+        " over the whole log from its first row): what the machine would still show with the model"
+        " compensating. Its range is the same figure after compensation.</p>"
+    )
+    head = [
+        "axis",
+        "measured",
+        "measurements",
+        "first measurement / µm",
+        "largest |drift| / µm",
+        "at / h",
+        "drift range / µm",
+        "residual RMS / µm",
+        "largest |residual| / µm",
+        "residual range / µm",
+    ]
     rows = []
     for ax in tt.axes:
         d, r = ax.drift(), ax.residual()
-        row = [_e(ax.axis), f"<code>{_e(ax.source)}</code>, {_e(ax.sampled)}", str(ax.rows.size),
-               _f(ax.first_um), _f(d.max_abs_um), _hours(d.at_t_s, tt.t0_s), _f(d.range_um)]
+        row = [
+            _e(ax.axis),
+            f"<code>{_e(ax.source)}</code>, {_e(ax.sampled)}",
+            str(ax.rows.size),
+            _f(ax.first_um),
+            _f(d.max_abs_um),
+            _hours(d.at_t_s, tt.t0_s),
+            _f(d.range_um),
+        ]
         if r is None:
             why = ax.why_no_prediction or "the model's prediction is not finite at any measurement"
             row += [_none(why)] * 3
@@ -795,20 +886,51 @@ def thermal_section(page: Page) -> str:
                 f = st.figures(ax)
                 rng = few if f.range_um is None else _f(f.range_um)
                 change = few if f.change_um is None else _f(f.change_um)
-                res = (_f(f.residual_range_um) if f.residual_range_um is not None else few if f.range_um is None
-                       else _none(ax.why_no_prediction or "no finite prediction in the stretch"))
-                rows.append([_e(IDLE_WHERE[st.where]), _hours(st.from_t_s, tt.t0_s), _hours(st.to_t_s, tt.t0_s),
-                             _e(ax.axis), str(f.measurements), rng, change, res])
-        out.append(_table(["stretch", "from / h", "to / h", "axis", "measurements", "range / µm",
-                           "last − first / µm", "residual range / µm"], rows))
-        out.append('<p class="muted">The stretch at the start, before the spindle first runs, is the environment\'s'
-                   " drift (ISO 230-3's environmental temperature variation error, for as long as the log has it);"
-                   " the stretch after the last run is mostly the machine cooling down.</p>")
+                res = (
+                    _f(f.residual_range_um)
+                    if f.residual_range_um is not None
+                    else few
+                    if f.range_um is None
+                    else _none(ax.why_no_prediction or "no finite prediction in the stretch")
+                )
+                rows.append(
+                    [
+                        _e(IDLE_WHERE[st.where]),
+                        _hours(st.from_t_s, tt.t0_s),
+                        _hours(st.to_t_s, tt.t0_s),
+                        _e(ax.axis),
+                        str(f.measurements),
+                        rng,
+                        change,
+                        res,
+                    ]
+                )
+        out.append(
+            _table(
+                [
+                    "stretch",
+                    "from / h",
+                    "to / h",
+                    "axis",
+                    "measurements",
+                    "range / µm",
+                    "last − first / µm",
+                    "residual range / µm",
+                ],
+                rows,
+            )
+        )
+        out.append(
+            '<p class="muted">The stretch at the start, before the spindle first runs, is the environment\'s'
+            " drift (ISO 230-3's environmental temperature variation error, for as long as the log has it);"
+            " the stretch after the last run is mostly the machine cooling down.</p>"
+        )
     else:
         out.append(f'<p class="muted">{_e(tt.idle_why_not)}.</p>')
     uri = "data:image/png;base64," + base64.b64encode(page.thermal_png or b"").decode("ascii")
     caption = "The thermal test: drift and residual over time per axis (µm)" + (
-        ", under the spindle speed" if tt.speed_rpm is not None else "")
+        ", under the spindle speed" if tt.speed_rpm is not None else ""
+    )
     out.append(f'<figure><img src="{uri}" alt="{_e(caption)}"><figcaption>{_e(caption)}</figcaption></figure>')
     out.append(_measurements(tt))
     return "\n".join(out)
@@ -843,12 +965,16 @@ def _measurements(tt: ThermalTest) -> str:
             if ax.predicted_um is not None:
                 row += [_f(float(ax.predicted_um[k])), _f(float(ax.residual_um[k]))]  # type: ignore[index]
         rows.append(row)
-    sources = "; ".join(f"{_e(ax.axis)}: <code>{_e(ax.source)}</code>, first measurement {ax.first_um:.2f} µm"
-                        + (f" (no model or residual: {_e(ax.why_no_prediction)})" if ax.predicted_um is None else "")
-                        for ax in tt.axes)
-    return (f"<h3>The measurements ({every.size})</h3>"
-            f'<p class="muted">{sources}. The drift is the measurement less the first one; the residual is the'
-            " measurement less the model.</p>" + _table(head, rows, left=0, cls="measure"))
+    sources = "; ".join(
+        f"{_e(ax.axis)}: <code>{_e(ax.source)}</code>, first measurement {ax.first_um:.2f} µm"
+        + (f" (no model or residual: {_e(ax.why_no_prediction)})" if ax.predicted_um is None else "")
+        for ax in tt.axes
+    )
+    return (
+        f"<h3>The measurements ({every.size})</h3>"
+        f'<p class="muted">{sources}. The drift is the measurement less the first one; the residual is the'
+        " measurement less the model.</p>" + _table(head, rows, left=0, cls="measure")
+    )
 
 
 def _limits(rep: dict[str, Any]) -> str:
@@ -858,10 +984,13 @@ def _limits(rep: dict[str, Any]) -> str:
         return ""
     res, top, rate = lim.get("resolution_um"), lim.get("max_abs_um"), lim.get("max_rate_um_per_s")
     num = (int, float)
-    parts = [f"resolution {res:g} µm" if isinstance(res, num) else "resolution not in the report",
-             f"largest correction {top:g} µm" if isinstance(top, num)
-             else "no clamp of its own (only guard.max_abs_um clamps)",
-             f"at most {rate:g} µm/s" if isinstance(rate, num) else "no rate limit of its own"]
+    parts = [
+        f"resolution {res:g} µm" if isinstance(res, num) else "resolution not in the report",
+        f"largest correction {top:g} µm"
+        if isinstance(top, num)
+        else "no clamp of its own (only guard.max_abs_um clamps)",
+        f"at most {rate:g} µm/s" if isinstance(rate, num) else "no rate limit of its own",
+    ]
     return "device limits: " + ", ".join(parts)
 
 
@@ -889,9 +1018,14 @@ def replay_section(page: Page) -> str:
     for axis, s in rep["axes"].items():
         red = s["reduction_pct"]
         cls = "good" if red >= 50 else "bad"
-        row = [_e(axis), _f(s["rms_before_um"]), _f(s["rms_after_um"]),
-               _f(s.get("max_abs_before_um"), why="not in the replay report (written by an older compd)"),
-               _f(s["max_abs_after_um"]), f'<span class="{cls}">{red:.1f} %</span>']
+        row = [
+            _e(axis),
+            _f(s["rms_before_um"]),
+            _f(s["rms_after_um"]),
+            _f(s.get("max_abs_before_um"), why="not in the replay report (written by an older compd)"),
+            _f(s["max_abs_after_um"]),
+            f'<span class="{cls}">{red:.1f} %</span>',
+        ]
         if adapted:
             plain = s.get("without_adaptation")
             if isinstance(plain, dict):
@@ -899,14 +1033,22 @@ def replay_section(page: Page) -> str:
             else:
                 row += [_none("no probes of this axis in the log")] * 2
         rows.append(row)
-    head = ["axis", "RMS before / µm", "RMS after / µm", "max |error| before / µm", "max |error| after / µm",
-            "reduction"]
+    head = [
+        "axis",
+        "RMS before / µm",
+        "RMS after / µm",
+        "max |error| before / µm",
+        "max |error| after / µm",
+        "reduction",
+    ]
     if adapted:
         head += ["RMS after, model alone / µm", "reduction, model alone / %"]
     out.append(_table(head, rows))
     if adapted:
-        out.append('<p class="muted">The log has probe columns: "after" is with the probes adapting the model;'
-                   ' "model alone" is the same replay with the probes ignored.</p>')
+        out.append(
+            '<p class="muted">The log has probe columns: "after" is with the probes adapting the model;'
+            ' "model alone" is the same replay with the probes ignored.</p>'
+        )
     faults = rep.get("faults") or {}
     text = ", ".join(f"{_e(k)}: {_e(v)}" for k, v in faults.items()) if faults else "none"
     out.append(f"<p>Guard events during the replay (the report's <code>faults</code>, by kind): {text}.</p>")
@@ -917,25 +1059,33 @@ def summary_section(page: Page) -> str:
     """At a glance: the unseen day's reduction per axis and the fit's held-out RMSE against MLR."""
     items = []
     for axis, r in page.replay["axes"].items():
-        items.append(f"<li>axis {_e(axis)}, unseen day: RMS {r['rms_before_um']:.2f} → {r['rms_after_um']:.2f} µm,"
-                     f" <b>{r['reduction_pct']:.0f} % less</b>; largest error left {r['max_abs_after_um']:.2f} µm</li>")
+        items.append(
+            f"<li>axis {_e(axis)}, unseen day: RMS {r['rms_before_um']:.2f} → {r['rms_after_um']:.2f} µm,"
+            f" <b>{r['reduction_pct']:.0f} % less</b>; largest error left {r['max_abs_after_um']:.2f} µm</li>"
+        )
     for axis, b in ((page.fit.get("baseline_mlr") or {}).get("axes") or {}).items():
         own, mlr = b.get("held_out_rmse_um"), b.get("mlr_held_out_rmse_um")
         if isinstance(own, (int, float)) and isinstance(mlr, (int, float)):
-            verdict = ('<span class="good">better than</span>' if own < mlr
-                       else '<span class="bad">not better than</span>')
-            items.append(f"<li>axis {_e(axis)}, fit: held-out RMSE {own:.2f} µm, {verdict} the MLR baseline"
-                         f" ({mlr:.2f} µm)</li>")
+            verdict = (
+                '<span class="good">better than</span>' if own < mlr else '<span class="bad">not better than</span>'
+            )
+            items.append(
+                f"<li>axis {_e(axis)}, fit: held-out RMSE {own:.2f} µm, {verdict} the MLR baseline ({mlr:.2f} µm)</li>"
+            )
     tt = page.thermal
     for ax in tt.axes if tt is not None else []:
         d, r = ax.drift(), ax.residual()
         left = f"; left with the model: range {r.range_um:.2f} µm, RMS {r.rms_um:.2f} µm" if r is not None else ""
-        items.append(f"<li>axis {_e(ax.axis)}, thermal test: largest drift <b>{d.max_abs_um:.2f} µm</b>,"
-                     f" range {d.range_um:.2f} µm{left}</li>")
+        items.append(
+            f"<li>axis {_e(ax.axis)}, thermal test: largest drift <b>{d.max_abs_um:.2f} µm</b>,"
+            f" range {d.range_um:.2f} µm{left}</li>"
+        )
     faults = {k: v for k, v in (page.replay.get("faults") or {}).items() if str(k).startswith(("fault", "bad"))}
     if faults:
-        items.append(f'<li class="warn">the replay had guard faults or bad inputs: '
-                     f'{_e(", ".join(f"{k} {v}" for k, v in faults.items()))}</li>')
+        items.append(
+            f'<li class="warn">the replay had guard faults or bad inputs: '
+            f"{_e(', '.join(f'{k} {v}' for k, v in faults.items()))}</li>"
+        )
     return "<h2>At a glance</h2><ul>" + "".join(items) + "</ul>"
 
 
@@ -946,14 +1096,18 @@ def figures_section(page: Page) -> str:
             out.append(f'<p class="warn">{_e(fig.caption)}: {_e(fig.why_not)}</p>')
             continue
         uri = "data:image/png;base64," + base64.b64encode(fig.png).decode("ascii")
-        out.append(f'<figure><img src="{uri}" alt="{_e(fig.caption)}"><figcaption>{_e(fig.caption)}</figcaption></figure>')
+        out.append(
+            f'<figure><img src="{uri}" alt="{_e(fig.caption)}"><figcaption>{_e(fig.caption)}</figcaption></figure>'
+        )
     return "\n".join(out)
 
 
 def config_section(page: Page) -> str:
     if page.config_text is None:
-        return ('<h2>The config</h2><p class="muted">Not shown: no config given (--config CONFIG.yaml), and the'
-                " replay report names none (a replay of a bare model file).</p>")
+        return (
+            '<h2>The config</h2><p class="muted">Not shown: no config given (--config CONFIG.yaml), and the'
+            " replay report names none (a replay of a bare model file).</p>"
+        )
     return f"<h2>The config: <code>{_e(page.config_file)}</code></h2><pre>{_e(page.config_text)}</pre>"
 
 
@@ -962,27 +1116,50 @@ def render(page: Page) -> str:
     made_at = page.record.made_at or datetime.now().astimezone()
     axes = ", ".join(page.replay["axes"])
     what = f"{page.fit['kind']} on {axes}"
-    title = (f"compd commissioning report: {page.record.machine}, {what}" if page.record.machine
-             else f"compd commissioning report: {what}")
-    return "\n".join([
-        "<!DOCTYPE html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        '<meta name="viewport" content="width=device-width, initial-scale=1">',
-        f"<title>{_e(title)}</title><style>{CSS}</style></head><body>",
-        f"<h1>{_e(title)}</h1>",
-        f'<p class="muted">Thermal-error compensation: the record of its commissioning, made {_when(made_at)}.</p>',
-        record_section(page, made_at), summary_section(page), fit_section(page), thermal_section(page),
-        replay_section(page),
-        figures_section(page), config_section(page), signoff_section(page),
-        "</body></html>",
-    ]) + "\n"
+    title = (
+        f"compd commissioning report: {page.record.machine}, {what}"
+        if page.record.machine
+        else f"compd commissioning report: {what}"
+    )
+    return (
+        "\n".join(
+            [
+                "<!DOCTYPE html>",
+                '<html lang="en"><head><meta charset="utf-8">',
+                '<meta name="viewport" content="width=device-width, initial-scale=1">',
+                f"<title>{_e(title)}</title><style>{CSS}</style></head><body>",
+                f"<h1>{_e(title)}</h1>",
+                f'<p class="muted">Thermal-error compensation: the record of its commissioning, made {_when(made_at)}.</p>',
+                record_section(page, made_at),
+                summary_section(page),
+                fit_section(page),
+                thermal_section(page),
+                replay_section(page),
+                figures_section(page),
+                config_section(page),
+                signoff_section(page),
+                "</body></html>",
+            ]
+        )
+        + "\n"
+    )
 
 
-def write_report(out: str | Path, fit_file: str, replay_file: str, config_file: str | None = None,
-                 pngs: list[str] | None = None, record: Record | None = None, *, test_log: str | None = None,
-                 test_model: str | None = None, every_s: float = DEFAULT_EVERY_MIN * 60.0) -> Page:
+def write_report(
+    out: str | Path,
+    fit_file: str,
+    replay_file: str,
+    config_file: str | None = None,
+    pngs: list[str] | None = None,
+    record: Record | None = None,
+    *,
+    test_log: str | None = None,
+    test_model: str | None = None,
+    every_s: float = DEFAULT_EVERY_MIN * 60.0,
+) -> Page:
     """Build the page and write it to `out`."""
-    page = build_page(fit_file, replay_file, config_file, pngs, record, test_log=test_log,
-                      test_model=test_model, every_s=every_s)
+    page = build_page(
+        fit_file, replay_file, config_file, pngs, record, test_log=test_log, test_model=test_model, every_s=every_s
+    )
     Path(out).write_text(render(page), encoding="utf-8")
     return page

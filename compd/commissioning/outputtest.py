@@ -86,11 +86,20 @@ class OutputTestResult:
         return ok and math.copysign(1.0, self.applied_um) == math.copysign(1.0, self.commanded_um)
 
     def as_dict(self) -> dict[str, Any]:
-        return {"axis": self.axis, "device": self.device, "commanded_um": self.commanded_um,
-                "applied_um": self.applied_um, "applied_after_um": self.applied_after_um,
-                "slew_um_per_s": self.slew_um_per_s, "period_s": self.period_s,
-                "max_step_um": self.max_step_um, "word": f"0x{self.word:04X}", "interrupted": self.interrupted,
-                "resolution_um": self.resolution_um, "matches": self.matches(self.resolution_um)}
+        return {
+            "axis": self.axis,
+            "device": self.device,
+            "commanded_um": self.commanded_um,
+            "applied_um": self.applied_um,
+            "applied_after_um": self.applied_after_um,
+            "slew_um_per_s": self.slew_um_per_s,
+            "period_s": self.period_s,
+            "max_step_um": self.max_step_um,
+            "word": f"0x{self.word:04X}",
+            "interrupted": self.interrupted,
+            "resolution_um": self.resolution_um,
+            "matches": self.matches(self.resolution_um),
+        }
 
 
 def axis_limits(cfg: Config, axis: str) -> tuple[float, float]:
@@ -112,19 +121,27 @@ def check_request(cfg: Config, sink: Sink, word_axes: list[str], axis: str, um: 
     """Bad input (exit 2): an axis the sink does not drive, a correction beyond the guard's
     clamp or the device's range, or one the word would send as disabled."""
     if axis not in word_axes:
-        raise BadInput(f"{axis!r} is not an axis the sink drives (known: {', '.join(word_axes)})",
-                       path="--axis", file=cfg.file)
+        raise BadInput(
+            f"{axis!r} is not an axis the sink drives (known: {', '.join(word_axes)})", path="--axis", file=cfg.file
+        )
     max_abs, _ = axis_limits(cfg, axis)
     if abs(um) > max_abs:
-        raise BadInput(f"|{um:g}| um is beyond the guard's max correction of axis {axis} ({max_abs:g} um)",
-                       path="--um", file=cfg.file)
+        raise BadInput(
+            f"|{um:g}| um is beyond the guard's max correction of axis {axis} ({max_abs:g} um)",
+            path="--um",
+            file=cfg.file,
+        )
     dev = sink.device_info()
     if dev["max_abs_um"] is not None and abs(um) > dev["max_abs_um"]:
-        raise BadInput(f"|{um:g}| um is beyond what {dev['device']} carries ({dev['max_abs_um']:g} um)",
-                       path="--um", file=cfg.file)
+        raise BadInput(
+            f"|{um:g}| um is beyond what {dev['device']} carries ({dev['max_abs_um']:g} um)", path="--um", file=cfg.file
+        )
     if dev["max_abs_um"] is not None and abs(um) <= cfg.codec.deadband_um:
-        raise BadInput(f"{um:g} um is inside the codec's dead-band ({cfg.codec.deadband_um:g} um): nothing would be sent",
-                       path="--um", file=cfg.file)
+        raise BadInput(
+            f"{um:g} um is inside the codec's dead-band ({cfg.codec.deadband_um:g} um): nothing would be sent",
+            path="--um",
+            file=cfg.file,
+        )
     if um == 0:
         raise BadInput("give a correction other than 0", path="--um", file=cfg.file)
 
@@ -163,8 +180,15 @@ def run_output_test(
         clock = SimClock(0.0) if sink.device_key() is None else WallClock(cfg.loop.spin_margin_s)
     model = FixedCorrection(outputs)
     # the daemon's pipeline, its model replaced by the fixed correction (no sources: no signals to check)
-    p = build_pipeline(sources=[], model=model, sink=sink, clock=clock, period_s=period_s,
-                       guard_cfg=cfg.guard.model_copy(update={"signals": {}}), codec_cfg=cfg.codec)
+    p = build_pipeline(
+        sources=[],
+        model=model,
+        sink=sink,
+        clock=clock,
+        period_s=period_s,
+        guard_cfg=cfg.guard.model_copy(update={"signals": {}}),
+        codec_cfg=cfg.codec,
+    )
     loop, guard, encoder = p.loop, p.guard, p.encoder
     check_request(cfg, sink, word_axes, axis, um)
     a = outputs.index(axis)
@@ -174,8 +198,9 @@ def run_output_test(
     pred = model.pred_um
     dev_um = np.zeros(2)
     info = sink.device_info()
-    res = OutputTestResult(axis, info["device"], um, math.nan, math.nan, slew, period_s, 0,
-                           float(info["resolution_um"] or 0.0))
+    res = OutputTestResult(
+        axis, info["device"], um, math.nan, math.nan, slew, period_s, 0, float(info["resolution_um"] or 0.0)
+    )
     state = {"next": math.nan}
 
     def cycle() -> None:
@@ -222,15 +247,19 @@ def run_output_test(
         try:
             say(f"output-test: axis {axis} to {um:+.3f} um through {info['device']}, at {slew:g} um/s")
             ramp_to(um)
-            say(f"  ramped up in {len(res.t_s)} cycles ({res.t_s[-1] - res.t_s[0]:.2f} s), largest step"
-                f" {res.max_step_um:.4f} um (slew x period {slew * period_s:.4f} um)")
+            say(
+                f"  ramped up in {len(res.t_s)} cycles ({res.t_s[-1] - res.t_s[0]:.2f} s), largest step"
+                f" {res.max_step_um:.4f} um (slew x period {slew * period_s:.4f} um)"
+            )
             t_end = clock.now() + hold_s
             while clock.now() < t_end:
                 cycle()
             res.word = encoder.word
             res.applied_um = read_back()
-            say(f"  hold {hold_s:g} s: commanded {um:+.3f} um, applied {res.applied_um:+.3f} um"
-                f" (word 0x{encoder.word:04X})")
+            say(
+                f"  hold {hold_s:g} s: commanded {um:+.3f} um, applied {res.applied_um:+.3f} um"
+                f" (word 0x{encoder.word:04X})"
+            )
         except KeyboardInterrupt:
             res.interrupted = True
             say("  interrupted: ramping back to zero")

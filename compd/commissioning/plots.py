@@ -77,8 +77,7 @@ def _band(ax: Any, x: np.ndarray, mask: np.ndarray, color: str, alpha: float, la
     sliver = (x[-1] - x[0]) / max(len(x), 1) * 0.5  # a run of the last row: half a row wide
     spans = [(x[i], (x[j] if j < len(x) else x[-1] + sliver) - x[i]) for i, j in runs]
     style = {"facecolors": "none", "edgecolors": color, "hatch": "///"} if hatch else {"facecolors": color}
-    ax.broken_barh(spans, (0, 1), transform=ax.get_xaxis_transform(), alpha=alpha, lw=0, label=label,
-                   zorder=0, **style)
+    ax.broken_barh(spans, (0, 1), transform=ax.get_xaxis_transform(), alpha=alpha, lw=0, label=label, zorder=0, **style)
     return True
 
 
@@ -101,8 +100,17 @@ def _legend(ax: Any, handles: list[Any] | None = None, labels: list[str] | None 
         handles, labels = ax.get_legend_handles_labels()
     if handles:
         ncol = -(-len(handles) // LEGEND_ROWS)
-        ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(x, 1.0), fontsize=8 if ncol == 1 else 7,
-                  frameon=False, ncol=ncol, columnspacing=0.8, handlelength=1.5)
+        ax.legend(
+            handles,
+            labels,
+            loc="upper left",
+            bbox_to_anchor=(x, 1.0),
+            fontsize=8 if ncol == 1 else 7,
+            frameon=False,
+            ncol=ncol,
+            columnspacing=0.8,
+            handlelength=1.5,
+        )
 
 
 def pyplot() -> Any:
@@ -129,16 +137,27 @@ def write_trend(trend: Trend, path: str | Path, dpi: int = 100) -> None:
     has_err = trend.error_um is not None and bool(np.isfinite(trend.error_um).any())
     rows: list[tuple[str, int]] = [("inputs", -1)]
     for a in range(len(trend.axes)):
-        if trend.pred_um is not None or has_err and np.isfinite(trend.error_um[:, a]).any() or (  # type: ignore[index]
-            trend.probe_um is not None and np.isfinite(trend.probe_um[:, a]).any()
+        if (
+            trend.pred_um is not None
+            or has_err
+            and np.isfinite(trend.error_um[:, a]).any()
+            or (  # type: ignore[index]
+                trend.probe_um is not None and np.isfinite(trend.probe_um[:, a]).any()
+            )
         ):
             rows.append(("error", a))
         rows.append(("correction", a))
         if np.isfinite(commanded[:, a]).any():
             rows.append(("trailing", a))
     heights = [0.6 if kind == "trailing" else 1.0 for kind, _ in rows]
-    fig, panels = plt.subplots(len(rows), 1, figsize=(12, 2.5 * sum(heights) + 0.6), sharex=True, squeeze=False,
-                               gridspec_kw={"height_ratios": heights})
+    fig, panels = plt.subplots(
+        len(rows),
+        1,
+        figsize=(12, 2.5 * sum(heights) + 0.6),
+        sharex=True,
+        squeeze=False,
+        gridspec_kw={"height_ratios": heights},
+    )
     panels = panels[:, 0]
     for ax, (kind, a) in zip(panels, rows, strict=True):
         if kind == "inputs":
@@ -184,8 +203,14 @@ def _inputs_panel(ax: Any, x: np.ndarray, trend: Trend) -> None:
     for k, (name, v) in enumerate(others.items()):
         unit = name.rsplit("_", 1)[-1] if "_" in name else ""
         units.append(unit)
-        twin.plot(x, v, lw=0.9, ls="--", color=("0.3", "tab:brown", "tab:olive", "tab:cyan")[k % 4],
-                  label=f"{name} ({unit}, right axis)" if unit else f"{name} (right axis)")
+        twin.plot(
+            x,
+            v,
+            lw=0.9,
+            ls="--",
+            color=("0.3", "tab:brown", "tab:olive", "tab:cyan")[k % 4],
+            label=f"{name} ({unit}, right axis)" if unit else f"{name} (right axis)",
+        )
     twin.set_ylabel(" / ".join(dict.fromkeys(u for u in units if u)) or "other inputs", fontsize=9)
     h1, l1 = ax.get_legend_handles_labels()
     h2, l2 = twin.get_legend_handles_labels()
@@ -197,7 +222,9 @@ def _error_panel(ax: Any, x: np.ndarray, trend: Trend, a: int) -> None:
     if trend.error_um is not None and np.isfinite(trend.error_um[:, a]).any():
         e = trend.error_um[:, a]
         ax.plot(x, e, lw=1, color=C_ERROR, label="error without compensation")
-        ax.plot(x, e + trend.applied_um[:, a], lw=1, color=C_RESIDUAL, label="left with compensation\n(error + applied)")
+        ax.plot(
+            x, e + trend.applied_um[:, a], lw=1, color=C_RESIDUAL, label="left with compensation\n(error + applied)"
+        )
     if trend.pred_um is not None:
         ax.plot(x, trend.pred_um[:, a], lw=1, ls="--", color=C_PRED, label="predicted error (model)")
     for name, axis, share in trend.parts:
@@ -210,8 +237,10 @@ def _error_panel(ax: Any, x: np.ndarray, trend: Trend, a: int) -> None:
     s = trend.scores.get(axis)
     head = f"axis {axis}: thermal error"
     if s:
-        head += (f" — RMS {s['rms_before_um']:.2f} → {s['rms_after_um']:.2f} µm,"
-                 f" max |left| {s['max_abs_after_um']:.2f} µm ({s['reduction_pct']:.0f} % less)")
+        head += (
+            f" — RMS {s['rms_before_um']:.2f} → {s['rms_after_um']:.2f} µm,"
+            f" max |left| {s['max_abs_after_um']:.2f} µm ({s['reduction_pct']:.0f} % less)"
+        )
     ax.set_title(head, fontsize=9, loc="left")
 
 
@@ -277,8 +306,10 @@ def _trailing_panel(ax: Any, x: np.ndarray, trend: Trend, a: int, commanded: np.
         off = np.abs(d[ok]) > tol
         share = 100.0 * float(np.sum(np.diff(trend.t_s, append=trend.t_s[-1])[ok][off]))
         share /= max(float(trend.t_s[-1] - trend.t_s[0]), 1e-9)
-        head = (f"axis {axis}: applied − commanded — the device trailing its command by up to {worst:.2f} µm,"
-                f" {share:.1f} % of the time")
+        head = (
+            f"axis {axis}: applied − commanded — the device trailing its command by up to {worst:.2f} µm,"
+            f" {share:.1f} % of the time"
+        )
     ax.set_ylabel("trailing / µm")
     ax.set_title(head, fontsize=9, loc="left")
 
@@ -290,7 +321,7 @@ def _axes_of(log: Log) -> list[str]:
     axes = []
     for c in log.columns:
         if c.startswith("applied_") and c.endswith("_um"):
-            axes.append(c[len("applied_"):-3])
+            axes.append(c[len("applied_") : -3])
     return axes
 
 
@@ -320,8 +351,11 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
         word_axes = list(cfg.codec.axes or cfg.model.outputs[:2])
         missing = [a for a in word_axes if a not in axes]
         if missing:
-            raise BadInput(f"the config's word axis {missing[0]!r} is not in the log (axes: {', '.join(axes)})",
-                           file=log.file, path="codec.axes")
+            raise BadInput(
+                f"the config's word axis {missing[0]!r} is not in the log (axes: {', '.join(axes)})",
+                file=log.file,
+                path="codec.axes",
+            )
     else:
         notes.append("no --config: LSB 1 µm and the logged axes in order on the word")
     if inputs is None:
@@ -330,8 +364,11 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
     w = log.col("word")
     if not np.isfinite(w).all() or (w < 0).any() or (w > 0xFFFF).any() or (w != np.round(w)).any():
         bad = int(np.flatnonzero(~np.isfinite(w) | (w < 0) | (w > 0xFFFF) | (w != np.round(w)))[0])
-        raise BadInput(f"the word is not an integer 0..65535 (got {w[bad]:g} in the row at t_s = {log.t_s[bad]:g})",
-                       file=log.file, path="word")
+        raise BadInput(
+            f"the word is not an integer 0..65535 (got {w[bad]:g} in the row at t_s = {log.t_s[bad]:g})",
+            file=log.file,
+            path="word",
+        )
 
     def block(prefix: str) -> np.ndarray:
         return np.column_stack([log.col(f"{prefix}_{a}_um") for a in axes])
@@ -340,8 +377,9 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
     corr = block("corr") if all(f"corr_{a}_um" in log.columns for a in axes) else None
     err = None
     if any(f"err_{a}_um" in log.columns for a in axes):
-        err = np.column_stack([log.col(f"err_{a}_um") if f"err_{a}_um" in log.columns else np.full(len(log), np.nan)
-                               for a in axes])
+        err = np.column_stack(
+            [log.col(f"err_{a}_um") if f"err_{a}_um" in log.columns else np.full(len(log), np.nan) for a in axes]
+        )
     fault = ~np.isfinite(pred) if pred is not None else None
     probe = probe_matrix(log, axes)
     applied = np.nan_to_num(block("applied"), nan=0.0)
@@ -351,13 +389,29 @@ def trend_from_log(log: Log, config: str | Path | None = None) -> Trend:
     if k0_sink:  # the NC is sent the guard's correction; without it logged nothing says what it was
         commanded = corr if corr is not None else np.full((len(log), len(axes)), np.nan)
     return Trend(
-        t_s=log.t_s.copy(), axes=axes, signals=signals, word=w.astype(np.int64), word_axes=word_axes,
-        lsb_um=lsb_um, applied_um=applied, error_um=err, pred_um=pred, corr_um=corr, fault=fault,
-        fault_label="no prediction (guard fault)", title=f"compd trend of {Path(log.file).name}", notes=notes,
-        probe_um=probe, commanded_um=commanded,
+        t_s=log.t_s.copy(),
+        axes=axes,
+        signals=signals,
+        word=w.astype(np.int64),
+        word_axes=word_axes,
+        lsb_um=lsb_um,
+        applied_um=applied,
+        error_um=err,
+        pred_um=pred,
+        corr_um=corr,
+        fault=fault,
+        fault_label="no prediction (guard fault)",
+        title=f"compd trend of {Path(log.file).name}",
+        notes=notes,
+        probe_um=probe,
+        commanded_um=commanded,
         commanded_label="commanded (K0, the guard's correction)" if k0_sink else "commanded (word)",
-        parts=[(c[len(f"pred_{a}_"):-3], a, log.col(c)) for a in axes for c in log.columns
-               if c.startswith(f"pred_{a}_") and c.endswith("_um") and c != f"pred_{a}_um"],
+        parts=[
+            (c[len(f"pred_{a}_") : -3], a, log.col(c))
+            for a in axes
+            for c in log.columns
+            if c.startswith(f"pred_{a}_") and c.endswith("_um") and c != f"pred_{a}_um"
+        ],
     )
 
 
@@ -365,8 +419,9 @@ def probe_matrix(log: Log, axes: list[str]) -> np.ndarray | None:
     """The `probe_<axis>_um` columns (NaN between probes) as rows × axes, or None without any."""
     if not any(f"probe_{a}_um" in log.columns for a in axes):
         return None
-    return np.column_stack([log.col(f"probe_{a}_um") if f"probe_{a}_um" in log.columns else np.full(len(log), np.nan)
-                            for a in axes])
+    return np.column_stack(
+        [log.col(f"probe_{a}_um") if f"probe_{a}_um" in log.columns else np.full(len(log), np.nan) for a in axes]
+    )
 
 
 def trend_from_replay(result: Any) -> Trend:
@@ -378,17 +433,31 @@ def trend_from_replay(result: Any) -> Trend:
     rep = result.report
     faults = rep.get("faults") or {}
     device = rep.get("device") or f"the software PLC ({rep.get('plc', '?')})"
-    notes = [f"replayed into {device}: {rep.get('rows', len(result.t_s))} rows,"
-             f" {rep.get('codes_sent', 0)} codes sent, {rep.get('saturated', 0)} saturated words,"
-             f" guard events: {', '.join(f'{k} {v}' for k, v in faults.items()) or 'none'}"]
+    notes = [
+        f"replayed into {device}: {rep.get('rows', len(result.t_s))} rows,"
+        f" {rep.get('codes_sent', 0)} codes sent, {rep.get('saturated', 0)} saturated words,"
+        f" guard events: {', '.join(f'{k} {v}' for k, v in faults.items()) or 'none'}"
+    ]
     name = Path(str(ex.get("log", ""))).name
     limits = rep.get("device_limits") or {}
     return Trend(
-        t_s=result.t_s, axes=list(result.axes), signals=dict(ex.get("signals", {})), word=result.word,
-        word_axes=list(ex.get("word_axes", result.axes[:2])), lsb_um=float(ex.get("lsb_um", 1.0)),
-        applied_um=result.applied_um, error_um=result.error_um, pred_um=ex.get("pred_um"),
-        corr_um=ex.get("corr_um"), fault=fault, scores=dict(rep.get("axes", {})),
-        title=f"compd replay of {name}" if name else "compd replay", notes=notes, probe_um=ex.get("probe_um"),
-        commanded_um=ex.get("commanded_um"), commanded_label="commanded (the device's target)",
-        resolution_um=limits.get("resolution_um"), parts=list(ex.get("parts") or []),
+        t_s=result.t_s,
+        axes=list(result.axes),
+        signals=dict(ex.get("signals", {})),
+        word=result.word,
+        word_axes=list(ex.get("word_axes", result.axes[:2])),
+        lsb_um=float(ex.get("lsb_um", 1.0)),
+        applied_um=result.applied_um,
+        error_um=result.error_um,
+        pred_um=ex.get("pred_um"),
+        corr_um=ex.get("corr_um"),
+        fault=fault,
+        scores=dict(rep.get("axes", {})),
+        title=f"compd replay of {name}" if name else "compd replay",
+        notes=notes,
+        probe_um=ex.get("probe_um"),
+        commanded_um=ex.get("commanded_um"),
+        commanded_label="commanded (the device's target)",
+        resolution_um=limits.get("resolution_um"),
+        parts=list(ex.get("parts") or []),
     )

@@ -91,7 +91,7 @@ def promoted_text(text: str, file: str, stamp: str) -> str:
     m0, m1 = blocks["model"]
     s0, s1 = blocks["shadow"]
     shadow = list(lines[s0:s1])
-    shadow[0] = "model" + shadow[0][len("shadow"):]
+    shadow[0] = "model" + shadow[0][len("shadow") :]
     old = [f"# model before `compd promote` of {stamp} (the shadow became the model):\n"]
     old += [f"# {ln}" if ln.strip() else "#\n" for ln in lines[m0:m1]]
     new_model = old + shadow
@@ -141,8 +141,10 @@ def score_refusal(status: dict[str, Any] | None, shadow_sha256: str, axes: list[
         return "the running daemon runs no shadow (it has not reloaded this config's shadow section): no score"
     if model.get("sha256") != shadow_sha256:
         got = model.get("sha256")
-        return (f"the running daemon's score is of another shadow (sha256 {str(got)[:12] if got else 'not shown'},"
-                f" the config's is {shadow_sha256[:12]}): a score of another shadow is no score")
+        return (
+            f"the running daemon's score is of another shadow (sha256 {str(got)[:12] if got else 'not shown'},"
+            f" the config's is {shadow_sha256[:12]}): a score of another shadow is no score"
+        )
     scores = _score_of(status)
     few = []
     for axis in axes:
@@ -151,11 +153,15 @@ def score_refusal(status: dict[str, Any] | None, shadow_sha256: str, axes: list[
         if n < min_probes:
             few.append(f"{axis} {n}")
     if few:
-        return (f"the shadow was scored on too few probes ({', '.join(few)}; at least {min_probes} per axis,"
-                " --min-probes): a shadow sent again from the plant starts its score afresh")
+        return (
+            f"the shadow was scored on too few probes ({', '.join(few)}; at least {min_probes} per axis,"
+            " --min-probes): a shadow sent again from the plant starts its score afresh"
+        )
     worse = scored_worse(status)
     if worse:
-        return "the running daemon scored the shadow worse than the active model on the probes (" + "; ".join(worse) + ")"
+        return (
+            "the running daemon scored the shadow worse than the active model on the probes (" + "; ".join(worse) + ")"
+        )
     return None
 
 
@@ -191,8 +197,11 @@ def describe(cfg: Config, status: dict[str, Any] | None, shadow_sha256: str) -> 
     if spec.file is not None:
         what = f"{kind}, file {spec.file}, sha256 {shadow_sha256}"
     elif parts is not None:
-        what = (f"{kind} " + ", ".join(f"{p.name} ({p.kind}{', ' + p.file if p.file else ''})" for p in parts)
-                + f", sha256 {shadow_sha256} (of its definition)")
+        what = (
+            f"{kind} "
+            + ", ".join(f"{p.name} ({p.kind}{', ' + p.file if p.file else ''})" for p in parts)
+            + f", sha256 {shadow_sha256} (of its definition)"
+        )
     else:
         what = f"{kind}, inline params in the config, sha256 {shadow_sha256} (of its definition)"
     lines = [f"about to make the shadow the model: {what}"]
@@ -200,8 +209,10 @@ def describe(cfg: Config, status: dict[str, Any] | None, shadow_sha256: str) -> 
         lines.append(f"the shadow came from: {_origin(spec.fit)}")
         record = read_shadow_record(spec.file)
         if record is not None and record.get("sha256") == shadow_sha256:
-            lines.append(f"the shadow came from: the plant (Model/shadow, request {str(record.get('request'))[:40]},"
-                         f" accepted {str(record.get('accepted_utc'))[:40]})")
+            lines.append(
+                f"the shadow came from: the plant (Model/shadow, request {str(record.get('request'))[:40]},"
+                f" accepted {str(record.get('accepted_utc'))[:40]})"
+            )
     for p in parts or ():
         if p.file is not None:
             lines.append(f"contribution {p.name} came from: {_origin(p.fit)}")
@@ -213,8 +224,10 @@ def describe(cfg: Config, status: dict[str, Any] | None, shadow_sha256: str) -> 
     for axis in spec.outputs:
         ax = axes.get(axis) if isinstance(axes.get(axis), dict) else {}
         sh, act = ax.get("shadow_um"), ax.get("prediction_um")
-        now.append(f"{axis}: the shadow predicts {f'{sh:.2f} um' if _real(sh) else 'nothing'}, the active model"
-                   f" {f'{act:.2f} um' if _real(act) else 'nothing'}")
+        now.append(
+            f"{axis}: the shadow predicts {f'{sh:.2f} um' if _real(sh) else 'nothing'}, the active model"
+            f" {f'{act:.2f} um' if _real(act) else 'nothing'}"
+        )
     lines.append(f"now (daemon pid {status.get('pid')}): " + "; ".join(now))
     scores = _score_of(status)
     scored = []
@@ -229,9 +242,16 @@ def describe(cfg: Config, status: dict[str, Any] | None, shadow_sha256: str) -> 
     return lines
 
 
-def promote(config: str | Path, *, force: bool = False, reload: bool = True, wait_s: float = 60.0,
-            dry_run: bool = False, min_probes: int = MIN_PROBES,
-            say: Callable[[str], None] = lambda line: None) -> dict[str, Any]:
+def promote(
+    config: str | Path,
+    *,
+    force: bool = False,
+    reload: bool = True,
+    wait_s: float = 60.0,
+    dry_run: bool = False,
+    min_probes: int = MIN_PROBES,
+    say: Callable[[str], None] = lambda line: None,
+) -> dict[str, Any]:
     """Promote the config's shadow (see the module): `say` is given what it is about to do, line by line,
     before anything is checked against it or written; what was done, for the command to print. A
     refusal is BadInput (exit 2)."""
@@ -255,8 +275,13 @@ def promote(config: str | Path, *, force: bool = False, reload: bool = True, wai
         why = score_refusal(status, sha, list(cfg.shadow.outputs), min_probes)
         if why is not None:
             raise cfg.doc.error(f"not promoted: {why} (give --force to promote it anyway)", ("shadow",))
-    result: dict[str, Any] = {"config": str(path), "model": new_cfg.model.kind,
-                              "model_file": new_cfg.model.file, "text": new, "sha256": sha}
+    result: dict[str, Any] = {
+        "config": str(path),
+        "model": new_cfg.model.kind,
+        "model_file": new_cfg.model.file,
+        "text": new,
+        "sha256": sha,
+    }
     if dry_run:
         return result
     backup = path.with_name(f"{path.name}.{stamp}.bak")
@@ -305,8 +330,12 @@ def _wait_reloaded(status_path: str, cfg: Config, before: Any, wait_s: float) ->
         except BadInput:
             data = {}
         model = data.get("model") or {}
-        if (data.get("written_unix_s") != before and model.get("kind") == want_kind
-                and model.get("file") == want_file and data.get("shadow") is None):
+        if (
+            data.get("written_unix_s") != before
+            and model.get("kind") == want_kind
+            and model.get("file") == want_file
+            and data.get("shadow") is None
+        ):
             return True
         time.sleep(0.2)
     return False

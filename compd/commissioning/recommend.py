@@ -77,8 +77,7 @@ class Stated:
     cancel_ratio: float | None = None
 
     @staticmethod
-    def of(fold_values: list[float], expected_um: float, before_um: float,
-           cancel_ratio: float | None = None) -> Stated:
+    def of(fold_values: list[float], expected_um: float, before_um: float, cancel_ratio: float | None = None) -> Stated:
         lo = min(fold_values) if fold_values else expected_um
         hi = max(fold_values) if fold_values else expected_um
         lo = min(lo, expected_um / MIN_SPREAD)
@@ -92,12 +91,16 @@ class Stated:
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "rms_um": round(self.rms_um, 4), "range_um": [round(self.low_um, 4), round(self.high_um, 4)],
+            "rms_um": round(self.rms_um, 4),
+            "range_um": [round(self.low_um, 4), round(self.high_um, 4)],
             "before_um": round(self.before_um, 4),
             "reduction_pct": round(self.reduction_pct(self.rms_um), 2),
-            "reduction_range_pct": [round(self.reduction_pct(self.high_um), 2),
-                                    round(self.reduction_pct(self.low_um), 2)],
-            "folds": self.folds, "method": holdout.METHOD,
+            "reduction_range_pct": [
+                round(self.reduction_pct(self.high_um), 2),
+                round(self.reduction_pct(self.low_um), 2),
+            ],
+            "folds": self.folds,
+            "method": holdout.METHOD,
         }
         if self.cancel_ratio is not None:
             out["cancel_ratio"] = round(self.cancel_ratio, 3)
@@ -105,9 +108,11 @@ class Stated:
 
     def line(self, axis: str) -> str:
         lo_pct, hi_pct = self.reduction_pct(self.high_um), self.reduction_pct(self.low_um)
-        return (f"expected on an unseen day, axis {axis}: RMS {self.rms_um:.2f} um ({self.low_um:.2f} to"
-                f" {self.high_um:.2f}), {self.reduction_pct(self.rms_um):.0f} % less than the"
-                f" {self.before_um:.2f} um of this log ({lo_pct:.0f} to {hi_pct:.0f} %)")
+        return (
+            f"expected on an unseen day, axis {axis}: RMS {self.rms_um:.2f} um ({self.low_um:.2f} to"
+            f" {self.high_um:.2f}), {self.reduction_pct(self.rms_um):.0f} % less than the"
+            f" {self.before_um:.2f} um of this log ({lo_pct:.0f} to {hi_pct:.0f} %)"
+        )
 
 
 @dataclass
@@ -142,8 +147,9 @@ def _with_target(log: Log, target: str, values: np.ndarray) -> Log:
     return Log(log.file, log.columns, data)
 
 
-def _stage_pair(log: Log, target: str, fit_first: Callable[[Log], FitResult], second_inputs: list[str],
-                axis: str) -> tuple[FitResult, FitResult, np.ndarray]:
+def _stage_pair(
+    log: Log, target: str, fit_first: Callable[[Log], FitResult], second_inputs: list[str], axis: str
+) -> tuple[FitResult, FitResult, np.ndarray]:
     """Both stages on `log` (its target's blank cells not fitted): the first on the error, the second
     (MLR) on what the first leaves; and their summed prediction over every row."""
     first = fit_first(log)
@@ -155,8 +161,9 @@ def _stage_pair(log: Log, target: str, fit_first: Callable[[Log], FitResult], se
     return first, second, p1 + p2
 
 
-def nested_scores(log: Log, target: str, axis: str, fit_first: Callable[[Log], FitResult],
-                  second_inputs: list[str]) -> list[holdout.FoldScore]:
+def nested_scores(
+    log: Log, target: str, axis: str, fit_first: Callable[[Log], FitResult], second_inputs: list[str]
+) -> list[holdout.FoldScore]:
     """Per fold of compd.identify.holdout: both stages fitted with the fold's errors hidden, the fold
     predicted by their sum (sum of squares, rows), or why it could not be."""
     cut = holdout.folds(log)[0]
@@ -204,8 +211,9 @@ def propose_sums(log: Log, firsts: list[tuple[str, str, list[str], list[str], di
             continue
         opts = dict(options)
 
-        def fit_first(lg: Log, kind: str = kind, inputs: list[str] = inputs, opts: dict[str, Any] = opts,
-                      target: str = target) -> FitResult:
+        def fit_first(
+            lg: Log, kind: str = kind, inputs: list[str] = inputs, opts: dict[str, Any] = opts, target: str = target
+        ) -> FitResult:
             return identify(kind, lg, inputs, [target], **opts)
 
         try:
@@ -225,7 +233,8 @@ def propose_sums(log: Log, firsts: list[tuple[str, str, list[str], list[str], di
                 f"{so.label}: axis {axis}: the two stages cancel: {_rms(p1):.1f} um and {_rms(p2):.1f} um RMS add to"
                 f" {_rms(p1 + p2):.1f} um (ratio {ratio:.1f}); each stage's own error is of its own size, so the"
                 " stated range is widened by that ratio: check each stage against a measurement of its source"
-                " alone (err_<axis>_um_<part>) where one can be made")
+                " alone (err_<axis>_um_<part>) where one can be made"
+            )
         out.append(so)
     return out
 
@@ -257,7 +266,9 @@ class Pick:
     runner_up: Candidate | None = None
 
 
-def candidates(rows: list[Any], sums: list[SumOutcome], held_out_of: Callable[[Any, str], float | None]) -> list[Candidate]:
+def candidates(
+    rows: list[Any], sums: list[SumOutcome], held_out_of: Callable[[Any, str], float | None]
+) -> list[Candidate]:
     """The fitted kinds no blocking warning rules out, and the sums (see the module)."""
     out = []
     for _, label, oc, _ in rows:

@@ -66,10 +66,15 @@ if TYPE_CHECKING:
 # the Siemens sink sends the terms of the row it writes, and feed_axis's `predict` gives
 # the error at each row's position, not at P0.
 REACH_S = 10.0  # a device over the network reads back what it holds within this, or nothing is replayed
-BATCH_MODELS = frozenset({
-    "compd.models.ar1.AR1", "compd.models.xi_spindle.XiSpindle", "compd.models.lvr.LVR",
-    "compd.models.mlr.MLR", "compd.models.feed_axis.FeedAxis",
-})
+BATCH_MODELS = frozenset(
+    {
+        "compd.models.ar1.AR1",
+        "compd.models.xi_spindle.XiSpindle",
+        "compd.models.lvr.LVR",
+        "compd.models.mlr.MLR",
+        "compd.models.feed_axis.FeedAxis",
+    }
+)
 
 
 @dataclass
@@ -100,9 +105,16 @@ class _Rows:
 
     @classmethod
     def empty(cls, n: int, n_out: int, n_parts: int = 0) -> _Rows:
-        return cls(np.zeros((n, n_out)), np.zeros((n, n_out)), np.zeros((n, n_out), dtype=bool),
-                   np.zeros((n, n_out), dtype=np.uint8), np.zeros(n, dtype=np.int64), np.zeros((n, n_out)),
-                   np.full((n, n_out), np.nan), np.full((n, n_parts), np.nan))
+        return cls(
+            np.zeros((n, n_out)),
+            np.zeros((n, n_out)),
+            np.zeros((n, n_out), dtype=bool),
+            np.zeros((n, n_out), dtype=np.uint8),
+            np.zeros(n, dtype=np.int64),
+            np.zeros((n, n_out)),
+            np.full((n, n_out), np.nan),
+            np.full((n, n_parts), np.nan),
+        )
 
 
 def probe_columns(log: Log, axes: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
@@ -143,14 +155,29 @@ def replay_log(
     plain = None
     if probes:  # the model alone, on a fresh sink of the same kind: the report's without_adaptation
         fresh = type(sink)(sink.cfg, sink.base_dir)
-        plain = replay_log(log, copy_model(model), fresh, guard_cfg, codec_cfg, None, use_probes=False,
-                           inhibit_cfg=inhibit_cfg, per_row=per_row)
+        plain = replay_log(
+            log,
+            copy_model(model),
+            fresh,
+            guard_cfg,
+            codec_cfg,
+            None,
+            use_probes=False,
+            inhibit_cfg=inhibit_cfg,
+            per_row=per_row,
+        )
     source = ReplaySource(ReplayConfig(kind="replay", name="log", path=log.file), log=log)
     clock = SimClock(float(log.t_s[0]))
     try:
         loop = build_pipeline(
-            sources=[source], model=model, sink=sink, clock=clock, period_s=1.0,
-            guard_cfg=guard_cfg, codec_cfg=codec_cfg, adapt_cfg=adapt_cfg if probes else None,
+            sources=[source],
+            model=model,
+            sink=sink,
+            clock=clock,
+            period_s=1.0,
+            guard_cfg=guard_cfg,
+            codec_cfg=codec_cfg,
+            adapt_cfg=adapt_cfg if probes else None,
             inhibit_cfg=inhibit_cfg,
         ).loop
     except BadInput as e:
@@ -215,10 +242,15 @@ def replay_log(
         report["adaptation"] = adaptation
     for k, (name, axis) in enumerate(parts):
         report.setdefault("contributions", {}).setdefault(axis, {})[name] = _contribution_report(
-            rows.parts[:, k], err[:, model.outputs.index(axis)], loop.guard.faults, f"{axis}/{name}")
+            rows.parts[:, k], err[:, model.outputs.index(axis)], loop.guard.faults, f"{axis}/{name}"
+        )
     extra = {
-        "pred_um": rows.pred, "corr_um": rows.corr, "guard_state": rows.state, "lsb_um": loop.encoder.lsb_um,
-        "commanded_um": rows.commanded, "enable": rows.enable,
+        "pred_um": rows.pred,
+        "corr_um": rows.corr,
+        "guard_state": rows.state,
+        "lsb_um": loop.encoder.lsb_um,
+        "commanded_um": rows.commanded,
+        "enable": rows.enable,
         "word_axes": [model.outputs[a] for a in loop.word_axes],
         "signals": {name: log.col(name) for name in model.inputs if name in log.columns},
         "log": log.file,
@@ -270,13 +302,18 @@ def shadow_report(log: Log, shadow: Model, axes: list[str], active_um: np.ndarra
             e = log.col(col)
             use = np.isfinite(e) & np.isfinite(pred[:, a]) & np.isfinite(active_um[:, a])
             k = int(use.sum())
-            entry[what] = {"rows": k,
-                           "active_rms_um": float(np.sqrt(np.mean((e[use] - active_um[use, a]) ** 2))) if k else None,
-                           "shadow_rms_um": float(np.sqrt(np.mean((e[use] - pred[use, a]) ** 2))) if k else None}
+            entry[what] = {
+                "rows": k,
+                "active_rms_um": float(np.sqrt(np.mean((e[use] - active_um[use, a]) ** 2))) if k else None,
+                "shadow_rms_um": float(np.sqrt(np.mean((e[use] - pred[use, a]) ** 2))) if k else None,
+            }
         per_axis[axis] = entry
     fit = shadow.fit_info
-    return {"model": {"kind": shadow.kind, "file": shadow.file, "fitted_at": fit.get("fitted_at")},
-            "axes": per_axis, "_pred": pred}
+    return {
+        "model": {"kind": shadow.kind, "file": shadow.file, "fitted_at": fit.get("fitted_at")},
+        "axes": per_axis,
+        "_pred": pred,
+    }
 
 
 def _log_probes(loop: Loop, probes: dict[str, tuple[np.ndarray, np.ndarray | None]], i: int, now: float) -> None:
@@ -284,8 +321,9 @@ def _log_probes(loop: Loop, probes: dict[str, tuple[np.ndarray, np.ndarray | Non
     assert loop.adapter is not None
     for axis, (z, pos) in probes.items():
         if math.isfinite(z[i]):
-            loop.adapter.inbox.append(Probe(now, axis, float(z[i]), None,
-                                            None if pos is None else float(pos[i]), "log"))
+            loop.adapter.inbox.append(
+                Probe(now, axis, float(z[i]), None, None if pos is None else float(pos[i]), "log")
+            )
 
 
 def positions_mm(log: Log, axes: list[str]) -> np.ndarray | None:
@@ -347,8 +385,17 @@ def _run_stages(
     loop.word = loop.encoder.word
     applied = np.zeros((n, 2))
     commanded = np.zeros((n, 2))
-    loop.sink.write_rows(t, rows.words, changed, rows.corr, rows.enable, applied, commanded, terms,
-                         positions_mm(log, list(loop.model.outputs)))
+    loop.sink.write_rows(
+        t,
+        rows.words,
+        changed,
+        rows.corr,
+        rows.enable,
+        applied,
+        commanded,
+        terms,
+        positions_mm(log, list(loop.model.outputs)),
+    )
     for slot, axis in enumerate(wa):
         rows.applied[:, axis] = applied[:, slot]
         rows.commanded[:, axis] = commanded[:, slot]
@@ -372,9 +419,14 @@ def _inputs_and_model(
     uses_terms = (loop.sink.sends_linear_terms or loop.adapter is not None) and model.linear_terms() is not None
     # rows [0, e) pass every check: the model is evaluated over them at once where that
     # equals stepping it (its `predict` leads the inputs as `run` does, compd.models.lead)
-    batch = (bool(plain[0]) and model.linear_terms() is None
-             and (type(model).predict is Model.predict
-                  or f"{type(model).__module__}.{type(model).__qualname__}" in BATCH_MODELS))
+    batch = (
+        bool(plain[0])
+        and model.linear_terms() is None
+        and (
+            type(model).predict is Model.predict
+            or f"{type(model).__module__}.{type(model).__qualname__}" in BATCH_MODELS
+        )
+    )
     e = (n if plain.all() else int(np.argmin(plain))) if batch else 0
     ok_rows = np.zeros(n, dtype=bool)
     deg_rows = np.zeros(n, dtype=bool)
@@ -436,8 +488,15 @@ def _inputs_and_model(
 
 
 def _adapt_and_guard(
-    loop: Loop, log: Log, probes: dict[str, tuple[np.ndarray, np.ndarray | None]], ok: np.ndarray,
-    degraded: np.ndarray, hold: np.ndarray | None, rows: _Rows, dt: np.ndarray, terms: list[Any] | None,
+    loop: Loop,
+    log: Log,
+    probes: dict[str, tuple[np.ndarray, np.ndarray | None]],
+    ok: np.ndarray,
+    degraded: np.ndarray,
+    hold: np.ndarray | None,
+    rows: _Rows,
+    dt: np.ndarray,
+    terms: list[Any] | None,
 ) -> None:
     """With probes: the adapter and the guard, row by row as the loop runs them."""
     adapter, guard = loop.adapter, loop.guard
@@ -486,8 +545,11 @@ def _check_reachable(host: str, port: int, device_id: int, doc: Document) -> Non
     client = ModbusClient.tcp(host, port, device_id=device_id, timeout_s=1.0)
     try:
         if not client.connect():
-            raise doc.error(f"the PMC at {host}:{port} does not answer: start it, or drop host to replay"
-                            " against the PMC in process", ("sink", "host"))
+            raise doc.error(
+                f"the PMC at {host}:{port} does not answer: start it, or drop host to replay"
+                " against the PMC in process",
+                ("sink", "host"),
+            )
     finally:
         client.close()
 
@@ -508,8 +570,9 @@ def replay_config(config_file: str | Path, log_file: str | Path) -> ReplayResult
     inhibit = cfg.top.inhibit
     held = inhibit_signals(inhibit) if inhibit is not None else []
     use_inhibit = bool(held) and all(name in log.columns for name in held)
-    result = replay_log(log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt,
-                        inhibit_cfg=inhibit if use_inhibit else None)
+    result = replay_log(
+        log, model, sink, cfg.guard, cfg.codec, cfg.top.adapt, inhibit_cfg=inhibit if use_inhibit else None
+    )
     if cfg.shadow is not None:
         shadow = build_model(cfg.shadow)
         result.report["shadow"] = shadow_report(log, shadow, list(model.outputs), result.extra["pred_um"])

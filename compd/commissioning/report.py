@@ -58,9 +58,7 @@ def plot_fit(outcome: Any, log: Log, path: str | Path) -> None:
         ax.plot(t_h, Y[:, k] - outcome.pred[:, k], "-", lw=0.8, color="tab:red", label="residual")
         ax.axhline(0.0, color="0.8", lw=0.5)
         ax.set_ylabel(f"{axis} error / µm")
-        ax.set_title(
-            f"{outcome.kind} — axis {axis}: RMSE {s['rmse_um']:.2f} µm, max {s['max_abs_err_um']:.2f} µm"
-        )
+        ax.set_title(f"{outcome.kind} — axis {axis}: RMSE {s['rmse_um']:.2f} µm, max {s['max_abs_err_um']:.2f} µm")
         ax.legend(loc="best", fontsize=8)
     panels[len(axes) - 1].set_xlabel("time / h")
     if outcome.kind == "lvr":
@@ -119,6 +117,9 @@ def _curves(ax: Any, outcome: Any, log: Log, e: np.ndarray) -> None:
     ax.plot([], [], "kx", label="model, same rows")
     ax.set_xlabel("position / mm")
     ax.set_ylabel("E / µm")
-    ax.set_title(f"E(t, y) along the stroke: lines the model at t; dots measured and crosses the model on the"
-                 f" rows within ±{window:.0f} s", fontsize=9)
+    ax.set_title(
+        f"E(t, y) along the stroke: lines the model at t; dots measured and crosses the model on the"
+        f" rows within ±{window:.0f} s",
+        fontsize=9,
+    )
     ax.legend(fontsize=8, ncol=2)

@@ -76,8 +76,9 @@ def parse_axis(text: str, flag: str = "--axis") -> Axis:
         raise BadInput(f"give NAME:STROKE_MM:MAX_FEED_MM_MIN[:MIN_FEED_MM_MIN], got {text!r}", path=flag)
     name = parts[0].strip().lower()
     if len(name) != 1 or name not in LINEAR_AXES:
-        raise BadInput(f"the axis is one letter of {', '.join(LINEAR_AXES.upper())} (a linear axis), got {parts[0]!r}",
-                       path=flag)
+        raise BadInput(
+            f"the axis is one letter of {', '.join(LINEAR_AXES.upper())} (a linear axis), got {parts[0]!r}", path=flag
+        )
     values = []
     for what, cell in zip(("stroke", "max feed", "min feed"), parts[1:], strict=False):
         try:
@@ -181,13 +182,26 @@ def design(
     """The thermal test for a machine turning up to `max_rpm` (0: no spindle, the axes' feeds are
     the spectrum), `hours` long at most. BadInput names the option (its command-line flag) of a
     value that cannot make a plan. See the module's docstring for what is designed and why."""
-    _check_inputs(max_rpm, hours, min_rpm, probe_every_min, step_min, time_constant_min, levels, feed_levels,
-                  axes, idle_hours, seed)
+    _check_inputs(
+        max_rpm,
+        hours,
+        min_rpm,
+        probe_every_min,
+        step_min,
+        time_constant_min,
+        levels,
+        feed_levels,
+        axes,
+        idle_hours,
+        seed,
+    )
     step_s = _whole_s(step_min if step_min is not None else probe_every_min, "--step-min")
     probe_s = _whole_s(probe_every_min, "--probe-every-min")
     if probe_s % step_s:
-        raise BadInput(f"the probing interval ({probe_every_min:g} min) must be a whole number of steps"
-                       f" ({step_s / 60:g} min)", path="--probe-every-min")
+        raise BadInput(
+            f"the probing interval ({probe_every_min:g} min) must be a whole number of steps ({step_s / 60:g} min)",
+            path="--probe-every-min",
+        )
     spindle = max_rpm > 0
     low_rpm = 0.0 if not spindle else (0.1 * max_rpm if min_rpm is None else float(min_rpm))
     for ax in axes:
@@ -196,11 +210,14 @@ def design(
             raise BadInput(
                 f"{ax.name}: one stroke out and back over {ax.stroke_mm:g} mm at its lowest feed"
                 f" ({ax.min_feed_mm_min:g} mm/min) takes {trip:.0f} s, longer than a step ({step_s:.0f} s):"
-                " raise the min feed, shorten the stroke or lengthen --step-min", path="--axis")
+                " raise the min feed, shorten the stroke or lengthen --step-min",
+                path="--axis",
+            )
     # the states of the primary spectrum: (speed, {axis: feed})
     speeds = _levels(low_rpm, float(max_rpm), levels, "--levels", "rpm") if spindle else []
-    feeds = {ax.name: _levels(ax.min_feed_mm_min, ax.max_feed_mm_min, feed_levels, "--feed-levels", "mm/min")
-             for ax in axes}
+    feeds = {
+        ax.name: _levels(ax.min_feed_mm_min, ax.max_feed_mm_min, feed_levels, "--feed-levels", "mm/min") for ax in axes
+    }
     if spindle:
         primary = [(v, {}) for v in speeds]
         secondary: list[dict[str, float]] = [{}] + [{a: f} for a, fs in feeds.items() for f in fs]
@@ -216,8 +233,11 @@ def design(
     idle_steps = int(round(idle_hours * 3600.0 / step_s))
     total_steps = int(math.floor(hours * 3600.0 / step_s + 1e-9))
     if total_steps > MAX_STEPS:
-        raise BadInput(f"{hours:g} h in steps of {step_s:g} s are {total_steps} steps, more than {MAX_STEPS}:"
-                       " give a longer --step-min", path="--hours")
+        raise BadInput(
+            f"{hours:g} h in steps of {step_s:g} s are {total_steps} steps, more than {MAX_STEPS}:"
+            " give a longer --step-min",
+            path="--hours",
+        )
     budget = total_steps - idle_steps
     per_pass = 2 * m + n_pauses
     if budget < per_pass:
@@ -226,11 +246,16 @@ def design(
             f"{hours:g} h is too short for one pass over the {m} levels: it needs at least {need_h:.2f} h"
             f" ({idle_steps * step_s / 3600.0:g} h idle, then {2 * m} holds and {n_pauses} pauses of at least"
             f" one {step_s / 60:g} min step); give more hours, or fewer --levels, a shorter --step-min or"
-            " --idle-hours", path="--hours")
+            " --idle-hours",
+            path="--hours",
+        )
     passes = max(1, min(budget // per_pass, int(budget * step_s / 60.0 / (MIN_PASS_SCALE * pass_min))))
     if len(secondary) > 2 * m:
-        raise BadInput(f"{len(secondary) - 1} axis feeds and standing do not fit into the {2 * m} holds of a pass:"
-                       " give fewer --feed-levels or more --levels", path="--feed-levels")
+        raise BadInput(
+            f"{len(secondary) - 1} axis feeds and standing do not fit into the {2 * m} holds of a pass:"
+            " give fewer --feed-levels or more --levels",
+            path="--feed-levels",
+        )
     rng = np.random.default_rng([int(seed), 40])
     segments: list[tuple[str, float, float, dict[str, float]]] = []  # (kind, τ units, speed, feeds)
     last = None
@@ -258,17 +283,37 @@ def design(
     holds = [d * step_s for (kind, *_), d in zip(segments, steps, strict=True) if kind == "hold"]
     pauses_s = [d * step_s for (kind, *_), d in zip(segments, steps, strict=True) if kind == "pause"]
     plan.info = {
-        "spindle": spindle, "speeds_rpm": speeds, "feeds_mm_min": feeds, "levels": m, "passes": passes,
-        "holds_s": holds, "pauses_s": pauses_s, "idle_s": idle_steps * step_s, "step_s": step_s,
-        "probe_every_s": probe_s, "probes": int(plan.probe.sum()), "time_constant_min": float(time_constant_min),
-        "seed": int(seed), "hours": float(hours),
+        "spindle": spindle,
+        "speeds_rpm": speeds,
+        "feeds_mm_min": feeds,
+        "levels": m,
+        "passes": passes,
+        "holds_s": holds,
+        "pauses_s": pauses_s,
+        "idle_s": idle_steps * step_s,
+        "step_s": step_s,
+        "probe_every_s": probe_s,
+        "probes": int(plan.probe.sum()),
+        "time_constant_min": float(time_constant_min),
+        "seed": int(seed),
+        "hours": float(hours),
     }
     return plan
 
 
-def _check_inputs(max_rpm: float, hours: float, min_rpm: float | None, probe_every_min: float,
-                  step_min: float | None, time_constant_min: float, levels: int, feed_levels: int,
-                  axes: Sequence[Axis], idle_hours: float, seed: int) -> None:
+def _check_inputs(
+    max_rpm: float,
+    hours: float,
+    min_rpm: float | None,
+    probe_every_min: float,
+    step_min: float | None,
+    time_constant_min: float,
+    levels: int,
+    feed_levels: int,
+    axes: Sequence[Axis],
+    idle_hours: float,
+    seed: int,
+) -> None:
     def finite(v: float, flag: str, low: float = 0.0, strict: bool = True) -> None:
         ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
         if not ok or (v <= low if strict else v < low):
@@ -310,8 +355,11 @@ def _levels(low: float, high: float, n: int, flag: str, unit: str) -> list[float
     vals = [float(v) for v in np.round(np.linspace(low, high, n))]
     vals[0], vals[-1] = float(math.ceil(low)), float(math.floor(high))
     if len(set(vals)) != n or any(b <= a for a, b in zip(vals, vals[1:], strict=False)):
-        raise BadInput(f"{n} levels from {low:g} to {high:g} {unit} are not {n} different whole numbers:"
-                       " give fewer levels or a wider range", path=flag)
+        raise BadInput(
+            f"{n} levels from {low:g} to {high:g} {unit} are not {n} different whole numbers:"
+            " give fewer levels or a wider range",
+            path=flag,
+        )
     return vals
 
 
@@ -352,11 +400,18 @@ def _apportion(x: np.ndarray, total: int) -> np.ndarray:
     return out
 
 
-def _rows(segments: list[tuple[str, float, float, dict[str, float]]], steps: np.ndarray, idle_steps: int,
-          step_s: int, probe_s: int, axes: list[str]) -> Plan:
+def _rows(
+    segments: list[tuple[str, float, float, dict[str, float]]],
+    steps: np.ndarray,
+    idle_steps: int,
+    step_s: int,
+    probe_s: int,
+    axes: list[str],
+) -> Plan:
     """The plan's rows: one at each change and at each measurement, the last ending the plan."""
     states = [(0.0, {})] * idle_steps + [
-        (speed, feeds) for (_, _, speed, feeds), n in zip(segments, steps, strict=True) for _ in range(int(n))]
+        (speed, feeds) for (_, _, speed, feeds), n in zip(segments, steps, strict=True) for _ in range(int(n))
+    ]
     t, v, f, p = [], [], {a: [] for a in axes}, []
     prev = None
     for k, (speed, feeds) in enumerate(states):
@@ -374,8 +429,7 @@ def _rows(segments: list[tuple[str, float, float, dict[str, float]]], steps: np.
     for a in axes:
         f[a].append(0.0)
     p.append((len(states) * step_s) % probe_s == 0)
-    return Plan(np.array(t, float), np.array(v, float), {a: np.array(f[a], float) for a in axes},
-                np.array(p, bool))
+    return Plan(np.array(t, float), np.array(v, float), {a: np.array(f[a], float) for a in axes}, np.array(p, bool))
 
 
 def summary_lines(plan: Plan) -> list[str]:
@@ -391,9 +445,9 @@ def summary_lines(plan: Plan) -> list[str]:
     lines.append(
         f"{len(holds)} holds {min(holds) / 60:g}..{max(holds) / 60:g} min, {len(pauses)} cool-down pauses"
         f" {min(pauses) / 60:g}..{max(pauses) / 60:g} min, idle {i['idle_s'] / 60:g} min"
-        + (f", {i['passes']} passes" if i["passes"] > 1 else ""))
-    lines.append(f"{i['probes']} measurements every {i['probe_every_s'] / 60:g} min;"
-                 f" {plan.duration_s / 3600.0:.2f} h")
+        + (f", {i['passes']} passes" if i["passes"] > 1 else "")
+    )
+    lines.append(f"{i['probes']} measurements every {i['probe_every_s'] / 60:g} min; {plan.duration_s / 3600.0:.2f} h")
     return lines
 
 
@@ -403,11 +457,15 @@ def warnings(plan: Plan) -> list[str]:
     tau_s = i["time_constant_min"] * 60.0
     out = []
     if max(i["holds_s"]) < tau_s:
-        out.append(f"the longest hold ({max(i['holds_s']) / 60:g} min) is shorter than the time constant"
-                   f" ({i['time_constant_min']:g} min): no level gets near its steady state; give more --hours")
+        out.append(
+            f"the longest hold ({max(i['holds_s']) / 60:g} min) is shorter than the time constant"
+            f" ({i['time_constant_min']:g} min): no level gets near its steady state; give more --hours"
+        )
     if min(i["holds_s"]) > tau_s:
-        out.append(f"the shortest hold ({min(i['holds_s']) / 60:g} min) is longer than the time constant"
-                   f" ({i['time_constant_min']:g} min): the plan shows little of the fast response")
+        out.append(
+            f"the shortest hold ({min(i['holds_s']) / 60:g} min) is longer than the time constant"
+            f" ({i['time_constant_min']:g} min): the plan shows little of the fast response"
+        )
     return out
 
 
@@ -434,13 +492,16 @@ def read_plan(file: str | Path) -> Plan:
             if need not in header:
                 raise BadInput(f"no column {need!r} (columns: {', '.join(header)})", file=file, line=1)
         if len(set(header)) != len(header):
-            raise BadInput("column named twice", file=file, line=1,
-                           path=next(h for h in header if header.count(h) > 1))
+            raise BadInput("column named twice", file=file, line=1, path=next(h for h in header if header.count(h) > 1))
         for h in header:
             if h.startswith("feed_") and not FEED_COLUMN.fullmatch(h):
                 raise BadInput("a feed column is feed_<axis>_mm_min", file=file, line=1, path=h)
-        used = ["t_s", "speed_rpm", *(h for h in header if FEED_COLUMN.fullmatch(h)),
-                *(["probe"] if "probe" in header else [])]
+        used = [
+            "t_s",
+            "speed_rpm",
+            *(h for h in header if FEED_COLUMN.fullmatch(h)),
+            *(["probe"] if "probe" in header else []),
+        ]
         idx = [header.index(c) for c in used]
         rows: list[list[float]] = []
         try:
@@ -464,8 +525,12 @@ def read_plan(file: str | Path) -> Plan:
                         raise BadInput(f"0 or 1, got {cell}", file=file, line=lineno, path=name)
                     values.append(x)
                 if rows and not values[0] > rows[-1][0]:
-                    raise BadInput(f"t_s must increase from row to row ({_num(values[0], 6)} after"
-                                   f" {_num(rows[-1][0], 6)})", file=file, line=lineno, path="t_s")
+                    raise BadInput(
+                        f"t_s must increase from row to row ({_num(values[0], 6)} after {_num(rows[-1][0], 6)})",
+                        file=file,
+                        line=lineno,
+                        path="t_s",
+                    )
                 rows.append(values)
         except csv.Error as e:
             raise BadInput(f"CSV: {e}", file=file, line=reader.line_num) from None
@@ -503,8 +568,7 @@ def steps(plan: Plan) -> Iterator[Step]:
         moves = [(a, plan.strokes_mm[a], float(f[i])) for a, f in plan.feeds_mm_min.items() if f[i] > 0]
         trip = sum(2.0 * s / f * 60.0 for _, s, f in moves)
         trips = int(math.floor(dur / trip + 1e-9)) if moves else 0
-        yield Step(float(plan.t_s[i]), bool(plan.probe[i]), v if v != speed else None, moves, trips,
-                   dur - trips * trip)
+        yield Step(float(plan.t_s[i]), bool(plan.probe[i]), v if v != speed else None, moves, trips, dur - trips * trip)
         speed = v
 
 
@@ -521,12 +585,16 @@ def _dwells(rest_s: float, limit_s: float | None) -> list[float]:
 
 def _header_lines(plan: Plan, controller: str, probe_call: str, source: str) -> list[str]:
     i = plan.info
-    lines = [f"compd {version()} testplan: the thermal test for {controller}, from {source}",
-             *(summary_lines(plan) if "holds_s" in i else []),
-             f"measuring call: {probe_call} (a placeholder for your own probing routine)"]
+    lines = [
+        f"compd {version()} testplan: the thermal test for {controller}, from {source}",
+        *(summary_lines(plan) if "holds_s" in i else []),
+        f"measuring call: {probe_call} (a placeholder for your own probing routine)",
+    ]
     if plan.strokes_mm:
-        lines.append("axes: start each at the low end of its stroke: it moves + and back, " +
-                     ", ".join(f"{a.upper()} {_num(s, 3)} mm" for a, s in plan.strokes_mm.items()))
+        lines.append(
+            "axes: start each at the low end of its stroke: it moves + and back, "
+            + ", ".join(f"{a.upper()} {_num(s, 3)} mm" for a, s in plan.strokes_mm.items())
+        )
     return lines
 
 
@@ -585,7 +653,10 @@ def fanuc(plan: Plan, probe_call: str, source: str) -> str:
         if st.trips:
             out += ["#1=0", f"WHILE [#1 LT {st.trips}] DO1"]
             for a, stroke, feed in st.moves:
-                out += [f"G91 G01 {a.upper()}{_fanuc_dec(stroke)} F{_fanuc_dec(feed)}", f"{a.upper()}-{_fanuc_dec(stroke)}"]
+                out += [
+                    f"G91 G01 {a.upper()}{_fanuc_dec(stroke)} F{_fanuc_dec(feed)}",
+                    f"{a.upper()}-{_fanuc_dec(stroke)}",
+                ]
             out += ["#1=#1+1", "END1", "G90"]
         out += [f"G04 X{_fanuc_dec(d)}" for d in _dwells(st.rest_s, DWELL_MAX_S)]
     out.append(f"(T = {_num(float(plan.t_s[-1]), 3)} S: THE END)")
@@ -625,8 +696,9 @@ def check_probe_call(text: str, controller: str) -> str:
     """The user's measuring call as one program line (BadInput otherwise)."""
     text = text.strip()
     if not text or "\n" in text or "\r" in text or not text.isprintable() or len(text) > 200:
-        raise BadInput("one line of up to 200 printable characters, e.g. "
-                       f"{PROBE_CALLS[controller]!r}", path="--probe-call")
+        raise BadInput(
+            f"one line of up to 200 printable characters, e.g. {PROBE_CALLS[controller]!r}", path="--probe-call"
+        )
     if controller == "fanuc" and text != text.upper():
         raise BadInput(f"a FANUC program is upper case: {text.upper()!r}", path="--probe-call")
     return text

@@ -133,8 +133,9 @@ class AxisDrift:
         """The largest |drift| and when, and the range (max − min) of the measurements."""
         d = self.drift_um
         k = int(np.argmax(np.abs(d)))
-        return DriftFigures(float(abs(d[k])), float(self.t_s[k]), float(d.min()), float(d.max()),
-                            float(d.max() - d.min()))
+        return DriftFigures(
+            float(abs(d[k])), float(self.t_s[k]), float(d.min()), float(d.max()), float(d.max() - d.min())
+        )
 
     def residual(self) -> ResidualFigures | None:
         """RMS, largest |residual| and when, and the range of the residual (the drift left), over the
@@ -147,8 +148,9 @@ class AxisDrift:
             return None
         rr, tt = r[ok], self.t_s[ok]
         k = int(np.argmax(np.abs(rr)))
-        return ResidualFigures(int(ok.sum()), float(np.sqrt(np.mean(rr * rr))), float(abs(rr[k])), float(tt[k]),
-                               float(rr.max() - rr.min()))
+        return ResidualFigures(
+            int(ok.sum()), float(np.sqrt(np.mean(rr * rr))), float(abs(rr[k])), float(tt[k]), float(rr.max() - rr.min())
+        )
 
 
 @dataclass
@@ -235,11 +237,24 @@ class ThermalTest:
                 "predicted_um": None if ax.predicted_um is None else _plain(ax.predicted_um),
                 "residual_um": None if ax.residual_um is None else _plain(ax.residual_um),
             }
-        idle = [{"where": s.where, "from_t_s": s.from_t_s, "to_t_s": s.to_t_s,
-                 "duration_s": s.to_t_s - s.from_t_s, "axes": {ax.axis: asdict(s.figures(ax)) for ax in self.axes}}
-                for s in self.idle]
-        out: dict[str, Any] = {"log": self.log, "model": self.model, "rows": self.rows,
-                               "every_s": self.every_s, "axes": axes, "idle": idle}
+        idle = [
+            {
+                "where": s.where,
+                "from_t_s": s.from_t_s,
+                "to_t_s": s.to_t_s,
+                "duration_s": s.to_t_s - s.from_t_s,
+                "axes": {ax.axis: asdict(s.figures(ax)) for ax in self.axes},
+            }
+            for s in self.idle
+        ]
+        out: dict[str, Any] = {
+            "log": self.log,
+            "model": self.model,
+            "rows": self.rows,
+            "every_s": self.every_s,
+            "axes": axes,
+            "idle": idle,
+        }
         if self.idle_why_not:
             out["idle_why_not"] = self.idle_why_not
         if self.not_measured:
@@ -252,8 +267,13 @@ def _plain(a: np.ndarray) -> list[float | None]:
     return [float(v) if math.isfinite(v) else None for v in np.asarray(a, dtype=float)]
 
 
-def thermal_test(log: Log, outputs: list[str] | None = None, pred_um: np.ndarray | None = None,
-                 model: str | None = None, every_s: float = DEFAULT_EVERY_MIN * 60.0) -> ThermalTest:
+def thermal_test(
+    log: Log,
+    outputs: list[str] | None = None,
+    pred_um: np.ndarray | None = None,
+    model: str | None = None,
+    every_s: float = DEFAULT_EVERY_MIN * 60.0,
+) -> ThermalTest:
     """The thermal test's figures of `log`: per axis it measures, the measurements (its
     `probe_<axis>_um` rows; else `err_<axis>_um` at the log's probe rows, or every `every_s` from
     the first measurement), their drift and, where `outputs` (the model's axes) has the axis, the
@@ -291,15 +311,29 @@ def thermal_test(log: Log, outputs: list[str] | None = None, pred_um: np.ndarray
             why = f"not an output of {Path(model).name if model else 'the model'}"
         series.append(AxisDrift(a, source, sampled, rows, log.t_s[rows], measured, predicted, why))
     if not series:
-        raise BadInput("its probe_<axis>_um and err_<axis>_um columns hold no value: no measurement",
-                       file=log.file)
+        raise BadInput("its probe_<axis>_um and err_<axis>_um columns hold no value: no measurement", file=log.file)
     shown = {s.axis for s in series}
-    not_measured = {a: "the log has no value in its probe_ or err_ column of the axis" if a in axes
-                    else "the log has no probe_ or err_ column of the axis" for a in outputs if a not in shown}
+    not_measured = {
+        a: "the log has no value in its probe_ or err_ column of the axis"
+        if a in axes
+        else "the log has no probe_ or err_ column of the axis"
+        for a in outputs
+        if a not in shown
+    }
     idle, why_not = idle_stretches(log)
-    return ThermalTest(log.file, model, len(log), float(log.t_s[0]), every_s,
-                       log.col("speed_rpm").copy() if "speed_rpm" in log.columns else None, log.t_s.copy(),
-                       series, idle, why_not, not_measured)
+    return ThermalTest(
+        log.file,
+        model,
+        len(log),
+        float(log.t_s[0]),
+        every_s,
+        log.col("speed_rpm").copy() if "speed_rpm" in log.columns else None,
+        log.t_s.copy(),
+        series,
+        idle,
+        why_not,
+        not_measured,
+    )
 
 
 # ------------------------------------------------------------------- the plot
@@ -313,14 +347,26 @@ def plot_png(tt: ThermalTest, dpi: int = 90) -> bytes:
     plt = pyplot()
     speed = tt.speed_rpm is not None
     heights = ([0.55] if speed else []) + [1.0] * len(tt.axes)
-    fig, panels = plt.subplots(len(heights), 1, figsize=(11, 0.6 + 2.7 * sum(heights)), sharex=True,
-                               squeeze=False, gridspec_kw={"height_ratios": heights})
+    fig, panels = plt.subplots(
+        len(heights),
+        1,
+        figsize=(11, 0.6 + 2.7 * sum(heights)),
+        sharex=True,
+        squeeze=False,
+        gridspec_kw={"height_ratios": heights},
+    )
     panels = list(panels[:, 0])
 
     def shade(ax: Any, label: bool) -> None:
         for k, s in enumerate(tt.idle):
-            ax.axvspan((s.from_t_s - tt.t0_s) / 3600.0, (s.to_t_s - tt.t0_s) / 3600.0, color=C_IDLE, alpha=0.08,
-                       lw=0, label="spindle stopped (idle)" if label and k == 0 else None)
+            ax.axvspan(
+                (s.from_t_s - tt.t0_s) / 3600.0,
+                (s.to_t_s - tt.t0_s) / 3600.0,
+                color=C_IDLE,
+                alpha=0.08,
+                lw=0,
+                label="spindle stopped (idle)" if label and k == 0 else None,
+            )
 
     if speed:
         ax = panels.pop(0)
@@ -336,13 +382,28 @@ def plot_png(tt: ThermalTest, dpi: int = 90) -> bytes:
         d = s.drift()
         ax.plot(h, s.drift_um, "o-", ms=3, lw=1.0, color=C_DRIFT, label=f"drift: {s.source} − first")
         k = int(np.argmax(np.abs(s.drift_um)))
-        ax.plot(h[k], s.drift_um[k], "o", ms=9, mfc="none", mec="tab:red", mew=1.5,
-                label=f"largest drift {d.max_abs_um:.2f} µm")
+        ax.plot(
+            h[k],
+            s.drift_um[k],
+            "o",
+            ms=9,
+            mfc="none",
+            mec="tab:red",
+            mew=1.5,
+            label=f"largest drift {d.max_abs_um:.2f} µm",
+        )
         title = f"axis {s.axis}: largest drift {d.max_abs_um:.2f} µm at {h[k]:.2f} h, range {d.range_um:.2f} µm"
         r = s.residual()
         if r is not None:
-            ax.plot(h, s.residual_um, "s-", ms=3, lw=1.0, color=C_RESIDUAL,
-                    label="residual: measured − model\n(left with compensation)")
+            ax.plot(
+                h,
+                s.residual_um,
+                "s-",
+                ms=3,
+                lw=1.0,
+                color=C_RESIDUAL,
+                label="residual: measured − model\n(left with compensation)",
+            )
             title += f"; residual RMS {r.rms_um:.2f} µm, max {r.max_abs_um:.2f} µm, range {r.range_um:.2f} µm"
         else:
             title += f"; no residual: {s.why_no_prediction or 'no finite prediction'}"

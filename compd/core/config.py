@@ -154,9 +154,7 @@ def _compose(loader: Any, max_values: int) -> yaml.Node | None:
         node: yaml.Node
         if isinstance(ev, yaml.AliasEvent):
             if ev.anchor not in anchors:
-                raise yaml.composer.ComposerError(
-                    None, None, f"found undefined alias {ev.anchor!r}", ev.start_mark
-                )
+                raise yaml.composer.ComposerError(None, None, f"found undefined alias {ev.anchor!r}", ev.start_mark)
             node = anchors[ev.anchor]
         elif isinstance(ev, yaml.ScalarEvent):
             tag = ev.tag
@@ -323,9 +321,7 @@ def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] |
     return current if isinstance(current, type) and issubclass(current, BaseModel) else None
 
 
-def validate(
-    model: type[Strict], data: Any, doc: Document, base: PathT = (), what: str = "section"
-) -> Any:
+def validate(model: type[Strict], data: Any, doc: Document, base: PathT = (), what: str = "section") -> Any:
     """Validate `data` against `model`; the first error becomes a ConfigError."""
     if data is None:
         data = {}
@@ -337,8 +333,14 @@ def validate(
         errors = e.errors()
         err = errors[0]
         if err["type"] == "missing":  # a key misspelt is both unknown and missing: name the misspelling
-            err = next((x for x in errors if x["type"] == "extra_forbidden"
-                        and tuple(x["loc"])[:-1] == tuple(err["loc"])[:-1]), err)
+            err = next(
+                (
+                    x
+                    for x in errors
+                    if x["type"] == "extra_forbidden" and tuple(x["loc"])[:-1] == tuple(err["loc"])[:-1]
+                ),
+                err,
+            )
         raw = tuple(err["loc"])
         if err["type"] == "extra_forbidden" and raw:  # the last part is the user's key, whatever it holds
             loc = (*(p for p in raw[:-1] if not (isinstance(p, str) and "[" in p)), raw[-1])
@@ -355,8 +357,8 @@ def validate(
             msg = "required key is missing"
         else:
             msg = err["msg"]
-            if "input" in err and err["type"] not in ("model_type", "dict_type") and not isinstance(
-                err["input"], dict
+            if (
+                "input" in err and err["type"] not in ("model_type", "dict_type") and not isinstance(err["input"], dict)
             ):  # a whole section is no help in a one-line message
                 msg += f" (got {err['input']!r})"
         raise doc.error(msg, path) from None
@@ -376,8 +378,9 @@ class RealtimeConfig(Strict):
         None, description="CPUs the cycle thread may run on; none = any"
     )
     lock_memory: bool = Field(
-        False, description="lock memory against paging (mlockall; each page from when it is first touched,"
-        " MCL_ONFAULT, where the kernel has it)"
+        False,
+        description="lock memory against paging (mlockall; each page from when it is first touched,"
+        " MCL_ONFAULT, where the kernel has it)",
     )
 
 
@@ -389,9 +392,7 @@ class PlantClockConfig(Strict):
     device_id: int = Field(1, ge=0, le=247, description="unit id of the plant's register map")
     address: int = Field(0, ge=0, le=65534, description="plant time, ms, uint32 in two registers (high first)")
     poll_period_s: float = Field(0.001, ge=0.0001, le=1, description="wall time between clock reads")
-    stall_s: float = Field(
-        0.5, ge=0.01, le=3600, description="wall time without plant progress before a wait gives up"
-    )
+    stall_s: float = Field(0.5, ge=0.01, le=3600, description="wall time without plant progress before a wait gives up")
     lockstep: bool = Field(
         False,
         description="test and acceptance runs: the plant holds its time until compd has finished its"
@@ -411,7 +412,9 @@ class LoopConfig(Strict):
     """The fixed-period cycle."""
 
     period_s: float = Field(
-        0.002, ge=0.0005, le=60,
+        0.002,
+        ge=0.0005,
+        le=60,
         description="cycle period (0.5 ms: below that Python cannot keep a schedule; 60 s: thermal"
         " time constants are tens of minutes, a slower cycle no longer follows them)",
     )
@@ -431,7 +434,9 @@ class LoopConfig(Strict):
         None, gt=0, le=1e9, description="stop after this long (loop time; 1e9 s is 31 years)"
     )
     gil_switch_interval_s: float = Field(
-        0.0001, gt=0, le=0.005,
+        0.0001,
+        gt=0,
+        le=0.005,
         description="wall clock: how soon a thread holding the GIL must hand it to the waking cycle",
     )
     io: Literal["process", "thread"] = Field(
@@ -453,8 +458,10 @@ class LoopConfig(Strict):
     @classmethod
     def _io_on_this_cpu(cls, io: str) -> str:
         if io == "process" and not stores_in_order():
-            raise ValueError(f"process needs an x86-64 CPU (the mailboxes between processes rely on its store"
-                             f" order); this one is {platform.machine() or 'unknown'}: set io: thread")
+            raise ValueError(
+                f"process needs an x86-64 CPU (the mailboxes between processes rely on its store"
+                f" order); this one is {platform.machine() or 'unknown'}: set io: thread"
+            )
         return io
 
 
@@ -462,17 +469,17 @@ class SignalLimits(Strict):
     """Plausibility limits of one signal."""
 
     min: float = Field(
-        -40.0, ge=-SIGNAL_ABS_MAX, le=SIGNAL_ABS_MAX,
+        -40.0,
+        ge=-SIGNAL_ABS_MAX,
+        le=SIGNAL_ABS_MAX,
         description="lowest plausible value (°C for temperatures; any signal's unit: rpm, mm, A)",
     )
-    max: float = Field(
-        150.0, ge=-SIGNAL_ABS_MAX, le=SIGNAL_ABS_MAX, description="highest plausible value; above min"
-    )
-    max_rate_per_s: float | None = Field(
-        None, gt=0, le=SIGNAL_ABS_MAX, description="largest plausible change per s"
-    )
+    max: float = Field(150.0, ge=-SIGNAL_ABS_MAX, le=SIGNAL_ABS_MAX, description="highest plausible value; above min")
+    max_rate_per_s: float | None = Field(None, gt=0, le=SIGNAL_ABS_MAX, description="largest plausible change per s")
     rate_allowance: float = Field(
-        0.3, ge=0, le=SIGNAL_ABS_MAX,
+        0.3,
+        ge=0,
+        le=SIGNAL_ABS_MAX,
         description="added to max_rate_per_s × dt: room for noise and quantization",
     )
     stale_after_s: float | None = Field(
@@ -486,9 +493,7 @@ class SignalLimits(Strict):
         " another model input changed, is frozen (a stuck transmitter); none = not checked;"
         " longer than loop.period_s",
     )
-    frozen_band: float = Field(
-        0.0, ge=0, le=SIGNAL_ABS_MAX, description="a change of at most this much is no change"
-    )
+    frozen_band: float = Field(0.0, ge=0, le=SIGNAL_ABS_MAX, description="a change of at most this much is no change")
 
     @model_validator(mode="after")
     def _order(self) -> SignalLimits:
@@ -505,14 +510,14 @@ FaultPolicy = Literal["hold", "ramp_to_zero", "disable"]
 class AxisGuardConfig(Strict):
     """Per-axis overrides of the guard."""
 
-    fault_policy: FaultPolicy | None = Field(
-        None, description="this axis's fault policy; none = guard.fault_policy"
-    )
+    fault_policy: FaultPolicy | None = Field(None, description="this axis's fault policy; none = guard.fault_policy")
     max_abs_um: float | None = Field(
         None, gt=0, le=MAX_CORRECTION_UM, description="this axis's clamp; none = guard.max_abs_um"
     )
     max_slew_um_per_s: float | None = Field(
-        None, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
+        None,
+        ge=MIN_SLEW_UM_PER_S,
+        le=MAX_SLEW_UM_PER_S,
         description="this axis's slew limit; none = guard.max_slew_um_per_s",
     )
 
@@ -521,29 +526,25 @@ class GuardConfig(Strict):
     """What reaches the machine: plausibility, clamp, slew, fault policy."""
 
     max_abs_um: float = Field(
-        63.0, gt=0, le=MAX_CORRECTION_UM,
+        63.0,
+        gt=0,
+        le=MAX_CORRECTION_UM,
         description="magnitude clamp on the correction (thermal errors are tens to hundreds of µm)",
     )
     max_slew_um_per_s: float = Field(
-        5.0, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
+        5.0,
+        ge=MIN_SLEW_UM_PER_S,
+        le=MAX_SLEW_UM_PER_S,
         description="largest rate of change (thermal errors drift by µm per minute)",
     )
-    fault_policy: FaultPolicy = Field(
-        "hold", description="what an axis does when an input it needs goes bad"
-    )
-    ramp_um_per_s: float = Field(
-        1.0, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S, description="ramp_to_zero rate"
-    )
+    fault_policy: FaultPolicy = Field("hold", description="what an axis does when an input it needs goes bad")
+    ramp_um_per_s: float = Field(1.0, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S, description="ramp_to_zero rate")
     recovery_s: float = Field(5.0, ge=0, le=3600, description="inputs good this long before recovery")
     stale_after_s: float = Field(
         5.0, gt=0, le=86400, description="default staleness limit of a signal; longer than loop.period_s"
     )
-    signals: dict[str, SignalLimits] = Field(
-        default_factory=dict, description="plausibility limits by signal name"
-    )
-    axes: dict[str, AxisGuardConfig] = Field(
-        default_factory=dict, description="per-axis overrides by axis name"
-    )
+    signals: dict[str, SignalLimits] = Field(default_factory=dict, description="plausibility limits by signal name")
+    axes: dict[str, AxisGuardConfig] = Field(default_factory=dict, description="per-axis overrides by axis name")
 
     def clamp_um(self, axis: str) -> tuple[float, str]:
         """The clamp of `axis` (µm) and the key that sets it: its own override, else guard.max_abs_um."""
@@ -562,11 +563,15 @@ class CodecConfig(Strict):
     """The 16-bit word of paper 002 (docs/formats.md)."""
 
     lsb_um: float = Field(
-        1.0, ge=0.01, le=100,
+        1.0,
+        ge=0.01,
+        le=100,
         description="µm per magnitude LSB (63 LSB of 0.01 µm to 100 µm: 0.63 µm to 6.3 mm full scale)",
     )
     deadband_um: float = Field(
-        1.0, ge=0, le=100,
+        1.0,
+        ge=0,
+        le=100,
         description=(
             "|c| at or below this is sent as disabled; the word moves once the correction is"
             " max(deadband_um, lsb_um) from it, one LSB at a time at the slew limit, and settles"
@@ -574,8 +579,10 @@ class CodecConfig(Strict):
         ),
     )
     axes: list[str] | None = Field(
-        None, max_length=2, description="the axes the word drives, high byte first; every output of the model (each"
-        " contribution's, the shadow's) is one of them (default: the first model's outputs, in order)"
+        None,
+        max_length=2,
+        description="the axes the word drives, high byte first; every output of the model (each"
+        " contribution's, the shadow's) is one of them (default: the first model's outputs, in order)",
     )
 
     @model_validator(mode="after")
@@ -592,9 +599,7 @@ class LogConfig(Strict):
     """The CSV data log."""
 
     path: str | None = Field(None, description="log file; none = no log")
-    period_s: float = Field(
-        1.0, ge=0.0005, le=86400, description="one row per this period, plus every word change"
-    )
+    period_s: float = Field(1.0, ge=0.0005, le=86400, description="one row per this period, plus every word change")
     flush_s: float = Field(1.0, ge=0.01, le=3600, description="flush to disk at least this often")
     rotate_bytes: int | None = Field(
         None, ge=1024, le=1 << 40, description="start a new file when the log reaches this size; none = never"
@@ -622,18 +627,24 @@ class AdaptConfig(Strict):
         4.0, ge=1, le=100, description="reject a probe whose innovation exceeds this many of its σ"
     )
     model_sigma_um: float | None = Field(
-        None, ge=0, le=1000,
+        None,
+        ge=0,
+        le=1000,
         description="σ of the model's own error at a probe (it moves from probe to probe, a probe cannot tell it"
         " from an offset), µm; none = the model's held-out RMSE from its fit (its file's fit.held_out_rmse_um),"
         " 0 when the file has none",
     )
     apply_above_sigma: float = Field(
-        2.0, ge=0, le=100,
+        2.0,
+        ge=0,
+        le=100,
         description="apply the estimate's correction c only as far as it stands out from its own σ where the axis"
         " is: c·max(0, 1 − (k σ_c/c)²) with this k (0 = apply the estimate as it is)",
     )
     initial_offset_sigma_um: float | None = Field(
-        None, gt=0, le=1000,
+        None,
+        gt=0,
+        le=1000,
         description="σ of the offset before the first probe, µm; none = the model's own error σ_m (5 when it is 0)",
     )
     initial_gain_sigma: float = Field(0.2, gt=0, le=10, description="σ of the gain error before the first probe")
@@ -694,9 +705,7 @@ class InhibitConfig(Strict):
         description="a signal (any source's: a register bit, `bit` of a modbus channel, or a coil or discrete"
         " input of a modbus source with `function: coils`) that inhibits every axis when on (value not 0)",
     )
-    invert: bool = Field(
-        False, description="the inhibit signals are enables: 0 inhibits, not 0 releases"
-    )
+    invert: bool = Field(False, description="the inhibit signals are enables: 0 inhibits, not 0 releases")
     stale_after_s: float = Field(
         1.0, gt=0, le=3600, description="an inhibit or reference sample older than this counts as bad"
     )
@@ -733,9 +742,7 @@ class MetricsConfig(Strict):
 class LoggingConfig(Strict):
     """Event log lines on stderr (journald under systemd): one line per event, never per cycle."""
 
-    level: Literal["debug", "info", "warning", "error"] = Field(
-        "info", description="lowest level printed"
-    )
+    level: Literal["debug", "info", "warning", "error"] = Field("info", description="lowest level printed")
 
 
 SPARKPLUG_ID = r"^[^/+#]+$"  # a Sparkplug group, edge node or device id: no topic separators or wildcards
@@ -744,8 +751,12 @@ SPARKPLUG_ID = r"^[^/+#]+$"  # a Sparkplug group, edge node or device id: no top
 class TlsConfig(Strict):
     """TLS to the broker: the CA that signed its certificate, and this machine's own when the broker asks for one."""
 
-    ca_file: str = Field(description="PEM file of the CA(s) that signed the broker's certificate (relative to the config)")
-    cert_file: str | None = Field(None, description="this machine's client certificate, PEM; none = no client certificate")
+    ca_file: str = Field(
+        description="PEM file of the CA(s) that signed the broker's certificate (relative to the config)"
+    )
+    cert_file: str | None = Field(
+        None, description="this machine's client certificate, PEM; none = no client certificate"
+    )
     key_file: str | None = Field(None, description="the client certificate's private key, PEM")
     check_hostname: bool = Field(True, description="the broker's certificate must name `host`")
 
@@ -768,7 +779,9 @@ class RemoteModelsConfig(Strict):
     )
     max_bytes: int = Field(1 << 20, ge=1024, le=16 << 20, description="a longer model text is refused")
     shadow_min_interval_s: float = Field(
-        60.0, ge=0, le=86400,
+        60.0,
+        ge=0,
+        le=86400,
         description="a shadow sent (Model/shadow) less than this long after the last one accepted is refused: each"
         " accepted shadow reloads the daemon and starts the shadow's score on the probes afresh; 0 = no limit",
     )
@@ -782,9 +795,13 @@ class TelemetryBufferConfig(Strict):
         description="SQLite file (relative to the config); none = $STATE_DIRECTORY/<config name>.telemetry.sqlite"
         " under systemd, else next to the config",
     )
-    max_mb: float = Field(64.0, ge=0.1, le=65536,
-                          description="at most this much data (at least 0.1 MB: a few hundred samples); when full the"
-                          " oldest is dropped and counted")
+    max_mb: float = Field(
+        64.0,
+        ge=0.1,
+        le=65536,
+        description="at most this much data (at least 0.1 MB: a few hundred samples); when full the"
+        " oldest is dropped and counted",
+    )
 
 
 class TelemetryConfig(Strict):
@@ -800,14 +817,19 @@ class TelemetryConfig(Strict):
     tls: TlsConfig | None = Field(None, description="TLS to the broker; none = plain TCP")
     group_id: str = Field(pattern=SPARKPLUG_ID, description="Sparkplug group id (the plant, a hall, a line)")
     edge_node_id: str = Field(pattern=SPARKPLUG_ID, description="Sparkplug edge node id: this compd")
-    device_id: str = Field("machine", pattern=SPARKPLUG_ID, description="Sparkplug device id: the machine it compensates")
+    device_id: str = Field(
+        "machine", pattern=SPARKPLUG_ID, description="Sparkplug device id: the machine it compensates"
+    )
     primary_host_id: str | None = Field(
-        None, pattern=SPARKPLUG_ID,
+        None,
+        pattern=SPARKPLUG_ID,
         description="a Sparkplug primary host (the historian's ingest): data waits on disk while its STATE is not online",
     )
     period_s: float = Field(1.0, ge=0.1, le=3600, description="one NDATA/DDATA sample per this much wall time")
     full_refresh_s: float = Field(
-        60.0, ge=0, le=86400,
+        60.0,
+        ge=0,
+        le=86400,
         description="a sample's DDATA carries only the metrics that changed since the last one sent (report by"
         " exception); every this many seconds of sample time, and first after each birth, one carries every metric"
         " (the historian's heartbeat and resynchronisation); 0 = every sample whole",
@@ -832,7 +854,8 @@ class OpcUaConfig(Strict):
     certificate: str = Field(description="the server's certificate, PEM or DER (relative to the config)")
     private_key: str = Field(description="its private key, PEM")
     trusted_clients: str | None = Field(
-        None, description="folder of client certificates to trust; none = trust any client certificate (still encrypted)"
+        None,
+        description="folder of client certificates to trust; none = trust any client certificate (still encrypted)",
     )
     security: list[Literal["Basic256Sha256_SignAndEncrypt", "Basic256Sha256_Sign", "None"]] = Field(
         ["Basic256Sha256_SignAndEncrypt"], min_length=1, description="security policies offered"
@@ -852,7 +875,8 @@ class ConfigModel(Strict):
     )
     model: dict[str, Any] = Field(description="the thermal-error model (see Models)")
     shadow: dict[str, Any] | None = Field(
-        None, description="a candidate model (or a set of contributions) evaluated every cycle beside the active"
+        None,
+        description="a candidate model (or a set of contributions) evaluated every cycle beside the active"
         " one, driving nothing, scored on the same probes; `compd promote` makes it active; none = no shadow",
     )
     guard: GuardConfig = Field(GuardConfig(), description="what reaches the machine")
@@ -910,12 +934,8 @@ class ModelSection(Strict):
     file: str | None = Field(None, description="model YAML written by `compd fit`")
     inputs: list[str] | None = Field(None, description="signal names, in the model's order")
     outputs: list[str] | None = Field(None, description="axis names")
-    params: dict[str, Any] | None = Field(
-        None, description="inline parameters (see the kind's params); or give 'file'"
-    )
-    update_period_s: float | None = Field(
-        None, ge=0, le=86400, description="model step; 0 = every cycle"
-    )
+    params: dict[str, Any] | None = Field(None, description="inline parameters (see the kind's params); or give 'file'")
+    update_period_s: float | None = Field(None, ge=0, le=86400, description="model step; 0 = every cycle")
 
 
 NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]*$"  # a contribution's name: in log columns, metric labels, node names
@@ -926,18 +946,23 @@ class ContributionSection(ModelSection):
     a name and its own limits; the axis correction is the sum of the contributions."""
 
     name: str | None = Field(
-        None, pattern=NAME_PATTERN, max_length=32,
+        None,
+        pattern=NAME_PATTERN,
+        max_length=32,
         description="the contribution's name (letters, digits, _; in log columns and metric labels); none = its kind",
     )
     max_abs_um: float | None = Field(
         None, gt=0, le=MAX_CORRECTION_UM, description="this contribution's clamp; none = its axis's clamp"
     )
     max_slew_um_per_s: float | None = Field(
-        None, ge=MIN_SLEW_UM_PER_S, le=MAX_SLEW_UM_PER_S,
+        None,
+        ge=MIN_SLEW_UM_PER_S,
+        le=MAX_SLEW_UM_PER_S,
         description="how fast this contribution may change; none = its axis's slew limit",
     )
     fault_policy: FaultPolicy | None = Field(
-        None, description="what this contribution does when one of its inputs goes bad and its model cannot"
+        None,
+        description="what this contribution does when one of its inputs goes bad and its model cannot"
         " predict from the rest (mlr and lvr with their fit's statistics go on from the others: `degraded`), while"
         " the others keep compensating; disable takes its axes to their own fault policy; none = its axis's",
     )
@@ -987,5 +1012,3 @@ def did_you_mean(name: str, known: list[str] | tuple[str, ...]) -> str:
     text = str(name)
     close = [k for k in known if k.casefold() == text.casefold()] or difflib.get_close_matches(text, list(known), n=1)
     return f"; did you mean {close[0]!r}?" if close else ""
-
-

@@ -36,9 +36,7 @@ class BadInput(Exception):
         self.line = line
         # the key path as given (a tuple), so a caller that knows where the section sits
         # can place it in its file (Document.error); a string path is one key
-        self.keys: tuple[str | int, ...] = (
-            () if path is None else (path,) if isinstance(path, str) else tuple(path)
-        )
+        self.keys: tuple[str | int, ...] = () if path is None else (path,) if isinstance(path, str) else tuple(path)
         self.path = path if isinstance(path, str) or path is None else format_path(path)
         super().__init__(str(self))
 

@@ -31,7 +31,7 @@ def brief(value: Any, limit: int = 40) -> str:
         text = repr(value)
     except ValueError:  # an int of more digits than Python converts
         return "an int of thousands of digits"
-    return text if len(text) <= limit else f"{text[:limit - 3]}… ({len(text)} characters)"
+    return text if len(text) <= limit else f"{text[: limit - 3]}… ({len(text)} characters)"
 
 
 def probe_problem(error_um: Any, sigma_um: Any = None, position_mm: Any = None) -> tuple[str, str] | None:
@@ -45,8 +45,10 @@ def probe_problem(error_um: Any, sigma_um: Any = None, position_mm: Any = None) 
         if not finite_number(sigma_um):
             return "sigma_um", f"must be a finite number, got {brief(sigma_um)}"
         if not MIN_PROBE_SIGMA_UM <= sigma_um <= MAX_PROBE_SIGMA_UM:
-            return "sigma_um", (f"must be within [{MIN_PROBE_SIGMA_UM:g}, {MAX_PROBE_SIGMA_UM:g}] um, got {sigma_um:g}"
-                                " (beyond 1 mm a probe says nothing; below 1 nm no probe measures)")
+            return "sigma_um", (
+                f"must be within [{MIN_PROBE_SIGMA_UM:g}, {MAX_PROBE_SIGMA_UM:g}] um, got {sigma_um:g}"
+                " (beyond 1 mm a probe says nothing; below 1 nm no probe measures)"
+            )
     if position_mm is not None:
         if not finite_number(position_mm):
             return "position_mm", f"must be a finite number, got {brief(position_mm)}"

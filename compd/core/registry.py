@@ -32,7 +32,8 @@ def commissioning_missing(e: BaseException) -> bool:
     """Whether `e` is the ImportError of a commissioning module (or one below it) that is not installed."""
     name = getattr(e, "name", None) or ""
     return isinstance(e, ModuleNotFoundError) and any(
-        name == m or name.startswith(f"{m}.") for m in COMMISSIONING_MODULES)
+        name == m or name.startswith(f"{m}.") for m in COMMISSIONING_MODULES
+    )
 
 
 def part_missing() -> bool:

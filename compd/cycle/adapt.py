@@ -63,12 +63,6 @@ HISTORY = 4096  # cycles of (position, prediction, correction sent) kept per slo
 POSITION_MATCH_MM = 0.5  # the axis stood "at" the probe's position within this
 
 
-
-
-
-
-
-
 def state_problem(state: Any, n: int | None = None) -> str | None:
     """Why an axis's saved estimate (`AxisEstimate.get_state`) cannot be taken, or None: `s` of `n`
     finite numbers (None: any length), `P` an n × n covariance (finite, symmetric and positive
@@ -106,8 +100,6 @@ def state_problem(state: Any, n: int | None = None) -> str | None:
     return None
 
 
-
-
 class AxisEstimate:
     """The Kalman filter of one axis: state (b, g) or (b,) and its covariance."""
 
@@ -124,8 +116,11 @@ class AxisEstimate:
         # the offset before any probe: a fitted model is off on a new day by about its own error (σ_m),
         # not by more; without a figure for σ_m, OFFSET_PRIOR_UM
         self.initial_offset_sigma_um = (
-            cfg.initial_offset_sigma_um if cfg.initial_offset_sigma_um is not None
-            else model_sigma_um if model_sigma_um > 0.0 else OFFSET_PRIOR_UM
+            cfg.initial_offset_sigma_um
+            if cfg.initial_offset_sigma_um is not None
+            else model_sigma_um
+            if model_sigma_um > 0.0
+            else OFFSET_PRIOR_UM
         )
         self._last_miss: tuple[float, float, float] | None = None  # (t, miss z − p, probe σ²)
         self._change_sum_um2 = 0.0
@@ -164,8 +159,7 @@ class AxisEstimate:
         self.t_s = t_s
         self._grow(dt / 3600.0)
         cfg = self.cfg
-        if (cfg.stale_policy == "decay" and self.t_probe_s is not None
-                and t_s - self.t_probe_s > cfg.stale_after_s):
+        if cfg.stale_policy == "decay" and self.t_probe_s is not None and t_s - self.t_probe_s > cfg.stale_after_s:
             self.s *= math.exp(-dt / cfg.decay_tau_s)
 
     def _grow(self, h: float) -> None:
@@ -254,7 +248,7 @@ class AxisEstimate:
         if last is None or miss_um != miss_um:
             return
         dt_h = max(t_s - last[0], 0.0) / 3600.0
-        drift = self.cfg.offset_drift_um_per_sqrt_h ** 2 * dt_h
+        drift = self.cfg.offset_drift_um_per_sqrt_h**2 * dt_h
         change = miss_um - last[1]
         self._change_sum_um2 += 0.5 * (change * change - probe_var_um2 - last[2] - drift)
         self._change_n += 1
@@ -264,8 +258,11 @@ class AxisEstimate:
     def get_state(self) -> dict[str, Any]:
         age = None if self.t_probe_s is None or self.t_s is None else self.t_s - self.t_probe_s
         return {
-            "s": [float(v) for v in self.s], "P": [[float(v) for v in row] for row in self.P],
-            "t_probe_s": self.t_probe_s, "accepted": self.accepted, "rejected": self.rejected,
+            "s": [float(v) for v in self.s],
+            "P": [[float(v) for v in row] for row in self.P],
+            "t_probe_s": self.t_probe_s,
+            "accepted": self.accepted,
+            "rejected": self.rejected,
             "probe_age_s": age,
         }
 
@@ -302,11 +299,14 @@ class Adapter:
         self.cfg = cfg
         self.axes = list(axes)
         fitted = model_sigma_um or {}
-        self.model_sigma_um = [cfg.model_sigma_um if cfg.model_sigma_um is not None else float(fitted.get(a, 0.0))
-                               for a in axes]
+        self.model_sigma_um = [
+            cfg.model_sigma_um if cfg.model_sigma_um is not None else float(fitted.get(a, 0.0)) for a in axes
+        ]
         learn = cfg.model_sigma_um is None
-        self.est = [AxisEstimate(cfg, slope=a in cfg.slope_position, model_sigma_um=m, learn_sigma=learn)
-                    for a, m in zip(axes, self.model_sigma_um, strict=True)]
+        self.est = [
+            AxisEstimate(cfg, slope=a in cfg.slope_position, model_sigma_um=m, learn_sigma=learn)
+            for a, m in zip(axes, self.model_sigma_um, strict=True)
+        ]
         # per axis: the signal its slope term reads (the axis position, mm), or None
         self.position_signal = [cfg.slope_position.get(a) for a in axes]
         self.pos_m = np.zeros(len(axes))  # the positions of this cycle (m from slope_ref_mm)
@@ -336,7 +336,9 @@ class Adapter:
             if name is None:
                 continue
             if name not in signal_index:
-                raise BadInput(f"{name!r} is not a signal of any source", path=("adapt", "slope_position", self.axes[a]))
+                raise BadInput(
+                    f"{name!r} is not a signal of any source", path=("adapt", "slope_position", self.axes[a])
+                )
             self._pos_idx.append((a, signal_index[name]))
         for axis in self.cfg.slope_position:
             if axis not in self.axes:
@@ -380,7 +382,11 @@ class Adapter:
             e.t_probe_s = None
 
     def apply(
-        self, pred_um: np.ndarray, now_s: float, out_um: np.ndarray, applied_um: np.ndarray | None = None,
+        self,
+        pred_um: np.ndarray,
+        now_s: float,
+        out_um: np.ndarray,
+        applied_um: np.ndarray | None = None,
         terms: list[tuple[float, float]] | None = None,
     ) -> None:
         """out = pred + b + g pred per axis (pred if `apply` is off), after taking the inbox's probes.
@@ -403,12 +409,14 @@ class Adapter:
             out_um[a] = p + c if self.cfg.apply else p
 
     def _take(
-        self, probe: Probe, pred_um: np.ndarray, applied_um: np.ndarray | None,
+        self,
+        probe: Probe,
+        pred_um: np.ndarray,
+        applied_um: np.ndarray | None,
         terms: list[tuple[float, float]] | None = None,
     ) -> None:
         if probe.axis not in self.axes:
-            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "unknown_axis",
-                                "source": probe.source})
+            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "unknown_axis", "source": probe.source})
             return
         a = self.axes.index(probe.axis)
         e = self.est[a]
@@ -442,13 +450,21 @@ class Adapter:
             if c is None and applied_um is not None and math.isfinite(float(applied_um[a])):
                 c = float(applied_um[a])
             if c is None:
-                self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_correction_known",
-                                    "source": probe.source})
+                self.events.append(
+                    {"t_s": probe.t_s, "axis": probe.axis, "event": "no_correction_known", "source": probe.source}
+                )
                 return
             z = probe.error_um - (c - shift)
         if not math.isfinite(p):  # no prediction to compare with: the probe cannot be used
-            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "no_prediction",
-                                "error_um": probe.error_um, "source": probe.source})
+            self.events.append(
+                {
+                    "t_s": probe.t_s,
+                    "axis": probe.axis,
+                    "event": "no_prediction",
+                    "error_um": probe.error_um,
+                    "source": probe.source,
+                }
+            )
             return
         sigma = probe.sigma_um if probe.sigma_um is not None else self.cfg.sigma_um
         pos_m = float(self.pos_m[a])  # where the axis stands now, unless the probe says where it measured
@@ -466,9 +482,15 @@ class Adapter:
         rejected in a row, and the state handed on."""
         e = self.est[a]
         ev = {
-            "t_s": probe.t_s, "axis": probe.axis, "event": "accepted" if ok else "rejected",
-            "error_um": z, "measured_um": probe.error_um, "innovation_um": nu, "innovation_sigma_um": sd,
-            "offset_um": float(e.s[0]), "source": probe.source,
+            "t_s": probe.t_s,
+            "axis": probe.axis,
+            "event": "accepted" if ok else "rejected",
+            "error_um": z,
+            "measured_um": probe.error_um,
+            "innovation_um": nu,
+            "innovation_sigma_um": sd,
+            "offset_um": float(e.s[0]),
+            "source": probe.source,
         }
         if why is not None:
             ev["reason"] = why
@@ -476,8 +498,14 @@ class Adapter:
         was = self.fault[a]
         self.fault[a] = e.rejected_in_a_row >= self.cfg.reject_fault_after
         if self.fault[a] and not was:
-            self.events.append({"t_s": probe.t_s, "axis": probe.axis, "event": "fault",
-                                "why": f"{e.rejected_in_a_row} probes rejected in a row"})
+            self.events.append(
+                {
+                    "t_s": probe.t_s,
+                    "axis": probe.axis,
+                    "event": "fault",
+                    "why": f"{e.rejected_in_a_row} probes rejected in a row",
+                }
+            )
         if self.on_state is not None:
             self.on_state(self.get_state())
 
@@ -498,11 +526,15 @@ class Adapter:
         out = {}
         for axis, e in zip(self.axes, self.est, strict=True):
             out[axis] = {
-                "offset_um": float(e.s[0]), "offset_sigma_um": math.sqrt(max(e.P[0, 0], 0.0)),
+                "offset_um": float(e.s[0]),
+                "offset_sigma_um": math.sqrt(max(e.P[0, 0], 0.0)),
                 "model_sigma_um": math.sqrt(e.model_var_um2),
                 "gain": float(e.s[e.i_gain]) if e.i_gain > 0 else None,
                 "slope_um_per_m": float(e.s[e.i_slope]) if e.i_slope > 0 else None,
-                "accepted": e.accepted, "rejected": e.rejected, "last_probe_s": e.t_probe_s,
-                "applied": self.cfg.apply, "fault": self.fault[self.axes.index(axis)],
+                "accepted": e.accepted,
+                "rejected": e.rejected,
+                "last_probe_s": e.t_probe_s,
+                "applied": self.cfg.apply,
+                "fault": self.fault[self.axes.index(axis)],
             }
         return out

@@ -228,8 +228,13 @@ class Contributions(Model):
         out = []
         for cp, p in zip(self.set_params.contributions, self._parts, strict=True):
             d = p.model.to_dict()
-            d.update(name=cp.name, file=cp.file, max_abs_um=cp.max_abs_um, max_slew_um_per_s=cp.max_slew_um_per_s,
-                     fault_policy=cp.fault_policy)
+            d.update(
+                name=cp.name,
+                file=cp.file,
+                max_abs_um=cp.max_abs_um,
+                max_slew_um_per_s=cp.max_slew_um_per_s,
+                fault_policy=cp.fault_policy,
+            )
             out.append(d)
         return {"kind": self.kind, "inputs": self.inputs, "outputs": self.outputs, "contributions": out}
 
@@ -241,9 +246,25 @@ class Contributions(Model):
         parts = []
         for cp, p in zip(self.set_params.contributions, self._parts, strict=True):
             s = p.model.get_status()
-            s.update(name=cp.name, limits={a: {"max_abs_um": cp.max_abs_um[j],
-                                               "max_slew_um_per_s": cp.max_slew_um_per_s[j],
-                                               "fault_policy": cp.fault_policy[j]} for j, a in enumerate(cp.outputs)})
+            s.update(
+                name=cp.name,
+                limits={
+                    a: {
+                        "max_abs_um": cp.max_abs_um[j],
+                        "max_slew_um_per_s": cp.max_slew_um_per_s[j],
+                        "fault_policy": cp.fault_policy[j],
+                    }
+                    for j, a in enumerate(cp.outputs)
+                },
+            )
             parts.append(s)
-        return {"kind": self.kind, "inputs": self.inputs, "outputs": self.outputs, "file": None, "fit": {},
-                "coefficients": {}, "state": self.get_state(), "contributions": parts}
+        return {
+            "kind": self.kind,
+            "inputs": self.inputs,
+            "outputs": self.outputs,
+            "file": None,
+            "fit": {},
+            "coefficients": {},
+            "state": self.get_state(),
+            "contributions": parts,
+        }

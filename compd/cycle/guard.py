@@ -57,9 +57,11 @@ class Guard:
         self.slew_um_per_s = np.array([cfg.slew_um_per_s(a) for a in axes])
         # each axis's clamp, slew limit and fault policy (compd.cycle.limiter: its state and output)
         self.limiter = lim = Limiter(
-            self.max_abs_um.tolist(), self.slew_um_per_s.tolist(),
+            self.max_abs_um.tolist(),
+            self.slew_um_per_s.tolist(),
             [Policy.named((cfg.axes.get(a) and cfg.axes[a].fault_policy) or cfg.fault_policy) for a in axes],
-            cfg.ramp_um_per_s, cfg.recovery_s,
+            cfg.ramp_um_per_s,
+            cfg.recovery_s,
         )
         self.policy = lim.policy
         self._n_axes = n
@@ -84,16 +86,10 @@ class Guard:
         limits = [cfg.signals.get(name) for name in inputs]
         self._min = np.array([lm.min if lm else -math.inf for lm in limits])
         self._max = np.array([lm.max if lm else math.inf for lm in limits])
-        self._rate = np.array(
-            [lm.max_rate_per_s if lm and lm.max_rate_per_s else math.inf for lm in limits]
-        )
+        self._rate = np.array([lm.max_rate_per_s if lm and lm.max_rate_per_s else math.inf for lm in limits])
         self._rate_allow = np.array([lm.rate_allowance if lm else 0.0 for lm in limits])
-        self._stale = np.array(
-            [lm.stale_after_s if lm and lm.stale_after_s else cfg.stale_after_s for lm in limits]
-        )
-        self._frozen_after = np.array(
-            [lm.frozen_after_s if lm and lm.frozen_after_s else math.inf for lm in limits]
-        )
+        self._stale = np.array([lm.stale_after_s if lm and lm.stale_after_s else cfg.stale_after_s for lm in limits])
+        self._frozen_after = np.array([lm.frozen_after_s if lm and lm.frozen_after_s else math.inf for lm in limits])
         self._frozen_band = np.array([lm.frozen_band if lm else 0.0 for lm in limits])
         self._moved_val = np.full(len(inputs), math.nan)  # value at the last real change
         self._moved_t = np.full(len(inputs), -math.inf)  # time of the last real change
@@ -453,11 +449,17 @@ class Guard:
         """The axis's target started (`on`) or stopped being held at the clamp: the event."""
         lim = self._max_abs[a]
         if on:
-            self._event(now_s, self.axes[a], "clamped",
-                        f"the model predicts {pred_um:.1f} um, beyond the clamp of {lim:g} um", key="clamped")
+            self._event(
+                now_s,
+                self.axes[a],
+                "clamped",
+                f"the model predicts {pred_um:.1f} um, beyond the clamp of {lim:g} um",
+                key="clamped",
+            )
         else:
-            self._event(now_s, self.axes[a], "unclamped", f"the prediction is inside the clamp of {lim:g} um",
-                        key="unclamped")
+            self._event(
+                now_s, self.axes[a], "unclamped", f"the prediction is inside the clamp of {lim:g} um", key="unclamped"
+            )
 
     def _hold_event(self, now_s: float, a: int, hold: int, was: int) -> None:
         if hold:
@@ -472,8 +474,9 @@ class Guard:
         if not math.isfinite(um):
             return
         self.limiter.seed(a, um)
-        self._event(now_s, self.axes[a], "synced",
-                    f"the machine applies {um:+.3f} um: the output goes on from there", key=None)
+        self._event(
+            now_s, self.axes[a], "synced", f"the machine applies {um:+.3f} um: the output goes on from there", key=None
+        )
 
     def safe(self) -> None:
         self.limiter.safe()

@@ -59,10 +59,10 @@ class TimingStats:
         self.misses = 0
         self.skipped = 0
         self.late_max_s = 0.0
-        self.compute_hist = words[HIST_US: 2 * HIST_US]
-        self.stage_last_ns = words[2 * HIST_US: 2 * HIST_US + n]
-        self.stage_max_ns = words[2 * HIST_US + n: 2 * HIST_US + 2 * n]
-        self.stage_sum_ns = words[2 * HIST_US + 2 * n:]
+        self.compute_hist = words[HIST_US : 2 * HIST_US]
+        self.stage_last_ns = words[2 * HIST_US : 2 * HIST_US + n]
+        self.stage_max_ns = words[2 * HIST_US + n : 2 * HIST_US + 2 * n]
+        self.stage_sum_ns = words[2 * HIST_US + 2 * n :]
         self.compute_max_ns = 0
         self.gc_runs = 0
         self.gc_max_ns = 0
@@ -229,8 +229,11 @@ class Loop:
                 self.guard.safe()
                 self.safe_delivered = self.sink.safe()
                 if not self.safe_delivered:
-                    log.error("the safe output was not acknowledged by the sink's device: the last correction"
-                              " may still be applied at the machine", extra={"event": "safe_not_delivered"})
+                    log.error(
+                        "the safe output was not acknowledged by the sink's device: the last correction"
+                        " may still be applied at the machine",
+                        extra={"event": "safe_not_delivered"},
+                    )
         finally:
             if not keep_sink:
                 self.sink.close()
@@ -377,8 +380,13 @@ class Loop:
         if self.adapter is not None:  # the sink's applied correction only when a probe waits
             self.adapter.read_positions(frame.values)
             waiting = bool(self.adapter.inbox)  # what a probe needs (allocates) only when one waits
-            self.adapter.apply(pred, now, self.pred_adapted_um, self.applied() if waiting else None,
-                               self.model.linear_terms() if waiting else None)
+            self.adapter.apply(
+                pred,
+                now,
+                self.pred_adapted_um,
+                self.applied() if waiting else None,
+                self.model.linear_terms() if waiting else None,
+            )
             if self.shadow is not None and self.adapter.probe_seq != self._probe_seq:  # scored on the same probes
                 self._probe_seq = self.adapter.probe_seq
                 self.shadow.probed(self.adapter.probe_um, pred, now)
@@ -394,9 +402,7 @@ class Loop:
         g = self.guard
         wa = self.word_axes
         if len(wa) == 2:
-            changed = self.encoder.update(
-                g.out_um[wa[0]], g.out_um[wa[1]], g.enable[wa[0]], g.enable[wa[1]], g.dt_s
-            )
+            changed = self.encoder.update(g.out_um[wa[0]], g.out_um[wa[1]], g.enable[wa[0]], g.enable[wa[1]], g.dt_s)
         else:
             changed = self.encoder.update(g.out_um[wa[0]], 0.0, g.enable[wa[0]], False, g.dt_s)
         self.word = self.encoder.word
@@ -458,4 +464,3 @@ class Loop:
         for slot, axis in enumerate(self.word_axes):
             self.applied_um[axis] = self._word_applied[slot]
         return self.applied_um
-

@@ -63,9 +63,11 @@ def build_clock(lp: LoopConfig, sources: Sequence[Source]) -> Clock:
     if lp.clock == "plant" and pc is not None:  # a simulated plant's clock: the simulator brings it
         ep = entry_point("compd.clocks", "plant")
         if ep is None:
-            raise BadInput("loop.clock: plant needs the simulator's plant clock, which is not installed (no 'plant'"
-                           " in entry point group compd.clocks: install compd from its source tree)",
-                           path=("loop", "clock"))
+            raise BadInput(
+                "loop.clock: plant needs the simulator's plant clock, which is not installed (no 'plant'"
+                " in entry point group compd.clocks: install compd from its source tree)",
+                path=("loop", "clock"),
+            )
         return load_entry_point(ep, "the plant clock", path=("loop", "clock"))(pc)
     return WallClock(lp.spin_margin_s)
 
@@ -182,7 +184,10 @@ def _built(cfg: Config, path: tuple[str | int, ...], cls: type[Source], section:
 @overload
 def _built(cfg: Config, path: tuple[str | int, ...], cls: type[Sink], section: SinkConfig, base: str) -> Sink: ...
 def _built(
-    cfg: Config, path: tuple[str | int, ...], cls: Callable[..., Source | Sink], section: SourceConfig | SinkConfig,
+    cfg: Config,
+    path: tuple[str | int, ...],
+    cls: Callable[..., Source | Sink],
+    section: SourceConfig | SinkConfig,
     base: str,
 ) -> Source | Sink:
     """A source or sink from its section (a source's class with a source's, a sink's with a sink's);
@@ -214,12 +219,18 @@ def from_config(cfg: Config, *, observe: bool | None = None) -> tuple[Pipeline, 
             shadow = build_model(cfg.shadow)
             shadow.sha256 = model_sha256(cfg.shadow)  # the status says which shadow its score is of (compd promote)
         p = build_pipeline(
-            sources=sources, model=build_model(cfg.model), sink=sink, clock=clock, period_s=lp.period_s,
-            guard_cfg=top.guard, codec_cfg=top.codec, observe=top.observe if observe is None else observe,
-            adapt_cfg=top.adapt, inhibit_cfg=top.inhibit, shadow=shadow,
+            sources=sources,
+            model=build_model(cfg.model),
+            sink=sink,
+            clock=clock,
+            period_s=lp.period_s,
+            guard_cfg=top.guard,
+            codec_cfg=top.codec,
+            observe=top.observe if observe is None else observe,
+            adapt_cfg=top.adapt,
+            inhibit_cfg=top.inhibit,
+            shadow=shadow,
         )
     except BadInput as e:
         raise cfg.doc.error(e.message, e.keys) from None
     return p, clock
-
-

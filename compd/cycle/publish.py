@@ -86,7 +86,9 @@ def sensor_cause(sources: list[Any], signal: str) -> str | None:
     return None
 
 
-def with_causes(events: list[tuple[float, str, str, str]], sources: list[Any]) -> list[tuple[float, str, str, str, str | None]]:
+def with_causes(
+    events: list[tuple[float, str, str, str]], sources: list[Any]
+) -> list[tuple[float, str, str, str, str | None]]:
     """The guard's events as handed to the service: each sensor event that is a lost link, no
     data or staleness with its source's last error as the cause (`sensor_cause`)."""
     out = []
@@ -187,8 +189,10 @@ class Publisher:
         except Exception as e:  # accounts that cannot be taken never stop the cycle: these are dropped
             self._status_failed(e)
             return
-        devices["publisher"] = {"devices_waited": self.devices_waited,
-                                "devices_cost_us": round(self.devices_cost_s * 1e6, 1)}
+        devices["publisher"] = {
+            "devices_waited": self.devices_waited,
+            "devices_cost_us": round(self.devices_cost_s * 1e6, 1),
+        }
         self.outbox.put(("devices", devices))
         self.devices_sent += 1
 
@@ -217,8 +221,11 @@ class Publisher:
         reason = f"{type(e).__name__}: {e}"
         if reason not in self._failures_logged:
             self._failures_logged.add(reason)
-            log.error("status of the devices failed (compensation goes on; the status shows the last one): %s",
-                      reason, extra={"event": "status_error", "reason": reason})
+            log.error(
+                "status of the devices failed (compensation goes on; the status shows the last one): %s",
+                reason,
+                extra={"event": "status_error", "reason": reason},
+            )
 
     def _put_events(self, events: list[tuple[float, str, str, str]]) -> None:
         self.outbox.put(("events", with_causes(events, self.loop.sources)))

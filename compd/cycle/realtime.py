@@ -51,9 +51,7 @@ def apply_realtime(cfg: RealtimeConfig) -> list[tuple[bool, str]]:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(cfg.priority))
             done.append((True, f"cycle thread on SCHED_FIFO priority {cfg.priority}"))
         except OSError as e:
-            done.append(
-                (False, f"cannot use SCHED_FIFO {cfg.priority}: {e.strerror} (install realtime.conf)")
-            )
+            done.append((False, f"cannot use SCHED_FIFO {cfg.priority}: {e.strerror} (install realtime.conf)"))
     if cfg.lock_memory:
         err, onfault = _mlockall()
         if err == 0:

@@ -52,9 +52,13 @@ class ShadowScore:
         n = self.n[a]
         act = math.sqrt(self.active_sq[a] / n) if n else None
         sha = math.sqrt(self.shadow_sq[a] / n) if n else None
-        return {"probes": n, "active_rms_um": act, "shadow_rms_um": sha,
-                "better": None if act is None or sha is None else ("shadow" if sha < act else "active"),
-                "last": self.last[a]}
+        return {
+            "probes": n,
+            "active_rms_um": act,
+            "shadow_rms_um": sha,
+            "better": None if act is None or sha is None else ("shadow" if sha < act else "active"),
+            "last": self.last[a],
+        }
 
 
 class Shadow:
@@ -104,7 +108,13 @@ class Shadow:
         axis it serves (the score is of this shadow: `compd promote` compares its sha256 with the config's)."""
         fit = self.model.fit_info
         return {
-            "model": {"kind": self.model.kind, "file": self.model.file, "sha256": self.model.sha256,
-                      "inputs": self.model.inputs, "outputs": self.model.outputs, "fitted_at": fit.get("fitted_at")},
+            "model": {
+                "kind": self.model.kind,
+                "file": self.model.file,
+                "sha256": self.model.sha256,
+                "inputs": self.model.inputs,
+                "outputs": self.model.outputs,
+                "fitted_at": fit.get("fitted_at"),
+            },
             "axes": {self.axes[a]: self.score.result(a) for a in self.slot},
         }

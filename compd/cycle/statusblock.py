@@ -71,8 +71,14 @@ KINDS = ("number", "count", "flag", "name", "hex")
 PER_SIGNAL = "signal unit"  # a signal's value: the unit its name says (`signal_unit`)
 # a field's unit → Prometheus's base unit (what the metric's name ends in) and the factor to it
 BASE_UNITS: dict[str, tuple[str, float]] = {
-    "µm": ("meters", 1e-6), "mm": ("meters", 1e-3), "s": ("seconds", 1.0), "ms": ("seconds", 1e-3),
-    "µs": ("seconds", 1e-6), "ns": ("seconds", 1e-9), "°C": ("celsius", 1.0), "K": ("kelvin", 1.0),
+    "µm": ("meters", 1e-6),
+    "mm": ("meters", 1e-3),
+    "s": ("seconds", 1.0),
+    "ms": ("seconds", 1e-3),
+    "µs": ("seconds", 1e-6),
+    "ns": ("seconds", 1e-9),
+    "°C": ("celsius", 1.0),
+    "K": ("kelvin", 1.0),
 }
 
 
@@ -92,11 +98,27 @@ class Scope:
 
 
 AXIS_SCOPE = Scope("axis", "`axes.<axis>`", ("axis",), "", "axis_", "Axis/{axis}/{name}", "compd.Axes.{axis}.{name}")
-PART_SCOPE = Scope("contribution", "`axes.<axis>.contributions.<name>`", ("axis", "contribution"), "contribution_",
-                   "contribution_",                    "Axis/{axis}/Contribution/{part}/{name}", "compd.Axes.{axis}.Contributions.{part}.{name}")
-SIGNAL_SCOPE = Scope("signal", "`signals.<name>`", ("signal",), "signal_", "signal_", "Signal/{signal}/{name}",
-                     "compd.Signals.{signal}.{name}")
-LOOP_SCOPE = Scope("loop", "the top level, `loop`, `sink` and `publisher`", (), "", "", "Loop/{name}", "compd.Loop.{name}")
+PART_SCOPE = Scope(
+    "contribution",
+    "`axes.<axis>.contributions.<name>`",
+    ("axis", "contribution"),
+    "contribution_",
+    "contribution_",
+    "Axis/{axis}/Contribution/{part}/{name}",
+    "compd.Axes.{axis}.Contributions.{part}.{name}",
+)
+SIGNAL_SCOPE = Scope(
+    "signal",
+    "`signals.<name>`",
+    ("signal",),
+    "signal_",
+    "signal_",
+    "Signal/{signal}/{name}",
+    "compd.Signals.{signal}.{name}",
+)
+LOOP_SCOPE = Scope(
+    "loop", "the top level, `loop`, `sink` and `publisher`", (), "", "", "Loop/{name}", "compd.Loop.{name}"
+)
 SERVICE_SCOPE = Scope("service", "the top level", (), "", "", "{name}", "compd.{name}")
 
 
@@ -230,106 +252,284 @@ AXIS: tuple[Field, ...] = _scoped(
     Field("prediction_um", "µm", "the model's prediction for the axis (null: no good input vector)"),
     Field("target_um", "µm", "what the guard steers to: the prediction (with the probes' offset), clamped"),
     Field("correction_um", "µm", "the correction the cycle commanded, after clamp and slew"),
-    Field("commanded_um", "µm", "what the sink commands the device for the axis (the word decoded, the PMC's"
-          " target, the NC's ramp target); null for an axis not in the word or a sink that cannot say"),
-    Field("applied_um", "µm", "what the device acknowledged or reads back as applied; null when not known"
-          " (no read-back, or the sink's link not up)"),
-    Field("guard_enable", "", "the guard's enable bit for the axis", "flag",
-          omit=_nowhere("the guard's own bit: `enable`, what the machine has, is shown instead")),
-    Field("enable", "", "the machine has the axis enabled: the guard's bit in a word that reaches it; false in"
-          " observe mode (the word at the machine is 0); null (not confirmed) while the sink's link is not up",
-          "flag", metric="compd_axis_enabled", off_in_observe=True),
+    Field(
+        "commanded_um",
+        "µm",
+        "what the sink commands the device for the axis (the word decoded, the PMC's"
+        " target, the NC's ramp target); null for an axis not in the word or a sink that cannot say",
+    ),
+    Field(
+        "applied_um",
+        "µm",
+        "what the device acknowledged or reads back as applied; null when not known"
+        " (no read-back, or the sink's link not up)",
+    ),
+    Field(
+        "guard_enable",
+        "",
+        "the guard's enable bit for the axis",
+        "flag",
+        omit=_nowhere("the guard's own bit: `enable`, what the machine has, is shown instead"),
+    ),
+    Field(
+        "enable",
+        "",
+        "the machine has the axis enabled: the guard's bit in a word that reaches it; false in"
+        " observe mode (the word at the machine is 0); null (not confirmed) while the sink's link is not up",
+        "flag",
+        metric="compd_axis_enabled",
+        off_in_observe=True,
+    ),
     Field("state", "", "the guard's state of the axis", "name", _names(STATE_NAMES), stale=True),
-    Field("inhibit", "", "why the machine holds the axis off (compd.cycle.inhibit)", "name", _names(HOLD_NAMES),
-          metric="compd_axis_held", label="reason"),
-    Field("saturated", "", "the correction is held at a limit: the guard's clamp (max_abs_um; the model asks for"
-          " more) or the codec's range (the word byte's 63 LSB)", "flag"),
-    Field("byte", "", "the axis's byte of the computed word (null: the axis is not in the word)", "hex",
-          omit=_nowhere("a byte of the loop's `word`, which is shown whole")),
-    Field("shadow_um", "µm", "the shadow model's prediction for the axis (the correction it would command is its"
-          " negative; it drives nothing); null without a shadow on the axis, or without a good input vector",
-          metric="compd_shadow_prediction_meters", shadow_only=True),
+    Field(
+        "inhibit",
+        "",
+        "why the machine holds the axis off (compd.cycle.inhibit)",
+        "name",
+        _names(HOLD_NAMES),
+        metric="compd_axis_held",
+        label="reason",
+    ),
+    Field(
+        "saturated",
+        "",
+        "the correction is held at a limit: the guard's clamp (max_abs_um; the model asks for"
+        " more) or the codec's range (the word byte's 63 LSB)",
+        "flag",
+    ),
+    Field(
+        "byte",
+        "",
+        "the axis's byte of the computed word (null: the axis is not in the word)",
+        "hex",
+        omit=_nowhere("a byte of the loop's `word`, which is shown whole"),
+    ),
+    Field(
+        "shadow_um",
+        "µm",
+        "the shadow model's prediction for the axis (the correction it would command is its"
+        " negative; it drives nothing); null without a shadow on the axis, or without a good input vector",
+        metric="compd_shadow_prediction_meters",
+        shadow_only=True,
+    ),
 )
 PART: tuple[Field, ...] = _scoped(
     PART_SCOPE,
-    Field("prediction_um", "µm", "what the contribution adds to its axis's prediction: its model's, after its own"
-          " clamp, slew and fault policy (null: under `disable` with an input bad)", metric="compd_contribution_meters"),
-    Field("raw_um", "µm", "the contribution's model's own prediction (null: an input bad and the model cannot"
-          " predict from the others)"),
-    Field("state", "", "the contribution's state on the axis (its own fault policy)", "name", _names(STATE_NAMES),
-          stale=True),
+    Field(
+        "prediction_um",
+        "µm",
+        "what the contribution adds to its axis's prediction: its model's, after its own"
+        " clamp, slew and fault policy (null: under `disable` with an input bad)",
+        metric="compd_contribution_meters",
+    ),
+    Field(
+        "raw_um",
+        "µm",
+        "the contribution's model's own prediction (null: an input bad and the model cannot predict from the others)",
+    ),
+    Field(
+        "state",
+        "",
+        "the contribution's state on the axis (its own fault policy)",
+        "name",
+        _names(STATE_NAMES),
+        stale=True,
+    ),
     Field("clamped", "", "the contribution's prediction is held at its own clamp", "flag"),
 )
 SIGNAL: tuple[Field, ...] = _scoped(
     SIGNAL_SCOPE,
     Field("value", PER_SIGNAL, "the newest value the cycle read (°C for a PT100, rpm, µm, …)"),
     Field("quality", "", "the value's quality", "name", _names(QUALITY_NAMES)),
-    Field("stamp_s", "s", "loop time at which the value was sampled at its source (`age_s` = loop time − this)",
-          omit=_nowhere("a time on the loop's clock, which no client shares: its age `age_s` is shown instead")),
+    Field(
+        "stamp_s",
+        "s",
+        "loop time at which the value was sampled at its source (`age_s` = loop time − this)",
+        omit=_nowhere("a time on the loop's clock, which no client shares: its age `age_s` is shown instead"),
+    ),
 )
 LOOP: tuple[Field, ...] = _scoped(
     LOOP_SCOPE,
-    Field("state", "", f"the daemon's state; the status says `{STALE}` instead when the cycle has not written this"
-          " record for `stale_after_s` (a cycle stopped or hung: nothing it shows is live)", "name", STATES,
-          stale=True, sparkplug="State", opcua="compd.State"),
-    Field("loop_time_s", "s", "loop time of the last cycle",
-          omit=_nowhere("a time on the loop's clock, which no client shares (compd_uptime_seconds is the loop's age)")),
-    Field("t_start_s", "s", "loop time of the first cycle",
-          omit=_nowhere("a time on the loop's clock, which no client shares (compd_uptime_seconds is the loop's age)")),
+    Field(
+        "state",
+        "",
+        f"the daemon's state; the status says `{STALE}` instead when the cycle has not written this"
+        " record for `stale_after_s` (a cycle stopped or hung: nothing it shows is live)",
+        "name",
+        STATES,
+        stale=True,
+        sparkplug="State",
+        opcua="compd.State",
+    ),
+    Field(
+        "loop_time_s",
+        "s",
+        "loop time of the last cycle",
+        omit=_nowhere("a time on the loop's clock, which no client shares (compd_uptime_seconds is the loop's age)"),
+    ),
+    Field(
+        "t_start_s",
+        "s",
+        "loop time of the first cycle",
+        omit=_nowhere("a time on the loop's clock, which no client shares (compd_uptime_seconds is the loop's age)"),
+    ),
     Field("cycles", "", "cycles run", "count", at=("loop", "cycles")),
-    Field("misses", "", "late cycles (more than half a period late, or done past the next deadline)", "count",
-          at=("loop", "misses"), metric="compd_cycle_misses"),
-    Field("skipped", "", "deadlines skipped when far behind", "count", at=("loop", "skipped"),
-          metric="compd_cycles_skipped"),
-    Field("late_max_s", "s", "the latest a cycle started (its wake-up lateness)", at=("loop", "lateness_us", "max"), shown="µs",
-          omit=(("prometheus", "the lateness histogram, compd_cycle_lateness_seconds, is exported instead"),),
-          sparkplug="Loop/lateness_max_us", opcua="compd.Loop.LatenessMaxUs"),
-    Field("compute_max_ns", "ns", "the longest a cycle's work took", "count", at=("loop", "cycle_compute_us", "max"),
-          shown="µs", metric="compd_cycle_compute_max_seconds", metric_type="gauge",
-          omit=(("sparkplug", "the compute time's 99th percentile, Loop/compute_p99_us, is published instead"),
-                ("opcua", "the compute time's 99th percentile, compd.Loop.ComputeP99Us, is shown instead"))),
-    Field("between_max_s", "s", "the longest the work between two cycles took",
-          omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant")),
-    Field("between_overruns", "", "times the work between cycles ended past the next deadline", "count",
-          omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant")),
-    Field("gc_runs", "", "young-generation collections between cycles", "count",
-          omit=_nowhere("Python's collector between cycles, for tuning (compd bench), not for the plant")),
-    Field("word", "", "the word the loop computed", "count", hex_digits=4, metric_type="gauge", sparkplug="Word",
-          omit=(("opcua", "shown per axis instead (compd.Axes.<axis>.Word), with the byte that carries the axis"),)),
-    Field("link", "", "whether what the sink writes reaches the machine", "name", LINK_STATES, at=("sink", "link"),
-          metric="compd_sink_link", label="state"),
-    Field("sink_writes", "", "writes the sink made", "count",
-          omit=_nowhere("the sink's own count, in status.json for its diagnosis, not for the plant")),
+    Field(
+        "misses",
+        "",
+        "late cycles (more than half a period late, or done past the next deadline)",
+        "count",
+        at=("loop", "misses"),
+        metric="compd_cycle_misses",
+    ),
+    Field(
+        "skipped",
+        "",
+        "deadlines skipped when far behind",
+        "count",
+        at=("loop", "skipped"),
+        metric="compd_cycles_skipped",
+    ),
+    Field(
+        "late_max_s",
+        "s",
+        "the latest a cycle started (its wake-up lateness)",
+        at=("loop", "lateness_us", "max"),
+        shown="µs",
+        omit=(("prometheus", "the lateness histogram, compd_cycle_lateness_seconds, is exported instead"),),
+        sparkplug="Loop/lateness_max_us",
+        opcua="compd.Loop.LatenessMaxUs",
+    ),
+    Field(
+        "compute_max_ns",
+        "ns",
+        "the longest a cycle's work took",
+        "count",
+        at=("loop", "cycle_compute_us", "max"),
+        shown="µs",
+        metric="compd_cycle_compute_max_seconds",
+        metric_type="gauge",
+        omit=(
+            ("sparkplug", "the compute time's 99th percentile, Loop/compute_p99_us, is published instead"),
+            ("opcua", "the compute time's 99th percentile, compd.Loop.ComputeP99Us, is shown instead"),
+        ),
+    ),
+    Field(
+        "between_max_s",
+        "s",
+        "the longest the work between two cycles took",
+        omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant"),
+    ),
+    Field(
+        "between_overruns",
+        "",
+        "times the work between cycles ended past the next deadline",
+        "count",
+        omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant"),
+    ),
+    Field(
+        "gc_runs",
+        "",
+        "young-generation collections between cycles",
+        "count",
+        omit=_nowhere("Python's collector between cycles, for tuning (compd bench), not for the plant"),
+    ),
+    Field(
+        "word",
+        "",
+        "the word the loop computed",
+        "count",
+        hex_digits=4,
+        metric_type="gauge",
+        sparkplug="Word",
+        omit=(("opcua", "shown per axis instead (compd.Axes.<axis>.Word), with the byte that carries the axis"),),
+    ),
+    Field(
+        "link",
+        "",
+        "whether what the sink writes reaches the machine",
+        "name",
+        LINK_STATES,
+        at=("sink", "link"),
+        metric="compd_sink_link",
+        label="state",
+    ),
+    Field(
+        "sink_writes",
+        "",
+        "writes the sink made",
+        "count",
+        omit=_nowhere("the sink's own count, in status.json for its diagnosis, not for the plant"),
+    ),
     Field("saturations", "", "words with a clamped axis byte", "count"),
-    Field("degraded", "", "the model runs on a reduced set of inputs", "flag",
-          omit=_nowhere("shown per axis in status.json; the plant sees it in the signals' qualities")),
-    Field("rows_dropped", "", "data-log rows the service's ring had no room for", "count",
-          omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant")),
-    Field("messages_dropped", "", "messages to the service its ring had no room for", "count",
-          omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant")),
-    Field("write_max_ns", "ns", "the longest this record's write took", "count",
-          omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant")),
+    Field(
+        "degraded",
+        "",
+        "the model runs on a reduced set of inputs",
+        "flag",
+        omit=_nowhere("shown per axis in status.json; the plant sees it in the signals' qualities"),
+    ),
+    Field(
+        "rows_dropped",
+        "",
+        "data-log rows the service's ring had no room for",
+        "count",
+        omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant"),
+    ),
+    Field(
+        "messages_dropped",
+        "",
+        "messages to the service its ring had no room for",
+        "count",
+        omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant"),
+    ),
+    Field(
+        "write_max_ns",
+        "ns",
+        "the longest this record's write took",
+        "count",
+        omit=_nowhere("the service's bookkeeping (status.json's `publisher`), for tuning, not for the plant"),
+    ),
 )
 
 # What the service adds beside the record (the top level of the status): how old the record is.
 SERVICE: tuple[Field, ...] = _scoped(
     SERVICE_SCOPE,
-    Field("record_age_s", "s", "how long (monotonic time, as the service sees it every 20 ms) since the cycle last"
-          f" wrote this record; a time the service itself did not run (a turn over {UNSEEN_S:g} s late) is not counted",
-          metric="compd_cycle_record_age_seconds",
-          omit=(("sparkplug", "a host judges a sample by its time stamp, and a stale cycle by State"),
-                ("opcua", "a stale record's values are Uncertain_LastUsableValue, stamped when it was written"))),
-    Field("stale_after_s", "s", f"the age past which the status says `{STALE}`: {STALE_PERIODS:g} loop periods and at"
-          f" least {STALE_MIN_S:g} s while running, {RELOAD_STALE_S:g} s while reloading; null while stopping or"
-          " stopped (the loop is not meant to run)",
-          omit=_nowhere("a limit, not a measurement: the state says `stale` once the age passes it")),
+    Field(
+        "record_age_s",
+        "s",
+        "how long (monotonic time, as the service sees it every 20 ms) since the cycle last"
+        f" wrote this record; a time the service itself did not run (a turn over {UNSEEN_S:g} s late) is not counted",
+        metric="compd_cycle_record_age_seconds",
+        omit=(
+            ("sparkplug", "a host judges a sample by its time stamp, and a stale cycle by State"),
+            ("opcua", "a stale record's values are Uncertain_LastUsableValue, stamped when it was written"),
+        ),
+    ),
+    Field(
+        "stale_after_s",
+        "s",
+        f"the age past which the status says `{STALE}`: {STALE_PERIODS:g} loop periods and at"
+        f" least {STALE_MIN_S:g} s while running, {RELOAD_STALE_S:g} s while reloading; null while stopping or"
+        " stopped (the loop is not meant to run)",
+        omit=_nowhere("a limit, not a measurement: the state says `stale` once the age passes it"),
+    ),
 )
 # ... and per signal: how old its value is
 SIGNAL_SERVICE: tuple[Field, ...] = _scoped(
     SIGNAL_SCOPE,
-    Field("age_s", "s", "how old the value is: loop time of the last cycle − `stamp_s`",
-          omit=(("sparkplug", "it grows every sample (by exception it would go out every time); each sample has"
-                 " its time stamp"), ("opcua", "it grows every sample; each value has its SourceTimestamp"))),
+    Field(
+        "age_s",
+        "s",
+        "how old the value is: loop time of the last cycle − `stamp_s`",
+        omit=(
+            (
+                "sparkplug",
+                "it grows every sample (by exception it would go out every time); each sample has its time stamp",
+            ),
+            ("opcua", "it grows every sample; each value has its SourceTimestamp"),
+        ),
+    ),
 )
 # every field, in the order the exporters show them
 FIELDS: tuple[Field, ...] = (*AXIS, *PART, *SIGNAL, *SIGNAL_SERVICE, *LOOP, *SERVICE)
@@ -368,8 +568,19 @@ def shown(f: Field, status: dict[str, Any], at: dict[str, str]) -> bool:
 
 
 # a signal's unit, by the end of its name (compd's names carry their units; STYLE); T_… is °C
-_SUFFIX_UNITS = (("_um", "µm"), ("_mm", "mm"), ("_rpm", "rpm"), ("_c", "°C"), ("_k", "K"), ("_s", "s"),
-                 ("_a", "A"), ("_v", "V"), ("_pct", "%"), ("_bar", "bar"), ("_hz", "Hz"))
+_SUFFIX_UNITS = (
+    ("_um", "µm"),
+    ("_mm", "mm"),
+    ("_rpm", "rpm"),
+    ("_c", "°C"),
+    ("_k", "K"),
+    ("_s", "s"),
+    ("_a", "A"),
+    ("_v", "V"),
+    ("_pct", "%"),
+    ("_bar", "bar"),
+    ("_hz", "Hz"),
+)
 
 
 def signal_unit(name: str) -> str | None:
@@ -437,12 +648,12 @@ class StatusBlock:
         self._head = memoryview(self._buf).cast("q")[:_HEAD]
         data = np.frombuffer(self._buf, dtype=np.float64, offset=8 * _HEAD)
         self._loop = data[: len(LOOP)]
-        self._lv = memoryview(self._buf)[8 * _HEAD: 8 * (_HEAD + len(LOOP))].cast("d")  # scalar stores: no numpy
-        rest = data[len(LOOP):]
+        self._lv = memoryview(self._buf)[8 * _HEAD : 8 * (_HEAD + len(LOOP))].cast("d")  # scalar stores: no numpy
+        rest = data[len(LOOP) :]
         self._axes = rest[: len(AXIS) * n_axes].reshape(len(AXIS), n_axes)
-        rest = rest[len(AXIS) * n_axes:]
+        rest = rest[len(AXIS) * n_axes :]
         self._signals = rest[: len(SIGNAL) * n_sig].reshape(len(SIGNAL), n_sig)
-        self._parts = rest[len(SIGNAL) * n_sig:].reshape(len(PART), n_parts)
+        self._parts = rest[len(SIGNAL) * n_sig :].reshape(len(PART), n_parts)
         self._parts[:] = math.nan
         self._axes[:] = math.nan
         self._signals[:] = math.nan
@@ -534,12 +745,18 @@ class StatusBlock:
             seq = head[0]
             if seq & 1:
                 continue
-            r = Reading(self._loop.copy(), self._axes.copy(), self._signals.copy(), self._parts.copy(),
-                        np.frombuffer(st.hist, dtype=np.int64).copy(),
-                        np.frombuffer(st.compute_hist, dtype=np.int64).copy(),
-                        np.vstack([np.frombuffer(a, dtype=np.int64) for a in
-                                   (st.stage_last_ns, st.stage_max_ns, st.stage_sum_ns)]),
-                        st.stage_names)
+            r = Reading(
+                self._loop.copy(),
+                self._axes.copy(),
+                self._signals.copy(),
+                self._parts.copy(),
+                np.frombuffer(st.hist, dtype=np.int64).copy(),
+                np.frombuffer(st.compute_hist, dtype=np.int64).copy(),
+                np.vstack(
+                    [np.frombuffer(a, dtype=np.int64) for a in (st.stage_last_ns, st.stage_max_ns, st.stage_sum_ns)]
+                ),
+                st.stage_names,
+            )
             if head[0] == seq:
                 return r if seq else None
         return None
@@ -625,8 +842,14 @@ def timing(r: Reading, period_s: float) -> dict[str, Any]:
     compute = {"p50": c50, "p99": c99, "max": round(r.get(LI.compute_max_ns) / 1000, 1)}
     limit = range_limit_us(r.hist)
     n = max(int(r.get(LI.cycles)), 1)
-    stages = {name: {"last_us": int(r.stages[0, i]) / 1000, "mean_us": int(r.stages[2, i]) / n / 1000,
-                     "max_us": int(r.stages[1, i]) / 1000} for i, name in enumerate(r.stage_names)}
+    stages = {
+        name: {
+            "last_us": int(r.stages[0, i]) / 1000,
+            "mean_us": int(r.stages[2, i]) / n / 1000,
+            "max_us": int(r.stages[1, i]) / 1000,
+        }
+        for i, name in enumerate(r.stage_names)
+    }
     return {
         "period_ms": period_s * 1000.0,
         "cycles": int(r.get(LI.cycles)),
@@ -701,11 +924,14 @@ def compose(r: Reading, desc: Description) -> dict[str, Any]:
         "saturations": int(r.get(LI.saturations)),
         "events": list(desc.events),
         "threads": dev.get("threads") or [],
-        "publisher": {"messages_dropped": int(r.get(LI.messages_dropped)), "rows_dropped": int(r.get(LI.rows_dropped)),
-                      "status_write_max_us": round(r.get(LI.write_max_ns) / 1000, 1),
-                      "between_max_us": round(r.get(LI.between_max_s) * 1e6, 1),
-                      "between_overruns": int(r.get(LI.between_overruns)),
-                      **(dev.get("publisher") or {})},
+        "publisher": {
+            "messages_dropped": int(r.get(LI.messages_dropped)),
+            "rows_dropped": int(r.get(LI.rows_dropped)),
+            "status_write_max_us": round(r.get(LI.write_max_ns) / 1000, 1),
+            "between_max_us": round(r.get(LI.between_max_s) * 1e6, 1),
+            "between_overruns": int(r.get(LI.between_overruns)),
+            **(dev.get("publisher") or {}),
+        },
     }
     if dev.get("adapt") is not None:
         snap["adapt"] = dev["adapt"]
@@ -737,8 +963,11 @@ def channel_names(f: Field) -> dict[str, str]:
     assert f.scope is not None
     at = {k: v for k, v in _PLACEHOLDERS.items() if k in f.scope.sparkplug or k in f.scope.opcua}
     labels = (*f.scope.labels, *((f.label or f.key,) if f.kind == "name" else ()))
-    names = {"prometheus": f"`{f.metric_name()}`" + (f" {{{', '.join(labels)}}}" if labels else ""),
-             "sparkplug": f"`{f.sparkplug_name(**at)}`", "opcua": f"`{f.opcua_name(**at)}`"}
+    names = {
+        "prometheus": f"`{f.metric_name()}`" + (f" {{{', '.join(labels)}}}" if labels else ""),
+        "sparkplug": f"`{f.sparkplug_name(**at)}`",
+        "opcua": f"`{f.opcua_name(**at)}`",
+    }
     if f.unit == PER_SIGNAL:
         names["prometheus"] = "`compd_signal_<unit>` {signal} (docs/metrics.md)"
     return {c: f"— {why[c]}" if c in why else names[c] for c in CHANNELS}
@@ -746,19 +975,32 @@ def channel_names(f: Field) -> dict[str, str]:
 
 def fields_markdown() -> str:
     """docs/status-fields.md: every number of the record, by group, and what each channel calls it."""
-    out = ["# Status fields", "",
-           "Generated from compd/cycle/statusblock.py (`python -m compd.cycle.statusblock`): every number the cycle",
-           "writes into its status record each cycle, and those the service adds beside it, under the key",
-           "it has in status.json (docs/formats.md, \"Status file\"), with its unit and meaning; then the name",
-           "each channel gives it (docs/metrics.md, docs/plant.md), derived from the key by rule, or why the",
-           "channel leaves it out. A Prometheus family is in the base unit (µm as meters, µs and ns as seconds).", ""]
-    for title, fields in (("Per axis", AXIS), ("Per contribution (a sum of contributions only)", PART),
-                          ("Per signal", SIGNAL), ("The service's, per signal", SIGNAL_SERVICE), ("The loop", LOOP),
-                          ("The service's, beside the record", SERVICE)):
+    out = [
+        "# Status fields",
+        "",
+        "Generated from compd/cycle/statusblock.py (`python -m compd.cycle.statusblock`): every number the cycle",
+        "writes into its status record each cycle, and those the service adds beside it, under the key",
+        'it has in status.json (docs/formats.md, "Status file"), with its unit and meaning; then the name',
+        "each channel gives it (docs/metrics.md, docs/plant.md), derived from the key by rule, or why the",
+        "channel leaves it out. A Prometheus family is in the base unit (µm as meters, µs and ns as seconds).",
+        "",
+    ]
+    for title, fields in (
+        ("Per axis", AXIS),
+        ("Per contribution (a sum of contributions only)", PART),
+        ("Per signal", SIGNAL),
+        ("The service's, per signal", SIGNAL_SERVICE),
+        ("The loop", LOOP),
+        ("The service's, beside the record", SERVICE),
+    ):
         assert fields[0].scope is not None
         out += [f"## {title} ({fields[0].scope.where})", "", "| key | unit | kind | meaning |", "|---|---|---|---|"]
         for f in fields:
-            kind = f"one of {', '.join('null' if n is None else f'`{n}`' for n in f.names)}" if f.kind == "name" else f.kind
+            kind = (
+                f"one of {', '.join('null' if n is None else f'`{n}`' for n in f.names)}"
+                if f.kind == "name"
+                else f.kind
+            )
             where = f" (status.json: `{'.'.join(f.at)}`{f', in {f.shown}' if f.shown else ''})" if f.at else ""
             out.append(f"| `{f.key}` | {f.unit or '—'} | {kind} | {f.meaning}{where} |")
         out += ["", "| key | Prometheus | Sparkplug B | OPC UA |", "|---|---|---|---|"]

@@ -26,6 +26,7 @@ log = logging.getLogger("compd")
 
 CATCH_UP_PERIODS = 2.0  # the slew a late cycle may spend: two periods' worth (jitter), never the whole pause
 
+
 class LogObserver:
     """Hands a log row to `push` every `period_s` of loop time and on every change of the
     word (the service's data log writes it: compd/daemon/host.py)."""
@@ -221,8 +222,12 @@ class App:
             saved = None if self._model_carried else load_saved(spath, m.kind, m.inputs, m.outputs)
             if saved is not None:
                 m.set_state(saved.state, saved.elapsed_s)
-                log.info("model state restored from %s (saved %.0f s ago)", spath, saved.elapsed_s,
-                         extra={"event": "state_restored", "path": str(spath), "elapsed_s": round(saved.elapsed_s)})
+                log.info(
+                    "model state restored from %s (saved %.0f s ago)",
+                    spath,
+                    saved.elapsed_s,
+                    extra={"event": "state_restored", "path": str(spath), "elapsed_s": round(saved.elapsed_s)},
+                )
             if ad is not None and saved is not None and saved.adapt is not None and not self._adapt_carried:
                 self._restore_adapt(saved.adapt, digest, spath)
         self.loop.on_model_state = pub.model_state
@@ -236,8 +241,11 @@ class App:
         ad = self.loop.adapter
         assert ad is not None
         if part.get("params_sha256") != digest:
-            log.warning("adaptation reset: the model's params changed since %s was saved", spath,
-                        extra={"event": "adapt_reset", "path": str(spath), "reason": "model params changed"})
+            log.warning(
+                "adaptation reset: the model's params changed since %s was saved",
+                spath,
+                extra={"event": "adapt_reset", "path": str(spath), "reason": "model params changed"},
+            )
             return
         try:
             elapsed = max(time.time() - float(part["saved_unix_s"]), 0.0)
@@ -246,11 +254,19 @@ class App:
             ad.set_state(dict(part["axes"]), elapsed, self.clock.now())  # ValueError: a number not finite, P not PSD
         except (KeyError, TypeError, ValueError, OverflowError) as e:
             ad.reset()
-            log.warning("adaptation state ignored: %s: %s", spath, e,
-                        extra={"event": "state_ignored", "path": str(spath), "reason": f"adapt: {e}"})
+            log.warning(
+                "adaptation state ignored: %s: %s",
+                spath,
+                e,
+                extra={"event": "state_ignored", "path": str(spath), "reason": f"adapt: {e}"},
+            )
             return
-        log.info("adaptation restored from %s (saved %.0f s ago)", spath, elapsed,
-                 extra={"event": "adapt_restored", "path": str(spath), "elapsed_s": round(elapsed)})
+        log.info(
+            "adaptation restored from %s (saved %.0f s ago)",
+            spath,
+            elapsed,
+            extra={"event": "adapt_restored", "path": str(spath), "elapsed_s": round(elapsed)},
+        )
 
     def adopt(self, previous: App) -> None:
         """Config reload: take over what did not change from the running App (no I/O).
@@ -265,8 +281,10 @@ class App:
         self._previous = previous
         if self.clock.simulated and previous.clock.simulated:  # time goes on where it was
             self.clock = self.loop.clock = SimClock(previous.clock.now(), self.cfg.loop.speedup)
-        elif previous.clock.kept_across_reload and type(self.clock) is type(previous.clock) and (
-            self.cfg.loop.plant_clock == previous.cfg.loop.plant_clock
+        elif (
+            previous.clock.kept_across_reload
+            and type(self.clock) is type(previous.clock)
+            and (self.cfg.loop.plant_clock == previous.cfg.loop.plant_clock)
         ):
             self.clock = self.loop.clock = previous.clock
             self._clock_adopted = True
@@ -281,19 +299,28 @@ class App:
             m.set_state(pm.get_state(), 0.0)
             self._model_carried = True
         pa, ad = previous.loop.adapter, self.loop.adapter
-        if same_model and pa is not None and ad is not None and (
-            params_digest(previous.cfg.model.params) == params_digest(self.cfg.model.params)
+        if (
+            same_model
+            and pa is not None
+            and ad is not None
+            and (params_digest(previous.cfg.model.params) == params_digest(self.cfg.model.params))
         ):
             try:
                 ad.set_state(pa.get_state())
                 self._adapt_carried = True
             except ValueError as e:  # another adapt.gain or slope_position: the estimate starts again
                 ad.reset()
-                log.warning("adaptation reset: the running estimate does not fit the new adapt section: %s", e,
-                            extra={"event": "adapt_reset", "reason": str(e)})
+                log.warning(
+                    "adaptation reset: the running estimate does not fit the new adapt section: %s",
+                    e,
+                    extra={"event": "adapt_reset", "reason": str(e)},
+                )
         prev_state = previous.service.state_spec
-        if same_model and prev_state is not None and self.cfg.top.state.path and (
-            self.cfg.resolve_path(self.cfg.top.state.path) == prev_state.path
+        if (
+            same_model
+            and prev_state is not None
+            and self.cfg.top.state.path
+            and (self.cfg.resolve_path(self.cfg.top.state.path) == prev_state.path)
         ):
             self._state_adopted = True
         if previous.sink.cfg == self.sink.cfg and previous.observe == self.observe:
@@ -340,8 +367,9 @@ class App:
             return
         path = self.cfg.resolve_path(top.log.path)
         self.logger = LogObserver(self.loop, self.service.publisher.row, top.log.period_s)
-        self.service.log_spec = LogSpec(path, self.logger.columns, top.log.flush_s, top.log.rotate_bytes,
-                                        top.log.rotate_s, top.log.keep)
+        self.service.log_spec = LogSpec(
+            path, self.logger.columns, top.log.flush_s, top.log.rotate_bytes, top.log.rotate_s, top.log.keep
+        )
         self.loop.observers.append(self.logger)
 
     def _release_clashing_sink(self) -> None:

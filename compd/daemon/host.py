@@ -104,8 +104,15 @@ def log_guard_event(t: float, subject: str, event: str, reason: str, cause: str 
     extra = {"event": _EVENT_NAME.get(event, event), kind: subject, "reason": reason, "t_s": t}
     if cause is not None:
         extra["cause"] = cause
-    log.log(_EVENT_LEVEL.get(event, logging.INFO), "%s %s: %s%s", subject, event, reason,
-            "" if cause is None else f" ({cause})", extra=extra)
+    log.log(
+        _EVENT_LEVEL.get(event, logging.INFO),
+        "%s %s: %s%s",
+        subject,
+        event,
+        reason,
+        "" if cause is None else f" ({cause})",
+        extra=extra,
+    )
 
 
 def log_probe_event(ev: dict[str, Any]) -> None:
@@ -113,15 +120,22 @@ def log_probe_event(ev: dict[str, Any]) -> None:
     kind, axis = ev.get("event"), ev.get("axis")
     extra = {"event": f"probe_{kind}", "axis": axis, "t_s": ev.get("t_s"), "source": ev.get("source")}
     if kind in ("accepted", "rejected"):
-        extra.update({k: ev.get(k) for k in ("error_um", "measured_um", "innovation_um",
-                                               "innovation_sigma_um", "offset_um")})
+        extra.update(
+            {k: ev.get(k) for k in ("error_um", "measured_um", "innovation_um", "innovation_sigma_um", "offset_um")}
+        )
         if ev.get("reason") is not None:  # why it was rejected
             extra["reason"] = ev["reason"]
         log.log(
             logging.INFO if kind == "accepted" else logging.WARNING,
             "probe %s %s: error %.6g um, innovation %.2f um (sigma %.2f um), offset now %.2f um%s",
-            axis, kind, ev["error_um"], ev["innovation_um"], ev["innovation_sigma_um"], ev["offset_um"],
-            "" if ev.get("reason") is None else f": {ev['reason']}", extra=extra,
+            axis,
+            kind,
+            ev["error_um"],
+            ev["innovation_um"],
+            ev["innovation_sigma_um"],
+            ev["offset_um"],
+            "" if ev.get("reason") is None else f": {ev['reason']}",
+            extra=extra,
         )
     elif kind == "fault":
         extra["event"] = "adapt_fault"
@@ -147,8 +161,10 @@ def check_status_free(cfg: Config) -> None:
     pid = data.get("pid")
     if pid == os.getpid() or not status_mod.held(data):
         return  # a reload of this daemon, or one that has stopped
-    msg = (f"{path} is the status file of a running compd (pid {pid}, config {data.get('config')});"
-           " give each config its own status.path")
+    msg = (
+        f"{path} is the status file of a running compd (pid {pid}, config {data.get('config')});"
+        " give each config its own status.path"
+    )
     if cfg.top.status.path:
         raise cfg.doc.error(msg, ("status", "path"))
     raise BadInput(msg, file=str(path))
@@ -161,9 +177,13 @@ def check_status_folder(cfg: Config) -> None:
     if path is None:
         return
     folder = path.parent
-    why = (f"the folder {folder} of the status file does not exist" if not folder.is_dir() else
-           f"the status file {path} cannot be written: its folder is not writable (uid {os.geteuid()})"
-           if not os.access(folder, os.W_OK | os.X_OK) else None)
+    why = (
+        f"the folder {folder} of the status file does not exist"
+        if not folder.is_dir()
+        else f"the status file {path} cannot be written: its folder is not writable (uid {os.geteuid()})"
+        if not os.access(folder, os.W_OK | os.X_OK)
+        else None
+    )
     if why is not None:
         raise cfg.doc.error(why, ("status", "path"))
 
@@ -248,8 +268,13 @@ class ServiceWork:
     the messages until `finish`."""
 
     def __init__(
-        self, spec: ServiceSpec, outbox: MessageRing, inbox: MessageRing,
-        metrics: MetricsServer | None, control: ControlServer | None, status_line: SharedBlob | None = None,
+        self,
+        spec: ServiceSpec,
+        outbox: MessageRing,
+        inbox: MessageRing,
+        metrics: MetricsServer | None,
+        control: ControlServer | None,
+        status_line: SharedBlob | None = None,
     ) -> None:
         self.spec = spec
         self.outbox = outbox
@@ -300,8 +325,9 @@ class ServiceWork:
         spec = self.spec
         if spec.log is not None:
             lg = spec.log
-            self.log_writer = LogWriter(lg.path, lg.columns, lg.flush_s, rotate_bytes=lg.rotate_bytes,
-                                        rotate_s=lg.rotate_s, keep=lg.keep)
+            self.log_writer = LogWriter(
+                lg.path, lg.columns, lg.flush_s, rotate_bytes=lg.rotate_bytes, rotate_s=lg.rotate_s, keep=lg.keep
+            )
         if spec.state is not None:
             st = spec.state
             self.state_writer = StateWriter(st.path, st.kind, st.inputs, st.outputs, params_sha256=st.params_sha256)
@@ -321,8 +347,11 @@ class ServiceWork:
         if tspec.remote is not None:
             self.remote = self.link.remote = RemoteModels(tspec.remote)
         remote = self.remote
-        self.telemetry = Telemetry(tspec, commands=remote.handle if remote is not None else None,
-                                   armed=remote.armed if remote is not None else None)
+        self.telemetry = Telemetry(
+            tspec,
+            commands=remote.handle if remote is not None else None,
+            armed=remote.armed if remote is not None else None,
+        )
         try:
             self.telemetry.start()
         except BadInput as e:
@@ -428,8 +457,9 @@ class ServiceWork:
                 log_guard_event(*ev)
                 if self.telemetry is not None:
                     _t, subject, event, reason, cause = ev
-                    self.telemetry.event(_EVENT_NAME.get(event, event), subject,
-                                         reason if cause is None else f"{reason} ({cause})")
+                    self.telemetry.event(
+                        _EVENT_NAME.get(event, event), subject, reason if cause is None else f"{reason} ({cause})"
+                    )
         elif what == "probe_events":
             for ev in value:
                 self.link.events.append(ev)
@@ -502,8 +532,11 @@ class ServiceWork:
         self.cycle_stale = stale
         if stale:
             reason = f"no record from the cycle for {age_s:.1f} s (its state {state}): stopped or hung?"
-            log.warning("the cycle is stale: %s", reason,
-                        extra={"event": "cycle_stale", "record_age_s": round(age_s, 3), "state": state})
+            log.warning(
+                "the cycle is stale: %s",
+                reason,
+                extra={"event": "cycle_stale", "record_age_s": round(age_s, 3), "state": state},
+            )
         else:
             reason = f"the cycle writes its record again (state {state})"
             log.info("%s", reason, extra={"event": "cycle_resumed", "state": state})
@@ -522,8 +555,12 @@ class ServiceWork:
         self.last_snapshot = snap
         misses = int(snap["loop"]["misses"])
         if misses > self._misses:
-            log.warning("%d late cycles (%d in all)", misses - self._misses, misses,
-                        extra={"event": "late_cycles", "new": misses - self._misses, "misses": misses})
+            log.warning(
+                "%d late cycles (%d in all)",
+                misses - self._misses,
+                misses,
+                extra={"event": "late_cycles", "new": misses - self._misses, "misses": misses},
+            )
         self._misses = misses
         if self.metrics is not None:  # first: whoever sees this status file finds these metrics
             self.metrics.update_buckets(snap, buckets)
@@ -541,7 +578,9 @@ class ServiceWork:
             mode = "observe" if snap["observe"] else "compensating"
             if snap["sink"]["link"] != "up":
                 mode += f" (sink link {snap['sink']['link']}: output not reaching the machine)"
-            word = f"word {snap['word']} held back, 0x0000 at the machine" if snap["observe"] else f"word {snap['word']}"
+            word = (
+                f"word {snap['word']} held back, 0x0000 at the machine" if snap["observe"] else f"word {snap['word']}"
+            )
             line = f"{mode}: {word}, {states}, {snap['loop']['misses']} missed"
             self.status_line.publish(line.encode("utf-8")[: self.status_line.capacity])
 
@@ -582,8 +621,12 @@ class ServiceWork:
             wait = min(OPCUA_RETRY_MAX_S, OPCUA_RETRY_MIN_S * 2 ** min(self._opcua_attempts - 1, 10))
             self._opcua_retry_s = time.monotonic() + wait
             if str(e) != self.opcua_error:
-                log.error("OPC UA server off: %s; trying again in %.0f s", e, wait,
-                          extra={"event": "opcua_error", "reason": str(e), "retry_in_s": wait})
+                log.error(
+                    "OPC UA server off: %s; trying again in %.0f s",
+                    e,
+                    wait,
+                    extra={"event": "opcua_error", "reason": str(e), "retry_in_s": wait},
+                )
             self.opcua_error = str(e)
             return
         self.opcua, self.opcua_error, self._opcua_attempts = server, None, 0
@@ -653,8 +696,11 @@ class _ServiceHost:
 
     def _fork(self, paused: bool) -> None:
         work = self.work
-        keep = [fd for fd in (work.metrics.fileno() if work.metrics else None,
-                              work.control.fileno() if work.control else None) if fd is not None]
+        keep = [
+            fd
+            for fd in (work.metrics.fileno() if work.metrics else None, work.control.fileno() if work.control else None)
+            if fd is not None
+        ]
         child = Child("service")
 
         def answer(what: str, *args: Any) -> Any:
@@ -749,8 +795,9 @@ class Service:
         if top.telemetry is not None or top.opcua is not None:
             self.period_s = min(self.period_s, *(sec.period_s for sec in (top.telemetry, top.opcua) if sec is not None))
             if top.telemetry is not None:
-                self.telemetry_spec = plant_spec.telemetry_spec(app.cfg, list(app.frame.names),
-                                                                list(app.model.outputs), self.period_s)
+                self.telemetry_spec = plant_spec.telemetry_spec(
+                    app.cfg, list(app.frame.names), list(app.model.outputs), self.period_s
+                )
             if top.opcua is not None:
                 self.opcua_spec = plant_spec.opcua_spec(app.cfg)
         self.path = status_path(app.cfg)
@@ -772,7 +819,11 @@ class Service:
         self.inbox = MessageRing(INBOX_BYTES)
         self.status_line = SharedBlob(512)  # the service's STATUS= line, sent by the cycle
         self.publisher = Publisher(
-            self.loop, self.outbox, self.inbox, status_period_s=self.period_s, observe=observe,
+            self.loop,
+            self.outbox,
+            self.inbox,
+            status_period_s=self.period_s,
+            observe=observe,
         )
         self.log_spec: LogSpec | None = None
         self.state_spec: StateSpec | None = None
@@ -841,20 +892,36 @@ class Service:
             loop.model.kind,
             loop.sink.cfg.kind,
             " (observe mode: output held disabled)" if self.observe else "",
-            extra={"event": "start", "config": app.cfg.file, "period_s": loop.period_s,
-                   "observe": self.observe, "pid": os.getpid()},
+            extra={
+                "event": "start",
+                "config": app.cfg.file,
+                "period_s": loop.period_s,
+                "observe": self.observe,
+                "pid": os.getpid(),
+            },
         )
         if self.metrics is not None and self.metrics_url is None:
             self.open_metrics()
-        if self.control is None and (loop.adapter is not None or (
-                self.telemetry_spec is not None and self.telemetry_spec.remote is not None)):
-            log.warning("no probe socket: `compd probe` cannot reach this daemon (set adapt.socket_path or status.path)",
-                        extra={"event": "probe_socket", "path": None})
+        if self.control is None and (
+            loop.adapter is not None or (self.telemetry_spec is not None and self.telemetry_spec.remote is not None)
+        ):
+            log.warning(
+                "no probe socket: `compd probe` cannot reach this daemon (set adapt.socket_path or status.path)",
+                extra={"event": "probe_socket", "path": None},
+            )
         spec = ServiceSpec(
-            config=app.cfg.file, observe=self.observe, status_path=self.path, log=self.log_spec,
-            state=self.state_spec, adapt_axes=list(loop.adapter.axes) if loop.adapter is not None else None,
-            telemetry=self.telemetry_spec, opcua=self.opcua_spec, reload=self._previous is not None,
-            block=self.publisher.block, status_period_s=self.period_s, t0_s=self._t0,
+            config=app.cfg.file,
+            observe=self.observe,
+            status_path=self.path,
+            log=self.log_spec,
+            state=self.state_spec,
+            adapt_axes=list(loop.adapter.axes) if loop.adapter is not None else None,
+            telemetry=self.telemetry_spec,
+            opcua=self.opcua_spec,
+            reload=self._previous is not None,
+            block=self.publisher.block,
+            status_period_s=self.period_s,
+            t0_s=self._t0,
             description=Description(describe_static(loop, self.observe), loop.model.get_status()),
             extra={"config": app.cfg.file, "status_period_s": self.period_s, "metrics_url": self.metrics_url},
         )
@@ -869,8 +936,9 @@ class Service:
             wd = watchdog_interval_s()
             status = "observe mode: output held disabled" if self.observe else "compensating"
             sup = self.publisher.supervisor
-            self.watchdog = WatchdogObserver(self.notifier, wd, status, status_line=self.status_line,
-                                             healthy=lambda: not sup.escalated)
+            self.watchdog = WatchdogObserver(
+                self.notifier, wd, status, status_line=self.status_line, healthy=lambda: not sup.escalated
+            )
             loop.observers.append(self.watchdog)
         # the probes a source reads (its worker puts them in a ring of its own), and compd probe's
         self.publisher.watch_probes(loop.sources)
@@ -882,8 +950,11 @@ class Service:
             log.log(logging.INFO if ok else logging.WARNING, what, extra={"event": "realtime", "ok": ok})
         if self.realtime.lock_memory and not loop.clock.simulated:
             unshared = unshare_pages()  # the children forked above share our pages until written
-            log.info("%d kB of memory copied from the pages shared with the daemon's child processes", unshared,
-                     extra={"event": "realtime", "unshared_kb": unshared})
+            log.info(
+                "%d kB of memory copied from the pages shared with the daemon's child processes",
+                unshared,
+                extra={"event": "realtime", "unshared_kb": unshared},
+            )
 
     def reloading(self) -> None:
         """The loop has returned for a reload: the record says `reloading` while the new pipeline
@@ -946,5 +1017,8 @@ class Service:
         of room on the way), status and state writes and errors (the final ones once it stopped)."""
         counts = dict(self._host.counts()) if self._host is not None else {}
         if counts.get("log") is not None:
-            counts["log"] = {**counts["log"], "rows_dropped": counts["log"]["rows_dropped"] + self.publisher.rows_dropped}
+            counts["log"] = {
+                **counts["log"],
+                "rows_dropped": counts["log"]["rows_dropped"] + self.publisher.rows_dropped,
+            }
         return counts

@@ -26,7 +26,8 @@ def reload(app: App, config_path: str, remaining: float | None, observe: bool | 
         new = App(load_config(config_path), duration_s=remaining, observe=observe)
     except BadInput as e:
         log.error(
-            "reload rejected, still running the old config: %s", e,
+            "reload rejected, still running the old config: %s",
+            e,
             extra={"event": "reload_rejected", "config": config_path, "reason": str(e)},
         )
         print(f"compd: reload rejected, still running the old config: {e}", file=sys.stderr)
@@ -34,7 +35,8 @@ def reload(app: App, config_path: str, remaining: float | None, observe: bool | 
     except Exception as e:  # building the pipeline failed in a way no check foresaw
         reason = f"{type(e).__name__}: {e}"
         log.error(
-            "reload failed, still running the old config: %s", reason,
+            "reload failed, still running the old config: %s",
+            reason,
             extra={"event": "reload_failed", "config": config_path, "reason": reason},
         )
         print(f"compd: reload failed, still running the old config: {reason}", file=sys.stderr)
@@ -46,7 +48,8 @@ def reload(app: App, config_path: str, remaining: float | None, observe: bool | 
     except Exception as e:
         reason = str(e) if isinstance(e, BadInput) else f"{type(e).__name__}: {e}"
         log.error(
-            "reload failed, still running the old config: %s", reason,
+            "reload failed, still running the old config: %s",
+            reason,
             extra={"event": "reload_failed", "config": config_path, "reason": reason},
         )
         print(f"compd: reload failed, still running the old config: {reason}", file=sys.stderr)
@@ -55,7 +58,9 @@ def reload(app: App, config_path: str, remaining: float | None, observe: bool | 
         app.close(handing_over_to=new)
     except Exception as e:  # the old pipeline's release failed: the new one runs regardless
         log.warning(
-            "closing the old pipeline after a reload: %s: %s", type(e).__name__, e,
+            "closing the old pipeline after a reload: %s: %s",
+            type(e).__name__,
+            e,
             extra={"event": "reload_close_error", "reason": str(e)},
         )
     log.info("reloaded %s", config_path, extra={"event": "reloaded", "config": config_path})
@@ -106,8 +111,12 @@ def run_with_reload(
 
 
 def _run(
-    config_path: str, duration_s: float | None, observe: bool, log_level: str | None,
-    requests: dict[str, Any], current: list[App | None],
+    config_path: str,
+    duration_s: float | None,
+    observe: bool,
+    log_level: str | None,
+    requests: dict[str, Any],
+    current: list[App | None],
 ) -> dict[str, Any] | None:
     """`run_with_reload` once its handlers are in place: the config read, the App built and run."""
     cfg = load_config(config_path)
@@ -115,8 +124,10 @@ def _run(
     observe_flag = True if observe else None
     app = None if requests["stop"] else App(cfg, duration_s=duration_s, observe=observe_flag)
     if app is None or requests["stop"]:  # asked to stop before anything was opened: nothing to make safe
-        log.info("stopped before the loop started: nothing was opened", extra={"event": "stopped_early",
-                                                                               "config": config_path})
+        log.info(
+            "stopped before the loop started: nothing was opened",
+            extra={"event": "stopped_early", "config": config_path},
+        )
         return None
     current[0] = app
     remaining = app.duration_s

@@ -31,8 +31,10 @@ CHOICES: Registry[Callable[[FitResult], dict[str, Any]]] = Registry(
 )
 # the fit option every kind takes: the inputs' sensor lag (compd.identify.lag); the MLR baseline
 # stays the papers' model unless asked
-COMMON_OPTIONS = {"lag": "the inputs' sensor lag: auto (chosen held out; off where it does not help), off,"
-                         " seconds for every temperature input, or {input: seconds}; default auto (mlr: off)"}
+COMMON_OPTIONS = {
+    "lag": "the inputs' sensor lag: auto (chosen held out; off where it does not help), off,"
+    " seconds for every temperature input, or {input: seconds}; default auto (mlr: off)"
+}
 
 
 def default_lag(kind: str) -> str:

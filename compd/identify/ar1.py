@@ -156,8 +156,9 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     opt = validate_options("ar1", Options, options)
     if isinstance(opt.structure, list):
         if inputs:
-            raise BadInput("give the structure sensors with --inputs or the structure option, not both",
-                           path="--option structure")
+            raise BadInput(
+                "give the structure sensors with --inputs or the structure option, not both", path="--option structure"
+            )
         inputs = list(opt.structure)
     temps = log.temperature_columns()
     spec = lag_mod.parse(opt.lag, temps)
@@ -171,16 +172,21 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
             lags, lag_report = chosen.pop("lags"), chosen.pop("lag")
     elif opt.ambient == "none":
         opt = opt.model_copy(update={"ambient": None})
-    names = [*(inputs or []), *([opt.ambient] if opt.ambient else []),
-             *([] if isinstance(opt.exchange, str) else opt.exchange)]
+    names = [
+        *(inputs or []),
+        *([opt.ambient] if opt.ambient else []),
+        *([] if isinstance(opt.exchange, str) else opt.exchange),
+    ]
     step = lag_mod.step_s(log)
     lead, filt = lag_mod.lead_lists(names, lags, step)
     result = _fit_form(lag_mod.led(log, names, lead, filt), inputs, targets, opt)
     lead, filt = lag_mod.lead_lists(result.model.inputs, lags, step)
     result = lag_mod.with_lead(result, lead, filt)
     if isinstance(spec, dict):
-        lag_report = {"method": "given", "lead_s": {n: v for n, v in zip(result.model.inputs, lead, strict=True)
-                                                    if v > 0}}
+        lag_report = {
+            "method": "given",
+            "lead_s": {n: v for n, v in zip(result.model.inputs, lead, strict=True) if v > 0},
+        }
     result.report["lag"] = lag_report
     if chosen is not None:
         result.report["sensors_chosen"] = chosen
@@ -201,14 +207,18 @@ def pinned_inputs(result: FitResult, opt: Options, chosen: dict[str, Any] | None
         for name, gain in zip(bed, p.bed_gain_um_per_k, strict=False):
             if gain <= PINNED_UM_PER_K:
                 how = "named with --inputs" if name in given else "chosen held out"
-                out.append(f"the structure sensor {name} ({how}) has gain 0, its bound (bed_gains: positive): it"
-                           " contributes nothing; drop it from --inputs, check that the error is bed − spindle"
-                           " (a bed that grows away from the tool), or allow either sign with --option bed_gains=free")
+                out.append(
+                    f"the structure sensor {name} ({how}) has gain 0, its bound (bed_gains: positive): it"
+                    " contributes nothing; drop it from --inputs, check that the error is bed − spindle"
+                    " (a bed that grows away from the tool), or allow either sign with --option bed_gains=free"
+                )
     exch = [] if isinstance(opt.exchange, str) else list(opt.exchange)
     for name, gain in zip(exch, p.exchange_um_per_k, strict=False):
         if gain <= PINNED_UM_PER_K:
-            out.append(f"the exchange sensor {name} has gain 0, its bound (a warmer housing warms the spindle):"
-                       " it contributes nothing; drop it from --option exchange (or let exchange=auto choose)")
+            out.append(
+                f"the exchange sensor {name} has gain 0, its bound (a warmer housing warms the spindle):"
+                " it contributes nothing; drop it from --option exchange (or let exchange=auto choose)"
+            )
     return out
 
 
@@ -224,8 +234,13 @@ def _lagged(name: str, tau_s: float) -> str:
 
 
 def choose_sensors(
-    log: Log, bed: list[str], targets: list[str] | None, opt: Options, need_bed: bool,
-    lags: dict[str, float], auto_lag: bool,
+    log: Log,
+    bed: list[str],
+    targets: list[str] | None,
+    opt: Options,
+    need_bed: bool,
+    lags: dict[str, float],
+    auto_lag: bool,
 ) -> tuple[list[str], Options, dict[str, Any]]:
     """The structure, ambient and exchange sensors the options leave to the fit (and with `auto_lag`
     each input's lead), by forward selection among every temperature column (none privileged by its
@@ -261,7 +276,8 @@ def choose_sensors(
         raise BadInput(
             "ar1 needs a bed (structure) sensor whose growth adds to the spindle's, and the log has no"
             " temperature column to choose: name it with --inputs (a spindle alone: --option spindle_sign=1)",
-            file=log.file, path="--inputs",
+            file=log.file,
+            path="--inputs",
         )
     grid = SELECT_LAGS_S if auto_lag else (0.0,)
     step = lag_mod.step_s(log)
@@ -280,8 +296,9 @@ def choose_sensors(
     base = dict(zip(cols, [c for _ in grid for c in usable], strict=True))
     exponent = None if opt.c2_exponent == "linear" else float(opt.c2_exponent)
     cut = holdout.folds(log)[0]
-    steps = design.prepare(ext, target[0], cols, opt.speed_column, dt, opt.speed_round_rpm,
-                           opt.stopped_below_rpm, exponent, cut)
+    steps = design.prepare(
+        ext, target[0], cols, opt.speed_column, dt, opt.speed_round_rpm, opt.stopped_below_rpm, exponent, cut
+    )
     if not steps.levels:
         raise BadInput(f"the spindle never turns in {opt.speed_column!r}: C2 cannot be fitted", file=log.file)
     # each candidate scored at the paper's single C1 (a grid, a parabola between), as main's selection
@@ -327,17 +344,25 @@ def choose_sensors(
 
     def at(roles: design.Roles, tau: dict[str, float]) -> design.Roles:
         """The roles with each sensor at its lag in `tau` (0 where none)."""
+
         def m(c: str) -> str:
             b = base.get(c, c)
             return _lagged(b, tau.get(b, 0.0))
-        return replace(roles, bed=tuple(map(m, roles.bed)), ambient=m(roles.ambient) if roles.ambient else None,
-                       exchange=tuple(map(m, roles.exchange)))
+
+        return replace(
+            roles,
+            bed=tuple(map(m, roles.bed)),
+            ambient=m(roles.ambient) if roles.ambient else None,
+            exchange=tuple(map(m, roles.exchange)),
+        )
 
     start = design.Roles(tuple(bed), fixed_amb, fixed_exch, sign, positive)
     history: list[dict[str, float]] = []
     if given and auto_lag:  # the named sensors' one lag, the others' chosen with them
-        tried = {f"{tau:g}": s for tau, s in zip(grid, held([at(start, dict.fromkeys(given, tau)) for tau in grid]),
-                                                 strict=True)}
+        tried = {
+            f"{tau:g}": s
+            for tau, s in zip(grid, held([at(start, dict.fromkeys(given, tau)) for tau in grid]), strict=True)
+        }
         history.append({f"lag {k} s": v for k, v in tried.items()})
         tau0 = float(min(tried, key=tried.__getitem__))
         current, best = at(start, dict.fromkeys(given, tau0)), min(tried.values())
@@ -362,21 +387,32 @@ def choose_sensors(
                     moves.append((f"exchange {c}", replace(current, exchange=(*current.exchange, c))))
         if not moves:
             break
-        scores = held([r for _, r in moves], [j for j, (name, r) in enumerate(moves)  # the air, for its tie
-                                              if name.startswith("ambient ") and base[r.ambient or ""] in air])
+        scores = held(
+            [r for _, r in moves],
+            [
+                j
+                for j, (name, r) in enumerate(moves)  # the air, for its tie
+                if name.startswith("ambient ") and base[r.ambient or ""] in air
+            ],
+        )
         history.append({name: s for (name, _), s in zip(moves, scores, strict=True)})
         i = int(np.argmin(scores))
         for j, (name, roles) in enumerate(moves):  # the air's name breaks a tie for the ambient
-            if (name.startswith("ambient ") and base[roles.ambient or ""] in air and scores[j] - scores[i]
-                    <= holdout.FLOOR_UM and not moves[i][0].startswith("ambient ")):
+            if (
+                name.startswith("ambient ")
+                and base[roles.ambient or ""] in air
+                and scores[j] - scores[i] <= holdout.FLOOR_UM
+                and not moves[i][0].startswith("ambient ")
+            ):
                 i = j
                 break
         if math.isinf(scores[i]) or not math.isinf(best) and not holdout.clearly_better(scores[i], best, AUTO_MARGIN):
             break
         current, best = moves[i][1], scores[i]
     if need_bed and not current.bed:
-        raise BadInput("no structure sensor can be fitted held out: name them with --inputs", file=log.file,
-                       path="--inputs")
+        raise BadInput(
+            "no structure sensor can be fitted held out: name them with --inputs", file=log.file, path="--inputs"
+        )
     chosen_lags = {base[c]: _lag_of(c, base[c]) for c in current.sensors}
     report_lag: dict[str, Any] = {}
     if auto_lag:
@@ -395,7 +431,9 @@ def choose_sensors(
             "method": holdout.METHOD + f"; chosen with the sensors (each candidate column at every lag of"
             f" {list(grid)} s), then each input's own with the others held, τ_f = {lag_mod.FILTER_RATIO:g} τ (≥ 2 log"
             f" steps); kept below {lag_mod.MARGIN:g} × the held-out RMSE without",
-            "held_out_rmse_um": {"none": none, "chosen": best}, "per_input_rmse_um": per_input, "kept": kept,
+            "held_out_rmse_um": {"none": none, "chosen": best},
+            "per_input_rmse_um": per_input,
+            "kept": kept,
         }
         if not kept:
             report_lag["reason"] = "no lead predicts the held-out folds clearly better than the readings as they are"
@@ -414,9 +452,14 @@ def choose_sensors(
     if auto_exch:
         update["exchange"] = exch_out
     report: dict[str, Any] = {
-        "inputs": bed_out, "ambient": amb_out, "exchange": exch_out, "given": given,
-        "method": holdout.METHOD + "; forward selection among every temperature column" + (
-            " at every lag" if auto_lag else "") + ", each step the column and role (structure ≤"
+        "inputs": bed_out,
+        "ambient": amb_out,
+        "exchange": exch_out,
+        "given": given,
+        "method": holdout.METHOD
+        + "; forward selection among every temperature column"
+        + (" at every lag" if auto_lag else "")
+        + ", each step the column and role (structure ≤"
         f" {STRUCTURE_MAX}, ambient ≤ 1, exchange ≤ {EXCHANGE_MAX}: those the options leave to the fit) that"
         f" predicts best, kept while it cuts the held-out RMSE below {AUTO_MARGIN:g} ×; a column named for the"
         f" air is no structure sensor and wins a tie as the ambient; scored at the paper's single C1 on a grid of"
@@ -455,28 +498,46 @@ def _fit_form(log: Log, inputs: list[str] | None, targets: list[str] | None, opt
     cut = holdout.folds(log)[0]
     sign = result.model.params.spindle_sign
     roles = design.Roles(tuple(bed), opt.ambient, tuple(exchange), sign, opt.bed_gains == "positive" and sign == -1)
-    steps = design.prepare(log, target[0], sensors, opt.speed_column, dt, opt.speed_round_rpm,
-                           opt.stopped_below_rpm, exponent, cut)
+    steps = design.prepare(
+        log, target[0], sensors, opt.speed_column, dt, opt.speed_round_rpm, opt.stopped_below_rpm, exponent, cut
+    )
     stops = bool((steps.speed < max(opt.stopped_below_rpm, 1e-12)).any())
     const, zs = design.score_exact(steps, roles)
     forms: dict[str, list[design.FoldScore]] = {"constant": const}
     if stops and 1 <= len(steps.levels) <= LEVELS_MAX:
         forms["by_speed"] = design.fold_scores(design.fit_levels(steps, roles, zs), steps)
     if stops and len(steps.levels) >= LAW_MIN_LEVELS:
-        law_steps = design.prepare(log, target[0], sensors, opt.speed_column, dt, opt.speed_round_rpm,
-                                   opt.stopped_below_rpm, exponent, cut, law=True)
+        law_steps = design.prepare(
+            log,
+            target[0],
+            sensors,
+            opt.speed_column,
+            dt,
+            opt.speed_round_rpm,
+            opt.stopped_below_rpm,
+            exponent,
+            cut,
+            law=True,
+        )
         forms["speed_law"] = design.fold_scores(design.fit_law(law_steps, roles, exact=False), law_steps)
     usable = [k for k in range(len(cut)) if all(not isinstance(f[k], str) for f in forms.values())]
     held: dict[str, float | str] = {}
     for name, f in forms.items():
         used = [f[k] for k in usable]
         count = sum(int(c[0]) for _, c in used)  # type: ignore[misc]
-        held[name] = (math.sqrt(sum(float(s[0]) for s, _ in used) / count) if count  # type: ignore[misc]
-                      else "; ".join(x for x in f if isinstance(x, str)) or "no held-out rows")
+        held[name] = (
+            math.sqrt(sum(float(s[0]) for s, _ in used) / count)
+            if count  # type: ignore[misc]
+            else "; ".join(x for x in f if isinstance(x, str)) or "no held-out rows"
+        )
     chosen = "constant"
     for name in ("by_speed", "speed_law"):
-        if name in held and isinstance(held[name], float) and isinstance(held[chosen], float) and \
-                holdout.clearly_better(float(held[name]), float(held[chosen]), AUTO_MARGIN):
+        if (
+            name in held
+            and isinstance(held[name], float)
+            and isinstance(held[chosen], float)
+            and holdout.clearly_better(float(held[name]), float(held[chosen]), AUTO_MARGIN)
+        ):
             chosen = name
     if chosen != "constant":
         result = _fit(log, inputs, targets, opt.model_copy(update={"c1_by_speed": chosen == "by_speed" or "law"}))
@@ -526,8 +587,9 @@ def _fit(log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Opt
     positive = opt.bed_gains == "positive" and sign == -1
     if opt.c1_by_speed == "law":
         return _fit_law(log, bed, targets, opt, names, Xs, Es, dt, sign, positive, exponent)
-    problem = _Problem(Xs, Es, speed, rpm, len(bed), bool(opt.ambient), sign, c1_grid(dt), positive, exponent,
-                       len(exchange))
+    problem = _Problem(
+        Xs, Es, speed, rpm, len(bed), bool(opt.ambient), sign, c1_grid(dt), positive, exponent, len(exchange)
+    )
     z, i, res = problem.search_c1()
     c1 = float(1.0 - np.exp(z))
     report: dict[str, Any] = {
@@ -540,21 +602,26 @@ def _fit(log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Opt
     }
     at_bounds = []
     if report["c1_at_grid_edge"]:
-        at_bounds.append(f"C1 {c1:.6g} (time constant {-dt / math.log(c1):.4g} s) is at the edge of its search"
-                         f" range ({_grid_tau_s(dt)}): the spindle term may stand in for something else")
+        at_bounds.append(
+            f"C1 {c1:.6g} (time constant {-dt / math.log(c1):.4g} s) is at the edge of its search"
+            f" range ({_grid_tau_s(dt)}): the spindle term may stand in for something else"
+        )
     c1_rows: float | np.ndarray = c1
     c1_table: list[tuple[float, float]] = []
     if opt.c1_by_speed:
         if moving.all():
             raise BadInput(
                 "c1_by_speed needs the spindle to stand still in the log (C1 at standstill)",
-                file=log.file, path="--option c1_by_speed",
+                file=log.file,
+                path="--option c1_by_speed",
             )
         c1, c1_table, c1_rows, report["c1_by_speed"] = problem.c1_by_speed(z, float(res.fun), dt)
         for speed_rpm, tau_s in report["c1_by_speed"]["time_constant_s"].items():
             if report["c1_by_speed"]["at_edge"][speed_rpm]:
-                at_bounds.append(f"C1 at {speed_rpm} rpm (time constant {tau_s:.4g} s) is at the edge of its"
-                                 f" search range ({_grid_tau_s(dt)})")
+                at_bounds.append(
+                    f"C1 at {speed_rpm} rpm (time constant {tau_s:.4g} s) is at the edge of its"
+                    f" search range ({_grid_tau_s(dt)})"
+                )
     _, theta = problem.solve(c1_rows)
     L, nb = len(rpm), len(bed)
     c2 = np.cumsum(theta[:L])
@@ -568,19 +635,22 @@ def _fit(log: Log, inputs: list[str] | None, targets: list[str] | None, opt: Opt
         table, unseen = _rise_from_runs(table, log, opt)
     report["c2_exponent"] = (
         {"method": "linear", "reason": "asked: linear from 0 below the first level, held past the last"}
-        if exponent is None else
-        {"method": "power", "exponent": exponent, "reason": "C2(level)·(n/level)^e outside the fitted levels"})
+        if exponent is None
+        else {"method": "power", "exponent": exponent, "reason": "C2(level)·(n/level)^e outside the fitted levels"}
+    )
     report["c2_at_unseen_speeds"] = unseen
     if not any(c > 1e-6 for _, c in table):  # 1 pm a step: nothing (the bounded solver leaves round-off)
-        at_bounds.append("C2 is 0 at every speed: the spindle term predicts nothing (is the error bed − spindle?"
-                         " name the bed sensors with --inputs)")
+        at_bounds.append(
+            "C2 is 0 at every speed: the spindle term predicts nothing (is the error bed − spindle?"
+            " name the bed sensors with --inputs)"
+        )
     report["at_bounds"] = at_bounds
     params = AR1Params(
         dt_s=dt,
         c1=c1,
         c2_table=table,
         c3_um_per_k=float(theta[L + nb]) if opt.ambient else None,
-        exchange_um_per_k=[float(v) for v in theta[L + nb + bool(opt.ambient):]],
+        exchange_um_per_k=[float(v) for v in theta[L + nb + bool(opt.ambient) :]],
         c1_table=c1_table,
         c2_exponent=exponent,
         bed_gain_um_per_k=[float(v) for v in theta[L : L + nb]],
@@ -605,8 +675,17 @@ def _finish(model: AR1, Xs: np.ndarray, Es: np.ndarray, t0_s: float, report: dic
 
 
 def _fit_law(
-    log: Log, bed: list[str], targets: list[str], opt: Options, names: list[str], Xs: np.ndarray, Es: np.ndarray,
-    dt: float, sign: int, positive: bool, exponent: float | None,
+    log: Log,
+    bed: list[str],
+    targets: list[str],
+    opt: Options,
+    names: list[str],
+    Xs: np.ndarray,
+    Es: np.ndarray,
+    dt: float,
+    sign: int,
+    positive: bool,
+    exponent: float | None,
 ) -> FitResult:
     """compd's form for a log at many speeds: C1 and C2 smooth functions of the speed (the model's
     `speed_law`), fitted in one pass: the cooling rate b(n) = b0 (1 + (ρ − 1) n/n_ref) (the convection
@@ -614,16 +693,30 @@ def _fit_law(
     level; (b0, ρ) the best of a grid then Nelder–Mead, the rest a bounded least squares at each
     (compd.identify.ar1_design.fit_law)."""
     if not (Xs[:, 0] < max(opt.stopped_below_rpm, 1e-12)).any():
-        raise BadInput("c1_by_speed: law needs the spindle to stand still in the log (C1 at standstill)",
-                       file=log.file, path="--option c1_by_speed")
+        raise BadInput(
+            "c1_by_speed: law needs the spindle to stand still in the log (C1 at standstill)",
+            file=log.file,
+            path="--option c1_by_speed",
+        )
     if opt.c2_rise or opt.rise_sensor:
-        raise BadInput("c1_by_speed: law fits C2 as a function of speed: c2_rise and rise_sensor do not apply",
-                       path="--option")
+        raise BadInput(
+            "c1_by_speed: law fits C2 as a function of speed: c2_rise and rise_sensor do not apply", path="--option"
+        )
     amb = opt.ambient or None
     exchange = [] if isinstance(opt.exchange, str) else list(opt.exchange)
     sensors = [*bed, *([amb] if amb else []), *exchange]
-    steps = design.prepare(log, targets[0], sensors, opt.speed_column, dt, opt.speed_round_rpm,
-                           opt.stopped_below_rpm, exponent, None, law=True)
+    steps = design.prepare(
+        log,
+        targets[0],
+        sensors,
+        opt.speed_column,
+        dt,
+        opt.speed_round_rpm,
+        opt.stopped_below_rpm,
+        exponent,
+        None,
+        law=True,
+    )
     roles = design.Roles(tuple(bed), amb, tuple(exchange), sign, positive)
     fitted = design.fit_law(steps, roles, folds=False, exact=True)[0]
     if isinstance(fitted, str):
@@ -635,27 +728,43 @@ def _fit_law(
     theta = fitted.fit.theta
     nb, na = len(bed), int(amb is not None)
     ref = steps.levels[-1]
-    speed_law = SpeedLaw(ref_rpm=ref, c2_um=float(theta[0]), c2_quad_um=float(theta[1]),
-                         rate_per_s=b0 * (ratio - 1.0) / dt)
+    speed_law = SpeedLaw(
+        ref_rpm=ref, c2_um=float(theta[0]), c2_quad_um=float(theta[1]), rate_per_s=b0 * (ratio - 1.0) / dt
+    )
     params = AR1Params(
-        dt_s=dt, c1=math.exp(-b0), c2_table=[], speed_law=speed_law,
+        dt_s=dt,
+        c1=math.exp(-b0),
+        c2_table=[],
+        speed_law=speed_law,
         c3_um_per_k=float(theta[2 + nb]) if amb else None,
-        exchange_um_per_k=[float(v) for v in theta[2 + nb + na:]],
-        bed_gain_um_per_k=[float(v) for v in theta[2 : 2 + nb]], spindle_sign=sign, t0_c=None,
+        exchange_um_per_k=[float(v) for v in theta[2 + nb + na :]],
+        bed_gain_um_per_k=[float(v) for v in theta[2 : 2 + nb]],
+        spindle_sign=sign,
+        t0_c=None,
         recursion_start="zero",
     )
     at_bounds = []
     if b0 * ratio >= law.b_hi * (1 - 1e-6) or b0 <= law.b_lo * (1 + 1e-6):
-        at_bounds.append(f"the speed law's time constant ({dt / b0:.4g} s at rest, {dt / (b0 * ratio):.4g} s at"
-                         f" {ref:g} rpm) is at the edge of its range ({_grid_tau_s(dt)})")
+        at_bounds.append(
+            f"the speed law's time constant ({dt / b0:.4g} s at rest, {dt / (b0 * ratio):.4g} s at"
+            f" {ref:g} rpm) is at the edge of its range ({_grid_tau_s(dt)})"
+        )
     if theta[0] + theta[1] <= 1e-6:
-        at_bounds.append("C2 is 0 at every speed: the spindle term predicts nothing (is the error bed − spindle?"
-                         " name the bed sensors with --inputs)")
+        at_bounds.append(
+            "C2 is 0 at every speed: the spindle term predicts nothing (is the error bed − spindle?"
+            " name the bed sensors with --inputs)"
+        )
     report: dict[str, Any] = {
-        "fit_inputs": bed, "dt_s": dt, "step_rows": int(steps.rows.size), "speed_levels_rpm": steps.levels,
+        "fit_inputs": bed,
+        "dt_s": dt,
+        "step_rows": int(steps.rows.size),
+        "speed_levels_rpm": steps.levels,
         "converged": fitted.converged,
-        "speed_law": {"time_constant_s": {"0": dt / b0, f"{ref:g}": dt / (b0 * ratio)},
-                      "cooling_ratio": ratio, "c2_um_at_ref": float(theta[0] + theta[1])},
+        "speed_law": {
+            "time_constant_s": {"0": dt / b0, f"{ref:g}": dt / (b0 * ratio)},
+            "cooling_ratio": ratio,
+            "c2_um_at_ref": float(theta[0] + theta[1]),
+        },
         "at_bounds": at_bounds,
     }
     return _finish(AR1(params, names, axis_names(targets)), Xs, Es, float(log.t_s[steps.rows[0]]), report)
@@ -707,8 +816,17 @@ class _Problem:
     C2 level increments δ ≥ 0 (C2 monotone in speed), bed gains, C3; on the simulated output."""
 
     def __init__(
-        self, Xs: np.ndarray, Es: np.ndarray, speed: np.ndarray, rpm: list[float], n_bed: int, ambient: bool,
-        sign: int, grid: np.ndarray, positive_bed: bool = False, exponent: float | None = None,
+        self,
+        Xs: np.ndarray,
+        Es: np.ndarray,
+        speed: np.ndarray,
+        rpm: list[float],
+        n_bed: int,
+        ambient: bool,
+        sign: int,
+        grid: np.ndarray,
+        positive_bed: bool = False,
+        exponent: float | None = None,
         n_exchange: int = 0,
     ) -> None:
         self.grid = grid
@@ -731,10 +849,14 @@ class _Problem:
         # the recursion's temperature inputs: the ambient (C3, any sign) then the exchange sensors (≥ 0:
         # a warmer housing warms the spindle), the last columns of Xs
         na = int(ambient) + n_exchange
-        self.amb_rise = Xs[:, Xs.shape[1] - na:] - x0[x0.size - na:] if na else np.zeros((Xs.shape[0], 0))
+        self.amb_rise = Xs[:, Xs.shape[1] - na :] - x0[x0.size - na :] if na else np.zeros((Xs.shape[0], 0))
         nb = self.bed_rise.shape[1]
-        self.lb = np.r_[np.zeros(L), np.full(nb, 0.0 if positive_bed else -np.inf),
-                        np.full(int(ambient), -np.inf), np.zeros(n_exchange)]
+        self.lb = np.r_[
+            np.zeros(L),
+            np.full(nb, 0.0 if positive_bed else -np.inf),
+            np.full(int(ambient), -np.inf),
+            np.zeros(n_exchange),
+        ]
         self.ub = np.full(L + nb + na, np.inf)
         self.rpm = rpm
         self._last: np.ndarray | None = None
@@ -760,7 +882,9 @@ class _Problem:
         i = int(np.argmin(costs))
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
         res = optimize.minimize_scalar(
-            lambda z: self.solve(1.0 - np.exp(z))[0], bounds=(min(lo, hi), max(lo, hi)), method="bounded",
+            lambda z: self.solve(1.0 - np.exp(z))[0],
+            bounds=(min(lo, hi), max(lo, hi)),
+            method="bounded",
             options={"xatol": 1e-6},
         )
         z = res.x if res.fun <= costs[i] else grid[i]
@@ -781,7 +905,9 @@ class _Problem:
             return np.exp(-(w0 * b[0] + Wt @ b[1:]))
 
         res_n = optimize.minimize(
-            lambda zs: self.solve(rows_c1(zs))[0], np.full(L + 1, z), method="Nelder-Mead",
+            lambda zs: self.solve(rows_c1(zs))[0],
+            np.full(L + 1, z),
+            method="Nelder-Mead",
             options={"xatol": 1e-5, "fatol": 1e-9 * max(cost, 1e-12), "maxiter": 400 * (L + 1)},
         )
         zs = np.clip(res_n.x, z_min, z_max)
@@ -789,9 +915,9 @@ class _Problem:
         c1 = float(1.0 - np.exp(zs[0]))
         c1_table = [(r_, float(1.0 - np.exp(v))) for r_, v in zip(self.rpm, zs[1:], strict=True)]
         report = {
-            "converged": bool(res_n.success), "single_c1": float(1.0 - np.exp(z)),
-            "time_constant_s": {"0": -dt / math.log(c1), **{f"{r_:g}": -dt / math.log(c)
-                                                           for r_, c in c1_table}},
+            "converged": bool(res_n.success),
+            "single_c1": float(1.0 - np.exp(z)),
+            "time_constant_s": {"0": -dt / math.log(c1), **{f"{r_:g}": -dt / math.log(c) for r_, c in c1_table}},
             "at_edge": {"0": bool(edge[0]), **{f"{r_:g}": bool(e) for r_, e in zip(self.rpm, edge[1:], strict=True)}},
         }
         return c1, c1_table, rows_c1(zs), report
@@ -858,7 +984,10 @@ def _rise_from_runs(
     otherwise the table as it is (C2 linear in speed between its levels). Returns (table, report)."""
     linear = {"method": "linear"}
     if opt.rise_sensor is None:
-        return table, {**linear, "reason": "no rise_sensor named: C2 is linear in speed between the fitted levels (c2_exponent outside them)"}
+        return table, {
+            **linear,
+            "reason": "no rise_sensor named: C2 is linear in speed between the fitted levels (c2_exponent outside them)",
+        }
     rises: dict[float, float] = {}
     sources = [log]
     if opt.rise_log is not None:
@@ -870,8 +999,11 @@ def _rise_from_runs(
         ).items():
             if not any(abs(n - m) <= opt.speed_round_rpm for m in rises):
                 rises[n] = r
-    info: dict[str, Any] = {"rise_sensor": opt.rise_sensor, "rise_window_s": opt.rise_window_s,
-                            "rises_c": {f"{n:g}": r for n, r in rises.items()}}
+    info: dict[str, Any] = {
+        "rise_sensor": opt.rise_sensor,
+        "rise_window_s": opt.rise_window_s,
+        "rises_c": {f"{n:g}": r for n, r in rises.items()},
+    }
 
     def near_level(n: float) -> bool:
         return any(abs(n - m) <= opt.speed_round_rpm for m, _ in table)
@@ -879,13 +1011,23 @@ def _rise_from_runs(
     refs = [n for n in rises if near_level(n) and rises[n] > 0]
     others = {n: r for n, r in rises.items() if not near_level(n)}
     if not refs or not others:
-        why = (f"no run of {opt.rise_window_s:g} s from standstill at a fitted speed" if not refs
-               else f"no run of {opt.rise_window_s:g} s from standstill at a speed without a fitted C2")
-        return table, {**linear, **info, "reason": f"{why} in the log: C2 is linear in speed between the fitted levels (c2_exponent outside them)"}
+        why = (
+            f"no run of {opt.rise_window_s:g} s from standstill at a fitted speed"
+            if not refs
+            else f"no run of {opt.rise_window_s:g} s from standstill at a speed without a fitted C2"
+        )
+        return table, {
+            **linear,
+            **info,
+            "reason": f"{why} in the log: C2 is linear in speed between the fitted levels (c2_exponent outside them)",
+        }
     ref = max(refs)  # the fastest fitted run: the largest rise, as the paper's 2000 rpm
     scaled, added = _scaled_table(table, {"ref_rpm": ref, "ref_rise_c": rises[ref], "rises_c": others})
     return scaled, {
-        "method": "temperature_rise", **info, "ref_rpm": ref, **added,
+        "method": "temperature_rise",
+        **info,
+        "ref_rpm": ref,
+        **added,
         "reason": f"C2 at {', '.join(f'{n:g}' for n in others)} rpm = C2({ref:g} rpm) × the rise of "
         f"{opt.rise_sensor} there / at {ref:g} rpm (paper 001, eqs. 20–21)",
     }

@@ -51,7 +51,18 @@ TAU_MIN_STEPS = 2.0
 TAU_MAX_S = 86400.0
 GRID_POINTS = 40  # the fit's C1 grid (then a bounded search between the best point's neighbours)
 SCAN_POINTS = 90  # the selection's C1 grid (then a parabola): within 1.5 % of the bounded search
-LAW_RATIOS = (1.0, 1.25, 1.6, 2.0, 2.5, 3.2, 4.0, 5.0, 6.5, 8.0)  # the speed law's grid of ρ: cooling at n_ref / at rest
+LAW_RATIOS = (
+    1.0,
+    1.25,
+    1.6,
+    2.0,
+    2.5,
+    3.2,
+    4.0,
+    5.0,
+    6.5,
+    8.0,
+)  # the speed law's grid of ρ: cooling at n_ref / at rest
 RATE_RATIO_MAX = 50.0  # ρ at most
 LAW_Z_POINTS = 30  # the speed law's grid of C1 at standstill
 
@@ -130,9 +141,7 @@ def _masked_solve(G: np.ndarray, g: np.ndarray, passive: np.ndarray) -> np.ndarr
     return np.linalg.solve(A, np.where(passive, g, 0.0)[..., None])[..., 0]
 
 
-def bounded_lstsq(
-    G: np.ndarray, g: np.ndarray, lower: np.ndarray, start: np.ndarray | None = None
-) -> np.ndarray:
+def bounded_lstsq(G: np.ndarray, g: np.ndarray, lower: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
     """min ‖A x − b‖² for a batch of problems given as G = A'A (…, k, k) and g = A'b (…, k), with
     x_j ≥ 0 where `lower[j]` and free elsewhere (`lower` broadcast to g's shape). `start`, the
     solution of a problem close by (the same columns at a C1 close by), starts the active set.
@@ -249,8 +258,20 @@ class Steps:
     def only(self, names: Sequence[str]) -> Steps:
         """The same steps with the columns `names` alone (a scan of one candidate's sensors)."""
         rise = np.column_stack([self.column(n) for n in names]) if names else np.zeros((self.rows.size, 0))
-        return Steps(self.dt_s, self.rows, self.E, self.speed, list(names), rise, self.levels, self.exponent,
-                     self.law, self.W, self.full, self.folds)
+        return Steps(
+            self.dt_s,
+            self.rows,
+            self.E,
+            self.speed,
+            list(names),
+            rise,
+            self.levels,
+            self.exponent,
+            self.law,
+            self.W,
+            self.full,
+            self.folds,
+        )
 
     def c2_map(self, fold: FoldRows) -> np.ndarray:
         """Columns of W → the fold's C2 coefficients (each ≥ 0): the monotone increments over the
@@ -286,8 +307,16 @@ def level_labels(speed: np.ndarray, use: np.ndarray, round_rpm: float) -> tuple[
 
 
 def prepare(
-    log: Log, target: str, names: Sequence[str], speed_column: str, dt_s: float, round_rpm: float,
-    stopped_rpm: float, exponent: float | None, cut: list[holdout.Fold] | None, law: bool = False,
+    log: Log,
+    target: str,
+    names: Sequence[str],
+    speed_column: str,
+    dt_s: float,
+    round_rpm: float,
+    stopped_rpm: float,
+    exponent: float | None,
+    cut: list[holdout.Fold] | None,
+    law: bool = False,
 ) -> Steps:
     """`Steps` of `log` for the target, the speed and the temperature columns `names` (each finite in
     every row), with the held-out folds `cut` (log rows; None: none). `law`: C2's columns are the
@@ -327,8 +356,9 @@ def prepare(
             why = (f"fold {k}: " if hidden is not None else "") + f"the spindle never turns in {speed_column!r}"
         return FoldRows(train, steps, count, total, float(np.sum(Y[held] ** 2)), int(held.size), nodes, why)
 
-    steps = Steps(dt_s, rows, E, speed, list(names), rise, levels, exponent, bool(law and levels), W,
-                  fold_rows(None, 0))
+    steps = Steps(
+        dt_s, rows, E, speed, list(names), rise, levels, exponent, bool(law and levels), W, fold_rows(None, 0)
+    )
     for k, fold in enumerate(cut or [], start=1):
         hidden = np.zeros(len(log), dtype=bool)
         for lo, hi in fold:
@@ -359,8 +389,12 @@ class Roles:
 
     def lower(self, n_c2: int) -> np.ndarray:
         """Per coefficient [C2's, structure, ambient, exchange], whether it is ≥ 0."""
-        return np.r_[np.ones(n_c2, bool), np.full(len(self.bed), self.positive),
-                     np.zeros(int(self.ambient is not None), bool), np.ones(len(self.exchange), bool)]
+        return np.r_[
+            np.ones(n_c2, bool),
+            np.full(len(self.bed), self.positive),
+            np.zeros(int(self.ambient is not None), bool),
+            np.ones(len(self.exchange), bool),
+        ]
 
     def nparam(self, n_c2: int) -> int:
         return n_c2 + len(self.bed) + len(self.recursion)
@@ -391,8 +425,10 @@ class Scan:
         full = steps.full.train
         gone = [np.flatnonzero(full & ~f.train) for _, f in self.folds]  # the measured steps each fold hides
         hidden = np.concatenate(gone) if gone else np.zeros(0, dtype=np.intp)
-        same = [np.array_equal(f.held_steps, g) and bool(np.all(f.held_count == 1))  # held_steps: sorted, unique
-                for g, (_, f) in zip(gone, self.folds, strict=True)]
+        same = [
+            np.array_equal(f.held_steps, g) and bool(np.all(f.held_count == 1))  # held_steps: sorted, unique
+            for g, (_, f) in zip(gone, self.folds, strict=True)
+        ]
         # the Grams are most of a selection's time: the folds' hidden steps are disjoint, so the whole log's
         # Gram is theirs summed (and the rest's), and a fold held out step by step (one row each) has its
         # hidden steps' Gram as its held-out one
@@ -426,8 +462,10 @@ class Scan:
         if j not in self._c2:
             M = self.steps.c2_map(self.folds[j][1])
             Lw = self.Lw
-            self._c2[j] = [(M.T @ G[:, :Lw, :Lw] @ M, M.T @ G[:, :Lw], g[:, :Lw] @ M)
-                           for G, g in ((self.train_G[j], self.train_g[j]), (self.held_G[j], self.held_g[j]))]
+            self._c2[j] = [
+                (M.T @ G[:, :Lw, :Lw] @ M, M.T @ G[:, :Lw], g[:, :Lw] @ M)
+                for G, g in ((self.train_G[j], self.train_g[j]), (self.held_G[j], self.held_g[j]))
+            ]
         return self._c2[j]
 
     def blocks(self, roles: Roles, j: int) -> tuple[np.ndarray, ...]:
@@ -435,13 +473,19 @@ class Scan:
         columns mapped to the fold's coefficients and the spindle's sign applied."""
         st = self.steps
         Lw, T = self.Lw, self.T
-        J = np.array([Lw + st.names.index(n) for n in roles.bed] + [Lw + T + st.names.index(n) for n in roles.recursion],
-                     dtype=np.intp)
+        J = np.array(
+            [Lw + st.names.index(n) for n in roles.bed] + [Lw + T + st.names.index(n) for n in roles.recursion],
+            dtype=np.intp,
+        )
         out = []
-        for (G, g), (cc, cx, cg) in zip(((self.train_G[j], self.train_g[j]), (self.held_G[j], self.held_g[j])),
-                                        self._c2_part(j), strict=True):
-            sign = np.r_[np.full(cc.shape[-1], float(roles.sign)), np.ones(len(roles.bed)),
-                         np.full(len(roles.recursion), float(roles.sign))]
+        for (G, g), (cc, cx, cg) in zip(
+            ((self.train_G[j], self.train_g[j]), (self.held_G[j], self.held_g[j])), self._c2_part(j), strict=True
+        ):
+            sign = np.r_[
+                np.full(cc.shape[-1], float(roles.sign)),
+                np.ones(len(roles.bed)),
+                np.full(len(roles.recursion), float(roles.sign)),
+            ]
             Gcj = cx[:, :, J]
             top = np.concatenate([cc, Gcj], axis=2)
             bottom = np.concatenate([np.swapaxes(Gcj, 1, 2), G[:, J][:, :, J]], axis=2)
@@ -547,8 +591,14 @@ class Search:
     """One fold's least squares as a function of the C1 parameters (z = log(1 − C1), or a form's φ),
     each solve started from the last one's active set."""
 
-    def __init__(self, steps: Steps, roles: Roles, fold: FoldRows, c1_of: Callable[[np.ndarray], float | np.ndarray],
-                 c2: np.ndarray) -> None:
+    def __init__(
+        self,
+        steps: Steps,
+        roles: Roles,
+        fold: FoldRows,
+        c1_of: Callable[[np.ndarray], float | np.ndarray],
+        c2: np.ndarray,
+    ) -> None:
         self.steps, self.roles, self.fold, self.c1_of, self.c2 = steps, roles, fold, c1_of, c2
         self.lower = roles.lower(c2.shape[1])
         self.last: np.ndarray | None = None
@@ -556,8 +606,9 @@ class Search:
 
     def at(self, phi: np.ndarray) -> Fitted:
         self.calls += 1
-        fit = solve_fold(self.steps, self.fold, design(self.steps, self.roles, self.c2, self.c1_of(phi)), self.lower,
-                         self.last)
+        fit = solve_fold(
+            self.steps, self.fold, design(self.steps, self.roles, self.c2, self.c1_of(phi)), self.lower, self.last
+        )
         self.last = fit.theta
         return fit
 
@@ -589,8 +640,12 @@ def score_exact(steps: Steps, roles: Roles, folds: bool = True) -> tuple[list[Fo
         i = int(np.argmin(cost))
         search = Search(steps, roles, fold, c1_of_z, c2)
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-        res = optimize.minimize_scalar(lambda z, search=search: search.cost(np.array([z])), bounds=(min(lo, hi), max(lo, hi)),
-                                       method="bounded", options={"xatol": 1e-6})
+        res = optimize.minimize_scalar(
+            lambda z, search=search: search.cost(np.array([z])),
+            bounds=(min(lo, hi), max(lo, hi)),
+            method="bounded",
+            options={"xatol": 1e-6},
+        )
         z = float(res.x) if res.fun <= cost[i] else float(grid[i])
         best = search.at(np.array([z]))
         scores.append((np.array([best.held_sse]), np.array([fold.rows])))
@@ -641,12 +696,17 @@ class LevelC1:
         return np.exp(-(self.rows0 * b[0] + self.rows @ b[1:]))
 
 
-def _nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.ndarray, xatol: float, fatol: float,
-                 maxiter: int) -> optimize.OptimizeResult:
+def _nelder_mead(
+    cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.ndarray, xatol: float, fatol: float, maxiter: int
+) -> optimize.OptimizeResult:
     """scipy's Nelder–Mead from x0 with the first simplex `step` wide along each axis."""
     simplex = np.vstack([x0, x0 + np.diag(step)])
-    return optimize.minimize(cost, x0, method="Nelder-Mead",
-                             options={"initial_simplex": simplex, "xatol": xatol, "fatol": fatol, "maxiter": maxiter})
+    return optimize.minimize(
+        cost,
+        x0,
+        method="Nelder-Mead",
+        options={"initial_simplex": simplex, "xatol": xatol, "fatol": fatol, "maxiter": maxiter},
+    )
 
 
 @dataclass
@@ -678,8 +738,7 @@ def fit_law(steps: Steps, roles: Roles, folds: bool = True, exact: bool = True) 
         best = grid[int(np.argmin(cost[0]))]
         search = Search(steps, roles, fold, law, c2)
         tol, ftol = (1e-5, 1e-10) if exact else (1e-2, 1e-5)  # φ, and the train SSE relative
-        res = _nelder_mead(search.cost, best, np.array([dz, 0.25]), tol, ftol * max(float(cost[0].min()), 1e-12),
-                           400)
+        res = _nelder_mead(search.cost, best, np.array([dz, 0.25]), tol, ftol * max(float(cost[0].min()), 1e-12), 400)
         phi = res.x if res.fun <= float(cost[0].min()) else best
         out.append(FormFit(np.asarray(phi, dtype=float), search.at(phi), bool(res.success)))
     return out
@@ -698,14 +757,19 @@ def fit_levels(steps: Steps, roles: Roles, z_constant: Sequence[float], folds: b
         search = Search(steps, roles, fold, LevelC1(steps, fold), c2)
         x0 = np.full(1 + fold.nodes.size, z)
         cost0 = search.cost(x0)
-        res = optimize.minimize(search.cost, x0, method="Nelder-Mead",
-                                options={"xatol": 1e-5, "fatol": 1e-9 * max(cost0, 1e-12),
-                                         "maxiter": 400 * x0.size})
+        res = optimize.minimize(
+            search.cost,
+            x0,
+            method="Nelder-Mead",
+            options={"xatol": 1e-5, "fatol": 1e-9 * max(cost0, 1e-12), "maxiter": 400 * x0.size},
+        )
         out.append(FormFit(np.asarray(res.x, dtype=float), search.at(res.x), bool(res.success)))
     return out
 
 
 def fold_scores(fits: Sequence[FormFit | str], steps: Steps, folds: bool = True) -> list[FoldScore]:
     """The held-out (SSE, rows) of each fold's fit, or why it could not be fitted."""
-    return [f if isinstance(f, str) else (np.array([f.fit.held_sse]), np.array([fold.rows]))
-            for f, (_, fold) in zip(fits, steps.each(folds), strict=True)]
+    return [
+        f if isinstance(f, str) else (np.array([f.fit.held_sse]), np.array([fold.rows]))
+        for f, (_, fold) in zip(fits, steps.each(folds), strict=True)
+    ]

@@ -115,8 +115,11 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     axis = axis_names(targets)[0]
     pos_col = opt.position or f"pos_{axis}_mm"
     if pos_col not in log.columns:
-        raise BadInput(f"the log has no position column {pos_col} (E depends on where the axis stands)",
-                       file=log.file, path="--option position")
+        raise BadInput(
+            f"the log has no position column {pos_col} (E depends on where the axis stands)",
+            file=log.file,
+            path="--option position",
+        )
     temps = _temperatures(log, inputs, pos_col)
     layout = _field_layout(log, temps, opt, pos_col)
     has_loss = opt.power_w is not None or (opt.current or f"current_{axis}_a") in log.columns
@@ -133,12 +136,15 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     if not forms:
         need = {
             "field": "two or more slide sensors along the stroke (--option slide_sensors=COL@MM,COL@MM;"
-                     " none found by name)",
+            " none found by name)",
             "position_poly": "temperature columns",
             "auto": "slide sensors, temperature columns, or the motor loss (a current column or --option power_w)",
         }[opt.form]
-        raise BadInput(f"the {opt.form} form needs {need}", file=log.file,
-                       path="--option slide_sensors" if opt.form == "field" else "--inputs")
+        raise BadInput(
+            f"the {opt.form} form needs {need}",
+            file=log.file,
+            path="--option slide_sensors" if opt.form == "field" else "--inputs",
+        )
     if len(forms) == 1:
         ((name, fit_on),) = forms.items()
         how = "asked" if opt.form != "auto" else "the only form the log carries"
@@ -147,21 +153,29 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     scored = {k: v for k, v in held.items() if isinstance(v, float)}
     if not scored:  # e.g. the axis stands still until the log's last block: physics first
         best = next(iter(forms))
-        return _named(forms[best](log), best, {
-            "method": "no form could be fitted on the log's first blocks, so no held-out comparison: the first the"
-                      " log carries of field, analytic, position_poly",
-            "held_out_rmse_um": held,
-        })
+        return _named(
+            forms[best](log),
+            best,
+            {
+                "method": "no form could be fitted on the log's first blocks, so no held-out comparison: the first the"
+                " log carries of field, analytic, position_poly",
+                "held_out_rmse_um": held,
+            },
+        )
     # the fewest coefficients whose held-out RMSE is within 5 % of the best: the analytic form's few,
     # the field's gains, then the position regression's sensors × powers
     lowest = min(scored.values())
     best = next(k for k in SIMPLEST_FIRST if k in scored and scored[k] * FORM_MARGIN <= lowest)
-    return _named(forms[best](log), best, {
-        "method": holdout.METHOD + f"; the form with the fewest coefficients within {1 / FORM_MARGIN - 1:.0%} of"
-                  " the smallest RMSE is kept (analytic, field, position_poly1, position_poly2)",
-        "held_out_blocks": blocks,
-        "held_out_rmse_um": held,
-    })
+    return _named(
+        forms[best](log),
+        best,
+        {
+            "method": holdout.METHOD + f"; the form with the fewest coefficients within {1 / FORM_MARGIN - 1:.0%} of"
+            " the smallest RMSE is kept (analytic, field, position_poly1, position_poly2)",
+            "held_out_blocks": blocks,
+            "held_out_rmse_um": held,
+        },
+    )
 
 
 SIMPLEST_FIRST = ("analytic", "field", "position_poly1", "position_poly2", "position_poly3")
@@ -204,11 +218,18 @@ def _fit_poly(log: Log, targets: list[str], axis: str, opt: Options, temps: list
     coef, *_ = np.linalg.lstsq(A[ok], E[ok], rcond=None)
     B = coef.reshape(len(temps), degree + 1)
     params = FeedAxisParams(
-        length_mm=length, segments=opt.segments, stroke_start_mm=opt.stroke_start_mm, alpha_per_k=opt.alpha_per_k,
-        input_roles=["position"] + ["rise"] * len(temps), linear_p0_mm=opt.linear_p0_mm,
+        length_mm=length,
+        segments=opt.segments,
+        stroke_start_mm=opt.stroke_start_mm,
+        alpha_per_k=opt.alpha_per_k,
+        input_roles=["position"] + ["rise"] * len(temps),
+        linear_p0_mm=opt.linear_p0_mm,
         position_poly=PositionPoly(degree=degree, coef_um_per_k=[[float(v) for v in row] for row in B]),
     )
-    report = {"degree": degree, "note": "position_poly: E = Σ_k ΔT_k Σ_p b_kp (y/L)^p, rises from the readings at start"}
+    report = {
+        "degree": degree,
+        "note": "position_poly: E = Σ_k ΔT_k Σ_p b_kp (y/L)^p, rises from the readings at start",
+    }
     return FitResult(FeedAxis(params, names, [axis]), report)
 
 
@@ -293,22 +314,38 @@ def _fit_field(log: Log, targets: list[str], axis: str, opt: Options, layout: di
     if length <= 0:
         raise BadInput("the stroke length must be positive", path="--option length_mm")
     geometry = dict(
-        length_mm=length, segments=opt.segments, stroke_start_mm=opt.stroke_start_mm, alpha_per_k=opt.alpha_per_k,
-        input_roles=roles, linear_p0_mm=opt.linear_p0_mm,
+        length_mm=length,
+        segments=opt.segments,
+        stroke_start_mm=opt.stroke_start_mm,
+        alpha_per_k=opt.alpha_per_k,
+        input_roles=roles,
+        linear_p0_mm=opt.linear_p0_mm,
     )
     k = len(slide)
-    probe = FeedAxisParams(**geometry, field=SlideField(
-        slide_mm=[m for _, m in slide], gain_integral=1.0, offset_um_per_k=[0.0] * len(offs)))
+    probe = FeedAxisParams(
+        **geometry,
+        field=SlideField(slide_mm=[m for _, m in slide], gain_integral=1.0, offset_um_per_k=[0.0] * len(offs)),
+    )
     rise = X - X[0]
-    F = field_terms(rise[:, 1:1 + k], X[:, 0] - opt.stroke_start_mm, rise[:, 1 + k] if amb else None, probe)
-    A = np.column_stack([F[:, 0], F[:, 1], F[:, 3]] + ([F[:, 2]] if amb else [])
-                        + [rise[:, 1 + k + bool(amb) + j] for j in range(len(offs))])
+    F = field_terms(rise[:, 1 : 1 + k], X[:, 0] - opt.stroke_start_mm, rise[:, 1 + k] if amb else None, probe)
+    A = np.column_stack(
+        [F[:, 0], F[:, 1], F[:, 3]]
+        + ([F[:, 2]] if amb else [])
+        + [rise[:, 1 + k + bool(amb) + j] for j in range(len(offs))]
+    )
     coef, *_ = np.linalg.lstsq(A[ok], E[ok], rcond=None)
     g_amb = float(coef[3]) if amb else 0.0
-    params = FeedAxisParams(**geometry, field=SlideField(
-        slide_mm=[m for _, m in slide], gain_integral=float(coef[0]), gain_restraint=float(coef[1]),
-        gain_constant=float(coef[2]), gain_ambient=g_amb, offset_um_per_k=[float(v) for v in coef[3 + bool(amb):]],
-    ))
+    params = FeedAxisParams(
+        **geometry,
+        field=SlideField(
+            slide_mm=[m for _, m in slide],
+            gain_integral=float(coef[0]),
+            gain_restraint=float(coef[1]),
+            gain_constant=float(coef[2]),
+            gain_ambient=g_amb,
+            offset_um_per_k=[float(v) for v in coef[3 + bool(amb) :]],
+        ),
+    )
     model = FeedAxis(params, names, [axis])
     report = {
         "slide_sensors": {c: m for c, m in slide},
@@ -316,7 +353,7 @@ def _fit_field(log: Log, targets: list[str], axis: str, opt: Options, layout: di
         "ambient": amb,
         "offsets": offs,
         "note": "the field form: E = g_I α∫ΔT̂ + g_R α(y/L)∫_0^L ΔT̂ + g_C α∫_0^L ΔT̂ + g_A α y ΔT_amb + Σ b_o ΔT_o,"
-                " rises from the readings at start",
+        " rises from the readings at start",
     }
     return FitResult(model, report)
 
@@ -335,12 +372,19 @@ def _fit_analytic(log: Log, targets: list[str], axis: str, opt: Options) -> FitR
     if length <= 0:
         raise BadInput("the stroke length must be positive", path="--option length_mm")
     base = dict(
-        length_mm=length, segments=opt.segments, stroke_start_mm=opt.stroke_start_mm,
-        alpha_per_k=opt.alpha_per_k, rho_c_j_m3k=opt.rho_c_j_m3k,
-        diffusivity_m2_s=opt.diffusivity_m2_s, xi=opt.xi, zeta_per_k=opt.zeta_per_k,
+        length_mm=length,
+        segments=opt.segments,
+        stroke_start_mm=opt.stroke_start_mm,
+        alpha_per_k=opt.alpha_per_k,
+        rho_c_j_m3k=opt.rho_c_j_m3k,
+        diffusivity_m2_s=opt.diffusivity_m2_s,
+        xi=opt.xi,
+        zeta_per_k=opt.zeta_per_k,
         power_w=opt.power_w if cur_col is None else None,
-        r_cu_ohm=opt.r_cu_ohm if cur_col is not None else None, input_roles=roles,
-        linear_p0_mm=opt.linear_p0_mm, slide_volume_m3=opt.slide_volume_m3,
+        r_cu_ohm=opt.r_cu_ohm if cur_col is not None else None,
+        input_roles=roles,
+        linear_p0_mm=opt.linear_p0_mm,
+        slide_volume_m3=opt.slide_volume_m3,
     )
     probe = FeedAxisParams(chi_per_m=1.0, eta=0.0, u1_k=0.0, u2_k=0.0, **base)
     tmp = FeedAxis(probe, names, [axis])
@@ -354,7 +398,11 @@ def _fit_analytic(log: Log, targets: list[str], axis: str, opt: Options) -> FitR
     shape = _Shape(opt, t, pw, pos, E, probe, length)
     res, (eta, u1, u2, chi, a, tau) = shape.refine(*shape.start())
     params = FeedAxisParams(
-        **{**base, "diffusivity_m2_s": a}, chi_per_m=chi, eta=float(eta), u1_k=float(u1), u2_k=float(u2),
+        **{**base, "diffusivity_m2_s": a},
+        chi_per_m=chi,
+        eta=float(eta),
+        u1_k=float(u1),
+        u2_k=float(u2),
         cooling_time_s=tau,
     )
     model = FeedAxis(params, names, [axis])
@@ -367,8 +415,11 @@ def _fit_analytic(log: Log, targets: list[str], axis: str, opt: Options) -> FitR
         "eta_share": float(eta) if opt.slide_volume_m3 else None,
         "eta_per_m3": float(eta) / (opt.slide_volume_m3 or 1.0),
         "note": "ξ is held fixed: E scales with ξ·(U1, U2, η), so ξ alone is not identifiable"
-                + ("" if opt.slide_volume_m3 else "; η is per m³: give --option slide_volume_m3 for the"
-                   " paper's dimensionless share"),
+        + (
+            ""
+            if opt.slide_volume_m3
+            else "; η is per m³: give --option slide_volume_m3 for the paper's dimensionless share"
+        ),
         "linear_reduction": _reductions(t, shape.heat(tau), params),
     }
     return FitResult(model, report)
@@ -399,8 +450,14 @@ class _Shape:
     """The field's shape χ (and a, τ) with the coefficients (η, U1, U2) that are linear given it."""
 
     def __init__(
-        self, opt: Options, t: np.ndarray, pw: np.ndarray, pos: np.ndarray, E: np.ndarray,
-        probe: FeedAxisParams, length_mm: float,
+        self,
+        opt: Options,
+        t: np.ndarray,
+        pw: np.ndarray,
+        pos: np.ndarray,
+        E: np.ndarray,
+        probe: FeedAxisParams,
+        length_mm: float,
     ) -> None:
         self.opt, self.t, self.pw, self.pos, self.probe, self.length_mm = opt, t, pw, pos, probe, length_mm
         # the field runs through every row (its heat is a memory); the residuals count the measured ones
@@ -468,9 +525,12 @@ class _Shape:
         """Bounded nonlinear least squares from the start: (result, (η, U1, U2, χ, a, τ))."""
         opt, a0, free_chi, free_tau = self.opt, self.a0, self.free_chi, self.free_tau
         u1, u2, eta = coef
-        x0 = [eta, u1, u2] + ([math.log(chi0)] if free_chi else []) + (
-            [math.log(a0)] if opt.fit_diffusivity else []
-        ) + ([math.log(tau0)] if free_tau else [])
+        x0 = (
+            [eta, u1, u2]
+            + ([math.log(chi0)] if free_chi else [])
+            + ([math.log(a0)] if opt.fit_diffusivity else [])
+            + ([math.log(tau0)] if free_tau else [])
+        )
 
         def unpack(v):
             k = 3
@@ -486,19 +546,27 @@ class _Shape:
             return self.basis(chi, a, tau) @ np.array([u1_, u2_, eta_]) - self.E
 
         chi_max = min(1e3, 700.0 / (self.length_mm / 1000.0))  # the params' bound: e^(χ L) stays finite
-        lo = [0.0, -1e3, -1e3] + ([math.log(1e-3)] if free_chi else []) + (
-            [math.log(1e-8)] if opt.fit_diffusivity else []
+        lo = (
+            [0.0, -1e3, -1e3]
+            + ([math.log(1e-3)] if free_chi else [])
+            + ([math.log(1e-8)] if opt.fit_diffusivity else [])
         )
-        hi = [1e3, 1e3, 1e3] + ([math.log(chi_max)] if free_chi else []) + (
-            [math.log(1e-3)] if opt.fit_diffusivity else []
+        hi = (
+            [1e3, 1e3, 1e3]
+            + ([math.log(chi_max)] if free_chi else [])
+            + ([math.log(1e-3)] if opt.fit_diffusivity else [])
         )
         if free_tau:
             lo.append(math.log(60.0))
             hi.append(math.log(30 * 86400.0))
         x0 = np.clip(x0, np.array(lo) + 1e-12, np.array(hi) - 1e-12)
         res = optimize.least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", max_nfev=2000)
-        names = ["η", "U1", "U2"] + (["χ"] if free_chi else []) + (["a"] if opt.fit_diffusivity else []) + (
-            ["τ"] if free_tau else [])
+        names = (
+            ["η", "U1", "U2"]
+            + (["χ"] if free_chi else [])
+            + (["a"] if opt.fit_diffusivity else [])
+            + (["τ"] if free_tau else [])
+        )
         span = np.array(hi) - np.array(lo)
         self.at_bounds = [
             f"{name} is at the {'lower' if abs(v - a) <= abs(v - b) else 'upper'} bound of its search range"

@@ -206,7 +206,9 @@ FIT_ERRORS = (BadInput, ValidationError, ValueError, np.linalg.LinAlgError)
 
 
 def fold_errors(
-    log: Log, targets: Sequence[str], fit_on: Callable[[Log], FitResult],
+    log: Log,
+    targets: Sequence[str],
+    fit_on: Callable[[Log], FitResult],
     cut: list[Fold] | None = None,
 ) -> list[FoldScore]:
     """Per fold, (sum of squared errors µm², rows) per target on the fold's rows with the error

@@ -113,12 +113,30 @@ FitFn = Callable[[Log, dict[str, Any]], FitResult]
 # takes it out and passes them as the fit's inputs): a refit per lag per fold chooses nothing again
 HELD_INPUTS = "__inputs__"
 # a fit's report of the choices its kind makes beyond the coefficients (what `choices` holds fixed)
-CHOICE_KEYS = ("selection", "q2", "press", "cv", "q2_limit", "n_components", "c1_form", "form", "form_selection",
-               "degree", "inputs_chosen", "ambient_chosen", "exchange_chosen", "at_bounds")
+CHOICE_KEYS = (
+    "selection",
+    "q2",
+    "press",
+    "cv",
+    "q2_limit",
+    "n_components",
+    "c1_form",
+    "form",
+    "form_selection",
+    "degree",
+    "inputs_chosen",
+    "ambient_chosen",
+    "exchange_chosen",
+    "at_bounds",
+)
 
 
 def fit_with_lag(
-    log: Log, targets: list[str] | None, fit: FitFn, options: dict[str, Any], lag: Any,
+    log: Log,
+    targets: list[str] | None,
+    fit: FitFn,
+    options: dict[str, Any],
+    lag: Any,
     choices: Callable[[FitResult], dict[str, Any]],
 ) -> FitResult:
     """Fit `fit(log, options)` with the lead `lag` asks for (module doc); the report's `lag` says
@@ -133,8 +151,10 @@ def fit_with_lag(
         result = fit(led(log, names, lead, filt), options)
         lead, filt = lead_lists(result.model.inputs, lags, dt)
         result = with_lead(result, lead, filt)
-        result.report["lag"] = {"method": "given",
-                                "lead_s": {n: v for n, v in zip(result.model.inputs, lead, strict=True) if v > 0}}
+        result.report["lag"] = {
+            "method": "given",
+            "lead_s": {n: v for n, v in zip(result.model.inputs, lead, strict=True) if v > 0},
+        }
         return result
     first = fit(log, options)
     inputs = list(first.model.inputs)
@@ -187,7 +207,8 @@ def fit_with_lag(
                 if s < best:
                     best, best_lags = s, lags
     report: dict[str, Any] = {
-        "method": holdout.METHOD + f"; one lag for every temperature input from {list(LAG_GRID_S)} s"
+        "method": holdout.METHOD
+        + f"; one lag for every temperature input from {list(LAG_GRID_S)} s"
         + (", then each input's own" if per_input else "")
         + f", τ_f = {FILTER_RATIO:g} τ (≥ 2 log steps); kept below {MARGIN:g} × the held-out RMSE without",
         "held_out_rmse_um": tried,
@@ -207,7 +228,10 @@ def fit_with_lag(
     top = [n for n, v in best_lags.items() if v >= LAG_GRID_S[-1]]
     if top:
         report["at_bounds"] = [f"the lag of {', '.join(top)} is the longest tried ({LAG_GRID_S[-1]:g} s)"]
-    report.update(kept=True, lead_s={n: v for n, v in zip(inputs, lead, strict=True) if v > 0},
-                  lead_filter_s={n: v for n, v in zip(inputs, filt, strict=True) if v > 0})
+    report.update(
+        kept=True,
+        lead_s={n: v for n, v in zip(inputs, lead, strict=True) if v > 0},
+        lead_filter_s={n: v for n, v in zip(inputs, filt, strict=True) if v > 0},
+    )
     result.report["lag"] = report
     return result

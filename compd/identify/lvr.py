@@ -97,7 +97,7 @@ def blocked_press(
         train = np.ones(n, dtype=bool)
         for lo, hi in _block_ranges(block):
             held[lo:hi] = True
-            train[max(lo - guard_rows, 0):hi + guard_rows] = False
+            train[max(lo - guard_rows, 0) : hi + guard_rows] = False
         n_train = int(train.sum())
         if n_train < rows_needed(A):
             first, last = int(np.argmax(held)), n - 1 - int(np.argmax(held[::-1]))
@@ -288,7 +288,7 @@ def train_rows(n: int, blocks: list[Block], guard_rows: int) -> np.ndarray:
     for block in blocks:
         train = np.ones(n, dtype=bool)
         for lo, hi in _block_ranges(block):
-            train[max(lo - guard_rows, 0):hi + guard_rows] = False
+            train[max(lo - guard_rows, 0) : hi + guard_rows] = False
         out.append(int(train.sum()))
     return np.array(out)
 
@@ -353,9 +353,7 @@ def guard_rows_from_residuals(res: np.ndarray, limit: int) -> int:
     return int(below[0]) if below.size else int(limit)
 
 
-def sample_library(
-    X: np.ndarray, Y: np.ndarray, span: int, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
+def sample_library(X: np.ndarray, Y: np.ndarray, span: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """The random sample library of paper 002, eq. 11: s − P* rows from a log of s rows.
 
     With span P* = `span`, row i of the library (i = 1 … s − P*, here 0 … s − P* − 1) is
@@ -401,7 +399,13 @@ class BlockedDesign:
 
 
 def blocked_design(
-    t_s: np.ndarray, R: np.ndarray, Y: np.ndarray, n_fit: int, n_components: int, opt: Options, file: str,
+    t_s: np.ndarray,
+    R: np.ndarray,
+    Y: np.ndarray,
+    n_fit: int,
+    n_components: int,
+    opt: Options,
+    file: str,
     levels: list[list[tuple[int, int]]] | None = None,
 ) -> BlockedDesign:
     """Blocks and guard band for a fit on the first `n_fit` rows' times (the log's rows or its library's).
@@ -463,8 +467,10 @@ class Options(Strict):
         5, ge=2, le=50, description="blocked: stretches of equal length held out in turn (a log with gaps: its days)"
     )
     cv_guard_rows: int | None = Field(
-        None, ge=0, description="blocked: rows each side of a held-out stretch left out of its fit; none = from the"
-        " residuals' autocorrelation"
+        None,
+        ge=0,
+        description="blocked: rows each side of a held-out stretch left out of its fit; none = from the"
+        " residuals' autocorrelation",
     )
     library_span: int | None = Field(
         None, ge=1, description="sample library span P* (eq. 11: keeps s − P* of s rows); none = off"
@@ -539,8 +545,10 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     if design is not None:
         report["cv"] = {
             "split": design.split,
-            "blocks": [[[lo, hi - 1] for lo, hi in _block_ranges(b)] if isinstance(b, list) else [b[0], b[1] - 1]
-                       for b in design.blocks],
+            "blocks": [
+                [[lo, hi - 1] for lo, hi in _block_ranges(b)] if isinstance(b, list) else [b[0], b[1] - 1]
+                for b in design.blocks
+            ],
             "guard_rows": design.guard_rows,
             "guard": design.guard,
             "press_0": float(press[0]),
@@ -550,19 +558,15 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
         "library_span": opt.library_span,
         "pls_cv_s": fit_s,
         "influence": {
-            name: dict(zip(axes, map(float, pls.coef_std_[j]), strict=True))
-            for j, name in enumerate(inputs)
+            name: dict(zip(axes, map(float, pls.coef_std_[j]), strict=True)) for j, name in enumerate(inputs)
         },
     }
     report["at_bounds"] = []
     if opt.n_components is None and n_comp == want < p:
-        report["at_bounds"].append(
-            f"{n_comp} components, the most tried (max_components): more might predict better"
-        )
+        report["at_bounds"].append(f"{n_comp} components, the most tried (max_components): more might predict better")
     if q2 and q2[0] < opt.q2_limit:
         report["warning"] = (
-            f"even the first component has Q² {q2[0]:.3f} < {opt.q2_limit}: "
-            "the inputs predict the error poorly"
+            f"even the first component has Q² {q2[0]:.3f} < {opt.q2_limit}: the inputs predict the error poorly"
         )
     return FitResult(model, report)
 

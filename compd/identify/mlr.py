@@ -68,9 +68,7 @@ def fit_mlr_model(inputs: list[str], axes: list[str], X: np.ndarray, Y: np.ndarr
     R = rises(X)[ok]
     A = np.hstack([np.ones((R.shape[0], 1)), R])
     sol, *_ = np.linalg.lstsq(A, Y[ok], rcond=None)
-    params = RiseLinearParams(
-        coef_um_per_k=sol[1:].tolist(), intercept_um=sol[0].tolist(), t0_c=None, **rise_stats(R)
-    )
+    params = RiseLinearParams(coef_um_per_k=sol[1:].tolist(), intercept_um=sol[0].tolist(), t0_c=None, **rise_stats(R))
     return MLR(params, inputs, axes)
 
 

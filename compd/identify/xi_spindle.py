@@ -60,7 +60,8 @@ class Options(Strict):
     alpha_per_k: float = Field(13.6e-6, gt=0, lt=1e-3, description="α; the fit reports L = gain/α")
     xi_mm: float | None = Field(None, ge=0, description="where the sensor sits (kept in the file)")
     speed_input: str = Field(
-        "speed_rpm", min_length=1,
+        "speed_rpm",
+        min_length=1,
         description="the input recognised as the spindle speed (rpm): when --inputs names it, the lift k is fitted",
     )
     inner_sensors: int = Field(
@@ -72,7 +73,8 @@ class Options(Strict):
     )
     clearance: bool = Field(True, description="radial fit: add the preload-loss clearance c(ΔL)")
     xi_sensor: str | None = Field(
-        None, min_length=1,
+        None,
+        min_length=1,
         description="the ξ sensor when --inputs names none (none: the temperature column that predicts the held-out"
         " folds best; the lag search holds the one chosen)",
     )
@@ -107,8 +109,9 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     chosen = None
     if not inputs and not radial and opt.xi_sensor is not None:
         if opt.xi_sensor not in log.columns:
-            raise BadInput(f"the ξ sensor {opt.xi_sensor} is not a column of the log", file=log.file,
-                           path="--option xi_sensor")
+            raise BadInput(
+                f"the ξ sensor {opt.xi_sensor} is not a column of the log", file=log.file, path="--option xi_sensor"
+            )
         inputs = [opt.xi_sensor, *([opt.speed_input] if opt.speed_input in log.columns else [])]
     elif not inputs and not radial and len(log.temperature_columns()) > 1:
         inputs, chosen = _xi_sensor(log, targets, opt)
@@ -138,8 +141,11 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     if radial:
         given = {"alpha_per_k": opt.ring_alpha_per_k} if opt.ring_alpha_per_k is not None else {}
         rad = RadialParams(
-            inner_sensors=opt.inner_sensors, outer_sensors=opt.outer_sensors, clearance=opt.clearance,
-            preload_share=LIFT_SHARE, **given,
+            inner_sensors=opt.inner_sensors,
+            outer_sensors=opt.outer_sensors,
+            clearance=opt.clearance,
+            preload_share=LIFT_SHARE,
+            **given,
         )
         if opt.ring_gains:
             g_out, g_in = _ring_gains(log, temps, targets, opt, length, rad, E[:, 1], ok)
@@ -150,7 +156,12 @@ def fit(log: Log, inputs: list[str] | None = None, targets: list[str] | None = N
     if chosen is not None:
         report["inputs_chosen"] = chosen
     params = XiSpindleParams(
-        alpha_per_k=opt.alpha_per_k, length_mm=length, t0_c=None, xi_mm=opt.xi_mm, lift=lift, radial=rad,
+        alpha_per_k=opt.alpha_per_k,
+        length_mm=length,
+        t0_c=None,
+        xi_mm=opt.xi_mm,
+        lift=lift,
+        radial=rad,
         axial_sign=sign,
     )
     model = XiSpindle(params, temps + ([speed] if speed else []), axis_names(targets))
@@ -162,8 +173,14 @@ LIFT_SHARE = 0.8
 
 
 def _ring_gains(
-    log: Log, temps: list[str], targets: list[str], opt: Options, length_mm: float, rad: RadialParams,
-    e_um: np.ndarray, ok: np.ndarray,
+    log: Log,
+    temps: list[str],
+    targets: list[str],
+    opt: Options,
+    length_mm: float,
+    rad: RadialParams,
+    e_um: np.ndarray,
+    ok: np.ndarray,
 ) -> tuple[float, float]:
     """(g_C, g_B) ≥ 0 minimising Σ (e − g_C u_C + g_B u_B − c)², u and c as the model computes them.
 
@@ -184,14 +201,16 @@ def _ring_gains(
     if not np.any(A):
         raise BadInput(
             "the ring sensors never change: the ring gains cannot be fitted (--option ring_gains=false)",
-            file=log.file, path="--inputs",
+            file=log.file,
+            path="--inputs",
         )
     g, _ = optimize.nnls(A, (e_um - c)[ok])
     if np.any(g > 10.0):
         raise BadInput(
             f"the ring gains come out at {g[0]:.3g} (outer), {g[1]:.3g} (inner), beyond 10: the radial error"
             " does not follow these ring sensors (--option ring_gains=false keeps the paper's form)",
-            file=log.file, path="--inputs",
+            file=log.file,
+            path="--inputs",
         )
     return float(g[0]), float(g[1])
 
@@ -204,17 +223,25 @@ def _xi_sensor(log: Log, targets: list[str], opt: Options) -> tuple[list[str], d
     tried: dict[str, float | str] = {}
     for c in log.temperature_columns():
         try:
-            rmse = holdout.held_out_rmse(log, targets, lambda lg, c=c: fit(lg, [c, *speed], targets, **opt.model_dump()))
+            rmse = holdout.held_out_rmse(
+                log, targets, lambda lg, c=c: fit(lg, [c, *speed], targets, **opt.model_dump())
+            )
             tried[c] = float(rmse[0])
         except (BadInput, ValueError) as e:
             tried[c] = str(e)
     scored = {c: v for c, v in tried.items() if isinstance(v, float)}
     if not scored:
-        raise BadInput("no temperature column of the log works as the ξ sensor: name it with --inputs",
-                       file=log.file, path="--inputs")
+        raise BadInput(
+            "no temperature column of the log works as the ξ sensor: name it with --inputs",
+            file=log.file,
+            path="--inputs",
+        )
     best = min(scored, key=scored.__getitem__)
-    return [best, *speed], {"inputs": [best, *speed], "method": holdout.METHOD + "; the ξ sensor with the"
-                            " smallest held-out RMSE", "held_out_rmse_um": tried}
+    return [best, *speed], {
+        "inputs": [best, *speed],
+        "method": holdout.METHOD + "; the ξ sensor with the smallest held-out RMSE",
+        "held_out_rmse_um": tried,
+    }
 
 
 def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> list[str]:
@@ -226,9 +253,11 @@ def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> l
         temps = log.temperature_columns()
         if radial or len(temps) != 1:
             raise BadInput(
-                "name the ξ sensor" + (" and the ring sensors" if radial else "")
+                "name the ξ sensor"
+                + (" and the ring sensors" if radial else "")
                 + f" with --inputs (the log has {len(temps)} temperature columns)",
-                file=log.file, path="--inputs",
+                file=log.file,
+                path="--inputs",
             )
         return temps
     rest = [c for c in inputs if c != opt.speed_input]
@@ -244,7 +273,8 @@ def _inputs(log: Log, opt: Options, inputs: list[str] | None, radial: bool) -> l
         raise BadInput(
             f"a radial fit takes the ξ sensor, {opt.inner_sensors} inner-ring and {opt.outer_sensors} "
             f"outer-ring sensor(s): {1 + rings} inputs besides the speed {opt.speed_input}, got {len(rest)}"
-            " (another speed column: --option speed_input=COL)", path="--inputs",
+            " (another speed column: --option speed_input=COL)",
+            path="--inputs",
         )
     return list(inputs)
 
@@ -265,7 +295,9 @@ def _axial_gain(log: Log, opt: Options, rise: np.ndarray, e: np.ndarray, name: s
     gain = float(rise @ e) / ss
     if gain <= 0:
         raise BadInput(
-            f"the error falls as {name} rises (gain {gain:.3g} µm/K): not a ξ sensor", file=log.file, path=name,
+            f"the error falls as {name} rises (gain {gain:.3g} µm/K): not a ξ sensor",
+            file=log.file,
+            path=name,
         )
     return gain, _length_mm(log, opt, gain, name)
 
@@ -276,13 +308,19 @@ def _length_mm(log: Log, opt: Options, gain_um_per_k: float, name: str) -> float
     if length > MAX_LENGTH_MM:
         raise BadInput(
             f"the gain {gain_um_per_k:.3g} µm/K means a spindle {length / 1000:.3g} m long at"
-            f" α = {opt.alpha_per_k:g}: not a ξ sensor", file=log.file, path=name,
+            f" α = {opt.alpha_per_k:g}: not a ξ sensor",
+            file=log.file,
+            path=name,
         )
     return length
 
 
 def _fit_gain_and_lift(
-    rise_k: np.ndarray, n2_rpm2: np.ndarray, e_um: np.ndarray, gain_um_per_k: float, share: float,
+    rise_k: np.ndarray,
+    n2_rpm2: np.ndarray,
+    e_um: np.ndarray,
+    gain_um_per_k: float,
+    share: float,
 ) -> tuple[float, float]:
     """(gain µm/K, k µm/rpm² ≥ 0) minimising Σ (e − g·rise − min(k n², share·max(g·rise, 0)))².
 
@@ -318,7 +356,12 @@ def _fit_gain_and_lift(
 
 
 def _argmin_piecewise(
-    y: np.ndarray, knot: np.ndarray, s_lo: np.ndarray, c_lo: np.ndarray, s_hi: np.ndarray, c_hi: np.ndarray,
+    y: np.ndarray,
+    knot: np.ndarray,
+    s_lo: np.ndarray,
+    c_lo: np.ndarray,
+    s_hi: np.ndarray,
+    c_hi: np.ndarray,
     lo_bound: float = 0.0,
 ) -> float:
     """argmin over p ≥ lo_bound of Σ (y − f_i(p))², f_i(p) = s_lo p + c_lo for p < knot_i, s_hi p + c_hi beyond.

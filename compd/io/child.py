@@ -176,7 +176,9 @@ class Child:
 
     # ------------------------------------------------------------ parent
     def start(
-        self, serve: Callable[[Child], None], avoid_cpus: frozenset[int] = frozenset(),
+        self,
+        serve: Callable[[Child], None],
+        avoid_cpus: frozenset[int] = frozenset(),
         keep_fds: Iterable[int] = (),
     ) -> None:
         """Fork; the child runs `serve(self)` and exits when it returns. The child keeps of
@@ -198,8 +200,9 @@ class Child:
             except BaseException:
                 code = 1
                 with contextlib.suppress(Exception):
-                    log.exception("%s process failed", self.name,
-                                  extra={"event": "io_process_failed", "worker": self.name})
+                    log.exception(
+                        "%s process failed", self.name, extra={"event": "io_process_failed", "worker": self.name}
+                    )
             finally:
                 with contextlib.suppress(Exception):
                     logging.shutdown()  # the child's own handlers: flush what it logged

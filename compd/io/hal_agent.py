@@ -36,8 +36,14 @@ AGENT_WAIT_S = 10.0  # how long an agent is given to end when its pipe closes
 
 def halcmd(*args: str) -> subprocess.CompletedProcess[str]:
     """Run LinuxCNC's halcmd (its script-friendly output), never for longer than HALCMD_TIMEOUT_S."""
-    return subprocess.run(["halcmd", "-s", *args], capture_output=True, text=True, timeout=HALCMD_TIMEOUT_S,
-                          check=False, env=os.environ.copy())
+    return subprocess.run(
+        ["halcmd", "-s", *args],
+        capture_output=True,
+        text=True,
+        timeout=HALCMD_TIMEOUT_S,
+        check=False,
+        env=os.environ.copy(),
+    )
 
 
 def linked_signal(pin: str) -> str | None:
@@ -164,8 +170,15 @@ class Agent:
         self.end()
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
         try:
-            self._proc = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                          stderr=subprocess.DEVNULL, text=True, env=env, start_new_session=True)
+            self._proc = subprocess.Popen(
+                self.argv,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                text=True,
+                env=env,
+                start_new_session=True,
+            )
         except OSError as e:
             return f"cannot start compd's HAL agent: {e}"
         return None

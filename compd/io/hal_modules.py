@@ -117,9 +117,7 @@ def _extension(where: Path, name: str) -> Path:
             f"LinuxCNC's Python module {name} in {where} is built for another Python ({', '.join(others)}), "
             f"compd runs Python {version}: run compd with the Python that LinuxCNC was built for"
         )
-    raise BadInput(
-        f"LinuxCNC's Python module {name} is not installed ({where / (name + suffixes[0])}): {_hint()}"
-    )
+    raise BadInput(f"LinuxCNC's Python module {name} is not installed ({where / (name + suffixes[0])}): {_hint()}")
 
 
 def _exec(name: str, path: Path, loader: Loader) -> ModuleType:

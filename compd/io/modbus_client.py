@@ -140,7 +140,9 @@ class FrameTap:
                     return None if length == 6 else f"frame length {length} for a write acknowledgement"
                 if len(buf) < 9 or length != 3 + n_bytes or buf[8] != n_bytes:
                     byte_count = buf[8] if len(buf) >= 9 else "none"
-                    return f"frame length {length}, byte count {byte_count} for {count} {'bits' if bits else 'registers'}"
+                    return (
+                        f"frame length {length}, byte count {byte_count} for {count} {'bits' if bits else 'registers'}"
+                    )
                 return None
             buf = buf[6 + length :]
         return None
@@ -188,9 +190,7 @@ class ModbusClient:
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # faults are reported, not logged twice
         tcp_client, serial_client = _client_classes()
         if self.transport == "tcp":
-            return tcp_client(
-                self.host, port=self.port, timeout=self.timeout_s, retries=0, trace_packet=self._tap
-            )
+            return tcp_client(self.host, port=self.port, timeout=self.timeout_s, retries=0, trace_packet=self._tap)
         return serial_client(
             self.serial_port or "",
             baudrate=self.baudrate,
@@ -336,10 +336,15 @@ class ModbusClient:
         """Write `values` at `write_address`, then read `read_count` registers from
         `read_address`, in one request (function 23)."""
         words = [v & 0xFFFF for v in values]
-        rr = self._call(lambda c: c.readwrite_registers(
-            read_address=read_address, read_count=read_count, write_address=write_address,
-            values=words, device_id=self.device_id,
-        ))
+        rr = self._call(
+            lambda c: c.readwrite_registers(
+                read_address=read_address,
+                read_count=read_count,
+                write_address=write_address,
+                values=words,
+                device_id=self.device_id,
+            )
+        )
         return self._checked(rr, READ_WRITE, read_count, f"read/write of registers {read_address}+{read_count}")
 
 
@@ -381,14 +386,22 @@ def _client_classes() -> tuple[type, type]:
     class TcpClient(KeepsReason, ModbusTcpClient):
         def _open(self) -> Any:
             p = self.comm_params
-            return socket.create_connection((p.host, p.port), timeout=p.timeout_connect, source_address=p.source_address)
+            return socket.create_connection(
+                (p.host, p.port), timeout=p.timeout_connect, source_address=p.source_address
+            )
 
     class SerialClient(KeepsReason, ModbusSerialClient):
         def _open(self) -> Any:
             p = self.comm_params
             port = serial.serial_for_url(
-                p.host, timeout=p.timeout_connect, write_timeout=p.timeout_connect, bytesize=p.bytesize,
-                stopbits=p.stopbits, baudrate=p.baudrate, parity=p.parity, exclusive=True,
+                p.host,
+                timeout=p.timeout_connect,
+                write_timeout=p.timeout_connect,
+                bytesize=p.bytesize,
+                stopbits=p.stopbits,
+                baudrate=p.baudrate,
+                parity=p.parity,
+                exclusive=True,
             )
             port.inter_byte_timeout = self.inter_byte_timeout
             return port

@@ -201,11 +201,19 @@ class ModbusLink:
         self.sync = Sync(sync) if sync is not None else None
         self._work = LinkWork(
             device if device is not None else ModbusClient.tcp(host, port, device_id=device_id, timeout_s=timeout_s),
-            self._queue, self._status, status, status_period_s, self.sync,
+            self._queue,
+            self._status,
+            status,
+            status_period_s,
+            self.sync,
         )
         self._worker = IoWorker(
-            self._work, name=f"modbus-link-{name}", period_s=status_period_s,
-            reconnect_min_s=reconnect_min_s, reconnect_max_s=reconnect_max_s, stall_after_s=stall_after(timeout_s),
+            self._work,
+            name=f"modbus-link-{name}",
+            period_s=status_period_s,
+            reconnect_min_s=reconnect_min_s,
+            reconnect_max_s=reconnect_max_s,
+            stall_after_s=stall_after(timeout_s),
         )
         self._queue.wake = self._worker.wake
         self.write_hist = self._work.write_hist
@@ -269,9 +277,14 @@ class ModbusLink:
 
     def get_status(self) -> dict[str, Any]:
         io = self._worker.get_status()
-        return {"state": io["state"], "writes": io.get("writes", 0),
-                "errors": io["errors"] + io.get("reply_errors", 0),
-                "bad_replies": io.get("bad_replies", 0), "last_error": io["last_error"], "pid": io.get("pid")}
+        return {
+            "state": io["state"],
+            "writes": io.get("writes", 0),
+            "errors": io["errors"] + io.get("reply_errors", 0),
+            "bad_replies": io.get("bad_replies", 0),
+            "last_error": io["last_error"],
+            "pid": io.get("pid"),
+        }
 
     def held(self) -> tuple[int, list[int]] | None:
         """The held block of the link's current connection, with its epoch, when the worker has
@@ -329,9 +342,13 @@ class ModbusLink:
         if self.sync is not None:  # a fresh link: what the device holds is read again before anything is sent
             self.sync.begin()
         if w.wanted or w.lost is not None:
-            log.error("%s (pid %s) %s: the safe output goes through a fresh link", w.name, w.pid or w.lost_pid,
-                      reason, extra={"event": "io_process_lost", "worker": w.name, "pid": w.pid or w.lost_pid,
-                                     "reason": reason})
+            log.error(
+                "%s (pid %s) %s: the safe output goes through a fresh link",
+                w.name,
+                w.pid or w.lost_pid,
+                reason,
+                extra={"event": "io_process_lost", "worker": w.name, "pid": w.pid or w.lost_pid, "reason": reason},
+            )
             w.abandon(reason)
         w.start(process=False)
         w.lost = None

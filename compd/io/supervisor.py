@@ -128,8 +128,15 @@ class Supervisor:
         out = []
         for w in self.workers():
             lost = self._lost.get(w)
-            out.append({"name": w.name, "pid": w.pid if lost is None else lost.pid, "up": lost is None,
-                        "restarts": self._restarts_of.get(w.name, 0), "lost": self._last_reason.get(w.name)})
+            out.append(
+                {
+                    "name": w.name,
+                    "pid": w.pid if lost is None else lost.pid,
+                    "up": lost is None,
+                    "restarts": self._restarts_of.get(w.name, 0),
+                    "lost": self._last_reason.get(w.name),
+                }
+            )
         return out
 
     def _lose(self, w: Supervised, reason: str, now: float) -> None:
@@ -139,16 +146,28 @@ class Supervisor:
         self._lost[w] = _Lost(reason, pid, now + wait)
         self._last_reason[w.name] = reason
         self.losses += 1
-        log.error("%s (pid %s) %s; not served until it is restarted in %.1f s",
-                  w.name, pid, reason, wait,
-                  extra={"event": w.lost_event, "worker": w.name, "pid": pid, "reason": reason,
-                         "restart_in_s": wait})
+        log.error(
+            "%s (pid %s) %s; not served until it is restarted in %.1f s",
+            w.name,
+            pid,
+            reason,
+            wait,
+            extra={"event": w.lost_event, "worker": w.name, "pid": pid, "reason": reason, "restart_in_s": wait},
+        )
         if self._in_window(self._history, now) > self.max_restarts and not self.escalated:
             self.escalated = True
-            log.critical("%d I/O processes lost within %.0f s: compd stops feeding the watchdog"
-                         " (systemd restarts it when it has one)", len(self._history), self.window_s,
-                         extra={"event": "io_restarts_exhausted", "worker": w.name,
-                                "losses": len(self._history), "window_s": self.window_s})
+            log.critical(
+                "%d I/O processes lost within %.0f s: compd stops feeding the watchdog"
+                " (systemd restarts it when it has one)",
+                len(self._history),
+                self.window_s,
+                extra={
+                    "event": "io_restarts_exhausted",
+                    "worker": w.name,
+                    "losses": len(self._history),
+                    "window_s": self.window_s,
+                },
+            )
 
     def _wait(self, name: str, now: float) -> float:
         """The back-off before the next restart of `name`: `restart_min_s`, doubled for every
@@ -169,13 +188,30 @@ class Supervisor:
         except Exception as e:
             wait = self._wait(w.name, now)
             lost.restart_at_s = now + wait
-            log.error("%s: restart failed (%s: %s); next try in %.1f s", w.name, type(e).__name__, e, wait,
-                      extra={"event": "io_restart_failed", "worker": w.name, "reason": str(e), "restart_in_s": wait})
+            log.error(
+                "%s: restart failed (%s: %s); next try in %.1f s",
+                w.name,
+                type(e).__name__,
+                e,
+                wait,
+                extra={"event": "io_restart_failed", "worker": w.name, "reason": str(e), "restart_in_s": wait},
+            )
             w.abandon(lost.reason)
             return
         del self._lost[w]
         self.restarts += 1
         self._restarts_of[w.name] = self._restarts_of.get(w.name, 0) + 1
-        log.warning("%s restarted (pid %s; was pid %s: %s)", w.name, w.pid, lost.pid, lost.reason,
-                    extra={"event": w.restarted_event, "worker": w.name, "pid": w.pid,
-                           "old_pid": lost.pid, "reason": lost.reason})
+        log.warning(
+            "%s restarted (pid %s; was pid %s: %s)",
+            w.name,
+            w.pid,
+            lost.pid,
+            lost.reason,
+            extra={
+                "event": w.restarted_event,
+                "worker": w.name,
+                "pid": w.pid,
+                "old_pid": lost.pid,
+                "reason": lost.reason,
+            },
+        )

@@ -382,7 +382,11 @@ class IoWorker:
         return None
 
     def start(
-        self, *, paced: bool = True, clock: Callable[[], float] | None = None, process: bool = False,
+        self,
+        *,
+        paced: bool = True,
+        clock: Callable[[], float] | None = None,
+        process: bool = False,
         avoid_cpus: frozenset[int] = frozenset(),
     ) -> None:
         """Start the worker: `open` the work on its thread (its error is raised here), then
@@ -491,8 +495,11 @@ class IoWorker:
             clean = child.stop(timeout + 1.0)
             self.state = "closed"
             if not (stopped and clean):
-                log.warning("I/O worker %s did not stop in time", self.name,
-                            extra={"event": "io_worker_stuck", "worker": self.name})
+                log.warning(
+                    "I/O worker %s did not stop in time",
+                    self.name,
+                    extra={"event": "io_worker_stuck", "worker": self.name},
+                )
             return stopped and clean
         th = self._thread
         if th is None:
@@ -501,8 +508,9 @@ class IoWorker:
         self._signal()
         th.join(timeout)
         if th.is_alive():
-            log.warning("I/O worker %s did not stop in time", self.name,
-                        extra={"event": "io_worker_stuck", "worker": self.name})
+            log.warning(
+                "I/O worker %s did not stop in time", self.name, extra={"event": "io_worker_stuck", "worker": self.name}
+            )
             return False
         self._thread = None
         return True
@@ -568,8 +576,13 @@ class IoWorker:
         if self.lost is not None:  # the counts the lost process last published, and why it is gone
             raw = self._status_blob.read()
             last: dict[str, Any] = json.loads(raw) if raw else self._own_status()
-            return {**last, **self._accounts(), "last_error": f"{self.name}: {self.lost}", "pid": self.lost_pid,
-                    "lost": self.lost}
+            return {
+                **last,
+                **self._accounts(),
+                "last_error": f"{self.name}: {self.lost}",
+                "pid": self.lost_pid,
+                "lost": self.lost,
+            }
         child = self._child if self._child is not None else self._opening[0] if self._opening is not None else None
         if child is not None:
             raw = self._status_blob.read()
@@ -598,8 +611,13 @@ class IoWorker:
         except (TypeError, ValueError) as e:
             data = json.dumps({"last_error": f"status: {e}", "pid": os.getpid()}).encode()
         if len(data) > STATUS_BYTES:
-            data = json.dumps({"last_error": self.work.last_error, "pid": os.getpid(),
-                               "status_error": f"status of {len(data)} bytes cut"}).encode()
+            data = json.dumps(
+                {
+                    "last_error": self.work.last_error,
+                    "pid": os.getpid(),
+                    "status_error": f"status of {len(data)} bytes cut",
+                }
+            ).encode()
         if data != last:
             self._status_blob.publish(data)
         self._status_published = (now, data)
@@ -656,8 +674,9 @@ class IoWorker:
             self._healthy_since = None
             if error != self.reported_error:
                 self.reported_error = error
-                log.warning("%s: %s", self.name, error,
-                            extra={"event": "device_error", "worker": self.name, "reason": error})
+                log.warning(
+                    "%s: %s", self.name, error, extra={"event": "device_error", "worker": self.name, "reason": error}
+                )
             return
         if self.reported_error is None:
             return
@@ -667,8 +686,12 @@ class IoWorker:
         if now - self._healthy_since < self.recovered_after_s:
             return
         was, self.reported_error, self._healthy_since = self.reported_error, None, None
-        log.info("%s: recovered (was: %s)", self.name, was,
-                 extra={"event": "device_recovered", "worker": self.name, "reason": was})
+        log.info(
+            "%s: recovered (was: %s)",
+            self.name,
+            was,
+            extra={"event": "device_recovered", "worker": self.name, "reason": was},
+        )
 
     def _next_request(self) -> tuple[int, Any] | None:
         with self._done:

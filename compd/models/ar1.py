@@ -71,12 +71,16 @@ class SpeedLaw(Strict):
     ref_rpm: SpeedRpm = Field(description="the speed the law is stated at (the fastest fitted)")
     c2_um: float = Field(ge=0, le=MAX_ERROR_UM, description="C2's term linear in speed, µm per step at ref_rpm")
     c2_quad_um: float = Field(
-        0.0, ge=0, le=MAX_ERROR_UM,
+        0.0,
+        ge=0,
+        le=MAX_ERROR_UM,
         description="C2's term in the speed squared, µm per step at ref_rpm (the bearings' friction heat grows"
         " faster than the speed)",
     )
     rate_per_s: float = Field(
-        ge=0, le=1.0, description="k: how much faster the spindle cools at ref_rpm than at standstill, 1/s"
+        ge=0,
+        le=1.0,
+        description="k: how much faster the spindle cools at ref_rpm than at standstill, 1/s"
         " (1/τ(n) = −ln(c1)/Δτ + k x^p: the convection grows with speed)",
     )
     rate_exponent: float = Field(1.0, ge=0.25, le=4.0, description="p: the cooling's growth with speed")
@@ -100,12 +104,16 @@ class AR1Params(LeadParams):
         default_factory=list, description="(speed rpm, C2 µm ≥ 0) nodes; C2(0) = 0 is implied"
     )
     c2_exponent: float | None = Field(
-        None, ge=0.5, le=3.0,
+        None,
+        ge=0.5,
+        le=3.0,
         description="C2 at speeds outside the table: C2(nearest node)·(n/node)^e (bearing friction heat ∝ n^e);"
         " none = linear from (0, 0) below the first node and constant past the last (files before the key)",
     )
     c3_um_per_k: float | None = Field(
-        None, ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K,
+        None,
+        ge=-MAX_GAIN_UM_PER_K,
+        le=MAX_GAIN_UM_PER_K,
         description="ambient gain C3 (µm per K of ambient rise per step); none = paper form",
     )
     c1_table: list[tuple[SpeedRpm, Annotated[float, Field(gt=0, lt=1)]]] = Field(
@@ -197,8 +205,17 @@ class AR1(Model):
     """AR(1) spindle growth stepped every Δτ, plus linear bed terms (paper 001)."""
 
     kind = "ar1"
-    summary_keys = ("c1", "c2_table", "c3_um_per_k", "c1_table", "speed_law", "bed_gain_um_per_k",
-                    "exchange_um_per_k", "spindle_sign", "dt_s")
+    summary_keys = (
+        "c1",
+        "c2_table",
+        "c3_um_per_k",
+        "c1_table",
+        "speed_law",
+        "bed_gain_um_per_k",
+        "exchange_um_per_k",
+        "spindle_sign",
+        "dt_s",
+    )
     Params = AR1Params
     params: AR1Params
 
@@ -310,7 +327,7 @@ class AR1(Model):
             u += self._c3 * (Xs[:, self._amb] - x0[self._amb - 1])
         if self._xgain:
             ix = self._ix
-            u += (Xs[:, ix:] - x0[ix - 1:]) @ self._xgain_arr
+            u += (Xs[:, ix:] - x0[ix - 1 :]) @ self._xgain_arr
         if self._fresh and u.size:
             # ΔL(0) = 0 (eq. 17): the first row keeps S; only a cold start has _fresh, so S = s0 = 0
             u[0] = 0.0

@@ -69,9 +69,7 @@ def check_length(values: list[Any], n: int, key: str, what: str) -> None:
 def check_matrix(rows: list[list[Any]], n_rows: int, n_cols: int, key: str, row_what: str, col_what: str) -> None:
     """BadInput at params.<key>[i] unless `rows` is n_rows × n_cols."""
     if len(rows) != n_rows:
-        raise BadInput(
-            f"has {len(rows)} rows, expected {n_rows} (one per {row_what})", path=("params", key)
-        )
+        raise BadInput(f"has {len(rows)} rows, expected {n_rows} (one per {row_what})", path=("params", key))
     for i, row in enumerate(rows):
         if len(row) != n_cols:
             raise BadInput(
@@ -161,8 +159,9 @@ class Model(ABC):
         if len(set(outputs)) != len(outputs):
             raise BadInput("the model's outputs name an axis twice", path=("outputs",))
         if isinstance(params, LeadParams) and params.lead_s is not None and len(params.lead_s) != len(inputs):
-            raise BadInput(f"has {len(params.lead_s)} values, expected {len(inputs)} (one per input)",
-                           path=("params", "lead_s"))
+            raise BadInput(
+                f"has {len(params.lead_s)} values, expected {len(inputs)} (one per input)", path=("params", "lead_s")
+            )
 
     def start(self, x: np.ndarray, t_s: float) -> None:
         """Called once with the first good input vector (capture references such as T0)."""
@@ -269,8 +268,12 @@ class Model(ABC):
             value = dump.get(key)
             if value is None:
                 continue
-            if (isinstance(value, list) and value and all(isinstance(r, list) for r in value)
-                    and all(len(r) == len(self.outputs) for r in value)):
+            if (
+                isinstance(value, list)
+                and value
+                and all(isinstance(r, list) for r in value)
+                and all(len(r) == len(self.outputs) for r in value)
+            ):
                 value = {axis: [row[j] for row in value] for j, axis in enumerate(self.outputs)}
             elif key in self.per_axis_keys and isinstance(value, list) and len(value) == len(self.outputs):
                 value = dict(zip(self.outputs, value, strict=True))
@@ -281,10 +284,18 @@ class Model(ABC):
         """Kind, wiring, the file and its fit (when fitted_at, on what, how well), the key
         coefficients and the model's memory (the latched T0 where it has one). Not for the
         cycle: it allocates."""
-        fit = {k: self.fit_info[k] for k in ("fitted_at", "log", "rows", "rmse_um", "compd_version")
-               if k in self.fit_info}
-        return {"kind": self.kind, "inputs": self.inputs, "outputs": self.outputs, "file": self.file,
-                "fit": fit, "coefficients": self.coefficients(), "state": self.get_state()}
+        fit = {
+            k: self.fit_info[k] for k in ("fitted_at", "log", "rows", "rmse_um", "compd_version") if k in self.fit_info
+        }
+        return {
+            "kind": self.kind,
+            "inputs": self.inputs,
+            "outputs": self.outputs,
+            "file": self.file,
+            "fit": fit,
+            "coefficients": self.coefficients(),
+            "state": self.get_state(),
+        }
 
 
 class ModelStage:

@@ -101,7 +101,9 @@ class SlideField(ModelParams):
     gain_integral: float = Field(ge=-100, le=100, description="g_I on α ∫_0^y ΔT̂ (≈ ξ)")
     gain_restraint: float = Field(0.0, ge=-100, le=100, description="g_R on α (y/L) ∫_0^L ΔT̂ (the end supports)")
     gain_constant: float = Field(
-        0.0, ge=-100, le=100,
+        0.0,
+        ge=-100,
+        le=100,
         description="g_C on α ∫_0^L ΔT̂, the same everywhere on the stroke: the base before the stroke's start and"
         " the supports' pull on it (0: files before the key)",
     )
@@ -116,7 +118,6 @@ class SlideField(ModelParams):
         if any(b <= a for a, b in zip(v[:-1], v[1:], strict=True)):
             raise ValueError("slide_mm must be strictly increasing (the sensors' order along the slide)")
         return v
-
 
 
 class PositionPoly(ModelParams):
@@ -135,8 +136,11 @@ class PositionPoly(ModelParams):
     def _shape(self) -> PositionPoly:
         for i, row in enumerate(self.coef_um_per_k):
             if len(row) != self.degree + 1:
-                raise ValueError(f"coef_um_per_k[{i}] has {len(row)} gains for degree {self.degree} ({self.degree + 1})")
+                raise ValueError(
+                    f"coef_um_per_k[{i}] has {len(row)} gains for degree {self.degree} ({self.degree + 1})"
+                )
         return self
+
 
 class FeedAxisParams(LeadParams):
     """Fixed physics and fitted coefficients of the feed-axis model (paper 000).
@@ -148,22 +152,25 @@ class FeedAxisParams(LeadParams):
 
     length_mm: float = Field(gt=0, le=MAX_LENGTH_MM, description="slide length L (the stroke)")
     segments: int = Field(30, ge=1, le=1000, description="m, segments of ΔL = L/m")
-    stroke_start_mm: float = Field(
-        0.0, ge=-MAX_LENGTH_MM, le=MAX_LENGTH_MM, description="axis position at y = 0"
-    )
+    stroke_start_mm: float = Field(0.0, ge=-MAX_LENGTH_MM, le=MAX_LENGTH_MM, description="axis position at y = 0")
     alpha_per_k: float = Field(11.5e-6, gt=0, lt=1e-3, description="α_l, 1/K")
     rho_c_j_m3k: float = Field(3.61e6, ge=1e5, le=1e8, description="ρ c, J/(m³ K)")
     diffusivity_m2_s: float = Field(1.25e-5, gt=0, le=1e-3, description="a = λ/(ρ c), m²/s")
     chi_per_m: float | None = Field(None, gt=0, le=1e5, description="χ = √(h A/(ρ c a)), 1/m (analytic form)")
     eta: float | None = Field(
-        None, ge=0, le=1e3,
+        None,
+        ge=0,
+        le=1e3,
         description="η, share of the motor loss that heats the slide (×ξ scale; dimensionless with"
         " slide_volume_m3, else per m³) (analytic form)",
     )
     u1_k: float | None = Field(None, ge=-1e3, le=1e3, description="U1, K (analytic form)")
     u2_k: float | None = Field(None, ge=-1e3, le=1e3, description="U2, K (analytic form)")
     slide_volume_m3: float | None = Field(
-        None, gt=0, le=100, description="V, the slide's volume: η is then the paper's dimensionless share;"
+        None,
+        gt=0,
+        le=100,
+        description="V, the slide's volume: η is then the paper's dimensionless share;"
         " none = η per m³ (files written before the key)",
     )
     field: SlideField | None = Field(
@@ -178,9 +185,7 @@ class FeedAxisParams(LeadParams):
     zeta_per_k: float = Field(
         0.00393, ge=0, le=0.1, description="ζ, copper resistance temperature coefficient (copper 0.00393)"
     )
-    input_roles: list[Role] = Field(
-        default_factory=_position_only, description="what each input is, in input order"
-    )
+    input_roles: list[Role] = Field(default_factory=_position_only, description="what each input is, in input order")
     cooling_time_s: float | None = Field(
         None,
         gt=0,
@@ -251,7 +256,9 @@ class FeedAxisParams(LeadParams):
             return chi
         length_m = info.data.get("length_mm", 0.0) / 1000.0
         if chi * length_m > 700.0:
-            raise ValueError(f"χ L = {chi * length_m:.3g}: e^(χ L) overflows above 700 (χ ≤ {700.0 / length_m:.4g} 1/m)")
+            raise ValueError(
+                f"χ L = {chi * length_m:.3g}: e^(χ L) overflows above 700 (χ ≤ {700.0 / length_m:.4g} 1/m)"
+            )
         return chi
 
 
@@ -527,7 +534,7 @@ class _FieldForm(_Measured):
             v, k = self.v, self.rise.size
             v[:k] = self.rise
             v[k] = amb
-            v[k + 1:] = self.off
+            v[k + 1 :] = self.off
             np.dot(self.lin, v, out=self.k0_slope)
             return float(self.k0_slope[0])
         p = self.p
@@ -561,7 +568,6 @@ class _FieldForm(_Measured):
         off = (X[:, self.i_off] - self.t0[self.i_off]) @ self.b_off if self.i_off.size else 0.0
         y = X[:, self.i_pos] - p.stroke_start_mm
         return field_terms(R, y, amb, p) @ self.gain + off
-
 
 
 class _PolyForm(_Measured):
@@ -599,12 +605,24 @@ class _PolyForm(_Measured):
         u = np.clip(X[:, self.i_pos] - p.stroke_start_mm, 0.0, p.length_mm) / p.length_mm
         return np.sum((R @ self.B) * u[:, None] ** np.arange(self.B.shape[1]), axis=1)
 
+
 class FeedAxis(Model):
     """Position-dependent feed-axis error E(t, y) of a linear-motor axis (paper 000)."""
 
     kind = "feed_axis"
-    summary_keys = ("eta", "u1_k", "u2_k", "chi_per_m", "xi", "alpha_per_k", "length_mm", "cooling_time_s",
-                    "linear_p0_mm", "field", "position_poly")
+    summary_keys = (
+        "eta",
+        "u1_k",
+        "u2_k",
+        "chi_per_m",
+        "xi",
+        "alpha_per_k",
+        "length_mm",
+        "cooling_time_s",
+        "linear_p0_mm",
+        "field",
+        "position_poly",
+    )
     Params = FeedAxisParams
     params: FeedAxisParams
 

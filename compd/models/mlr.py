@@ -27,7 +27,7 @@ from compd.models.base import (
 GainUmPerK = Annotated[float, Field(ge=-MAX_GAIN_UM_PER_K, le=MAX_GAIN_UM_PER_K)]
 ReadingC = Annotated[float, Field(ge=TEMP_MIN_C, le=TEMP_MAX_C)]
 RiseK = Annotated[float, Field(ge=-MAX_RISE_K, le=MAX_RISE_K)]
-RiseK2 = Annotated[float, Field(ge=-MAX_RISE_K**2, le=MAX_RISE_K**2)]
+RiseK2 = Annotated[float, Field(ge=-(MAX_RISE_K**2), le=MAX_RISE_K**2)]
 
 
 class RiseLinearParams(LeadParams):

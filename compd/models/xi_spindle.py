@@ -33,8 +33,13 @@ def ring_integral(t_in: float, t_out: float, a_mm: float, b_mm: float) -> float:
 
 
 def ring_displacement_um(
-    r_mm: float, a_mm: float, b_mm: float, r_nodes_mm: np.ndarray, dt_nodes_k: np.ndarray,
-    alpha_per_k: float, mu: float,
+    r_mm: float,
+    a_mm: float,
+    b_mm: float,
+    r_nodes_mm: np.ndarray,
+    dt_nodes_k: np.ndarray,
+    alpha_per_k: float,
+    mu: float,
 ) -> float:
     """Radial displacement u(r) of a ring a ≤ r ≤ b with temperature rise T(r) (paper 003, eq. 8), µm.
 
@@ -48,13 +53,15 @@ def ring_displacement_um(
     rr = np.r_[r_nodes[inside], r_mm]
     ff = np.r_[f[inside], np.interp(r_mm, r_nodes, f)]
     part = float(np.trapezoid(ff, rr))
-    u_mm = alpha_per_k / r_mm * (
-        (1 + mu) * part + ((1 - mu) * r_mm**2 + (1 + mu) * a_mm**2) / (b_mm**2 - a_mm**2) * total
+    u_mm = (
+        alpha_per_k / r_mm * ((1 + mu) * part + ((1 - mu) * r_mm**2 + (1 + mu) * a_mm**2) / (b_mm**2 - a_mm**2) * total)
     )
     return u_mm * 1000.0
 
 
-def inner_ring_um(dt_in_k: float, dt_out_k: float, r_a_mm: float, r_b_mm: float, alpha_per_k: float, mu: float) -> float:
+def inner_ring_um(
+    dt_in_k: float, dt_out_k: float, r_a_mm: float, r_b_mm: float, alpha_per_k: float, mu: float
+) -> float:
     """u_B: inner ring (a = r_A, b = r_B) at its outer surface r_B, linear T(r), µm (paper 003)."""
     i = ring_integral(dt_in_k, dt_out_k, r_a_mm, r_b_mm)
     k = (1 + mu) + ((1 - mu) * r_b_mm**2 + (1 + mu) * r_a_mm**2) / (r_b_mm**2 - r_a_mm**2)
@@ -124,18 +131,28 @@ class RadialParams(ModelParams):
     preload_share: float = Field(0.8, ge=0, le=1, description="share of ΔL between the bearings")
     clearance: bool = Field(True, description="add the preload-loss clearance term c")
     inner_sensors: int = Field(
-        1, ge=0, le=2,
+        1,
+        ge=0,
+        le=2,
         description="0: uniform ring at the ξ sensor's (rotor) temperature; 1: uniform ring; 2: T at bore and raceway",
     )
     outer_sensors: int = Field(1, ge=1, le=2, description="1: uniform ring; 2: T at raceway and OD")
     inner_gain: float = Field(
-        1.0, ge=0, le=10, description="g_B on the inner ring's u_B: 1 = paper 003; compd fit writes the least-squares gain"
+        1.0,
+        ge=0,
+        le=10,
+        description="g_B on the inner ring's u_B: 1 = paper 003; compd fit writes the least-squares gain",
     )
     outer_gain: float = Field(
-        1.0, ge=0, le=10, description="g_C on the outer ring's u_C: 1 = paper 003; compd fit writes the least-squares gain"
+        1.0,
+        ge=0,
+        le=10,
+        description="g_C on the outer ring's u_C: 1 = paper 003; compd fit writes the least-squares gain",
     )
     k_um_per_rpm2: float | None = Field(
-        None, ge=0, le=1e-3,
+        None,
+        ge=0,
+        le=1e-3,
         description="older files' lift k·n² (µm/rpm²), uncapped on the radial output, speed the last input;"
         " new models carry the lift in the top-level `lift` (axial, paper 003 §3.4)",
     )
@@ -177,29 +194,24 @@ class XiSpindleParams(LeadParams):
     t0_c: float | None = Field(
         None, ge=TEMP_MIN_C, le=TEMP_MAX_C, description="reference temperature; none = first reading at start"
     )
-    xi_mm: float | None = Field(
-        None, ge=0, le=MAX_LENGTH_MM, description="where the sensor sits (documentation)"
-    )
+    xi_mm: float | None = Field(None, ge=0, le=MAX_LENGTH_MM, description="where the sensor sits (documentation)")
     axial_sign: Literal[1, -1] = Field(
-        1, description="the direction the spindle grows in on the axis, in machine coordinates: +1 toward the"
+        1,
+        description="the direction the spindle grows in on the axis, in machine coordinates: +1 toward the"
         " axis's + direction (the papers' case), -1 toward its - direction (e.g. a vertical spindle growing"
         " down toward the table, Z+ pointing away from the workpiece as ISO 841 has it)",
     )
     lift: LiftParams | None = Field(
         None, description="add the centrifugal lift to the axial output; takes the speed input it names"
     )
-    radial: RadialParams | None = Field(
-        None, description="add a radial output: inputs [T_xi, inner ring, outer ring]"
-    )
+    radial: RadialParams | None = Field(None, description="add a radial output: inputs [T_xi, inner ring, outer ring]")
 
     @model_validator(mode="after")
     def _one_lift(self) -> XiSpindleParams:
         rad = self.radial
         if self.lift is not None and rad is not None:
             if rad.k_um_per_rpm2 is not None:
-                raise ValueError(
-                    "lift and radial.k_um_per_rpm2 (the older files' radial lift) cannot both be set"
-                )
+                raise ValueError("lift and radial.k_um_per_rpm2 (the older files' radial lift) cannot both be set")
             if self.lift.preload_share != rad.preload_share:
                 raise ValueError(
                     f"lift.preload_share {self.lift.preload_share:g} differs from radial.preload_share"

@@ -132,10 +132,9 @@ class StoreAndForward:
                 # only reads until the file is known to be ours (or new): another program's
                 # database is set aside exactly as it was, not switched to WAL first
                 version = db.execute("PRAGMA user_version").fetchone()[0]
-                tables = {
-                    row[0]
-                    for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
-                } - {"sqlite_sequence"}
+                tables = {row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")} - {
+                    "sqlite_sequence"
+                }
                 if version > SCHEMA_VERSION:  # valid, only not for us: left as it is
                     raise BadInput(
                         f"the telemetry buffer has schema version {version}, from a newer compd"
@@ -185,9 +184,15 @@ class StoreAndForward:
             ) from None
         log.warning(
             "telemetry buffer %s unusable (%s): moved to %s, starting a new one",
-            self.path, reason, target,
-            extra={"event": "telemetry_buffer_corrupt", "path": str(self.path),
-                   "moved_to": str(target), "reason": reason},
+            self.path,
+            reason,
+            target,
+            extra={
+                "event": "telemetry_buffer_corrupt",
+                "path": str(self.path),
+                "moved_to": str(target),
+                "reason": reason,
+            },
         )
 
     def _counter(self, key: str) -> int:
@@ -304,8 +309,7 @@ class StoreAndForward:
         """Store a small persistent integer (the Sparkplug bdSeq, the sample number…)."""
         with self._lock:
             self._db.execute(
-                "INSERT INTO meta (key, value) VALUES (?, ?)"
-                " ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                "INSERT INTO meta (key, value) VALUES (?, ?) ON CONFLICT(key) DO UPDATE SET value = excluded.value",
                 (key, int(value)),
             )
 
@@ -458,9 +462,15 @@ class MemoryBuffer:
     def get_status(self) -> dict[str, Any]:
         """As `StoreAndForward.get_status`, with path None."""
         first = next(iter(self._records.values()), None)
-        return {"path": None, "records": len(self._records), "bytes": self._bytes, "max_bytes": self.max_bytes,
-                "dropped": self.dropped, "dropped_bytes": self.dropped_bytes,
-                "oldest_t_ms": None if first is None else first.t_ms}
+        return {
+            "path": None,
+            "records": len(self._records),
+            "bytes": self._bytes,
+            "max_bytes": self.max_bytes,
+            "dropped": self.dropped,
+            "dropped_bytes": self.dropped_bytes,
+            "oldest_t_ms": None if first is None else first.t_ms,
+        }
 
     def close(self) -> None:
         """Nothing to close (what it holds stays for `take`)."""
@@ -480,8 +490,9 @@ class Counters:
         self.error: str | None = None  # the last write that failed (the status shows it)
         try:
             raw = json.loads(self.path.read_text(encoding="utf-8"))
-            if not isinstance(raw, dict) or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0
-                                                   for v in raw.values()):
+            if not isinstance(raw, dict) or not all(
+                isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in raw.values()
+            ):
                 raise ValueError("not a mapping of counters to non-negative integers")
             self.values = {str(k): int(v) for k, v in raw.items()}
         except FileNotFoundError:
@@ -491,9 +502,18 @@ class Counters:
             target = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
             with contextlib.suppress(OSError):
                 self.path.rename(target)
-            log.warning("telemetry counters %s unusable (%s): moved to %s; counting on from the buffer",
-                        self.path, e, target, extra={"event": "telemetry_counters_corrupt", "path": str(self.path),
-                                                     "moved_to": str(target), "reason": str(e)})
+            log.warning(
+                "telemetry counters %s unusable (%s): moved to %s; counting on from the buffer",
+                self.path,
+                e,
+                target,
+                extra={
+                    "event": "telemetry_counters_corrupt",
+                    "path": str(self.path),
+                    "moved_to": str(target),
+                    "reason": str(e),
+                },
+            )
 
     def get(self, key: str, floor: int = 0) -> int:
         """The counter, at least `floor` (the buffer's own copy); `floor` when it was never set."""

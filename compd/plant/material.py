@@ -75,15 +75,17 @@ def read_material(cfg: OpcUaConfig, base_dir: Path) -> Material:
     except x509.ExtensionNotFound:
         uris = []
     if not uris:
-        raise BadInput("the server certificate has no SubjectAltName URI (OPC UA's application URI)",
-                       file=str(cert_path))
+        raise BadInput(
+            "the server certificate has no SubjectAltName URI (OPC UA's application URI)", file=str(cert_path)
+        )
     key_path = base_dir / cfg.private_key
     key_data = _read_file(key_path, "private key (opcua.private_key)", MAX_CERT_BYTES)
     try:
         key = serialization.load_pem_private_key(key_data, password=None)
     except TypeError:
-        raise BadInput("the private key is encrypted: compd needs it unencrypted (mode 0600)",
-                       file=str(key_path)) from None
+        raise BadInput(
+            "the private key is encrypted: compd needs it unencrypted (mode 0600)", file=str(key_path)
+        ) from None
     except ValueError:
         raise BadInput("not a PEM private key", file=str(key_path)) from None
     if not isinstance(key, rsa.RSAPrivateKey):
@@ -118,8 +120,9 @@ def read_material(cfg: OpcUaConfig, base_dir: Path) -> Material:
                 for c in _load_certificates(f, "trusted client certificate"):
                     ders.add(c.public_bytes(serialization.Encoding.DER))
         if not ders:
-            log.warning("no certificate (%s) in trusted_clients %s: every client is refused",
-                        ", ".join(CERT_SUFFIXES), folder)
+            log.warning(
+                "no certificate (%s) in trusted_clients %s: every client is refused", ", ".join(CERT_SUFFIXES), folder
+            )
         trusted = frozenset(ders)
     return Material(cert, key, uris[0], passwords, trusted)
 
@@ -164,9 +167,15 @@ def generate_certificate(
         .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
         .add_extension(
             x509.KeyUsage(
-                digital_signature=True, content_commitment=True, key_encipherment=True,
-                data_encipherment=True, key_agreement=False, key_cert_sign=True, crl_sign=False,
-                encipher_only=False, decipher_only=False,
+                digital_signature=True,
+                content_commitment=True,
+                key_encipherment=True,
+                data_encipherment=True,
+                key_agreement=False,
+                key_cert_sign=True,
+                crl_sign=False,
+                encipher_only=False,
+                decipher_only=False,
             ),
             critical=True,
         )

@@ -115,9 +115,12 @@ class Unit:
     def eu_information(self) -> Any:
         from asyncua import ua
 
-        return ua.EUInformation(NamespaceUri=UNITS_NAMESPACE, UnitId=self.unit_id,
-                                DisplayName=ua.LocalizedText(self.symbol),
-                                Description=ua.LocalizedText(self.description))
+        return ua.EUInformation(
+            NamespaceUri=UNITS_NAMESPACE,
+            UnitId=self.unit_id,
+            DisplayName=ua.LocalizedText(self.symbol),
+            Description=ua.LocalizedText(self.description),
+        )
 
 
 MICROMETRE = Unit("µm", "4H", "micrometre (micron)")
@@ -232,6 +235,7 @@ def _fit_date(snap: dict[str, Any]) -> Any:
 def _percentile(group: str, key: str) -> Reader:
     """A loop percentile (`group`: lateness_us, cycle_compute_us); one over the histogram's range
     (the loop's `over_range`) is its range limit with Uncertain_EngineeringUnitsExceeded."""
+
     def read(snap: dict[str, Any]) -> tuple[Any, str]:
         lp = snap["loop"]
         over = lp.get("over_range")
@@ -270,11 +274,14 @@ def folders(snap: dict[str, Any]) -> dict[str, str]:
     out = {key: DESCRIPTIONS[key] for key in ("compd", "compd.Axes", "compd.Signals", "compd.Loop")}
     axes = snap.get("axes")
     for axis in axes if isinstance(axes, dict) else ():
-        out[f"compd.Axes.{axis}"] = f"the axis {axis}: the model's prediction, the guard's correction, the machine's word"
+        out[f"compd.Axes.{axis}"] = (
+            f"the axis {axis}: the model's prediction, the guard's correction, the machine's word"
+        )
         parts = axes[axis].get("contributions") if isinstance(axes[axis], dict) else None
         if isinstance(parts, dict):
-            out[f"compd.Axes.{axis}.Contributions"] = (f"the contributions summed into the axis {axis}'s prediction,"
-                                                      " each limited on its own")
+            out[f"compd.Axes.{axis}.Contributions"] = (
+                f"the contributions summed into the axis {axis}'s prediction, each limited on its own"
+            )
             for name in parts:
                 out[f"compd.Axes.{axis}.Contributions.{name}"] = f"the contribution {name} to the axis {axis}"
     signals = snap.get("signals")
@@ -332,8 +339,14 @@ def _parent(f: Field, where: Any) -> Any:
     return where if isinstance(where, dict) else {}
 
 
-def _field_range(f: Field, at: dict[str, str], unit: str | None, guard: GuardConfig,
-                 clamps: dict[str, dict[str, Any]], timing: EuRange) -> EuRange | None:
+def _field_range(
+    f: Field,
+    at: dict[str, str],
+    unit: str | None,
+    guard: GuardConfig,
+    clamps: dict[str, dict[str, Any]],
+    timing: EuRange,
+) -> EuRange | None:
     """The EURange of a field's variable: an axis's µm ± its clamp, a contribution's ± its own (none
     without one), a signal's its limits, the loop's µs the histograms' range, anything else its unit's."""
     scope = f.scope.name if f.scope is not None else ""
@@ -359,7 +372,9 @@ def record_variables(snap: dict[str, Any], guard: GuardConfig, timing: EuRange) 
     EURange; its Description the field's meaning. By where they go: each axis's name, `signals`, `loop`."""
     clamps: dict[str, dict[str, Any]] = {
         c.get("name"): c.get("limits") or {}
-        for c in (snap.get("model") or {}).get("contributions") or [] if isinstance(c, dict)}
+        for c in (snap.get("model") or {}).get("contributions") or []
+        if isinstance(c, dict)
+    }
     out: dict[str, list[Variable]] = {}
     for f in FIELDS:
         if not f.on("opcua"):
@@ -403,7 +418,9 @@ def address_space(snap: dict[str, Any], guard: GuardConfig | None = None) -> lis
     for axis in sorted(axes) if isinstance(axes, dict) else []:
         p = f"compd.Axes.{axis}."
         byte = axes[axis].get("word_byte") if isinstance(axes[axis], dict) else None
-        word = word_meaning + (f"; it carries this axis in its {byte} byte" if byte else "; it does not carry this axis")
+        word = word_meaning + (
+            f"; it carries this axis in its {byte} byte" if byte else "; it does not carry this axis"
+        )
         mine = fields.get(axis, [])
         out += [v for v in mine if ".Contributions." not in v.node_id]
         out += [
@@ -413,15 +430,34 @@ def address_space(snap: dict[str, Any], guard: GuardConfig | None = None) -> lis
         ]
         out += [v for v in mine if ".Contributions." in v.node_id]
     out += fields.get("signals", [])
-    out.append(Variable("compd.Loop.PeriodMs", "Double", MILLISECOND, _good(lambda s: s["loop"]["period_ms"]),
-                        DESCRIPTIONS["compd.Loop.PeriodMs"],
-                        EuRange(*PERIOD_RANGE_MS, "0 … 60 s, the longest loop.period_s")))
+    out.append(
+        Variable(
+            "compd.Loop.PeriodMs",
+            "Double",
+            MILLISECOND,
+            _good(lambda s: s["loop"]["period_ms"]),
+            DESCRIPTIONS["compd.Loop.PeriodMs"],
+            EuRange(*PERIOD_RANGE_MS, "0 … 60 s, the longest loop.period_s"),
+        )
+    )
     out += [v for v in loop if v.node_id.startswith("compd.Loop.")]
     out += [
-        Variable("compd.Loop.LatenessP99Us", "Double", MICROSECOND, _percentile("lateness_us", "p99"),
-                 DESCRIPTIONS["compd.Loop.LatenessP99Us"], timing),
-        Variable("compd.Loop.ComputeP99Us", "Double", MICROSECOND, _percentile("cycle_compute_us", "p99"),
-                 DESCRIPTIONS["compd.Loop.ComputeP99Us"], timing),
+        Variable(
+            "compd.Loop.LatenessP99Us",
+            "Double",
+            MICROSECOND,
+            _percentile("lateness_us", "p99"),
+            DESCRIPTIONS["compd.Loop.LatenessP99Us"],
+            timing,
+        ),
+        Variable(
+            "compd.Loop.ComputeP99Us",
+            "Double",
+            MICROSECOND,
+            _percentile("cycle_compute_us", "p99"),
+            DESCRIPTIONS["compd.Loop.ComputeP99Us"],
+            timing,
+        ),
     ]
     return out
 
@@ -484,24 +520,15 @@ def data_values(variables: list[Variable], snap: dict[str, Any]) -> tuple[list[A
         if value is None and not status.is_bad():
             status = ua.StatusCode(getattr(ua.StatusCodes, NO_VALUE_STATUS))
         variant = ua.Variant() if status.is_bad() else ua.Variant(value, vtype)
-        out.append(ua.DataValue(Value=variant, StatusCode=status, SourceTimestamp=last if recorded else source,
-                                ServerTimestamp=now))
+        out.append(
+            ua.DataValue(
+                Value=variant, StatusCode=status, SourceTimestamp=last if recorded else source, ServerTimestamp=now
+            )
+        )
     return out, problems
 
 
 # ------------------------------------------------------------------ files
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 # ------------------------------------------------------------------ the server
@@ -515,8 +542,9 @@ class _Users:
         self._anonymous = anonymous
         self._plain_ok = plain_ok
 
-    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
-                 certificate: Any = None) -> Any:
+    def get_user(
+        self, iserver: Any, username: str | None = None, password: str | None = None, certificate: Any = None
+    ) -> Any:
         from asyncua.crypto.permission_rules import User, UserRole
 
         # asyncua keeps a channel with SecurityPolicy None open to every client (for
@@ -554,8 +582,9 @@ class _TrustedClients:
         from asyncua.common.utils import ServiceError
 
         if cert.public_bytes(serialization.Encoding.DER) not in self._trusted:
-            log.warning("OPC UA client refused: its certificate (%s) is not in trusted_clients",
-                        cert.subject.rfc4514_string())
+            log.warning(
+                "OPC UA client refused: its certificate (%s) is not in trusted_clients", cert.subject.rfc4514_string()
+            )
             raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
         await self._basic.validate(cert, app_description)
 
@@ -564,11 +593,22 @@ def _folder_item(nid: Any, parent: Any, bname: Any, description: str) -> Any:
     """AddNodes: a folder (FolderType), organized by its parent, with its Description."""
     from asyncua import ua
 
-    attrs = ua.ObjectAttributes(DisplayName=ua.LocalizedText(bname.Name), Description=ua.LocalizedText(description),
-                                EventNotifier=0, WriteMask=0, UserWriteMask=0)
-    return ua.AddNodesItem(ParentNodeId=parent, ReferenceTypeId=ua.NodeId(ua.ObjectIds.Organizes),
-                           RequestedNewNodeId=nid, BrowseName=bname, NodeClass=ua.NodeClass.Object,
-                           NodeAttributes=attrs, TypeDefinition=ua.NodeId(ua.ObjectIds.FolderType))
+    attrs = ua.ObjectAttributes(
+        DisplayName=ua.LocalizedText(bname.Name),
+        Description=ua.LocalizedText(description),
+        EventNotifier=0,
+        WriteMask=0,
+        UserWriteMask=0,
+    )
+    return ua.AddNodesItem(
+        ParentNodeId=parent,
+        ReferenceTypeId=ua.NodeId(ua.ObjectIds.Organizes),
+        RequestedNewNodeId=nid,
+        BrowseName=bname,
+        NodeClass=ua.NodeClass.Object,
+        NodeAttributes=attrs,
+        TypeDefinition=ua.NodeId(ua.ObjectIds.FolderType),
+    )
 
 
 def _read_only(value: Any, data_type: Any, description: str, bname: Any, sampling_ms: float) -> Any:
@@ -576,35 +616,54 @@ def _read_only(value: Any, data_type: Any, description: str, bname: Any, samplin
 
     read = ua.AccessLevel.CurrentRead.mask
     return ua.VariableAttributes(
-        DisplayName=ua.LocalizedText(bname.Name), Description=ua.LocalizedText(description), Value=value,
-        DataType=data_type, ValueRank=ua.ValueRank.Scalar, ArrayDimensions=None, AccessLevel=read,
-        UserAccessLevel=read, MinimumSamplingInterval=sampling_ms, Historizing=False, WriteMask=0, UserWriteMask=0,
+        DisplayName=ua.LocalizedText(bname.Name),
+        Description=ua.LocalizedText(description),
+        Value=value,
+        DataType=data_type,
+        ValueRank=ua.ValueRank.Scalar,
+        ArrayDimensions=None,
+        AccessLevel=read,
+        UserAccessLevel=read,
+        MinimumSamplingInterval=sampling_ms,
+        Historizing=False,
+        WriteMask=0,
+        UserWriteMask=0,
     )
 
 
-def _variable_item(nid: Any, parent: Any, bname: Any, description: str, value: Any, sampling_ms: float,
-                   type_definition: int) -> Any:
+def _variable_item(
+    nid: Any, parent: Any, bname: Any, description: str, value: Any, sampling_ms: float, type_definition: int
+) -> Any:
     """AddNodes: a read-only scalar variable, a component of its folder, of `type_definition`
     (AnalogItemType or BaseDataVariableType)."""
     from asyncua import ua
 
     data_type = ua.NodeId(value.VariantType.value)  # a built-in type's NodeId is its VariantType's number
     return ua.AddNodesItem(
-        ParentNodeId=parent, ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasComponent), RequestedNewNodeId=nid,
-        BrowseName=bname, NodeClass=ua.NodeClass.Variable, TypeDefinition=ua.NodeId(type_definition),
+        ParentNodeId=parent,
+        ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasComponent),
+        RequestedNewNodeId=nid,
+        BrowseName=bname,
+        NodeClass=ua.NodeClass.Variable,
+        TypeDefinition=ua.NodeId(type_definition),
         NodeAttributes=_read_only(value, data_type, description, bname, sampling_ms),
     )
 
 
-def _property_item(nid: Any, parent: Any, name: str, description: str, value: Any, data_type: int,
-                   sampling_ms: float) -> Any:
+def _property_item(
+    nid: Any, parent: Any, name: str, description: str, value: Any, data_type: int, sampling_ms: float
+) -> Any:
     """AddNodes: a read-only property (PropertyType, browse name in namespace 0) of a variable."""
     from asyncua import ua
 
     bname = ua.QualifiedName(name, 0)
     return ua.AddNodesItem(
-        ParentNodeId=parent, ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasProperty), RequestedNewNodeId=nid,
-        BrowseName=bname, NodeClass=ua.NodeClass.Variable, TypeDefinition=ua.NodeId(ua.ObjectIds.PropertyType),
+        ParentNodeId=parent,
+        ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasProperty),
+        RequestedNewNodeId=nid,
+        BrowseName=bname,
+        NodeClass=ua.NodeClass.Variable,
+        TypeDefinition=ua.NodeId(ua.ObjectIds.PropertyType),
         NodeAttributes=_read_only(value, ua.NodeId(data_type), description, bname, sampling_ms),
     )
 
@@ -621,8 +680,12 @@ def _encrypted_passwords(iserver: Any) -> None:
 
     # asyncua's internal server, pinned to 2.1 in pyproject.toml for these two: a version without them
     # must not run with a UserName policy that says None
-    if not (callable(getattr(iserver, "add_endpoint", None)) and callable(getattr(iserver, "decrypt_user_token", None))):
-        raise RuntimeError("this asyncua has no InternalServer.add_endpoint/decrypt_user_token: compd needs asyncua 2.1")
+    if not (
+        callable(getattr(iserver, "add_endpoint", None)) and callable(getattr(iserver, "decrypt_user_token", None))
+    ):
+        raise RuntimeError(
+            "this asyncua has no InternalServer.add_endpoint/decrypt_user_token: compd needs asyncua 2.1"
+        )
     add = iserver.add_endpoint
 
     def add_endpoint(edp: Any) -> None:  # asyncua makes the endpoints in Server.start, before it listens
@@ -634,18 +697,27 @@ def _encrypted_passwords(iserver: Any) -> None:
     def decrypt_user_token(isession: Any, token: Any) -> tuple[str, str]:
         # Part 4 §7.36.3: Password = Encrypt(length ‖ password ‖ the session's server nonce)
         if token.EncryptionAlgorithm != Policy.AsymmetricEncryptionURI:
-            log.info("OPC UA login refused: user %r sent the password %s", token.UserName,
-                     f"encrypted with {token.EncryptionAlgorithm}" if token.EncryptionAlgorithm else "unencrypted")
+            log.info(
+                "OPC UA login refused: user %r sent the password %s",
+                token.UserName,
+                f"encrypted with {token.EncryptionAlgorithm}" if token.EncryptionAlgorithm else "unencrypted",
+            )
             raise ServiceError(ua.StatusCodes.BadIdentityTokenInvalid)
         data, block = bytes(token.Password or b""), iserver.private_key.key_size // 8
-        raw = b"".join(uacrypto.decrypt_rsa_oaep(iserver.private_key, data[i: i + block])  # a block per key size
-                       for i in range(0, len(data), block))
+        raw = b"".join(
+            uacrypto.decrypt_rsa_oaep(iserver.private_key, data[i : i + block])  # a block per key size
+            for i in range(0, len(data), block)
+        )
         nonce = isession.nonce or b""
         length = int.from_bytes(raw[:4], "little")
-        if len(raw) != 4 + length or length < len(nonce) or not hmac.compare_digest(raw[4 + length - len(nonce):], nonce):
+        if (
+            len(raw) != 4 + length
+            or length < len(nonce)
+            or not hmac.compare_digest(raw[4 + length - len(nonce) :], nonce)
+        ):
             log.info("OPC UA login refused: user %r's password token is not of this session", token.UserName)
             raise ServiceError(ua.StatusCodes.BadIdentityTokenInvalid)
-        return token.UserName, raw[4: 4 + length - len(nonce)].decode("utf-8")
+        return token.UserName, raw[4 : 4 + length - len(nonce)].decode("utf-8")
 
     iserver.add_endpoint = add_endpoint
     iserver.decrypt_user_token = decrypt_user_token
@@ -696,8 +768,11 @@ class _StackEvents(logging.Handler):
             self._seen[key] = (now, 0)
             while len(self._seen) > STACK_KEYS:
                 del self._seen[next(iter(self._seen))]
-            extra: dict[str, Any] = {"event": STACK_EVENT, "stack_logger": record.name,
-                                     "stack_level": record.levelname.lower()}
+            extra: dict[str, Any] = {
+                "event": STACK_EVENT,
+                "stack_logger": record.name,
+                "stack_level": record.levelname.lower(),
+            }
             if repeats:
                 extra["repeated"] = repeats
             if self._dropped:
@@ -801,8 +876,12 @@ class OpcUaServer:
     def get_status(self) -> dict[str, Any]:
         """The endpoint, the snapshots written, the snapshots that had a problem and the last one."""
         with self._lock:
-            return {"endpoint": self._endpoint, "updates": self._updates, "errors": self._errors,
-                    "last_error": self._last_error}
+            return {
+                "endpoint": self._endpoint,
+                "updates": self._updates,
+                "errors": self._errors,
+                "last_error": self._last_error,
+            }
 
     def _count(self, problems: list[str]) -> None:
         if not problems:
@@ -916,29 +995,51 @@ class OpcUaServer:
                 if key not in made:
                     made.add(key)
                     parent = ua.NodeId(".".join(path[: depth - 1]), idx) if depth > 1 else server.nodes.objects.nodeid
-                    items.append(_folder_item(ua.NodeId(key, idx), parent, ua.QualifiedName(path[depth - 1], idx),
-                                              self._folders.get(key, "")))
+                    items.append(
+                        _folder_item(
+                            ua.NodeId(key, idx),
+                            parent,
+                            ua.QualifiedName(path[depth - 1], idx),
+                            self._folders.get(key, ""),
+                        )
+                    )
             nid = ua.NodeId(var.node_id, idx)
-            items.append(_variable_item(
-                nid, ua.NodeId(".".join(path), idx), ua.QualifiedName(name, idx), var.description,
-                ua.Variant(_ZERO[var.data_type], getattr(ua.VariantType, var.data_type)), sampling_ms,
-                ua.ObjectIds.AnalogItemType if var.analog else ua.ObjectIds.BaseDataVariableType,
-            ))
+            items.append(
+                _variable_item(
+                    nid,
+                    ua.NodeId(".".join(path), idx),
+                    ua.QualifiedName(name, idx),
+                    var.description,
+                    ua.Variant(_ZERO[var.data_type], getattr(ua.VariantType, var.data_type)),
+                    sampling_ms,
+                    ua.ObjectIds.AnalogItemType if var.analog else ua.ObjectIds.BaseDataVariableType,
+                )
+            )
             if var.eu_range is not None:
                 r = var.eu_range
-                items.append(_property_item(
-                    ua.NodeId(var.node_id + ".EURange", idx), nid, "EURange", "the range of values likely in normal"
-                    f" operation (OPC UA Part 8 EURange): {r.source}",
-                    ua.Variant(ua.Range(Low=float(r.low), High=float(r.high)), ua.VariantType.ExtensionObject),
-                    ua.ObjectIds.Range, sampling_ms,
-                ))
+                items.append(
+                    _property_item(
+                        ua.NodeId(var.node_id + ".EURange", idx),
+                        nid,
+                        "EURange",
+                        f"the range of values likely in normal operation (OPC UA Part 8 EURange): {r.source}",
+                        ua.Variant(ua.Range(Low=float(r.low), High=float(r.high)), ua.VariantType.ExtensionObject),
+                        ua.ObjectIds.Range,
+                        sampling_ms,
+                    )
+                )
             if var.unit is not None:
-                items.append(_property_item(
-                    ua.NodeId(var.node_id + ".EngineeringUnits", idx), nid, "EngineeringUnits",
-                    f"the unit of the value: {var.unit.description} (UNECE Recommendation 20 code {var.unit.unece})",
-                    ua.Variant(var.unit.eu_information(), ua.VariantType.ExtensionObject),
-                    ua.ObjectIds.EUInformation, sampling_ms,
-                ))
+                items.append(
+                    _property_item(
+                        ua.NodeId(var.node_id + ".EngineeringUnits", idx),
+                        nid,
+                        "EngineeringUnits",
+                        f"the unit of the value: {var.unit.description} (UNECE Recommendation 20 code {var.unit.unece})",
+                        ua.Variant(var.unit.eu_information(), ua.VariantType.ExtensionObject),
+                        ua.ObjectIds.EUInformation,
+                        sampling_ms,
+                    )
+                )
             node_ids.append(nid)
         results = await server.iserver.isession.add_nodes(items)
         for item, res in zip(items, results, strict=True):

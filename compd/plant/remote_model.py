@@ -121,8 +121,12 @@ class RemoteModels:
         if name is not None:
             sig = (snap.get("signals") or {}).get(name) or {}
             value = sig.get("value")
-            self._signal_armed = (sig.get("quality") == "good" and isinstance(value, int | float)
-                                  and not isinstance(value, bool) and value >= 0.5)
+            self._signal_armed = (
+                sig.get("quality") == "good"
+                and isinstance(value, int | float)
+                and not isinstance(value, bool)
+                and value >= 0.5
+            )
         p = self._pending
         if p is not None and time.monotonic() > p["deadline"]:
             self._pending = None
@@ -142,8 +146,9 @@ class RemoteModels:
         shadow = target == "shadow"
         size = len(text.encode("utf-8"))
         if size > spec.max_bytes:
-            return self._refuse(f"the {target} is {size} bytes, more than remote_models.max_bytes ({spec.max_bytes})",
-                                target)
+            return self._refuse(
+                f"the {target} is {size} bytes, more than remote_models.max_bytes ({spec.max_bytes})", target
+            )
         mfile = self._file(target)
         if isinstance(mfile, str):
             return self._refuse(mfile, target)
@@ -168,8 +173,9 @@ class RemoteModels:
         if why is not None:
             if len(list(mfile.parent.glob(f"{glob_escape(mfile.name)}.rejected-*"))) >= MAX_REJECTED_KEPT:
                 candidate.unlink(missing_ok=True)  # a peer cannot fill the disk with what it sends
-                return self._refuse(f"invalid {target}: {why} (not kept: {MAX_REJECTED_KEPT} rejected models are"
-                                    " kept already)", target)
+                return self._refuse(
+                    f"invalid {target}: {why} (not kept: {MAX_REJECTED_KEPT} rejected models are kept already)", target
+                )
             kept = candidate.with_name(f"{mfile.name}.rejected-{stamp}")
             os.replace(candidate, kept)  # kept for the engineer who wants to see what came
             return self._refuse(f"invalid {target}: {why} (kept as {kept.name})", target)
@@ -185,19 +191,34 @@ class RemoteModels:
             self._armed_until = -math.inf  # one model per arming (a shadow is not armed for)
         else:
             _write_shadow_record(mfile, request, sha)  # the next one waits for it; `compd promote` shows it
-        pending = {"request": request, "target": target, "file": str(mfile), "sha256": sha, "backup": str(backup),
-                   "t_unix_s": time.time()}
+        pending = {
+            "request": request,
+            "target": target,
+            "file": str(mfile),
+            "sha256": sha,
+            "backup": str(backup),
+            "t_unix_s": time.time(),
+        }
         try:
             spec.pending_path.write_text(json.dumps(pending), encoding="utf-8")
         except OSError as e:
             log.warning("cannot write %s: %s", spec.pending_path, e, extra={"event": "model_remote"})
         self._pending = {**pending, "deadline": time.monotonic() + RELOAD_WAIT_S}
-        log.warning("remote %s accepted (request %s, sha256 %s); reloading", target, request, sha[:12],
-                    extra={"event": "model_remote", "result": "accepted", "target": target, "request": request,
-                           "sha256": sha})
+        log.warning(
+            "remote %s accepted (request %s, sha256 %s); reloading",
+            target,
+            request,
+            sha[:12],
+            extra={"event": "model_remote", "result": "accepted", "target": target, "request": request, "sha256": sha},
+        )
         os.kill(spec.daemon_pid, signal.SIGHUP)
-        return {"result": "accepted", "target": target, "reason": "validated; the daemon reloads", "sha256": sha,
-                "backup": backup.name}
+        return {
+            "result": "accepted",
+            "target": target,
+            "reason": "validated; the daemon reloads",
+            "sha256": sha,
+            "backup": backup.name,
+        }
 
     def _shadow_gate(self, mfile: Path, text: str) -> str | None:
         """Why a shadow sent is refused before it is checked (None: it is checked): the shadow file
@@ -207,19 +228,25 @@ class RemoteModels:
         are kept already (none is deleted: a backup is what a reload that fails puts back)."""
         sha = hashlib.sha256(text.encode("utf-8")).hexdigest()
         if file_sha256(mfile) == sha:
-            return (f"the shadow file {mfile.name} holds this text already (sha256 {sha[:12]}): nothing to reload"
-                    " (its score on the probes goes on)")
+            return (
+                f"the shadow file {mfile.name} holds this text already (sha256 {sha[:12]}): nothing to reload"
+                " (its score on the probes goes on)"
+            )
         interval = self.spec.shadow_min_interval_s
         record = read_shadow_record(mfile)
         since = since_recorded_s(record) if record is not None and interval > 0 else None
         if record is not None and since is not None and since < interval:
-            return (f"a shadow was accepted {since:.0f} s ago (request {str(record.get('request'))[:40]}): at most one"
-                    f" per remote_models.shadow_min_interval_s ({interval:g} s), since each reloads the daemon and"
-                    " starts the shadow's score on the probes afresh")
+            return (
+                f"a shadow was accepted {since:.0f} s ago (request {str(record.get('request'))[:40]}): at most one"
+                f" per remote_models.shadow_min_interval_s ({interval:g} s), since each reloads the daemon and"
+                " starts the shadow's score on the probes afresh"
+            )
         kept = len(list(mfile.parent.glob(f"{glob_escape(mfile.name)}.*.bak")))
         if kept >= MAX_SHADOW_BACKUPS:
-            return (f"{kept} backups of {mfile.name} are kept beside it already (at most {MAX_SHADOW_BACKUPS}, none"
-                    " deleted): move them away at the machine to take another shadow")
+            return (
+                f"{kept} backups of {mfile.name} are kept beside it already (at most {MAX_SHADOW_BACKUPS}, none"
+                " deleted): move them away at the machine to take another shadow"
+            )
         return None
 
     def _file(self, target: str) -> Path | str:
@@ -227,15 +254,21 @@ class RemoteModels:
         spec = self.spec
         if target == "shadow":
             if spec.shadow_form is None:
-                return ("the config has no shadow section: a shadow sent replaces the model file its shadow section"
-                        " names (shadow: {kind, file})")
+                return (
+                    "the config has no shadow section: a shadow sent replaces the model file its shadow section"
+                    " names (shadow: {kind, file})"
+                )
             if spec.shadow_file is None:
-                return (f"the config's shadow is {FORMS.get(spec.shadow_form, spec.shadow_form)}: only a shadow"
-                        " that is one model file (shadow: {kind, file}) can be replaced remotely")
+                return (
+                    f"the config's shadow is {FORMS.get(spec.shadow_form, spec.shadow_form)}: only a shadow"
+                    " that is one model file (shadow: {kind, file}) can be replaced remotely"
+                )
             return spec.shadow_file
         if spec.model_file is None:
-            return (f"the config's model is {FORMS.get(spec.model_form, spec.model_form)}: Model/apply replaces"
-                    " a model that is one model file (model: {kind, file})")
+            return (
+                f"the config's model is {FORMS.get(spec.model_form, spec.model_form)}: Model/apply replaces"
+                " a model that is one model file (model: {kind, file})"
+            )
         return spec.model_file
 
     def started(self) -> dict[str, Any] | None:
@@ -254,11 +287,19 @@ class RemoteModels:
         running = self.spec.shadow_sha256 if target == "shadow" else self.spec.model_sha256
         if running is not None and pending.get("sha256") == running:
             self.applied += 1
-            log.warning("remote %s applied (request %s)", target, request,
-                        extra={"event": "model_remote", "result": "applied", "target": target, "request": request})
+            log.warning(
+                "remote %s applied (request %s)",
+                target,
+                request,
+                extra={"event": "model_remote", "result": "applied", "target": target, "request": request},
+            )
             return {"request": request, "result": "applied", "target": target, "sha256": running}
-        return {"request": request, "result": "failed", "target": target,
-                "reason": f"the reloaded pipeline does not run the {target} sent (it was replaced again)"}
+        return {
+            "request": request,
+            "result": "failed",
+            "target": target,
+            "reason": f"the reloaded pipeline does not run the {target} sent (it was replaced again)",
+        }
 
     def _undo(self, p: dict[str, Any]) -> dict[str, Any]:
         """The reload did not take the model: the previous file back (the rejected one kept)."""
@@ -271,16 +312,28 @@ class RemoteModels:
         except OSError as e:
             log.error("cannot put %s back: %s", mfile, e, extra={"event": "model_remote"})
         self.spec.pending_path.unlink(missing_ok=True)
-        log.error("remote %s not applied: the reload did not take it; the previous %s file is back", target, target,
-                  extra={"event": "model_remote", "result": "failed", "target": target, "request": p["request"]})
-        return {"request": p["request"], "result": "failed", "target": target,
-                "reason": f"the reload did not take it (see the daemon's reload_rejected line); previous {target} file"
-                          " back"}
+        log.error(
+            "remote %s not applied: the reload did not take it; the previous %s file is back",
+            target,
+            target,
+            extra={"event": "model_remote", "result": "failed", "target": target, "request": p["request"]},
+        )
+        return {
+            "request": p["request"],
+            "result": "failed",
+            "target": target,
+            "reason": f"the reload did not take it (see the daemon's reload_rejected line); previous {target} file"
+            " back",
+        }
 
     def _refuse(self, why: str, target: str) -> dict[str, Any]:
         self.refused += 1
-        log.warning("remote %s refused: %s", target, why, extra={"event": "model_remote", "result": "refused",
-                                                                 "target": target, "reason": why})
+        log.warning(
+            "remote %s refused: %s",
+            target,
+            why,
+            extra={"event": "model_remote", "result": "refused", "target": target, "reason": why},
+        )
         return {"result": "refused", "target": target, "reason": why}
 
 
@@ -304,8 +357,10 @@ def validate(spec: RemoteSpec, candidate: Path, target: str = "model") -> str | 
         return None if why is None else _private(why, spec, candidate)
     lacking = [a for a in model.outputs if a not in spec.outputs]
     if lacking:
-        return (f"its axes {model.outputs} are not among the running model's {spec.outputs} (a shadow stands"
-                f" beside the model on its axes: {lacking[0]!r} is none of them)")
+        return (
+            f"its axes {model.outputs} are not among the running model's {spec.outputs} (a shadow stands"
+            f" beside the model on its axes: {lacking[0]!r} is none of them)"
+        )
     if (why := _shadow_read_by_model(spec, cfg)) is not None:
         return why
     try:
@@ -332,6 +387,7 @@ def drive_check(cfg: Any, model: Any, outputs: list[str]) -> str | None:
 
 
 # --- a shadow sent from the plant: when it was accepted, and which one ----------------------------
+
 
 def shadow_record_path(shadow_file: str | Path) -> Path:
     """The record of the last shadow the plant sent for `shadow_file`, beside it (one file, replaced
@@ -378,9 +434,15 @@ def _boot_id() -> str:
 
 def _write_shadow_record(shadow_file: Path, request: str, sha256: str) -> None:
     now = time.time()
-    record = {"request": request, "sha256": sha256, "file": shadow_file.name,
-              "accepted_utc": datetime.fromtimestamp(now, UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-              "t_unix_s": now, "monotonic_s": time.monotonic(), "boot_id": _boot_id()}
+    record = {
+        "request": request,
+        "sha256": sha256,
+        "file": shadow_file.name,
+        "accepted_utc": datetime.fromtimestamp(now, UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "t_unix_s": now,
+        "monotonic_s": time.monotonic(),
+        "boot_id": _boot_id(),
+    }
     path = shadow_record_path(shadow_file)
     tmp = path.with_name(f".{path.name}.tmp")
     try:
@@ -410,8 +472,10 @@ def _shadow_read_by_model(spec: RemoteSpec, cfg: Any = None) -> str | None:
             return None
     if not any(_same_file(spec.shadow_file, f) for f in model_files(cfg.model)):
         return None
-    return (f"the shadow's file {spec.shadow_file.name} is one the active model reads: replacing it would change what"
-            " drives the machine (give the shadow a file of its own, or send the model with Model/apply, armed)")
+    return (
+        f"the shadow's file {spec.shadow_file.name} is one the active model reads: replacing it would change what"
+        " drives the machine (give the shadow a file of its own, or send the model with Model/apply, armed)"
+    )
 
 
 def _same_file(a: Path, b: str | Path) -> bool:
@@ -453,9 +517,12 @@ def input_ranges(model: Any, guard: Any) -> tuple[dict[str, tuple[float, float]]
         out: dict[str, tuple[float, float]] = {}
         for name in inputs:
             pair = raw.get(name)
-            if (not isinstance(pair, list | tuple) or len(pair) != 2
-                    or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in pair)
-                    or not all(math.isfinite(float(v)) for v in pair)):
+            if (
+                not isinstance(pair, list | tuple)
+                or len(pair) != 2
+                or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in pair)
+                or not all(math.isfinite(float(v)) for v in pair)
+            ):
                 return f"{where}.{name} is not [min, max] (two finite numbers)"
             lo, hi = float(pair[0]), float(pair[1])
             if lo > hi:
@@ -464,9 +531,11 @@ def input_ranges(model: Any, guard: Any) -> tuple[dict[str, tuple[float, float]]
         return out, f"fit.{FIT_RANGE_KEY}"
     missing = [name for name in inputs if name not in guard.signals]
     if missing:
-        return (f"the model file records no fit range (fit.{FIT_RANGE_KEY}) and guard.signals gives no limits for"
-                f" {missing[0]}: what it predicts there is unbounded, so it is not applied unchecked (give the"
-                f" model file fit.{FIT_RANGE_KEY}, or guard.signals.{missing[0]} min and max)")
+        return (
+            f"the model file records no fit range (fit.{FIT_RANGE_KEY}) and guard.signals gives no limits for"
+            f" {missing[0]}: what it predicts there is unbounded, so it is not applied unchecked (give the"
+            f" model file fit.{FIT_RANGE_KEY}, or guard.signals.{missing[0]} min and max)"
+        )
     return {name: (float(guard.signals[name].min), float(guard.signals[name].max)) for name in inputs}, "guard.signals"
 
 
@@ -491,18 +560,33 @@ def clamp_check(model: Any, guard: Any) -> str | None:
         return _clamp_check(model, guard, guard.clamp_um, "", "the guard's")
     for p in parts:
         cls = MODELS.get(p.kind)
-        spec = ModelSpec(cls, cls.Params.model_validate(p.params), list(p.inputs), list(p.outputs),
-                         p.update_period_s, dict(p.fit), None, (), p.file)  # type: ignore[arg-type]
+        spec = ModelSpec(
+            cls,
+            cls.Params.model_validate(p.params),
+            list(p.inputs),
+            list(p.outputs),
+            p.update_period_s,
+            dict(p.fit),
+            None,
+            (),
+            p.file,
+        )  # type: ignore[arg-type]
         lims = dict(zip(p.outputs, p.max_abs_um, strict=True))
-        why = _clamp_check(spec, guard, lambda axis, lims=lims, p=p: (lims[axis], f"contribution {p.name}'s max_abs_um"),
-                           f"contribution {p.name!r}: ", "its")
+        why = _clamp_check(
+            spec,
+            guard,
+            lambda axis, lims=lims, p=p: (lims[axis], f"contribution {p.name}'s max_abs_um"),
+            f"contribution {p.name!r}: ",
+            "its",
+        )
         if why is not None:
             return why
     return None
 
 
-def _clamp_check(model: Any, guard: Any, clamp_um: Callable[[str], tuple[float, str]], who: str,
-                 whose: str) -> str | None:
+def _clamp_check(
+    model: Any, guard: Any, clamp_um: Callable[[str], tuple[float, str]], who: str, whose: str
+) -> str | None:
     """`clamp_check` of one model against the clamp `clamp_um(axis)` gives (the limit, its key)."""
     got = input_ranges(model, guard)
     if isinstance(got, str):
@@ -513,11 +597,15 @@ def _clamp_check(model: Any, guard: Any, clamp_um: Callable[[str], tuple[float, 
         lim, key = clamp_um(axis)
         at = _where(model.inputs, reference, reading)
         if not math.isfinite(peak_um):
-            return (f"{who}axis {axis}: over its input range ({source}) the model predicts a value that is not finite"
-                    f" ({at})")
+            return (
+                f"{who}axis {axis}: over its input range ({source}) the model predicts a value that is not finite"
+                f" ({at})"
+            )
         if abs(peak_um) > lim:
-            return (f"{who}axis {axis} would sit at {whose} clamp: over its input range ({source}) the model predicts"
-                    f" a |correction| of {abs(peak_um):.1f} µm ({at}), beyond {key} {lim:g} µm")
+            return (
+                f"{who}axis {axis} would sit at {whose} clamp: over its input range ({source}) the model predicts"
+                f" a |correction| of {abs(peak_um):.1f} µm ({at}), beyond {key} {lim:g} µm"
+            )
     return None
 
 
@@ -534,9 +622,12 @@ def _dynamic(model: Any) -> bool:
     return model.update_period_s > 0 or (model.kind == "feed_axis" and not model.field_form)
 
 
-def largest_predictions(spec: Any, ranges: dict[str, tuple[float, float]]) -> list[tuple[float, np.ndarray, np.ndarray]]:
+def largest_predictions(
+    spec: Any, ranges: dict[str, tuple[float, float]]
+) -> list[tuple[float, np.ndarray, np.ndarray]]:
     """Per output axis the prediction (µm) of largest magnitude over the ranges (`clamp_check`),
     with the reference readings and the readings it comes at; NaN or ±inf wins over any number."""
+
     def fresh() -> Any:
         return build_model(spec)  # a model as the loop builds it, fresh for each combination
 
@@ -612,7 +703,7 @@ def _coordinate_search(score: Callable[[tuple[int, ...]], float], sizes: list[in
             for i, n in enumerate(sizes):
                 for k in range(n):
                     if k != choice[i]:
-                        trial = (*choice[:i], k, *choice[i + 1:])
+                        trial = (*choice[:i], k, *choice[i + 1 :])
                         tv = score(trial)
                         if tv > v:
                             choice, v, better = trial, tv, True
@@ -633,5 +724,16 @@ def _private(text: str, spec: RemoteSpec, candidate: Path) -> str:
     return text
 
 
-__all__ = ["TARGETS", "RemoteModels", "clamp_check", "drive_check", "input_ranges", "largest_predictions", "model_files",
-           "read_shadow_record", "shadow_record_path", "since_recorded_s", "validate"]
+__all__ = [
+    "TARGETS",
+    "RemoteModels",
+    "clamp_check",
+    "drive_check",
+    "input_ranges",
+    "largest_predictions",
+    "model_files",
+    "read_shadow_record",
+    "shadow_record_path",
+    "since_recorded_s",
+    "validate",
+]

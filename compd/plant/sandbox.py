@@ -27,9 +27,11 @@ def refused_by_this_host(e: BaseException) -> bool:
 
 def connect_refused_hint(host: str) -> str:
     """What to do about a connect() to `host` that failed with EPERM."""
-    return (f"refused by this host, not by {host}: the service's IP sandbox (the packaged unit allows"
-            f" localhost only: IPAddressDeny=any) or a local firewall; install the network drop-in with"
-            f" IPAddressAllow={host} ({DROP_IN_DOC})")
+    return (
+        f"refused by this host, not by {host}: the service's IP sandbox (the packaged unit allows"
+        f" localhost only: IPAddressDeny=any) or a local firewall; install the network drop-in with"
+        f" IPAddressAllow={host} ({DROP_IN_DOC})"
+    )
 
 
 def under_systemd(env: dict[str, str] | None = None) -> bool:
@@ -53,7 +55,9 @@ def listening_hint(what: str, bind: str, env: dict[str, str] | None = None) -> s
     started by systemd)."""
     if is_loopback(bind) or not under_systemd(env):
         return None
-    return (f"{what} listens on {bind}, but under the packaged unit only localhost reaches it"
-            f" (IPAddressDeny=any, IPAddressAllow=localhost): clients on other hosts need the network"
-            f" drop-in with their addresses in IPAddressAllow= ({DROP_IN_DOC}); their packets are dropped"
-            f" before compd sees them, so nothing else is logged")
+    return (
+        f"{what} listens on {bind}, but under the packaged unit only localhost reaches it"
+        f" (IPAddressDeny=any, IPAddressAllow=localhost): clients on other hosts need the network"
+        f" drop-in with their addresses in IPAddressAllow= ({DROP_IN_DOC}); their packets are dropped"
+        f" before compd sees them, so nothing else is logged"
+    )

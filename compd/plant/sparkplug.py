@@ -176,9 +176,7 @@ def _field(
 
 def _schema() -> descriptor_pb2.FileDescriptorProto:
     """The part of Tahu's sparkplug_b.proto compd uses, with Tahu's field numbers and types."""
-    fp = descriptor_pb2.FileDescriptorProto(
-        name="compd/plant/sparkplug_b.proto", package=_PACKAGE, syntax="proto2"
-    )
+    fp = descriptor_pb2.FileDescriptorProto(name="compd/plant/sparkplug_b.proto", package=_PACKAGE, syntax="proto2")
     payload = fp.message_type.add(name="Payload")
 
     pv = payload.nested_type.add(name="PropertyValue")
@@ -426,8 +424,7 @@ def _int_from_wire(raw: int, datatype: DataType, where: str) -> int:
     return raw
 
 
-_RAW_FIELDS = ("int_value", "long_value", "float_value", "double_value", "boolean_value",
-               "string_value", "bytes_value")
+_RAW_FIELDS = ("int_value", "long_value", "float_value", "double_value", "boolean_value", "string_value", "bytes_value")
 
 
 def _get_value(msg: Any, datatype: DataType, where: str) -> Any:

@@ -177,29 +177,48 @@ def telemetry_spec(cfg: Any, signals: list[str], outputs: list[str], snapshot_pe
         mfile = Path(cfg.model.file) if mform == "file" else None
         sfile = Path(cfg.shadow.file) if sform == "file" else None
         if mfile is None and sfile is None:
-            raise cfg.doc.error("remote models replace a model file: give model.file (or a shadow section with a"
-                                " file), not inline params or contributions", (*key, "remote_models", "allow"))
+            raise cfg.doc.error(
+                "remote models replace a model file: give model.file (or a shadow section with a"
+                " file), not inline params or contributions",
+                (*key, "remote_models", "allow"),
+            )
         for f in (mfile, sfile):
             if f is not None and not os.access(f.parent, os.W_OK):
-                raise cfg.doc.error(f"remote models replace {f}, but its folder is not writable",
-                                    (*key, "remote_models", "allow"))
+                raise cfg.doc.error(
+                    f"remote models replace {f}, but its folder is not writable", (*key, "remote_models", "allow")
+                )
         remote = RemoteSpec(
-            config=str(Path(cfg.file).resolve()), model_file=mfile,
+            config=str(Path(cfg.file).resolve()),
+            model_file=mfile,
             model_sha256=file_sha256(mfile) if mfile is not None else None,
-            outputs=list(outputs), arm_signal=rm.arm_signal, arm_window_s=rm.arm_window_s, max_bytes=rm.max_bytes,
-            daemon_pid=os.getpid(), pending_path=Path(f"{bpath}.model-pending.json"),
-            shadow_file=sfile, shadow_sha256=file_sha256(sfile) if sfile is not None else None,
-            model_form=mform, shadow_form=sform, shadow_min_interval_s=rm.shadow_min_interval_s,
+            outputs=list(outputs),
+            arm_signal=rm.arm_signal,
+            arm_window_s=rm.arm_window_s,
+            max_bytes=rm.max_bytes,
+            daemon_pid=os.getpid(),
+            pending_path=Path(f"{bpath}.model-pending.json"),
+            shadow_file=sfile,
+            shadow_sha256=file_sha256(sfile) if sfile is not None else None,
+            model_form=mform,
+            shadow_form=sform,
+            shadow_min_interval_s=rm.shadow_min_interval_s,
         )
     return TelemetrySpec(
         **dataclasses.asdict(broker),
         client_id=tel.client_id or f"{tel.group_id}-{tel.edge_node_id}",
-        group_id=tel.group_id, edge_node_id=tel.edge_node_id, device_id=tel.device_id,
-        buffer_path=bpath, buffer_max_bytes=int(tel.buffer.max_mb * 1e6),
-        period_s=tel.period_s, full_refresh_s=tel.full_refresh_s, keepalive_s=tel.keepalive_s,
+        group_id=tel.group_id,
+        edge_node_id=tel.edge_node_id,
+        device_id=tel.device_id,
+        buffer_path=bpath,
+        buffer_max_bytes=int(tel.buffer.max_mb * 1e6),
+        period_s=tel.period_s,
+        full_refresh_s=tel.full_refresh_s,
+        keepalive_s=tel.keepalive_s,
         reconnect_max_s=tel.reconnect_max_s,
         properties={"compd version": version(), "config": str(Path(cfg.file).resolve())},
-        slack_s=snapshot_period_s / 2, remote=remote, primary_host_id=tel.primary_host_id,
+        slack_s=snapshot_period_s / 2,
+        remote=remote,
+        primary_host_id=tel.primary_host_id,
     )
 
 
@@ -241,7 +260,9 @@ def opcua_spec(cfg: Any) -> OpcUaSpec:
     return OpcUaSpec(ua, base, cfg.top.guard)
 
 
-_HOSTNAME = re.compile(r"^(?=.{1,253}$)([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+_HOSTNAME = re.compile(
+    r"^(?=.{1,253}$)([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$"
+)
 
 
 def _check_bind(cfg: Any, bind: str) -> None:

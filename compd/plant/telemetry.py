@@ -126,8 +126,13 @@ def moved(definition: MetricDef, value: Any, last: Any = _MISSING) -> bool:
     and any change of any other metric, always."""
     if last is _MISSING:
         return True
-    if (definition.datatype in (DataType.Double, DataType.Float) and isinstance(value, int | float)
-            and isinstance(last, int | float) and not isinstance(value, bool) and not isinstance(last, bool)):
+    if (
+        definition.datatype in (DataType.Double, DataType.Float)
+        and isinstance(value, int | float)
+        and isinstance(last, int | float)
+        and not isinstance(value, bool)
+        and not isinstance(last, bool)
+    ):
         return abs(value - last) > DEADBAND_BY_UNIT.get(definition.unit or "", 0.0)
     return bool(value != last)
 
@@ -144,8 +149,13 @@ def _count(value: Any) -> int | None:
 
 
 # a status field's kind → its Sparkplug datatype (a count shown as a 16-bit word: UInt16)
-KIND_DATATYPES = {"number": DataType.Double, "count": DataType.UInt64, "flag": DataType.Boolean,
-                  "name": DataType.String, "hex": DataType.String}
+KIND_DATATYPES = {
+    "number": DataType.Double,
+    "count": DataType.UInt64,
+    "flag": DataType.Boolean,
+    "name": DataType.String,
+    "hex": DataType.String,
+}
 
 
 def _datatype(f: Field) -> DataType:
@@ -186,7 +196,9 @@ def record_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
             if not shown(f, snap, at):
                 continue
             unit = (signal_unit(at["signal"]) if f.unit == PER_SIGNAL else f.shown_unit) or None
-            out.append((MetricDef(f.sparkplug_name(**at), _datatype(f), unit), _field_value(f, f.exported(snap, where))))
+            out.append(
+                (MetricDef(f.sparkplug_name(**at), _datatype(f), unit), _field_value(f, f.exported(snap, where)))
+            )
     return out
 
 
@@ -197,8 +209,10 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
     A section missing from the snapshot (a log replayed into telemetry has no loop
     timing) leaves its metrics out; a value that is not a finite number is null."""
     D = DataType
-    out: list[tuple[MetricDef, Any]] = [(MetricDef("Observe", D.Boolean), bool(snap.get("observe", False))),
-                                         *record_metrics(snap)]
+    out: list[tuple[MetricDef, Any]] = [
+        (MetricDef("Observe", D.Boolean), bool(snap.get("observe", False))),
+        *record_metrics(snap),
+    ]
     shadow = snap.get("shadow")
     if isinstance(shadow, dict):  # the shadow model and its score on the probes, per axis
         out.append((MetricDef("Shadow/kind", D.String), str((shadow.get("model") or {}).get("kind") or "")))
@@ -233,8 +247,11 @@ def device_metrics(snap: dict[str, Any]) -> list[tuple[MetricDef, Any]]:
     return out
 
 
-EVENT_METRICS = (MetricDef("Event/kind", DataType.String), MetricDef("Event/subject", DataType.String),
-                 MetricDef("Event/reason", DataType.String))
+EVENT_METRICS = (
+    MetricDef("Event/kind", DataType.String),
+    MetricDef("Event/subject", DataType.String),
+    MetricDef("Event/reason", DataType.String),
+)
 SAMPLE_METRIC = MetricDef("Sample", DataType.UInt64)
 # what a host may write to the device (DCMD): declared in the DBIRTH, so that it has an alias
 DEVICE_COMMANDS = (MetricDef(DEVICE_MODEL, DataType.String), MetricDef(DEVICE_SHADOW, DataType.String))
@@ -254,8 +271,13 @@ def log_in(client: Any, broker: BrokerSpec) -> None:
     if broker.username is not None:
         client.username_pw_set(broker.username, broker.password)
     if broker.ca_file is not None:
-        client.tls_set(ca_certs=broker.ca_file, certfile=broker.cert_file, keyfile=broker.key_file,
-                       cert_reqs=ssl.CERT_REQUIRED, tls_version=ssl.PROTOCOL_TLS_CLIENT)
+        client.tls_set(
+            ca_certs=broker.ca_file,
+            certfile=broker.cert_file,
+            keyfile=broker.key_file,
+            cert_reqs=ssl.CERT_REQUIRED,
+            tls_version=ssl.PROTOCOL_TLS_CLIENT,
+        )
         client.tls_insecure_set(not broker.check_hostname)
 
 
@@ -420,8 +442,9 @@ class Telemetry:
         import paho.mqtt.client as mqtt
 
         spec = self.spec
-        client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=spec.client_id, clean_session=True,
-                             reconnect_on_failure=False)
+        client = mqtt.Client(
+            mqtt.CallbackAPIVersion.VERSION2, client_id=spec.client_id, clean_session=True, reconnect_on_failure=False
+        )
         client.connect_timeout = CONNECT_TIMEOUT_S
         # paho holds back a QoS 1 message beyond its in-flight limit (20 by default) while a QoS 0
         # one (an NDATA, a rebirth) goes at once: past the window's samples, seq out of order on
@@ -475,8 +498,9 @@ class Telemetry:
         self.failures += 1
         if reason != self._last_failure:
             self._last_failure = reason
-            log.error("telemetry: %s; retrying", reason, exc_info=e,
-                      extra={"event": "telemetry_error", "reason": reason})
+            log.error(
+                "telemetry: %s; retrying", reason, exc_info=e, extra={"event": "telemetry_error", "reason": reason}
+            )
         self.last_error = reason
         with contextlib.suppress(Exception):
             self._client.disconnect()
@@ -520,9 +544,14 @@ class Telemetry:
         self._cursor = self._historical_upto = self._last_put_id = 0
         self._disk_attempts += 1
         self._disk_next_s = time.monotonic() + self._disk_wait_s()
-        log.error("telemetry buffer %s cannot be used (%s): publishing live without it, samples kept in memory"
-                  " (at most %d bytes) until it can; trying it again", path, reason, self.memory.max_bytes,
-                  extra={"event": "telemetry_unbuffered", "path": str(path), "reason": reason})
+        log.error(
+            "telemetry buffer %s cannot be used (%s): publishing live without it, samples kept in memory"
+            " (at most %d bytes) until it can; trying it again",
+            path,
+            reason,
+            self.memory.max_bytes,
+            extra={"event": "telemetry_unbuffered", "path": str(path), "reason": reason},
+        )
 
     def _disk_wait_s(self) -> float:
         return min(self.spec.reconnect_max_s, RECONNECT_MIN_S * 2 ** min(self._disk_attempts, 10))
@@ -544,8 +573,12 @@ class Telemetry:
                 with contextlib.suppress(Exception):
                     disk.close()
             self.buffer_error = e.message if isinstance(e, BadInput) else f"{type(e).__name__}: {e}"  # said: status
-            log.debug("telemetry buffer %s still cannot be used: %s", spec.buffer_path, self.buffer_error,
-                      extra={"event": "telemetry_unbuffered", "path": str(spec.buffer_path), "reason": self.buffer_error})
+            log.debug(
+                "telemetry buffer %s still cannot be used: %s",
+                spec.buffer_path,
+                self.buffer_error,
+                extra={"event": "telemetry_unbuffered", "path": str(spec.buffer_path), "reason": self.buffer_error},
+            )
             self._disk_attempts += 1
             self._disk_next_s = time.monotonic() + self._disk_wait_s()
             return
@@ -556,9 +589,12 @@ class Telemetry:
         self._inflight.clear()  # memory's: what they were is in the file now, sent again from it
         self._cursor = 0
         self._historical_upto = self._last_put_id = disk.last_id  # all of it older than this session's births
-        log.info("telemetry buffer %s can be used again: %d samples and events moved into it from memory",
-                 spec.buffer_path, len(waiting), extra={"event": "telemetry_buffered", "path": str(spec.buffer_path),
-                                                        "moved": len(waiting)})
+        log.info(
+            "telemetry buffer %s can be used again: %d samples and events moved into it from memory",
+            spec.buffer_path,
+            len(waiting),
+            extra={"event": "telemetry_buffered", "path": str(spec.buffer_path), "moved": len(waiting)},
+        )
 
     def _take_inbox(self) -> None:
         while True:
@@ -604,15 +640,20 @@ class Telemetry:
         if buf.dropped != before:
             self._node_dirty = True
             if buf.dropped == 1 or buf.dropped % 1000 == 0:
-                log.warning("telemetry buffer full (%s): the oldest samples dropped, %d so far",
-                            buf.path or "memory", buf.dropped, extra={"event": "telemetry_dropped",
-                                                                      "dropped": buf.dropped})
+                log.warning(
+                    "telemetry buffer full (%s): the oldest samples dropped, %d so far",
+                    buf.path or "memory",
+                    buf.dropped,
+                    extra={"event": "telemetry_dropped", "dropped": buf.dropped},
+                )
 
     def _connect(self) -> None:
         spec = self.spec
         buf = self.buffer
         assert buf is not None
-        bdseq = (self.counters.get("bdseq", buf.get_meta("bdseq", -1)) + 1) % 256  # one more per CONNECT (Sparkplug 3.0)
+        bdseq = (
+            self.counters.get("bdseq", buf.get_meta("bdseq", -1)) + 1
+        ) % 256  # one more per CONNECT (Sparkplug 3.0)
         self._attempts += 1
         # a client of its own for every connection: paho would send again by itself what the last
         # one left unacknowledged, and this thread does that (from the buffer): twice
@@ -640,12 +681,17 @@ class Telemetry:
         if self._down_since is None:
             self._down_since = time.monotonic()
         if why != self.last_error:
-            log.warning("telemetry: %s; samples are kept %s until it answers", why,
-                        "on disk" if self.buffer is self.disk else "in memory",
-                        extra={"event": "telemetry_down", "reason": why})
+            log.warning(
+                "telemetry: %s; samples are kept %s until it answers",
+                why,
+                "on disk" if self.buffer is self.disk else "in memory",
+                extra={"event": "telemetry_down", "reason": why},
+            )
         self.last_error = why
         wait = min(self.spec.reconnect_max_s, RECONNECT_MIN_S * 2 ** min(self._attempts, 10))
-        self._next_try_s = time.monotonic() + wait * random.uniform(0.5, 1.0)  # a plant's nodes do not all return at once
+        self._next_try_s = time.monotonic() + wait * random.uniform(
+            0.5, 1.0
+        )  # a plant's nodes do not all return at once
 
     def _on_connect(self, client: Any, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
         if reason.is_failure:
@@ -653,8 +699,10 @@ class Telemetry:
             client.disconnect()
             return
         spec = self.spec
-        subs = [(topic(spec.group_id, "NCMD", spec.edge_node_id), 1),
-                (topic(spec.group_id, "DCMD", spec.edge_node_id, spec.device_id), 1)]
+        subs = [
+            (topic(spec.group_id, "NCMD", spec.edge_node_id), 1),
+            (topic(spec.group_id, "DCMD", spec.edge_node_id, spec.device_id), 1),
+        ]
         if spec.primary_host_id is not None:
             subs.append((f"{NAMESPACE}/STATE/{spec.primary_host_id}", 1))
             self._host_online = False  # until its STATE (retained) says otherwise
@@ -662,8 +710,13 @@ class Telemetry:
         self._attempts = 0
         self.connects += 1
         if self._down_since is not None or self.last_error is not None:
-            log.info("telemetry: connected to %s:%d; %d samples to send", spec.host, spec.port,
-                     len(self.buffer or ()), extra={"event": "telemetry_up"})
+            log.info(
+                "telemetry: connected to %s:%d; %d samples to send",
+                spec.host,
+                spec.port,
+                len(self.buffer or ()),
+                extra={"event": "telemetry_up"},
+            )
         self._down_since = None
         self.last_error = None
         self._new_connection = True
@@ -699,21 +752,43 @@ class Telemetry:
         self._last_failure = None  # working again: a failure after this is said again
         # the device's birth declares every metric its DDATA ever carries (Sparkplug 3.0): the
         # sample's, and the events' (null until an event sets them); and what a DCMD may write
-        born = [*self._latest, *((d, None) for d in EVENT_METRICS),
-                *((d, "") for d in DEVICE_COMMANDS if declares(d.name, self.spec))]
+        born = [
+            *self._latest,
+            *((d, None) for d in EVENT_METRICS),
+            *((d, "") for d in DEVICE_COMMANDS if declares(d.name, self.spec)),
+        ]
         self._defs = {d.name: d for d, _ in born}
         node = self._node_metrics(birth=True)
         # every metric with its name and alias; the aliases stay what they were for a metric born before
         self._node_aliases = self.aliases.declare(None, [d.name for d, _ in node])
         self._device_aliases = self.aliases.declare(spec.device_id, list(self._defs))
         now_ms = int(time.time() * 1000)
-        self._publish_raw("NBIRTH", None, encode(node, timestamp_ms=now_ms, seq=self._next_seq(),
-                                                 with_properties=True, metric_timestamp_ms=now_ms,
-                                                 aliases=self._node_aliases), qos=0)
-        self._publish_raw("DBIRTH", spec.device_id, encode(born, timestamp_ms=self._latest_t_ms,
-                                                           seq=self._next_seq(), with_properties=True,
-                                                           metric_timestamp_ms=self._latest_t_ms,
-                                                           aliases=self._device_aliases), qos=0)
+        self._publish_raw(
+            "NBIRTH",
+            None,
+            encode(
+                node,
+                timestamp_ms=now_ms,
+                seq=self._next_seq(),
+                with_properties=True,
+                metric_timestamp_ms=now_ms,
+                aliases=self._node_aliases,
+            ),
+            qos=0,
+        )
+        self._publish_raw(
+            "DBIRTH",
+            spec.device_id,
+            encode(
+                born,
+                timestamp_ms=self._latest_t_ms,
+                seq=self._next_seq(),
+                with_properties=True,
+                metric_timestamp_ms=self._latest_t_ms,
+                aliases=self._device_aliases,
+            ),
+            qos=0,
+        )
         self._node_sent = {d.name: v for d, v in node}
         self._answered = False
         self._sent = None  # the first sample after a birth goes whole: a host starts from it
@@ -729,8 +804,11 @@ class Telemetry:
         st = self.buffer.get_status() if self.buffer is not None else {}
         out: list[tuple[MetricDef, Any]] = []
         if birth:
-            out += [(MetricDef("bdSeq", D.UInt64), self._bdseq), (MetricDef(NODE_REBIRTH, D.Boolean), False),
-                    *((MetricDef(n, D.String), "") for n in (NODE_MODEL, NODE_SHADOW) if declares(n, self.spec))]
+            out += [
+                (MetricDef("bdSeq", D.UInt64), self._bdseq),
+                (MetricDef(NODE_REBIRTH, D.Boolean), False),
+                *((MetricDef(n, D.String), "") for n in (NODE_MODEL, NODE_SHADOW) if declares(n, self.spec)),
+            ]
             out += [(MetricDef(f"Properties/{k}", D.String), v) for k, v in sorted(self.spec.properties.items())]
         out += [
             (MetricDef("Telemetry/buffered", D.UInt64), int(st.get("records", 0))),
@@ -772,9 +850,15 @@ class Telemetry:
                 values.append((d, value))
             if rows and rows[0][0] == "Sample":  # a sample (an event goes whole: it is news each time)
                 values = self._exceptions(values, rec.t_ms)
-            payload = encode(values, timestamp_ms=rec.t_ms, seq=self._next_seq(),
-                             historical=rec.id <= self._historical_upto, metric_timestamp_ms=rec.t_ms,
-                             aliases=self._device_aliases, names=False)
+            payload = encode(
+                values,
+                timestamp_ms=rec.t_ms,
+                seq=self._next_seq(),
+                historical=rec.id <= self._historical_upto,
+                metric_timestamp_ms=rec.t_ms,
+                aliases=self._device_aliases,
+                names=False,
+            )
             info = self._publish_raw("DDATA", self.spec.device_id, payload, qos=1)
             self._cursor = rec.id
             if info.rc != 0:  # not connected after all: on_disconnect follows
@@ -805,16 +889,29 @@ class Telemetry:
         nothing did."""
         answered, self._answered = self._answered, False
         sent = self._node_sent
-        news = [(d, v) for d, v in self._node_metrics(birth=False)
-                if (answered and d.name == "Model/result") or moved(d, v, sent.get(d.name, _MISSING))]
+        news = [
+            (d, v)
+            for d, v in self._node_metrics(birth=False)
+            if (answered and d.name == "Model/result") or moved(d, v, sent.get(d.name, _MISSING))
+        ]
         if not news:
             return
         for d, v in news:
             sent[d.name] = v
         now_ms = int(time.time() * 1000)
-        self._publish_raw("NDATA", None, encode(news, timestamp_ms=now_ms, seq=self._next_seq(),
-                                                metric_timestamp_ms=now_ms, aliases=self._node_aliases,
-                                                names=False), qos=0)
+        self._publish_raw(
+            "NDATA",
+            None,
+            encode(
+                news,
+                timestamp_ms=now_ms,
+                seq=self._next_seq(),
+                metric_timestamp_ms=now_ms,
+                aliases=self._node_aliases,
+                names=False,
+            ),
+            qos=0,
+        )
 
     def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
         """A command (NCMD/DCMD), or the primary host's STATE: nothing in it is trusted before it is decoded and checked."""
@@ -828,8 +925,12 @@ class Telemetry:
         try:
             payload = decode(msg.payload)
         except SparkplugError as e:
-            log.warning("telemetry: a command on %s that is not Sparkplug B: %s", msg.topic, e,
-                        extra={"event": "telemetry_command_bad", "reason": str(e)})
+            log.warning(
+                "telemetry: a command on %s that is not Sparkplug B: %s",
+                msg.topic,
+                e,
+                extra={"event": "telemetry_command_bad", "reason": str(e)},
+            )
             self._answer({"result": "refused", "reason": f"not a Sparkplug B payload: {e}"})
             return
         # a command does each thing once, however many metrics ask for it, and what it cannot
@@ -853,12 +954,16 @@ class Telemetry:
                 modelled = True
                 request = str(payload.uuid or payload.timestamp_ms or "")
                 # the datatype may be left out (Sparkplug 3.0: SHOULD NOT be sent in a CMD)
-                if not isinstance(m.value, str) or m.datatype not in (DataType.String, DataType.Text,
-                                                                      DataType.Unknown):
+                if not isinstance(m.value, str) or m.datatype not in (DataType.String, DataType.Text, DataType.Unknown):
                     self._answer({"request": request, "result": "refused", "reason": f"{name} must be a String"})
                 elif self.commands is None:
-                    self._answer({"request": request, "result": "refused",
-                                  "reason": "this compd takes no remote models (telemetry.remote_models.allow)"})
+                    self._answer(
+                        {
+                            "request": request,
+                            "result": "refused",
+                            "reason": "this compd takes no remote models (telemetry.remote_models.allow)",
+                        }
+                    )
                 else:
                     self._answer({"request": request, **self.commands(m.value, request, MODEL_COMMANDS[name])})
             else:
@@ -868,9 +973,15 @@ class Telemetry:
             self._birth_due = True
         if unknown:
             first = unknown[0][:80]
-            log.warning("telemetry: %d command metric(s) ignored (the first: %r)", len(unknown), first,
-                        extra={"event": "telemetry_command_bad",
-                               "reason": f"{len(unknown)} unknown or repeated metric(s), the first {first!r}"})
+            log.warning(
+                "telemetry: %d command metric(s) ignored (the first: %r)",
+                len(unknown),
+                first,
+                extra={
+                    "event": "telemetry_command_bad",
+                    "reason": f"{len(unknown)} unknown or repeated metric(s), the first {first!r}",
+                },
+            )
 
     def _host_state(self, payload: bytes) -> None:
         """The primary host's STATE (Sparkplug 3.0: JSON {"online": bool, "timestamp": ms})."""
@@ -882,8 +993,12 @@ class Telemetry:
         if online == self._host_online:
             return
         self._host_online = online
-        log.info("telemetry: primary host %s %s", self.spec.primary_host_id, "online" if online else "offline",
-                 extra={"event": "telemetry_host", "online": online})
+        log.info(
+            "telemetry: primary host %s %s",
+            self.spec.primary_host_id,
+            "online" if online else "offline",
+            extra={"event": "telemetry_host", "online": online},
+        )
         if not online:
             self._session = False  # data waits on disk until the host is back
             return
@@ -898,8 +1013,14 @@ class Telemetry:
         self._result = json.dumps(result, ensure_ascii=False, sort_keys=True)
         self._node_dirty = True
         self._answered = True
-        log.info("telemetry: command answered: %s", self._result, extra={"event": "telemetry_command", **{
-            k: v for k, v in result.items() if k in ("request", "result", "reason")}})
+        log.info(
+            "telemetry: command answered: %s",
+            self._result,
+            extra={
+                "event": "telemetry_command",
+                **{k: v for k, v in result.items() if k in ("request", "result", "reason")},
+            },
+        )
 
     def _finish(self) -> None:
         """At stop: the inbox into the buffer, what can go out in DRAIN_S, the NDEATH, disconnect."""

@@ -208,4 +208,3 @@ class FanucPmc(VirtualDevice):
     def alarms(self) -> int:
         with self._lock:
             return self.mem[ALARM]
-

@@ -65,7 +65,12 @@ class VirtualLink:
     """
 
     def __init__(
-        self, device: VirtualDevice, time: DeviceTime, *, status: tuple[int, int] | None = None, name: str = "sink",
+        self,
+        device: VirtualDevice,
+        time: DeviceTime,
+        *,
+        status: tuple[int, int] | None = None,
+        name: str = "sink",
         sync: list[tuple[int, int]] | None = None,
     ) -> None:
         self.device = device
@@ -157,8 +162,13 @@ class VirtualLink:
         """A status read elsewhere is not kept: the device's own registers are always newer."""
 
     def get_status(self) -> dict[str, Any]:
-        return {"state": self.state, "writes": self.writes, "errors": self.errors, "bad_replies": self.bad_replies,
-                "last_error": self.last_error}
+        return {
+            "state": self.state,
+            "writes": self.writes,
+            "errors": self.errors,
+            "bad_replies": self.bad_replies,
+            "last_error": self.last_error,
+        }
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self.state = "closed"

@@ -175,8 +175,10 @@ class SiemensNc(VirtualDevice):
         """Every axis applies the target its registers give now and holds it there: IPO cycles
         change nothing until the next write."""
         with self._lock:
-            return all(self._get(a, APPLIED) == _f32(t) == self._get(a, TARGET)
-                       for a, t in ((a, self._target(a)) for a in range(self.n)))
+            return all(
+                self._get(a, APPLIED) == _f32(t) == self._get(a, TARGET)
+                for a, t in ((a, self._target(a)) for a in range(self.n))
+            )
 
     def advance_to(self, t_s: float) -> None:
         """Run the IPO cycles due up to `t_s` (cycle k at start + k·ipo_s); once every axis

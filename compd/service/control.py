@@ -285,14 +285,22 @@ class ControlServer:
         self._n += 1
         tag = f"cli#{self._n}@{os.getpid()}"
         probe = Probe(
-            t_s=math.nan, axis=req["axis"], error_um=float(req["error_um"]),
+            t_s=math.nan,
+            axis=req["axis"],
+            error_um=float(req["error_um"]),
             sigma_um=None if req.get("sigma_um") is None else float(req["sigma_um"]),
             position_mm=None if req.get("position_mm") is None else float(req["position_mm"]),
-            source=tag, residual=bool(req.get("residual", False)),
+            source=tag,
+            residual=bool(req.get("residual", False)),
         )
         link.send(probe)
-        answer: dict[str, Any] = {"ok": True, "outcome": "queued", "axis": probe.axis, "t_s": None,
-                                  "pid": self.daemon_pid}
+        answer: dict[str, Any] = {
+            "ok": True,
+            "outcome": "queued",
+            "axis": probe.axis,
+            "t_s": None,
+            "pid": self.daemon_pid,
+        }
         deadline = time.monotonic() + WAIT_S
         while not self._stop.is_set() and time.monotonic() < deadline:
             ev = link.outcome(tag)

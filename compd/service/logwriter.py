@@ -203,7 +203,8 @@ class LogWriter:
         self._pending.clear()
         if self.error is not None:
             log.info(
-                "data log writes again: %s", self.path,
+                "data log writes again: %s",
+                self.path,
                 extra={"event": "log_ok", "path": str(self.path), "rows_dropped": self.rows_dropped},
             )
             self.error = None
@@ -218,7 +219,8 @@ class LogWriter:
         if self.error is None:
             log.error(
                 "data log: %s (%s); compensation goes on, rows are dropped until it works again",
-                reason, self.path,
+                reason,
+                self.path,
                 extra={"event": "log_error", "path": str(self.path), "reason": reason},
             )
         self.error = reason

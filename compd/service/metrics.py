@@ -62,9 +62,11 @@ SIGNAL_FAMILIES: dict[str | None, tuple[str, float, str]] = {
     None: ("compd_signal_value", 1.0, "a signal whose name says no unit, as read"),
 }
 # the processes of compd whose CPU time and memory are exported (`compd_process_*`), by name
-PROCESS_METRICS = (("cpu_seconds", "counter", "CPU time (user and system) of compd's process"),
-                   ("resident_memory_bytes", "gauge", "Resident memory of compd's process"),
-                   ("start_time_seconds", "gauge", "Start time of compd's process since the Unix epoch"))
+PROCESS_METRICS = (
+    ("cpu_seconds", "counter", "CPU time (user and system) of compd's process"),
+    ("resident_memory_bytes", "gauge", "Resident memory of compd's process"),
+    ("start_time_seconds", "gauge", "Start time of compd's process since the Unix epoch"),
+)
 
 
 class SnapshotCollector:
@@ -77,9 +79,7 @@ class SnapshotCollector:
         self._count = 0
         self._sum_s = 0.0
 
-    def update(
-        self, snap: dict[str, Any], buckets: list[tuple[float, int]], count: int, sum_s: float
-    ) -> None:
+    def update(self, snap: dict[str, Any], buckets: list[tuple[float, int]], count: int, sum_s: float) -> None:
         with self._lock:
             self._snap, self._buckets, self._count, self._sum_s = snap, buckets, count, sum_s
 
@@ -119,17 +119,22 @@ class SnapshotCollector:
         link_up = GaugeMetricFamily("compd_sink_link_up", "1 when the sink reaches the machine (link up)")
         link_up.add_metric([], 1.0 if LP.link.read(snap) == "up" else 0.0)
         yield link_up
-        pup = GaugeMetricFamily("compd_process_up", "1 while compd's own process (a device worker, the service) runs;"
-                                " 0 while it is lost and not yet restarted", labels=["process"])
-        prs = CounterMetricFamily("compd_process_restarts", "Restarts of compd's own process after it died or hung",
-                                  labels=["process"])
+        pup = GaugeMetricFamily(
+            "compd_process_up",
+            "1 while compd's own process (a device worker, the service) runs; 0 while it is lost and not yet restarted",
+            labels=["process"],
+        )
+        prs = CounterMetricFamily(
+            "compd_process_restarts", "Restarts of compd's own process after it died or hung", labels=["process"]
+        )
         for p in snap.get("processes") or []:
             pup.add_metric([p["name"]], 1.0 if p["up"] else 0.0)
             prs.add_metric([p["name"]], p["restarts"])
         yield from (pup, prs)
         yield from _process_families(snap)
-        info = GaugeMetricFamily("compd_build_info", "1, labelled with compd's version and Python's",
-                                 labels=["version", "python"])
+        info = GaugeMetricFamily(
+            "compd_build_info", "1, labelled with compd's version and Python's", labels=["version", "python"]
+        )
         info.add_metric([version(), platform.python_version()], 1.0)
         yield info
         good = GaugeMetricFamily("compd_signal_good", "1 when the signal's quality is good", labels=["signal"])
@@ -146,8 +151,12 @@ class SnapshotCollector:
             sd = GaugeMetricFamily(
                 "compd_adapt_offset_sigma_meters", "Standard deviation of the offset estimate", labels=["axis"]
             )
-            acc = CounterMetricFamily("compd_probes_accepted", "Probes accepted by the innovation gate", labels=["axis"])
-            rej = CounterMetricFamily("compd_probes_rejected", "Probes rejected by the innovation gate", labels=["axis"])
+            acc = CounterMetricFamily(
+                "compd_probes_accepted", "Probes accepted by the innovation gate", labels=["axis"]
+            )
+            rej = CounterMetricFamily(
+                "compd_probes_rejected", "Probes rejected by the innovation gate", labels=["axis"]
+            )
             slope = GaugeMetricFamily(
                 "compd_adapt_slope_ratio", "Probe-estimated slope over the axis position (m per m)", labels=["axis"]
             )
@@ -165,8 +174,9 @@ def _help(f: Field) -> str:
     """A field's meaning as a family's help: JSON's null is NaN here; a name's or a flag's family is 0 or 1."""
     text = re.sub(r"\bnull\b", "NaN", f.meaning)
     if f.kind == "name":
-        return f"1 for the current {f.label or f.key}: {text}" + (f" ({STALE}: the cycle is stale)"
-                                                                  if f.stale and STALE not in text else "")
+        return f"1 for the current {f.label or f.key}: {text}" + (
+            f" ({STALE}: the cycle is stale)" if f.stale and STALE not in text else ""
+        )
     if f.kind == "flag":
         return f"1 when {text}"
     return text[:1].upper() + text[1:]
@@ -233,10 +243,14 @@ def _shadow_families(snap: dict[str, Any]) -> list[Any]:
     shadow = snap.get("shadow")
     if not shadow:
         return []
-    probes = CounterMetricFamily("compd_shadow_probes", "Probes the active and the shadow model were scored on",
-                                 labels=["axis"])
-    rms = GaugeMetricFamily("compd_shadow_probe_rms_meters", "RMS over the probes of the measured error minus the"
-                            " model's prediction, for the active and the shadow model", labels=["axis", "model"])
+    probes = CounterMetricFamily(
+        "compd_shadow_probes", "Probes the active and the shadow model were scored on", labels=["axis"]
+    )
+    rms = GaugeMetricFamily(
+        "compd_shadow_probe_rms_meters",
+        "RMS over the probes of the measured error minus the model's prediction, for the active and the shadow model",
+        labels=["axis", "model"],
+    )
     for axis, sc in (shadow.get("axes") or {}).items():
         probes.add_metric([axis], sc.get("probes", 0))
         rms.add_metric([axis, "active"], _f(sc.get("active_rms_um")) * UM)
@@ -251,8 +265,12 @@ def _process_families(snap: dict[str, Any]) -> list[Any]:
     from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
     from prometheus_client.process_collector import ProcessCollector
 
-    out = {key: (CounterMetricFamily if kind == "counter" else GaugeMetricFamily)(
-        f"compd_process_{key}", doc, labels=["process"]) for key, kind, doc in PROCESS_METRICS}
+    out = {
+        key: (CounterMetricFamily if kind == "counter" else GaugeMetricFamily)(
+            f"compd_process_{key}", doc, labels=["process"]
+        )
+        for key, kind, doc in PROCESS_METRICS
+    }
     procs = [("cycle", snap.get("pid")), ("service", snap.get("service_pid"))]
     procs += [(p["name"], p["pid"]) for p in snap.get("processes") or [] if p.get("up") and p["name"] != "service"]
     for name, pid in procs:
@@ -294,7 +312,8 @@ def example_snapshot() -> dict[str, Any]:
     generated from."""
     snap: dict[str, Any] = {
         "loop": {"stages": {"model": {"mean_us": 1.0, "max_us": 1.0}}},
-        "uptime_s": 1.0, "observe": False,
+        "uptime_s": 1.0,
+        "observe": False,
         "shadow": {"model": {"kind": "mlr"}, "axes": {"z": {"probes": 1, "active_rms_um": 1.0, "shadow_rms_um": 0.5}}},
         "processes": [{"name": "modbus-link-fanuc_pmc", "pid": 1, "up": True, "restarts": 0, "lost": None}],
         "faults": {"bad:stale": 1},
@@ -305,17 +324,39 @@ def example_snapshot() -> dict[str, Any]:
     axis = {f.key: _example(f) for f in AXIS}
     axis["contributions"] = {"spindle": {f.key: _example(f) for f in PART}}
     snap["axes"] = {"z": axis}
-    snap["signals"] = {name: {f.key: _example(f) for f in (*SIGNAL, *SIGNAL_SERVICE)}  # one of each unit's family
-                       for name in ("T_xi", "T_rise_k", "err_z_um", "speed_rpm", "cycle_s", "current_a", "supply_v",
-                                    "coolant_pct", "coolant_bar", "spindle_load")}
+    snap["signals"] = {
+        name: {f.key: _example(f) for f in (*SIGNAL, *SIGNAL_SERVICE)}  # one of each unit's family
+        for name in (
+            "T_xi",
+            "T_rise_k",
+            "err_z_um",
+            "speed_rpm",
+            "cycle_s",
+            "current_a",
+            "supply_v",
+            "coolant_pct",
+            "coolant_bar",
+            "spindle_load",
+        )
+    }
     return snap
 
 
 EXAMPLE_SNAPSHOT: dict[str, Any] = example_snapshot()
 
 # a metric's unit from its name (Prometheus: the base unit ends the name); others by name
-_UNIT_SUFFIXES = (("_meters", "m"), ("_seconds", "s"), ("_celsius", "°C"), ("_kelvin", "K"), ("_hertz", "Hz"),
-                  ("_amperes", "A"), ("_volts", "V"), ("_pascals", "Pa"), ("_bytes", "bytes"), ("_ratio", "ratio"))
+_UNIT_SUFFIXES = (
+    ("_meters", "m"),
+    ("_seconds", "s"),
+    ("_celsius", "°C"),
+    ("_kelvin", "K"),
+    ("_hertz", "Hz"),
+    ("_amperes", "A"),
+    ("_volts", "V"),
+    ("_pascals", "Pa"),
+    ("_bytes", "bytes"),
+    ("_ratio", "ratio"),
+)
 _UNITS = {
     "compd_word": "16-bit word (0 … 65535)",
     "compd_signal_value": "the signal's own (its name says none)",
@@ -328,8 +369,11 @@ RENAMED = (
     ("compd_adapt_offset_micrometres", "compd_adapt_offset_meters"),
     ("compd_adapt_offset_sigma_micrometres", "compd_adapt_offset_sigma_meters"),
     ("compd_adapt_slope_micrometres_per_metre", "compd_adapt_slope_ratio"),
-    ("compd_signal_value (every signal)", "compd_signal_celsius, _kelvin, _meters, _hertz, _seconds, _amperes, _volts,"
-     " _ratio, _pascals by the unit the signal's name says; compd_signal_value for the others"),
+    (
+        "compd_signal_value (every signal)",
+        "compd_signal_celsius, _kelvin, _meters, _hertz, _seconds, _amperes, _volts,"
+        " _ratio, _pascals by the unit the signal's name says; compd_signal_value for the others",
+    ),
 )
 
 
@@ -457,7 +501,11 @@ class MetricsServer:
     """
 
     def __init__(
-        self, bind: str = "127.0.0.1", port: int = 9105, *, idle_timeout_s: float = 10.0,
+        self,
+        bind: str = "127.0.0.1",
+        port: int = 9105,
+        *,
+        idle_timeout_s: float = 10.0,
         max_connections: int = 256,
     ) -> None:
         self.bind = bind

@@ -70,8 +70,9 @@ def load_saved(path: Path, model_kind: str, inputs: list[str], outputs: list[str
         return None
     except (OSError, ValueError) as e:
         reason = f"unreadable: {e}"
-        log.warning("state ignored: %s: %s", path, reason,
-                    extra={"event": "state_ignored", "path": str(path), "reason": reason})
+        log.warning(
+            "state ignored: %s: %s", path, reason, extra={"event": "state_ignored", "path": str(path), "reason": reason}
+        )
         return None
     try:
         if raw.get("format") != FORMAT:
@@ -87,8 +88,9 @@ def load_saved(path: Path, model_kind: str, inputs: list[str], outputs: list[str
         adapt = raw.get("adapt")
         return Saved(dict(raw["state"]), max(elapsed, 0.0), adapt if isinstance(adapt, dict) else None)
     except (KeyError, TypeError, ValueError, OverflowError) as e:  # OverflowError: an int no float holds
-        log.warning("state ignored: %s: %s", path, e,
-                    extra={"event": "state_ignored", "path": str(path), "reason": str(e)})
+        log.warning(
+            "state ignored: %s: %s", path, e, extra={"event": "state_ignored", "path": str(path), "reason": str(e)}
+        )
         return None
 
 
@@ -131,8 +133,12 @@ class StateWriter:
         for axis, part in axes.items():
             why = state_problem(part)
             if why is not None:
-                log.error("adaptation state not saved: %s: %s", axis, why,
-                          extra={"event": "adapt_state_refused", "path": str(self.path), "reason": f"{axis}: {why}"})
+                log.error(
+                    "adaptation state not saved: %s: %s",
+                    axis,
+                    why,
+                    extra={"event": "adapt_state_refused", "path": str(self.path), "reason": f"{axis}: {why}"},
+                )
                 return
         with self._cv:
             self._adapt = {"params_sha256": self.params_sha256, "saved_unix_s": time.time(), "axes": axes}
@@ -154,8 +160,12 @@ class StateWriter:
             self.error = None
         except OSError as e:
             self.error = f"state write failed: {e.strerror or e}"
-            log.error("%s: %s", self.error, self.path,
-                      extra={"event": "state_write_failed", "path": str(self.path), "reason": self.error})
+            log.error(
+                "%s: %s",
+                self.error,
+                self.path,
+                extra={"event": "state_write_failed", "path": str(self.path), "reason": self.error},
+            )
 
     def _run(self) -> None:
         while True:

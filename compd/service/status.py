@@ -103,9 +103,7 @@ def _over(loop: dict[str, Any], group: str, key: str) -> bool:
     return isinstance(over, dict) and key in (over.get(group) or ())
 
 
-def lateness_buckets(
-    stats: Any, bounds_us: tuple[float, ...]
-) -> tuple[list[tuple[float, int]], int, float]:
+def lateness_buckets(stats: Any, bounds_us: tuple[float, ...]) -> tuple[list[tuple[float, int]], int, float]:
     """Cumulative lateness counts at each bound (µs), the count and an estimated sum (s).
 
     For a histogram metric; all three come from one copy of the loop's histogram.
@@ -167,9 +165,7 @@ def read_status(path: str | Path) -> dict[str, Any]:
         with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
     except FileNotFoundError:
-        raise BadInput(
-            "no status file (is compd running, with a status path?)", file=path
-        ) from None
+        raise BadInput("no status file (is compd running, with a status path?)", file=path) from None
     except OSError as e:
         raise BadInput(f"cannot read status: {e.strerror or e}", file=path) from None
     except json.JSONDecodeError as e:
@@ -185,12 +181,29 @@ def read_status(path: str | Path) -> dict[str, Any]:
 # What `liveness` and `render` read, and the JSON type each must have (None is allowed too).
 _NUMBER = (int, float)
 _SHAPE: dict[str, tuple[type, ...]] = {
-    "pid": (int,), "state": (str,), "observe": (bool,), "written_unix_s": _NUMBER,
-    "status_period_s": _NUMBER, "uptime_s": _NUMBER, "loop_time_s": _NUMBER, "word": (str,),
+    "pid": (int,),
+    "state": (str,),
+    "observe": (bool,),
+    "written_unix_s": _NUMBER,
+    "status_period_s": _NUMBER,
+    "uptime_s": _NUMBER,
+    "loop_time_s": _NUMBER,
+    "word": (str,),
     "word_at_machine": (str,),
-    "config": (str,), "metrics_url": (str,), "version": (str,), "axes": (dict,), "signals": (dict,), "loop": (dict,),
-    "model": (dict,), "sink": (dict,), "faults": (dict,), "events": (list,), "adapt": (dict,),
-    "sources": (list,), "record_age_s": _NUMBER, "stale_after_s": _NUMBER,
+    "config": (str,),
+    "metrics_url": (str,),
+    "version": (str,),
+    "axes": (dict,),
+    "signals": (dict,),
+    "loop": (dict,),
+    "model": (dict,),
+    "sink": (dict,),
+    "faults": (dict,),
+    "events": (list,),
+    "adapt": (dict,),
+    "sources": (list,),
+    "record_age_s": _NUMBER,
+    "stale_after_s": _NUMBER,
 }
 
 
@@ -303,11 +316,17 @@ def _model_lines(model: dict[str, Any]) -> list[str]:
         out = []
         for p in parts:
             if isinstance(p, dict):
-                out.append(f"  contribution {p.get('name')}: {p.get('kind')} ({', '.join(p.get('inputs') or [])}"
-                           f" -> {', '.join(p.get('outputs') or [])})")
+                out.append(
+                    f"  contribution {p.get('name')}: {p.get('kind')} ({', '.join(p.get('inputs') or [])}"
+                    f" -> {', '.join(p.get('outputs') or [])})"
+                )
                 own = (model.get("state") or {}).get(p.get("name"))  # the sum's state is the newest, by name
-                out += ["  " + ln for ln in _model_lines({**p, "contributions": None,
-                                                           "state": own if isinstance(own, dict) else p.get("state")})]
+                out += [
+                    "  " + ln
+                    for ln in _model_lines(
+                        {**p, "contributions": None, "state": own if isinstance(own, dict) else p.get("state")}
+                    )
+                ]
         return out
     fit = model.get("fit") or {}
     coef = dict(model.get("coefficients") or {})
@@ -318,8 +337,9 @@ def _model_lines(model: dict[str, Any]) -> list[str]:
         + (f" by compd {fit['compd_version']}" if fit.get("compd_version") else "")
     ]
     rmse = fit.get("rmse_um") or {}
-    per_axis = {k: v for k, v in coef.items() if isinstance(v, dict) and set(v) <= set(model.get("outputs") or [])
-                and v}
+    per_axis = {
+        k: v for k, v in coef.items() if isinstance(v, dict) and set(v) <= set(model.get("outputs") or []) and v
+    }
     for axis in model.get("outputs") or []:
         parts = [f"{model.get('kind')}"]
         if isinstance(rmse, dict) and rmse.get(axis) is not None:
@@ -333,7 +353,9 @@ def _model_lines(model: dict[str, Any]) -> list[str]:
     t0 = state.get("t0_c")
     inputs = model.get("inputs") or []
     if isinstance(t0, list) and len(t0) == len(inputs):
-        lines.append("  T0 (latched at start): " + ", ".join(f"{n} {_short(v)} C" for n, v in zip(inputs, t0, strict=True)))
+        lines.append(
+            "  T0 (latched at start): " + ", ".join(f"{n} {_short(v)} C" for n, v in zip(inputs, t0, strict=True))
+        )
     elif t0 is not None:
         lines.append(f"  T0 (latched at start): {_short(t0)} C")
     elif "t0_c" in state:
@@ -350,8 +372,10 @@ def _plant_lines(data: dict[str, Any]) -> list[str]:
     tel = data.get("telemetry")
     if isinstance(tel, dict):
         state = "connected" if tel.get("connected") else f"NOT CONNECTED ({tel.get('last_error') or 'connecting'})"
-        line = (f"telemetry: {tel.get('broker')} {state}; {tel.get('acknowledged', 0)} acknowledged,"
-                f" {tel.get('buffered', 0)} buffered, {tel.get('dropped', 0)} dropped")
+        line = (
+            f"telemetry: {tel.get('broker')} {state}; {tel.get('acknowledged', 0)} acknowledged,"
+            f" {tel.get('buffered', 0)} buffered, {tel.get('dropped', 0)} dropped"
+        )
         if tel.get("buffer") == "memory":  # the buffer's file cannot be used: live, samples wait in memory
             line += f"; BUFFER IN MEMORY ({tel.get('buffer_error')}): the file is tried again"
         out.append(line)
@@ -371,10 +395,14 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
         head += ", OBSERVE MODE (output held disabled)"
     lines.append(head)
     if data.get("state") == STALE:  # the service writes on; nothing of the cycle's below is live
-        last = ", ".join(f"{n} {a.get('last_state')}" for n, a in (data.get("axes") or {}).items() if isinstance(a, dict))
-        lines.append(f"CYCLE STALE: no record from the cycle for {_num(data.get('record_age_s'), '.1f')} s (stale after"
-                     f" {_num(data.get('stale_after_s'), 'g')} s): what follows is its last record, not live"
-                     + (f"; the axes' last states: {last}" if last else ""))
+        last = ", ".join(
+            f"{n} {a.get('last_state')}" for n, a in (data.get("axes") or {}).items() if isinstance(a, dict)
+        )
+        lines.append(
+            f"CYCLE STALE: no record from the cycle for {_num(data.get('record_age_s'), '.1f')} s (stale after"
+            f" {_num(data.get('stale_after_s'), 'g')} s): what follows is its last record, not live"
+            + (f"; the axes' last states: {last}" if last else "")
+        )
     if data.get("config"):
         lines.append(f"config: {data['config']}")
     lp = data.get("loop", {})
@@ -390,8 +418,7 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
     )
     model = data.get("model", {})
     lines.append(
-        f"model: {model.get('kind')} ({', '.join(model.get('inputs', []))} ->"
-        f" {', '.join(model.get('outputs', []))})"
+        f"model: {model.get('kind')} ({', '.join(model.get('inputs', []))} -> {', '.join(model.get('outputs', []))})"
     )
     lines.extend(_model_lines(model))
     sink = data.get("sink", {})
@@ -430,8 +457,11 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
     shadow = data.get("shadow")
     if isinstance(shadow, dict):  # the candidate beside the model, driving nothing
         sm = shadow.get("model") or {}
-        lines.append(f"shadow: {sm.get('kind', '?')}" + (f" {sm['file']}" if sm.get("file") else "")
-                     + " (drives nothing; scored on the probes)")
+        lines.append(
+            f"shadow: {sm.get('kind', '?')}"
+            + (f" {sm['file']}" if sm.get("file") else "")
+            + " (drives nothing; scored on the probes)"
+        )
         for axis, sc in (shadow.get("axes") or {}).items():
             pred = (data.get("axes", {}).get(axis) or {}).get("shadow_um")
             lines.append(
@@ -441,8 +471,7 @@ def render(data: dict[str, Any], alive: bool, why: str) -> str:
     lines.append(f"{'signal':<14} {'value':>10} {'quality':<13} {'age_s':>8}")
     for name, s in data.get("signals", {}).items():
         lines.append(
-            f"{name:<14} {_num(s.get('value'), '10.3f')} {s.get('quality', '?'):<13}"
-            f" {_num(s.get('age_s'), '8.2f')}"
+            f"{name:<14} {_num(s.get('value'), '10.3f')} {s.get('quality', '?'):<13} {_num(s.get('age_s'), '8.2f')}"
         )
     for src in data.get("sources") or []:
         if src.get("last_error"):  # why a device's signals are lost, as its I/O worker logged it
@@ -496,7 +525,9 @@ def _process_lines(data: dict[str, Any]) -> list[str]:
             out.append(f"PROCESS LOST: {p.get('name')} (pid {p.get('pid')}) {p.get('lost')}: restarting")
         elif p.get("restarts"):
             n = p["restarts"]
-            out.append(f"process {p.get('name')} restarted {n} time{'s' if n != 1 else ''} (last lost: {p.get('lost')})")
+            out.append(
+                f"process {p.get('name')} restarted {n} time{'s' if n != 1 else ''} (last lost: {p.get('lost')})"
+            )
     return out
 
 

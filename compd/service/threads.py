@@ -52,8 +52,12 @@ class ServiceThread:
             return not self._thread.is_alive()
         self._thread.join(timeout_s)
         if self._thread.is_alive():
-            log.warning("service thread %s did not stop within %g s", self.name, timeout_s,
-                        extra={"event": "service_thread_stuck", "service_thread": self.name})
+            log.warning(
+                "service thread %s did not stop within %g s",
+                self.name,
+                timeout_s,
+                extra={"event": "service_thread_stuck", "service_thread": self.name},
+            )
             return False
         return True
 
@@ -62,5 +66,9 @@ class ServiceThread:
             self._run(*self._args)
         except Exception as e:
             self.failure = f"{type(e).__name__}: {e}"
-            log.exception("service thread %s failed: %s", self.name, self.failure,
-                          extra={"event": "service_thread_failed", "service_thread": self.name, "reason": self.failure})
+            log.exception(
+                "service thread %s failed: %s",
+                self.name,
+                self.failure,
+                extra={"event": "service_thread_failed", "service_thread": self.name, "reason": self.failure},
+            )

@@ -78,17 +78,25 @@ def rich_frame(path: str, data: dict[str, Any] | None, alive: bool, why: str, in
         state = str(a.get("state", "?"))
         style = "red" if state in ("fault", "stale") else "yellow" if state in ("starting", "recovering") else ""
         axes.add_row(
-            name, _cell(a.get("prediction_um"), ".2f"), _cell(a.get("correction_um"), ".2f"),
-            _cell(a.get("target_um"), ".2f"), str(a.get("byte") or "-"), "yes" if a.get("enable") else "no",
-            state, str(a.get("policy", "?")), "yes" if a.get("saturated") else "no", style=style,
+            name,
+            _cell(a.get("prediction_um"), ".2f"),
+            _cell(a.get("correction_um"), ".2f"),
+            _cell(a.get("target_um"), ".2f"),
+            str(a.get("byte") or "-"),
+            "yes" if a.get("enable") else "no",
+            state,
+            str(a.get("policy", "?")),
+            "yes" if a.get("saturated") else "no",
+            style=style,
         )
     sigs = Table(title="signals", title_justify="left")
     for col in ("signal", "value", "quality", "age s"):
         sigs.add_column(col, justify="right" if col in ("value", "age s") else "left")
     for name, sg in (data.get("signals") or {}).items():
         q = str(sg.get("quality", "?"))
-        sigs.add_row(name, _cell(sg.get("value"), ".3f"), q, _cell(sg.get("age_s"), ".2f"),
-                     style="" if q == "good" else "red")
+        sigs.add_row(
+            name, _cell(sg.get("value"), ".3f"), q, _cell(sg.get("age_s"), ".2f"), style="" if q == "good" else "red"
+        )
     parts += [axes, sigs]
     tail = [ln for ln in lines[cut:] if ln.startswith(("source ", "faults:", "metrics:", "recent events", "  t="))]
     if tail:
@@ -121,8 +129,9 @@ def watch(
         console = Console(file=out)
         try:
             data, alive, why = read_frame(path)
-            with Live(rich_frame(path, data, alive, why, interval_s), console=console,
-                      auto_refresh=False, transient=False) as live:
+            with Live(
+                rich_frame(path, data, alive, why, interval_s), console=console, auto_refresh=False, transient=False
+            ) as live:
                 shown = 1
                 while frames is None or shown < frames:
                     sleep(interval_s)

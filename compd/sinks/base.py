@@ -138,9 +138,7 @@ class Sink(ABC):
         return "connecting" if st == "up" and not self.link.synced() else st  # type: ignore[return-value]
 
     @abstractmethod
-    def write(
-        self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
-    ) -> None:
+    def write(self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float) -> None:
         """Hand the CNC this cycle's output."""
 
     def settle(self, now_s: float) -> None:
@@ -227,5 +225,10 @@ class Sink(ABC):
         return {"device": self.cfg.kind, "resolution_um": None, "max_abs_um": None, "max_rate_um_per_s": None}
 
     def get_status(self) -> dict[str, Any]:
-        return {"kind": self.cfg.kind, "writes": self.writes, "link": self.link_state(), "syncs": self.syncs,
-                "held_um": self.held_um()}
+        return {
+            "kind": self.cfg.kind,
+            "writes": self.writes,
+            "link": self.link_state(),
+            "syncs": self.syncs,
+            "held_um": self.held_um(),
+        }

@@ -60,21 +60,13 @@ class FanucPmcConfig(SinkConfig):
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
     timeout_s: float = Field(0.25, ge=0.001, le=30)
-    max_step_um: float = Field(
-        5.0, ge=0.01, le=1000, description="largest change of an axis per update"
-    )
-    min_update_s: float = Field(
-        0.02, ge=0.001, le=60, description="time between updates (>= 2 PMC scans)"
-    )
+    max_step_um: float = Field(5.0, ge=0.01, le=1000, description="largest change of an axis per update")
+    min_update_s: float = Field(0.02, ge=0.001, le=60, description="time between updates (>= 2 PMC scans)")
     x_word: int = Field(0, ge=0, le=65534, description="register of the X byte holding the word's low byte")
     x_strobe: int = Field(2, ge=0, le=65535, description="register of the X byte holding the strobe")
     strobe_bit: int = Field(0, ge=0, le=7)
-    r_command: int = Field(
-        202, ge=0, le=65534, description="register of axis 1's commanded shift (shift mode)"
-    )
-    status_address: int = Field(
-        400, ge=0, le=65530, description="scan counter lo, hi, alarm, reset, applied 1, 2"
-    )
+    r_command: int = Field(202, ge=0, le=65534, description="register of axis 1's commanded shift (shift mode)")
+    status_address: int = Field(400, ge=0, le=65530, description="scan counter lo, hi, alarm, reset, applied 1, 2")
     reset_alarm_on_start: bool = True
     scan_s: float = Field(0.008, ge=0.0005, le=1, description="in-process PMC: scan time")
     step_limit_um: int = Field(10, ge=1, le=1000, description="in-process PMC: its step limit (D0)")
@@ -130,8 +122,9 @@ class FanucPmcSink(Sink):
         cfg = self.cfg
         if self.pmc is not None:
             self.pmc.write_registers(LSB_NM, [int(round(self.lsb_um * 1000))])
-            return VirtualLink(self.pmc, self.time, status=(cfg.status_address, 8), name="fanuc_pmc",
-                               sync=self._sync_ranges())
+            return VirtualLink(
+                self.pmc, self.time, status=(cfg.status_address, 8), name="fanuc_pmc", sync=self._sync_ranges()
+            )
         return ModbusLink(
             cfg.host or "",
             cfg.port,
@@ -200,9 +193,7 @@ class FanucPmcSink(Sink):
         if self.time.catch_up:  # in process: the scan counter as the step lands, to count scans from
             self._scans_at_delivery = self._scans()
 
-    def write(
-        self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
-    ) -> None:
+    def write(self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float) -> None:
         self.writes += 1
         if self.link is None or not self.link.synced():  # what the PMC applies not yet read back
             self.time.set(now_s)
@@ -331,8 +322,7 @@ class FanucPmcSink(Sink):
         # over Modbus every row, as the PMC keeps its own time; and every row for a subclass
         # whose `write` does more (it may tell the device something every row)
         if self.pmc is None or type(self).write is not FanucPmcSink.write:
-            super().write_rows(t_s, words, changed, corr_um, enable, applied_um, commanded_um, terms,
-                               positions_mm)
+            super().write_rows(t_s, words, changed, corr_um, enable, applied_um, commanded_um, terms, positions_mm)
             return
         tl, wl, cl = t_s.tolist(), words.tolist(), changed.tolist()
         n = len(tl)
@@ -372,8 +362,12 @@ class FanucPmcSink(Sink):
         cfg = self.cfg
         where = "in process" if cfg.host is None else f"at {cfg.host}:{cfg.port}"
         res = self.lsb_um if cfg.mode == "word" else max(1.0, self.lsb_um)
-        return {"device": f"fanuc_pmc {where}", "resolution_um": res, "max_abs_um": MAX_MAG * self.lsb_um,
-                "max_rate_um_per_s": cfg.max_step_um / cfg.min_update_s}
+        return {
+            "device": f"fanuc_pmc {where}",
+            "resolution_um": res,
+            "max_abs_um": MAX_MAG * self.lsb_um,
+            "max_rate_um_per_s": cfg.max_step_um / cfg.min_update_s,
+        }
 
     def close(self) -> None:
         """Stop the link; what it last knew of the PMC stays readable (the run's summary)."""

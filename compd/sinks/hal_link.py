@@ -102,8 +102,10 @@ class HalPins(Component):
         for a in self.axes:  # the scale compd counts in (counts are reckoned from what is applied)
             if not math.isclose(float(self.comp[f"{a}.eoffset-scale"]), self.scale, rel_tol=1e-12):
                 if self.comp[f"{a}.eoffset-enable"] and int(self.comp[f"{a}.eoffset-counts"]) != 0:
-                    return (f"axis.{a}.eoffset-scale is {self.comp[f'{a}.eoffset-scale']} with the offset enabled:"
-                            f" compd counts in {self.scale:g} (sink.count_um); clear the offset first")
+                    return (
+                        f"axis.{a}.eoffset-scale is {self.comp[f'{a}.eoffset-scale']} with the offset enabled:"
+                        f" compd counts in {self.scale:g} (sink.count_um); clear the offset first"
+                    )
                 self.comp[f"{a}.eoffset-scale"] = self.scale
         return None
 
@@ -147,8 +149,14 @@ class HalPins(Component):
         flags = NETTED | ON | HOMED | (LIMITED if self.limited else 0)
         for a in self.axes:
             applied = float(self.comp[f"{a}.eoffset"]) * self.unit_um
-            regs += [*s32_regs(int(self.comp[f"{a}.eoffset-counts"])), int(bool(self.comp[f"{a}.eoffset-enable"])),
-                     *f32_regs(applied if math.isfinite(applied) else math.nan), flags, 0, 0]
+            regs += [
+                *s32_regs(int(self.comp[f"{a}.eoffset-counts"])),
+                int(bool(self.comp[f"{a}.eoffset-enable"])),
+                *f32_regs(applied if math.isfinite(applied) else math.nan),
+                flags,
+                0,
+                0,
+            ]
         if address < 0 or address + count > len(regs):
             return BadReply(f"registers {address}+{count} are not in the map", "range")
         return regs[address : address + count]
@@ -171,7 +179,6 @@ class HalPins(Component):
             return BadReply(f"counts {counts} out of range", "range")
         self.comp[f"{a}.eoffset-counts"] = counts
         return None
-
 
 
 def _fault(f: ModbusFault) -> dict[str, Any]:

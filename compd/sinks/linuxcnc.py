@@ -60,16 +60,20 @@ class LinuxcncConfig(SinkConfig):
 
     component: str = Field("compd", pattern=HAL_NAME, description="the HAL component's name (its pins' prefix)")
     axes: list[Literal["x", "y", "z", "a", "b", "c", "u", "v", "w"]] | None = Field(
-        None, min_length=1, description="LinuxCNC's axes this sink drives (its axis letters; default: the model's"
-        " outputs); every model output is one of them")
+        None,
+        min_length=1,
+        description="LinuxCNC's axes this sink drives (its axis letters; default: the model's"
+        " outputs); every model output is one of them",
+    )
     units: Literal["mm", "inch"] = Field("mm", description="the machine's linear units ([TRAJ] LINEAR_UNITS)")
     count_um: float = Field(0.1, gt=0, le=100, description="the offset of one count, um (eoffset-scale in units)")
-    safe_ramp_um_per_s: float = Field(50.0, gt=0, le=10000, description="how fast the safe output takes the"
-                                      " offset to 0")
-    status_period_s: float = Field(0.02, ge=0.001, le=1, description="how often the link reads what LinuxCNC"
-                                   " applies")
-    in_process: bool = Field(False, description="LinuxCNC's external offsets emulated in this process (replay,"
-                             " tests): no LinuxCNC needed")
+    safe_ramp_um_per_s: float = Field(
+        50.0, gt=0, le=10000, description="how fast the safe output takes the offset to 0"
+    )
+    status_period_s: float = Field(0.02, ge=0.001, le=1, description="how often the link reads what LinuxCNC applies")
+    in_process: bool = Field(
+        False, description="LinuxCNC's external offsets emulated in this process (replay, tests): no LinuxCNC needed"
+    )
 
     @model_validator(mode="after")
     def _linuxcnc_here(self) -> LinuxcncConfig:
@@ -126,8 +130,9 @@ class LinuxcncSink(Sink):
                 self.device = Eoffsets(n, self.cfg.count_um)
             return VirtualLink(self.device, self.time, status=block, name="linuxcnc", sync=[block])
         device = HalRegisters(self.cfg.component, self.hal_axes, self.cfg.units, self.cfg.count_um)
-        return ModbusLink("", 0, status=block, status_period_s=self.cfg.status_period_s, name="linuxcnc",
-                          sync=[block], device=device)
+        return ModbusLink(
+            "", 0, status=block, status_period_s=self.cfg.status_period_s, name="linuxcnc", sync=[block], device=device
+        )
 
     def open(self, now_s: float) -> None:
         """Start the link; nothing is written until what LinuxCNC applies is read back (`sync`)."""
@@ -216,8 +221,9 @@ class LinuxcncSink(Sink):
         regs = self.link.status if self.link is not None else None
         if not regs:
             return False
-        return any(regs[BLOCK * k + FLAGS] & LIMITED for k in range(len(self.hal_axes))
-                   if BLOCK * k + FLAGS < len(regs))
+        return any(
+            regs[BLOCK * k + FLAGS] & LIMITED for k in range(len(self.hal_axes)) if BLOCK * k + FLAGS < len(regs)
+        )
 
     def safe(self) -> bool:
         """Walk each axis's counts to an offset of 0 at `safe_ramp_um_per_s` and wait until LinuxCNC
@@ -266,8 +272,12 @@ class LinuxcncSink(Sink):
     def device_info(self) -> dict[str, Any]:
         """A count is the resolution; LinuxCNC blends the offset at its axis's OFFSET_AV_RATIO."""
         where = "in process" if self.cfg.in_process else f"HAL component {self.cfg.component}"
-        return {"device": f"linuxcnc {where}", "resolution_um": self.cfg.count_um, "max_abs_um": None,
-                "max_rate_um_per_s": None}
+        return {
+            "device": f"linuxcnc {where}",
+            "resolution_um": self.cfg.count_um,
+            "max_abs_um": None,
+            "max_rate_um_per_s": None,
+        }
 
     def close(self) -> None:
         """Stop the link (its worker releases the HAL component)."""
@@ -275,8 +285,12 @@ class LinuxcncSink(Sink):
             self.link.stop()
 
     def get_status(self) -> dict[str, Any]:
-        st = {**super().get_status(), "updates": self.updates, "counts": self.sent_counts.tolist(),
-              "eoffset_limited": self.limited()}
+        st = {
+            **super().get_status(),
+            "updates": self.updates,
+            "counts": self.sent_counts.tolist(),
+            "eoffset_limited": self.limited(),
+        }
         if self.link is not None:
             st["link_stats"] = self.link.get_status()
         return st

@@ -94,9 +94,7 @@ class ObserveSink(Sink):
     def link_state(self) -> LinkState:
         return self.inner.link_state()
 
-    def write(
-        self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
-    ) -> None:
+    def write(self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float) -> None:
         self.would_write = word
         changed = self.writes == 0
         if self._ramping:  # a correction found at the device: to 0 at the ramp rate, never a step
@@ -134,5 +132,9 @@ class ObserveSink(Sink):
     def get_status(self) -> dict[str, Any]:
         """The inner sink's status; `word` is what it writes (always 0x0000), `would_write` the
         word the loop computed and held back."""
-        return {**self.inner.get_status(), "observe": True, "word": "0x0000",
-                "would_write": f"0x{self.would_write:04X}"}
+        return {
+            **self.inner.get_status(),
+            "observe": True,
+            "word": "0x0000",
+            "would_write": f"0x{self.would_write:04X}",
+        }

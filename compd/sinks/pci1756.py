@@ -40,9 +40,7 @@ class Pci1756Config(SinkConfig):
         None, ge=0, le=31, description="DO bit toggled with every new word (the PMC latches on its edge)"
     )
     word_port: int = Field(0, ge=0, le=2, description="DO byte offset of the word's low byte")
-    heartbeat_bit: int | None = Field(
-        16, ge=0, le=31, description="DO bit toggled every cycle; none = no heartbeat"
-    )
+    heartbeat_bit: int | None = Field(16, ge=0, le=31, description="DO bit toggled every cycle; none = no heartbeat")
 
     @model_validator(mode="after")
     def _heartbeat_outside_word(self) -> Pci1756Config:
@@ -179,9 +177,7 @@ class Pci1756Sink(Sink):
     def await_held(self, timeout_s: float) -> bool:
         return self.card.await_held(timeout_s)
 
-    def write(
-        self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
-    ) -> None:
+    def write(self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float) -> None:
         if not self.card.synced():  # the lines not yet read back: nothing is written
             self.writes += 1
             return
@@ -248,8 +244,7 @@ class Pci1756Sink(Sink):
         card's lines hold each word from its row on, and the word is what they apply."""
         n = len(t_s)
         if not isinstance(self.card, Pci1756Card) or type(self).write is not Pci1756Sink.write or n == 0:
-            super().write_rows(t_s, words, changed, corr_um, enable, applied_um, commanded_um, terms,
-                               positions_mm)
+            super().write_rows(t_s, words, changed, corr_um, enable, applied_um, commanded_um, terms, positions_mm)
             return
         rows = np.flatnonzero(changed)
         if self._fresh and (rows.size == 0 or rows[0] != 0):
@@ -278,8 +273,12 @@ class Pci1756Sink(Sink):
         """The word on the DO lines: the codec's LSB, full scale 63 LSB, no rate limit of its own."""
         cfg = self.cfg
         where = "in process" if cfg.device == "emulated" else f"over modbus at {cfg.host}:{cfg.port}"
-        return {"device": f"pci1756 card {where}", "resolution_um": self.lsb_um,
-                "max_abs_um": MAX_MAG * self.lsb_um, "max_rate_um_per_s": None}
+        return {
+            "device": f"pci1756 card {where}",
+            "resolution_um": self.lsb_um,
+            "max_abs_um": MAX_MAG * self.lsb_um,
+            "max_rate_um_per_s": None,
+        }
 
     def get_status(self) -> dict[str, Any]:
         return {**super().get_status(), "word": f"0x{self.word:04X}"}

@@ -44,8 +44,9 @@ class SiemensConfig(SinkConfig):
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
     axes: dict[str, Annotated[int, Field(ge=0, le=63)]] | None = Field(
-        None, description="the axes this sink drives, each → its NC axis index; every model output is one of them"
-        " (default: the model's outputs, in order)"
+        None,
+        description="the axes this sink drives, each → its NC axis index; every model output is one of them"
+        " (default: the model's outputs, in order)",
     )
     min_change_um: float = Field(0.1, ge=0, le=100, description="smaller changes are not sent")
     min_update_s: float = Field(0.05, ge=0.001, le=60)
@@ -98,8 +99,14 @@ class SiemensSink(Sink):
         if self.nc is not None:
             status = (0, min(count, BLOCK * self.nc.n))
             return VirtualLink(self.nc, self.time, status=status, name="siemens", sync=[status])
-        return ModbusLink(self.cfg.host or "", self.cfg.port, device_id=self.cfg.device_id, status=(0, count),
-                          name="siemens", sync=[(0, count)])
+        return ModbusLink(
+            self.cfg.host or "",
+            self.cfg.port,
+            device_id=self.cfg.device_id,
+            status=(0, count),
+            name="siemens",
+            sync=[(0, count)],
+        )
 
     def open(self, now_s: float) -> None:
         """Connect; nothing is written until the NC's data is read back (`sync`)."""
@@ -126,9 +133,7 @@ class SiemensSink(Sink):
             if ax >= 0:
                 self.link.submit(BLOCK * ax + TYPE, [3 if linear else 1])
 
-    def write(
-        self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float
-    ) -> None:
+    def write(self, word: int, corr_um: np.ndarray, enable: np.ndarray, changed: bool, now_s: float) -> None:
         t = self.time
         if not t.catch_up:
             t.set(now_s)
@@ -304,8 +309,12 @@ class SiemensSink(Sink):
         rate = None
         if self.nc is not None:
             rate = 1000.0 * self.nc.cap_mm(0) / self.nc.ipo_s
-        return {"device": f"siemens_nc {where}", "resolution_um": self.cfg.min_change_um,
-                "max_abs_um": None, "max_rate_um_per_s": rate}
+        return {
+            "device": f"siemens_nc {where}",
+            "resolution_um": self.cfg.min_change_um,
+            "max_abs_um": None,
+            "max_rate_um_per_s": rate,
+        }
 
     def close(self) -> None:
         """Stop the link; what it last knew of the NC stays readable (the run's summary)."""

@@ -187,9 +187,13 @@ class PolledSource(Source):
         """The I/O worker that polls the device (built on first use, started by `start_polling`)."""
         if self._worker is None:
             self._worker = IoWorker(
-                self.make_poller(self._snapshot), name=f"poll-{self.name}", period_s=self.poll_period_s,
-                reconnect_min_s=self.reconnect_min_s, reconnect_max_s=self.reconnect_max_s,
-                round_hist=self.poll_hist, stall_after_s=self.stall_after_s,
+                self.make_poller(self._snapshot),
+                name=f"poll-{self.name}",
+                period_s=self.poll_period_s,
+                reconnect_min_s=self.reconnect_min_s,
+                reconnect_max_s=self.reconnect_max_s,
+                round_hist=self.poll_hist,
+                stall_after_s=self.stall_after_s,
             )
         return self._worker
 
@@ -198,8 +202,12 @@ class PolledSource(Source):
         clock), only when it asks (`poll_now`, between cycles)."""
         driven = clock.adopt_poller(self)
         host = hosting_now()
-        self.worker.start(paced=not driven, clock=clock.now, process=host.process and self.forkable and not driven,
-                          avoid_cpus=host.cpus)
+        self.worker.start(
+            paced=not driven,
+            clock=clock.now,
+            process=host.process and self.forkable and not driven,
+            avoid_cpus=host.cpus,
+        )
 
     def poll_now(self, stamp: float) -> bool:
         """One poll, stamped `stamp`, and wait for it; False when the device did not answer

@@ -84,7 +84,9 @@ class CanConfig(SourceConfig):
         return self
 
 
-def decode_signal(data: bytes, sig: CanSignal, burnout: Container[int], out_of_range: Container[int]) -> tuple[float, int]:
+def decode_signal(
+    data: bytes, sig: CanSignal, burnout: Container[int], out_of_range: Container[int]
+) -> tuple[float, int]:
     """(value °C, quality) of one signal in a frame's data; raw unsigned codes in `burnout`
     or `out_of_range` are those qualities."""
     if len(data) < sig.offset + sig.size:
@@ -122,8 +124,9 @@ class CanSource(Source):
         """The I/O worker that reads the bus (built on first use)."""
         if self._worker is None:
             reader = CanReader(self.cfg, self._snapshot, self.config_path)
-            self._worker = IoWorker(reader, name=f"can-{self.name}", period_s=0.0,
-                                    reconnect_min_s=0.1, reconnect_max_s=5.0)
+            self._worker = IoWorker(
+                reader, name=f"can-{self.name}", period_s=0.0, reconnect_min_s=0.1, reconnect_max_s=5.0
+            )
         return self._worker
 
     def start_polling(self, clock: Clock) -> None:
@@ -200,20 +203,28 @@ class CanReader(DeviceWork):
             self._bus = can.Bus(**kw)
         except can.CanInterfaceNotImplementedError as e:
             known = ", ".join(sorted(can.interfaces.VALID_INTERFACES))
-            raise BadInput(f"cannot open CAN interface {self.cfg.interface!r}: {e} (known: {known})",
-                           path=(*self.config_path, "interface")) from None
+            raise BadInput(
+                f"cannot open CAN interface {self.cfg.interface!r}: {e} (known: {known})",
+                path=(*self.config_path, "interface"),
+            ) from None
         except OSError as e:
             if e.errno in (errno.EAFNOSUPPORT, errno.EPROTONOSUPPORT):  # no SocketCAN in this kernel
-                raise BadInput(f"cannot open CAN interface {self.cfg.interface!r}: {e.strerror or e}",
-                               path=(*self.config_path, "interface")) from None
-            raise BadInput(f"cannot open CAN channel {self.cfg.channel!r}: {e.strerror or e}",
-                           path=(*self.config_path, "channel")) from None
+                raise BadInput(
+                    f"cannot open CAN interface {self.cfg.interface!r}: {e.strerror or e}",
+                    path=(*self.config_path, "interface"),
+                ) from None
+            raise BadInput(
+                f"cannot open CAN channel {self.cfg.channel!r}: {e.strerror or e}", path=(*self.config_path, "channel")
+            ) from None
         except ImportError as e:  # the interface's driver library is not installed
-            raise BadInput(f"cannot open CAN interface {self.cfg.interface!r}: {e}",
-                           path=(*self.config_path, "interface")) from None
+            raise BadInput(
+                f"cannot open CAN interface {self.cfg.interface!r}: {e}", path=(*self.config_path, "interface")
+            ) from None
         except (can.CanError, ValueError) as e:  # slcan/serial: no such device; a bad bitrate
-            raise BadInput(f"cannot open CAN channel {self.cfg.channel!r} ({self.cfg.interface}): {e}",
-                           path=(*self.config_path, "channel")) from None
+            raise BadInput(
+                f"cannot open CAN channel {self.cfg.channel!r} ({self.cfg.interface}): {e}",
+                path=(*self.config_path, "channel"),
+            ) from None
 
     def close(self) -> None:
         if self._bus is not None:
@@ -240,10 +251,14 @@ class CanReader(DeviceWork):
         short = len(data) < self._need[msg.arbitration_id]
         if short:
             self.bad_frames += 1
-            self.last_error = (f"frame 0x{msg.arbitration_id:X}: {len(data)} data bytes (DLC {msg.dlc}), "
-                               f"the signals need {self._need[msg.arbitration_id]}")
+            self.last_error = (
+                f"frame 0x{msg.arbitration_id:X}: {len(data)} data bytes (DLC {msg.dlc}), "
+                f"the signals need {self._need[msg.arbitration_id]}"
+            )
         for i, sig in sigs:
-            v, q = (np.nan, Quality.COMMS_LOST) if short else decode_signal(data, sig, self._burnout, self._out_of_range)
+            v, q = (
+                (np.nan, Quality.COMMS_LOST) if short else decode_signal(data, sig, self._burnout, self._out_of_range)
+            )
             if q == Quality.GOOD:
                 self._values[i] = v
             self._quality[i] = q

@@ -116,8 +116,12 @@ class DconSource(PolledSource):
 
     def get_status(self) -> dict[str, Any]:
         io = self.io_status()
-        return {**super().get_status(), "polls": self.polls, "comm_errors": io["comm_errors"],
-                "last_error": io["last_error"]}
+        return {
+            **super().get_status(),
+            "polls": self.polls,
+            "comm_errors": io["comm_errors"],
+            "last_error": io["last_error"],
+        }
 
 
 class DconPoller(Poller):

@@ -36,8 +36,12 @@ class HalSignal(Strict):
     """One signal: its name (the pin `<component>.<name>`) and the HAL pin it is read from."""
 
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_-]*$", description="the signal's name (a model input)")
-    pin: str | None = Field(None, pattern=HAL_NAME, description="the HAL pin that carries it (e.g."
-                            " spindle.0.speed-out): compd nets its input to it; none: the HAL file nets it")
+    pin: str | None = Field(
+        None,
+        pattern=HAL_NAME,
+        description="the HAL pin that carries it (e.g."
+        " spindle.0.speed-out): compd nets its input to it; none: the HAL file nets it",
+    )
 
 
 class HalConfig(SourceConfig):
@@ -86,7 +90,9 @@ class HalInputs(Component):
                 return why
         loose = [f"{self.name}.{n}" for n, _ in self.signals if not hal.pin_has_writer(f"{self.name}.{n}")]
         if loose:
-            return f"not netted to anything that writes it: {', '.join(loose)} (net it in the HAL file, or give its pin)"
+            return (
+                f"not netted to anything that writes it: {', '.join(loose)} (net it in the HAL file, or give its pin)"
+            )
         return None
 
     def answer(self, what: str, args: list[Any]) -> dict[str, Any]:

@@ -74,9 +74,7 @@ def decode_registers(
     return raw, float(struct.unpack(">" + _FORMATS[data_type], data)[0])
 
 
-def plan_reads(
-    spans: list[tuple[int, int]], max_gap: int = 0, max_count: int = 125
-) -> list[tuple[int, int]]:
+def plan_reads(spans: list[tuple[int, int]], max_gap: int = 0, max_count: int = 125) -> list[tuple[int, int]]:
     """Merge register spans (start, count) into as few requests as possible.
 
     Spans whose gap is at most `max_gap` registers are read together, as long as a
@@ -108,7 +106,9 @@ class ModbusChannel(Strict):
     out_of_range_codes: list[Code] | None = None
     status_address: int | None = Field(None, ge=0, le=65535, description="status register")
     bit: int | None = Field(
-        None, ge=0, le=31,
+        None,
+        ge=0,
+        le=31,
         description="read one bit of the register as 0 or 1 (a PMC or PLC signal: inhibit, referenced);"
         " no scale, offset or fault codes",
     )
@@ -164,8 +164,9 @@ class ModbusConfig(SourceConfig):
             for c in self.channels
         )
         if self.function in ("coils", "discrete") and not one_bit:
-            raise ValueError(f"function {self.function}: a channel is one bit (no bit, status_address"
-                             " or 32-bit data_type)")
+            raise ValueError(
+                f"function {self.function}: a channel is one bit (no bit, status_address or 32-bit data_type)"
+            )
         names = [c.name for c in self.channels]
         if len(set(names)) != len(names):
             raise ValueError("a channel name is used twice")
@@ -260,7 +261,11 @@ class ModbusPoller(OverModbus, Poller):
     client: ModbusClient
 
     def __init__(
-        self, cfg: ModbusConfig, channels: list[_Channel], requests: list[tuple[int, int]], snapshot: Snapshot,
+        self,
+        cfg: ModbusConfig,
+        channels: list[_Channel],
+        requests: list[tuple[int, int]],
+        snapshot: Snapshot,
         name: str,
     ) -> None:
         super().__init__(len(channels), snapshot)
@@ -269,8 +274,14 @@ class ModbusPoller(OverModbus, Poller):
         self._channels = channels
         self.requests = requests
         self.client = ModbusClient(
-            transport=cfg.transport, host=cfg.host, port=cfg.port, serial_port=cfg.serial_port,
-            baudrate=cfg.baudrate, parity=cfg.parity, stopbits=cfg.stopbits, device_id=cfg.device_id,
+            transport=cfg.transport,
+            host=cfg.host,
+            port=cfg.port,
+            serial_port=cfg.serial_port,
+            baudrate=cfg.baudrate,
+            parity=cfg.parity,
+            stopbits=cfg.stopbits,
+            device_id=cfg.device_id,
             timeout_s=cfg.timeout_s,
         )
         self.exception_replies = 0
@@ -279,8 +290,13 @@ class ModbusPoller(OverModbus, Poller):
         self._bad_request: dict[tuple[int, int], str] = {}  # request → why its last reply was refused
 
     def counters(self) -> dict[str, Any]:
-        return {**super().counters(), "exception_replies": self.exception_replies, "comm_errors": self.comm_errors,
-                "malformed_replies": self.malformed_replies, "client_connects": self.client.connects}
+        return {
+            **super().counters(),
+            "exception_replies": self.exception_replies,
+            "comm_errors": self.comm_errors,
+            "malformed_replies": self.malformed_replies,
+            "client_connects": self.client.connects,
+        }
 
     def poll(self, values: np.ndarray, quality: np.ndarray) -> None:
         cfg = self.cfg
@@ -310,7 +326,10 @@ class ModbusPoller(OverModbus, Poller):
             assert not isinstance(r, ModbusFault)
             if self._bad_request.pop((start, count), None) is not None:
                 log.info(
-                    "%s: replies to registers %d+%d are well-formed again", self.name, start, count,
+                    "%s: replies to registers %d+%d are well-formed again",
+                    self.name,
+                    start,
+                    count,
                     extra={"event": "modbus_reply_ok", "source": self.name, "request": f"{start}+{count}"},
                 )
             regs.update(zip(range(start, start + count), r, strict=True))
@@ -347,7 +366,13 @@ class ModbusPoller(OverModbus, Poller):
         if self._bad_request.get(request) != fault.reason:
             self._bad_request[request] = fault.reason
             log.warning(
-                "%s: %s", self.name, self.last_error,
-                extra={"event": "modbus_bad_reply", "source": self.name, "request": f"{start}+{count}",
-                       "reason": fault.reason},
+                "%s: %s",
+                self.name,
+                self.last_error,
+                extra={
+                    "event": "modbus_bad_reply",
+                    "source": self.name,
+                    "request": f"{start}+{count}",
+                    "reason": fault.reason,
+                },
             )

@@ -104,7 +104,8 @@ class ProbeSource(PolledSource):
     def open(self, now_s: float) -> None:
         if not self._used:
             log.warning(
-                "%s: no adapt section: probe results are read but not used", self.name,
+                "%s: no adapt section: probe results are read but not used",
+                self.name,
                 extra={"event": "probe_unused", "source": self.name},
             )
 
@@ -128,9 +129,24 @@ class ProbeSource(PolledSource):
         io = self.io_status()
         return {
             **super().get_status(),
-            "cnc": self.cfg.cnc, "address": self.address,
-            **{k: io.get(k) for k in ("state", "polls", "probes", "missed", "torn", "bad_axis", "exception_replies",
-                                      "comm_errors", "malformed_replies", "last_seq", "last_error")},
+            "cnc": self.cfg.cnc,
+            "address": self.address,
+            **{
+                k: io.get(k)
+                for k in (
+                    "state",
+                    "polls",
+                    "probes",
+                    "missed",
+                    "torn",
+                    "bad_axis",
+                    "exception_replies",
+                    "comm_errors",
+                    "malformed_replies",
+                    "last_seq",
+                    "last_error",
+                )
+            },
         }
 
 
@@ -153,9 +169,15 @@ class ProbePoller(OverModbus, DeviceWork):
 
     def counters(self) -> dict[str, Any]:
         return {
-            "polls": self.polls, "probes": self.probes, "missed": self.missed,
-            "torn": self.torn, "bad_axis": self.bad_axis, "exception_replies": self.exception_replies,
-            "comm_errors": self.comm_errors, "malformed_replies": self.malformed_replies, "last_seq": self.last_seq,
+            "polls": self.polls,
+            "probes": self.probes,
+            "missed": self.missed,
+            "torn": self.torn,
+            "bad_axis": self.bad_axis,
+            "exception_replies": self.exception_replies,
+            "comm_errors": self.comm_errors,
+            "malformed_replies": self.malformed_replies,
+            "last_seq": self.last_seq,
         }
 
     def connect(self) -> None:
@@ -198,8 +220,13 @@ class ProbePoller(OverModbus, DeviceWork):
             log.warning("%s: %s", self.name, self.last_error, extra={"event": "probe_bad_axis", "source": self.name})
             return True
         probe = Probe(
-            t_s=stamp, axis=self.cfg.axes[res.axis], error_um=res.deviation_um, sigma_um=res.sigma_um,
-            position_mm=res.position_mm, source=self.name, residual=True,
+            t_s=stamp,
+            axis=self.cfg.axes[res.axis],
+            error_um=res.deviation_um,
+            sigma_um=res.sigma_um,
+            position_mm=res.position_mm,
+            source=self.name,
+            residual=True,
         )
         self.probes += 1
         if not self.out.put(probe):
@@ -208,4 +235,3 @@ class ProbePoller(OverModbus, DeviceWork):
 
     def offline(self, request: Any) -> bool:
         return False
-

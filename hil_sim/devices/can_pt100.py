@@ -87,7 +87,9 @@ class CanPt100(ThreadedTransmitter):
                 if f == "no_answer":
                     break
                 if f == "garbage":
-                    msg = can.Message(arbitration_id=msg.arbitration_id, data=msg.data[:1], is_extended_id=self.extended_id)
+                    msg = can.Message(
+                        arbitration_id=msg.arbitration_id, data=msg.data[:1], is_extended_id=self.extended_id
+                    )
                 elif f == "crc_error":
                     msg = can.Message(is_error_frame=True)
                 self._bus.send(msg)
@@ -109,4 +111,3 @@ class CanPt100(ThreadedTransmitter):
     def _from_section(cls, tx: Pt100Transmitter, channels: list[dict[str, Any]], cfg: dict[str, Any]) -> CanPt100:
         layout = [CanChannel(**{k: v for k, v in c.items() if k not in ("value_c", "fault")}) for c in channels]
         return cls(tx, layout, **cfg)
-

@@ -122,4 +122,3 @@ class DconModule(ThreadedTransmitter):
     @classmethod
     def _from_section(cls, tx: Pt100Transmitter, channels: list[dict[str, Any]], cfg: dict[str, Any]) -> DconModule:
         return cls(tx, cfg.pop("serial_port"), **cfg)
-

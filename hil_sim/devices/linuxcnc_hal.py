@@ -22,8 +22,9 @@ from compd.io.hal_agent import linuxcnc_runs, net_input
 class LinuxcncHal:
     """hil_sim's HAL component: the spindle's speed and each axis's applied offset."""
 
-    def __init__(self, axes: Sequence[str] = ("z",), component: str = "hilsim",
-                 speed_pin: str = "spindle.0.speed-out") -> None:
+    def __init__(
+        self, axes: Sequence[str] = ("z",), component: str = "hilsim", speed_pin: str = "spindle.0.speed-out"
+    ) -> None:
         self.axes = list(axes)
         self.component = component
         self.speed_pin = speed_pin

@@ -142,9 +142,7 @@ class ModbusServerThread:
                 trace_packet=self._trace_packet,
             )
         else:
-            self._server = ModbusTcpServer(
-                sim, address=(self.host, self.port or 0), trace_packet=self._trace_packet
-            )
+            self._server = ModbusTcpServer(sim, address=(self.host, self.port or 0), trace_packet=self._trace_packet)
         await self._server.serve_forever(background=True)
         if self.serial_port is None:
             sock = self._server.transport.sockets[0]

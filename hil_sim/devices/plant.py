@@ -115,8 +115,12 @@ class PlantDevice:
         self._publish()
 
     def _init_probing(
-        self, every_s: float | None, axes: Sequence[str] | None, sigma_um: float,
-        outliers: Sequence[Sequence[float]], seed: int,
+        self,
+        every_s: float | None,
+        axes: Sequence[str] | None,
+        sigma_um: float,
+        outliers: Sequence[Sequence[float]],
+        seed: int,
     ) -> None:
         if every_s is not None and not every_s > 0:
             raise ValueError("plant: probe_every_s must be > 0")
@@ -146,7 +150,9 @@ class PlantDevice:
         axes = axes or {a: i for i, a in enumerate(self.plant.axes)}
         unknown = set(axes) - set(self.plant.axes)
         if unknown:
-            raise ValueError(f"plant: cnc_axes names {sorted(unknown)[0]!r}, not an axis of the plant {self.plant.axes}")
+            raise ValueError(
+                f"plant: cnc_axes names {sorted(unknown)[0]!r}, not an axis of the plant {self.plant.axes}"
+            )
         self.cnc, self.cnc_kind, self.cnc_on_plant_clock = cnc, kind, on_plant_clock
         self.cnc_axes = [axes.get(a, -1) for a in self.plant.axes]
         extras = list(self.plant.extra_names)
@@ -334,7 +340,9 @@ class PlantDevice:
         return f"{self.plant.name} {pace}, {self.duration_s / 3600:.2f} h"
 
 
-def residual_report(path: str | Path, t_from_s: float = 0.0, t_to_s: float | None = None) -> dict[str, dict[str, float]]:
+def residual_report(
+    path: str | Path, t_from_s: float = 0.0, t_to_s: float | None = None
+) -> dict[str, dict[str, float]]:
     """RMS and max |error| without (true error) and with compensation (residual) per axis, from a
     residual log; rows with `t_from_s` ≤ t ≤ `t_to_s`."""
     with open(path, encoding="utf-8") as fh:

@@ -53,9 +53,7 @@ class Plant:
         p = {**COMMON, **self.DEFAULTS}
         for key, value in (params or {}).items():
             if key not in p:
-                raise ValueError(
-                    f"unknown {self.name} plant param {key!r} (known: {', '.join(sorted(p))})"
-                )
+                raise ValueError(f"unknown {self.name} plant param {key!r} (known: {', '.join(sorted(p))})")
             default = p[key]
             if key in _SENSOR_MODEL:
                 pass  # a number or a mapping by sensor name: checked in _sensor_model()
@@ -63,9 +61,7 @@ class Plant:
                 if not isinstance(value, bool):
                     raise ValueError(f"{self.name} plant param {key}: must be true or false")
             elif isinstance(default, int | float) and (
-                isinstance(value, bool)
-                or not isinstance(value, int | float)
-                or not math.isfinite(value)
+                isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value)
             ):
                 raise ValueError(f"{self.name} plant param {key}: must be a number, got {value!r}")
             p[key] = value
@@ -80,9 +76,7 @@ class Plant:
         self.sensor_names: list[str] = []
         self.extra_names: list[str] = []
         self._build()
-        self.signal_names = (
-            list(self.sensor_names) + list(self.extra_names) + [f"err_{a}_um" for a in self.axes]
-        )
+        self.signal_names = list(self.sensor_names) + list(self.extra_names) + [f"err_{a}_um" for a in self.axes]
         drift = np.zeros(len(self.sensor_names))
         if p["drift_sensor"] is not None:
             if p["drift_sensor"] not in self.sensor_names:
@@ -178,8 +172,9 @@ class Plant:
         if isinstance(lag, dict):
             unknown = [k for k in lag if k not in names]
             if unknown:
-                raise ValueError(f"{self.name} plant param sensor_lag_s.{unknown[0]}: not a sensor "
-                                 f"(sensors: {', '.join(names)})")
+                raise ValueError(
+                    f"{self.name} plant param sensor_lag_s.{unknown[0]}: not a sensor (sensors: {', '.join(names)})"
+                )
             values = [lag.get(n, 0.0) for n in names]
         elif isinstance(lag, bool) or not isinstance(lag, int | float):
             raise ValueError(f"{self.name} plant param sensor_lag_s: seconds, or a mapping sensor: seconds")
@@ -245,9 +240,7 @@ class Plant:
         meas = self.sensors.read(self.sensor_temperatures_c(), self.t_s)
         return np.concatenate([meas, self.extras(), self.true_error_um()])
 
-    def record(
-        self, times_s: np.ndarray, on_row: Callable[[int, float], None] | None = None
-    ) -> np.ndarray:
+    def record(self, times_s: np.ndarray, on_row: Callable[[int, float], None] | None = None) -> np.ndarray:
         """Run to each of `times_s` (ascending) and return rows of `signal_names`.
 
         The sensor elements' temperatures (`sensor_temperatures_c`) are taken per row, the

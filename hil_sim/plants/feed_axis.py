@@ -62,9 +62,9 @@ class FeedAxisPlant(Plant):
         rows = [np.eye(n)[i] for i in (ax.motor, ax.table[0], ax.head, ax.blocks[0])]
         rows += [self.net.probe("y.base", x / 1000.0) for x in base_x]
         self._S = np.array(rows)
-        self.sensor_names = ["T_motor", "T_table", "T_head", "T_block"] + [
-            f"T_base_{int(nominal[k]):03d}" for k in on
-        ] + ["T_amb"]
+        self.sensor_names = (
+            ["T_motor", "T_table", "T_head", "T_block"] + [f"T_base_{int(nominal[k]):03d}" for k in on] + ["T_amb"]
+        )
         self.extra_names = ["pos_y_mm", "current_y_a"]
 
     def _g(self) -> np.ndarray:

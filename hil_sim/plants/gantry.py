@@ -90,8 +90,9 @@ class GantryPlant(Plant):
             names = [f"T{i}{c}" for c in "01234ABCD"]
             self.sensor_names += names
             self._guide_rows.append(len(rows) + 4)  # Ti4 follows the table (filled per sample)
-            rows += [eye[side.motor], eye[side.head], eye[side.table[0]], eye[side.table[1]],
-                     np.zeros(net.n)] + [eye[b] for b in side.blocks]
+            rows += [eye[side.motor], eye[side.head], eye[side.table[0]], eye[side.table[1]], np.zeros(net.n)] + [
+                eye[b] for b in side.blocks
+            ]
         self._S = np.array(rows)
         self.extra_names = ["pos_x1_mm", "pos_x2_mm", "current_x1_a", "current_x2_a"]
 
@@ -138,4 +139,3 @@ class GantryPlant(Plant):
             rise = self.net.T[self.columns] - self.net.T_init[self.columns]
             prof += (self._column_um_per_k * rise)[:, None]
         return prof
-

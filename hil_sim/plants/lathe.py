@@ -75,16 +75,30 @@ class LathePlant(Plant):
         n = int(p["spindle_nodes"])
         iron = {"conductivity_w_mk": 50.0, "density_kg_m3": 7200.0, "heat_capacity_j_kgk": 500.0}
         self.spindle = net.add_rod(
-            "spindle", lsp, n, area_m2=math.pi * r**2, perimeter_m=2 * math.pi * r,
-            conductivity_w_mk=50.0, density_kg_m3=7850.0, heat_capacity_j_kgk=460.0,
+            "spindle",
+            lsp,
+            n,
+            area_m2=math.pi * r**2,
+            perimeter_m=2 * math.pi * r,
+            conductivity_w_mk=50.0,
+            density_kg_m3=7850.0,
+            heat_capacity_j_kgk=460.0,
         )
         self.headstock = net.add_rod(
-            "headstock", lsp, n, area_m2=p["headstock_area_m2"],
-            perimeter_m=p["headstock_perimeter_m"], **iron,
+            "headstock",
+            lsp,
+            n,
+            area_m2=p["headstock_area_m2"],
+            perimeter_m=p["headstock_perimeter_m"],
+            **iron,
         )
         self.bed = net.add_rod(
-            "bed", p["bed_length_mm"] / 1000.0, int(p["bed_nodes"]), area_m2=p["bed_area_m2"],
-            perimeter_m=p["bed_perimeter_m"], **iron,
+            "bed",
+            p["bed_length_mm"] / 1000.0,
+            int(p["bed_nodes"]),
+            area_m2=p["bed_area_m2"],
+            perimeter_m=p["bed_perimeter_m"],
+            **iron,
         )
         self.saddle = net.add_mass("saddle", p["saddle_cap_j_k"], p["saddle_surface_m2"])
         net.link(self.spindle[0], self.headstock[0], p["front_bearing_g_w_k"])
@@ -103,11 +117,16 @@ class LathePlant(Plant):
         sx = [x / 1000.0 for x in p["sensor_x_mm"]]
         if len(sx) != 5:
             raise ValueError("lathe plant param sensor_x_mm: five positions (T1, T2, T3, T4, T5)")
-        self._S = np.array([
-            net.probe("headstock", sx[0]), net.probe("headstock", sx[1]),
-            net.probe("bed", sx[2]), net.probe("bed", sx[3]), net.probe("bed", sx[4]),
-            np.eye(net.n)[self.saddle],
-        ])
+        self._S = np.array(
+            [
+                net.probe("headstock", sx[0]),
+                net.probe("headstock", sx[1]),
+                net.probe("bed", sx[2]),
+                net.probe("bed", sx[3]),
+                net.probe("bed", sx[4]),
+                np.eye(net.n)[self.saddle],
+            ]
+        )
         # Z error = w · (T − T_init)
         w = np.zeros(net.n)
         dx_bed = net.dx_m["bed"]

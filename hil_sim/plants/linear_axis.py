@@ -72,16 +72,22 @@ class LinearAxis:
         if not hi > lo or p["stroke_offset_mm"] + hi > p["base_length_mm"] or p["stroke_offset_mm"] + lo < 0:
             raise ValueError(f"axis {name}: stroke_mm must lie on the base (offset + stroke within its length)")
         self.base = net.add_rod(
-            f"{name}.base", self.length_m, int(p["base_nodes"]), area_m2=p["base_area_m2"],
-            perimeter_m=p["base_perimeter_m"], conductivity_w_mk=45.0, density_kg_m3=7850.0,
+            f"{name}.base",
+            self.length_m,
+            int(p["base_nodes"]),
+            area_m2=p["base_area_m2"],
+            perimeter_m=p["base_perimeter_m"],
+            conductivity_w_mk=45.0,
+            density_kg_m3=7850.0,
             heat_capacity_j_kgk=460.0,
         )
         self.dx_m = net.dx_m[f"{name}.base"]
         self.motor = net.add_mass(f"{name}.motor", p["motor_cap_j_k"], p["motor_surface_m2"])
         half = p["table_cap_j_k"] / 2.0
         s_half = p["table_surface_m2"] / 2.0
-        self.table = np.array([net.add_mass(f"{name}.table_front", half, s_half),
-                               net.add_mass(f"{name}.table_rear", half, s_half)])
+        self.table = np.array(
+            [net.add_mass(f"{name}.table_front", half, s_half), net.add_mass(f"{name}.table_rear", half, s_half)]
+        )
         net.link(self.table[0], self.table[1], 10.0)
         net.link(self.motor, self.table[0], 0.6 * p["motor_table_g_w_k"])
         net.link(self.motor, self.table[1], 0.4 * p["motor_table_g_w_k"])

@@ -43,9 +43,7 @@ def ring_displacement_um(
     return float(u_mm * 1000.0)
 
 
-def preload_clearance_um(
-    growth_um: float, ball_mm: float, f: float, contact_deg: float, share: float
-) -> float:
+def preload_clearance_um(growth_um: float, ball_mm: float, f: float, contact_deg: float, share: float) -> float:
     """Radial clearance opened by axial growth between the bearings (paper 003 eqs. 9–11).
 
     α' = arcsin(sin α0 − share ΔL/(D_w (f − ½))), θ = (180° − (α0 − α'))/2 − 72°,
@@ -150,12 +148,24 @@ class SpindlePlant(Plant):
         ro, ri = p["housing_outer_mm"] / 1000.0, p["housing_inner_mm"] / 1000.0
         self.net = net = Network(self.dt_s, self.ambient_c(0.0))
         self.rotor = net.add_rod(
-            "rotor", length_m, n, area_m2=math.pi * r**2, perimeter_m=2 * math.pi * r,
-            conductivity_w_mk=p["conductivity_w_mk"], density_kg_m3=7850.0, heat_capacity_j_kgk=460.0,
+            "rotor",
+            length_m,
+            n,
+            area_m2=math.pi * r**2,
+            perimeter_m=2 * math.pi * r,
+            conductivity_w_mk=p["conductivity_w_mk"],
+            density_kg_m3=7850.0,
+            heat_capacity_j_kgk=460.0,
         )
         self.housing = net.add_rod(
-            "housing", length_m, n, area_m2=math.pi * (ro**2 - ri**2), perimeter_m=2 * math.pi * ro,
-            conductivity_w_mk=45.0, density_kg_m3=7850.0, heat_capacity_j_kgk=460.0,
+            "housing",
+            length_m,
+            n,
+            area_m2=math.pi * (ro**2 - ri**2),
+            perimeter_m=2 * math.pi * ro,
+            conductivity_w_mk=45.0,
+            density_kg_m3=7850.0,
+            heat_capacity_j_kgk=460.0,
         )
         for k in (0, n - 1):
             if p["bearing_g_w_k"] > 0:
@@ -204,9 +214,7 @@ class SpindlePlant(Plant):
 
     def steady_state_xi_mm(self, speed_rpm: float = 10000.0) -> float:
         """ξ of the rotor's steady-state field at `speed_rpm`, coolant off (paper 003 eq. 2)."""
-        t = self.net.steady_state(
-            self._g_res(speed_rpm, False), np.zeros(2), self._heat_for(speed_rpm)
-        )
+        t = self.net.steady_state(self._g_res(speed_rpm, False), np.zeros(2), self._heat_for(speed_rpm))
         return mean_value_point_mm(self.net.x_m["rotor"] * 1000.0, t[self.rotor])
 
     def _step(self, seg: Segment, t_amb_c: float) -> None:
@@ -218,13 +226,15 @@ class SpindlePlant(Plant):
     # --- outputs --------------------------------------------------------------------
     def true_temperatures_c(self) -> np.ndarray:
         net, t_amb = self.net, self.ambient_c()
-        return np.array([
-            net.at("rotor", self.xi_mm / 1000.0),
-            t_amb,
-            net.T[self.housing[0]],
-            net.T[self.housing[-1]],
-            self.coolant_c(t_amb),
-        ])
+        return np.array(
+            [
+                net.at("rotor", self.xi_mm / 1000.0),
+                t_amb,
+                net.T[self.housing[0]],
+                net.T[self.housing[-1]],
+                self.coolant_c(t_amb),
+            ]
+        )
 
     def extras(self) -> np.ndarray:
         return np.array([self.segment().speed_rpm])
@@ -238,7 +248,11 @@ class SpindlePlant(Plant):
         p = self.p
         r_b, r_c = p["ring_mm"][1], p["ring_mm"][2]
         thrust_n = centrifugal_thrust_n(
-            self.segment().speed_rpm, int(p["balls"]), p["ball_mm"], r_b + r_c, p["ball_density_kg_m3"],
+            self.segment().speed_rpm,
+            int(p["balls"]),
+            p["ball_mm"],
+            r_b + r_c,
+            p["ball_density_kg_m3"],
             p["contact_deg"],
         )
         play_um = p["growth_share"] * max(self.axial_um(), 0.0)
@@ -252,9 +266,7 @@ class SpindlePlant(Plant):
         t_ball = 0.5 * (t_in + t_out)
         u_b = self._ub[0] * t_in + self._ub[1] * t_ball  # inner ring at r_B, T: shaft → balls
         u_c = self._uc[0] * t_ball + self._uc[1] * t_out  # outer ring at r_C, T: balls → housing
-        c = preload_clearance_um(
-            self.axial_um(), p["ball_mm"], p["groove_f"], p["contact_deg"], p["growth_share"]
-        )
+        c = preload_clearance_um(self.axial_um(), p["ball_mm"], p["groove_f"], p["contact_deg"], p["growth_share"])
         return u_c - u_b + c
 
     def true_error_um(self) -> np.ndarray:

@@ -89,8 +89,14 @@ class VmcPlant(SpindlePlant):
         super()._build()  # the spindle: rotor, housing, its sensors (network frozen)
         p, net = self.p, self.net
         height_m = p["column_height_mm"] / 1000.0
-        for key in ("column_height_mm", "column_area_m2", "column_perimeter_m", "column_conductivity_w_mk",
-                    "column_alpha_per_k", "column_h_w_m2k"):
+        for key in (
+            "column_height_mm",
+            "column_area_m2",
+            "column_perimeter_m",
+            "column_conductivity_w_mk",
+            "column_alpha_per_k",
+            "column_h_w_m2k",
+        ):
             if not p[key] > 0:
                 raise ValueError(f"vmc plant param {key}: must be > 0")
         for key in ("column_base_g_w_k", "headstock_g_w_k"):
@@ -106,8 +112,13 @@ class VmcPlant(SpindlePlant):
         # the column joins the spindle's network; nothing has stepped yet, so freezing again
         # rebuilds the conduction matrix and starts every node, old and new, at the ambient
         self.column = net.add_rod(
-            "column", height_m, int(nodes), area_m2=p["column_area_m2"], perimeter_m=p["column_perimeter_m"],
-            conductivity_w_mk=p["column_conductivity_w_mk"], density_kg_m3=STEEL_DENSITY_KG_M3,
+            "column",
+            height_m,
+            int(nodes),
+            area_m2=p["column_area_m2"],
+            perimeter_m=p["column_perimeter_m"],
+            conductivity_w_mk=p["column_conductivity_w_mk"],
+            density_kg_m3=STEEL_DENSITY_KG_M3,
             heat_capacity_j_kgk=STEEL_HEAT_CAPACITY_J_KGK,
         )
         slide = int(self.column[np.argmin(np.abs(net.x_m["column"] - p["headstock_at_mm"] / 1000.0))])

@@ -47,7 +47,16 @@ The Debian packaging (DEBIAN/, this file) is under the same terms as compd.
 """
 
 # metadata files of a .dist-info folder that hold no license text
-NOT_LICENSE = {"METADATA", "RECORD", "WHEEL", "INSTALLER", "REQUESTED", "entry_points.txt", "top_level.txt", "direct_url.json"}
+NOT_LICENSE = {
+    "METADATA",
+    "RECORD",
+    "WHEEL",
+    "INSTALLER",
+    "REQUESTED",
+    "entry_points.txt",
+    "top_level.txt",
+    "direct_url.json",
+}
 
 
 def license_of(meta: Message) -> str:
@@ -58,7 +67,9 @@ def license_of(meta: Message) -> str:
     field = str(meta.get("License") or "").strip()
     if field and "\n" not in field and len(field) <= 80 and not field.lower().startswith("copyright"):
         return field
-    classifiers = [str(c).rsplit(" :: ", 1)[-1] for c in meta.get_all("Classifier") or [] if str(c).startswith("License ::")]
+    classifiers = [
+        str(c).rsplit(" :: ", 1)[-1] for c in meta.get_all("Classifier") or [] if str(c).startswith("License ::")
+    ]
     if classifiers:
         return " / ".join(classifiers)
     return "see its license texts"
@@ -84,7 +95,9 @@ def render(site: Path, final_site: str, years: str, package: str = "compd") -> s
         lines.append(f"    License: {license_of(meta)}")
         folder = dist_info(dist)
         if folder is not None:
-            texts = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file() and p.name not in NOT_LICENSE)
+            texts = sorted(
+                p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file() and p.name not in NOT_LICENSE
+            )
             where = f"{final_site}/{folder.name}/"
             lines.append(f"    License texts: {where}" + (f" ({', '.join(texts)})" if texts else " (none shipped)"))
         lines.append("")

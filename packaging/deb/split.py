@@ -86,8 +86,13 @@ def commissioning_distributions(dists: dict[str, Dist]) -> set[str]:
     if "compd" not in dists:
         raise SystemExit("split: no compd distribution installed")
     compd = dists["compd"]
-    extras = {norm(e) for e in HeaderParser().parsestr((compd.info / "METADATA").read_text(encoding="utf-8"))
-              .get_all("Provides-Extra") or []} - {norm(e) for e in NOT_INSTALLED_EXTRAS}
+    extras = {
+        norm(e)
+        for e in HeaderParser()
+        .parsestr((compd.info / "METADATA").read_text(encoding="utf-8"))
+        .get_all("Provides-Extra")
+        or []
+    } - {norm(e) for e in NOT_INSTALLED_EXTRAS}
     graph = {name: d.needs(set(dists), set()) for name, d in dists.items()}
     graph["compd"] = compd.needs(set(dists), extras)
     roots = {norm(r) for r in COMMISSIONING_ROOTS}
@@ -161,8 +166,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     moved, daemon = plan(site)
     for name, files in moved.items():
-        size = sum((site / f).lstat().st_size for f in files if (site / f).exists()) if args.list else \
-            move(root, site, args.to.resolve(), files)
+        size = (
+            sum((site / f).lstat().st_size for f in files if (site / f).exists())
+            if args.list
+            else move(root, site, args.to.resolve(), files)
+        )
         print(f"compd-commissioning: {name}: {len(files)} files, {size / 1e6:.2f} MB")
     print(f"compd: {', '.join(daemon)}")
     return 0

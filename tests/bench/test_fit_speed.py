@@ -20,7 +20,10 @@ import pytest
 from compd.commissioning import fitting
 from compd.identify import FITS
 
-pytestmark = [pytest.mark.bench, pytest.mark.timeout(1800)]  # CPU is measured: a loaded box only stretches the wall time
+pytestmark = [
+    pytest.mark.bench,
+    pytest.mark.timeout(1800),
+]  # CPU is measured: a loaded box only stretches the wall time
 
 LIMIT_CPU_S = 5.0  # each kind on a day's log (≤ 3000 rows)
 LIMIT_LVR_S = 4.0  # the gantry's LVR, 3086 × 19
@@ -64,14 +67,26 @@ def _hil_sim(*args: str) -> None:
 def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("fitlogs")
     for kind, rate in (("lathe", None), ("spindle", "30"), ("gantry", "28"), ("feed_axis", "30")):
-        _hil_sim("family", "--kind", kind, "--seeds", "1", "--out", str(d / kind), *(["--rate-s", rate] if rate else []))
+        _hil_sim(
+            "family", "--kind", kind, "--seeds", "1", "--out", str(d / kind), *(["--rate-s", rate] if rate else [])
+        )
     for name, hours, seed in (("spectrum_10h", 10, 7), ("spectrum_25h", 25, 8)):
-        _hil_sim("log", "--scenario", str(_spectrum(d / f"{name}.yaml", hours, seed)), "--out", str(d / f"{name}.csv"),
-                 "--rate-s", "30")
+        _hil_sim(
+            "log",
+            "--scenario",
+            str(_spectrum(d / f"{name}.yaml", hours, seed)),
+            "--out",
+            str(d / f"{name}.csv"),
+            "--rate-s",
+            "30",
+        )
     return {
-        "lathe": d / "lathe" / "lathe_1_train.csv", "spindle": d / "spindle" / "spindle_1_train.csv",
-        "gantry": d / "gantry" / "gantry_1_train.csv", "feed_axis": d / "feed_axis" / "feed_axis_1_train.csv",
-        "spectrum_10h": d / "spectrum_10h.csv", "spectrum_25h": d / "spectrum_25h.csv",
+        "lathe": d / "lathe" / "lathe_1_train.csv",
+        "spindle": d / "spindle" / "spindle_1_train.csv",
+        "gantry": d / "gantry" / "gantry_1_train.csv",
+        "feed_axis": d / "feed_axis" / "feed_axis_1_train.csv",
+        "spectrum_10h": d / "spectrum_10h.csv",
+        "spectrum_25h": d / "spectrum_25h.csv",
     }
 
 
@@ -106,8 +121,11 @@ def test_each_kind_fits_in_seconds(logs: dict[str, Path]) -> None:
         log = fitting.read_fit_log(logs[name])
         targets = fitting.default_targets(log, None)
         tc = targets[:1] if kind in ("ar1", "xi_spindle", "feed_axis") else None
-        cpu = _cpu_s(lambda log=log, kind=kind, inputs=inputs, tc=tc, options=options:
-                     fitting.fit_model(kind, log, inputs, tc, dict(options)))
+        cpu = _cpu_s(
+            lambda log=log, kind=kind, inputs=inputs, tc=tc, options=options: fitting.fit_model(
+                kind, log, inputs, tc, dict(options)
+            )
+        )
         rows.append(f"{label:<28} {len(log):>6} {cpu:>8.2f} {limit:>6.1f}")
         if cpu > limit:
             slow.append((label, round(cpu, 2), limit))

@@ -33,8 +33,19 @@ def _cpu_s(*args: str, cwd: Path) -> tuple[float, str]:
 
 def _log(machine: str, day: str, rate_s: float, out: Path, cwd: Path) -> None:
     scenario = Path(__file__).resolve().parents[2] / "hil_sim" / "scenarios" / f"{machine}_{day}.yaml"
-    _run(sys.executable, "-m", "hil_sim", "log", "--scenario", str(scenario), "--out", str(out),
-         "--rate-s", str(rate_s), cwd=cwd)
+    _run(
+        sys.executable,
+        "-m",
+        "hil_sim",
+        "log",
+        "--scenario",
+        str(scenario),
+        "--out",
+        str(out),
+        "--rate-s",
+        str(rate_s),
+        cwd=cwd,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -47,23 +58,47 @@ def days(tmp_path_factory):
         _log(machine, "unseen", 1.0, d / f"{machine}_unseen_1s.csv", d)
     _run(compd, "fit", "--kind", "ar1", "--log", "lathe_train.csv", "--out", "ar1.yaml", "--inputs", "T3", cwd=d)
     _run(compd, "fit", "--kind", "lvr", "--log", "gantry_train.csv", "--out", "lvr.yaml", cwd=d)
-    _run(compd, "fit", "--kind", "xi_spindle", "--log", "spindle_train.csv", "--out", "xi.yaml",
-         "--inputs", "T_xi", "speed_rpm", "--target", "err_z_um", cwd=d)
-    for name, model, sink in (("gantry_pci.yaml", {"kind": "lvr", "file": "lvr.yaml"}, {"kind": "pci1756"}),
-                              ("spindle_pmc.yaml", {"kind": "xi_spindle", "file": "xi.yaml"}, {"kind": "fanuc_pmc"})):
-        (d / name).write_text(yaml.safe_dump({
-            "loop": {"period_s": 0.002},
-            "sources": [{"kind": "replay", "name": "log", "path": "unused.csv"}],
-            "model": model, "sink": sink,
-        }))
+    _run(
+        compd,
+        "fit",
+        "--kind",
+        "xi_spindle",
+        "--log",
+        "spindle_train.csv",
+        "--out",
+        "xi.yaml",
+        "--inputs",
+        "T_xi",
+        "speed_rpm",
+        "--target",
+        "err_z_um",
+        cwd=d,
+    )
+    for name, model, sink in (
+        ("gantry_pci.yaml", {"kind": "lvr", "file": "lvr.yaml"}, {"kind": "pci1756"}),
+        ("spindle_pmc.yaml", {"kind": "xi_spindle", "file": "xi.yaml"}, {"kind": "fanuc_pmc"}),
+    ):
+        (d / name).write_text(
+            yaml.safe_dump(
+                {
+                    "loop": {"period_s": 0.002},
+                    "sources": [{"kind": "replay", "name": "log", "path": "unused.csv"}],
+                    "model": model,
+                    "sink": sink,
+                }
+            )
+        )
     return d
 
 
-@pytest.mark.parametrize(("what", "args"), [
-    ("lathe ar1, FANUC PMC (model file)", ("--model", "ar1.yaml", "--log", "lathe_unseen_1s.csv")),
-    ("gantry lvr, PCI-1756 (config)", ("gantry_pci.yaml", "--log", "gantry_unseen_1s.csv")),
-    ("spindle xi_spindle, FANUC PMC (config)", ("spindle_pmc.yaml", "--log", "spindle_unseen_1s.csv")),
-])
+@pytest.mark.parametrize(
+    ("what", "args"),
+    [
+        ("lathe ar1, FANUC PMC (model file)", ("--model", "ar1.yaml", "--log", "lathe_unseen_1s.csv")),
+        ("gantry lvr, PCI-1756 (config)", ("gantry_pci.yaml", "--log", "gantry_unseen_1s.csv")),
+        ("spindle xi_spindle, FANUC PMC (config)", ("spindle_pmc.yaml", "--log", "spindle_unseen_1s.csv")),
+    ],
+)
 def test_a_day_of_1_s_rows_through_compd_replay(days, what, args):
     cpu_s, out = _cpu_s(str(BIN / "compd"), "replay", *args, cwd=days)
     print(f"\ncompd replay {' '.join(args)}  [{what}]: CPU {cpu_s:.2f} s (user + sys)\n{out.strip()}")
@@ -77,8 +112,17 @@ def test_bench_day_of_1hz_log(tmp_path):
     from tests.commissioning.test_replay import ALPHA, LENGTH_MM, spindle_log
 
     model = tmp_path / "xi.yaml"
-    model.write_text(yaml.safe_dump({"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                                     "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM, "t0_c": None}, "fit": {}}))
+    model.write_text(
+        yaml.safe_dump(
+            {
+                "kind": "xi_spindle",
+                "inputs": ["T_xi"],
+                "outputs": ["z"],
+                "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM, "t0_c": None},
+                "fit": {},
+            }
+        )
+    )
     log = tmp_path / "day.csv"
     spindle_log(log, hours=24.0)
     t0 = time.perf_counter()

@@ -40,6 +40,8 @@ def test_status_record_write_and_compose_us(tmp_path: Path) -> None:
     finally:
         app.close()
     p50, p99, p999 = np.percentile(took, (50, 99, 99.9))
-    print(f"status record write, {WRITES} writes: p50 {p50:.2f} us, p99 {p99:.2f} us, p99.9 {p999:.1f} us,"
-          f" max {took.max():.1f} us; the service's read + compose: {compose_us:.0f} us")
+    print(
+        f"status record write, {WRITES} writes: p50 {p50:.2f} us, p99 {p99:.2f} us, p99.9 {p999:.1f} us,"
+        f" max {took.max():.1f} us; the service's read + compose: {compose_us:.0f} us"
+    )
     assert p50 <= WRITE_P50_LIMIT_US

@@ -20,9 +20,25 @@ from rig.bench import format_table
 def test_bench_writes_contract_json(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     r = subprocess.run(
-        [sys.executable, "-m", "compd", "bench", "--cycles", "400", "--naive-cycles", "30", "--load", "1",
-         "--late-us", "1", "--json", str(out)],
-        capture_output=True, text=True, timeout=180,
+        [
+            sys.executable,
+            "-m",
+            "compd",
+            "bench",
+            "--cycles",
+            "400",
+            "--naive-cycles",
+            "30",
+            "--load",
+            "1",
+            "--late-us",
+            "1",
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
     )
     assert r.returncode == 0, r.stderr
     assert "compd loop" in r.stdout and "naive loop" in r.stdout
@@ -59,8 +75,14 @@ def test_bench_writes_contract_json(tmp_path: Path) -> None:
     assert la["threshold_us"] == 1.0 and 0 <= la["overlapping_none"] <= la["late_cycles"] <= 400
     assert all(0 <= v <= la["late_cycles"] for v in la["overlapping"].values())
     # the threads that can overlap: the three modules' pollers, the PMC's link, the status writer
-    assert set(la["overlapping"]) <= {"poll-pt100_1", "poll-pt100_2", "poll-pt100_3", "modbus-link-fanuc_pmc",
-                                      "compd-status", "compd-log"}
+    assert set(la["overlapping"]) <= {
+        "poll-pt100_1",
+        "poll-pt100_2",
+        "poll-pt100_3",
+        "modbus-link-fanuc_pmc",
+        "compd-status",
+        "compd-log",
+    }
 
 
 def test_bench_rejects_a_negative_load() -> None:

@@ -82,12 +82,23 @@ def files(tmp_path_factory):
     (d / "adir").mkdir()
     for name, source in (
         ("can_unknown.yaml", "{kind: can, name: c, interface: nosuch, channel: can0, signals: [{name: T_a, id: 1}]}"),
-        ("can_slcan.yaml", "{kind: can, name: c, interface: slcan, channel: /dev/ttyNOPE0, signals: [{name: T_a, id: 1}]}"),
-        ("can_serial.yaml", "{kind: can, name: c, interface: serial, channel: /dev/ttyNOPE0, signals: [{name: T_a, id: 1}]}"),
-        ("can_socketcan.yaml", "{kind: can, name: c, interface: socketcan, channel: nocan9, signals: [{name: T_a, id: 1}]}"),
+        (
+            "can_slcan.yaml",
+            "{kind: can, name: c, interface: slcan, channel: /dev/ttyNOPE0, signals: [{name: T_a, id: 1}]}",
+        ),
+        (
+            "can_serial.yaml",
+            "{kind: can, name: c, interface: serial, channel: /dev/ttyNOPE0, signals: [{name: T_a, id: 1}]}",
+        ),
+        (
+            "can_socketcan.yaml",
+            "{kind: can, name: c, interface: socketcan, channel: nocan9, signals: [{name: T_a, id: 1}]}",
+        ),
         ("dcon.yaml", "{kind: dcon, name: d, serial_port: /dev/ttyNOPE0, channels: [T_a]}"),
-        ("rtu.yaml", "{kind: modbus, name: m, transport: rtu, serial_port: /dev/ttyNOPE0,"
-                     " channels: [{name: T_a, address: 0}]}"),
+        (
+            "rtu.yaml",
+            "{kind: modbus, name: m, transport: rtu, serial_port: /dev/ttyNOPE0, channels: [{name: T_a, address: 0}]}",
+        ),
     ):
         (d / name).write_text(DEVICE.format(source=source))
     return d
@@ -101,34 +112,44 @@ CASES = [
     (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/afile/x.yaml"], ["afile/x.yaml", "--out"]),
     (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/missing/x.yaml"], ["missing/x.yaml", "--out"]),
     (["fit", "--kind", "all", "--log", "{d}/log.csv", "--out", "{d}/afile"], ["afile", "--out", "not a folder"]),
-    (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml", "--report", "/proc/r.json"],
-     ["/proc/r.json", "--report"]),
-    (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml", "--plot", "{d}/p.xyz"],
-     ["p.xyz", "--plot", ".xyz"]),
+    (
+        ["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml", "--report", "/proc/r.json"],
+        ["/proc/r.json", "--report"],
+    ),
+    (
+        ["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml", "--plot", "{d}/p.xyz"],
+        ["p.xyz", "--plot", ".xyz"],
+    ),
     (["predict", "{d}/model.yaml", "--log", "{d}/log.csv", "--out", "{d}/adir"], ["adir", "--out"]),
     (["predict", "{d}/model.yaml", "--log", "{d}/log.csv", "--out", "/proc/p.csv"], ["/proc/p.csv", "--out"]),
-    (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv", "--report", "/proc/r.json"],
-     ["/proc/r.json", "--report"]),
+    (
+        ["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv", "--report", "/proc/r.json"],
+        ["/proc/r.json", "--report"],
+    ),
     (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv", "--report", "{d}/adir"], ["adir", "--report"]),
-    (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv", "--plot", "{d}/afile/p.png"],
-     ["afile/p.png", "--plot"]),
+    (
+        ["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv", "--plot", "{d}/afile/p.png"],
+        ["afile/p.png", "--plot"],
+    ),
     (["run", "{d}/sim.yaml", "--json", "/proc/x.json"], ["/proc/x.json", "--json"]),
     (["run", "{d}/sim.yaml", "--json", "{d}/adir"], ["adir", "--json"]),
     (["bench", "--cycles", "10", "--json", "/proc/b.json"], ["/proc/b.json", "--json"]),
     (["docs", "--out", "/proc/x.md"], ["/proc/x.md", "--out"]),
     # an output in a folder that does not exist: every command with an output path, before the work
-    *[(argv + [flag, "{d}/nofolder/" + name], ["nofolder/" + name, flag, "No such file or directory"])
-      for argv, flag, name in [
-          (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml"], "--report", "r.json"),
-          (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml"], "--plot", "p.png"),
-          (["fit", "--kind", "all", "--log", "{d}/log.csv", "--out", "{d}/nofolder/all"], "--report", "r.json"),
-          (["predict", "{d}/model.yaml", "--log", "{d}/log.csv"], "--out", "p.csv"),
-          (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv"], "--report", "r.json"),
-          (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv"], "--plot", "p.png"),
-          (["run", "{d}/sim.yaml"], "--json", "r.json"),
-          (["score", "{d}/model.yaml", "--log", "{d}/log.csv"], "--json", "s.json"),
-          (["docs"], "--out", "c.md"),
-      ]],
+    *[
+        (argv + [flag, "{d}/nofolder/" + name], ["nofolder/" + name, flag, "No such file or directory"])
+        for argv, flag, name in [
+            (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml"], "--report", "r.json"),
+            (["fit", "--kind", "mlr", "--log", "{d}/log.csv", "--out", "{d}/m.yaml"], "--plot", "p.png"),
+            (["fit", "--kind", "all", "--log", "{d}/log.csv", "--out", "{d}/nofolder/all"], "--report", "r.json"),
+            (["predict", "{d}/model.yaml", "--log", "{d}/log.csv"], "--out", "p.csv"),
+            (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv"], "--report", "r.json"),
+            (["replay", "--model", "{d}/model.yaml", "--log", "{d}/log.csv"], "--plot", "p.png"),
+            (["run", "{d}/sim.yaml"], "--json", "r.json"),
+            (["score", "{d}/model.yaml", "--log", "{d}/log.csv"], "--json", "s.json"),
+            (["docs"], "--out", "c.md"),
+        ]
+    ],
     # log time: non-finite, absurd, absurd span
     (["replay", "--model", "{d}/model.yaml", "--log", "{d}/t_1e308.csv"], ["t_1e308.csv:31", "t_s"]),
     (["replay", "--model", "{d}/model.yaml", "--log", "{d}/t_inf.csv"], ["t_inf.csv:31", "t_s", "finite"]),
@@ -168,9 +189,7 @@ CASES = [
 @pytest.mark.parametrize(("argv", "words"), CASES, ids=[" ".join(c[0]).replace("{d}/", "") for c in CASES])
 def test_bad_input_is_exit_2_one_line(files, argv, words):
     argv = [a.replace("{d}", str(files)) for a in argv]
-    proc = subprocess.run(
-        [sys.executable, "-m", "compd", *argv], capture_output=True, text=True, timeout=120, cwd=ROOT
-    )
+    proc = subprocess.run([sys.executable, "-m", "compd", *argv], capture_output=True, text=True, timeout=120, cwd=ROOT)
     err = proc.stderr
     assert "Traceback" not in err and "internal error" not in err, err
     assert proc.returncode == 2, (proc.returncode, err, proc.stdout[-500:])
@@ -186,9 +205,24 @@ def test_refused_outputs_are_not_left_behind(files, tmp_path):
     """The write check does not leave an empty file where the work then failed."""
     out = tmp_path / "m.yaml"
     proc = subprocess.run(
-        [sys.executable, "-m", "compd", "fit", "--kind", "mlr", "--log", str(files / "log.csv"), "--out", str(out),
-         "--report", "/proc/r.json"],
-        capture_output=True, text=True, timeout=120, cwd=ROOT,
+        [
+            sys.executable,
+            "-m",
+            "compd",
+            "fit",
+            "--kind",
+            "mlr",
+            "--log",
+            str(files / "log.csv"),
+            "--out",
+            str(out),
+            "--report",
+            "/proc/r.json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
     )
     assert proc.returncode == 2 and not out.exists()
 
@@ -214,9 +248,9 @@ def test_can_open_errors_name_the_key(monkeypatch, tmp_path, exc, key):
 
     monkeypatch.setattr(can, "Bus", no_bus)
     cfg = tmp_path / "c.yaml"
-    cfg.write_text(DEVICE.format(
-        source="{kind: can, name: c, interface: socketcan, channel: can0, signals: [{name: T_a, id: 1}]}"
-    ))
+    cfg.write_text(
+        DEVICE.format(source="{kind: can, name: c, interface: socketcan, channel: can0, signals: [{name: T_a, id: 1}]}")
+    )
     app = App(load_config(cfg))
     with pytest.raises(BadInput) as e:
         app.open()

@@ -17,8 +17,17 @@ FIELD_MIN_PCT = 88.0  # measured 92.2 % on this stretch (MLR 80.5 %), 88.5 % ove
 
 def test_feed_axis_default_fit_beats_mlr_in_the_siemens_loop(tmp_path):
     kinds = ("feed_axis", "mlr")
-    runs = [dict(machine="feed_axis", model_file=cl.prepare_model("feed_axis", kind, tmp_path), workdir=tmp_path,
-                 speedup=SPEEDUP, duration_s=HOURS * 3600, tag=kind) for kind in kinds]
+    runs = [
+        dict(
+            machine="feed_axis",
+            model_file=cl.prepare_model("feed_axis", kind, tmp_path),
+            workdir=tmp_path,
+            speedup=SPEEDUP,
+            duration_s=HOURS * 3600,
+            tag=kind,
+        )
+        for kind in kinds
+    ]
     assert "field:" in runs[0]["model_file"].read_text() and "gain_integral" in runs[0]["model_file"].read_text()
     rows = dict(zip(kinds, cl.closed_loops(runs), strict=True))
     print(cl.table(list(rows.values())))

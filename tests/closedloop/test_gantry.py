@@ -13,8 +13,17 @@ HOURS, SPEEDUP = 5.0, 7200.0
 
 def test_gantry_lvr_through_pci1756_and_pmc_cuts_both_axes(tmp_path):
     kinds = ("lvr", "mlr")
-    runs = [dict(machine="gantry", model_file=cl.prepare_model("gantry", kind, tmp_path), workdir=tmp_path,
-                 speedup=SPEEDUP, duration_s=HOURS * 3600, tag=kind) for kind in kinds]
+    runs = [
+        dict(
+            machine="gantry",
+            model_file=cl.prepare_model("gantry", kind, tmp_path),
+            workdir=tmp_path,
+            speedup=SPEEDUP,
+            duration_s=HOURS * 3600,
+            tag=kind,
+        )
+        for kind in kinds
+    ]
     rows = dict(zip(kinds, cl.closed_loops(runs), strict=True))
     print(cl.table(list(rows.values())))
     for axis in ("x1", "x2"):

@@ -11,8 +11,9 @@ HOURS, SPEEDUP = 3.0, 7200.0  # in lockstep; SPEEDUP only sets compd's period (4
 def test_lathe_probes_reach_compd_and_an_outlier_is_rejected(tmp_path):
     model = cl.prepare_model("lathe", "ar1", tmp_path)
     probing = {"every_s": 900.0, "sigma_um": 0.3, "seed": 1, "outliers": [[5400.0, 30.0]]}
-    r = cl.closed_loop("lathe", model, tmp_path, speedup=SPEEDUP, duration_s=HOURS * 3600, tag="probing",
-                       probing=probing)
+    r = cl.closed_loop(
+        "lathe", model, tmp_path, speedup=SPEEDUP, duration_s=HOURS * 3600, tag="probing", probing=probing
+    )
     print(cl.table([r]), r["adaptation"])
     z = r["adaptation"]["z"]
     # probes every 900 s from 900 s to before 10800 s: 11, the one at 5400 s with +30 um
@@ -29,8 +30,9 @@ def test_spindle_probes_through_the_fanuc_pmc_reach_both_axes(tmp_path):
     """The same through the PMC's D100–D107: the plant probes z and radial in turn."""
     model = cl.prepare_model("spindle", "xi_spindle", tmp_path)
     probing = {"every_s": 600.0, "sigma_um": 0.3, "seed": 2}
-    r = cl.closed_loop("spindle", model, tmp_path, speedup=SPEEDUP, duration_s=2 * 3600.0, tag="probing",
-                       probing=probing)
+    r = cl.closed_loop(
+        "spindle", model, tmp_path, speedup=SPEEDUP, duration_s=2 * 3600.0, tag="probing", probing=probing
+    )
     print(cl.table([r]), r["adaptation"])
     ad = r["adaptation"]
     # 11 probes from 600 s to 6600 s, z and radial in turn: 6 and 5

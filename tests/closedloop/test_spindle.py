@@ -13,8 +13,17 @@ HOURS, SPEEDUP = 5.0, 7200.0
 
 def test_spindle_xi_model_through_the_pmc_cuts_the_axial_and_radial_error(tmp_path):
     kinds = ("xi_spindle", "mlr")
-    runs = [dict(machine="spindle", model_file=cl.prepare_model("spindle", kind, tmp_path), workdir=tmp_path,
-                 speedup=SPEEDUP, duration_s=HOURS * 3600, tag=kind) for kind in kinds]
+    runs = [
+        dict(
+            machine="spindle",
+            model_file=cl.prepare_model("spindle", kind, tmp_path),
+            workdir=tmp_path,
+            speedup=SPEEDUP,
+            duration_s=HOURS * 3600,
+            tag=kind,
+        )
+        for kind in kinds
+    ]
     rows = dict(zip(kinds, cl.closed_loops(runs), strict=True))
     print(cl.table(list(rows.values())))
     xi, mlr = rows["xi_spindle"]["axes"]["z"], rows["mlr"]["axes"]["z"]

@@ -36,9 +36,18 @@ def test_column_unplugged_ramps_out_while_the_spindle_keeps_compensating(tmp_pat
     models = ac.fit_models(tmp_path, verbose=False)
     section = ac.contributions_section(models)
     scenario = ac.unplug_scenario({"T_col_top": UNPLUG_S, "T_col_bot": UNPLUG_S}, tmp_path / "unplug.yaml")
-    common = dict(machine="vmc", model_file=None, workdir=tmp_path, duration_s=HOURS * 3600, model_section=section,
-                  compd_log=True, log_period_s=10.0)
-    plugged, unplugged = cl.closed_loops([dict(common, tag="plugged"), dict(common, tag="unplugged", scenario=scenario)])
+    common = dict(
+        machine="vmc",
+        model_file=None,
+        workdir=tmp_path,
+        duration_s=HOURS * 3600,
+        model_section=section,
+        compd_log=True,
+        log_period_s=10.0,
+    )
+    plugged, unplugged = cl.closed_loops(
+        [dict(common, tag="plugged"), dict(common, tag="unplugged", scenario=scenario)]
+    )
 
     # the slew, read straight off compd's data log: every pair of rows
     log = ac.read_csv(unplugged["compd_log"])
@@ -54,7 +63,9 @@ def test_column_unplugged_ramps_out_while_the_spindle_keeps_compensating(tmp_pat
 
     checks = ac.Checks()
     ac.check_slew("unplugged", unplugged, checks)
-    figures = ac.check_unplug("unplugged", unplugged, plugged, "column", (UNPLUG_S, HOURS * 3600), "ramp_to_zero", checks)
+    figures = ac.check_unplug(
+        "unplugged", unplugged, plugged, "column", (UNPLUG_S, HOURS * 3600), "ramp_to_zero", checks
+    )
     assert not checks.failed, checks.failed
     assert figures["lost_behaviour"] == "ramp_to_zero"
     assert figures["other_max_diff_to_plugged_um"] == 0.0

@@ -100,8 +100,11 @@ def doc_folder(tmp_path: Path, tools: dict[str, str] | None = None) -> tuple[Pat
         (bin_dir / name).chmod(0o755)
     work = tmp_path / "work"
     work.mkdir()
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '/usr/bin:/bin')}",
-           "PYTHONPATH": str(ROOT)}
+    env = {
+        **os.environ,
+        "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '/usr/bin:/bin')}",
+        "PYTHONPATH": str(ROOT),
+    }
     env.pop("RUNTIME_DIRECTORY", None)
     return work, env
 
@@ -159,9 +162,11 @@ def _fit(r: subprocess.CompletedProcess, work: Path) -> None:
     assert "baseline_mlr" in report
     # the page's figure for the fit without the speed (no lift)
     from compd.commissioning import fitting
+
     quoted = re.search(r"without it, ([\d.]+) µm here", " ".join(GUIDE.read_text(encoding="utf-8").split()))
-    oc = fitting.fit_model("xi_spindle", fitting.read_fit_log(work / "warmup.csv"), ["T_xi"], ["err_z_um"], {},
-                           baseline=False)
+    oc = fitting.fit_model(
+        "xi_spindle", fitting.read_fit_log(work / "warmup.csv"), ["T_xi"], ["err_z_um"], {}, baseline=False
+    )
     assert quoted and abs(oc.report["axes"]["z"]["rmse_um"] - float(quoted[1])) <= 0.0051, quoted
 
 
@@ -231,9 +236,17 @@ def _typo(r: subprocess.CompletedProcess, work: Path) -> None:
 def _report(r: subprocess.CompletedProcess, work: Path) -> None:
     """The record: what the options gave, and no value left blank or printed as null."""
     text = (work / "report.html").read_text(encoding="utf-8")
-    for given in ("simulated spindle (hil_sim, paper 003)", "A. Tester", "20.0 °C (as stated, --ambient-c)",
-                  "the simulator&#x27;s true error (no instrument)", "warmup.csv</code>, 1491 rows, t_s 0.0 s to",
-                  "day2.csv</code>, 481 rows", "Sign-off", "Commissioning engineer", "Plant owner"):
+    for given in (
+        "simulated spindle (hil_sim, paper 003)",
+        "A. Tester",
+        "20.0 °C (as stated, --ambient-c)",
+        "the simulator&#x27;s true error (no instrument)",
+        "warmup.csv</code>, 1491 rows, t_s 0.0 s to",
+        "day2.csv</code>, 481 rows",
+        "Sign-off",
+        "Commissioning engineer",
+        "Plant owner",
+    ):
         assert given in text, given
     assert "T_amb read" in text  # the logs' air column beside the stated ambient
     assert "The thermal test: drift per axis (ISO 230-3)" in text and '<table class="measure">' in text
@@ -309,7 +322,7 @@ def test_commissioning_guide_runs_as_written(shell) -> None:
         if b.lang != "console" or b.marker.startswith(NOT_RUN):
             continue
         assert b.marker in ("", CONCURRENT), f"unknown marker: {b.marker}"
-        nxt = next((n for n in page[i + 1:] if n.lang == "console"), None)
+        nxt = next((n for n in page[i + 1 :] if n.lang == "console"), None)
         r = None
         for k, (command, shown) in enumerate(b.commands):
             command = command.replace("9105", str(port))
@@ -402,4 +415,3 @@ def test_readme_synopses_match_the_commands(shell) -> None:
                 checked += 1
             checked += 1
     assert checked >= 14, checked  # the Commands list and the simulator's log command
-

@@ -12,9 +12,7 @@ from compd.daemon.app import CompensationSummary
 
 def test_nan_true_error_is_skipped_not_propagated() -> None:
     frame = SimpleNamespace(index={"err_y_um": 0}, values=np.array([math.nan]))
-    loop = SimpleNamespace(
-        model=SimpleNamespace(outputs=["y"]), frame=frame, applied=lambda: np.array([-1.0])
-    )
+    loop = SimpleNamespace(model=SimpleNamespace(outputs=["y"]), frame=frame, applied=lambda: np.array([-1.0]))
     s = CompensationSummary(loop)
     s(loop, 0.0)  # before the first sample of the error arrives
     for e in (2.0, 2.0):

@@ -52,10 +52,10 @@ def test_a_law_that_changes_in_one_fold_shows_in_the_held_out_score() -> None:
     # the same definition computed here: each quarter predicted by least squares on the other three
     sq = 0.0
     for lo in range(0, N, 75):
-        keep = np.r_[0:lo, lo + 75:N]
+        keep = np.r_[0:lo, lo + 75 : N]
         A = np.column_stack([np.ones(N), temp - temp[0]])
         coef, *_ = np.linalg.lstsq(A[keep], err[keep], rcond=None)
-        sq += float(np.sum((err[lo:lo + 75] - A[lo:lo + 75] @ coef) ** 2))
+        sq += float(np.sum((err[lo : lo + 75] - A[lo : lo + 75] @ coef) ** 2))
     assert rmse[0] == pytest.approx(np.sqrt(sq / N), rel=1e-9)
     assert rmse[0] > 1.0  # the change is seen, where an in-sample fit would smear it
 

@@ -25,8 +25,11 @@ def _lathe(n_h: float = 24.0, dt: float = 60.0) -> Log:
     head = 20 + 0.25 * S + rng.normal(0, 0.02, t.size)
     air = 20 + 0.3 * np.sin(h / 3)
     err = 12.0 * (bed - bed[0]) - S + rng.normal(0, 0.1, t.size)
-    return Log("lathe.csv", ["t_s", "speed_rpm", "T1", "T3", "T7", "err_z_um"],
-               np.column_stack([t, speed, head, bed + rng.normal(0, 0.02, t.size), air, err]))
+    return Log(
+        "lathe.csv",
+        ["t_s", "speed_rpm", "T1", "T3", "T7", "err_z_um"],
+        np.column_stack([t, speed, head, bed + rng.normal(0, 0.02, t.size), air, err]),
+    )
 
 
 def test_a_model_that_removes_nothing_warns():
@@ -41,8 +44,9 @@ def test_an_ar1_whose_spindle_term_predicts_nothing_warns():
     log = _lathe()
     data = log.data.copy()
     data[:, -1] = 12.0 * (data[:, 3] - data[0, 3])  # no spindle at all: C2 = 0, C1 anywhere
-    oc = fitting.fit_model("ar1", Log(log.file, log.columns, data), ["T3"], None,
-                           {"c1_by_speed": False, "lag": "off"}, baseline=False)
+    oc = fitting.fit_model(
+        "ar1", Log(log.file, log.columns, data), ["T3"], None, {"c1_by_speed": False, "lag": "off"}, baseline=False
+    )
     assert any("C2 is 0 at every speed" in w for w in oc.warnings), oc.warnings
 
 
@@ -71,8 +75,21 @@ def test_fit_all_gives_each_kind_its_inputs_says_held_out_and_recommends(tmp_pat
     log = tmp_path / "lathe.csv"
     lg = _lathe()
     write_log(log, lg.columns, lg.data)
-    rc = main(["fit", "--kind", "all", "--log", str(log), "--out", str(tmp_path / "m"), "--option", "lag=off",
-               "--report", str(tmp_path / "all.json")])
+    rc = main(
+        [
+            "fit",
+            "--kind",
+            "all",
+            "--log",
+            str(log),
+            "--out",
+            str(tmp_path / "m"),
+            "--option",
+            "lag=off",
+            "--report",
+            str(tmp_path / "all.json"),
+        ]
+    )
     out = capsys.readouterr().out
     assert rc == 0
     assert "in-sample" in out and "held-out" in out  # the table says which is which
@@ -99,12 +116,17 @@ def test_only_a_warning_that_rules_a_fit_out_keeps_it_from_the_recommendation(wa
             self.kind = kind
             self.warnings, self.blocking = warnings, blocking
             self.fold_rms_um = {"z": [held * 0.8, held * 1.2]}
-            self.report = {"axes": {"z": {"rmse_um": 0.1, "max_abs_err_um": 0.2}}, "fit_time_s": 0.0,
-                           "held_out_rmse_um": {"z": held}}
+            self.report = {
+                "axes": {"z": {"rmse_um": 0.1, "max_abs_err_um": 0.2}},
+                "fit_time_s": 0.0,
+                "held_out_rmse_um": {"z": held},
+            }
 
     why = ["ar1: C1 … at the edge"] if warned else []
-    rows = [("ar1", "ar1", Oc("ar1", 0.5, why, why if warned == "blocking" else []), None),
-            ("mlr", "mlr", Oc("mlr", 0.9, [], []), None)]
+    rows = [
+        ("ar1", "ar1", Oc("ar1", 0.5, why, why if warned == "blocking" else []), None),
+        ("mlr", "mlr", Oc("mlr", 0.9, [], []), None),
+    ]
     pick = rec.choose(rec.candidates(rows, [], fitting.held_out_of), ["z"], {"z": 10.0})
     assert pick.candidate.label == ("mlr" if warned == "blocking" else "ar1")
     assert pick.stated["z"].rms_um == (0.9 if warned == "blocking" else 0.5)
@@ -120,9 +142,28 @@ def test_a_named_structure_sensor_the_fit_pins_at_zero_warns(tmp_path, capsys):
     f = tmp_path / "lathe.csv"
     write_log(f, [*log.columns[:-1], "T5", "err_z_um"], np.column_stack([log.data[:, :-1], t5, err]))
     rep = tmp_path / "r.json"
-    rc = main(["fit", "--kind", "ar1", "--log", str(f), "--inputs", "T3", "T5", "--option", "lag=off",
-               "--option", "c1_by_speed=false", "--option", "ambient=none", "--out", str(tmp_path / "m.yaml"),
-               "--report", str(rep)])
+    rc = main(
+        [
+            "fit",
+            "--kind",
+            "ar1",
+            "--log",
+            str(f),
+            "--inputs",
+            "T3",
+            "T5",
+            "--option",
+            "lag=off",
+            "--option",
+            "c1_by_speed=false",
+            "--option",
+            "ambient=none",
+            "--out",
+            str(tmp_path / "m.yaml"),
+            "--report",
+            str(rep),
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 0, err
     line = next(x for x in err.splitlines() if "T5" in x)

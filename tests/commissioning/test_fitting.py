@@ -36,8 +36,7 @@ def test_fit_writes_model_report_plot_and_predicts(tmp_path, kind, capsys):
     log = tmp_path / "log.csv"
     _write_log(log)
     out, rep, png, pred = (tmp_path / f for f in ("m.yaml", "r.json", "p.png", "pred.csv"))
-    rc = main(["fit", "--kind", kind, "--log", str(log), "--out", str(out), "--report", str(rep),
-               "--plot", str(png)])
+    rc = main(["fit", "--kind", kind, "--log", str(log), "--out", str(out), "--report", str(rep), "--plot", str(png)])
     assert rc == 0
     doc = yaml.safe_load(out.read_text())
     assert doc["kind"] == kind and doc["inputs"] == ["T1", "T2", "T3"] and doc["outputs"] == ["x1", "x2"]
@@ -56,16 +55,34 @@ def test_fit_writes_model_report_plot_and_predicts(tmp_path, kind, capsys):
     p = read_log(pred)
     assert p.columns == ["t_s", "pred_x1_um", "pred_x2_um"] and len(p) == 300
     model = load_model(out)
-    np.testing.assert_allclose(p.col("pred_x1_um"), model.predict(read_log(log).matrix(model.inputs),
-                                                                 read_log(log).t_s)[:, 0], atol=1e-4)
+    np.testing.assert_allclose(
+        p.col("pred_x1_um"), model.predict(read_log(log).matrix(model.inputs), read_log(log).t_s)[:, 0], atol=1e-4
+    )
 
 
 def test_fit_ar1_reports_ljung_box(tmp_path):
     log = tmp_path / "log.csv"
     _write_log(log)
     rep = tmp_path / "r.json"
-    rc = main(["fit", "--kind", "ar1", "--log", str(log), "--out", str(tmp_path / "a.yaml"),
-               "--target", "err_x1_um", "--inputs", "T1", "--ambient", "T3", "--report", str(rep)])
+    rc = main(
+        [
+            "fit",
+            "--kind",
+            "ar1",
+            "--log",
+            str(log),
+            "--out",
+            str(tmp_path / "a.yaml"),
+            "--target",
+            "err_x1_um",
+            "--inputs",
+            "T1",
+            "--ambient",
+            "T3",
+            "--report",
+            str(rep),
+        ]
+    )
     assert rc == 0
     r = json.loads(rep.read_text())
     assert {"q", "p_value", "lags"} <= set(r["details"]["ljung_box"])
@@ -80,8 +97,19 @@ def test_fit_ar1_reports_ljung_box(tmp_path):
 def test_fit_all_prints_comparison(tmp_path, capsys):
     log = tmp_path / "log.csv"
     _write_log(log)
-    rc = main(["fit", "--kind", "all", "--log", str(log), "--out", str(tmp_path / "models"),
-               "--report", str(tmp_path / "all.json")])
+    rc = main(
+        [
+            "fit",
+            "--kind",
+            "all",
+            "--log",
+            str(log),
+            "--out",
+            str(tmp_path / "models"),
+            "--report",
+            str(tmp_path / "all.json"),
+        ]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     for label in ("lvr", "mlr", "ar1_x1", "ar1_x2"):
@@ -106,8 +134,9 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert "T9" in err
     short = tmp_path / "short.csv"
     write_log(short, cols, read_log(log).data[:4])
-    err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(short), "--out", out,
-                                  "--option", "n_components=3"])
+    err = _bad(
+        tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(short), "--out", out, "--option", "n_components=3"]
+    )
     assert "too few" in err
     const = tmp_path / "const.csv"
     data = read_log(log).data.copy()
@@ -123,8 +152,9 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert "nan.csv:12" in err and "T1" in err
     err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out, "--option", "bogus=1"])
     assert "bogus" in err
-    err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out,
-                                  "--option", "selection=kfold"])
+    err = _bad(
+        tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out, "--option", "selection=kfold"]
+    )
     assert "--option selection: Input should be 'blocked' or 'loo' (got 'kfold')" in err
     err = _bad(tmp_path, capsys, ["fit", "--kind", "lvr", "--log", str(log), "--out", out, "--option", "cv_blocks=1"])
     assert "--option cv_blocks" in err and "greater than or equal to 2" in err
@@ -137,8 +167,19 @@ def test_lvr_library_span_too_long_exits_2(tmp_path, capsys):
     _write_log(log)
     out = tmp_path / "m.yaml"
     rep = tmp_path / "r.json"
-    argv = ["fit", "--kind", "lvr", "--log", str(log), "--out", str(out), "--report", str(rep),
-            "--option", "selection=loo"]
+    argv = [
+        "fit",
+        "--kind",
+        "lvr",
+        "--log",
+        str(log),
+        "--out",
+        str(out),
+        "--report",
+        str(rep),
+        "--option",
+        "selection=loo",
+    ]
     assert main([*argv, "--option", "library_span=294"]) == 0
     assert json.loads(rep.read_text())["details"]["fit_rows"] == 6
     out.unlink()
@@ -194,8 +235,9 @@ def test_a_fit_records_its_input_range_and_a_fitted_model_passes_the_remote_clam
     assert main(["fit", "--kind", "mlr", "--log", str(log), "--out", str(out)]) == 0
     doc = yaml.safe_load(out.read_text())
     data = read_log(log)
-    assert doc["fit"]["input_range"] == {n: [pytest.approx(data.col(n).min()), pytest.approx(data.col(n).max())]
-                                         for n in ("T1", "T2", "T3")}
+    assert doc["fit"]["input_range"] == {
+        n: [pytest.approx(data.col(n).min()), pytest.approx(data.col(n).max())] for n in ("T1", "T2", "T3")
+    }
     fdoc, _ = load_model_file(out)
     spec = resolve_model({"kind": "mlr", "file": str(out)}, fdoc, (), tmp_path)
     assert clamp_check(spec, GuardConfig(max_abs_um=63)) is None  # errors of ~12 µm at most

@@ -32,8 +32,24 @@ def reports(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     day(tmp_path / "train.csv", 1)
     day(tmp_path / "unseen.csv", 2)
-    assert main(["fit", "--kind", "xi_spindle", "--log", "train.csv", "--inputs", "T1", "--out", "model.yaml",
-                 "--report", "fit.json"]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                "--kind",
+                "xi_spindle",
+                "--log",
+                "train.csv",
+                "--inputs",
+                "T1",
+                "--out",
+                "model.yaml",
+                "--report",
+                "fit.json",
+            ]
+        )
+        == 0
+    )
     (tmp_path / "c.yaml").write_text(
         "# <the config> & its text\n"
         "loop: {clock: sim, period_s: 1.0}\n"
@@ -95,20 +111,34 @@ def test_report_without_the_data_says_what_is_missing(reports, capsys):
     assert len(images((reports / "r.html").read_text())) == 2  # the fit's and the thermal test's
 
 
-@pytest.mark.parametrize("which, content, words", [
-    ("fit", "{\n  \"kind\": \"mlr\",\n  oops\n}\n", ["bad.json:3", "--fit", "not JSON"]),
-    ("fit", "[1, 2]", ["bad.json", "--fit", "JSON object"]),
-    ("fit", json.dumps({"axes": {"x1": {"rmse_um": 1.0}}}), ["bad.json", "kind"]),
-    ("fit", json.dumps({"kind": "mlr", "axes": {"x1": {"rmse_um": "big"}}}), ["bad.json", "axes.x1.rmse_um"]),
-    ("fit", json.dumps({"mlr": {"kind": "mlr"}, "ar1": {"kind": "ar1"}}), ["bad.json", "--kind all"]),
-    ("fit", json.dumps({"kind": "mlr", "axes": {"x1": {"rmse_um": 1.0}},
-                        "baseline_mlr": {"axes": {"x1": {"held_out_rmse_um": None}}}}),
-     ["bad.json", "baseline_mlr.axes.x1.held_out_rmse_um"]),
-    ("replay", json.dumps({"rows": 3}), ["bad.json", "axes", "compd replay --report"]),
-    ("replay", json.dumps({"axes": {"z": {"rms_before_um": 1, "rms_after_um": 1, "reduction_pct": 0}}}),
-     ["bad.json", "axes.z.max_abs_after_um", "missing"]),
-    ("replay", "\xff\xfe", ["bad.json", "--replay"]),
-])
+@pytest.mark.parametrize(
+    "which, content, words",
+    [
+        ("fit", '{\n  "kind": "mlr",\n  oops\n}\n', ["bad.json:3", "--fit", "not JSON"]),
+        ("fit", "[1, 2]", ["bad.json", "--fit", "JSON object"]),
+        ("fit", json.dumps({"axes": {"x1": {"rmse_um": 1.0}}}), ["bad.json", "kind"]),
+        ("fit", json.dumps({"kind": "mlr", "axes": {"x1": {"rmse_um": "big"}}}), ["bad.json", "axes.x1.rmse_um"]),
+        ("fit", json.dumps({"mlr": {"kind": "mlr"}, "ar1": {"kind": "ar1"}}), ["bad.json", "--kind all"]),
+        (
+            "fit",
+            json.dumps(
+                {
+                    "kind": "mlr",
+                    "axes": {"x1": {"rmse_um": 1.0}},
+                    "baseline_mlr": {"axes": {"x1": {"held_out_rmse_um": None}}},
+                }
+            ),
+            ["bad.json", "baseline_mlr.axes.x1.held_out_rmse_um"],
+        ),
+        ("replay", json.dumps({"rows": 3}), ["bad.json", "axes", "compd replay --report"]),
+        (
+            "replay",
+            json.dumps({"axes": {"z": {"rms_before_um": 1, "rms_after_um": 1, "reduction_pct": 0}}}),
+            ["bad.json", "axes.z.max_abs_after_um", "missing"],
+        ),
+        ("replay", "\xff\xfe", ["bad.json", "--replay"]),
+    ],
+)
 def test_bad_report_json_is_exit_2(reports, capsys, which, content, words):
     bad = reports / "bad.json"
     bad.write_bytes(content.encode("latin-1") if which == "replay" and content.startswith("\xff") else content.encode())
@@ -124,8 +154,10 @@ def test_bad_report_json_is_exit_2(reports, capsys, which, content, words):
 def test_missing_report_files_are_exit_2(reports, capsys):
     assert main(["report", "--fit", "nope.json", "--replay", "replay.json", "--out", "r.html"]) == 2
     assert "nope.json: --fit: cannot read" in capsys.readouterr().err
-    assert main(["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "r.html",
-                 "--config", "nope.yaml"]) == 2
+    assert (
+        main(["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "r.html", "--config", "nope.yaml"])
+        == 2
+    )
     assert "nope.yaml: --config" in capsys.readouterr().err
     (reports / "x.png").write_text("not a png")
     assert main(["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "r.html", "--png", "x.png"]) == 2
@@ -141,10 +173,21 @@ def browser() -> str | None:
 
 def chromium(exe: str, *args: str) -> subprocess.CompletedProcess[bytes]:
     return subprocess.run(
-        [exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--no-first-run",
-         "--disable-extensions", "--user-data-dir=" + str(args[-1]) + ".profile", *args[:-1],
-         "file://" + str(args[-1])],
-        capture_output=True, timeout=120, check=False,
+        [
+            exe,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            "--no-first-run",
+            "--disable-extensions",
+            "--user-data-dir=" + str(args[-1]) + ".profile",
+            *args[:-1],
+            "file://" + str(args[-1]),
+        ],
+        capture_output=True,
+        timeout=120,
+        check=False,
     )
 
 
@@ -187,12 +230,23 @@ def test_report_says_when_the_mlr_comparison_was_skipped(reports):
     (reports / "fit2.json").write_text(json.dumps(fit))
     assert main(["report", "--fit", "fit2.json", "--replay", "replay.json", "--out", "r.html"]) == 0
     text = (reports / "r.html").read_text()
-    assert "No held-out comparison with MLR: the held-out comparison could not fit a block: &lt;too few rows&gt;" in text
+    assert (
+        "No held-out comparison with MLR: the held-out comparison could not fit a block: &lt;too few rows&gt;" in text
+    )
     assert "MLR baseline held-out RMSE" not in text
 
 
-RECORD = ["--machine", "DMU 50 s/n 1234 <hall 2>", "--operator", "A. Meier", "--ambient-c", "22.0", "20.5",
-          "--instrument", "Renishaw XL-80 s/n 9876, 0.001 µm"]
+RECORD = [
+    "--machine",
+    "DMU 50 s/n 1234 <hall 2>",
+    "--operator",
+    "A. Meier",
+    "--ambient-c",
+    "22.0",
+    "20.5",
+    "--instrument",
+    "Renishaw XL-80 s/n 9876, 0.001 µm",
+]
 
 
 def cells(text):
@@ -204,8 +258,10 @@ def cells(text):
 def record_rows(text):
     """The record table as {label: text}."""
     table = re.search(r'<table class="record">(.*?)</table>', text, re.S)[1]
-    return {re.sub(r"<[^>]+>", "", k): re.sub(r"<[^>]+>", "", v)
-            for k, v in re.findall(r'<th class="l">(.*?)</th><td class="l">(.*?)</td>', table, re.S)}
+    return {
+        re.sub(r"<[^>]+>", "", k): re.sub(r"<[^>]+>", "", v)
+        for k, v in re.findall(r'<th class="l">(.*?)</th><td class="l">(.*?)</td>', table, re.S)
+    }
 
 
 def test_the_record_shows_what_the_options_give(reports, capsys):
@@ -218,21 +274,28 @@ def test_the_record_shows_what_the_options_give(reports, capsys):
     assert rec["measuring instrument"] == "Renishaw XL-80 s/n 9876, 0.001 µm"
     # the lowest first, whatever the order given; the logs have no column named for the air, and say so
     assert rec["ambient temperature during the test"] == (
-        "20.5 to 22.0 °C (as stated, --ambient-c)the logs have no column named for the air (amb, room, air)")
+        "20.5 to 22.0 °C (as stated, --ambient-c)the logs have no column named for the air (amb, room, air)"
+    )
     # what the data covers: rows, first and last t_s (the test logs run 240 rows at 30 s)
-    assert rec["data: the fit log"].startswith("train.csv, 240 rows, t_s 0.0 s to 7170.0 s (1.99 h) on the log's own clock")
+    assert rec["data: the fit log"].startswith(
+        "train.csv, 240 rows, t_s 0.0 s to 7170.0 s (1.99 h) on the log's own clock"
+    )
     assert rec["data: the unseen day log"].startswith("unseen.csv, 240 rows, t_s 0.0 s to 7170.0 s (1.99 h)")
     assert "the file was last written 20" in rec["data: the fit log"]
     fitted = __import__("yaml").safe_load((reports / "model.yaml").read_text())["fit"]["fitted_at"]
     assert rec["model"].startswith(f"model.yaml, fitted {fitted[:10]} {fitted[11:19]} UTC by compd ")
-    assert re.fullmatch(r"made \d{4}-\d\d-\d\d \d\d:\d\d UTC\S* by compd \S+ from fit\.json and replay\.json",
-                        rec["this report"]), rec["this report"]
+    assert re.fullmatch(
+        r"made \d{4}-\d\d-\d\d \d\d:\d\d UTC\S* by compd \S+ from fit\.json and replay\.json", rec["this report"]
+    ), rec["this report"]
     assert "<title>compd commissioning report: DMU 50 s/n 1234 &lt;hall 2&gt;, xi_spindle on x1</title>" in text
     # the sign-off: both roles, name, date and signature left blank to sign on paper, and it says so
     sign = text.split('<section class="signoff">')[1]
     for role in ("Commissioning engineer", "Plant owner"):
-        assert re.search(rf'<td class="role">{role}</td><td class="name"></td><td class="date"></td>'
-                         r'<td class="signature"></td>', sign)
+        assert re.search(
+            rf'<td class="role">{role}</td><td class="name"></td><td class="date"></td>'
+            r'<td class="signature"></td>',
+            sign,
+        )
     assert "filled in by hand on the printed page" in sign
     assert "@page{size:A4" in text and "@media print" in text
 
@@ -240,8 +303,10 @@ def test_the_record_shows_what_the_options_give(reports, capsys):
 def test_record_fields_not_given_are_explained_never_blank(reports, capsys):
     assert main(["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "r.html"]) == 0
     err = capsys.readouterr().err
-    assert err == ('compd: the record says "not given" for machine, operator, instrument, ambient-c'
-                   " (give --machine, --operator, --instrument, --ambient-c)\n")
+    assert err == (
+        'compd: the record says "not given" for machine, operator, instrument, ambient-c'
+        " (give --machine, --operator, --instrument, --ambient-c)\n"
+    )
     text = (reports / "r.html").read_text()
     rec = record_rows(text)
     assert rec["machine"] == "not given (use --machine)"
@@ -259,8 +324,7 @@ def test_empty_coefficients_and_figures_say_why(reports):
     model = __import__("yaml").safe_load((reports / "model.yaml").read_text())
     assert {k for k, v in model["params"].items() if v is None} >= {"t0_c", "xi_mm", "lift", "radial"}
     fit = json.loads((reports / "fit.json").read_text())
-    fit["details"] = {"lag": {"held_out_rmse_um": {"0": 0.5, "60": float("inf")}, "kept": False},
-                      "library_span": None}
+    fit["details"] = {"lag": {"held_out_rmse_um": {"0": 0.5, "60": float("inf")}, "kept": False}, "library_span": None}
     del fit["axes"]["x1"]["max_abs_err_um"]
     (reports / "fit2.json").write_text(json.dumps(fit))
     assert main(["report", "--fit", "fit2.json", "--replay", "replay.json", "--out", "r.html"]) == 0
@@ -281,33 +345,100 @@ def test_empty_coefficients_and_figures_say_why(reports):
     assert all(c and c not in ("null", "None", "nan", "inf", "-") for c in cells(text))
 
 
-@pytest.mark.parametrize("kind, params, nulls", [
-    ("ar1", {"dt_s": 60.0, "c1": 0.98, "c2_exponent": None, "c3_um_per_k": None, "t0_c": None},
-     {"c2_exponent": "not set: outside the C2 table", "c3_um_per_k": "not used by this ar1 model: no ambient input",
-      "t0_c": "set when the daemon starts"}),
-    ("feed_axis", {"length_mm": 600.0, "chi_per_m": None, "eta": None, "u1_k": None, "u2_k": None,
-                   "slide_volume_m3": None, "field": {"slide_mm": [0.0, 600.0]}, "position_poly": None,
-                   "power_w": None, "r_cu_ohm": None, "cooling_time_s": None, "ref_power_w": None,
-                   "linear_p0_mm": None},
-     {**dict.fromkeys(("chi_per_m", "eta", "u1_k", "u2_k", "slide_volume_m3", "power_w", "r_cu_ohm",
-                       "cooling_time_s", "ref_power_w"), "not used by the field form"),
-      "position_poly": "not used: the model is in the field form", "linear_p0_mm": "not used: the output is E"}),
-    ("feed_axis", {"length_mm": 600.0, "chi_per_m": 3.0, "slide_volume_m3": None, "field": None,
-                   "position_poly": None, "power_w": None, "r_cu_ohm": 0.5, "cooling_time_s": None,
-                   "ref_power_w": None},
-     {"slide_volume_m3": "not given: η is per m³", "field": "not used: the model is in the analytic form",
-      "position_poly": "not used: the model is in the analytic form",
-      "power_w": "not fixed: the motor loss comes from the current input",
-      "cooling_time_s": "not used: no duty-cycle form", "ref_power_w": "not used: no duty-cycle form"}),
-    ("feed_axis", {"length_mm": 600.0, "field": None, "position_poly": {"degree": 2}, "eta": None},
-     {"field": "not used: the model is in the position-regression form",
-      "eta": "not used by the position-regression form"}),
-    ("mlr", {"t0_c": None, "rise_mean_k": None, "rise_cov_k2": None},
-     {"t0_c": "set when the daemon starts", "rise_mean_k": "not recorded in the model file",
-      "rise_cov_k2": "not recorded in the model file"}),
-    ("xi_spindle", {"radial": {"k_um_per_rpm2": None}},
-     {"radial.k_um_per_rpm2": "not used: the lift is the model's `lift`"}),
-])
+@pytest.mark.parametrize(
+    "kind, params, nulls",
+    [
+        (
+            "ar1",
+            {"dt_s": 60.0, "c1": 0.98, "c2_exponent": None, "c3_um_per_k": None, "t0_c": None},
+            {
+                "c2_exponent": "not set: outside the C2 table",
+                "c3_um_per_k": "not used by this ar1 model: no ambient input",
+                "t0_c": "set when the daemon starts",
+            },
+        ),
+        (
+            "feed_axis",
+            {
+                "length_mm": 600.0,
+                "chi_per_m": None,
+                "eta": None,
+                "u1_k": None,
+                "u2_k": None,
+                "slide_volume_m3": None,
+                "field": {"slide_mm": [0.0, 600.0]},
+                "position_poly": None,
+                "power_w": None,
+                "r_cu_ohm": None,
+                "cooling_time_s": None,
+                "ref_power_w": None,
+                "linear_p0_mm": None,
+            },
+            {
+                **dict.fromkeys(
+                    (
+                        "chi_per_m",
+                        "eta",
+                        "u1_k",
+                        "u2_k",
+                        "slide_volume_m3",
+                        "power_w",
+                        "r_cu_ohm",
+                        "cooling_time_s",
+                        "ref_power_w",
+                    ),
+                    "not used by the field form",
+                ),
+                "position_poly": "not used: the model is in the field form",
+                "linear_p0_mm": "not used: the output is E",
+            },
+        ),
+        (
+            "feed_axis",
+            {
+                "length_mm": 600.0,
+                "chi_per_m": 3.0,
+                "slide_volume_m3": None,
+                "field": None,
+                "position_poly": None,
+                "power_w": None,
+                "r_cu_ohm": 0.5,
+                "cooling_time_s": None,
+                "ref_power_w": None,
+            },
+            {
+                "slide_volume_m3": "not given: η is per m³",
+                "field": "not used: the model is in the analytic form",
+                "position_poly": "not used: the model is in the analytic form",
+                "power_w": "not fixed: the motor loss comes from the current input",
+                "cooling_time_s": "not used: no duty-cycle form",
+                "ref_power_w": "not used: no duty-cycle form",
+            },
+        ),
+        (
+            "feed_axis",
+            {"length_mm": 600.0, "field": None, "position_poly": {"degree": 2}, "eta": None},
+            {
+                "field": "not used: the model is in the position-regression form",
+                "eta": "not used by the position-regression form",
+            },
+        ),
+        (
+            "mlr",
+            {"t0_c": None, "rise_mean_k": None, "rise_cov_k2": None},
+            {
+                "t0_c": "set when the daemon starts",
+                "rise_mean_k": "not recorded in the model file",
+                "rise_cov_k2": "not recorded in the model file",
+            },
+        ),
+        (
+            "xi_spindle",
+            {"radial": {"k_um_per_rpm2": None}},
+            {"radial.k_um_per_rpm2": "not used: the lift is the model's `lift`"},
+        ),
+    ],
+)
 def test_every_empty_parameter_of_each_kind_is_explained_in_its_own_words(kind, params, nulls):
     from compd.commissioning.htmlreport import why_param_empty
 
@@ -329,33 +460,45 @@ def test_a_log_on_unix_time_is_shown_as_dates_and_its_air_column_read(tmp_path):
     )
 
     t = 1_767_225_600.0 + np.arange(3) * 3600.0  # 2026-01-01 00:00 UTC, hourly
-    write_log(tmp_path / "day.csv", ["t_s", "T_room", "T1", "err_x_um"],
-              np.column_stack([t, [19.5, 20.25, 21.0], [20, 21, 22], [0, 1, 2]]))
+    write_log(
+        tmp_path / "day.csv",
+        ["t_s", "T_room", "T1", "err_x_um"],
+        np.column_stack([t, [19.5, 20.25, 21.0], [20, 21, 22], [0, 1, 2]]),
+    )
     lf = log_facts("unseen day", {"log": "day.csv"}, str(tmp_path / "r.json"), "--replay")
     assert lf.rows == 3 and lf.ambient_c == {"T_room": (19.5, 21.0)} and not lf.why_not
     made = datetime(2026, 1, 2, 9, 30, tzinfo=timezone(timedelta(hours=1)))
-    page = Page({"kind": "mlr", "axes": {}}, "fit.json", {"axes": {}}, "r.json", model_why_not="no model here",
-                record=make_record(ambient_c=[20.0], made_at=made),
-                logs=[lf, LogFacts("fit", "gone.csv", why_not="not found (looked up as written)")])
+    page = Page(
+        {"kind": "mlr", "axes": {}},
+        "fit.json",
+        {"axes": {}},
+        "r.json",
+        model_why_not="no model here",
+        record=make_record(ambient_c=[20.0], made_at=made),
+        logs=[lf, LogFacts("fit", "gone.csv", why_not="not found (looked up as written)")],
+    )
     text = record_section(page, made)
     assert "t_s 1767225600.0 s to 1767232800.0 s (2.00 h): 2026-01-01 00:00 UTC to 2026-01-01 02:00 UTC" in text
     assert "T_room read 19.5 to 21.0 °C in <code>day.csv</code> (unseen day)" in text
     assert "20.0 °C (as stated, --ambient-c)" in text
-    assert "<code>gone.csv</code>: <span class=\"none\">not found (looked up as written)</span>" in text
+    assert '<code>gone.csv</code>: <span class="none">not found (looked up as written)</span>' in text
     assert "made 2026-01-02 09:30 UTC+01:00 by compd" in text
     assert '<span class="none">no model here</span>' in text
     assert datetime.fromtimestamp(t[0], UTC).year == 2026
 
 
-@pytest.mark.parametrize("argv, words", [
-    (["--operator", "  "], ["--operator", "empty"]),
-    (["--machine", "DMU 50\nhall 2"], ["--machine", "one line"]),
-    (["--instrument", "x" * 201], ["--instrument", "201 characters: at most 200"]),
-    (["--ambient-c", "20", "21", "22"], ["--ambient-c", "3 values given"]),
-    (["--ambient-c", "72"], ["--ambient-c", "72 °C is not the air of a shop"]),
-    (["--ambient-c", "nan"], ["--ambient-c", "finite"]),
-    (["--ambient-c"], ["--ambient-c", "expected at least one argument"]),
-])
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--operator", "  "], ["--operator", "empty"]),
+        (["--machine", "DMU 50\nhall 2"], ["--machine", "one line"]),
+        (["--instrument", "x" * 201], ["--instrument", "201 characters: at most 200"]),
+        (["--ambient-c", "20", "21", "22"], ["--ambient-c", "3 values given"]),
+        (["--ambient-c", "72"], ["--ambient-c", "72 °C is not the air of a shop"]),
+        (["--ambient-c", "nan"], ["--ambient-c", "finite"]),
+        (["--ambient-c"], ["--ambient-c", "expected at least one argument"]),
+    ],
+)
 def test_bad_record_options_are_one_line_exit_2(reports, capsys, argv, words):
     try:  # argparse's own checks (a number, at least one) exit through SystemExit, compd's return 2
         rc = main(["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "r.html", *argv])

@@ -20,8 +20,12 @@ def _config(tmp_path, sink: dict, *, slew: float = 2.0, period_s: float = 0.002,
     doc = {
         "loop": {"period_s": period_s},
         "sources": [{"kind": "replay", "name": "log", "path": "unused.csv"}],
-        "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0}},
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": ["T_xi"],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0},
+        },
         "guard": {"max_slew_um_per_s": slew, "max_abs_um": 40.0},
         "sink": sink,
     }
@@ -59,8 +63,9 @@ def test_fanuc_pmc_over_modbus_tcp_reads_back_what_the_pmc_applied(tmp_path):
     scan = PmcScanThread(pmc).start()
     try:
         with ModbusServerThread(pmc, port=0) as srv:
-            path = _config(tmp_path, {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": srv.port},
-                           slew=10.0, period_s=0.01)
+            path = _config(
+                tmp_path, {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": srv.port}, slew=10.0, period_s=0.01
+            )
             res = run_output_test(load_config(path), "z", -4.0, hold_s=0.3, say=lambda _: None)
             after = pmc.applied_um()
     finally:
@@ -151,8 +156,13 @@ def test_refuses_beside_a_running_daemon_of_the_config(tmp_path, capsys):
     doc["status"] = {"path": "status.json"}
     with open(path, "w", encoding="utf-8") as fh:
         yaml.safe_dump(doc, fh)
-    status = {"schema": SCHEMA, "pid": os.getpid(),
-              "state": "running", "written_unix_s": time.time(), "status_period_s": 1.0}
+    status = {
+        "schema": SCHEMA,
+        "pid": os.getpid(),
+        "state": "running",
+        "written_unix_s": time.time(),
+        "status_period_s": 1.0,
+    }
     (tmp_path / "status.json").write_text(json.dumps(status))
     assert main(["output-test", path, "--axis", "z", "--um", "5", "--yes"]) == 1
     assert "a daemon of this config is running" in capsys.readouterr().err
@@ -164,6 +174,7 @@ def test_refuses_beside_a_running_daemon_of_the_config(tmp_path, capsys):
 def test_an_interrupt_ramps_back_to_zero_at_the_slew(tmp_path):
     """Ctrl-C (or SIGTERM, which the CLI turns into it) after the ramp up: back to zero at the
     slew, then the safe state; the result says it was interrupted."""
+
     def say(text: str) -> None:
         if text.startswith("  ramped up"):
             raise KeyboardInterrupt

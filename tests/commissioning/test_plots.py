@@ -25,8 +25,20 @@ def daemon_log(path, n=120, fault_rows=range(60, 70)):
     applied = np.round(corr)
     applied[np.abs(applied) <= 1.0] = 0.0
     word = np.array([encode(c1, c2) for c1, c2 in applied], dtype=float)
-    cols = ["t_s", "T1", "speed_rpm", "err_x1_um", "err_x2_um", "pred_x1_um", "pred_x2_um",
-            "corr_x1_um", "corr_x2_um", "applied_x1_um", "applied_x2_um", "word"]
+    cols = [
+        "t_s",
+        "T1",
+        "speed_rpm",
+        "err_x1_um",
+        "err_x2_um",
+        "pred_x1_um",
+        "pred_x2_um",
+        "corr_x1_um",
+        "corr_x2_um",
+        "applied_x1_um",
+        "applied_x2_um",
+        "word",
+    ]
     data = np.column_stack([t, temp, np.full(n, 6000.0), err_x1, err_x2, pred, corr, applied, word])
     write_log(path, cols, data)
     return data
@@ -102,12 +114,15 @@ def test_cli_plot(tmp_path, capsys):
     assert "120 rows, axes x1, x2" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("content, words", [
-    ("t_s,T1,err_x1_um\n0,20,0\n1,20,0\n", ["not a log that compd wrote", "applied_<axis>_um"]),
-    ("t_s,T1,applied_x1_um,word\n0,20,0,0\n1,20,0,70000\n", ["word: ", "0..65535", "70000", "t_s = 1"]),
-    ("t_s,T1,applied_x1_um,word\n0,20,0,0\n1,abc,0,0\n", ["T1"]),
-    ("t_s,T1,applied_x1_um,word\n", ["no rows"]),
-])
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        ("t_s,T1,err_x1_um\n0,20,0\n1,20,0\n", ["not a log that compd wrote", "applied_<axis>_um"]),
+        ("t_s,T1,applied_x1_um,word\n0,20,0,0\n1,20,0,70000\n", ["word: ", "0..65535", "70000", "t_s = 1"]),
+        ("t_s,T1,applied_x1_um,word\n0,20,0,0\n1,abc,0,0\n", ["T1"]),
+        ("t_s,T1,applied_x1_um,word\n", ["no rows"]),
+    ],
+)
 def test_cli_plot_bad_log_is_exit_2(tmp_path, capsys, content, words):
     log = tmp_path / "bad.csv"
     log.write_text(content)
@@ -198,10 +213,12 @@ def test_replay_trend_shows_the_device_trailing_its_command(tmp_path):
     err = 2.0 * np.floor(t / 1200.0)  # +2 µm every 20 min: 2 LSB, 60 s for the slow PMC to follow
     temp = 20.0 + err / 3.0
     write_log(tmp_path / "day.csv", ["t_s", "T1", "err_x1_um"], np.column_stack([t, temp, err]))
-    head = ("loop: {clock: sim, period_s: 1.0}\n"
-            "sources:\n  - {kind: replay, name: log, path: day.csv}\n"
-            "model: {kind: mlr, inputs: [T1], outputs: [x1], params: {coef_um_per_k: [[3.0]], intercept_um: [0.0]}}\n"
-            "guard: {max_slew_um_per_s: 10.0}\n")
+    head = (
+        "loop: {clock: sim, period_s: 1.0}\n"
+        "sources:\n  - {kind: replay, name: log, path: day.csv}\n"
+        "model: {kind: mlr, inputs: [T1], outputs: [x1], params: {coef_um_per_k: [[3.0]], intercept_um: [0.0]}}\n"
+        "guard: {max_slew_um_per_s: 10.0}\n"
+    )
     (tmp_path / "slow.yaml").write_text(head + "sink: {kind: fanuc_pmc, max_step_um: 1, min_update_s: 30}\n")
     (tmp_path / "card.yaml").write_text(head + "sink: {kind: pci1756}\n")
     slow = trend_from_replay(replay_config(tmp_path / "slow.yaml", tmp_path / "day.csv"))

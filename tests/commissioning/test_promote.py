@@ -30,8 +30,9 @@ def _config(tmp_path: Path, shadow: str, extra: str = "") -> Path:
     return sim_config(tmp_path, "shadow: {kind: xi_spindle, file: shadow.yaml}\n" + extra)
 
 
-def test_an_absurd_shadow_is_refused_with_the_figure_even_forced(tmp_path: Path,
-                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+def test_an_absurd_shadow_is_refused_with_the_figure_even_forced(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Every parameter within its bounds, 455 400 µm over its own fit range: check-config takes it
     (a shadow drives nothing), promote does not, --force or not, and says why with the figure."""
     cfg = _config(tmp_path, ABSURD, CLAMP_40)
@@ -42,9 +43,11 @@ def test_an_absurd_shadow_is_refused_with_the_figure_even_forced(tmp_path: Path,
     out, err = capsys.readouterr()
     assert len(err.strip().splitlines()) == 1, err
     line = cfg.read_text().splitlines().index("shadow: {kind: xi_spindle, file: shadow.yaml}") + 1
-    assert err.startswith(f"compd: {cfg}:{line}: shadow: the shadow cannot be made the model: axis z would sit at the"
-                          " guard's clamp: over its input range (fit.input_range) the model predicts a |correction| of"
-                          " 455400.0 µm (at T_xi 24.6 from 20 at start), beyond guard.max_abs_um 40 µm"), err
+    assert err.startswith(
+        f"compd: {cfg}:{line}: shadow: the shadow cannot be made the model: axis z would sit at the"
+        " guard's clamp: over its input range (fit.input_range) the model predicts a |correction| of"
+        " 455400.0 µm (at T_xi 24.6 from 20 at start), beyond guard.max_abs_um 40 µm"
+    ), err
     # what it was about to make the model was said first: kind, file, sha256, where it came from
     sha = hashlib.sha256(ABSURD.encode()).hexdigest()
     assert out.splitlines()[:3] == [
@@ -78,15 +81,21 @@ def test_a_sum_of_contributions_is_checked_contribution_by_contribution(tmp_path
     """A shadow of contributions: each over its own file's fit range, against its own clamp."""
     (tmp_path / "sane.yaml").write_text(SANE)  # 20.4 µm at most
     (tmp_path / "absurd.yaml").write_text(ABSURD)
-    cfg = sim_config(tmp_path, CLAMP_40 + """shadow:
+    cfg = sim_config(
+        tmp_path,
+        CLAMP_40
+        + """shadow:
   contributions:
     - {name: spindle, kind: xi_spindle, file: sane.yaml}
     - {name: other, kind: xi_spindle, file: absurd.yaml, max_abs_um: 30}
-""")
+""",
+    )
     why = clamp_check(load_config(cfg).shadow, load_config(cfg).top.guard)
-    assert why == ("contribution 'other': axis z would sit at its clamp: over its input range (fit.input_range) the"
-                   " model predicts a |correction| of 455400.0 µm (at T_xi 24.6 from 20 at start), beyond"
-                   " contribution other's max_abs_um 30 µm")
+    assert why == (
+        "contribution 'other': axis z would sit at its clamp: over its input range (fit.input_range) the"
+        " model predicts a |correction| of 455400.0 µm (at T_xi 24.6 from 20 at start), beyond"
+        " contribution other's max_abs_um 30 µm"
+    )
     cfg.write_text(cfg.read_text().replace("file: absurd.yaml, max_abs_um: 30", "file: sane.yaml, max_abs_um: 30"))
     assert clamp_check(load_config(cfg).shadow, load_config(cfg).top.guard) is None
     cfg.write_text(cfg.read_text().replace("max_abs_um: 30", "max_abs_um: 20"))  # 20.4 µm: beyond its own clamp
@@ -128,11 +137,22 @@ def _daemon_with(tmp_path: Path, extra: str) -> Iterator[tuple[subprocess.Popen[
     cfg = sim_config(tmp_path, EXTRA + extra, duration_s=1e6, speedup=60)
     (tmp_path / "shadow.yaml").write_text(SHADOW.format(length_mm=100.0))
     with open(tmp_path / "stderr.txt", "w") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "compd", "run", cfg.name], cwd=tmp_path, env=ENV,
-                                stdout=subprocess.DEVNULL, stderr=err, text=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "compd", "run", cfg.name],
+            cwd=tmp_path,
+            env=ENV,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            text=True,
+        )
     try:
-        until(lambda: ((status_of(tmp_path).get("axes") or {}).get("z", {}).get("shadow_um") or 0.0) > 1.0
-              or proc.poll() is not None, "the daemon and its shadow, the spindle warming")
+        until(
+            lambda: (
+                ((status_of(tmp_path).get("axes") or {}).get("z", {}).get("shadow_um") or 0.0) > 1.0
+                or proc.poll() is not None
+            ),
+            "the daemon and its shadow, the spindle warming",
+        )
         assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()
         yield proc, cfg
     finally:

@@ -62,7 +62,8 @@ def test_a_recommended_sum_is_one_model_file_for_replay_load_and_a_config(lathe_
     assert "&id" not in text and "*id" not in text  # no YAML aliases a reader has to follow
     data = yaml.safe_load(text)
     assert data["kind"] == "contributions" and [p["name"] for p in data["params"]["contributions"]] == list(
-        fitting.STAGE_NAMES)
+        fitting.STAGE_NAMES
+    )
     assert data["fit"]["expected_unseen"]["z"]["rms_um"] == pytest.approx(so.held_out_um, rel=1e-3)
     assert data["fit"]["rows"] == len(log)
 
@@ -75,8 +76,10 @@ def test_a_recommended_sum_is_one_model_file_for_replay_load_and_a_config(lathe_
     assert "axis z: RMS" in capsys.readouterr().out
 
     cfg = tmp_path / "c.yaml"  # a config's model: {kind: contributions, file: ...}, no guard written
-    cfg.write_text(f"loop: {{clock: sim, period_s: 1.0}}\nsources:\n  - {{kind: replay, name: log, path: {d / 'lathe.csv'}}}\n"
-                   f"model: {{kind: contributions, file: {out}}}\nsink: {{kind: pci1756}}\n")
+    cfg.write_text(
+        f"loop: {{clock: sim, period_s: 1.0}}\nsources:\n  - {{kind: replay, name: log, path: {d / 'lathe.csv'}}}\n"
+        f"model: {{kind: contributions, file: {out}}}\nsink: {{kind: pci1756}}\n"
+    )
     assert main(["check-config", str(cfg)]) == 0
     assert main(["replay", str(cfg), "--log", str(d / "lathe.csv")]) == 0
     assert "reduction" in capsys.readouterr().out
@@ -87,8 +90,10 @@ def test_a_model_file_of_contributions_refuses_limits_beside_it_in_one_line(lath
     out = tmp_path / "model.yaml"
     fitting.write_recommended(rec.choose([_cand(so.label, 1.0, sum=so)], ["z"], {"z": 10.0}), log, out)
     cfg = tmp_path / "c.yaml"
-    cfg.write_text(f"loop: {{clock: sim, period_s: 1.0}}\nsources:\n  - {{kind: replay, name: log, path: {d / 'lathe.csv'}}}\n"
-                   f"model:\n  kind: contributions\n  file: {out}\n  max_abs_um: 10\nsink: {{kind: pci1756}}\n")
+    cfg.write_text(
+        f"loop: {{clock: sim, period_s: 1.0}}\nsources:\n  - {{kind: replay, name: log, path: {d / 'lathe.csv'}}}\n"
+        f"model:\n  kind: contributions\n  file: {out}\n  max_abs_um: 10\nsink: {{kind: pci1756}}\n"
+    )
     assert main(["check-config", str(cfg)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{cfg.name}:7:" in err and "model.contributions" in err
@@ -100,9 +105,11 @@ def test_a_default_limit_shorter_than_the_cycle_points_at_the_key_the_file_holds
     log = tmp_path / "l.csv"
     write_log(log, ["t_s", "T1", "err_z_um"], np.column_stack([np.arange(3.0) * 60, [20.0, 21, 22], [0.0, 1, 2]]))
     cfg = tmp_path / "c.yaml"
-    cfg.write_text(f"sources:\n  - {{kind: replay, name: log, path: {log}}}\nloop:\n  clock: sim\n  period_s: 60.0\n"
-                   "model: {kind: mlr, inputs: [T1], outputs: [z], params: {coef_um_per_k: [[1.0]]}}\n"
-                   "sink: {kind: pci1756}\n")
+    cfg.write_text(
+        f"sources:\n  - {{kind: replay, name: log, path: {log}}}\nloop:\n  clock: sim\n  period_s: 60.0\n"
+        "model: {kind: mlr, inputs: [T1], outputs: [z], params: {coef_um_per_k: [[1.0]]}}\n"
+        "sink: {kind: pci1756}\n"
+    )
     assert main(["check-config", str(cfg)]) == 2
     err = capsys.readouterr().err
     assert f"{cfg.name}:5: loop.period_s: the default guard.stale_after_s" in err and "set guard.stale_after_s" in err

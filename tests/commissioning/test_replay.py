@@ -92,9 +92,7 @@ def test_report_matches_independent_computation(log_and_model):
     # and bounded by the ideal compensation from the log
     ideal = float(np.sqrt(np.mean((err + want) ** 2)))
     assert abs(rep["axes"]["z"]["rms_after_um"] - ideal) < 1.0
-    assert rep["axes"]["z"]["reduction_pct"] == pytest.approx(
-        100 * (1 - rep["axes"]["z"]["rms_after_um"] / rms_before)
-    )
+    assert rep["axes"]["z"]["reduction_pct"] == pytest.approx(100 * (1 - rep["axes"]["z"]["rms_after_um"] / rms_before))
     assert rep["axes"]["z"]["reduction_pct"] > 50
     # every change of the word is one code; each is at most a few µm on a 1 Hz log
     n_changes = int(np.count_nonzero(np.diff(np.concatenate([[0], result.word]))))
@@ -106,7 +104,9 @@ def test_report_matches_independent_computation(log_and_model):
 def test_cli_replay_writes_report_and_plot(log_and_model, tmp_path, capsys):
     log_path, model_path = log_and_model
     report, plot = tmp_path / "r.json", tmp_path / "r.png"
-    rc = main(["replay", "--model", str(model_path), "--log", str(log_path), "--report", str(report), "--plot", str(plot)])
+    rc = main(
+        ["replay", "--model", str(model_path), "--log", str(log_path), "--report", str(report), "--plot", str(plot)]
+    )
     assert rc == 0
     rep = json.loads(report.read_text())
     assert set(rep) >= {"rows", "codes_sent", "axes", "saturated", "faults"}
@@ -152,9 +152,15 @@ def test_config_replay_against_pmc_over_modbus(tmp_path):
     try:
         with ModbusServerThread(pmc, port=0) as srv:
             doc = {
-                "sources": [{"kind": "sim", "name": "unused", "plant": "spindle", "scenario": {"segments": [{"duration_s": 1}]}}],
-                "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                          "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM}},
+                "sources": [
+                    {"kind": "sim", "name": "unused", "plant": "spindle", "scenario": {"segments": [{"duration_s": 1}]}}
+                ],
+                "model": {
+                    "kind": "xi_spindle",
+                    "inputs": ["T_xi"],
+                    "outputs": ["z"],
+                    "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM},
+                },
                 "sink": {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": srv.port, "max_step_um": 5},
             }
             cfg = tmp_path / "c.yaml"
@@ -249,8 +255,12 @@ def test_config_replay_of_a_pci1756_over_modbus_uses_the_card_in_process(tmp_pat
 
     doc = {
         "sources": [{"kind": "replay", "name": "log", "path": "big.csv"}],
-        "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                  "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM, "t0_c": 20.0}},
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": ["T_xi"],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM, "t0_c": 20.0},
+        },
         "codec": {"lsb_um": 0.5, "deadband_um": 0.5},
         "sink": {"kind": "pci1756", "device": "modbus", "host": "127.0.0.1", "port": 1},
     }
@@ -283,38 +293,111 @@ def test_config_replay_against_a_pmc_that_does_not_answer_is_one_line_exit_2(log
 
 HOURS = 3.0
 FEED_FIELD = {
-    "kind": "feed_axis", "outputs": ["y"],
-    "inputs": ["pos_y_mm", "T_base_000", "T_base_150", "T_base_300", "T_base_450", "T_base_600", "T_amb",
-               "T_motor", "T_table", "T_head", "T_block"],
-    "params": {"length_mm": 600.0, "input_roles": ["position", "slide", "slide", "slide", "slide", "slide",
-                                                   "ambient", "offset", "offset", "offset", "offset"],
-               "field": {"slide_mm": [0.0, 150.0, 300.0, 450.0, 600.0], "gain_integral": 0.41,
-                         "gain_restraint": -0.342, "gain_ambient": -0.131,
-                         "offset_um_per_k": [0.037, 0.62, 0.566, -0.249]}},
+    "kind": "feed_axis",
+    "outputs": ["y"],
+    "inputs": [
+        "pos_y_mm",
+        "T_base_000",
+        "T_base_150",
+        "T_base_300",
+        "T_base_450",
+        "T_base_600",
+        "T_amb",
+        "T_motor",
+        "T_table",
+        "T_head",
+        "T_block",
+    ],
+    "params": {
+        "length_mm": 600.0,
+        "input_roles": [
+            "position",
+            "slide",
+            "slide",
+            "slide",
+            "slide",
+            "slide",
+            "ambient",
+            "offset",
+            "offset",
+            "offset",
+            "offset",
+        ],
+        "field": {
+            "slide_mm": [0.0, 150.0, 300.0, 450.0, 600.0],
+            "gain_integral": 0.41,
+            "gain_restraint": -0.342,
+            "gain_ambient": -0.131,
+            "offset_um_per_k": [0.037, 0.62, 0.566, -0.249],
+        },
+    },
 }
 FEED_ANALYTIC = {
-    "kind": "feed_axis", "inputs": ["pos_y_mm", "current_y_a"], "outputs": ["y"],
-    "params": {"length_mm": 600.0, "chi_per_m": 131.4, "eta": 90.59, "u1_k": 24.97, "u2_k": 0.0,
-               "r_cu_ohm": 1.0, "input_roles": ["position", "current"]},
+    "kind": "feed_axis",
+    "inputs": ["pos_y_mm", "current_y_a"],
+    "outputs": ["y"],
+    "params": {
+        "length_mm": 600.0,
+        "chi_per_m": 131.4,
+        "eta": 90.59,
+        "u1_k": 24.97,
+        "u2_k": 0.0,
+        "r_cu_ohm": 1.0,
+        "input_roles": ["position", "current"],
+    },
 }
 INLINE = {
-    "ar1": {"kind": "ar1", "inputs": ["speed_rpm", "T3"], "outputs": ["z"],
-            "params": {"dt_s": 60.0, "c1": 0.99363, "c2_table": [[2000.0, 0.3367]], "c1_table": [[2000.0, 0.98965]],
-                       "bed_gain_um_per_k": [6.265], "spindle_sign": -1, "recursion_start": "zero"}},
-    "xi_spindle": {"kind": "xi_spindle", "inputs": ["T_xi", "speed_rpm"], "outputs": ["z"],
-                   "params": {"alpha_per_k": 1.36e-5, "length_mm": 164.7,
-                              "lift": {"k_um_per_rpm2": 2.61e-8, "speed_input": "speed_rpm", "preload_share": 0.8}}},
+    "ar1": {
+        "kind": "ar1",
+        "inputs": ["speed_rpm", "T3"],
+        "outputs": ["z"],
+        "params": {
+            "dt_s": 60.0,
+            "c1": 0.99363,
+            "c2_table": [[2000.0, 0.3367]],
+            "c1_table": [[2000.0, 0.98965]],
+            "bed_gain_um_per_k": [6.265],
+            "spindle_sign": -1,
+            "recursion_start": "zero",
+        },
+    },
+    "xi_spindle": {
+        "kind": "xi_spindle",
+        "inputs": ["T_xi", "speed_rpm"],
+        "outputs": ["z"],
+        "params": {
+            "alpha_per_k": 1.36e-5,
+            "length_mm": 164.7,
+            "lift": {"k_um_per_rpm2": 2.61e-8, "speed_input": "speed_rpm", "preload_share": 0.8},
+        },
+    },
     "feed_field": FEED_FIELD,
     "feed_analytic": FEED_ANALYTIC,
     "feed_linear": {**FEED_ANALYTIC, "params": {**FEED_ANALYTIC["params"], "linear_p0_mm": 300.0}},
     # the ξ sensor's lag led (compd.models.lead): the batch leads the inputs as the cycle does
-    "xi_lead": {"kind": "xi_spindle", "inputs": ["T_xi", "speed_rpm"], "outputs": ["z"],
-                "params": {"alpha_per_k": 1.36e-5, "length_mm": 164.7, "lead_s": [180.0, 0.0],
-                           "lead_filter_s": [36.0, 0.0],
-                           "lift": {"k_um_per_rpm2": 2.61e-8, "speed_input": "speed_rpm", "preload_share": 0.8}}},
+    "xi_lead": {
+        "kind": "xi_spindle",
+        "inputs": ["T_xi", "speed_rpm"],
+        "outputs": ["z"],
+        "params": {
+            "alpha_per_k": 1.36e-5,
+            "length_mm": 164.7,
+            "lead_s": [180.0, 0.0],
+            "lead_filter_s": [36.0, 0.0],
+            "lift": {"k_um_per_rpm2": 2.61e-8, "speed_input": "speed_rpm", "preload_share": 0.8},
+        },
+    },
 }
-MACHINE = {"ar1": "lathe", "xi_spindle": "spindle", "xi_lead": "spindle", "lvr": "gantry", "mlr": "gantry", "feed_field": "feed_axis",
-           "feed_analytic": "feed_axis", "feed_linear": "feed_axis"}
+MACHINE = {
+    "ar1": "lathe",
+    "xi_spindle": "spindle",
+    "xi_lead": "spindle",
+    "lvr": "gantry",
+    "mlr": "gantry",
+    "feed_field": "feed_axis",
+    "feed_analytic": "feed_axis",
+    "feed_linear": "feed_axis",
+}
 
 
 @pytest.fixture(scope="module")
@@ -330,7 +413,9 @@ def machines(tmp_path_factory):
         logs[m] = read_log(d / f"{m}.csv", allow_nan=True)
     run_log(load_plant("hil_sim/scenarios/gantry_train.yaml"), d / "gantry_train.csv", 60.0, 12 * 3600)
     for kind in ("lvr", "mlr"):
-        assert main(["fit", "--kind", kind, "--log", str(d / "gantry_train.csv"), "--out", str(d / f"{kind}.yaml")]) == 0
+        assert (
+            main(["fit", "--kind", kind, "--log", str(d / "gantry_train.csv"), "--out", str(d / f"{kind}.yaml")]) == 0
+        )
     for name, doc in INLINE.items():
         (d / f"{name}.yaml").write_text(yaml.safe_dump(doc))
     return d, logs
@@ -400,8 +485,9 @@ def test_predict_equals_stepping_for_every_kind_the_replay_batches(machines):
         batch, step = _model(d, name), _model(d, name)
         X, t = log.matrix(batch.inputs), log.t_s
         cut = len(t) - 50
-        np.testing.assert_allclose(batch.predict(X[:cut], t[:cut]), _stepped(step, X[:cut], t[:cut]),
-                                   rtol=0, atol=1e-9, err_msg=name)
+        np.testing.assert_allclose(
+            batch.predict(X[:cut], t[:cut]), _stepped(step, X[:cut], t[:cut]), rtol=0, atol=1e-9, err_msg=name
+        )
         a, b = np.zeros(len(batch.outputs)), np.zeros(len(batch.outputs))
         for i in range(cut, len(t), 10):  # on from the state each left
             batch.run(X[i], float(t[i]), a)
@@ -411,10 +497,19 @@ def test_predict_equals_stepping_for_every_kind_the_replay_batches(machines):
     assert seen == BATCH_MODELS
 
 
-@pytest.mark.parametrize(("name", "sink"), [
-    ("ar1", "fanuc"), ("xi_spindle", "fanuc_shift"), ("xi_lead", "fanuc"), ("lvr", "pci1756"), ("mlr", "siemens"),
-    ("feed_field", "pci1756"), ("feed_analytic", "fanuc"), ("feed_linear", "siemens"),
-])
+@pytest.mark.parametrize(
+    ("name", "sink"),
+    [
+        ("ar1", "fanuc"),
+        ("xi_spindle", "fanuc_shift"),
+        ("xi_lead", "fanuc"),
+        ("lvr", "pci1756"),
+        ("mlr", "siemens"),
+        ("feed_field", "pci1756"),
+        ("feed_analytic", "fanuc"),
+        ("feed_linear", "siemens"),
+    ],
+)
 def test_staged_replay_equals_the_loops_cycles_for_every_kind(machines, name, sink):
     """Every model kind (feed_axis with linear_p0_mm: the Siemens sink sends each row's tanβ)."""
     d, logs = machines
@@ -440,8 +535,11 @@ def _bad_inputs(log, rows):
     return Log(log.file, list(log.columns), data)
 
 
-BAD_GUARD = {"fault_policy": "ramp_to_zero", "recovery_s": 30.0,
-             "signals": {"T11": {"min": 0.0, "max": 80.0}, "T12": {"max_rate_per_s": 0.5}}}
+BAD_GUARD = {
+    "fault_policy": "ramp_to_zero",
+    "recovery_s": 30.0,
+    "signals": {"T11": {"min": 0.0, "max": 80.0}, "T12": {"max_rate_per_s": 0.5}},
+}
 
 
 @pytest.mark.parametrize("sink", ["pci1756", "fanuc", "fanuc_shift", "siemens"])
@@ -535,14 +633,24 @@ def _ramps_log(path, step_s: float) -> None:
 
 XI_CONFIG = {
     "sources": [{"kind": "replay", "name": "log", "path": "ramps.csv"}],
-    "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-              "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM, "t0_c": 20.0}},
+    "model": {
+        "kind": "xi_spindle",
+        "inputs": ["T_xi"],
+        "outputs": ["z"],
+        "params": {"alpha_per_k": ALPHA, "length_mm": LENGTH_MM, "t0_c": 20.0},
+    },
 }
 
 
-@pytest.mark.parametrize("sink", [
-    {"kind": "fanuc_pmc"}, {"kind": "fanuc_pmc", "mode": "shift"}, {"kind": "pci1756"}, {"kind": "siemens"},
-])
+@pytest.mark.parametrize(
+    "sink",
+    [
+        {"kind": "fanuc_pmc"},
+        {"kind": "fanuc_pmc", "mode": "shift"},
+        {"kind": "pci1756"},
+        {"kind": "siemens"},
+    ],
+)
 def test_rows_1_s_or_10_s_apart_give_the_same_applied_correction(tmp_path, sink):
     """The same model and error logged every second and every 10 s: at the times both have,
     the guard's correction is the same (its slew does not bind) and so is what the device
@@ -601,8 +709,9 @@ def test_fanuc_replay_of_10_s_rows_is_not_limited_to_one_step_per_row(tmp_path):
     pmc = SpyPmc(step_limit_um=10)
     fanuc = FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", max_step_um=5, min_update_s=0.02), pmc=pmc)
     res = replay_log(log, load_model(tmp_path / "xi.yaml"), fanuc, GuardConfig(), CodecConfig())
-    card = replay_log(log, load_model(tmp_path / "xi.yaml"), Pci1756Sink(Pci1756Config(kind="pci1756")),
-                      GuardConfig(), CodecConfig())
+    card = replay_log(
+        log, load_model(tmp_path / "xi.yaml"), Pci1756Sink(Pci1756Config(kind="pci1756")), GuardConfig(), CodecConfig()
+    )
     applied = res.applied_um[:, 0]
     np.testing.assert_array_equal(applied, res.extra["commanded_um"][:, 0])  # no trailing at any row
     np.testing.assert_array_equal(applied, card.applied_um[:, 0])

@@ -155,31 +155,54 @@ BAD = [
     (["--max-rpm", "-5", "--hours", "24"], "--max-rpm: must be ≥ 0"),
     (["--max-rpm", "9000", "--hours", "0"], "--hours: must be > 0"),
     (["--max-rpm", "9000", "--hours", "nan"], "--hours: must be a finite number"),
-    (["--max-rpm", "9000", "--hours", "3"], "--hours: 3 h is too short for one pass over the 7 levels: it needs at least 4.00 h"),
+    (
+        ["--max-rpm", "9000", "--hours", "3"],
+        "--hours: 3 h is too short for one pass over the 7 levels: it needs at least 4.00 h",
+    ),
     (["--max-rpm", "9000", "--hours", "24", "--min-rpm", "9500"], "--min-rpm: must be below --max-rpm"),
     (["--max-rpm", "0", "--hours", "24"], "--max-rpm: 0 means no spindle"),
     (["--max-rpm", "9000", "--hours", "24", "--levels", "1"], "--levels: a whole number from 2 to 50"),
     (["--max-rpm", "9000", "--hours", "24", "--levels", "x"], "argument --levels: not a whole number"),
     (["--max-rpm", "5", "--hours", "24", "--levels", "9"], "--levels: 9 levels from 0.5 to 5 rpm"),
-    (["--max-rpm", "9000", "--hours", "24", "--probe-every-min", "15", "--step-min", "10"],
-     "--probe-every-min: the probing interval (15 min) must be a whole number of steps (10 min)"),
+    (
+        ["--max-rpm", "9000", "--hours", "24", "--probe-every-min", "15", "--step-min", "10"],
+        "--probe-every-min: the probing interval (15 min) must be a whole number of steps (10 min)",
+    ),
     (["--max-rpm", "9000", "--hours", "24", "--step-min", "0.001"], "--step-min: must be a whole number of seconds"),
-    (["--max-rpm", "9000", "--hours", "24", "--axis", "q:100:1000"], "--axis: the axis is one letter of X, Y, Z, U, V, W"),
+    (
+        ["--max-rpm", "9000", "--hours", "24", "--axis", "q:100:1000"],
+        "--axis: the axis is one letter of X, Y, Z, U, V, W",
+    ),
     (["--max-rpm", "9000", "--hours", "24", "--axis", "x:100"], "--axis: give NAME:STROKE_MM:MAX_FEED_MM_MIN"),
     (["--max-rpm", "9000", "--hours", "24", "--axis", "x:-100:1000"], "--axis: x: the stroke must be > 0"),
     (["--max-rpm", "9000", "--hours", "24", "--axis", "x:100:1000:2000"], "--axis: x: the min feed must be below"),
-    (["--max-rpm", "9000", "--hours", "24", "--axis", "x:100:1000", "--axis", "X:50:500"], "--axis: axis x given twice"),
-    (["--max-rpm", "9000", "--hours", "24", "--axis", "x:2000:1000:50"],
-     "--axis: x: one stroke out and back over 2000 mm at its lowest feed (50 mm/min) takes 4800 s"),
+    (
+        ["--max-rpm", "9000", "--hours", "24", "--axis", "x:100:1000", "--axis", "X:50:500"],
+        "--axis: axis x given twice",
+    ),
+    (
+        ["--max-rpm", "9000", "--hours", "24", "--axis", "x:2000:1000:50"],
+        "--axis: x: one stroke out and back over 2000 mm at its lowest feed (50 mm/min) takes 4800 s",
+    ),
     (["--max-rpm", "9000", "--hours", "24", "--gcode", "fanuc"], "--program: give --gcode and --program together"),
     (["--max-rpm", "9000", "--hours", "24", "--gcode", "heidenhain", "--program", "p"], "--gcode: invalid choice"),
-    (["--max-rpm", "9000", "--hours", "24", "--probe-call", "M98 P9001"], "--probe-call: the measuring call goes into a program"),
-    (["--max-rpm", "9000", "--hours", "24", "--gcode", "fanuc", "--program", "p.nc", "--probe-call", "m98 p9001"],
-     "--probe-call: a FANUC program is upper case"),
+    (
+        ["--max-rpm", "9000", "--hours", "24", "--probe-call", "M98 P9001"],
+        "--probe-call: the measuring call goes into a program",
+    ),
+    (
+        ["--max-rpm", "9000", "--hours", "24", "--gcode", "fanuc", "--program", "p.nc", "--probe-call", "m98 p9001"],
+        "--probe-call: a FANUC program is upper case",
+    ),
     (["--max-rpm", "9000", "--hours", "24", "--seed", "-1"], "--seed: a whole number >= 0"),
-    (["--max-rpm", "9000", "--hours", "24", "--feed-levels", "30", "--axis", "x:100:1000"],
-     "--feed-levels: 30 axis feeds and standing do not fit into the 14 holds of a pass"),
-    (["--max-rpm", "9000", "--hours", "2000", "--step-min", "0.1"], "--hours: 2000 h in steps of 6 s are 1200000 steps"),
+    (
+        ["--max-rpm", "9000", "--hours", "24", "--feed-levels", "30", "--axis", "x:100:1000"],
+        "--feed-levels: 30 axis feeds and standing do not fit into the 14 holds of a pass",
+    ),
+    (
+        ["--max-rpm", "9000", "--hours", "2000", "--step-min", "0.1"],
+        "--hours: 2000 h in steps of 6 s are 1200000 steps",
+    ),
 ]
 
 
@@ -216,18 +239,21 @@ def test_read_plan_round_trip(tmp_path):
     np.testing.assert_array_equal(back.probe, plan.probe)
 
 
-@pytest.mark.parametrize("text, says", [
-    ("", "p.csv: the plan is empty"),
-    ("t_s,probe\n0,1\n60,1\n", "p.csv:1: no column 'speed_rpm'"),
-    ("t_s,speed_rpm\n0,100\n", "p.csv: a plan has at least two rows"),
-    ("t_s,speed_rpm\n0,100\n60,x\n", "p.csv:3: speed_rpm: not a number: 'x'"),
-    ("t_s,speed_rpm\n0,100\n60,-1\n", "p.csv:3: speed_rpm: must be >= 0"),
-    ("t_s,speed_rpm\n0,100\n0,200\n", "p.csv:3: t_s: t_s must increase from row to row (0 after 0)"),
-    ("t_s,speed_rpm,probe\n0,100,2\n60,0,1\n", "p.csv:2: probe: 0 or 1, got 2"),
-    ("t_s,speed_rpm,feed_x_mm\n0,100,2\n60,0,1\n", "p.csv:1: feed_x_mm: a feed column is feed_<axis>_mm_min"),
-    ("t_s,speed_rpm\n0,100\n60\n", "p.csv:3: row has 1 cells, the header has 2"),
-    ("t_s,speed_rpm\n0,inf\n60,0\n", "p.csv:2: speed_rpm: not a finite number"),
-])
+@pytest.mark.parametrize(
+    "text, says",
+    [
+        ("", "p.csv: the plan is empty"),
+        ("t_s,probe\n0,1\n60,1\n", "p.csv:1: no column 'speed_rpm'"),
+        ("t_s,speed_rpm\n0,100\n", "p.csv: a plan has at least two rows"),
+        ("t_s,speed_rpm\n0,100\n60,x\n", "p.csv:3: speed_rpm: not a number: 'x'"),
+        ("t_s,speed_rpm\n0,100\n60,-1\n", "p.csv:3: speed_rpm: must be >= 0"),
+        ("t_s,speed_rpm\n0,100\n0,200\n", "p.csv:3: t_s: t_s must increase from row to row (0 after 0)"),
+        ("t_s,speed_rpm,probe\n0,100,2\n60,0,1\n", "p.csv:2: probe: 0 or 1, got 2"),
+        ("t_s,speed_rpm,feed_x_mm\n0,100,2\n60,0,1\n", "p.csv:1: feed_x_mm: a feed column is feed_<axis>_mm_min"),
+        ("t_s,speed_rpm\n0,100\n60\n", "p.csv:3: row has 1 cells, the header has 2"),
+        ("t_s,speed_rpm\n0,inf\n60,0\n", "p.csv:2: speed_rpm: not a finite number"),
+    ],
+)
 def test_a_bad_plan_file_names_file_line_and_column(tmp_path, text, says):
     f = tmp_path / "p.csv"
     f.write_text(text)
@@ -275,8 +301,14 @@ def rs274_run(program: Path, call_name: str) -> Run:
         pytest.fail("rs274 is not installed (Debian package linuxcnc-uspace; `make sysdeps`)")
     # the user's measuring routine: a stub that leaves a mark in the canonical calls
     (program.parent / f"{call_name}.ngc").write_text(f"o<{call_name}> sub\n({STUB})\no<{call_name}> endsub\nM2\n")
-    r = subprocess.run([exe, "-g", program.name], cwd=program.parent, capture_output=True, text=True, timeout=120,
-                       stdin=subprocess.DEVNULL)
+    r = subprocess.run(
+        [exe, "-g", program.name],
+        cwd=program.parent,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     run, on, s, feed = Run(), False, 0.0, 0.0
     pos = np.zeros(9)
@@ -476,15 +508,28 @@ def assert_runs_the_plan(run: Run, plan: tp.Plan) -> None:
 
 PLANS = {  # (design arguments, the LinuxCNC call)
     "spindle_24h": (dict(max_rpm=12000, hours=24), "o<probe> call"),
-    "spindle_short": (dict(max_rpm=3000, hours=4.5, levels=4, probe_every_min=5, time_constant_min=20,
-                           idle_hours=0.5, seed=3), "o<probe> call"),
-    "spindle_long_finer_steps": (dict(max_rpm=18000, min_rpm=2000, hours=60, step_min=5, probe_every_min=15),
-                                 "o<measure> call [1]"),
-    "spindle_with_axes": (dict(max_rpm=10000, hours=8, time_constant_min=30,
-                               axes=[tp.parse_axis("x:700:9000"), tp.parse_axis("z:235.5:4000")], feed_levels=3),
-                          "o<probe> call"),
-    "axes_only": (dict(max_rpm=0, hours=6, time_constant_min=20, axes=[tp.parse_axis("y:600:15000:1000")]),
-                  "o<probe> call"),
+    "spindle_short": (
+        dict(max_rpm=3000, hours=4.5, levels=4, probe_every_min=5, time_constant_min=20, idle_hours=0.5, seed=3),
+        "o<probe> call",
+    ),
+    "spindle_long_finer_steps": (
+        dict(max_rpm=18000, min_rpm=2000, hours=60, step_min=5, probe_every_min=15),
+        "o<measure> call [1]",
+    ),
+    "spindle_with_axes": (
+        dict(
+            max_rpm=10000,
+            hours=8,
+            time_constant_min=30,
+            axes=[tp.parse_axis("x:700:9000"), tp.parse_axis("z:235.5:4000")],
+            feed_levels=3,
+        ),
+        "o<probe> call",
+    ),
+    "axes_only": (
+        dict(max_rpm=0, hours=6, time_constant_min=20, axes=[tp.parse_axis("y:600:15000:1000")]),
+        "o<probe> call",
+    ),
 }
 
 
@@ -528,8 +573,28 @@ def test_the_program_header_says_what_made_it(tmp_path, capsys):
     from compd import version
 
     out, prog = tmp_path / "plan.csv", tmp_path / "O2303.nc"
-    assert main(["testplan", "--max-rpm", "4500", "--hours", "24", "--axis", "z:600:8000", "--out", str(out),
-                 "--gcode", "fanuc", "--program", str(prog), "--probe-call", "M98 P9010"]) == 0
+    assert (
+        main(
+            [
+                "testplan",
+                "--max-rpm",
+                "4500",
+                "--hours",
+                "24",
+                "--axis",
+                "z:600:8000",
+                "--out",
+                str(out),
+                "--gcode",
+                "fanuc",
+                "--program",
+                str(prog),
+                "--probe-call",
+                "M98 P9010",
+            ]
+        )
+        == 0
+    )
     said = capsys.readouterr().out.splitlines()[-1]
     assert said == f"compd testplan: 145 rows -> {out}; fanuc program -> {prog} (measuring call: M98 P9010)"
     text = prog.read_text()

@@ -59,8 +59,27 @@ def test_day(tmp_path_factory):
     cwd = os.getcwd()
     try:
         os.chdir(d)
-        assert main(["fit", "--kind", "xi_spindle", "--log", "test.csv", "--inputs", "T_xi", "speed_rpm",
-                     "--target", "err_z_um", "--out", "model.yaml", "--report", "fit.json"]) == 0
+        assert (
+            main(
+                [
+                    "fit",
+                    "--kind",
+                    "xi_spindle",
+                    "--log",
+                    "test.csv",
+                    "--inputs",
+                    "T_xi",
+                    "speed_rpm",
+                    "--target",
+                    "err_z_um",
+                    "--out",
+                    "model.yaml",
+                    "--report",
+                    "fit.json",
+                ]
+            )
+            == 0
+        )
         assert main(["replay", "--model", "model.yaml", "--log", "unseen.csv", "--report", "replay.json"]) == 0
     finally:
         os.chdir(cwd)
@@ -82,15 +101,27 @@ def direct(log_csv, model_yaml=None):
     m = c["probe_z_um"][rows]
     drift = m - m[0]
     k = int(np.argmax(np.abs(drift)))
-    out = {"rows": rows, "t_s": c["t_s"][rows], "drift": drift, "max_abs": abs(drift[k]), "at_t_s": c["t_s"][rows][k],
-           "range": m.max() - m.min(), "speed": c["speed_rpm"]}
+    out = {
+        "rows": rows,
+        "t_s": c["t_s"][rows],
+        "drift": drift,
+        "max_abs": abs(drift[k]),
+        "at_t_s": c["t_s"][rows][k],
+        "range": m.max() - m.min(),
+        "speed": c["speed_rpm"],
+    }
     if model_yaml is not None:
         from compd.commissioning.fitting import load_model, predict_log, read_fit_log
 
         pred = predict_log(load_model(model_yaml), read_fit_log(log_csv))[rows, 0]
         r = m - pred
-        out.update(pred=pred, residual=r, rms=float(np.sqrt(np.mean(r * r))), max_res=float(np.max(np.abs(r))),
-                   res_range=float(r.max() - r.min()))
+        out.update(
+            pred=pred,
+            residual=r,
+            rms=float(np.sqrt(np.mean(r * r))),
+            max_res=float(np.max(np.abs(r))),
+            res_range=float(r.max() - r.min()),
+        )
     return out
 
 
@@ -128,8 +159,11 @@ def test_idle_stretches_at_the_start_and_the_end(test_day):
     c = columns(test_day / "test.csv")
     for st in tt.idle:
         f = st.figures(tt.axes[0])
-        inside = (want["t_s"] >= st.from_t_s) & (want["t_s"] < st.to_t_s) if st.where == "start" else (
-            want["t_s"] >= st.from_t_s)
+        inside = (
+            (want["t_s"] >= st.from_t_s) & (want["t_s"] < st.to_t_s)
+            if st.where == "start"
+            else (want["t_s"] >= st.from_t_s)
+        )
         m = c["probe_z_um"][want["rows"][inside]]
         assert f.measurements == inside.sum() >= 6
         assert f.range_um == pytest.approx(m.max() - m.min()) and f.change_um == pytest.approx(m[-1] - m[0])
@@ -193,7 +227,9 @@ def test_the_fit_report_keeps_the_test_figures(test_day):
     want = direct(test_day / "test.csv", test_day / "model.yaml")
     z = block["axes"]["z"]
     assert z["source"] == "probe_z_um" and z["measurements"] == len(want["rows"])
-    assert z["drift"]["max_abs_um"] == pytest.approx(want["max_abs"]) and z["drift"]["range_um"] == pytest.approx(want["range"])
+    assert z["drift"]["max_abs_um"] == pytest.approx(want["max_abs"]) and z["drift"]["range_um"] == pytest.approx(
+        want["range"]
+    )
     assert z["residual"]["rms_um"] == pytest.approx(want["rms"])  # in sample: the fit's own prediction
     assert z["t_s"] == want["t_s"].tolist() and z["speed_rpm"] == want["speed"][want["rows"]].tolist()
     assert z["residual_um"] == pytest.approx(want["residual"].tolist())
@@ -206,7 +242,8 @@ def test_a_fit_on_a_log_that_measures_no_axis_says_why():
 
     log = Log("x.csv", ["t_s", "T1", "dz"], np.zeros((3, 3)))
     assert thermal_test_block(log, type("M", (), {"outputs": ["dz"]})(), np.zeros((3, 1))) == {
-        "skipped": "no probe_<axis>_um or err_<axis>_um column: not the log of a thermal test"}
+        "skipped": "no probe_<axis>_um or err_<axis>_um column: not the log of a thermal test"
+    }
 
 
 REPORT = ["report", "--fit", "fit.json", "--replay", "replay.json", "--out", "r.html"]
@@ -217,17 +254,28 @@ def test_the_page_shows_the_test_and_the_json_has_it(test_day, monkeypatch, caps
     assert main([*REPORT, "--test-json", "tt.json"]) == 0  # the fit report's log and model by default
     out = capsys.readouterr().out
     want = direct(test_day / "test.csv", test_day / "model.yaml")
-    assert (f"compd report: thermal test of test.csv, axis z: {len(want['rows'])} measurements (probe_z_um),"
-            f" largest drift {want['max_abs']:.2f} um at {want['at_t_s'] / 3600:.2f} h, range {want['range']:.2f} um;"
-            f" residual RMS {want['rms']:.2f} um, range {want['res_range']:.2f} um") in out
+    assert (
+        f"compd report: thermal test of test.csv, axis z: {len(want['rows'])} measurements (probe_z_um),"
+        f" largest drift {want['max_abs']:.2f} um at {want['at_t_s'] / 3600:.2f} h, range {want['range']:.2f} um;"
+        f" residual RMS {want['rms']:.2f} um, range {want['res_range']:.2f} um"
+    ) in out
     text = (test_day / "r.html").read_text()
     section = text.split("<h2>The thermal test: drift per axis (ISO 230-3)</h2>")[1].split("<h2>")[0]
     assert "the log the fit report fit.json names" in section
     summary = re.search(r"<tbody><tr><td class=\"l\">z</td>(.*?)</tr>", section)[1]
     cells = [re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", summary)]
     first = columns(test_day / "test.csv")["probe_z_um"][want["rows"][0]]
-    assert cells == ["probe_z_um, at its probe rows", str(len(want["rows"])), f"{first:.2f}", f"{want['max_abs']:.2f}", f"{want['at_t_s'] / 3600:.2f}", f"{want['range']:.2f}",
-                     f"{want['rms']:.2f}", f"{want['max_res']:.2f}", f"{want['res_range']:.2f}"]
+    assert cells == [
+        "probe_z_um, at its probe rows",
+        str(len(want["rows"])),
+        f"{first:.2f}",
+        f"{want['max_abs']:.2f}",
+        f"{want['at_t_s'] / 3600:.2f}",
+        f"{want['range']:.2f}",
+        f"{want['rms']:.2f}",
+        f"{want['max_res']:.2f}",
+        f"{want['res_range']:.2f}",
+    ]
     assert "at the start: the machine at rest, the environment alone" in section
     assert "at the end: the cool-down after the last run" in section
     assert len(re.findall(r'<img src="data:image/png;base64,', section)) == 1
@@ -238,9 +286,14 @@ def test_the_page_shows_the_test_and_the_json_has_it(test_day, monkeypatch, caps
     row = re.findall(r"<tr>(.*?)</tr>", measure)[k + 1]
     radial = columns(test_day / "test.csv")["err_radial_um"][want["rows"]]  # drift only: the model has no radial
     assert [re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", row)] == [
-        f"{want['t_s'][k] / 3600:.2f}", f"{want['t_s'][k]:.1f}", f"{want['speed'][want['rows'][k]]:.0f}",
-        f"{want['drift'][k]:.2f}", f"{want['pred'][k]:.2f}", f"{want['residual'][k]:.2f}",
-        f"{radial[k] - radial[0]:.2f}"]
+        f"{want['t_s'][k] / 3600:.2f}",
+        f"{want['t_s'][k]:.1f}",
+        f"{want['speed'][want['rows'][k]]:.0f}",
+        f"{want['drift'][k]:.2f}",
+        f"{want['pred'][k]:.2f}",
+        f"{want['residual'][k]:.2f}",
+        f"{radial[k] - radial[0]:.2f}",
+    ]
     glance = text.split("<h2>At a glance</h2>")[1].split("</ul>")[0]
     assert f"axis z, thermal test: largest drift <b>{want['max_abs']:.2f} µm</b>" in glance
     block = json.loads((test_day / "tt.json").read_text())
@@ -253,11 +306,41 @@ def test_the_page_shows_the_test_and_the_json_has_it(test_day, monkeypatch, caps
 def test_another_log_and_model_are_given_by_options(test_day, monkeypatch, capsys):
     """--test-log: a log with err_z_um only (sampled every --test-every-min), --model another model."""
     monkeypatch.chdir(test_day)
-    assert main(["fit", "--kind", "mlr", "--log", "test.csv", "--inputs", "T_xi", "--target", "err_z_um",
-                 "--out", "mlr.yaml"]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                "--kind",
+                "mlr",
+                "--log",
+                "test.csv",
+                "--inputs",
+                "T_xi",
+                "--target",
+                "err_z_um",
+                "--out",
+                "mlr.yaml",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main([*REPORT, "--test-log", "unseen.csv", "--model", "mlr.yaml", "--test-every-min", "30",
-                 "--test-json", "u.json"]) == 0
+    assert (
+        main(
+            [
+                *REPORT,
+                "--test-log",
+                "unseen.csv",
+                "--model",
+                "mlr.yaml",
+                "--test-every-min",
+                "30",
+                "--test-json",
+                "u.json",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     block = json.loads((test_day / "u.json").read_text())
     z = block["axes"]["z"]
@@ -265,7 +348,8 @@ def test_another_log_and_model_are_given_by_options(test_day, monkeypatch, capsy
     assert z["source"] == "err_z_um" and z["sampled"] == "every 30 min" and np.all(np.diff(z["t_s"]) == 1800.0)
     assert z["measurements"] == 4 * 2 + 1 and "radial" in block["axes"]  # the log's other axis: its drift only
     assert block["axes"]["radial"]["residual"] is None and block["axes"]["radial"]["why_no_residual"] == (
-        "not an output of mlr.yaml")
+        "not an output of mlr.yaml"
+    )
     assert "thermal test of unseen.csv, axis radial: 9 measurements (err_radial_um)" in out
     assert "no residual (not an output of mlr.yaml)" in out
     text = (test_day / "r.html").read_text()
@@ -281,7 +365,8 @@ def test_without_the_log_the_section_says_why(test_day, tmp_path, monkeypatch, c
     monkeypatch.chdir(tmp_path)  # test.csv is not here
     assert main(REPORT) == 0
     assert "compd: the thermal test is not shown: the log 'test.csv' that fit.json names is not found" in (
-        capsys.readouterr().err)
+        capsys.readouterr().err
+    )
     text = (tmp_path / "r.html").read_text()
     assert "Not shown: the log &#x27;test.csv&#x27; that fit.json names is not found" in text
     assert main([*REPORT, "--test-json", "t.json"]) == 2  # nothing to write: one line, nothing written
@@ -290,17 +375,20 @@ def test_without_the_log_the_section_says_why(test_day, tmp_path, monkeypatch, c
     assert not (tmp_path / "t.json").exists()
 
 
-@pytest.mark.parametrize("argv, words", [
-    (["--test-log", "nope.csv"], ["nope.csv", "cannot read log"]),
-    (["--test-log", "empty.csv"], ["empty.csv", "no probe_<axis>_um or err_<axis>_um column"]),
-    (["--test-log", "bad.csv"], ["bad.csv:3", "err_z_um", "not a number"]),
-    (["--test-log", "other.csv"], ["other.csv", "'T_xi', an input of model.yaml, is not in the log"]),
-    (["--model", "nope.yaml"], ["nope.yaml: cannot read"]),
-    (["--test-every-min", "0"], ["--test-every-min", "must be > 0"]),
-    (["--test-every-min", "5000"], ["--test-every-min", "5000 min: between 0.1 and 1440 min"]),
-    (["--test-every-min", "nan"], ["--test-every-min", "finite"]),
-    (["--test-json", "."], [".: --test-json: is a folder"]),
-])
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--test-log", "nope.csv"], ["nope.csv", "cannot read log"]),
+        (["--test-log", "empty.csv"], ["empty.csv", "no probe_<axis>_um or err_<axis>_um column"]),
+        (["--test-log", "bad.csv"], ["bad.csv:3", "err_z_um", "not a number"]),
+        (["--test-log", "other.csv"], ["other.csv", "'T_xi', an input of model.yaml, is not in the log"]),
+        (["--model", "nope.yaml"], ["nope.yaml: cannot read"]),
+        (["--test-every-min", "0"], ["--test-every-min", "must be > 0"]),
+        (["--test-every-min", "5000"], ["--test-every-min", "5000 min: between 0.1 and 1440 min"]),
+        (["--test-every-min", "nan"], ["--test-every-min", "finite"]),
+        (["--test-json", "."], [".: --test-json: is a folder"]),
+    ],
+)
 def test_bad_test_inputs_are_one_line_exit_2(test_day, monkeypatch, capsys, argv, words):
     monkeypatch.chdir(test_day)
     write_log(test_day / "empty.csv", ["t_s", "T_xi", "speed_rpm"], np.array([[0.0, 20.0, 0.0], [60.0, 20.1, 0.0]]))

@@ -127,10 +127,16 @@ class _Sink:
 
 def test_lockstep_clock_runs_the_plant_to_each_deadline_and_polls_each_source_once_there() -> None:
     plant, temps = PlantTime(0), Temps()
-    cfg = ModbusConfig.model_validate({
-        "kind": "modbus", "name": "pt", "port": 1, "poll_period_s": 0.001, "timeout_s": 1.0,
-        "channels": [{"name": "T1", "address": 0}, {"name": "T2", "address": 1}],
-    })
+    cfg = ModbusConfig.model_validate(
+        {
+            "kind": "modbus",
+            "name": "pt",
+            "port": 1,
+            "poll_period_s": 0.001,
+            "timeout_s": 1.0,
+            "channels": [{"name": "T1", "address": 0}, {"name": "T2", "address": 1}],
+        }
+    )
     with ModbusServerThread(plant, port=0) as psrv, ModbusServerThread(temps, port=0) as tsrv:
         source = ModbusSource(cfg.model_copy(update={"port": tsrv.port}))
         frame = Frame(source.signal_names())

@@ -18,8 +18,10 @@ from compd.log import write_log
 
 def _mlr(outputs: str, n: int = 1) -> str:
     zeros = ", ".join(["0.0"] * n)
-    return (f"{{kind: mlr, inputs: [T1], outputs: {outputs}, params: {{intercept_um: [{zeros}],"
-            f" coef_um_per_k: [[{zeros}]], t0_c: [20.0]}}}}")
+    return (
+        f"{{kind: mlr, inputs: [T1], outputs: {outputs}, params: {{intercept_um: [{zeros}],"
+        f" coef_um_per_k: [[{zeros}]], t0_c: [20.0]}}}}"
+    )
 
 
 def _config(tmp_path: Path, model: str, more: str = "", sink: str = "{kind: fanuc_pmc}") -> Path:
@@ -44,8 +46,8 @@ def _line_of(path: Path, text: str) -> int:
 
 TYPO = f"""\
   contributions:
-    - {{name: spindle, {_mlr('[z]')[1:]}
-    - {{name: column, {_mlr('[Z]')[1:]}
+    - {{name: spindle, {_mlr("[z]")[1:]}
+    - {{name: column, {_mlr("[Z]")[1:]}
 """
 
 
@@ -78,10 +80,11 @@ def test_a_reload_to_a_misspelt_axis_is_rejected(tmp_path: Path, capsys: pytest.
 
 def test_a_model_file_with_a_misspelt_axis_is_named_in_its_file(tmp_path: Path) -> None:
     (tmp_path / "column.yaml").write_text(
-        "kind: mlr\ninputs: [T1]\noutputs: [Z]\nparams: {intercept_um: [0.0], coef_um_per_k: [[0.0]], t0_c: [20.0]}\n")
+        "kind: mlr\ninputs: [T1]\noutputs: [Z]\nparams: {intercept_um: [0.0], coef_um_per_k: [[0.0]], t0_c: [20.0]}\n"
+    )
     model = f"""\
   contributions:
-    - {{name: spindle, {_mlr('[z]')[1:]}
+    - {{name: spindle, {_mlr("[z]")[1:]}
     - {{name: column, kind: mlr, file: column.yaml}}
 """
     with pytest.raises(ConfigError) as e:
@@ -96,8 +99,8 @@ def test_contributions_on_two_axes_need_them_declared(tmp_path: Path) -> None:
     contribution's outputs are the axes, and the error says codec.axes declares more."""
     model = f"""\
   contributions:
-    - {{name: spindle, {_mlr('[z]')[1:]}
-    - {{name: cross, {_mlr('[x]')[1:]}
+    - {{name: spindle, {_mlr("[z]")[1:]}
+    - {{name: cross, {_mlr("[x]")[1:]}
 """
     with pytest.raises(ConfigError, match=r"'x' is not an axis the sink drives \(z: .*codec.axes declares more\)$"):
         load_config(_config(tmp_path, model))
@@ -116,18 +119,20 @@ def test_the_siemens_axes_declare_the_axes_it_drives(tmp_path: Path) -> None:
     """A model output the NC section does not map reached no NC axis, silently: now refused."""
     sink = "{kind: siemens, axes: {z: 0}}"
     with pytest.raises(ConfigError) as e:
-        load_config(_config(tmp_path, "  " + _mlr("[z, x]", 2),
-                            "codec: {axes: [z, x]}", sink=sink))
+        load_config(_config(tmp_path, "  " + _mlr("[z, x]", 2), "codec: {axes: [z, x]}", sink=sink))
     assert "'x' is not an axis the sink drives (z: sink.axes)" in str(e.value)
     assert load_config(_config(tmp_path, "  " + _mlr("[z]"), sink=sink)).model.outputs == ["z"]
 
 
-@pytest.mark.parametrize(("more", "key"), [
-    ("guard: {axes: {Z: {max_abs_um: 10}}}", "guard.axes.Z"),
-    ("inhibit: {axes: {Z: {signal: T1}}}", "inhibit.axes.Z"),
-    ("adapt: {slope_position: {Z: pos_z_mm}}", "adapt.slope_position.Z"),
-    ("shadow: " + _mlr("[Z]"), "shadow.outputs[0]"),
-])
+@pytest.mark.parametrize(
+    ("more", "key"),
+    [
+        ("guard: {axes: {Z: {max_abs_um: 10}}}", "guard.axes.Z"),
+        ("inhibit: {axes: {Z: {signal: T1}}}", "inhibit.axes.Z"),
+        ("adapt: {slope_position: {Z: pos_z_mm}}", "adapt.slope_position.Z"),
+        ("shadow: " + _mlr("[Z]"), "shadow.outputs[0]"),
+    ],
+)
 def test_every_key_that_names_an_axis_says_did_you_mean(tmp_path: Path, more: str, key: str) -> None:
     cfg = _config(tmp_path, "  " + _mlr("[z]"), more)
     with pytest.raises(ConfigError) as e:
@@ -140,8 +145,8 @@ def test_axis_names_stay_as_written(tmp_path: Path) -> None:
     """Case-sensitive: an upper-case axis declared once is that axis, never lower-cased."""
     model = f"""\
   contributions:
-    - {{name: a, {_mlr('[Z]')[1:]}
-    - {{name: b, {_mlr('[Z]')[1:]}
+    - {{name: a, {_mlr("[Z]")[1:]}
+    - {{name: b, {_mlr("[Z]")[1:]}
 """
     cfg = load_config(_config(tmp_path, model, "guard: {axes: {Z: {max_abs_um: 10}}}"))
     assert cfg.model.outputs == ["Z"]

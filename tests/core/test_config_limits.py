@@ -38,7 +38,11 @@ def check_config(path: str | Path) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run(
         [sys.executable, "-m", "compd", "check-config", str(path)],
-        capture_output=True, text=True, timeout=20, env=env, stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=20,
+        env=env,
+        stdin=subprocess.DEVNULL,
     )
 
 
@@ -136,7 +140,9 @@ def test_a_parser_depth_limit_reads_as_nesting(monkeypatch: pytest.MonkeyPatch) 
 
     class DepthLimitedLoader(yaml.SafeLoader):
         def get_event(self) -> yaml.Event:
-            raise yaml.parser.ParserError(None, None, "exceeded maximum nesting depth", yaml.Mark("f", 0, 0, 0, None, None))
+            raise yaml.parser.ParserError(
+                None, None, "exceeded maximum nesting depth", yaml.Mark("f", 0, 0, 0, None, None)
+            )
 
     monkeypatch.setattr(config, "_Loader", DepthLimitedLoader)
     with pytest.raises(ConfigError) as e:

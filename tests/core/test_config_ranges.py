@@ -32,12 +32,18 @@ from compd.sources import SOURCES
 
 BASE: dict[str, Any] = {
     "loop": {"clock": "sim", "period_s": 0.1},
-    "sources": [{
-        "kind": "sim", "name": "spindle", "plant": "spindle",
-        "scenario": {"segments": [{"duration_s": 1e6, "speed_rpm": 8000}]},
-    }],
+    "sources": [
+        {
+            "kind": "sim",
+            "name": "spindle",
+            "plant": "spindle",
+            "scenario": {"segments": [{"duration_s": 1e6, "speed_rpm": 8000}]},
+        }
+    ],
     "model": {
-        "kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
+        "kind": "xi_spindle",
+        "inputs": ["T_xi"],
+        "outputs": ["z"],
         "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0},
     },
     "guard": {"max_slew_um_per_s": 2.0, "signals": {"T_xi": {"min": 0.0, "max": 80.0}}},
@@ -96,8 +102,9 @@ def _refused(tmp_path: Path, data: dict[str, Any], capsys: pytest.CaptureFixture
 
 
 @pytest.mark.parametrize(("path", "value", "word"), AUDIT, ids=[a[0] for a in AUDIT])
-def test_audit_values_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str], path: str,
-                                  value: float, word: str) -> None:
+def test_audit_values_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], path: str, value: float, word: str
+) -> None:
     if path.startswith("sources.0."):
         data = yaml.safe_load(yaml.safe_dump(BASE))
         data["sources"][0][path.split(".")[-1]] = value
@@ -117,8 +124,9 @@ def test_audit_values_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[
         ("guard.signals.T_xi", {"frozen_after_s": 0.1}, "guard.signals.T_xi.frozen_after_s", "one cycle"),
     ],
 )
-def test_cross_field_limits(tmp_path: Path, capsys: pytest.CaptureFixture[str], path: str, value: Any,
-                            key: str, word: str) -> None:
+def test_cross_field_limits(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], path: str, value: Any, key: str, word: str
+) -> None:
     err = _refused(tmp_path, _with(path, value), capsys)
     assert f": {key}: " in err and word in err, err
 
@@ -155,7 +163,7 @@ def _numbers(annotation: Any, meta: list[Any]) -> list[list[Any]]:
     if origin in (typing.Union, types.UnionType):
         return [m for a in args for m in _numbers(a, meta)]
     if origin in (list, tuple, dict):
-        return [m for m in _numbers(args[-1], []) ] if args else []
+        return [m for m in _numbers(args[-1], [])] if args else []
     if annotation in (int, float):
         return [meta]
     return []
@@ -200,8 +208,11 @@ def accepted_config(draw: st.DrawFn) -> dict[str, Any]:
         signal["frozen_band"] = draw(_between(0.0, 1e6))
     data = yaml.safe_load(yaml.safe_dump(BASE))
     data["loop"] = {
-        "clock": "sim", "period_s": period, "speedup": draw(st.sampled_from([0.0, 1e6])),
-        "spin_margin_s": draw(_between(0.0, 0.01)), "gil_switch_interval_s": draw(_between(1e-9, 0.005)),
+        "clock": "sim",
+        "period_s": period,
+        "speedup": draw(st.sampled_from([0.0, 1e6])),
+        "spin_margin_s": draw(_between(0.0, 0.01)),
+        "gil_switch_interval_s": draw(_between(1e-9, 0.005)),
     }
     data["sources"][0]["sample_period_s"] = draw(_between(0.0, 3600.0))
     data["model"]["update_period_s"] = draw(st.none() | _between(0.0, 86400.0))
@@ -215,14 +226,21 @@ def accepted_config(draw: st.DrawFn) -> dict[str, Any]:
         "signals": {"T_xi": signal},
     }
     if draw(st.booleans()):
-        data["guard"]["axes"] = {"z": {"max_abs_um": draw(_between(1e-9, 10_000.0)),
-                                       "max_slew_um_per_s": draw(_between(1e-4, 1000.0)),
-                                       "fault_policy": draw(st.sampled_from(["hold", "ramp_to_zero", "disable"]))}}
+        data["guard"]["axes"] = {
+            "z": {
+                "max_abs_um": draw(_between(1e-9, 10_000.0)),
+                "max_slew_um_per_s": draw(_between(1e-4, 1000.0)),
+                "fault_policy": draw(st.sampled_from(["hold", "ramp_to_zero", "disable"])),
+            }
+        }
     data["codec"] = {"lsb_um": lsb, "deadband_um": draw(_between(0.0, min(100.0, MAX_MAG * lsb * 0.999)))}
     data["log"] = {
-        "path": "run.csv", "period_s": draw(_between(0.0005, 86400.0)), "flush_s": draw(_between(0.01, 3600.0)),
+        "path": "run.csv",
+        "period_s": draw(_between(0.0005, 86400.0)),
+        "flush_s": draw(_between(0.01, 3600.0)),
         "rotate_bytes": draw(st.none() | st.sampled_from([1024, 1 << 40])),
-        "rotate_s": draw(st.none() | _between(1.0, 366 * 86400.0)), "keep": draw(st.sampled_from([0, 1, 1000])),
+        "rotate_s": draw(st.none() | _between(1.0, 366 * 86400.0)),
+        "keep": draw(st.sampled_from([0, 1, 1000])),
     }
     data["console"] = {"period_s": draw(_between(0.0, 86400.0))}
     data["state"] = {"path": "state.json"}
@@ -230,8 +248,11 @@ def accepted_config(draw: st.DrawFn) -> dict[str, Any]:
     return data
 
 
-@settings(max_examples=int(__import__("os").environ.get("COMPD_RANGE_EXAMPLES", "40")), deadline=None, suppress_health_check=[HealthCheck.too_slow,
-                                                                  HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=int(__import__("os").environ.get("COMPD_RANGE_EXAMPLES", "40")),
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
 @given(accepted_config())
 def test_accepted_configs_run(tmp_path_factory: pytest.TempPathFactory, data: dict[str, Any]) -> None:
     d = tmp_path_factory.mktemp("run")

@@ -25,8 +25,14 @@ def test_a_hand_computed_axis() -> None:
 
 def test_no_samples_scores_zero_not_nan() -> None:
     r = score_residual(np.array([math.nan]), np.array([1.0]))
-    assert r == {"rows": 0, "rms_before_um": 0.0, "rms_after_um": 0.0, "max_abs_before_um": 0.0,
-                 "max_abs_after_um": 0.0, "reduction_pct": 0.0}
+    assert r == {
+        "rows": 0,
+        "rms_before_um": 0.0,
+        "rms_after_um": 0.0,
+        "max_abs_before_um": 0.0,
+        "max_abs_after_um": 0.0,
+        "reduction_pct": 0.0,
+    }
 
 
 values = st.one_of(st.floats(-50, 50, allow_nan=False), st.just(math.nan))

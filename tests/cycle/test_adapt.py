@@ -76,8 +76,16 @@ def test_observe_keeps_the_estimate_but_not_the_output():
 
 def test_a_stale_estimate_decays_or_holds():
     for policy, expect in (("decay", math.exp(-2.0)), ("hold", 1.0)):
-        ad = Adapter(AdaptConfig(apply_above_sigma=0.0, stale_after_s=3600.0, stale_policy=policy, decay_tau_s=1800.0,
-                                 initial_offset_sigma_um=100.0), ["z"])
+        ad = Adapter(
+            AdaptConfig(
+                apply_above_sigma=0.0,
+                stale_after_s=3600.0,
+                stale_policy=policy,
+                decay_tau_s=1800.0,
+                initial_offset_sigma_um=100.0,
+            ),
+            ["z"],
+        )
         ad.inbox.append(Probe(0.0, "z", 5.0, sigma_um=0.01))
         b0 = _run(ad, 0.0, 0.0)
         _run(ad, 0.0, 3600.0)  # stale from here
@@ -142,8 +150,9 @@ def test_a_moving_axis_adds_back_the_correction_sent_where_it_measured():
 
 
 def test_a_slope_over_the_position_is_learnt_from_probes_at_several_positions():
-    cfg = AdaptConfig(slope_position={"y": "pos_y_mm"}, slope_ref_mm=300.0, initial_offset_sigma_um=10.0,
-                      apply_above_sigma=0.0)  # the estimator alone: applied as estimated
+    cfg = AdaptConfig(
+        slope_position={"y": "pos_y_mm"}, slope_ref_mm=300.0, initial_offset_sigma_um=10.0, apply_above_sigma=0.0
+    )  # the estimator alone: applied as estimated
     ad = Adapter(cfg, ["y"])
     ad.bind({"pos_y_mm": 0})
     rng = np.random.default_rng(3)
@@ -225,8 +234,9 @@ def test_the_offset_starts_within_the_models_own_error():
     5 µm: one probe that shows a momentary miss moves it only as far as that prior allows."""
     assert Adapter(AdaptConfig(), ["z"], model_sigma_um={"z": 0.8}).est[0].P[0, 0] == pytest.approx(0.64)
     assert Adapter(AdaptConfig(), ["z"]).est[0].P[0, 0] == pytest.approx(25.0)  # σ_m unknown
-    assert Adapter(AdaptConfig(initial_offset_sigma_um=2.0), ["z"], model_sigma_um={"z": 0.8}).est[0].P[0, 0] \
-        == pytest.approx(4.0)
+    assert Adapter(AdaptConfig(initial_offset_sigma_um=2.0), ["z"], model_sigma_um={"z": 0.8}).est[0].P[
+        0, 0
+    ] == pytest.approx(4.0)
     out = np.zeros(1)
     wide = Adapter(AdaptConfig(initial_offset_sigma_um=5.0), ["z"], model_sigma_um={"z": 0.8})
     tight = Adapter(AdaptConfig(), ["z"], model_sigma_um={"z": 0.8})
@@ -240,11 +250,17 @@ def test_a_probe_with_numbers_no_probe_measures_is_rejected_with_its_reason():
     """What a device or a replayed log hands over is checked where every probe passes: a σ or
     an error that is not finite or beyond the bounds is rejected, named, and changes nothing."""
     nan, inf = math.nan, math.inf
-    cases = [({"error_um": 1.0, "sigma_um": nan}, "sigma_um"), ({"error_um": 1.0, "sigma_um": inf}, "sigma_um"),
-             ({"error_um": 1.0, "sigma_um": 1e200}, "sigma_um"), ({"error_um": 1.0, "sigma_um": 1e-9}, "sigma_um"),
-             ({"error_um": nan}, "error_um"), ({"error_um": -inf}, "error_um"),
-             ({"error_um": 2e6}, "error_um"),  # 2 m: an int32 of nm in the CNC's block holds it
-             ({"error_um": 1.0, "position_mm": inf}, "position_mm"), ({"error_um": 1.0, "position_mm": 1e300}, "position_mm")]
+    cases = [
+        ({"error_um": 1.0, "sigma_um": nan}, "sigma_um"),
+        ({"error_um": 1.0, "sigma_um": inf}, "sigma_um"),
+        ({"error_um": 1.0, "sigma_um": 1e200}, "sigma_um"),
+        ({"error_um": 1.0, "sigma_um": 1e-9}, "sigma_um"),
+        ({"error_um": nan}, "error_um"),
+        ({"error_um": -inf}, "error_um"),
+        ({"error_um": 2e6}, "error_um"),  # 2 m: an int32 of nm in the CNC's block holds it
+        ({"error_um": 1.0, "position_mm": inf}, "position_mm"),
+        ({"error_um": 1.0, "position_mm": 1e300}, "position_mm"),
+    ]
     ad = Adapter(AdaptConfig(reject_fault_after=100), ["z"])
     out = np.zeros(1)
     before = ad.get_state()
@@ -281,9 +297,13 @@ def test_an_update_that_would_go_non_finite_is_rejected_and_the_estimate_kept():
 def test_a_saved_state_that_is_not_finite_or_not_a_covariance_is_refused_whole():
     ad = Adapter(AdaptConfig(), ["x", "z"])
     good = {"s": [1.5], "P": [[0.04]], "t_probe_s": 3.0, "accepted": 2, "rejected": 0, "probe_age_s": 10.0}
-    for bad, named in (({"P": [[math.nan]]}, "P[0]"), ({"s": [math.inf]}, "s holds"),
-                       ({"P": [[-1.0]]}, "positive semi-definite"), ({"probe_age_s": math.nan}, "probe_age_s"),
-                       ({"accepted": 1e400}, "accepted")):
+    for bad, named in (
+        ({"P": [[math.nan]]}, "P[0]"),
+        ({"s": [math.inf]}, "s holds"),
+        ({"P": [[-1.0]]}, "positive semi-definite"),
+        ({"probe_age_s": math.nan}, "probe_age_s"),
+        ({"accepted": 1e400}, "accepted"),
+    ):
         with pytest.raises(ValueError, match=r"^z: .*" + named.replace("[", r"\[")):
             ad.set_state({"x": good, "z": {**good, **bad}})
         assert ad.get_status()["x"]["accepted"] == 0  # nothing of it taken, not even the good axis

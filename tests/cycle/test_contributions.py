@@ -33,10 +33,41 @@ def plant(tmp_path_factory: pytest.TempPathFactory) -> Path:
     _day(d / "spindle_day.csv", 1, column_heat=False)
     _day(d / "both.csv", 2, column_heat=True)
     _day(d / "unseen.csv", 3, column_heat=True)
-    assert main(["fit", "--kind", "xi_spindle", "--log", str(d / "spindle_day.csv"), "--inputs", "T_spindle",
-                 "--out", str(d / "spindle.yaml")]) == 0
-    assert main(["fit", "--kind", "mlr", "--log", str(d / "both.csv"), "--inputs", "T_col1", "T_col2",
-                 "--on-residual-of", str(d / "spindle.yaml"), "--out", str(d / "column.yaml")]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                "--kind",
+                "xi_spindle",
+                "--log",
+                str(d / "spindle_day.csv"),
+                "--inputs",
+                "T_spindle",
+                "--out",
+                str(d / "spindle.yaml"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "fit",
+                "--kind",
+                "mlr",
+                "--log",
+                str(d / "both.csv"),
+                "--inputs",
+                "T_col1",
+                "T_col2",
+                "--on-residual-of",
+                str(d / "spindle.yaml"),
+                "--out",
+                str(d / "column.yaml"),
+            ]
+        )
+        == 0
+    )
     return d
 
 
@@ -135,7 +166,9 @@ def test_disable_takes_the_axis_to_its_own_policy(plant: Path) -> None:
     cut_s = 3.5 * 3600
     log = _unplugged(plant, ["T_col1", "T_col2"], cut_s)
     cfg = _config(plant, column=", fault_policy: disable", name="disable.yaml")
-    cfg.write_text(cfg.read_text().replace("fault_policy: ramp_to_zero, fault_policy: disable", "fault_policy: disable"))
+    cfg.write_text(
+        cfg.read_text().replace("fault_policy: ramp_to_zero, fault_policy: disable", "fault_policy: disable")
+    )
     result = replay_config(cfg, log)
     after = result.t_s >= cut_s
     assert not np.isfinite(result.extra["pred_um"][after, 0]).any()
@@ -145,8 +178,14 @@ def test_disable_takes_the_axis_to_its_own_policy(plant: Path) -> None:
     assert np.all(corr == corr[0])  # the axis's own policy (guard.fault_policy: hold)
 
 
-@pytest.mark.parametrize("sink", ["{kind: pci1756}", "{kind: fanuc_pmc, mode: shift, r_command: 202, max_step_um: 5}",
-                                  "{kind: siemens, axes: {z: 1}}"])
+@pytest.mark.parametrize(
+    "sink",
+    [
+        "{kind: pci1756}",
+        "{kind: fanuc_pmc, mode: shift, r_command: 202, max_step_um: 5}",
+        "{kind: siemens, axes: {z: 1}}",
+    ],
+)
 def test_replay_through_each_sink(plant: Path, sink: str) -> None:
     cfg = _config(plant, sink=sink, name="sink.yaml")
     rc = main(["check-config", str(cfg)])
@@ -163,8 +202,9 @@ def test_every_channel_shows_each_contribution(plant: Path) -> None:
     log = read_log(plant / "day.csv", allow_nan=True)
     for col in ("pred_z_spindle_um", "pred_z_column_um"):
         assert np.isfinite(log.col(col)).all()
-    np.testing.assert_allclose(log.col("pred_z_spindle_um") + log.col("pred_z_column_um"), log.col("pred_z_um"),
-                               atol=1e-3)  # as the log rounds them
+    np.testing.assert_allclose(
+        log.col("pred_z_spindle_um") + log.col("pred_z_column_um"), log.col("pred_z_um"), atol=1e-3
+    )  # as the log rounds them
     # the status record, composed as the service composes it, and what the plant's channels make of it
     p, _ = pipeline.from_config(cfg)
     loop = p.loop
@@ -176,7 +216,8 @@ def test_every_channel_shows_each_contribution(plant: Path) -> None:
     parts = snap["axes"]["z"]["contributions"]
     assert set(parts) == {"spindle", "column"} and parts["spindle"]["state"] == "normal"
     assert parts["spindle"]["prediction_um"] + parts["column"]["prediction_um"] == pytest.approx(
-        snap["axes"]["z"]["prediction_um"])
+        snap["axes"]["z"]["prediction_um"]
+    )
     json.dumps(snap)
     names = {d.name for d, _ in device_metrics(snap)}
     assert {"Axis/z/Contribution/spindle/prediction_um", "Axis/z/Contribution/column/state"} <= names
@@ -191,16 +232,23 @@ def test_every_channel_shows_each_contribution(plant: Path) -> None:
     assert shares["spindle"] == pytest.approx(parts["spindle"]["prediction_um"] * 1e-6)
 
 
-@pytest.mark.parametrize(("section", "key", "message"), [
-    ("[{name: a, kind: mlr, file: column.yaml}, {name: a, kind: xi_spindle, file: spindle.yaml}]",
-     "model.contributions[1].name", "used twice"),
-    ("[{name: a, kind: mlr, file: column.yaml, max_abs_um: -1}]", "model.contributions[0].max_abs_um", ""),
-    ("[{name: 'a b', kind: mlr, file: column.yaml}]", "model.contributions[0].name", ""),
-    ("[{contributions: []}]", "model.contributions[0].contributions", "cannot itself"),
-    ("[]", "model.contributions", ""),
-])
-def test_bad_contributions_are_one_line_errors(plant: Path, capsys: pytest.CaptureFixture[str], section: str,
-                                               key: str, message: str) -> None:
+@pytest.mark.parametrize(
+    ("section", "key", "message"),
+    [
+        (
+            "[{name: a, kind: mlr, file: column.yaml}, {name: a, kind: xi_spindle, file: spindle.yaml}]",
+            "model.contributions[1].name",
+            "used twice",
+        ),
+        ("[{name: a, kind: mlr, file: column.yaml, max_abs_um: -1}]", "model.contributions[0].max_abs_um", ""),
+        ("[{name: 'a b', kind: mlr, file: column.yaml}]", "model.contributions[0].name", ""),
+        ("[{contributions: []}]", "model.contributions[0].contributions", "cannot itself"),
+        ("[]", "model.contributions", ""),
+    ],
+)
+def test_bad_contributions_are_one_line_errors(
+    plant: Path, capsys: pytest.CaptureFixture[str], section: str, key: str, message: str
+) -> None:
     cfg = plant / "bad.yaml"
     base = yaml.safe_load(_config(plant).read_text())
     text = _config(plant).read_text()

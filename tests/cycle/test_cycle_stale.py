@@ -80,8 +80,13 @@ def _scrape(url: str) -> dict[str, float]:
 
 def _compd_status(path: Path) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "compd", "status", "--status", str(path)],
-                          capture_output=True, text=True, timeout=120, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "compd", "status", "--status", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
 
 
 # ------------------------------------------------------------------ in process
@@ -114,9 +119,15 @@ class _Hang:
 def test_a_hung_cycle_is_stale_in_the_status_and_metrics_and_runs_on_after(tmp_path: Path) -> None:
     """Period 0.05 s: stale after max(5 periods, 1 s) = 1 s without a record."""
     status = tmp_path / "status.json"
-    cfg = load_config(sim_config(tmp_path, "status: {path: status.json, period_s: 0.05}\n"
-                                           "metrics: {enabled: true, port: 0}",
-                                 period_s=0.05, speedup=20, duration_s=3600))
+    cfg = load_config(
+        sim_config(
+            tmp_path,
+            "status: {path: status.json, period_s: 0.05}\nmetrics: {enabled: true, port: 0}",
+            period_s=0.05,
+            speedup=20,
+            duration_s=3600,
+        )
+    )
     app = App(cfg, duration_s=None)
     seen: dict[str, Any] = {}
 
@@ -131,8 +142,12 @@ def test_a_hung_cycle_is_stale_in_the_status_and_metrics_and_runs_on_after(tmp_p
     hang = _Hang(at=40, while_held=stale_seen)
 
     def stop_when_running_again(loop: Any, now: float) -> None:
-        if hang.released.is_set() and (st := _status(status)) and st["state"] == "running" \
-                and st["loop"]["cycles"] > seen["snap"]["loop"]["cycles"]:
+        if (
+            hang.released.is_set()
+            and (st := _status(status))
+            and st["state"] == "running"
+            and st["loop"]["cycles"] > seen["snap"]["loop"]["cycles"]
+        ):
             seen["after"] = st
             seen["metrics_after"] = _scrape(st["metrics_url"])
             loop.stop()
@@ -167,8 +182,9 @@ def test_a_hung_cycle_is_stale_in_the_status_and_metrics_and_runs_on_after(tmp_p
 def test_a_reload_s_pause_is_reloading_never_stale(tmp_path: Path) -> None:
     """The loop paused for a reload, longer than a running cycle may pause: `reloading`, alive."""
     status = tmp_path / "status.json"
-    cfg = load_config(sim_config(tmp_path, "status: {path: status.json, period_s: 0.05}",
-                                 period_s=0.05, speedup=20, duration_s=3600))
+    cfg = load_config(
+        sim_config(tmp_path, "status: {path: status.json, period_s: 0.05}", period_s=0.05, speedup=20, duration_s=3600)
+    )
     app = App(cfg, duration_s=None)
     states: list[str] = []
 
@@ -248,19 +264,37 @@ def test_a_stopped_cycle_process_is_stale_on_every_channel_and_a_reload_is_never
     tx = Pt100Transmitter([SENSOR], [24.0])
     status = tmp_path / "status.json"
     err = tmp_path / "stderr.txt"
-    with (Mosquitto(tmp_path / "broker") as broker, ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server,
-          _notify_socket() as (notify_name, notify)):
+    with (
+        Mosquitto(tmp_path / "broker") as broker,
+        ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server,
+        _notify_socket() as (notify_name, notify),
+    ):
         c = _config(server.port)
-        c["telemetry"] = {"port": broker.port, "group_id": "hall2", "edge_node_id": "cell7", "device_id": "lathe",
-                          "period_s": 0.2}
+        c["telemetry"] = {
+            "port": broker.port,
+            "group_id": "hall2",
+            "edge_node_id": "cell7",
+            "device_id": "lathe",
+            "period_s": 0.2,
+        }
         cfg = tmp_path / "c.yaml"
         cfg.write_text(yaml.safe_dump(c))
         listener = Listener(broker.port)
-        env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1",
-               "NOTIFY_SOCKET": notify_name, "WATCHDOG_USEC": "400000"}  # a ping every 0.2 s
+        env = {
+            **os.environ,
+            "PYTHONPATH": str(ROOT),
+            "PYTHONUNBUFFERED": "1",
+            "NOTIFY_SOCKET": notify_name,
+            "WATCHDOG_USEC": "400000",
+        }  # a ping every 0.2 s
         with open(err, "a") as fh:
-            proc = subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], cwd=tmp_path,
-                                    stdout=subprocess.DEVNULL, stderr=fh, env=env)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "compd", "run", str(cfg)],
+                cwd=tmp_path,
+                stdout=subprocess.DEVNULL,
+                stderr=fh,
+                env=env,
+            )
         try:
             st = _wait(_state(status, "running", cycles=lambda s: s["loop"]["cycles"] > 20), "a running status")
             assert st["service_pid"] != proc.pid and st["stale_after_s"] == STALE_MIN_S

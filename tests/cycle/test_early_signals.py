@@ -52,8 +52,12 @@ def _start(tmp_path: Path, err_path: Path) -> tuple[subprocess.Popen[bytes], Ope
     cfg.write_text(CONFIG.format(slew=0.05))
     watch = OpenWatch(cfg)
     with open(err_path, "wb") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], stdout=subprocess.DEVNULL,
-                                stderr=err, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "compd", "run", str(cfg)],
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
     return proc, watch
 
 

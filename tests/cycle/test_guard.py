@@ -87,7 +87,9 @@ def test_nan_prediction_is_a_fault() -> None:
 
 def test_plausibility_range_rate_stale() -> None:
     frame = Frame(["T"])
-    cfg = GuardConfig(signals={"T": SignalLimits(min=0, max=50, max_rate_per_s=1.0, rate_allowance=0.2, stale_after_s=2.0)})
+    cfg = GuardConfig(
+        signals={"T": SignalLimits(min=0, max=50, max_rate_per_s=1.0, rate_allowance=0.2, stale_after_s=2.0)}
+    )
     g = Guard(cfg, ["z"], frame, ["T"])
     frame.set(0, 25.0, Quality.GOOD, 0.0)
     assert g.check_inputs(frame, 0.0)
@@ -179,8 +181,9 @@ def test_update_rows_equals_update_row_by_row(policy: str) -> None:
 
     def fresh() -> Guard:
         frame = Frame(["T"])
-        cfg = GuardConfig(fault_policy=policy, max_slew_um_per_s=3.0, max_abs_um=50.0, recovery_s=20.0,
-                          ramp_um_per_s=1.0)
+        cfg = GuardConfig(
+            fault_policy=policy, max_slew_um_per_s=3.0, max_abs_um=50.0, recovery_s=20.0, ramp_um_per_s=1.0
+        )
         return Guard(cfg, ["x1", "x2"], frame, ["T"])
 
     ref = fresh()

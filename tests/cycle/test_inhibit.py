@@ -101,17 +101,27 @@ def test_inhibit_axis_must_be_a_model_output(tmp_path: Path):
 def _config(tmp_path: Path, port: int) -> Path:
     doc = {
         "loop": {"period_s": 0.01},
-        "sources": [{
-            "kind": "modbus", "name": "pmc", "host": "127.0.0.1", "port": port, "poll_period_s": 0.02,
-            "timeout_s": 0.5,
-            "channels": [
-                {"name": "T_xi", "address": TEMP_REG},
-                {"name": "cnc_inhibit", "address": INHIBIT_REG, "bit": INHIBIT_BIT},
-                {"name": "z_ref", "address": REF_REG, "bit": REF_BIT},
-            ],
-        }],
-        "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0}},
+        "sources": [
+            {
+                "kind": "modbus",
+                "name": "pmc",
+                "host": "127.0.0.1",
+                "port": port,
+                "poll_period_s": 0.02,
+                "timeout_s": 0.5,
+                "channels": [
+                    {"name": "T_xi", "address": TEMP_REG},
+                    {"name": "cnc_inhibit", "address": INHIBIT_REG, "bit": INHIBIT_BIT},
+                    {"name": "z_ref", "address": REF_REG, "bit": REF_BIT},
+                ],
+            }
+        ],
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": ["T_xi"],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0},
+        },
         "guard": {"max_slew_um_per_s": SLEW, "stale_after_s": 2.0},
         "inhibit": {"signal": "cnc_inhibit", "stale_after_s": 2.0, "axes": {"z": {"referenced": "z_ref"}}},
         "sink": {"kind": "pci1756"},
@@ -212,12 +222,18 @@ def test_replay_holds_off_where_the_log_says_the_machine_did(tmp_path: Path):
     temp = np.full(n, 30.0)
     inhibit = ((t >= 100) & (t < 200)).astype(float)
     err = np.full(n, -TARGET_UM)
-    write_log(tmp_path / "held.csv", ["t_s", "T_xi", "cnc_inhibit", "err_z_um"], np.column_stack([t, temp, inhibit, err]))
+    write_log(
+        tmp_path / "held.csv", ["t_s", "T_xi", "cnc_inhibit", "err_z_um"], np.column_stack([t, temp, inhibit, err])
+    )
     write_log(tmp_path / "plain.csv", ["t_s", "T_xi", "err_z_um"], np.column_stack([t, temp, err]))
     doc = {
         "sources": [{"kind": "replay", "name": "log", "path": "held.csv"}],
-        "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0}},
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": ["T_xi"],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0},
+        },
         "guard": {"max_slew_um_per_s": 2.0},
         "inhibit": {"signal": "cnc_inhibit", "stale_after_s": 5.0},
         "sink": {"kind": "siemens"},

@@ -27,10 +27,13 @@ from compd.cycle.statusblock import AXIS, PART
 POLICY_LABELS = [p.label for p in Policy]
 times = st.sampled_from([0.0, 0.002, 0.1, 0.5, 1.0, 3.0, 60.0, -1.0])  # a step's advance (−1: the clock went back)
 wants = st.one_of(st.floats(-300.0, 300.0), st.just(math.nan), st.just(math.inf))
-limits = st.fixed_dictionaries({
-    "max_abs_um": st.floats(0.5, 100.0), "max_slew_um_per_s": st.floats(0.01, 50.0),
-    "fault_policy": st.sampled_from(POLICY_LABELS),
-})
+limits = st.fixed_dictionaries(
+    {
+        "max_abs_um": st.floats(0.5, 100.0),
+        "max_slew_um_per_s": st.floats(0.01, 50.0),
+        "fault_policy": st.sampled_from(POLICY_LABELS),
+    }
+)
 
 
 @st.composite
@@ -50,8 +53,11 @@ def runs(draw: Any) -> dict[str, Any]:
         "axes": [draw(limits), draw(limits)],
         "ramp_um_per_s": draw(st.floats(0.01, 50.0)),
         "recovery_s": draw(st.sampled_from([0.0, 0.5, 2.0, 30.0])),
-        "dt": rng.choice([0.0, 0.002, 0.1, 0.5, 1.0, 3.0, 60.0, -1.0], n,  # −1: the clock went back
-                         p=[0.03, 0.1, 0.3, 0.2, 0.2, 0.1, 0.05, 0.02]).tolist(),
+        "dt": rng.choice(
+            [0.0, 0.002, 0.1, 0.5, 1.0, 3.0, 60.0, -1.0],
+            n,  # −1: the clock went back
+            p=[0.03, 0.1, 0.3, 0.2, 0.2, 0.1, 0.05, 0.02],
+        ).tolist(),
         "want": want.tolist(),
         "ok": (rng.random(n) >= bad).tolist(),
         "hold": np.where(rng.random((n, 2)) < held, [1, 2], 0).tolist(),
@@ -59,8 +65,11 @@ def runs(draw: Any) -> dict[str, Any]:
 
 
 def _guard(run: dict[str, Any]) -> Guard:
-    cfg = GuardConfig(ramp_um_per_s=run["ramp_um_per_s"], recovery_s=run["recovery_s"],
-                      axes={a: run["axes"][i] for i, a in enumerate(("x", "z"))})
+    cfg = GuardConfig(
+        ramp_um_per_s=run["ramp_um_per_s"],
+        recovery_s=run["recovery_s"],
+        axes={a: run["axes"][i] for i, a in enumerate(("x", "z"))},
+    )
     return Guard(cfg, ["x", "z"], Frame(["T"]), ["T"])
 
 
@@ -76,8 +85,13 @@ def test_the_guards_cycle_its_replay_path_and_the_limiter_alone_agree(run: dict[
     ok = np.array(run["ok"])
     hold = np.array(run["hold"], dtype=np.uint8)
     ref = _guard(run)
-    lim = Limiter([a["max_abs_um"] for a in run["axes"]], [a["max_slew_um_per_s"] for a in run["axes"]],
-                  [Policy.named(a["fault_policy"]) for a in run["axes"]], run["ramp_um_per_s"], run["recovery_s"])
+    lim = Limiter(
+        [a["max_abs_um"] for a in run["axes"]],
+        [a["max_slew_um_per_s"] for a in run["axes"]],
+        [Policy.named(a["fault_policy"]) for a in run["axes"]],
+        run["ramp_um_per_s"],
+        run["recovery_s"],
+    )
     out, en, stt, dts = np.zeros((n, 2)), np.zeros((n, 2), bool), np.zeros((n, 2), np.uint8), np.zeros(n)
     names = ("out_um", "enable", "state", "target_um", "clamped")
     seen = {name: np.zeros((n, 2)) for name in names}  # the guard's after each cycle, and the limiter's
@@ -116,20 +130,30 @@ def test_the_guards_cycle_its_replay_path_and_the_limiter_alone_agree(run: dict[
 def _sum(limit: dict[str, Any], ramp: float, recovery: float) -> Contributions:
     """A sum of one contribution whose model predicts its input itself (mlr: 1 µm per K from 0 °C)."""
     part = ContributionParams(
-        name="col", kind="mlr", inputs=["T"], outputs=["z"],
+        name="col",
+        kind="mlr",
+        inputs=["T"],
+        outputs=["z"],
         params={"coef_um_per_k": [[1.0]], "intercept_um": [0.0], "t0_c": [0.0]},
-        max_abs_um=[limit["max_abs_um"]], max_slew_um_per_s=[limit["max_slew_um_per_s"]],
+        max_abs_um=[limit["max_abs_um"]],
+        max_slew_um_per_s=[limit["max_slew_um_per_s"]],
         fault_policy=[limit["fault_policy"]],
     )
-    return Contributions(ContributionSetParams(contributions=[part], ramp_um_per_s=ramp, recovery_s=recovery),
-                         ["T"], ["z"])
+    return Contributions(
+        ContributionSetParams(contributions=[part], ramp_um_per_s=ramp, recovery_s=recovery), ["T"], ["z"]
+    )
 
 
 @settings(max_examples=300, deadline=None)
-@given(limits, st.floats(0.01, 50.0), st.sampled_from([0.0, 0.5, 2.0, 30.0]),
-       st.lists(st.tuples(times, wants), min_size=1, max_size=80))
-def test_a_contributions_limit_is_the_guards(limit: dict[str, Any], ramp: float, recovery: float,
-                                            steps: list[tuple[float, float]]) -> None:
+@given(
+    limits,
+    st.floats(0.01, 50.0),
+    st.sampled_from([0.0, 0.5, 2.0, 30.0]),
+    st.lists(st.tuples(times, wants), min_size=1, max_size=80),
+)
+def test_a_contributions_limit_is_the_guards(
+    limit: dict[str, Any], ramp: float, recovery: float, steps: list[tuple[float, float]]
+) -> None:
     """A contribution on its axis and a guard's axis with the same clamp, slew, policy, ramp and
     recovery, fed the same prediction, give the same value, state, clamp flag and events (a
     contribution under `disable` hands its axis NaN where the guard's axis is disabled)."""
@@ -137,8 +161,9 @@ def test_a_contributions_limit_is_the_guards(limit: dict[str, Any], ramp: float,
     said: list[tuple[float, str, str]] = []
     c.emit = lambda t, subject, event, reason: said.append((t, subject, event))
     g = Guard(GuardConfig(ramp_um_per_s=ramp, recovery_s=recovery, axes={"z": limit}), ["z"], Frame(["T"]), ["T"])
-    lim = Limiter([limit["max_abs_um"]], [limit["max_slew_um_per_s"]], [Policy.named(limit["fault_policy"])],
-                  ramp, recovery)
+    lim = Limiter(
+        [limit["max_abs_um"]], [limit["max_slew_um_per_s"]], [Policy.named(limit["fault_policy"])], ramp, recovery
+    )
     out, pred = np.zeros(1), np.zeros(1)
     t, last = 0.0, math.nan
     for adv, x in steps:
@@ -187,7 +212,9 @@ def test_policy_names_round_trip_config_enum_status() -> None:
     for fields in (AXIS, PART):
         state = next(f for f in fields if f.key == "state")
         assert state.names == tuple(STATE_NAMES[s] for s in AxisState) == ("starting", "normal", "fault", "recovering")
-    cfg = GuardConfig(fault_policy="ramp_to_zero", axes={"x": {"fault_policy": "disable"}, "y": {"fault_policy": "hold"}})
+    cfg = GuardConfig(
+        fault_policy="ramp_to_zero", axes={"x": {"fault_policy": "disable"}, "y": {"fault_policy": "hold"}}
+    )
     g = Guard(cfg, ["x", "y", "z"], Frame(["T"]), ["T"])
     assert [s["policy"] for s in g.get_status().values()] == ["disable", "hold", "ramp_to_zero"]
     assert g.policy == [Policy.DISABLE, Policy.HOLD, Policy.RAMP_TO_ZERO]
@@ -239,7 +266,6 @@ def test_the_limiter_never_moves_faster_than_its_slew_or_ramp() -> None:
         lim.step(k, math.nan, 1.0, 8.0)
     assert list(lim.value_um) == [10.0, 9.5, 0.0] and list(lim.enable) == [True, True, False]
     assert all(lim.state == AxisState.FAULT) and not lim.clamped.any()
-
 
 
 def test_a_channel_taken_over_while_recovering_recovers_after_a_whole_wait() -> None:

@@ -125,8 +125,7 @@ def test_sigterm_emits_safe_output_and_exits_0(tmp_path: Path) -> None:
     p = tmp_path / "c.yaml"
     status = tmp_path / "status.json"
     p.write_text(
-        CONFIG.format(clock="wall", period=0.002, slew=1000.0)
-        + f"status:\n  path: {status}\n  period_s: 0.05\n"
+        CONFIG.format(clock="wall", period=0.002, slew=1000.0) + f"status:\n  path: {status}\n  period_s: 0.05\n"
     )
     out = tmp_path / "summary.json"
     proc = subprocess.Popen(

@@ -107,10 +107,16 @@ def test_sparkplug_says_disabled_in_observe_mode(observed: dict[str, Any]) -> No
 def test_sparkplug_and_opcua_never_say_enabled_in_observe_mode_even_from_an_old_status() -> None:
     """A snapshot that has `observe` true but an axis `enable` true (a status from before the
     fix): the plant channels still say disabled."""
-    snap = {"state": "running", "observe": True, "word": "0x5000",
-            "axes": {"z": {"correction_um": -1.0, "target_um": -1.0, "prediction_um": 1.0, "enable": True,
-                           "state": "normal"}},
-            "signals": {}, "model": {"kind": "xi_spindle", "fit": {}}}
+    snap = {
+        "state": "running",
+        "observe": True,
+        "word": "0x5000",
+        "axes": {
+            "z": {"correction_um": -1.0, "target_um": -1.0, "prediction_um": 1.0, "enable": True, "state": "normal"}
+        },
+        "signals": {},
+        "model": {"kind": "xi_spindle", "fit": {}},
+    }
     assert {d.name: v for d, v in device_metrics(snap)}["Axis/z/enable"] is False
     pytest.importorskip("asyncua")  # the `plant` extra
     from compd.plant.opcua import address_space, data_values

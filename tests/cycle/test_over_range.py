@@ -29,9 +29,19 @@ def _stalled_stats() -> TimingStats:
 
 def _snap(st: TimingStats) -> dict[str, Any]:
     # what compose gives beside the loop's timing: the sink's link and the loop's counters at the top
-    return jsonable({"state": "running", "observe": False, "word": "0x0000", "axes": {}, "signals": {},
-                     "loop": timing(st), "model": {"kind": "xi_spindle", "fit": {}}, "sink": {"link": "up"},
-                     "saturations": 0})
+    return jsonable(
+        {
+            "state": "running",
+            "observe": False,
+            "word": "0x0000",
+            "axes": {},
+            "signals": {},
+            "loop": timing(st),
+            "model": {"kind": "xi_spindle", "fit": {}},
+            "sink": {"link": "up"},
+            "saturations": 0,
+        }
+    )
 
 
 def test_the_loops_p99_is_the_range_limit_and_flagged() -> None:
@@ -92,14 +102,23 @@ def test_bench_table_prints_over_20_ms() -> None:
     t = timing(_stalled_stats())
     row = {"cycles": 100, "misses": 2, "lateness_us": t["lateness_us"], "cycle_compute_us": t["cycle_compute_us"]}
     naive = {**row, "period_us": {"p50": 2000.0, "p99": 2100.0}}
-    r = {**row, "over_range": t["over_range"], "period_ms": 2.0, "scheduler": "other", "realtime": [],
-         "naive": naive, "bare": None,
-         "rss_kb": {"end_kb": 1, "growth_kb": 0, "max_growth_kb": 0, "samples": 0},
-         "service": {}, "io_us": {"read": {"count": 3, "p50": 50.0, "p99": 20000.0, "max": 900000.0,
-                                           "over_range": ["p99"]}},
-         "words_sent": 0, "plant_speedup": 1.0,
-         "host": {"steal_ms": 0.0, "cycle_thread_involuntary_switches": 0, "misses_with_steal": 0},
-         "model_eval_us": {}, "ratio_naive_to_compd": {"miss_rate": None, "p99_lateness": 1.0}}
+    r = {
+        **row,
+        "over_range": t["over_range"],
+        "period_ms": 2.0,
+        "scheduler": "other",
+        "realtime": [],
+        "naive": naive,
+        "bare": None,
+        "rss_kb": {"end_kb": 1, "growth_kb": 0, "max_growth_kb": 0, "samples": 0},
+        "service": {},
+        "io_us": {"read": {"count": 3, "p50": 50.0, "p99": 20000.0, "max": 900000.0, "over_range": ["p99"]}},
+        "words_sent": 0,
+        "plant_speedup": 1.0,
+        "host": {"steal_ms": 0.0, "cycle_thread_involuntary_switches": 0, "misses_with_steal": 0},
+        "model_eval_us": {},
+        "ratio_naive_to_compd": {"miss_rate": None, "p99_lateness": 1.0},
+    }
     table = format_table(r)
     late = next(ln for ln in table.splitlines() if ln.startswith("lateness p99 us"))
     assert late.split()[3] == ">20" and "19999" not in table

@@ -72,7 +72,9 @@ def test_run_and_replay_wire_the_same_stages(config: Path, monkeypatch: pytest.M
     for key in ("guard_cfg", "codec_cfg"):
         assert run[key] == rep[key]
     assert (run["model"].kind, run["model"].inputs, run["model"].outputs) == (
-        rep["model"].kind, rep["model"].inputs, rep["model"].outputs
+        rep["model"].kind,
+        rep["model"].inputs,
+        rep["model"].outputs,
     )
     assert type(run["sink"]) is type(rep["sink"])
     # what the builder wired is what both run: the guard's slew and the encoder's band
@@ -94,8 +96,13 @@ def _parts(tmp_path: Path, guard: GuardConfig | None = None, codec: CodecConfig 
     from compd.sinks.fanuc_pmc import FanucPmcConfig, FanucPmcSink
 
     return dict(
-        sources=srcs, model=build_model(cfg.model), sink=FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc")),
-        clock=SimClock(0.0), period_s=1.0, guard_cfg=guard, codec_cfg=codec,
+        sources=srcs,
+        model=build_model(cfg.model),
+        sink=FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc")),
+        clock=SimClock(0.0),
+        period_s=1.0,
+        guard_cfg=guard,
+        codec_cfg=codec,
     )
 
 

@@ -60,7 +60,11 @@ def test_events_rows_and_state_go_as_they_come_and_probes_come_back_stamped(tmp_
     pub.model_state({"t0_c": 20.0})
     pub.after_cycle(0.0)  # no room at all: events still go
     msgs = pub.outbox.take()
-    assert msgs == [("row", (1.0, 2.0)), ("model_state", {"t0_c": 20.0}), ("events", [(12.0, "T_xi", "bad", "stale", None)])]
+    assert msgs == [
+        ("row", (1.0, 2.0)),
+        ("model_state", {"t0_c": 20.0}),
+        ("events", [(12.0, "T_xi", "bad", "stale", None)]),
+    ]
     pub.after_cycle(0.0)
     assert not pub.outbox.pending()  # each event once
     loop.now_s = 33.0

@@ -62,9 +62,11 @@ sink: {kind: pci1756}
 def test_promoted_text_keeps_the_old_model_as_comments() -> None:
     text = "loop: {period_s: 1.0}\n# the model\nmodel: {kind: mlr, file: a.yaml}\nshadow:\n  kind: mlr\n  file: b.yaml\nsink: {kind: pci1756}\n"
     out = promoted_text(text, "c.yaml", "STAMP")
-    assert out == ("loop: {period_s: 1.0}\n# the model\n# model before `compd promote` of STAMP (the shadow became the"
-                   " model):\n# model: {kind: mlr, file: a.yaml}\nmodel:\n  kind: mlr\n  file: b.yaml\n"
-                   "sink: {kind: pci1756}\n")
+    assert out == (
+        "loop: {period_s: 1.0}\n# the model\n# model before `compd promote` of STAMP (the shadow became the"
+        " model):\n# model: {kind: mlr, file: a.yaml}\nmodel:\n  kind: mlr\n  file: b.yaml\n"
+        "sink: {kind: pci1756}\n"
+    )
     with pytest.raises(BadInput, match="no shadow"):
         promoted_text("model: {kind: mlr}\n", "c.yaml", "S")
 
@@ -74,11 +76,22 @@ def daemon(tmp_path: Path):
     """A daemon on the simulated spindle (20× real time) with a shadow (a third shorter: it predicts a third less), stopped with SIGTERM at the end."""
     cfg = sim_config(tmp_path, EXTRA, duration_s=1e6, speedup=20)
     (tmp_path / "shadow.yaml").write_text(SHADOW.format(length_mm=100.0))
-    proc = subprocess.Popen([sys.executable, "-m", "compd", "run", cfg.name], cwd=tmp_path, env=ENV,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "compd", "run", cfg.name],
+        cwd=tmp_path,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
-        until(lambda: ((status_of(tmp_path).get("axes") or {}).get("z", {}).get("shadow_um") or 0.0) > 1.0
-              or proc.poll() is not None, "the daemon and its shadow, the spindle warming")
+        until(
+            lambda: (
+                ((status_of(tmp_path).get("axes") or {}).get("z", {}).get("shadow_um") or 0.0) > 1.0
+                or proc.poll() is not None
+            ),
+            "the daemon and its shadow, the spindle warming",
+        )
         assert proc.poll() is None, proc.communicate()
         yield proc, cfg
     finally:
@@ -98,8 +111,10 @@ def _probe_at(folder: Path, which: str, n: int) -> None:
         value = z["shadow_um"] if which == "shadow" else z["prediction_um"]
         r = compd("probe", "--axis", "z", "--error-um", f"{value:.4f}", "--config", "sim.yaml", cwd=folder)
         assert r.returncode == 0, r.stderr
-        until(lambda k=k: ((status_of(folder).get("shadow") or {}).get("axes", {}).get("z", {}).get("probes") or 0)
-              > k, "the probe scored")
+        until(
+            lambda k=k: ((status_of(folder).get("shadow") or {}).get("axes", {}).get("z", {}).get("probes") or 0) > k,
+            "the probe scored",
+        )
 
 
 def test_a_shadow_scored_on_probes_is_promoted_through_a_reload(daemon, tmp_path: Path) -> None:
@@ -127,8 +142,9 @@ def test_a_shadow_scored_on_probes_is_promoted_through_a_reload(daemon, tmp_path
     assert r.returncode == 0, r.stderr
     # what it is about to make the model, said first: kind, file, sha256, where it came from, its predictions now
     said = r.stdout.splitlines()
-    assert said[0] == (f"compd promote: about to make the shadow the model: xi_spindle, file {tmp_path / 'shadow.yaml'},"
-                       f" sha256 {sha}")
+    assert said[0] == (
+        f"compd promote: about to make the shadow the model: xi_spindle, file {tmp_path / 'shadow.yaml'}, sha256 {sha}"
+    )
     assert said[1] == "compd promote: the shadow came from: fitted 2026-11-20T10:00:00Z on day1.csv"
     assert said[2].startswith(f"compd promote: now (daemon pid {proc.pid}): z: the shadow predicts ")
     assert ", the active model " in said[2]
@@ -163,8 +179,10 @@ def test_promote_without_a_shadow_is_a_one_line_error(tmp_path: Path, capsys: py
 
 
 def test_a_shadow_on_an_axis_the_model_lacks_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    cfg = sim_config(tmp_path, "shadow: {kind: xi_spindle, inputs: [T_xi], outputs: [x], params: {alpha_per_k:"
-                               " 13.6e-6, length_mm: 150.0}}")
+    cfg = sim_config(
+        tmp_path,
+        "shadow: {kind: xi_spindle, inputs: [T_xi], outputs: [x], params: {alpha_per_k: 13.6e-6, length_mm: 150.0}}",
+    )
     capsys.readouterr()
     assert main(["check-config", str(cfg)]) == 2
     err = capsys.readouterr().err.strip()

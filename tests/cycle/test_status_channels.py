@@ -60,7 +60,8 @@ def test_a_field_added_once_is_a_sparkplug_metric_with_its_unit(one_more_field: 
 
 
 def test_a_field_added_once_is_an_opcua_analog_node_with_its_unit_and_description(
-        one_more_field: dict[str, Any]) -> None:
+    one_more_field: dict[str, Any],
+) -> None:
     pytest.importorskip("asyncua")  # the `plant` extra
     from compd.core.config import GuardConfig
     from compd.plant.opcua import MICROMETRE, address_space, axis_range, data_values
@@ -72,7 +73,9 @@ def test_a_field_added_once_is_an_opcua_analog_node_with_its_unit_and_descriptio
     assert var.eu_range == axis_range(GuardConfig(), "z")  # ± the guard's clamp of the axis
     values, problems = data_values(variables, one_more_field)
     value = values[variables.index(var)]
-    assert not [p for p in problems if "SpindleGrowth" in p] and value.Value.Value == 12.5 and value.StatusCode.is_good()
+    assert (
+        not [p for p in problems if "SpindleGrowth" in p] and value.Value.Value == 12.5 and value.StatusCode.is_good()
+    )
 
 
 def test_a_channel_leaves_a_field_out_only_with_a_reason() -> None:

@@ -60,7 +60,9 @@ def test_the_record_holds_what_the_pipeline_has(tmp_path: Path) -> None:
         assert lp["cycles"] == loop.stats.cycles == 3000 and lp["misses"] == loop.stats.misses
         assert lp["lateness_us"] == loop.stats.lateness_us() and lp["cycle_compute_us"] == loop.stats.compute_us()
         assert lp["stages"] == loop.stats.stages()
-        assert snap["state"] == "running" and snap["word"] == f"0x{word:04X}" and snap["word_at_machine"] == snap["word"]
+        assert (
+            snap["state"] == "running" and snap["word"] == f"0x{word:04X}" and snap["word_at_machine"] == snap["word"]
+        )
         assert snap["publisher"]["rows_dropped"] == 7 and snap["publisher"]["status_write_max_us"] > 0
         assert snap["model"]["kind"] == app.model.kind and snap["sources"][0]["name"]
     finally:
@@ -133,6 +135,8 @@ def test_a_reader_in_another_process_never_sees_a_half_written_record(tmp_path: 
 
 def test_the_status_fields_page_is_generated_from_the_schema() -> None:
     page = (ROOT / "docs" / "status-fields.md").read_text(encoding="utf-8")
-    assert page == fields_markdown(), "docs/status-fields.md is stale: python -m compd.cycle.statusblock > docs/status-fields.md"
+    assert page == fields_markdown(), (
+        "docs/status-fields.md is stale: python -m compd.cycle.statusblock > docs/status-fields.md"
+    )
     for f in (*AXIS, *SIGNAL, *LOOP):
         assert f"`{f.key}`" in page and f.meaning

@@ -26,15 +26,30 @@ def test_run_loop_reads_modbus_and_drives_pmc(tmp_path):
     try:
         with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as pt, ModbusServerThread(pmc, port=0) as plc:
             cfg = tmp_path / "c.yaml"
-            cfg.write_text(yaml.safe_dump({
-                "loop": {"period_s": 0.002},
-                "sources": [{"kind": "modbus", "name": "pt", "port": pt.port, "poll_period_s": 0.02,
-                             "channels": [{"name": "T_xi", "address": 0}]}],
-                "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                          "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0}},
-                "guard": {"max_slew_um_per_s": 100.0},
-                "sink": {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": plc.port, "max_step_um": 5},
-            }))
+            cfg.write_text(
+                yaml.safe_dump(
+                    {
+                        "loop": {"period_s": 0.002},
+                        "sources": [
+                            {
+                                "kind": "modbus",
+                                "name": "pt",
+                                "port": pt.port,
+                                "poll_period_s": 0.02,
+                                "channels": [{"name": "T_xi", "address": 0}],
+                            }
+                        ],
+                        "model": {
+                            "kind": "xi_spindle",
+                            "inputs": ["T_xi"],
+                            "outputs": ["z"],
+                            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0},
+                        },
+                        "guard": {"max_slew_um_per_s": 100.0},
+                        "sink": {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": plc.port, "max_step_um": 5},
+                    }
+                )
+            )
             app = App(load_config(cfg), duration_s=10.0)
             seen: list[float] = []
             done = threading.Event()

@@ -105,8 +105,12 @@ def compd_alone(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
 
 def _run(alone: dict[str, object], *args: str, timeout_s: float = 120.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [*alone["python"], *args], capture_output=True, text=True, timeout=timeout_s,  # type: ignore[misc]
-        env=alone["env"], cwd=alone["cwd"],  # type: ignore[arg-type]
+        [*alone["python"], *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,  # type: ignore[misc]
+        env=alone["env"],
+        cwd=alone["cwd"],  # type: ignore[arg-type]
     )
 
 
@@ -183,22 +187,41 @@ def test_check_config_and_run_against_a_modbus_pmc(compd_alone):
     try:
         with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as pt, ModbusServerThread(pmc, port=0) as plc:
             cfg = work / "modbus.yaml"
-            cfg.write_text(yaml.safe_dump({
-                "loop": {"period_s": 0.01},
-                "sources": [{"kind": "modbus", "name": "pt", "host": "127.0.0.1", "port": pt.port,
-                             "poll_period_s": 0.02, "channels": [{"name": "T_xi", "address": 0}]}],
-                "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                          "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0}},
-                "guard": {"max_slew_um_per_s": 100.0},
-                "sink": {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": plc.port, "max_step_um": 5},
-                "console": {"period_s": 0, "summary": False},
-            }))
+            cfg.write_text(
+                yaml.safe_dump(
+                    {
+                        "loop": {"period_s": 0.01},
+                        "sources": [
+                            {
+                                "kind": "modbus",
+                                "name": "pt",
+                                "host": "127.0.0.1",
+                                "port": pt.port,
+                                "poll_period_s": 0.02,
+                                "channels": [{"name": "T_xi", "address": 0}],
+                            }
+                        ],
+                        "model": {
+                            "kind": "xi_spindle",
+                            "inputs": ["T_xi"],
+                            "outputs": ["z"],
+                            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0},
+                        },
+                        "guard": {"max_slew_um_per_s": 100.0},
+                        "sink": {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": plc.port, "max_step_um": 5},
+                        "console": {"period_s": 0, "summary": False},
+                    }
+                )
+            )
             r = _run(compd_alone, "-m", "compd", "check-config", str(cfg))
             assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
             proc = subprocess.Popen(
                 [*compd_alone["python"], "-m", "compd", "run", str(cfg), "--duration", "4", "--json", "sum.json"],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                env=compd_alone["env"], cwd=work,  # type: ignore[arg-type]
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=compd_alone["env"],
+                cwd=work,  # type: ignore[arg-type]
             )
             applied = []
             deadline = time.monotonic() + 120

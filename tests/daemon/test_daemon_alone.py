@@ -104,8 +104,14 @@ def alone(tmp_path: Path) -> dict[str, object]:
 
 
 def compd(alone: dict[str, object], *args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "compd", *args], capture_output=True, text=True,
-                          timeout=timeout_s, env=alone["env"], cwd=alone["cwd"])  # type: ignore[arg-type]
+    return subprocess.run(
+        [sys.executable, "-m", "compd", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env=alone["env"],
+        cwd=alone["cwd"],
+    )  # type: ignore[arg-type]
 
 
 def notes(alone: dict[str, object]) -> list[str]:
@@ -126,8 +132,14 @@ def test_the_hook_takes_the_commissioning_modules_away(alone: dict[str, object])
     for name in ("scipy", "matplotlib", "hil_sim", "rig", "compd.identify", "compd.commissioning", "asyncua"):
         assert name in ABSENT, ABSENT
     assert not {"numpy", "yaml", "pydantic", "pymodbus", "serial", "can", "prometheus_client", "paho"} & set(ABSENT)
-    r = subprocess.run([sys.executable, "-c", "import numpy, yaml, pydantic, pymodbus, compd.cli\nimport scipy"],
-                       capture_output=True, text=True, timeout=60, env=alone["env"], cwd=alone["cwd"])
+    r = subprocess.run(
+        [sys.executable, "-c", "import numpy, yaml, pydantic, pymodbus, compd.cli\nimport scipy"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=alone["env"],
+        cwd=alone["cwd"],
+    )
     assert r.returncode == 1 and "No module named 'scipy'" in r.stderr, r.stderr
     assert [n.split()[1] for n in notes(alone)] == ["scipy"]
 
@@ -140,14 +152,22 @@ def test_the_daemon_runs_reloads_and_answers_without_them(alone: dict[str, objec
     assert (r.returncode, r.stdout.strip()) == (0, "ok"), r.stderr
     err = work / "run.err"
     with open(err, "w", encoding="utf-8") as fh:
-        proc = subprocess.Popen([sys.executable, "-m", "compd", "run", "run.yaml"], cwd=work, env=alone["env"],
-                                stdout=subprocess.PIPE, stderr=fh, text=True)  # type: ignore[arg-type]
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "compd", "run", "run.yaml"],
+            cwd=work,
+            env=alone["env"],
+            stdout=subprocess.PIPE,
+            stderr=fh,
+            text=True,
+        )  # type: ignore[arg-type]
     try:
         status = wait_running(work / "status.json", proc, WAIT_S, after_cycles=5)
         with urllib.request.urlopen(status["metrics_url"], timeout=30) as page:
             assert b"compd_" in page.read()
-        until(lambda: json.loads((work / "status.json").read_text())["axes"]["z"].get("prediction_um") is not None,
-              "prediction")
+        until(
+            lambda: json.loads((work / "status.json").read_text())["axes"]["z"].get("prediction_um") is not None,
+            "prediction",
+        )
         r = compd(alone, "status", "--status", "status.json")
         assert r.returncode == 0 and "z" in r.stdout, r.stdout + r.stderr
         r = compd(alone, "probe", "--config", "run.yaml", "--axis", "z", "--error-um", "0.5")
@@ -200,18 +220,24 @@ def test_the_kinds_and_extras_of_the_commissioning_package_name_it(alone: dict[s
     `compd fit --help`: one line naming compd-commissioning, exit 2 (the help: a line in it, exit 0)."""
     r = compd(alone, "check-config", str(ROOT / "configs" / "service.yaml"))
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
-    assert r.stderr.endswith("sources[0].kind: source kind 'sim' is part of the compd-commissioning package,"
-                             " which is not installed\n"), r.stderr
+    assert r.stderr.endswith(
+        "sources[0].kind: source kind 'sim' is part of the compd-commissioning package, which is not installed\n"
+    ), r.stderr
     r = compd(alone, "bench")
     assert (r.returncode, r.stderr) == (
-        2, "compd: `compd bench` is part of the compd-commissioning package, which is not installed\n")
+        2,
+        "compd: `compd bench` is part of the compd-commissioning package, which is not installed\n",
+    )
     work = Path(str(alone["cwd"]))
-    (work / "opcua.yaml").write_text(CONFIG.format(slew=2.0).replace(
-        "metrics:", "opcua: {certificate: s.pem, private_key: s.key}\nmetrics:"), encoding="utf-8")
+    (work / "opcua.yaml").write_text(
+        CONFIG.format(slew=2.0).replace("metrics:", "opcua: {certificate: s.pem, private_key: s.key}\nmetrics:"),
+        encoding="utf-8",
+    )
     r = compd(alone, "check-config", "opcua.yaml")
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
-    assert r.stderr.endswith("opcua: needs the Python module asyncua, which is not installed:"
-                             " install the compd-commissioning package\n"), r.stderr
+    assert r.stderr.endswith(
+        "opcua: needs the Python module asyncua, which is not installed: install the compd-commissioning package\n"
+    ), r.stderr
     r = compd(alone, "opcua-cert", "--cert", "c/s.pem", "--key", "c/s.key")
     assert (r.returncode, r.stderr) == (2, "compd: needs the plant extra: install the compd-commissioning package\n")
     r = compd(alone, "fit", "--help")

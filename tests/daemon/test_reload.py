@@ -61,7 +61,9 @@ def test_sighup_reload(tmp_path: Path) -> None:
     with open(err_path, "w") as err:
         proc = subprocess.Popen(
             [sys.executable, "-m", "compd", "run", str(cfg)],
-            stdout=subprocess.DEVNULL, stderr=err, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
         run_log = tmp_path / "run.csv"
         try:  # each step waits for simulated time in the log, not for wall time
@@ -115,8 +117,11 @@ def events(text: str) -> list[dict[str, str]]:
 def _start(cfg: Path, err_path: Path) -> subprocess.Popen:
     with open(err_path, "a") as err:
         return subprocess.Popen(
-            [sys.executable, "-m", "compd", "run", str(cfg)], cwd=cfg.parent,
-            stdout=subprocess.DEVNULL, stderr=err, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            [sys.executable, "-m", "compd", "run", str(cfg)],
+            cwd=cfg.parent,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
 
 

@@ -37,13 +37,30 @@ WAIT_S = 60.0
 def _config(port: int, slew_um_per_s: float = 20.0) -> dict:
     return {
         "loop": {"period_s": 0.005},
-        "sources": [{"kind": "modbus", "name": "pt", "transport": "tcp", "host": "127.0.0.1", "port": port,
-                     "poll_period_s": 0.02, "timeout_s": 0.5, "stale_after_s": 1.0,
-                     "channels": [{"name": SENSOR, "address": 0}]}],
-        "model": {"kind": "xi_spindle", "inputs": [SENSOR], "outputs": ["z"],
-                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0}},
-        "guard": {"max_slew_um_per_s": slew_um_per_s, "stale_after_s": 1.0,
-                  "signals": {SENSOR: {"min": 0.0, "max": 80.0}}},
+        "sources": [
+            {
+                "kind": "modbus",
+                "name": "pt",
+                "transport": "tcp",
+                "host": "127.0.0.1",
+                "port": port,
+                "poll_period_s": 0.02,
+                "timeout_s": 0.5,
+                "stale_after_s": 1.0,
+                "channels": [{"name": SENSOR, "address": 0}],
+            }
+        ],
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": [SENSOR],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0},
+        },
+        "guard": {
+            "max_slew_um_per_s": slew_um_per_s,
+            "stale_after_s": 1.0,
+            "signals": {SENSOR: {"min": 0.0, "max": 80.0}},
+        },
         "sink": {"kind": "pci1756"},
         "status": {"path": "status.json", "period_s": 0.1},
         "log": {"path": "run.csv", "period_s": 0.05, "flush_s": 0.1},
@@ -81,8 +98,13 @@ def _running(path: Path, after_cycles: int = 0):  # noqa: ANN202
 def _start(cfg: Path, err: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     with open(err, "a") as fh:
-        return subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], cwd=cfg.parent,
-                                stdout=subprocess.DEVNULL, stderr=fh, env=env)
+        return subprocess.Popen(
+            [sys.executable, "-m", "compd", "run", str(cfg)],
+            cwd=cfg.parent,
+            stdout=subprocess.DEVNULL,
+            stderr=fh,
+            env=env,
+        )
 
 
 def _rows(path: Path) -> int:
@@ -169,8 +191,15 @@ def test_a_reload_hands_the_files_and_sockets_to_the_new_service_without_losing_
         cfg.write_text(yaml.safe_dump(_config(port, slew_um_per_s=10.0)))
         proc.send_signal(signal.SIGHUP)
         _wait(lambda: "event=reloaded" in err.read_text(), "the reload")
-        st = _wait(lambda: (s := _status(tmp_path / "status.json")) and s["service_pid"] != old_service
-                   and s["state"] == "running" and s, "the new service's status")
+        st = _wait(
+            lambda: (
+                (s := _status(tmp_path / "status.json"))
+                and s["service_pid"] != old_service
+                and s["state"] == "running"
+                and s
+            ),
+            "the new service's status",
+        )
         assert st["pid"] == proc.pid and st["metrics_url"] == url and st["threads"] == ["MainThread"]
         assert not Path(f"/proc/{old_service}").exists()
         with urllib.request.urlopen(url, timeout=10) as r:  # the same port, served by the new service
@@ -187,7 +216,8 @@ def test_a_reload_hands_the_files_and_sockets_to_the_new_service_without_losing_
 
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP])
 def test_a_service_that_dies_or_stalls_is_reported_once_restarted_and_the_cycle_goes_on(
-    tmp_path: Path, how: signal.Signals,
+    tmp_path: Path,
+    how: signal.Signals,
 ) -> None:
     tx = Pt100Transmitter([SENSOR], [24.0])
     status = tmp_path / "status.json"
@@ -200,7 +230,10 @@ def test_a_service_that_dies_or_stalls_is_reported_once_restarted_and_the_cycle_
         _wait(lambda: "event=service_restarted" in err.read_text(), "the service_restarted line")
         assert proc.poll() is None  # compensation goes on; SIGTERM still ends it with exit 0
         # the new service writes the status file again, and the data log goes on
-        st = _wait(lambda: (s := _status(status)) and s["service_pid"] not in (None, old) and s, "a status from the new service")
+        st = _wait(
+            lambda: (s := _status(status)) and s["service_pid"] not in (None, old) and s,
+            "a status from the new service",
+        )
         with pytest.raises(ProcessLookupError):
             os.kill(old, 0)
         rows = _rows(tmp_path / "run.csv")

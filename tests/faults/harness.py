@@ -65,11 +65,21 @@ def base_config(source: dict[str, Any], policy: str, **guard: Any) -> dict[str, 
     return {
         "loop": {"period_s": PERIOD_S},
         "sources": [source],
-        "model": {"kind": "xi_spindle", "inputs": [SENSOR], "outputs": ["z"],
-                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": T0_C}},
-        "guard": {"max_slew_um_per_s": SLEW_UM_PER_S, "ramp_um_per_s": RAMP_UM_PER_S,
-                  "recovery_s": 0.3, "fault_policy": policy, "stale_after_s": 0.3,
-                  "signals": signals, **guard},
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": [SENSOR],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": T0_C},
+        },
+        "guard": {
+            "max_slew_um_per_s": SLEW_UM_PER_S,
+            "ramp_um_per_s": RAMP_UM_PER_S,
+            "recovery_s": 0.3,
+            "fault_policy": policy,
+            "stale_after_s": 0.3,
+            "signals": signals,
+            **guard,
+        },
         "sink": {"kind": "pci1756", "heartbeat_bit": 16},
         "log": {"path": "log.csv", "period_s": 0.05, "flush_s": 0.1},
         "status": {"period_s": 0.1},
@@ -77,10 +87,20 @@ def base_config(source: dict[str, Any], policy: str, **guard: Any) -> dict[str, 
 
 
 def modbus_tcp_source(port: int, **kw: Any) -> dict[str, Any]:
-    return {"kind": "modbus", "name": "pt", "transport": "tcp", "host": "127.0.0.1", "port": port,
-            "poll_period_s": 0.02, "timeout_s": 0.1, "stale_after_s": 0.3,
-            "reconnect_min_s": 0.05, "reconnect_max_s": 0.2,
-            "channels": [{"name": SENSOR, "address": 0}], **kw}
+    return {
+        "kind": "modbus",
+        "name": "pt",
+        "transport": "tcp",
+        "host": "127.0.0.1",
+        "port": port,
+        "poll_period_s": 0.02,
+        "timeout_s": 0.1,
+        "stale_after_s": 0.3,
+        "reconnect_min_s": 0.05,
+        "reconnect_max_s": 0.2,
+        "channels": [{"name": SENSOR, "address": 0}],
+        **kw,
+    }
 
 
 @dataclass
@@ -125,8 +145,9 @@ class Trace:
 class FaultRun:
     """One matrix row: a config, a schedule of actions (the fault), a run, the measurements."""
 
-    def __init__(self, tmp_path: Path, cfg: dict[str, Any], *, duration_s: float = MAX_S,
-                 clock: WallClock | None = None) -> None:
+    def __init__(
+        self, tmp_path: Path, cfg: dict[str, Any], *, duration_s: float = MAX_S, clock: WallClock | None = None
+    ) -> None:
         self.tmp_path = tmp_path
         self.cfg = cfg
         self.policy = cfg["guard"]["fault_policy"]
@@ -219,9 +240,7 @@ class FaultRun:
             return abs(tr.out[k] - tr.target[k]) <= 0.25
         if self.expect_recovery:  # a row whose fault clears by itself: wait for NORMAL
             return False
-        return tr.state[k] == AxisState.FAULT and self._safe(k) and (
-            self.policy != "ramp_to_zero" or tr.out[k] == 0.0
-        )
+        return tr.state[k] == AxisState.FAULT and self._safe(k) and (self.policy != "ramp_to_zero" or tr.out[k] == 0.0)
 
     # -------------------------------------------------------------- measure
     def _measure(self, sensor: str, reasons: tuple[str, ...], kind: str, running: bool) -> Measured:
@@ -268,7 +287,8 @@ class FaultRun:
         event = f"{hit[0]} {hit[1]}: {hit[2]}" if hit else None
         log_event, key = {"bad": ("sensor_bad", "sensor"), "jump": ("clock_jump", "clock")}[kind]
         logged = hit is not None and any(
-            getattr(r, "event", None) == log_event and getattr(r, key, None) == sensor
+            getattr(r, "event", None) == log_event
+            and getattr(r, key, None) == sensor
             and getattr(r, "reason", None) == hit[2]
             for r in self.records
         )
@@ -285,8 +305,9 @@ class FaultRun:
             word_valid=word_valid,
             policy_ok=policy_ok,
             # still cycling 0.3 s after the last action (the run stops itself once settled)
-            running=running and bool(tr.t) and tr.t[-1] - tr.t[0] >= max(
-                [MIN_S, *(t - tr.t[0] + 0.3 for t in self.times.values())]) - 2 * PERIOD_S,
+            running=running
+            and bool(tr.t)
+            and tr.t[-1] - tr.t[0] >= max([MIN_S, *(t - tr.t[0] + 0.3 for t in self.times.values())]) - 2 * PERIOD_S,
             cycles=len(tr.t),
             fault_t_s=None if t_fault is None else t_fault - tr.t[0],
             **word,
@@ -333,7 +354,11 @@ class FaultRun:
                     pace = max(pace, step / budget if budget > 0 else math.inf)
                     budget = max(0.0, budget - step)
             c = tr.out[k]
-            goal = 0 if abs(c) <= enc.deadband_um else max(-63, min(63, math.floor(abs(c) / lsb + 0.5))) * (1 if c > 0 else -1)
+            goal = (
+                0
+                if abs(c) <= enc.deadband_um
+                else max(-63, min(63, math.floor(abs(c) / lsb + 0.5))) * (1 if c > 0 else -1)
+            )
             if v == goal:  # settled: the codec banks no more than this
                 budget = min(budget, 1.0 + gain)
             over = max(over, abs(v * lsb - c) - (allowed_um + behind * lsb))
@@ -374,8 +399,15 @@ def record(row: str, m: Measured, tmp_path: Path) -> Path:
     spec = MATRIX[row]
     out_dir = Path(os.environ.get(RESULTS_ENV) or tmp_path)
     out_dir.mkdir(parents=True, exist_ok=True)
-    data = {"row": row, "order": list(MATRIX).index(row), "fault": spec.fault, "transport": spec.transport, "policy": spec.policy,
-            "expected": spec.expected, **m.__dict__}
+    data = {
+        "row": row,
+        "order": list(MATRIX).index(row),
+        "fault": spec.fault,
+        "transport": spec.transport,
+        "policy": spec.policy,
+        "expected": spec.expected,
+        **m.__dict__,
+    }
     file = out_dir / f"{row}.json"
     file.write_text(json.dumps(data, indent=1, default=str))
     return file

@@ -26,14 +26,22 @@ from compd.sources.modbus import ModbusConfig, ModbusSource
 from tests.conftest import ROOT
 
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
-FUZZ = settings(max_examples=int(__import__("os").environ.get("COMPD_FUZZ_EXAMPLES", "60")), deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ = settings(
+    max_examples=int(__import__("os").environ.get("COMPD_FUZZ_EXAMPLES", "60")),
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
 
 scalars = st.one_of(
-    st.none(), st.booleans(), st.integers(-(2**40), 2**40),
-    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12),
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**40), 2**40),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12),
 )
 values = st.recursive(
-    scalars, lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+    scalars,
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
     max_leaves=6,
 )
 
@@ -74,7 +82,11 @@ def mutated_config(draw: st.DrawFn) -> tuple[Path, str]:
 def _garble(draw: st.DrawFn, data: Any) -> str:
     text = yaml.safe_dump(data)
     i = draw(st.integers(0, max(len(text) - 1, 0)))
-    return text[:i] + draw(st.sampled_from([":", "- ", "\t", "{", "]", "'", "&a", "*b", "!!python/object ", "\n  x"])) + text[i:]
+    return (
+        text[:i]
+        + draw(st.sampled_from([":", "- ", "\t", "{", "]", "'", "&a", "*b", "!!python/object ", "\n  x"]))
+        + text[i:]
+    )
 
 
 @FUZZ
@@ -147,15 +159,19 @@ class _FakeModbusClient:
         pass
 
 
-MODBUS = ModbusConfig.model_validate({
-    "kind": "modbus", "name": "m", "max_gap": 2,
-    "channels": [
-        {"name": "a", "address": 0, "status_address": 10},
-        {"name": "b", "address": 2, "data_type": "float32", "word_order": "little"},
-        {"name": "c", "address": 4, "data_type": "uint32", "byte_order": "little", "scale": 0.01},
-        {"name": "d", "address": 20, "data_type": "uint16"},
-    ],
-})
+MODBUS = ModbusConfig.model_validate(
+    {
+        "kind": "modbus",
+        "name": "m",
+        "max_gap": 2,
+        "channels": [
+            {"name": "a", "address": 0, "status_address": 10},
+            {"name": "b", "address": 2, "data_type": "float32", "word_order": "little"},
+            {"name": "c", "address": 4, "data_type": "uint32", "byte_order": "little", "scale": 0.01},
+            {"name": "d", "address": 20, "data_type": "uint16"},
+        ],
+    }
+)
 register_list = st.lists(st.integers(0, 0xFFFF), max_size=30)
 
 
@@ -167,8 +183,17 @@ def _check_frame(values: np.ndarray, quality: np.ndarray) -> None:
 
 
 @FUZZ
-@given(st.lists(st.one_of(register_list, st.none(), st.sampled_from(["io", "os"]),
-                          st.tuples(register_list, st.sampled_from([4, 6, 16, 23]))), max_size=4))
+@given(
+    st.lists(
+        st.one_of(
+            register_list,
+            st.none(),
+            st.sampled_from(["io", "os"]),
+            st.tuples(register_list, st.sampled_from([4, 6, 16, 23])),
+        ),
+        max_size=4,
+    )
+)
 def test_modbus_poll_never_raises(replies: list[Any]) -> None:
     src = ModbusSource(MODBUS)
     poller = src.make_poller(Snapshot(4))
@@ -201,16 +226,18 @@ class _FakeSerial:
         pass
 
 
-DCON = DconConfig.model_validate({"kind": "dcon", "name": "d", "serial_port": "/dev/null",
-                                  "channels": ["a", None, "b"]})
+DCON = DconConfig.model_validate(
+    {"kind": "dcon", "name": "d", "serial_port": "/dev/null", "channels": ["a", None, "b"]}
+)
 field = st.one_of(
     st.sampled_from([b"+0021.50", b"-9999.9", b"+9999", b"-0000", b"+1.2.3", b"+.", b"+", b"-nan"]),
     st.from_regex(rb"\A[+-][0-9.]{1,8}\Z", fullmatch=True),
 )
 dcon_reply = st.one_of(
     st.binary(max_size=40),
-    st.builds(lambda fs, end: b">" + b"".join(fs) + end, st.lists(field, max_size=5),
-              st.sampled_from([b"\r", b"", b"XX\r"])),
+    st.builds(
+        lambda fs, end: b">" + b"".join(fs) + end, st.lists(field, max_size=5), st.sampled_from([b"\r", b"", b"XX\r"])
+    ),
 )
 
 
@@ -227,10 +254,17 @@ def test_dcon_poll_never_raises(reply: bytes, checksum: bool) -> None:
         parse_reply(reply, 1, checksum)
 
 
-CAN = CanConfig.model_validate({"kind": "can", "name": "c", "interface": "virtual", "signals": [
-    {"name": "a", "id": 1, "offset": 0, "size": 2},
-    {"name": "b", "id": 1, "offset": 4, "size": 4, "signed": False, "byte_order": "big"},
-]})
+CAN = CanConfig.model_validate(
+    {
+        "kind": "can",
+        "name": "c",
+        "interface": "virtual",
+        "signals": [
+            {"name": "a", "id": 1, "offset": 0, "size": 2},
+            {"name": "b", "id": 1, "offset": 4, "size": 4, "signed": False, "byte_order": "big"},
+        ],
+    }
+)
 
 
 @FUZZ

@@ -37,8 +37,12 @@ def _config(port: int, **top) -> dict:  # noqa: ANN003
     return {
         "loop": {"period_s": PERIOD_S},
         "sources": [modbus_tcp_source(port)],
-        "model": {"kind": "xi_spindle", "inputs": [SENSOR], "outputs": ["z"],
-                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": None}},
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": [SENSOR],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": None},
+        },
         "guard": {"max_slew_um_per_s": SLEW_UM_PER_S, "recovery_s": 0.3, "stale_after_s": 0.3},
         "sink": {"kind": "pci1756", "heartbeat_bit": 16},
         "log": {"path": "run.csv", "period_s": LOG_PERIOD_S, "flush_s": FLUSH_S},
@@ -50,8 +54,13 @@ def _config(port: int, **top) -> dict:  # noqa: ANN003
 def _start(cfg: Path, err: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     with open(err, "a") as fh:
-        return subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], cwd=cfg.parent,
-                                stdout=subprocess.DEVNULL, stderr=fh, env=env)
+        return subprocess.Popen(
+            [sys.executable, "-m", "compd", "run", str(cfg)],
+            cwd=cfg.parent,
+            stdout=subprocess.DEVNULL,
+            stderr=fh,
+            env=env,
+        )
 
 
 def _rows(path: Path) -> np.ndarray:
@@ -154,23 +163,31 @@ def test_kill9_and_restart(tmp_path: Path) -> None:
         # restart at 26 °C: a fresh start would take T0 = 26 (no correction); resumed, T0 = 22
         proc = _start(cfg, err)
         try:
-            _wait(lambda: len(_rows(log_path)) > len(before) + 2
-                  and abs(_rows(log_path)[-1, corr] - want_um) < 0.5)
+            _wait(lambda: len(_rows(log_path)) > len(before) + 2 and abs(_rows(log_path)[-1, corr] - want_um) < 0.5)
         finally:
             proc.send_signal(signal.SIGTERM)
             assert proc.wait(10) == 0
         after = read_log(log_path, allow_nan=True)
         text = err.read_text()
     assert "event=state_restored" in text
-    step, ratio = _steps(after.data[len(before):], corr)  # the restarted run slews from 0
+    step, ratio = _steps(after.data[len(before) :], corr)  # the restarted run slews from 0
     rows_lost = max(0, math.floor(lost_s / LOG_PERIOD_S))
     m = Measured(
-        max_step_um=step, allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S, max_step_ratio=ratio,
-        time_to_safe_s=None, recovered=True, samples_lost=rows_lost,
-        event="state_restored (T0 22 °C kept)", logged=True, word_valid=True, policy_ok=True,
-        running=True, cycles=len(after), fault_t_s=None,
+        max_step_um=step,
+        allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S,
+        max_step_ratio=ratio,
+        time_to_safe_s=None,
+        recovered=True,
+        samples_lost=rows_lost,
+        event="state_restored (T0 22 °C kept)",
+        logged=True,
+        word_valid=True,
+        policy_ok=True,
+        running=True,
+        cycles=len(after),
+        fault_t_s=None,
         extra={"lost_s": lost_s, "flush_s": FLUSH_S},
-        **_word(after.data[len(before):], after.columns),
+        **_word(after.data[len(before) :], after.columns),
     )
     record("kill9_restart", m, tmp_path)
     _check_word(m)
@@ -212,11 +229,20 @@ def test_bad_config_on_reload(tmp_path: Path) -> None:
     after_hup = data.data[data.t_s > t_hup]
     assert len(after_hup) > 5  # kept logging (and compensating) on the old config
     m = Measured(
-        max_step_um=step, allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S, max_step_ratio=ratio,
-        time_to_safe_s=None, recovered=True, samples_lost=0,
+        max_step_um=step,
+        allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S,
+        max_step_ratio=ratio,
+        time_to_safe_s=None,
+        recovered=True,
+        samples_lost=0,
         event="reload_rejected: " + lines[0].split("still running the old config: ", 1)[-1].replace(f"{tmp_path}/", ""),
-        logged="event=reload_rejected" in err.read_text(), word_valid=True, policy_ok=True,
-        running=True, cycles=len(data), fault_t_s=None, **_word(data.data, data.columns),
+        logged="event=reload_rejected" in err.read_text(),
+        word_valid=True,
+        policy_ok=True,
+        running=True,
+        cycles=len(data),
+        fault_t_s=None,
+        **_word(data.data, data.columns),
     )
     record("bad_config_reload", m, tmp_path)
     _check_word(m)
@@ -267,12 +293,21 @@ def test_reload_to_an_unopenable_config(tmp_path: Path) -> None:
     lines = [ln for ln in text.splitlines() if "event=reload_failed" in ln]
     after_hup = data.data[data.t_s > t_hup]
     m = Measured(
-        max_step_um=step, allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S, max_step_ratio=ratio,
-        time_to_safe_s=None, recovered=True, samples_lost=0,
+        max_step_um=step,
+        allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S,
+        max_step_ratio=ratio,
+        time_to_safe_s=None,
+        recovered=True,
+        samples_lost=0,
         event="reload_failed: " + (lines[0].split('reason="', 1)[-1].rstrip('"') if lines else "none"),
-        logged=len(lines) == 1, word_valid=True, policy_ok=True,
-        running=len(after_hup) > 5, cycles=len(data), fault_t_s=None,
-        extra={"rows_after_hup": len(after_hup)}, **_word(data.data, data.columns),
+        logged=len(lines) == 1,
+        word_valid=True,
+        policy_ok=True,
+        running=len(after_hup) > 5,
+        cycles=len(data),
+        fault_t_s=None,
+        extra={"rows_after_hup": len(after_hup)},
+        **_word(data.data, data.columns),
     )
     record("reload_unopenable", m, tmp_path)
     _check_word(m)
@@ -288,8 +323,11 @@ def test_reload_to_an_unreachable_sink(tmp_path: Path) -> None:
 
     tx = Pt100Transmitter([SENSOR], [22.0])
     with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
-        good = {**_config(server.port), "status": {"path": "status.json", "period_s": 0.1},
-                "metrics": {"enabled": True, "port": _free_port()}}
+        good = {
+            **_config(server.port),
+            "status": {"path": "status.json", "period_s": 0.1},
+            "metrics": {"enabled": True, "port": _free_port()},
+        }
         cfg = tmp_path / "c.yaml"
         cfg.write_text(yaml.safe_dump(good))
         log_path, err, status = tmp_path / "run.csv", tmp_path / "stderr.txt", tmp_path / "status.json"
@@ -320,11 +358,19 @@ def test_reload_to_an_unreachable_sink(tmp_path: Path) -> None:
                 proc.wait(10)
     z = snap["axes"]["z"]
     m = Measured(
-        max_step_um=0.0, allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S, max_step_ratio=0.0,
-        time_to_safe_s=None, recovered=False, samples_lost=0,
+        max_step_um=0.0,
+        allowed_step_um=SLEW_UM_PER_S * LOG_PERIOD_S,
+        max_step_ratio=0.0,
+        time_to_safe_s=None,
+        recovered=False,
+        samples_lost=0,
         event=f"status: state {snap['state']}, sink link {snap['sink']['link']}, z enable {z['enable']}",
-        logged="compd_sink_link_up 0.0" in metrics, word_valid=True, policy_ok=True,
-        running=True, cycles=snap["loop"]["cycles"], fault_t_s=None,
+        logged="compd_sink_link_up 0.0" in metrics,
+        word_valid=True,
+        policy_ok=True,
+        running=True,
+        cycles=snap["loop"]["cycles"],
+        fault_t_s=None,
         extra={"link_down_after_s": round(t_down, 2), "enable_before": before["axes"]["z"]["enable"]},
     )
     record("reload_unreachable_sink", m, tmp_path)

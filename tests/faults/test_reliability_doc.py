@@ -34,9 +34,21 @@ def test_committed_doc_has_every_row_and_column() -> None:
 
 
 def test_generator_round_trip() -> None:
-    result = {"row": "x", "fault": "f | g", "transport": "t", "policy": "hold", "expected": "e",
-              "max_step_um": 0.2, "allowed_step_um": 0.2, "max_step_ratio": 1.0, "time_to_safe_s": None,
-              "samples_lost": 0, "event": "T bad: stale", "logged": True, "word_valid": True}
+    result = {
+        "row": "x",
+        "fault": "f | g",
+        "transport": "t",
+        "policy": "hold",
+        "expected": "e",
+        "max_step_um": 0.2,
+        "allowed_step_um": 0.2,
+        "max_step_ratio": 1.0,
+        "time_to_safe_s": None,
+        "samples_lost": 0,
+        "event": "T bad: stale",
+        "logged": True,
+        "word_valid": True,
+    }
     text = replace_block("# R\n\nprose\n", "faults", render_matrix([result]))
     text = replace_block(text, "faults", render_matrix([result, {**result, "row": "y"}]))
     header, rows = table_rows(read_block(text, "faults") or "")

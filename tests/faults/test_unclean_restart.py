@@ -44,15 +44,22 @@ class Bench:
     """`hil_sim serve` with a PT100 module, a FANUC PMC and a Siemens NC on Modbus TCP."""
 
     def __init__(self, tmp: Path) -> None:
-        cfg = {"devices": [
-            {"kind": "pt100_modbus", "name": "tx", "port": 0, "channels": [{"name": SENSOR, "value_c": T_C}]},
-            {"kind": "fanuc_pmc", "name": "pmc", "port": 0, "step_limit_um": 10},
-            {"kind": "siemens_nc", "name": "nc", "port": 0, "axes": 2, "velo_factor": 1e-3},
-        ]}
+        cfg = {
+            "devices": [
+                {"kind": "pt100_modbus", "name": "tx", "port": 0, "channels": [{"name": SENSOR, "value_c": T_C}]},
+                {"kind": "fanuc_pmc", "name": "pmc", "port": 0, "step_limit_um": 10},
+                {"kind": "siemens_nc", "name": "nc", "port": 0, "axes": 2, "velo_factor": 1e-3},
+            ]
+        }
         path = tmp / "bench.yaml"
         path.write_text(yaml.safe_dump(cfg))
-        self.proc = subprocess.Popen([sys.executable, "-m", "hil_sim", "serve", "--config", str(path)],
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "hil_sim", "serve", "--config", str(path)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=_env(),
+        )
         lines = []
         while True:
             line = self.proc.stdout.readline() if self.proc.stdout else ""
@@ -60,7 +67,9 @@ class Bench:
             lines.append(line)
             if "ready" in line:
                 break
-        self.ports = {m[0]: int(m[1]) for m in re.findall(r"^(\w+): \w+ on tcp:127\.0\.0\.1:(\d+)", "".join(lines), re.M)}
+        self.ports = {
+            m[0]: int(m[1]) for m in re.findall(r"^(\w+): \w+ on tcp:127\.0\.0\.1:(\d+)", "".join(lines), re.M)
+        }
 
     def stop(self) -> None:
         self.proc.send_signal(signal.SIGINT)
@@ -114,14 +123,45 @@ SINKS = {
     # how fast the applied correction may move: `step_um` per `every_s` at most (the PMC sink's
     # step per min_update_s; the word's LSB at the guard's slew, 20 µm/s; the NC following K0,
     # sent every min_update_s, 0.05 s, at the guard's slew)
-    "fanuc_pmc": (lambda p: {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": p, "max_step_um": MAX_STEP_UM},
-                  "pmc", 404, _pmc_um, MAX_STEP_UM, 0.02),
-    "fanuc_pmc_shift": (lambda p: {"kind": "fanuc_pmc", "mode": "shift", "host": "127.0.0.1", "port": p,
-                                   "max_step_um": MAX_STEP_UM}, "pmc", 404, _pmc_um, MAX_STEP_UM, 0.02),
-    "pci1756": (lambda p: {"kind": "pci1756", "device": "modbus", "host": "127.0.0.1", "port": p,
-                           "strobe_bit": 16, "heartbeat_bit": 24}, "pmc", 404, _pmc_um, 1.0, 0.05),
-    "siemens": (lambda p: {"kind": "siemens", "host": "127.0.0.1", "port": p, "axes": {"z": 0}},
-                "nc", 11, _nc_um, 1.0, 0.05),
+    "fanuc_pmc": (
+        lambda p: {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": p, "max_step_um": MAX_STEP_UM},
+        "pmc",
+        404,
+        _pmc_um,
+        MAX_STEP_UM,
+        0.02,
+    ),
+    "fanuc_pmc_shift": (
+        lambda p: {"kind": "fanuc_pmc", "mode": "shift", "host": "127.0.0.1", "port": p, "max_step_um": MAX_STEP_UM},
+        "pmc",
+        404,
+        _pmc_um,
+        MAX_STEP_UM,
+        0.02,
+    ),
+    "pci1756": (
+        lambda p: {
+            "kind": "pci1756",
+            "device": "modbus",
+            "host": "127.0.0.1",
+            "port": p,
+            "strobe_bit": 16,
+            "heartbeat_bit": 24,
+        },
+        "pmc",
+        404,
+        _pmc_um,
+        1.0,
+        0.05,
+    ),
+    "siemens": (
+        lambda p: {"kind": "siemens", "host": "127.0.0.1", "port": p, "axes": {"z": 0}},
+        "nc",
+        11,
+        _nc_um,
+        1.0,
+        0.05,
+    ),
 }
 # a K0 sent after a late cycle carries the slew of the time since the last (one send more)
 SLACK = {"siemens": 2.0}
@@ -131,8 +171,12 @@ def _config(tmp: Path, bench: Bench, sink: dict[str, Any]) -> Path:
     cfg = {
         "loop": {"period_s": 0.005, "io": "process"},
         "sources": [modbus_tcp_source(bench.ports["tx"])],
-        "model": {"kind": "xi_spindle", "inputs": [SENSOR], "outputs": ["z"],
-                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": T0_C}},
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": [SENSOR],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": T0_C},
+        },
         "guard": {"max_slew_um_per_s": 20.0},
         "sink": sink,
         "status": {"path": "status.json"},
@@ -144,8 +188,13 @@ def _config(tmp: Path, bench: Bench, sink: dict[str, Any]) -> Path:
 
 def _start(cfg: Path, err: Path) -> subprocess.Popen:
     with open(err, "a") as fh:
-        return subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], cwd=cfg.parent,
-                                stdout=subprocess.DEVNULL, stderr=fh, env=_env())
+        return subprocess.Popen(
+            [sys.executable, "-m", "compd", "run", str(cfg)],
+            cwd=cfg.parent,
+            stdout=subprocess.DEVNULL,
+            stderr=fh,
+            env=_env(),
+        )
 
 
 def _link(status: Path, pid: int) -> str | None:
@@ -221,8 +270,10 @@ def test_a_restart_after_an_unclean_end_never_moves_the_axis(tmp_path: Path, sin
     # ... and nothing ever moves faster than the sink's step allows between two reads
     assert pace <= 1.0 + 1e-6, f"largest change between two reads {largest:.2f} um, {pace:.2f} x what is allowed"
     assert "event=synced" in text  # the restarted daemon said it read back what the CNC applies
-    print(f"\n{sink} {signal.Signals(sig).name}: held {held:+.2f} um; across the restart it moved {moved:.2f} um;"
-          f" largest change between two reads {largest:.2f} um ({len(um)} reads)")
+    print(
+        f"\n{sink} {signal.Signals(sig).name}: held {held:+.2f} um; across the restart it moved {moved:.2f} um;"
+        f" largest change between two reads {largest:.2f} um ({len(um)} reads)"
+    )
 
 
 def test_a_reload_that_changes_the_sink_does_not_move_the_axis(tmp_path: Path) -> None:

@@ -112,8 +112,16 @@ def test_pty_closed(tmp_path: Path) -> None:
     pty = PtyPair(a, b).start()
     try:
         with DconModule(tx, str(a), baudrate=115200):
-            src = {"kind": "dcon", "name": "dcon", "serial_port": str(b), "baudrate": 115200,
-                   "channels": [SENSOR], "poll_period_s": 0.03, "timeout_s": 0.1, "stale_after_s": 0.3}
+            src = {
+                "kind": "dcon",
+                "name": "dcon",
+                "serial_port": str(b),
+                "baudrate": 115200,
+                "channels": [SENSOR],
+                "poll_period_s": 0.03,
+                "timeout_s": 0.1,
+                "stale_after_s": 0.3,
+            }
             run = FaultRun(tmp_path, base_config(src, "disable"))
             run.at(FAULT_S, "fault", pty.stop)
             m = run.run(reasons=COMMS)
@@ -127,8 +135,14 @@ def test_can_silence(tmp_path: Path) -> None:
     tx = Pt100Transmitter([SENSOR], [24.0])
     bus = f"faults-{time.monotonic_ns()}"
     with CanPt100(tx, [CanChannel(SENSOR, 0x181)], interface="virtual", channel=bus, period_s=0.02) as dev:
-        src = {"kind": "can", "name": "can", "interface": "virtual", "channel": bus, "timeout_s": 0.2,
-               "signals": [{"name": SENSOR, "id": 0x181}]}
+        src = {
+            "kind": "can",
+            "name": "can",
+            "interface": "virtual",
+            "channel": bus,
+            "timeout_s": 0.2,
+            "signals": [{"name": SENSOR, "id": 0x181}],
+        }
         run = FaultRun(tmp_path, base_config(src, "hold"))
         run.at(FAULT_S, "fault", lambda: dev.set_fault("no_answer"))
         run.at(CLEAR_S, "clear", lambda: dev.set_fault("none"))
@@ -142,8 +156,9 @@ def test_clock_jump(tmp_path: Path) -> None:
     clock = JumpClock()
     with ModbusServerThread(Pt100ModbusDevice(tx), port=0) as server:
         # loop time runs 60 s ahead after the jump: the duration counts it
-        run = FaultRun(tmp_path, base_config(modbus_tcp_source(server.port), "hold"),
-                       duration_s=60.0 + 10.0, clock=clock)
+        run = FaultRun(
+            tmp_path, base_config(modbus_tcp_source(server.port), "hold"), duration_s=60.0 + 10.0, clock=clock
+        )
         run.at(FAULT_S, "fault", lambda: setattr(clock, "offset_s", 60.0))
         # right after the jump the last sample is 60 s old on the new clock: the axis holds
         # until the next poll, then recovers; the row ends when it has

@@ -47,8 +47,22 @@ GOLDEN = {
 @pytest.mark.parametrize("name", sorted(GOLDEN))
 def test_defaults_leave_every_existing_log_byte_identical(name, tmp_path):
     out = tmp_path / "log.csv"
-    assert main(["log", "--scenario", str(SCENARIOS / f"{name}.yaml"), "--out", str(out), "--rate-s", "30",
-                 "--duration-s", "14400"]) == 0
+    assert (
+        main(
+            [
+                "log",
+                "--scenario",
+                str(SCENARIOS / f"{name}.yaml"),
+                "--out",
+                str(out),
+                "--rate-s",
+                "30",
+                "--duration-s",
+                "14400",
+            ]
+        )
+        == 0
+    )
     assert hashlib.sha256(out.read_bytes()).hexdigest() == GOLDEN[name]
 
 
@@ -57,9 +71,17 @@ def test_features_switched_off_explicitly_change_nothing(machine, tmp_path):
     """sensor_lag_s 0, no cross-talk, HVAC amplitude 0, no column, no shifts: the default's bytes."""
     base = load_plant(str(SCENARIOS / f"{machine}_unseen.yaml"))
     sc = Scenario.load(SCENARIOS / f"{machine}_unseen.yaml")
-    sc.ambient = Ambient(**{**{k: getattr(sc.ambient, k) for k in
-                               ("start_c", "drift_c_per_h", "daily_amplitude_c", "daily_phase_h", "points")},
-                            "hvac_amplitude_c": 0.0, "hvac_period_s": 900.0, "hvac_shape": "square"})
+    sc.ambient = Ambient(
+        **{
+            **{
+                k: getattr(sc.ambient, k)
+                for k in ("start_c", "drift_c_per_h", "daily_amplitude_c", "daily_phase_h", "points")
+            },
+            "hvac_amplitude_c": 0.0,
+            "hvac_period_s": 900.0,
+            "hvac_shape": "square",
+        }
+    )
     extra = {"sensor_lag_s": 0.0, "sensor_crosstalk": {}}
     if machine == "gantry":
         extra["column_cap_j_k"] = 0.0
@@ -143,17 +165,20 @@ def test_crosstalk_and_lag_together_lag_the_blend():
     assert p.sensor_temperatures_c()[0] == pytest.approx(20.0, abs=1e-4)  # an element that never follows
 
 
-@pytest.mark.parametrize("params, says", [
-    ({"sensor_crosstalk": {"T9": [0.1, "T1"]}}, "not a sensor"),
-    ({"sensor_crosstalk": {"T1": [1.0, "T2"]}}, "[0, 1)"),
-    ({"sensor_crosstalk": {"T1": [0.1, "casting"]}}, "neither a sensor nor a body"),
-    ({"sensor_crosstalk": {"T1": [0.1, "bed"]}}, "is a rod"),
-    ({"sensor_crosstalk": {"T1": [0.1, "saddle@10"]}}, "lumped body"),
-    ({"sensor_crosstalk": {"T1": 0.1}}, "[fraction, neighbour]"),
-    ({"sensor_lag_s": -1.0}, ">= 0"),
-    ({"sensor_lag_s": {"T8": 3.0}}, "not a sensor"),
-    ({"sensor_lag_s": "slow"}, "seconds"),
-])
+@pytest.mark.parametrize(
+    "params, says",
+    [
+        ({"sensor_crosstalk": {"T9": [0.1, "T1"]}}, "not a sensor"),
+        ({"sensor_crosstalk": {"T1": [1.0, "T2"]}}, "[0, 1)"),
+        ({"sensor_crosstalk": {"T1": [0.1, "casting"]}}, "neither a sensor nor a body"),
+        ({"sensor_crosstalk": {"T1": [0.1, "bed"]}}, "is a rod"),
+        ({"sensor_crosstalk": {"T1": [0.1, "saddle@10"]}}, "lumped body"),
+        ({"sensor_crosstalk": {"T1": 0.1}}, "[fraction, neighbour]"),
+        ({"sensor_lag_s": -1.0}, ">= 0"),
+        ({"sensor_lag_s": {"T8": 3.0}}, "not a sensor"),
+        ({"sensor_lag_s": "slow"}, "seconds"),
+    ],
+)
 def test_sensor_model_params_are_checked(params, says):
     with pytest.raises(ValueError, match=None) as e:
         _warm_lathe(params)
@@ -164,8 +189,13 @@ def test_sensor_model_params_are_checked(params, says):
 def test_feed_axis_base_sensors_keep_their_nominal_names_where_they_are_moved():
     sc = Scenario([Segment(3600.0, feed_mm_min=6000.0)], seed=3)
     quiet = {"noise_c": 0.0, "resolution_c": 0.0, "tolerance": False, "drift_sensor": None}
-    params = {"stroke_mm": [0.0, 1000.0], "base_length_mm": 1200.0, "base_nodes": 60,
-              "base_sensors_mm": [0.0, 250.0, 500.0, 750.0, 1000.0], "base_sensor_shift_mm": [5.0, -30.0, 0.0, 30.0, -10.0]}
+    params = {
+        "stroke_mm": [0.0, 1000.0],
+        "base_length_mm": 1200.0,
+        "base_nodes": 60,
+        "base_sensors_mm": [0.0, 250.0, 500.0, 750.0, 1000.0],
+        "base_sensor_shift_mm": [5.0, -30.0, 0.0, 30.0, -10.0],
+    }
     p = PLANTS.get("feed_axis")(sc, {**quiet, **params})
     assert p.sensor_names[4:9] == ["T_base_000", "T_base_250", "T_base_500", "T_base_750", "T_base_1000"]
     p.advance_to(3600.0)
@@ -188,13 +218,15 @@ def test_gantry_column_grows_unseen():
     # the same network less the column differs, so compare with the column's own term only
     expected = np.array([s.error_here_um() for s in col.sides]) + 11.5e-6 * 0.3 * 1e6 * rise
     np.testing.assert_allclose(col.true_error_um(), expected)
-    np.testing.assert_allclose(col.error_profile_um()[:, 0] - np.array([s.error_um(20.0)[0] for s in col.sides]),
-                               11.5e-6 * 0.3 * 1e6 * rise)
+    np.testing.assert_allclose(
+        col.error_profile_um()[:, 0] - np.array([s.error_um(20.0)[0] for s in col.sides]), 11.5e-6 * 0.3 * 1e6 * rise
+    )
 
 
 # --- the ambient's HVAC cycle -----------------------------------------------------------
-@pytest.mark.parametrize("shape, at_quarter, at_three_quarters", [("sine", 1.0, -1.0), ("square", 1.0, -1.0),
-                                                                    ("triangle", -0.0, 0.0)])
+@pytest.mark.parametrize(
+    "shape, at_quarter, at_three_quarters", [("sine", 1.0, -1.0), ("square", 1.0, -1.0), ("triangle", -0.0, 0.0)]
+)
 def test_hvac_cycle_shapes(shape, at_quarter, at_three_quarters):
     amb = Ambient(start_c=20.0, hvac_amplitude_c=0.4, hvac_period_s=1200.0, hvac_shape=shape)
     assert amb.at(300.0) == pytest.approx(20.0 + 0.4 * at_quarter)
@@ -205,11 +237,17 @@ def test_hvac_cycle_shapes(shape, at_quarter, at_three_quarters):
 
 
 def test_hvac_keys_in_scenario_files_and_round_trip():
-    sc = Scenario.from_dict({"machine": "lathe", "seed": 3,
-                             "ambient": {"start_c": 19.0, "hvac_amplitude_c": 0.2, "hvac_period_s": 1800,
-                                         "hvac_shape": "triangle"},
-                             "segments": [{"duration_s": 60, "speed_rpm": 1000, "load": 1.1},
-                                          {"duration_s": 60, "feed_mm_min": 10, "stroke_mm": [0, 5]}]})
+    sc = Scenario.from_dict(
+        {
+            "machine": "lathe",
+            "seed": 3,
+            "ambient": {"start_c": 19.0, "hvac_amplitude_c": 0.2, "hvac_period_s": 1800, "hvac_shape": "triangle"},
+            "segments": [
+                {"duration_s": 60, "speed_rpm": 1000, "load": 1.1},
+                {"duration_s": 60, "feed_mm_min": 10, "stroke_mm": [0, 5]},
+            ],
+        }
+    )
     again = Scenario.from_dict(sc.to_dict())
     assert again.segments == sc.segments and again.ambient == sc.ambient and again.seed == 3
     with pytest.raises(ValueError, match="hvac_shape"):
@@ -297,8 +335,10 @@ def test_machine_file_reruns_a_day(tmp_path):
     assert doc["kind"] == "spindle" and doc["seed"] == 2 and doc["log_rate_s"] == 30.0
     assert set(doc["errors_um"]) == {"train", "unseen"}
     (tmp_path / "day.yaml").write_text(yaml.safe_dump(doc["unseen"]))
-    assert main(["log", "--scenario", str(tmp_path / "day.yaml"), "--out", str(tmp_path / "again.csv"),
-                 "--rate-s", "30"]) == 0
+    assert (
+        main(["log", "--scenario", str(tmp_path / "day.yaml"), "--out", str(tmp_path / "again.csv"), "--rate-s", "30"])
+        == 0
+    )
     assert (tmp_path / "again.csv").read_bytes() == (tmp_path / "spindle_2_unseen.csv").read_bytes()
 
 
@@ -313,16 +353,19 @@ def test_family_command_writes_the_files(tmp_path, capsys):
     assert len(log) == 145
 
 
-@pytest.mark.parametrize("argv, says", [
-    (["--kind", "mill", "--seeds", "1", "--out", "{o}"], "unknown kind 'mill'"),
-    (["--kind", "lathe", "--seeds", "5-2", "--out", "{o}"], "--seeds"),
-    (["--kind", "lathe", "--seeds", "x", "--out", "{o}"], "--seeds"),
-    (["--kind", "lathe", "--seeds", "-3", "--out", "{o}"], "--seeds"),
-    (["--kind", "lathe", "--seeds", "1", "--out", "{o}", "--rate-s", "0"], "--rate-s"),
-    (["--kind", "lathe", "--seeds", "1", "--out", "{o}", "--rate-s", "fast"], "--rate-s"),
-    (["--kind", "lathe", "--seeds", "1", "--out", "{o}", "--bogus", "1"], "--bogus"),
-    (["--kind", "lathe", "--out", "{o}"], "--seeds"),
-])
+@pytest.mark.parametrize(
+    "argv, says",
+    [
+        (["--kind", "mill", "--seeds", "1", "--out", "{o}"], "unknown kind 'mill'"),
+        (["--kind", "lathe", "--seeds", "5-2", "--out", "{o}"], "--seeds"),
+        (["--kind", "lathe", "--seeds", "x", "--out", "{o}"], "--seeds"),
+        (["--kind", "lathe", "--seeds", "-3", "--out", "{o}"], "--seeds"),
+        (["--kind", "lathe", "--seeds", "1", "--out", "{o}", "--rate-s", "0"], "--rate-s"),
+        (["--kind", "lathe", "--seeds", "1", "--out", "{o}", "--rate-s", "fast"], "--rate-s"),
+        (["--kind", "lathe", "--seeds", "1", "--out", "{o}", "--bogus", "1"], "--bogus"),
+        (["--kind", "lathe", "--out", "{o}"], "--seeds"),
+    ],
+)
 def test_family_command_bad_input_one_line_exit_2(argv, says, tmp_path, capsys):
     out = tmp_path / "o"
     with pytest.raises(SystemExit) as e:
@@ -372,8 +415,22 @@ def test_harness_on_two_short_machines(tmp_path, capsys):
     the logs are reused while the drawn machine is the same."""
     h = _harness()
     out = tmp_path / "r.json"
-    args = ["--kinds", "lathe", "--seeds", "1-2", "--day-h", "4", "--workdir", str(tmp_path / "w"),
-            "--json", str(out), "--jobs", "2", "--probe-every-h", "1"]
+    args = [
+        "--kinds",
+        "lathe",
+        "--seeds",
+        "1-2",
+        "--day-h",
+        "4",
+        "--workdir",
+        str(tmp_path / "w"),
+        "--json",
+        str(out),
+        "--jobs",
+        "2",
+        "--probe-every-h",
+        "1",
+    ]
     assert h.main(args) == 0
     text = capsys.readouterr().out
     assert "| type | axis | model | median | 10th pct | worst | MLR median | MLR better on |" in text
@@ -399,8 +456,10 @@ def test_harness_on_two_short_machines(tmp_path, capsys):
 def test_harness_counts_a_failed_fit():
     h = _harness()
     ok = {"axes": {"z": {"reduction_pct": 80.0}}}
-    results = [{"kind": "lathe", "seed": s, "models": {"ar1": ok if s < 3 else {"failed": "fit: boom"}, "mlr": ok}}
-               for s in (1, 2, 3)]
+    results = [
+        {"kind": "lathe", "seed": s, "models": {"ar1": ok if s < 3 else {"failed": "fit: boom"}, "mlr": ok}}
+        for s in (1, 2, 3)
+    ]
     (row, _mlr) = h.summary_rows(results, ["lathe"])
     assert row["failed"] == 1 and row["worst"] == -math.inf and row["median"] == 80.0
     assert row["mlr_better_on"] == 1
@@ -448,8 +507,10 @@ def test_a_short_plan_day_scales_the_plan_and_keeps_a_round_trip_within_a_step()
 
 def test_family_command_trains_on_the_plan(tmp_path, capsys):
     out = tmp_path / "f"
-    assert main(["family", "--kind", "spindle", "--seeds", "3", "--out", str(out), "--rate-s", "600",
-                 "--train", "plan"]) == 0
+    assert (
+        main(["family", "--kind", "spindle", "--seeds", "3", "--out", str(out), "--rate-s", "600", "--train", "plan"])
+        == 0
+    )
     doc = yaml.safe_load((out / "spindle_3_machine.yaml").read_text())
     assert doc["drawn"]["plan"]["levels"][-1] == 18000.0
     log = read_log(out / "spindle_3_train.csv")

@@ -13,8 +13,16 @@ from hil_sim.rod import Rod
 
 def _round_rod(net: Network, name: str, n: int = 30) -> np.ndarray:
     r = 0.05
-    return net.add_rod(name, 0.6, n, area_m2=math.pi * r * r, perimeter_m=2 * math.pi * r,
-                       conductivity_w_mk=45.0, density_kg_m3=7850.0, heat_capacity_j_kgk=460.0)
+    return net.add_rod(
+        name,
+        0.6,
+        n,
+        area_m2=math.pi * r * r,
+        perimeter_m=2 * math.pi * r,
+        conductivity_w_mk=45.0,
+        density_kg_m3=7850.0,
+        heat_capacity_j_kgk=460.0,
+    )
 
 
 def test_a_rod_in_the_network_matches_rod():
@@ -36,8 +44,16 @@ def test_a_rod_in_the_network_matches_rod():
 def build_two_bodies(dt_s: float = 5.0) -> tuple[Network, np.ndarray, np.ndarray, int]:
     net = Network(dt_s, 20.0)
     a = _round_rod(net, "a")
-    b = net.add_rod("b", 1.0, 20, area_m2=0.02, perimeter_m=0.6, conductivity_w_mk=50.0,
-                    density_kg_m3=7200.0, heat_capacity_j_kgk=500.0)
+    b = net.add_rod(
+        "b",
+        1.0,
+        20,
+        area_m2=0.02,
+        perimeter_m=0.6,
+        conductivity_w_mk=50.0,
+        density_kg_m3=7200.0,
+        heat_capacity_j_kgk=500.0,
+    )
     m = net.add_mass("m", 5000.0, 0.2)
     net.link(int(a[0]), int(b[3]), 4.0)
     net.link(int(a[-1]), m, 2.0)
@@ -101,16 +117,13 @@ def test_cell_integrals():
     v = np.array([1.0, 2.0, 3.0, 4.0])
     assert integrate_cells(v, 0.5) == pytest.approx(5.0)
     assert integrate_cells(v, 0.5, 0.75) == pytest.approx(0.5 + 2.0 * 0.25)
-    np.testing.assert_allclose(
-        cumulative_cells(v, 0.5, np.array([0.0, 0.75, 2.0, 3.0])), [0.0, 1.0, 5.0, 5.0]
-    )
+    np.testing.assert_allclose(cumulative_cells(v, 0.5, np.array([0.0, 0.75, 2.0, 3.0])), [0.0, 1.0, 5.0, 5.0])
 
 
 def test_bad_network_inputs():
     net = Network(1.0, 20.0)
     with pytest.raises(ValueError):
-        net.add_rod("x", 1.0, 1, area_m2=1, perimeter_m=1, conductivity_w_mk=1,
-                    density_kg_m3=1, heat_capacity_j_kgk=1)
+        net.add_rod("x", 1.0, 1, area_m2=1, perimeter_m=1, conductivity_w_mk=1, density_kg_m3=1, heat_capacity_j_kgk=1)
     with pytest.raises(ValueError):
         net.add_mass("m", 0.0)
     with pytest.raises(RuntimeError):

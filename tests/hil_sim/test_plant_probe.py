@@ -37,7 +37,7 @@ def test_probes_at_the_schedule_measure_the_residual_with_sigma_noise():
         finally:
             client.close()
     assert r is not None and r.seq == 1 and r.axis == 0 and r.sigma_um == 0.5 and r.position_mm is None
-    (t, axis, d, residual), = dev.probes
+    ((t, axis, d, residual),) = dev.probes
     assert (t, axis) == (60.0, "z") and r.deviation_um == pytest.approx(d, abs=1e-3)
     dev.run_to(7200.0)
     dev.stop()
@@ -59,8 +59,9 @@ def test_probes_at_the_schedule_measure_the_residual_with_sigma_noise():
 
 def test_outliers_and_positions_through_a_siemens_nc():
     plant = load_plant(str(SCENARIOS / "feed_axis_unseen.yaml"), 1)
-    dev = PlantDevice(plant, lockstep=True, duration_s=3600.0, probe_every_s=300.0, probe_sigma_um=0.0,
-                      probe_outliers=[[900.0, 25.0]])
+    dev = PlantDevice(
+        plant, lockstep=True, duration_s=3600.0, probe_every_s=300.0, probe_sigma_um=0.0, probe_outliers=[[900.0, 25.0]]
+    )
     nc = SiemensNc(axes=1)
     dev.attach_cnc(nc, "siemens_nc", None, on_plant_clock=True)
     dev.start()

@@ -15,8 +15,9 @@ B = 2 * H / (RHO * C * R)  # b = 2h/(ρcR), 1/s
 
 
 def rod(n: int = 80, dt_s: float = 1.0) -> Rod:
-    return Rod(L, n, R, conductivity_w_mk=LAM, density_kg_m3=RHO, heat_capacity_j_kgk=C,
-               h_w_m2k=H, dt_s=dt_s, t_init_c=20.0)
+    return Rod(
+        L, n, R, conductivity_w_mk=LAM, density_kg_m3=RHO, heat_capacity_j_kgk=C, h_w_m2k=H, dt_s=dt_s, t_init_c=20.0
+    )
 
 
 def test_b_matches_paper_formula():

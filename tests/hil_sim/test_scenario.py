@@ -12,17 +12,22 @@ SCENARIOS = Path(__file__).resolve().parents[2] / "hil_sim" / "scenarios"
 
 
 def test_repeat_groups_expand_and_segment_lookup():
-    sc = Scenario.from_dict({
-        "machine": "feed_axis",
-        "params": {"dt_s": 2.0},
-        "segments": [
-            {"duration_s": 100, "pos_mm": 0},
-            {"repeat": 3, "segments": [
-                {"duration_s": 10, "feed_mm_min": 6000, "stroke_mm": [0, 300]},
-                {"duration_s": 5, "axis_load": {"x2": 1.3}},
-            ]},
-        ],
-    })
+    sc = Scenario.from_dict(
+        {
+            "machine": "feed_axis",
+            "params": {"dt_s": 2.0},
+            "segments": [
+                {"duration_s": 100, "pos_mm": 0},
+                {
+                    "repeat": 3,
+                    "segments": [
+                        {"duration_s": 10, "feed_mm_min": 6000, "stroke_mm": [0, 300]},
+                        {"duration_s": 5, "axis_load": {"x2": 1.3}},
+                    ],
+                },
+            ],
+        }
+    )
     assert len(sc.segments) == 7
     assert sc.duration_s == 145.0
     assert sc.machine == "feed_axis" and sc.params == {"dt_s": 2.0}
@@ -36,8 +41,9 @@ def test_repeat_groups_expand_and_segment_lookup():
 
 
 def test_ambient_drift_sine_and_points():
-    amb = Ambient(start_c=20.0, drift_c_per_h=0.1, daily_amplitude_c=1.0, daily_phase_h=0.0,
-                  points=[[0, 0.0], [2, 1.0]])
+    amb = Ambient(
+        start_c=20.0, drift_c_per_h=0.1, daily_amplitude_c=1.0, daily_phase_h=0.0, points=[[0, 0.0], [2, 1.0]]
+    )
     assert amb.at(0.0) == pytest.approx(20.0)
     assert amb.at(3600.0) == pytest.approx(20.0 + 0.1 + 0.2588190451 + 0.5, abs=1e-6)
     assert amb.at(6 * 3600.0) == pytest.approx(20.0 + 0.6 + 1.0 + 1.0)

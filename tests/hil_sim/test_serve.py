@@ -20,19 +20,35 @@ def test_serve_prints_where_and_stops_on_sigint(tmp_path):
     cfg = {
         "devices": [
             {"kind": "pt100_modbus", "name": "tx", "port": 0, "channels": [{"name": "T1", "value_c": 24.6}]},
-            {"kind": "pt100_modbus", "name": "rtu", "transport": "rtu", "serial_port": str(tmp_path / "dev"),
-             "pty_link": str(tmp_path / "compd"), "channels": [{"name": "T2", "value_c": 21.5}]},
+            {
+                "kind": "pt100_modbus",
+                "name": "rtu",
+                "transport": "rtu",
+                "serial_port": str(tmp_path / "dev"),
+                "pty_link": str(tmp_path / "compd"),
+                "channels": [{"name": "T2", "value_c": 21.5}],
+            },
             {"kind": "fanuc_pmc", "name": "pmc", "port": 0},
             {"kind": "siemens_nc", "name": "nc", "port": 0},
-            {"kind": "dcon", "name": "adam", "serial_port": str(tmp_path / "ddev"), "pty_link": str(tmp_path / "dcon"),
-             "channels": [{"name": "T3"}]},
+            {
+                "kind": "dcon",
+                "name": "adam",
+                "serial_port": str(tmp_path / "ddev"),
+                "pty_link": str(tmp_path / "dcon"),
+                "channels": [{"name": "T3"}],
+            },
         ]
     }
     path = tmp_path / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, "-m", "hil_sim", "serve", "--config", str(path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hil_sim", "serve", "--config", str(path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     try:
         lines = []
         while True:
@@ -49,9 +65,19 @@ def test_serve_prints_where_and_stops_on_sigint(tmp_path):
             assert not rr.isError() and rr.registers[0] + rr.registers[1] > 0  # the PMC scans
         finally:
             c.close()
-        src = ModbusSource(ModbusConfig.model_validate(
-            {"kind": "modbus", "name": "m", "transport": "rtu", "serial_port": str(tmp_path / "compd"),
-             "baudrate": 115200, "timeout_s": 0.2, "channels": [{"name": "T2", "address": 0}]}))
+        src = ModbusSource(
+            ModbusConfig.model_validate(
+                {
+                    "kind": "modbus",
+                    "name": "m",
+                    "transport": "rtu",
+                    "serial_port": str(tmp_path / "compd"),
+                    "baudrate": 115200,
+                    "timeout_s": 0.2,
+                    "channels": [{"name": "T2", "address": 0}],
+                }
+            )
+        )
         with Harness(src) as h:
             assert h.sample()["T2"][1] == "GOOD"
         proc.send_signal(signal.SIGINT)

@@ -10,8 +10,10 @@ from hil_sim.devices.pt100_modbus import from_config as modbus_from_config
 
 
 def _can(**kw: object) -> dict[str, object]:
-    chans = [{"name": "T1", "can_id": 0x181, "value_c": 25.3, "fault": "burnout"},
-             {"name": "T2", "can_id": 0x181, "offset": 2, "value_c": 24.9}]
+    chans = [
+        {"name": "T1", "can_id": 0x181, "value_c": 25.3, "fault": "burnout"},
+        {"name": "T2", "can_id": 0x181, "offset": 2, "value_c": 24.9},
+    ]
     return {"interface": "virtual", "channel": "t-can-section", "channels": chans, **kw}
 
 

@@ -43,8 +43,16 @@ def trace(plant, hours: float, step_s: float = 60.0) -> tuple[np.ndarray, np.nda
     for x in t:
         plant.advance_to(x)
         temps = plant.true_temperatures_c()
-        rows.append([plant.spindle_um(), plant.column_um(), plant.net.rise("housing").mean(),
-                     plant.net.rise("column").mean(), temps[5], temps[6]])
+        rows.append(
+            [
+                plant.spindle_um(),
+                plant.column_um(),
+                plant.net.rise("housing").mean(),
+                plant.net.rise("column").mean(),
+                temps[5],
+                temps[6],
+            ]
+        )
     return t / 3600.0, np.array(rows)
 
 
@@ -55,8 +63,22 @@ def t63_h(t_h: np.ndarray, y: np.ndarray) -> float:
 
 def test_log_command_writes_the_columns_compd_reads_as_meant(tmp_path, capsys):
     out = tmp_path / "train.csv"
-    assert main(["log", "--scenario", str(SCENARIOS / "vmc_train.yaml"), "--out", str(out),
-                 "--duration-s", "14400", "--rate-s", "60"]) == 0
+    assert (
+        main(
+            [
+                "log",
+                "--scenario",
+                str(SCENARIOS / "vmc_train.yaml"),
+                "--out",
+                str(out),
+                "--duration-s",
+                "14400",
+                "--rate-s",
+                "60",
+            ]
+        )
+        == 0
+    )
     assert "241 rows (vmc, 4.00 h simulated" in capsys.readouterr().out
     log = read_log(out)
     assert log.columns == COLUMNS
@@ -176,15 +198,16 @@ def test_shipped_days_show_both_time_constants():
         ends = sc.boundaries()
         night = len(sc.segments) - 1
         assert any(
-            s.speed_rpm == 0 and s.duration_s >= 7200 and abs(sc.ambient.at(ends[k + 1]) - sc.ambient.at(ends[k])) >= 1.0
+            s.speed_rpm == 0
+            and s.duration_s >= 7200
+            and abs(sc.ambient.at(ends[k + 1]) - sc.ambient.at(ends[k])) >= 1.0
             for k, s in enumerate(sc.segments[:night])
         ), day
     assert speeds["unseen"] - speeds["train"]  # speeds the training never ran
 
 
 def _unplug_file(tmp_path: Path, unplug: dict | None) -> Path:
-    doc = {"machine": "vmc", "seed": 3, "params": {"dt_s": 10.0},
-           "segments": [{"duration_s": 7200, "speed_rpm": 8000}]}
+    doc = {"machine": "vmc", "seed": 3, "params": {"dt_s": 10.0}, "segments": [{"duration_s": 7200, "speed_rpm": 8000}]}
     if unplug is not None:
         doc["params"]["sensor_unplug_s"] = unplug
     f = tmp_path / f"unplug_{unplug is not None}.yaml"
@@ -196,8 +219,9 @@ def test_a_scenario_entry_unplugs_a_sensor_mid_day(tmp_path):
     logs = {}
     for unplug in (None, {"T_col_top": 3600, "T_xi": [1800, 2700]}):
         out = tmp_path / f"{unplug is not None}.csv"
-        assert main(["log", "--scenario", str(_unplug_file(tmp_path, unplug)), "--out", str(out),
-                     "--rate-s", "60"]) == 0
+        assert (
+            main(["log", "--scenario", str(_unplug_file(tmp_path, unplug)), "--out", str(out), "--rate-s", "60"]) == 0
+        )
         logs[unplug is not None] = out
     with pytest.raises(BadInput, match="not a finite number"):
         read_log(logs[True])  # a reader that takes no missing values refuses it
@@ -215,8 +239,13 @@ def test_a_scenario_entry_unplugs_a_sensor_mid_day(tmp_path):
 
 def test_the_sim_source_publishes_an_unplugged_sensor_as_a_fault():
     cls = SOURCES.get("sim")  # compd finds it through hil_sim's entry point
-    cfg = cls.Config(kind="sim", name="vmc", plant="vmc", params={"sensor_unplug_s": {"T_col_top": 600}},
-                     scenario={"segments": [{"duration_s": 3600, "speed_rpm": 10000}], "seed": 4})
+    cfg = cls.Config(
+        kind="sim",
+        name="vmc",
+        plant="vmc",
+        params={"sensor_unplug_s": {"T_col_top": 600}},
+        scenario={"segments": [{"duration_s": 3600, "speed_rpm": 10000}], "seed": 4},
+    )
     src = cls(cfg)
     assert src.signal_names() == COLUMNS[1:]
     frame = Frame(src.signal_names())
@@ -234,8 +263,13 @@ def test_the_sim_source_publishes_an_unplugged_sensor_as_a_fault():
 
 
 def test_the_served_plant_publishes_the_parts_and_the_unplugged_sensor():
-    sc = Scenario.from_dict({"segments": [{"duration_s": 7200, "speed_rpm": 9000}], "seed": 2,
-                             "params": {"dt_s": 5.0, "sensor_unplug_s": {"T_xi": 1800}}})
+    sc = Scenario.from_dict(
+        {
+            "segments": [{"duration_s": 7200, "speed_rpm": 9000}],
+            "seed": 2,
+            "params": {"dt_s": 5.0, "sensor_unplug_s": {"T_xi": 1800}},
+        }
+    )
     dev = PlantDevice(PLANTS.get("vmc")(sc, sc.params), lockstep=True)
     feed = dev.feed_for(["T_xi", "T_col_bot", "err_z_um_spindle", "err_z_um_column", "err_z_um"])
     dev.run_to(1200.0)
@@ -246,16 +280,19 @@ def test_the_served_plant_publishes_the_parts_and_the_unplugged_sensor():
     assert after[4] == pytest.approx(after[2] + after[3], abs=1e-6) and after[2] > before[2] > 0.0
 
 
-@pytest.mark.parametrize(("params", "says"), [
-    ({"sensor_unplug_s": {"T_col_mid": 100}}, "sensor_unplug_s.T_col_mid: not a sensor"),
-    ({"sensor_unplug_s": {"T_xi": [500, 200]}}, "sensor_unplug_s.T_xi: a time"),
-    ({"sensor_unplug_s": {"T_xi": -1}}, "sensor_unplug_s.T_xi: a time"),
-    ({"sensor_unplug_s": {"T_xi": True}}, "sensor_unplug_s.T_xi: a time"),
-    ({"sensor_unplug_s": [1, 2]}, "sensor_unplug_s: a mapping"),
-    ({"column_top_sensor_mm": 700.0}, "column_top_sensor_mm: on the column"),
-    ({"column_nodes": 1}, "column_nodes: an integer >= 2"),
-    ({"column_h_w_m2k": 0.0}, "column_h_w_m2k: must be > 0"),
-])
+@pytest.mark.parametrize(
+    ("params", "says"),
+    [
+        ({"sensor_unplug_s": {"T_col_mid": 100}}, "sensor_unplug_s.T_col_mid: not a sensor"),
+        ({"sensor_unplug_s": {"T_xi": [500, 200]}}, "sensor_unplug_s.T_xi: a time"),
+        ({"sensor_unplug_s": {"T_xi": -1}}, "sensor_unplug_s.T_xi: a time"),
+        ({"sensor_unplug_s": {"T_xi": True}}, "sensor_unplug_s.T_xi: a time"),
+        ({"sensor_unplug_s": [1, 2]}, "sensor_unplug_s: a mapping"),
+        ({"column_top_sensor_mm": 700.0}, "column_top_sensor_mm: on the column"),
+        ({"column_nodes": 1}, "column_nodes: an integer >= 2"),
+        ({"column_h_w_m2k": 0.0}, "column_h_w_m2k: must be > 0"),
+    ],
+)
 def test_bad_params_are_named(params, says):
     with pytest.raises(ValueError, match=says):
         vmc([{"duration_s": 60}], **params)
@@ -272,8 +309,12 @@ def test_bad_params_in_a_scenario_file_exit_2(tmp_path, capsys):
 def test_the_column_sensors_take_the_common_sensor_model():
     """Lag and cross-talk (hil_sim.plants.base) on a column sensor, a column point as the neighbour."""
     amb = {"start_c": 20.0, "points": [[0, 0.0], [0.01, 2.0]]}
-    p = vmc([{"duration_s": 7200}], amb, sensor_lag_s={"T_col_bot": 1800.0},
-            sensor_crosstalk={"T_col_top": [0.5, "column@0"]})
+    p = vmc(
+        [{"duration_s": 7200}],
+        amb,
+        sensor_lag_s={"T_col_bot": 1800.0},
+        sensor_crosstalk={"T_col_top": [0.5, "column@0"]},
+    )
     p.advance_to(7200)
     true = p.true_temperatures_c()
     seen = p.sensor_temperatures_c()
@@ -304,5 +345,4 @@ def test_the_family_draws_vmc_machines(tmp_path):
     assert summary["train"]["z"]["rms_um"] > 1.0
     log = read_log(tmp_path / "vmc_2_train.csv")
     assert log.columns == COLUMNS
-    np.testing.assert_allclose(log.col("err_z_um"), log.col("err_z_um_spindle") + log.col("err_z_um_column"),
-                               atol=1e-3)
+    np.testing.assert_allclose(log.col("err_z_um"), log.col("err_z_um_spindle") + log.col("err_z_um_column"), atol=1e-3)

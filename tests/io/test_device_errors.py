@@ -51,8 +51,14 @@ def test_a_serial_port_gone_after_start_up_logs_the_os_reason_once(tmp_path, cap
     port = tmp_path / "ttyUSB9"
     port.write_text("")  # there at start-up (the check passes) ...
     cfg = DconConfig.model_validate(
-        {"kind": "dcon", "name": "adam", "serial_port": str(port), "address": 1, "channels": NAMES,
-         "poll_period_s": 0.01}
+        {
+            "kind": "dcon",
+            "name": "adam",
+            "serial_port": str(port),
+            "address": 1,
+            "channels": NAMES,
+            "poll_period_s": 0.01,
+        }
     )
     src = DconSource(cfg)
     src.reconnect_min_s, src.reconnect_max_s = 0.01, 0.02
@@ -76,9 +82,16 @@ def test_a_serial_port_gone_after_start_up_logs_the_os_reason_once(tmp_path, cap
 def test_a_modbus_rtu_source_on_a_missing_port_logs_the_os_reason_once(tmp_path, caplog) -> None:
     port = tmp_path / "ttyUSB9"
     cfg = ModbusConfig.model_validate(
-        {"kind": "modbus", "name": "rtu", "transport": "rtu", "serial_port": str(port), "poll_period_s": 0.01,
-         "reconnect_min_s": 0.01, "reconnect_max_s": 0.02,
-         "channels": [{"name": n, "address": i} for i, n in enumerate(NAMES)]}
+        {
+            "kind": "modbus",
+            "name": "rtu",
+            "transport": "rtu",
+            "serial_port": str(port),
+            "poll_period_s": 0.01,
+            "reconnect_min_s": 0.01,
+            "reconnect_max_s": 0.02,
+            "channels": [{"name": n, "address": i} for i, n in enumerate(NAMES)],
+        }
     )
     src = ModbusSource(cfg)
     caplog.set_level(logging.DEBUG, logger="compd.io")
@@ -96,9 +109,16 @@ def test_a_modbus_rtu_source_on_a_missing_port_logs_the_os_reason_once(tmp_path,
 def test_modbus_tcp_to_a_closed_port_logs_connection_refused_once_then_its_recovery(caplog) -> None:
     port = _free_port()
     cfg = ModbusConfig.model_validate(
-        {"kind": "modbus", "name": "pt100", "port": port, "timeout_s": 0.5, "poll_period_s": 0.01,
-         "reconnect_min_s": 0.01, "reconnect_max_s": 0.02,
-         "channels": [{"name": n, "address": i, "status_address": 10 + i} for i, n in enumerate(NAMES)]}
+        {
+            "kind": "modbus",
+            "name": "pt100",
+            "port": port,
+            "timeout_s": 0.5,
+            "poll_period_s": 0.01,
+            "reconnect_min_s": 0.01,
+            "reconnect_max_s": 0.02,
+            "channels": [{"name": n, "address": i, "status_address": 10 + i} for i, n in enumerate(NAMES)],
+        }
     )
     src = ModbusSource(cfg)
     src.worker.recovered_after_s = 0.0
@@ -112,8 +132,9 @@ def test_modbus_tcp_to_a_closed_port_logs_connection_refused_once_then_its_recov
         assert errors[0].getMessage() == f"poll-pt100: connect to 127.0.0.1:{port}: [Errno 111] Connection refused"
         assert not _records(caplog, "device_recovered")
 
-        srv = ModbusServerThread(Pt100ModbusDevice(Pt100Transmitter(NAMES, [25.0, 26.0]), status_address=10),
-                                 port=port).start()
+        srv = ModbusServerThread(
+            Pt100ModbusDevice(Pt100Transmitter(NAMES, [25.0, 26.0]), status_address=10), port=port
+        ).start()
         _wait(lambda: _records(caplog, "device_recovered"), "no recovery logged")
         rounds = src.worker.rounds
         _wait(lambda: src.worker.rounds >= rounds + 3, "no polls after the recovery")
@@ -144,8 +165,9 @@ class Flapping(DeviceWork):
 
 def test_each_change_of_the_error_is_logged_and_a_flapping_one_only_once(caplog) -> None:
     work = Flapping(["timeout", None, "timeout", None, "timeout", "garbled", "garbled", None])
-    w = IoWorker(work, name="dev", period_s=0.001, reconnect_min_s=0.001, reconnect_max_s=0.001,
-                 recovered_after_s=3600.0)  # no round is healthy for long enough here
+    w = IoWorker(
+        work, name="dev", period_s=0.001, reconnect_min_s=0.001, reconnect_max_s=0.001, recovered_after_s=3600.0
+    )  # no round is healthy for long enough here
     caplog.set_level(logging.DEBUG, logger="compd.io")
     w.start()
     try:
@@ -162,8 +184,7 @@ def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
     from compd.daemon.host import log_guard_event
 
     class Guard:
-        events = [(1.0, "T_xi", "bad", "comms_lost"), (2.0, "T_amb", "bad", "out_of_range"),
-                  (3.0, "T_xi", "good", "")]
+        events = [(1.0, "T_xi", "bad", "comms_lost"), (2.0, "T_amb", "bad", "out_of_range"), (3.0, "T_xi", "good", "")]
 
     class Src:
         name = "adam"
@@ -180,8 +201,10 @@ def test_a_sensor_gone_bad_names_its_sources_error_as_the_cause(caplog) -> None:
         log_guard_event(*ev)
     assert len(events) == 3
     lines = [r.getMessage() for r in caplog.records]
-    assert lines[0] == ("T_xi bad: comms_lost (source adam: open: could not open port /dev/ttyUSB9:"
-                        " [Errno 2] No such file or directory)")
+    assert lines[0] == (
+        "T_xi bad: comms_lost (source adam: open: could not open port /dev/ttyUSB9:"
+        " [Errno 2] No such file or directory)"
+    )
     assert caplog.records[0].cause.startswith("source adam: open: could not open port")
     assert lines[1] == "T_amb bad: out_of_range"  # not a device's fault: no cause
     assert lines[2] == "T_xi good: "
@@ -191,8 +214,7 @@ def test_a_sink_link_to_a_closed_port_logs_connection_refused_once(caplog) -> No
     from compd.io.modbus_link import ModbusLink
 
     port = _free_port()
-    link = ModbusLink("127.0.0.1", port, name="pmc", status_period_s=0.01, reconnect_min_s=0.01,
-                      reconnect_max_s=0.02)
+    link = ModbusLink("127.0.0.1", port, name="pmc", status_period_s=0.01, reconnect_min_s=0.01, reconnect_max_s=0.02)
     caplog.set_level(logging.DEBUG, logger="compd.io")
     link.start()
     try:
@@ -201,5 +223,7 @@ def test_a_sink_link_to_a_closed_port_logs_connection_refused_once(caplog) -> No
     finally:
         link.stop()
     errors = _records(caplog, "device_error")
-    assert [r.getMessage() for r in errors] == [f"modbus-link-pmc: connect to 127.0.0.1:{port}: [Errno 111] Connection refused"]
+    assert [r.getMessage() for r in errors] == [
+        f"modbus-link-pmc: connect to 127.0.0.1:{port}: [Errno 111] Connection refused"
+    ]
     assert link.last_error == f"connect to 127.0.0.1:{port}: [Errno 111] Connection refused"

@@ -31,7 +31,9 @@ def test_on_x86_64_the_default_is_processes(tmp_path: Path, monkeypatch: pytest.
     assert load_config(_cfg(tmp_path, None)).top.loop.io == "process"
 
 
-def test_elsewhere_the_default_is_threads_and_processes_are_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_elsewhere_the_default_is_threads_and_processes_are_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(platform, "machine", lambda: "aarch64")
     assert load_config(_cfg(tmp_path, None)).top.loop.io == "thread"
     assert load_config(_cfg(tmp_path, "thread")).top.loop.io == "thread"
@@ -44,8 +46,10 @@ def test_elsewhere_the_default_is_threads_and_processes_are_refused(tmp_path: Pa
 def test_check_config_says_it_in_one_line_with_exit_2(tmp_path: Path) -> None:
     """The refusal through the command line (the CPU faked in a child interpreter)."""
     path = _cfg(tmp_path, "process")
-    code = ("import platform, sys; platform.machine = lambda: 'riscv64'; "
-            "from compd.cli import main; sys.exit(main(['check-config', sys.argv[1]]))")
+    code = (
+        "import platform, sys; platform.machine = lambda: 'riscv64'; "
+        "from compd.cli import main; sys.exit(main(['check-config', sys.argv[1]]))"
+    )
     r = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()

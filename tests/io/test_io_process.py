@@ -62,8 +62,13 @@ class Counter(DeviceWork):
 def _worker(fail_open: bool = False) -> tuple[IoWorker, Snapshot, WriteQueue, Snapshot]:
     snap, echo = Snapshot(2), Snapshot(2)
     writes = WriteQueue()
-    w = IoWorker(Counter(snap, writes, echo, fail_open), name="counter", period_s=0.01,
-                 reconnect_min_s=0.01, reconnect_max_s=0.02)
+    w = IoWorker(
+        Counter(snap, writes, echo, fail_open),
+        name="counter",
+        period_s=0.01,
+        reconnect_min_s=0.01,
+        reconnect_max_s=0.02,
+    )
     writes.wake = w.wake
     return w, snap, writes, echo
 
@@ -204,11 +209,24 @@ def test_a_daemon_on_the_wall_clock_polls_its_devices_from_processes_of_their_ow
     with ModbusServerThread(Pt100ModbusDevice(Pt100Transmitter(["T_xi"], [24.0])), port=0) as server:
         cfg = {
             "loop": {"period_s": 0.002, **({} if io == "process" else {"io": "thread"})},
-            "sources": [{"kind": "modbus", "name": "pt", "transport": "tcp", "host": "127.0.0.1",
-                         "port": server.port, "poll_period_s": 0.02, "timeout_s": 0.5,
-                         "channels": [{"name": "T_xi", "address": 0}]}],
-            "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                      "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0}},
+            "sources": [
+                {
+                    "kind": "modbus",
+                    "name": "pt",
+                    "transport": "tcp",
+                    "host": "127.0.0.1",
+                    "port": server.port,
+                    "poll_period_s": 0.02,
+                    "timeout_s": 0.5,
+                    "channels": [{"name": "T_xi", "address": 0}],
+                }
+            ],
+            "model": {
+                "kind": "xi_spindle",
+                "inputs": ["T_xi"],
+                "outputs": ["z"],
+                "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 20.0},
+            },
             "guard": {"max_slew_um_per_s": 1000.0},
             "sink": {"kind": "pci1756"},
             "status": {"period_s": 0.1},

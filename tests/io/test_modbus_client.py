@@ -158,13 +158,18 @@ def _answered(c: ModbusClient) -> list[int] | object:
     return r
 
 
-@pytest.mark.parametrize(("mode", "opts", "reason"), [
-    ("extra", {"extra": 10}, "reply has 14 registers, asked 4"),
-    ("wrong_function", {}, "reply function 0x04, asked 0x03"),
-    ("fewer", {}, "reply has 3 registers, asked 4"),
-], ids=["extra", "wrong_function", "fewer"])
-def test_rtu_reply_of_the_wrong_shape_is_a_bad_reply_and_the_line_recovers(tmp_path, mode: str, opts: dict,
-                                                                           reason: str) -> None:  # noqa: ANN001
+@pytest.mark.parametrize(
+    ("mode", "opts", "reason"),
+    [
+        ("extra", {"extra": 10}, "reply has 14 registers, asked 4"),
+        ("wrong_function", {}, "reply function 0x04, asked 0x03"),
+        ("fewer", {}, "reply has 3 registers, asked 4"),
+    ],
+    ids=["extra", "wrong_function", "fewer"],
+)
+def test_rtu_reply_of_the_wrong_shape_is_a_bad_reply_and_the_line_recovers(
+    tmp_path, mode: str, opts: dict, reason: str
+) -> None:  # noqa: ANN001
     """The same over Modbus RTU: a raw peer on a socat pty answers with the wrong shape; the
     client flushes the line and the next request is answered in step."""
     from hil_sim.devices.ptypair import PtyPair

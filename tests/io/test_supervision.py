@@ -42,15 +42,22 @@ def _wait(pred: Any, what: str, timeout_s: float = WAIT_S) -> Any:
 @contextlib.contextmanager
 def _bench(tmp_path: Path) -> Iterator[dict[str, int]]:
     """`python -m hil_sim serve`: a PT100 module (T_xi 40 °C) and a FANUC PMC; their ports."""
-    cfg = {"devices": [
-        {"kind": "pt100_modbus", "name": "tx", "port": 0, "channels": [{"name": "T_xi", "value_c": 40.0}]},
-        {"kind": "fanuc_pmc", "name": "pmc", "port": 0},
-    ]}
+    cfg = {
+        "devices": [
+            {"kind": "pt100_modbus", "name": "tx", "port": 0, "channels": [{"name": "T_xi", "value_c": 40.0}]},
+            {"kind": "fanuc_pmc", "name": "pmc", "port": 0},
+        ]
+    }
     path = tmp_path / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, "-m", "hil_sim", "serve", "--config", str(path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hil_sim", "serve", "--config", str(path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env=env,
+    )
     try:
         lines = []
         while True:
@@ -72,11 +79,25 @@ def _bench(tmp_path: Path) -> Iterator[dict[str, int]]:
 def _config(ports: dict[str, int], observe: bool = False) -> dict:
     return {
         "loop": {"period_s": 0.005},
-        "sources": [{"kind": "modbus", "name": "pt", "transport": "tcp", "host": "127.0.0.1", "port": ports["tx"],
-                     "poll_period_s": 0.02, "timeout_s": 0.5, "stale_after_s": 1.0,
-                     "channels": [{"name": "T_xi", "address": 0}]}],
-        "model": {"kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"],
-                  "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 30.0}},
+        "sources": [
+            {
+                "kind": "modbus",
+                "name": "pt",
+                "transport": "tcp",
+                "host": "127.0.0.1",
+                "port": ports["tx"],
+                "poll_period_s": 0.02,
+                "timeout_s": 0.5,
+                "stale_after_s": 1.0,
+                "channels": [{"name": "T_xi", "address": 0}],
+            }
+        ],
+        "model": {
+            "kind": "xi_spindle",
+            "inputs": ["T_xi"],
+            "outputs": ["z"],
+            "params": {"alpha_per_k": 13.6e-6, "length_mm": 165.0, "t0_c": 30.0},
+        },
         "guard": {"max_slew_um_per_s": 20.0, "stale_after_s": 1.0, "signals": {"T_xi": {"min": 0.0, "max": 80.0}}},
         "sink": {"kind": "fanuc_pmc", "host": "127.0.0.1", "port": ports["pmc"]},
         "status": {"path": "status.json", "period_s": 0.1},
@@ -116,6 +137,7 @@ def _events(err: Path, event: str) -> list[dict[str, str]]:
 
 def _settled(status: Path, pmc_port: int) -> Any:
     """The status says link up and a steady correction, and the PMC applies it (to its 1 µm)."""
+
     def check() -> dict | None:
         st = _status(status)
         if not st or st["state"] != "running" or st["sink"]["link"] != "up":
@@ -125,11 +147,14 @@ def _settled(status: Path, pmc_port: int) -> Any:
             return None
         applied = _applied_um(pmc_port)
         return st if applied is not None and abs(applied - a["correction_um"]) <= 1.0 else None
+
     return check
 
 
 @contextlib.contextmanager
-def _compd(tmp_path: Path, ports: dict[str, int], observe: bool = False) -> Iterator[tuple[subprocess.Popen, Path, Path]]:
+def _compd(
+    tmp_path: Path, ports: dict[str, int], observe: bool = False
+) -> Iterator[tuple[subprocess.Popen, Path, Path]]:
     """`compd run` against the bench: (the process, its stderr file, its status file); SIGTERM at
     the end, which it must answer with exit 0, leaving 0 applied at the PMC (read over Modbus)."""
     cfg = tmp_path / "c.yaml"
@@ -137,8 +162,13 @@ def _compd(tmp_path: Path, ports: dict[str, int], observe: bool = False) -> Iter
     err = tmp_path / "stderr.txt"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     with open(err, "w") as fh:
-        proc = subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg), "--log-level", "info"],
-                                cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=fh, env=env)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "compd", "run", str(cfg), "--log-level", "info"],
+            cwd=tmp_path,
+            stdout=subprocess.DEVNULL,
+            stderr=fh,
+            env=env,
+        )
     try:
         yield proc, err, tmp_path / "status.json"
     finally:
@@ -153,8 +183,11 @@ def test_a_lost_child_is_reported_restarted_and_the_pmc_follows_again(tmp_path: 
     with _bench(tmp_path) as ports, _compd(tmp_path, ports) as (proc, err, status):
         st = _wait(_settled(status, ports["pmc"]), "the PMC applying the status's correction")
         assert abs(st["axes"]["z"]["correction_um"]) > 10.0  # a real correction, not 0
-        pid = (st["sink"]["link_stats"]["pid"] if child == "link"
-               else next(s["io_pid"] for s in st["sources"] if s["name"] == "pt"))
+        pid = (
+            st["sink"]["link_stats"]["pid"]
+            if child == "link"
+            else next(s["io_pid"] for s in st["sources"] if s["name"] == "pt")
+        )
         assert pid not in (None, proc.pid)
         os.kill(pid, signal.SIGKILL if how == "kill" else signal.SIGSTOP)
         lost = _wait(lambda: _events(err, "io_process_lost"), "the loss reported")[0]
@@ -167,8 +200,13 @@ def test_a_lost_child_is_reported_restarted_and_the_pmc_follows_again(tmp_path: 
             os.kill(pid, 0)
         # the status says it too: the process, its new pid, one restart and why
         name = restarted["worker"]
-        proc_st = _wait(lambda: next((p for p in (_status(status) or {}).get("processes") or []
-                                      if p["name"] == name and p["restarts"] == 1), None), "the restart in the status")
+        proc_st = _wait(
+            lambda: next(
+                (p for p in (_status(status) or {}).get("processes") or [] if p["name"] == name and p["restarts"] == 1),
+                None,
+            ),
+            "the restart in the status",
+        )
         assert proc_st["up"] and proc_st["pid"] == int(restarted["pid"]) and proc_st["lost"] == lost["reason"]
 
 
@@ -182,8 +220,16 @@ def test_sigterm_with_a_stopped_link_delivers_the_safe_state_through_a_fresh_one
 
 def test_observe_mode_says_disabled_where_the_pmc_holds_nothing(tmp_path: Path) -> None:
     with _bench(tmp_path) as ports, _compd(tmp_path, ports, observe=True) as (_, _, status):
-        st = _wait(lambda: (s := _status(status)) and s["state"] == "running" and s["sink"]["link"] == "up"
-                   and abs(s["axes"]["z"]["correction_um"]) > 10.0 and s, "a computed correction")
+        st = _wait(
+            lambda: (
+                (s := _status(status))
+                and s["state"] == "running"
+                and s["sink"]["link"] == "up"
+                and abs(s["axes"]["z"]["correction_um"]) > 10.0
+                and s
+            ),
+            "a computed correction",
+        )
         a = st["axes"]["z"]
         assert a["enable"] is False and a["guard_enable"] is True and st["word_at_machine"] == "0x0000"
         assert _applied_um(ports["pmc"]) == 0

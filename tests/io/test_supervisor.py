@@ -111,7 +111,9 @@ def test_a_lost_workers_status_names_the_loss() -> None:
         st = w.get_status()
         assert st["state"] == "down" and "killed by SIGKILL" in st["last_error"] and st["pid"] == pid
         assert sup.lost() == {"echo": "killed by SIGKILL"}
-        assert sup.processes() == [{"name": "echo", "pid": pid, "up": False, "restarts": 0, "lost": "killed by SIGKILL"}]
+        assert sup.processes() == [
+            {"name": "echo", "pid": pid, "up": False, "restarts": 0, "lost": "killed by SIGKILL"}
+        ]
     finally:
         w.stop()
     sup.check()
@@ -121,8 +123,7 @@ def test_a_lost_workers_status_names_the_loss() -> None:
 def test_too_many_losses_in_the_window_escalate(caplog) -> None:  # noqa: ANN001
     caplog.set_level(logging.INFO, logger="compd.io")
     w, snap, writes, echo = _worker()
-    sup = Supervisor(workers=lambda: [w], restart_min_s=0.01, restart_max_s=0.02, max_restarts=2,
-                     check_every_s=0.0)
+    sup = Supervisor(workers=lambda: [w], restart_min_s=0.01, restart_max_s=0.02, max_restarts=2, check_every_s=0.0)
     w.start(process=True, clock=time.monotonic)
     try:
         for n in range(1, 4):
@@ -167,9 +168,13 @@ def test_a_lost_process_shows_in_the_metrics_and_in_compd_status() -> None:
     from compd.service.metrics import EXAMPLE_SNAPSHOT, SnapshotCollector
     from compd.service.status import render
 
-    snap = {**EXAMPLE_SNAPSHOT, "processes": [
-        {"name": "poll-pt", "pid": 41, "up": False, "restarts": 2, "lost": "killed by SIGKILL"},
-        {"name": "service", "pid": 42, "up": True, "restarts": 1, "lost": "stopped beating for 10.2 s"}]}
+    snap = {
+        **EXAMPLE_SNAPSHOT,
+        "processes": [
+            {"name": "poll-pt", "pid": 41, "up": False, "restarts": 2, "lost": "killed by SIGKILL"},
+            {"name": "service", "pid": 42, "up": True, "restarts": 1, "lost": "stopped beating for 10.2 s"},
+        ],
+    }
     c = SnapshotCollector()
     c.update(snap, [], 0, 0.0)
     samples = {(s.name, tuple(sorted(s.labels.items()))): s.value for f in c.collect() for s in f.samples}
@@ -230,8 +235,10 @@ def test_a_restart_never_waits_for_the_new_process_to_open(tmp_path, caplog) -> 
         until(lambda: sup.restarts >= 1, "the restart")
         hung = w.pid
         assert hung not in (None, first)
-        until(lambda: any("did not open within" in r.reason for r in _events(caplog, "io_process_lost")),
-              "the hung process lost")
+        until(
+            lambda: any("did not open within" in r.reason for r in _events(caplog, "io_process_lost")),
+            "the hung process lost",
+        )
         lost = next(r for r in _events(caplog, "io_process_lost") if "did not open within" in r.reason)
         assert lost.pid == hung
         with pytest.raises(ProcessLookupError):  # killed and reaped: it never wakes up to write

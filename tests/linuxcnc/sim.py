@@ -297,8 +297,10 @@ def require() -> tuple[ModuleType, ModuleType]:
     """LinuxCNC's commands and Python modules, or the test FAILS (never skips) naming `make sysdeps`."""
     missing = [name for name in COMMANDS if shutil.which(name) is None]
     if missing:
-        pytest.fail(f"LinuxCNC's {', '.join(missing)} not installed (Debian package linuxcnc-uspace; `make sysdeps`)",
-                    pytrace=False)
+        pytest.fail(
+            f"LinuxCNC's {', '.join(missing)} not installed (Debian package linuxcnc-uspace; `make sysdeps`)",
+            pytrace=False,
+        )
     reason = hal_modules.available()
     if reason is not None:
         pytest.fail(reason, pytrace=False)
@@ -382,14 +384,21 @@ class Sim:
             self._take_lock(deadline)
             foreign = processes(LINUXCNC_PROGRAMS, without=self.token)
             if foreign:
-                raise SimError(f"another LinuxCNC runs on this machine ({_describe(foreign)}); one at a time: "
-                               f"stop it (or `halrun -U`) first")
+                raise SimError(
+                    f"another LinuxCNC runs on this machine ({_describe(foreign)}); one at a time: "
+                    f"stop it (or `halrun -U`) first"
+                )
             self._tmp_before = linuxcnc_tmp_files()
             with open(self.log, "wb") as log:  # the child holds its own copy of the descriptor
                 self._proc = subprocess.Popen(
                     ["linuxcnc", "-r", str(self.ini)],  # -r: output to our log, not to /tmp files
-                    cwd=self.folder, env=self.env, stdin=subprocess.DEVNULL, stdout=log,
-                    stderr=subprocess.STDOUT, start_new_session=True)
+                    cwd=self.folder,
+                    env=self.env,
+                    stdin=subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,
+                )
             while not (self.folder / "ready").exists():
                 if self._proc.poll() is not None:
                     raise SimError(f"linuxcnc exited ({self._proc.returncode}) before the machine was homed")
@@ -437,11 +446,17 @@ class Sim:
 
     def halcmd(self, *args: str, timeout_s: float = 60.0) -> str:
         """`halcmd ARGS` against this machine; its stdout, or SimError with its output."""
-        done = subprocess.run(["halcmd", *args], env=self.env, cwd=self.folder, capture_output=True, text=True,
-                              timeout=timeout_s, check=False)
+        done = subprocess.run(
+            ["halcmd", *args],
+            env=self.env,
+            cwd=self.folder,
+            capture_output=True,
+            text=True,
+            timeout=timeout_s,
+            check=False,
+        )
         if done.returncode != 0:
-            raise SimError(f"halcmd {' '.join(args)} failed ({done.returncode}): "
-                           f"{(done.stdout + done.stderr).strip()}")
+            raise SimError(f"halcmd {' '.join(args)} failed ({done.returncode}): {(done.stdout + done.stderr).strip()}")
         return done.stdout
 
     def getp(self, pin: str) -> float | bool | int:
@@ -470,8 +485,11 @@ class Sim:
         tmp.write_text(f"run {Path(path).resolve()}\n")
         tmp.rename(self.folder / f"command-{number}")
         reply = self.folder / f"reply-{number}"
-        wait_for(lambda: reply.exists() or (self._proc is not None and self._proc.poll() is not None),
-                 f"the display's reply to `run {path}`", timeout_s)
+        wait_for(
+            lambda: reply.exists() or (self._proc is not None and self._proc.poll() is not None),
+            f"the display's reply to `run {path}`",
+            timeout_s,
+        )
         if not reply.exists():
             raise SimError(f"linuxcnc exited while running {path}; its output ends:\n{self.tail()}")
         answer = reply.read_text().strip()
@@ -506,8 +524,10 @@ class Sim:
         if not self.keep:
             shutil.rmtree(self.folder, ignore_errors=True)
         if own:
-            raise SimError(f"HAL component(s) of this process still loaded when the Sim stopped: {', '.join(own)} "
-                           f"(LinuxCNC's shutdown SIGTERMs their process): exit() them before the Sim stops")
+            raise SimError(
+                f"HAL component(s) of this process still loaded when the Sim stopped: {', '.join(own)} "
+                f"(LinuxCNC's shutdown SIGTERMs their process): exit() them before the Sim stops"
+            )
 
     def _own_components(self) -> list[str]:
         """This process's userspace HAL components (`halcmd show comp`: ID, User, name, PID, state)."""
@@ -540,8 +560,9 @@ class Sim:
         """What LinuxCNC's own shutdown left (only after a kill or a crash): processes, shm, /tmp files."""
         left = processes(None, with_token=self.token)
         if any(name == "rtapi_app" for _, name in left):
-            subprocess.run(["halrun", "-U"], env=self.env, cwd=self.folder, capture_output=True, timeout=60,
-                           check=False)
+            subprocess.run(
+                ["halrun", "-U"], env=self.env, cwd=self.folder, capture_output=True, timeout=60, check=False
+            )
         for sig, wait_s in ((signal.SIGTERM, min(timeout_s, 20.0)), (signal.SIGKILL, 20.0)):
             left = processes(None, with_token=self.token)
             if not left:
@@ -572,8 +593,9 @@ def _signal_group(pgid: int, sig: signal.Signals) -> None:
         os.killpg(pgid, sig)
 
 
-def processes(names: tuple[str, ...] | None, *, with_token: str | None = None,
-               without: str | None = None) -> list[tuple[int, str]]:
+def processes(
+    names: tuple[str, ...] | None, *, with_token: str | None = None, without: str | None = None
+) -> list[tuple[int, str]]:
     """Live (not zombie) processes as (pid, name): named one of `names` (any when None), whose environment
     holds the Sim token `with_token`, or does not hold `without`."""
     out = []
@@ -622,5 +644,6 @@ def shm_keys_left() -> list[int]:
 
 def linuxcnc_tmp_files() -> set[str]:
     """LinuxCNC's files in /tmp: its lock and its debug/print logs (linuxcnc.debug.XXXXXX, linuxcnc.print.XXXXXX)."""
-    return {n for n in os.listdir("/tmp") if n == LINUXCNC_LOCK.name or n.startswith(("linuxcnc.debug.",
-                                                                                          "linuxcnc.print."))}
+    return {
+        n for n in os.listdir("/tmp") if n == LINUXCNC_LOCK.name or n.startswith(("linuxcnc.debug.", "linuxcnc.print."))
+    }

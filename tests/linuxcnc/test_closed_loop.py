@@ -20,9 +20,11 @@ def test_linuxcnc_runs_compd_s_thermal_test_and_compd_compensates_the_plant_thro
     with Sim() as sim:
         out = linuxcnc_loop.run(sim, tmp_path, hours=8, speedup=480.0, timeout_s=600.0)
     z = out["z"]
-    print(f"\nLinuxCNC's offset - compd's correction: {out['follow_reads']} steady reads, largest"
-          f" {out['follow_max_um']:.3f} um; z RMS {z['rms_before_um']:.2f} -> {z['rms_after_um']:.2f} um"
-          f" ({z['reduction_pct']:.1f} %)")
+    print(
+        f"\nLinuxCNC's offset - compd's correction: {out['follow_reads']} steady reads, largest"
+        f" {out['follow_max_um']:.3f} um; z RMS {z['rms_before_um']:.2f} -> {z['rms_after_um']:.2f} um"
+        f" ({z['reduction_pct']:.1f} %)"
+    )
     assert out["follow_reads"] > 20 and out["follow_max_um"] <= 1.0, out
     assert out["compd_exit"] == 0 and abs(out["eoffset_after_um"]) < 0.15, out
     assert z["rms_before_um"] > 3.0 and z["rms_after_um"] < 0.5 * z["rms_before_um"], out

@@ -32,8 +32,15 @@ def child(script: str, **env: str) -> subprocess.CompletedProcess[str]:
     """Run `script` in a fresh venv Python (the worktree's compd) with `env` added."""
     full = {k: v for k, v in os.environ.items() if k != hal_modules.ENV}
     full.update(env, PYTHONPATH=str(ROOT))
-    return subprocess.run([sys.executable, "-c", textwrap.dedent(script)], env=full, cwd=ROOT,
-                          capture_output=True, text=True, timeout=120, check=False)
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(script)],
+        env=full,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
 
 
 def test_the_modules_load_from_debians_files_without_dist_packages_on_the_path():
@@ -52,7 +59,8 @@ def test_the_modules_load_from_debians_files_without_dist_packages_on_the_path()
 def test_an_empty_folder_is_one_line_of_bad_input_and_a_later_good_load_still_works(tmp_path):
     need_linuxcnc()
     # a fresh interpreter whose first attempt fails: nothing of it may be cached or left in sys.modules
-    done = child(f"""
+    done = child(
+        f"""
         import os, sys
         from compd.core.errors import BadInput
         from compd.io import hal_modules
@@ -69,12 +77,16 @@ def test_an_empty_folder_is_one_line_of_bad_input_and_a_later_good_load_still_wo
         hal, linuxcnc = hal_modules.load()
         assert hal_modules.available() is None
         print("loaded", hal.__file__)
-    """, **{hal_modules.ENV: str(tmp_path)})
+    """,
+        **{hal_modules.ENV: str(tmp_path)},
+    )
     assert done.returncode == 0, done.stderr
     line, loaded = done.stdout.splitlines()
-    assert line == (f"LinuxCNC's Python module hal is not installed ({tmp_path}/hal.py): install Debian's "
-                    f"linuxcnc-uspace (make sysdeps), or set {hal_modules.ENV} to the folder that holds "
-                    f"LinuxCNC's hal.py")
+    assert line == (
+        f"LinuxCNC's Python module hal is not installed ({tmp_path}/hal.py): install Debian's "
+        f"linuxcnc-uspace (make sysdeps), or set {hal_modules.ENV} to the folder that holds "
+        f"LinuxCNC's hal.py"
+    )
     assert loaded == f"loaded {hal_modules.DEFAULT_FOLDER}/hal.py"
     assert "Traceback" not in done.stderr
 
@@ -84,7 +96,8 @@ def test_a_folder_without_linuxcnc_names_it_and_leaves_no_half_loaded_modules(tm
     hal_so = next(where.glob("_hal.cpython-*.so"))
     (tmp_path / "hal.py").symlink_to(where / "hal.py")
     (tmp_path / hal_so.name).symlink_to(hal_so)
-    done = child(f"""
+    done = child(
+        f"""
         import os, sys
         from compd.core.errors import BadInput
         from compd.io import hal_modules
@@ -93,7 +106,9 @@ def test_a_folder_without_linuxcnc_names_it_and_leaves_no_half_loaded_modules(tm
         os.environ["{hal_modules.ENV}"] = "{where}"
         hal, linuxcnc = hal_modules.load()
         print("loaded", linuxcnc.__name__)
-    """, **{hal_modules.ENV: str(tmp_path)})
+    """,
+        **{hal_modules.ENV: str(tmp_path)},
+    )
     assert done.returncode == 0, done.stderr
     line, loaded = done.stdout.splitlines()
     assert line.startswith(f"LinuxCNC's Python module linuxcnc is not installed ({tmp_path}/linuxcnc.cpython-")
@@ -105,7 +120,7 @@ def test_a_file_that_does_not_load_or_is_for_another_python_is_one_line(tmp_path
     broken = tmp_path / "broken"
     broken.mkdir()
     (broken / "hal.py").symlink_to(where / "hal.py")
-    suffix = next(where.glob("_hal.cpython-*.so")).name[len("_hal"):]
+    suffix = next(where.glob("_hal.cpython-*.so")).name[len("_hal") :]
     (broken / f"_hal{suffix}").write_text("not an ELF file\n")
     (broken / f"linuxcnc{suffix}").symlink_to(where / f"linuxcnc{suffix}")
     monkeypatch.setenv(hal_modules.ENV, str(broken))
@@ -113,8 +128,9 @@ def test_a_file_that_does_not_load_or_is_for_another_python_is_one_line(tmp_path
         hal_modules.load()
     message = str(caught.value)
     assert message.startswith(f"LinuxCNC's Python module _hal does not load ({broken}/_hal{suffix}: ImportError: ")
-    assert "\n" not in message and message.endswith("(make sysdeps), or set COMPD_LINUXCNC_PYTHON to the folder "
-                                                    "that holds LinuxCNC's hal.py")
+    assert "\n" not in message and message.endswith(
+        "(make sysdeps), or set COMPD_LINUXCNC_PYTHON to the folder that holds LinuxCNC's hal.py"
+    )
 
     other = tmp_path / "other"
     other.mkdir()
@@ -124,7 +140,8 @@ def test_a_file_that_does_not_load_or_is_for_another_python_is_one_line(tmp_path
     version = f"{sys.version_info.major}.{sys.version_info.minor}"
     assert hal_modules.available() == (
         f"LinuxCNC's Python module _hal in {other} is built for another Python (_hal.cpython-39-x86_64-linux-gnu.so), "
-        f"compd runs Python {version}: run compd with the Python that LinuxCNC was built for")
+        f"compd runs Python {version}: run compd with the Python that LinuxCNC was built for"
+    )
 
 
 @pytest.mark.parametrize("where", ["main thread", "other thread"])

@@ -14,8 +14,9 @@ from tests.linuxcnc.sim import Sim, require, wait_for
 
 
 def _poller() -> HalPoller:
-    cfg = HalConfig(kind="hal", name="cnc", signals=[{"name": "speed_rpm", "pin": "spindle.0.speed-out"},
-                                                     {"name": "T_spare"}])
+    cfg = HalConfig(
+        kind="hal", name="cnc", signals=[{"name": "speed_rpm", "pin": "spindle.0.speed-out"}, {"name": "T_spare"}]
+    )
     return HalPoller(cfg, Snapshot(2))
 
 
@@ -35,8 +36,12 @@ def test_the_spindle_speed_of_a_running_program_reads_through_compd_in():
 
             def speed() -> bool:
                 poller.poll(values, quality)
-                return bool(quality[0] == Quality.GOOD and values[0] == pytest.approx(3000.0)
-                            and quality[1] == Quality.GOOD and values[1] == 0.0)
+                return bool(
+                    quality[0] == Quality.GOOD
+                    and values[0] == pytest.approx(3000.0)
+                    and quality[1] == Quality.GOOD
+                    and values[1] == 0.0
+                )
 
             wait_for(speed, "compd.in.speed_rpm at 3000 rpm")
             assert "compd.in" in sim.halcmd("show", "comp")

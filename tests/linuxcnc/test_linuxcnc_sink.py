@@ -43,8 +43,9 @@ def _sink(**kw) -> LinuxcncSink:
 def _synced(sink: LinuxcncSink) -> None:
     """Open, then cycle by hand until the sink has read back what LinuxCNC applies (as the loop does)."""
     sink.open(time.monotonic())
-    wait_for(lambda: sink.sync(time.monotonic()) or sink.synced() and sink.syncs, "the sink's read-back",
-             timeout_s=90.0)
+    wait_for(
+        lambda: sink.sync(time.monotonic()) or sink.synced() and sink.syncs, "the sink's read-back", timeout_s=90.0
+    )
     wait_for(lambda: sink.link_state() == "up", "the link up", timeout_s=60.0)
 
 
@@ -204,9 +205,27 @@ def test_output_test_reads_back_what_linuxcnc_applies(tmp_path: Path) -> None:
         path = tmp_path / "c.yaml"
         path.write_text(yaml.safe_dump(cfg))
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
-        done = subprocess.run([sys.executable, "-m", "compd", "output-test", str(path), "--axis", "z", "--um", "5",
-                               "--hold-s", "1", "--yes"], capture_output=True, text=True, env=env, timeout=300,
-                              cwd=tmp_path)
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "compd",
+                "output-test",
+                str(path),
+                "--axis",
+                "z",
+                "--um",
+                "5",
+                "--hold-s",
+                "1",
+                "--yes",
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+            cwd=tmp_path,
+        )
         assert done.returncode == 0, done.stderr
         assert "commanded +5.000 um, applied +5.000 um" in done.stdout
         assert "safe state: applied +0.000 um" in done.stdout
@@ -219,12 +238,12 @@ def test_without_linuxcnc_check_config_refuses_the_sink_and_the_source_in_one_li
     everything else; a config that needs them is refused at check-config, exit 2, one line naming what is missing."""
     cfgs = {
         "sink": "loop: {clock: sim, period_s: 1.0}\nsources: [{kind: replay, name: log, path: day.csv}]\n"
-                "model: {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 1.3e-5, length_mm: 165}}\n"
-                "sink: {kind: linuxcnc, axes: [z]}\n",
+        "model: {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 1.3e-5, length_mm: 165}}\n"
+        "sink: {kind: linuxcnc, axes: [z]}\n",
         "sources[1]": "loop: {clock: sim, period_s: 1.0}\nsources:\n  - {kind: replay, name: log, path: day.csv}\n"
-                      "  - {kind: hal, name: cnc, signals: [{name: speed_rpm, pin: spindle.0.speed-out}]}\n"
-                      "model: {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 1.3e-5,"
-                      " length_mm: 165}}\nsink: {kind: pci1756}\n",
+        "  - {kind: hal, name: cnc, signals: [{name: speed_rpm, pin: spindle.0.speed-out}]}\n"
+        "model: {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 1.3e-5,"
+        " length_mm: 165}}\nsink: {kind: pci1756}\n",
     }
     (tmp_path / "day.csv").write_text("t_s,T_xi\n0,20\n1,20\n")
     empty = tmp_path / "no-linuxcnc"
@@ -232,9 +251,13 @@ def test_without_linuxcnc_check_config_refuses_the_sink_and_the_source_in_one_li
     for key, text in cfgs.items():
         path = tmp_path / f"{key[:4]}.yaml"
         path.write_text(text)
-        done = subprocess.run([sys.executable, "-m", "compd", "check-config", str(path)], capture_output=True,
-                              text=True, env={**os.environ, "PYTHONPATH": str(ROOT), "COMPD_LINUXCNC_PYTHON": str(empty)},
-                              timeout=120)
+        done = subprocess.run(
+            [sys.executable, "-m", "compd", "check-config", str(path)],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(ROOT), "COMPD_LINUXCNC_PYTHON": str(empty)},
+            timeout=120,
+        )
         lines = done.stderr.strip().splitlines()
         assert done.returncode == 2 and len(lines) == 1, done.stderr
         assert f"{path.name}:" in lines[0] and f"{key}:" in lines[0] and "make sysdeps" in lines[0], lines[0]

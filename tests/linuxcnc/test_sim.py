@@ -66,8 +66,11 @@ def test_a_component_of_the_test_process_offsets_z_by_counts_times_scale():
 
             def z_at(mm: float) -> bool:
                 stat.poll()
-                return (abs(sim.getp("axis.z.eoffset") - mm) < TOL_MM and abs(comp["z.eoffset"] - mm) < TOL_MM
-                        and abs(stat.actual_position[2] - mm) < TOL_MM)
+                return (
+                    abs(sim.getp("axis.z.eoffset") - mm) < TOL_MM
+                    and abs(comp["z.eoffset"] - mm) < TOL_MM
+                    and abs(stat.actual_position[2] - mm) < TOL_MM
+                )
 
             comp["z.eoffset-scale"] = 1e-4
             comp["z.eoffset-enable"] = True

@@ -117,7 +117,9 @@ def test_fit_recovers_lathe_coefficients():
 
 def test_fit_with_rise_scaling_adds_speeds():
     res = FITS.get(AR1.kind)(
-        _lathe(), ["T3"], None,
+        _lathe(),
+        ["T3"],
+        None,
         c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1500: 4.11}},
     )
     table = dict(res.model.params.c2_table)
@@ -151,14 +153,17 @@ def test_ambient_aware_form_beats_paper_form_on_drifting_shop():
     aware = FITS.get(AR1.kind)(log, None, None, ambient="T_amb", spindle_sign=1)
     assert pure.model.params.c3_um_per_k is None
     assert aware.model.inputs == ["speed_rpm", "T_amb"]
-    rmse = {k: float(np.sqrt(np.mean((predict_log(r.model, log)[:, 0] - e) ** 2))) for k, r in
-            (("pure", pure), ("aware", aware))}
+    rmse = {
+        k: float(np.sqrt(np.mean((predict_log(r.model, log)[:, 0] - e) ** 2)))
+        for k, r in (("pure", pure), ("aware", aware))
+    }
     assert rmse["aware"] < 0.6 * rmse["pure"], rmse
 
 
 def test_evaluate_matches_predict_and_state_cools():
-    params = AR1Params(dt_s=60, c1=0.99, c2_table=[(2000.0, 0.2)], c3_um_per_k=0.1,
-                       bed_gain_um_per_k=[10.0], spindle_sign=-1)
+    params = AR1Params(
+        dt_s=60, c1=0.99, c2_table=[(2000.0, 0.2)], c3_um_per_k=0.1, bed_gain_um_per_k=[10.0], spindle_sign=-1
+    )
     m = AR1(params, ["n", "bed", "amb"], ["z"])
     t = np.arange(0, 3600, 20.0)
     X = np.column_stack([np.full(t.size, 2000.0), 20 + t / 3600, 20 + 0.5 * np.sin(t / 600)])
@@ -212,7 +217,7 @@ def test_c1_by_speed_recovers_both_time_constants():
     res = FITS.get(AR1.kind)(log, ["T3"], None, c1_by_speed=True)
     p = res.model.params
     assert -60.0 / np.log(p.c1) == pytest.approx(3 * 3600, rel=0.03)
-    (rpm, c1_run), = p.c1_table
+    ((rpm, c1_run),) = p.c1_table
     assert rpm == 2000.0 and -60.0 / np.log(c1_run) == pytest.approx(2 * 3600, rel=0.03)
     assert dict(p.c2_table)[2000.0] == pytest.approx(0.25, rel=0.03)
     assert p.bed_gain_um_per_k[0] == pytest.approx(8.0, rel=0.03)
@@ -368,12 +373,19 @@ def test_report_names_linear_c2_when_the_rises_are_missing():
     assert how["method"] == "linear" and "without a fitted C2" in how["reason"]
     assert how["rises_c"] == pytest.approx({"2000": 7.46})
     assert dict(sensed.model.params.c2_table) == dict(m.params.c2_table)
-    given = FITS.get(AR1.kind)(train, ["T3"], None, c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1000: 3.02}})
+    given = FITS.get(AR1.kind)(
+        train, ["T3"], None, c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1000: 3.02}}
+    )
     assert given.report["c2_at_unseen_speeds"]["method"] == "temperature_rise"
     assert round(dict(given.model.params.c2_table)[1000.0], 3) == 0.089
     with pytest.raises(BadInput, match="not both"):
-        FITS.get(AR1.kind)(train, ["T3"], None, rise_sensor="T2", c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46,
-                                                               "rises_c": {1000: 3.02}})
+        FITS.get(AR1.kind)(
+            train,
+            ["T3"],
+            None,
+            rise_sensor="T2",
+            c2_rise={"ref_rpm": 2000, "ref_rise_c": 7.46, "rises_c": {1000: 3.02}},
+        )
 
 
 def test_c2_outside_the_levels_follows_the_bearings_friction_and_exchange_enters_the_recursion():
@@ -385,11 +397,20 @@ def test_c2_outside_the_levels_follows_the_bearings_friction_and_exchange_enters
     assert c2_of_speed(3000.0, [2000.0], [0.3], 0.0, 5 / 3) == pytest.approx(0.3 * 1.5 ** (5 / 3))
     assert c2_of_speed(1000.0, [2000.0], [0.3]) == pytest.approx(0.15)  # the older rule: linear from 0
     assert c2_of_speed(3000.0, [2000.0], [0.3]) == pytest.approx(0.3)  # ... and held past the last level
-    params = AR1Params(dt_s=60, c1=0.99, c2_table=[(2000.0, 0.2)], c2_exponent=5 / 3, c3_um_per_k=0.05,
-                       bed_gain_um_per_k=[10.0], exchange_um_per_k=[0.02], spindle_sign=-1)
+    params = AR1Params(
+        dt_s=60,
+        c1=0.99,
+        c2_table=[(2000.0, 0.2)],
+        c2_exponent=5 / 3,
+        c3_um_per_k=0.05,
+        bed_gain_um_per_k=[10.0],
+        exchange_um_per_k=[0.02],
+        spindle_sign=-1,
+    )
     t = np.arange(0, 6 * 3600, 60.0)
-    X = np.column_stack([np.where(t < 3 * 3600, 3000.0, 1000.0), 20 + t / 7200, 20 + 0.1 * np.sin(t / 3000),
-                         20 + t / 3600])
+    X = np.column_stack(
+        [np.where(t < 3 * 3600, 3000.0, 1000.0), 20 + t / 7200, 20 + 0.1 * np.sin(t / 3000), 20 + t / 3600]
+    )
     batch = AR1(params, ["n", "bed", "amb", "head"], ["z"]).predict(X, t)[:, 0]
     m = AR1(params, ["n", "bed", "amb", "head"], ["z"])
     m.start(X[0], 0.0)
@@ -413,8 +434,10 @@ def test_an_unnamed_ambient_is_found_held_out():
     assert res.report["sensors_chosen"]["ambient"] == "T9"
     none = FITS.get(AR1.kind)(log, None, None, spindle_sign=1, lag="off", ambient="none")
     e = log.col("err_z_um")
-    rmse = {k: float(np.sqrt(np.mean((predict_log(r.model, log)[:, 0] - e) ** 2))) for k, r in
-            (("none", none), ("found", res))}
+    rmse = {
+        k: float(np.sqrt(np.mean((predict_log(r.model, log)[:, 0] - e) ** 2)))
+        for k, r in (("none", none), ("found", res))
+    }
     assert rmse["found"] < 0.6 * rmse["none"], rmse
 
 
@@ -424,8 +447,9 @@ def _speed_spectrum_lathe(noise_um=0.05, seed=2):
     rng = np.random.default_rng(seed)
     dt = 30.0
     levels = rng.permutation(np.arange(300.0, 3601.0, 300.0))
-    speed = np.concatenate([np.zeros(60)] + [np.r_[np.full(70, n), np.zeros(30 if i % 3 == 2 else 0)]
-                                             for i, n in enumerate(levels)])
+    speed = np.concatenate(
+        [np.zeros(60)] + [np.r_[np.full(70, n), np.zeros(30 if i % 3 == 2 else 0)] for i, n in enumerate(levels)]
+    )
     K = speed.size
     t = np.arange(K) * dt
     bed = 20 + 1.5 * (1 - np.exp(-t / 15000))

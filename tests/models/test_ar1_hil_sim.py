@@ -41,7 +41,9 @@ def test_ambient_aware_ar1_beats_the_paper_form_on_the_unseen_day(tmp_path):
     unseen = _log(yaml.safe_load((SCEN / "lathe_unseen.yaml").read_text()), tmp_path / "unseen.csv")
     pure, aware = _unseen_rmse(drift, unseen, None), _unseen_rmse(drift, unseen, "T7")
     q_pure, q_aware = _unseen_rmse(quiet, unseen, None), _unseen_rmse(quiet, unseen, "T7")
-    print(f"unseen-day RMSE, trained with drift: paper {pure:.2f} um, ambient-aware {aware:.2f} um;"
-          f" trained in the quiet shop: paper {q_pure:.2f} um, ambient-aware {q_aware:.2f} um")
+    print(
+        f"unseen-day RMSE, trained with drift: paper {pure:.2f} um, ambient-aware {aware:.2f} um;"
+        f" trained in the quiet shop: paper {q_pure:.2f} um, ambient-aware {q_aware:.2f} um"
+    )
     assert aware < pure  # measured 1.60 vs 1.86 um
     assert pure < 3.0

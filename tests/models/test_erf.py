@@ -56,8 +56,15 @@ def test_feed_axis_evaluate_as_with_scipys_erf(monkeypatch: pytest.MonkeyPatch) 
     import compd.models.feed_axis as fa
 
     params = fa.FeedAxisParams(
-        length_mm=600.0, segments=30, chi_per_m=3.0, eta=0.22, u1_k=-8.52, u2_k=-8.48, xi=1.04,
-        r_cu_ohm=0.8, input_roles=["position", "current", "motor_temp", "ambient"],
+        length_mm=600.0,
+        segments=30,
+        chi_per_m=3.0,
+        eta=0.22,
+        u1_k=-8.52,
+        u2_k=-8.48,
+        xi=1.04,
+        r_cu_ohm=0.8,
+        input_roles=["position", "current", "motor_temp", "ambient"],
     )
 
     def run() -> np.ndarray:

@@ -20,8 +20,15 @@ from compd.models.feed_axis import (
 R_CU = 0.8
 # A slide whose far support reverses the error near the end of the stroke.
 TRUE = FeedAxisParams(
-    length_mm=600, segments=30, chi_per_m=8.0, eta=0.2, u1_k=2.0, u2_k=-0.3, xi=1.0,
-    r_cu_ohm=R_CU, input_roles=["position", "current"],
+    length_mm=600,
+    segments=30,
+    chi_per_m=8.0,
+    eta=0.2,
+    u1_k=2.0,
+    u2_k=-0.3,
+    xi=1.0,
+    r_cu_ohm=R_CU,
+    input_roles=["position", "current"],
 )
 
 

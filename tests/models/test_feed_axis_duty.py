@@ -12,8 +12,15 @@ from compd.models.feed_axis import FeedAxis, FeedAxisParams, copper_loss_w, erro
 R_CU = 0.8
 P_40A = 3 * 40.0**2 * R_CU  # W at 40 A
 PAPER = dict(
-    length_mm=600, segments=30, chi_per_m=8.0, eta=0.2, u1_k=2.0, u2_k=-0.3, xi=1.0,
-    r_cu_ohm=R_CU, input_roles=["position", "current"],
+    length_mm=600,
+    segments=30,
+    chi_per_m=8.0,
+    eta=0.2,
+    u1_k=2.0,
+    u2_k=-0.3,
+    xi=1.0,
+    r_cu_ohm=R_CU,
+    input_roles=["position", "current"],
 )
 DUTY = FeedAxisParams(**PAPER, cooling_time_s=5400.0, ref_power_w=P_40A)
 

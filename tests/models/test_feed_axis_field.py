@@ -47,7 +47,7 @@ def _field_log(hours: float = 8.0, seed: int = 0, noise_um: float = 0.0) -> Log:
         amb = 20.0 + 0.3 * np.sin(h / 2.0)
         centre = 150.0 if (h % 4.0) < 2.0 else 450.0
         heat = 3.0 * (1.0 - np.exp(-h / 1.5))
-        base = np.array([amb - 20.0 + heat * np.exp(-((s - centre) / 200.0) ** 2) for s in SENSORS_MM])
+        base = np.array([amb - 20.0 + heat * np.exp(-(((s - centre) / 200.0) ** 2)) for s in SENSORS_MM])
         table = 1.5 * heat / 3.0 + 0.2 * np.sin(h)
         y = (k * 37.0) % L_MM
         part, whole = _truth_integral_um(base, y)
@@ -90,11 +90,11 @@ def test_evaluate_equals_predict_and_the_siemens_line_is_the_least_squares_line(
     lin.evaluate(X[i], t[i], out)
     slope, p0 = lin.linear_terms()[0]
     ys = np.linspace(0.0, L_MM, model.params.segments + 1)
-    Xs = np.repeat(X[i:i + 1], ys.size, axis=0)
+    Xs = np.repeat(X[i : i + 1], ys.size, axis=0)
     Xs[:, model.inputs.index("pos_y_mm")] = ys
     ref = FeedAxis(model.params, model.inputs, model.outputs)
     ref.start(X[0], t[0])
-    e_line = np.array([ref._field.predict(Xs[j:j + 1])[0] for j in range(ys.size)])
+    e_line = np.array([ref._field.predict(Xs[j : j + 1])[0] for j in range(ys.size)])
     k0_ref, slope_ref = np.polynomial.polynomial.polyfit(ys - 250.0, e_line, 1)
     assert p0 == 250.0
     assert out[0] == pytest.approx(k0_ref, abs=1e-9) and slope == pytest.approx(slope_ref, abs=1e-12)
@@ -133,8 +133,9 @@ def test_auto_keeps_the_analytic_form_on_a_log_without_slide_sensors():
             rows.append([t, y, 30.0])
             t += 10.0
     rows = np.asarray(rows)
-    true = FeedAxisParams(length_mm=600, chi_per_m=8.0, eta=0.2, u1_k=2.0, u2_k=-0.3, r_cu_ohm=0.8,
-                          input_roles=["position", "current"])
+    true = FeedAxisParams(
+        length_mm=600, chi_per_m=8.0, eta=0.2, u1_k=2.0, u2_k=-0.3, r_cu_ohm=0.8, input_roles=["position", "current"]
+    )
     e = error_um(rows[:, 0], heat_j(rows[:, 0], copper_loss_w(rows[:, 2], 0.8, 0.0)), rows[:, 1], true)
     log = Log("a.csv", ["t_s", "pos_x_mm", "current_x_a", "err_x_um"], np.column_stack([rows, e]))
     res = fit_fa.fit(log, None, None, r_cu_ohm=0.8, length_mm=600)
@@ -144,8 +145,16 @@ def test_auto_keeps_the_analytic_form_on_a_log_without_slide_sensors():
 
 def test_eta_is_the_dimensionless_share_with_the_slide_volume():
     volume_m3 = 0.6 * 0.012  # a 600 mm slide of 120 cm²
-    true = FeedAxisParams(length_mm=600, chi_per_m=8.0, eta=0.25, u1_k=2.0, u2_k=-0.3, r_cu_ohm=0.8,
-                          input_roles=["position", "current"], slide_volume_m3=volume_m3)
+    true = FeedAxisParams(
+        length_mm=600,
+        chi_per_m=8.0,
+        eta=0.25,
+        u1_k=2.0,
+        u2_k=-0.3,
+        r_cu_ohm=0.8,
+        input_roles=["position", "current"],
+        slide_volume_m3=volume_m3,
+    )
     rows, t = [], 0.0
     for _ in range(4):
         for _ in range(60):
@@ -163,7 +172,9 @@ def test_eta_is_the_dimensionless_share_with_the_slide_volume():
     assert res.report["eta_per_m3"] == pytest.approx(0.25 / volume_m3, rel=1e-3)
     # the same heat in an old file (η per m³, no volume) predicts the same error
     old = true.model_copy(update={"slide_volume_m3": None, "eta": 0.25 / volume_m3})
-    assert np.allclose(error_um(rows[:, 0], heat_j(rows[:, 0], copper_loss_w(rows[:, 2], 0.8, 0.0)), rows[:, 1], old), e)
+    assert np.allclose(
+        error_um(rows[:, 0], heat_j(rows[:, 0], copper_loss_w(rows[:, 2], 0.8, 0.0)), rows[:, 1], old), e
+    )
 
 
 def test_numbered_columns_close_together_are_not_slide_positions():
@@ -174,8 +185,12 @@ def test_numbered_columns_close_together_are_not_slide_positions():
 
 @pytest.mark.parametrize(
     ("value", "says"),
-    [("T_base_000:0", "expected COL@MM"), ("T_base_000@zero", "expected COL@MM"), ("T_nope@10,T_base_150@150", "no column"),
-     ("T_base_000@0,T_base_000@150", "each slide sensor")],
+    [
+        ("T_base_000:0", "expected COL@MM"),
+        ("T_base_000@zero", "expected COL@MM"),
+        ("T_nope@10,T_base_150@150", "no column"),
+        ("T_base_000@0,T_base_000@150", "each slide sensor"),
+    ],
 )
 def test_bad_slide_sensors_option_is_one_line(value, says):
     with pytest.raises(BadInput, match=says) as e:
@@ -193,12 +208,16 @@ def test_field_form_without_slide_sensors_is_refused():
 
 def test_params_check_the_field_wiring():
     roles = ["position", "slide", "slide", "offset"]
-    ok = FeedAxisParams(length_mm=600, input_roles=roles,
-                        field=SlideField(slide_mm=[0, 600], gain_integral=1.0, offset_um_per_k=[0.5]))
+    ok = FeedAxisParams(
+        length_mm=600, input_roles=roles, field=SlideField(slide_mm=[0, 600], gain_integral=1.0, offset_um_per_k=[0.5])
+    )
     assert ok.field is not None
     with pytest.raises(ValueError, match="slide_mm has 3 positions"):
-        FeedAxisParams(length_mm=600, input_roles=roles,
-                       field=SlideField(slide_mm=[0, 300, 600], gain_integral=1.0, offset_um_per_k=[0.5]))
+        FeedAxisParams(
+            length_mm=600,
+            input_roles=roles,
+            field=SlideField(slide_mm=[0, 300, 600], gain_integral=1.0, offset_um_per_k=[0.5]),
+        )
     with pytest.raises(ValueError, match="strictly increasing"):
         SlideField(slide_mm=[300, 0], gain_integral=1.0)
     with pytest.raises(ValueError, match="analytic form needs"):

@@ -50,8 +50,11 @@ def test_the_lead_is_in_the_params_with_one_value_per_input():
     plain = XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165.0), ["T_xi"], ["z"])
     assert plain.lead is None and "lead_s" not in plain.to_dict()["params"]  # files without a lead stay as they were
     with pytest.raises(BadInput, match="expected 1"):
-        XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165.0, lead_s=[200.0, 0.0],
-                                  lead_filter_s=[40.0, 0.0]), ["T_xi"], ["z"])
+        XiSpindle(
+            XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165.0, lead_s=[200.0, 0.0], lead_filter_s=[40.0, 0.0]),
+            ["T_xi"],
+            ["z"],
+        )
     with pytest.raises(ValueError, match="lead_filter_s"):
         XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165.0, lead_s=[200.0], lead_filter_s=[0.0])
     with pytest.raises(ValueError, match="go together"):
@@ -64,8 +67,11 @@ def _spindle_day(tau_s: float, seed: int) -> Log:
     t = np.arange(0.0, 8 * 3600, 10.0)
     heat = np.zeros(t.size)
     for k in range(t.size):
-        heat[k] = [0.0, 1.0, 0.3, 0.8, 0.0][min(int(t[k] // 6000), 4)] if seed else \
-            [0.0, 0.6, 1.0, 0.2, 0.0][min(int(t[k] // 6000), 4)]
+        heat[k] = (
+            [0.0, 1.0, 0.3, 0.8, 0.0][min(int(t[k] // 6000), 4)]
+            if seed
+            else [0.0, 0.6, 1.0, 0.2, 0.0][min(int(t[k] // 6000), 4)]
+        )
     T = 20 + 8 * _lagged(heat, t, 900.0)  # the rotor: a 15 min time constant
     err = 2.24 * (T - 20) + rng.normal(0, 0.05, t.size)
     Ts = np.round(_lagged(T, t, tau_s) + rng.normal(0, 0.02, t.size), 1)
@@ -92,8 +98,7 @@ def test_the_fit_finds_a_lagging_sensor_and_the_unseen_day_shows_it():
 
 
 def test_a_given_lag_is_used_as_given():
-    oc = fitting.fit_model("xi_spindle", _spindle_day(200.0, 1), ["T_xi"], None, {"lag": {"T_xi": 150}},
-                           baseline=False)
+    oc = fitting.fit_model("xi_spindle", _spindle_day(200.0, 1), ["T_xi"], None, {"lag": {"T_xi": 150}}, baseline=False)
     assert oc.model.params.lead_s == [150.0] and oc.report["details"]["lag"]["method"] == "given"
     with pytest.raises(BadInput, match="--option lag"):
         fitting.fit_model("xi_spindle", _spindle_day(200.0, 1), ["T_xi"], None, {"lag": "soon"}, baseline=False)

@@ -183,7 +183,9 @@ def test_lvr_library_span_limit_of_blocked_selection():
     log = _log()
     assert rows_needed(4, 5) == 9 and rows_needed(4, 2) == 14
     assert FITS.get(LVR.kind)(log, None, None, library_span=191).report["fit_rows"] == 9
-    with pytest.raises(BadInput, match=r"span 192 keeps 8 .* 4 components and 5 cross-validation blocks needs at least 9"):
+    with pytest.raises(
+        BadInput, match=r"span 192 keeps 8 .* 4 components and 5 cross-validation blocks needs at least 9"
+    ):
         FITS.get(LVR.kind)(log, None, None, library_span=192)
 
 
@@ -356,9 +358,15 @@ def test_forced_components_report_the_blocked_cross_validation():
         ({"cv_blocks": "many"}, "--option cv_blocks: Input should be a valid integer"),
         ({"cv_guard_rows": -1}, "--option cv_guard_rows: Input should be greater than or equal to 0"),
         # 200 rows in blocks of 40: holding out rows 80..119 with 80 rows each side leaves none
-        ({"cv_guard_rows": 80}, r"--option cv_guard_rows: a guard band of 80 rows leaves 0 rows to fit 4 components"
-                                r", which need 7; at most 76 here"),
-        ({"cv_blocks": 50, "library_span": 151}, "span 151 keeps 49 .* and 50 cross-validation blocks needs at least 50"),
+        (
+            {"cv_guard_rows": 80},
+            r"--option cv_guard_rows: a guard band of 80 rows leaves 0 rows to fit 4 components"
+            r", which need 7; at most 76 here",
+        ),
+        (
+            {"cv_blocks": 50, "library_span": 151},
+            "span 151 keeps 49 .* and 50 cross-validation blocks needs at least 50",
+        ),
     ],
 )
 def test_bad_selection_options(option, match):

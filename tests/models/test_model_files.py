@@ -64,8 +64,13 @@ P = "params"
 CASES = [
     ("lvr", "nan", _set((P, "coef_um_per_k", 1, 0), NAN), (P, "coef_um_per_k", 1, 0), "finite"),
     ("lvr", "inf", _set((P, "intercept_um", 1), INF), (P, "intercept_um", 1), "finite"),
-    ("lvr", "shape", _append((P, "coef_um_per_k", 2), 1.0), (P, "coef_um_per_k", 2),
-     "row 2 has 3 values, expected 2 (one per output)"),
+    (
+        "lvr",
+        "shape",
+        _append((P, "coef_um_per_k", 2), 1.0),
+        (P, "coef_um_per_k", 2),
+        "row 2 has 3 values, expected 2 (one per output)",
+    ),
     ("lvr", "cov shape", _pop((P, "rise_cov_k2")), (P, "rise_cov_k2"), "expected 3 (one per input)"),
     ("lvr", "components", _set((P, "n_components"), 7), (P, "n_components"), "7 components from 3 inputs"),
     ("mlr", "nan", _set((P, "rise_mean_k", 0), NAN), (P, "rise_mean_k", 0), "finite"),
@@ -80,8 +85,13 @@ CASES = [
     ("ar1", "dt 0", _set((P, "dt_s"), 0.0), (P, "dt_s"), "greater than 0"),
     ("feed_axis", "nan", _set((P, "chi_per_m"), NAN), (P, "chi_per_m"), "finite"),
     ("feed_axis", "inf", _set((P, "u1_k"), INF), (P, "u1_k"), "finite"),
-    ("feed_axis", "shape", _set((P, "input_roles"), ["position", "current", "ambient"]), (P, "input_roles"),
-     "3 roles (position, current, ambient) but the model has 2 inputs"),
+    (
+        "feed_axis",
+        "shape",
+        _set((P, "input_roles"), ["position", "current", "ambient"]),
+        (P, "input_roles"),
+        "3 roles (position, current, ambient) but the model has 2 inputs",
+    ),
     ("feed_axis", "length", _set((P, "length_mm"), -900.0), (P, "length_mm"), "greater than 0"),
     ("feed_axis", "e^(χL)", _set((P, "chi_per_m"), 5000.0), (P, "chi_per_m"), "overflows"),
     ("xi_spindle", "nan", _set((P, "alpha_per_k"), NAN), (P, "alpha_per_k"), "finite"),
@@ -172,9 +182,21 @@ def test_nan_model_through_the_real_cli(fitted, tmp_path):
     """The case the audit found: a NaN coefficient, `compd predict` as a user runs it."""
     bad = _corrupt(fitted, tmp_path, "lvr", _set((P, "coef_um_per_k", 1, 0), NAN))
     proc = subprocess.run(
-        [sys.executable, "-m", "compd", "predict", str(bad), "--log", str(fitted / "log.csv"),
-         "--out", str(tmp_path / "pred.csv")],
-        capture_output=True, text=True, timeout=120, cwd=ROOT,
+        [
+            sys.executable,
+            "-m",
+            "compd",
+            "predict",
+            str(bad),
+            "--log",
+            str(fitted / "log.csv"),
+            "--out",
+            str(tmp_path / "pred.csv"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
     )
     assert proc.returncode == 2, proc.stderr
     line = _one_line(proc.stderr)

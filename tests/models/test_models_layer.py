@@ -24,8 +24,10 @@ def _imported(path) -> set[str]:  # noqa: ANN001
 def test_models_import_nothing_of_identify() -> None:
     files = sorted((ROOT / "compd" / "models").glob("*.py"))
     assert files
-    upward = {f.name: sorted(m for m in _imported(f) if m == "compd.identify" or m.startswith("compd.identify."))
-              for f in files}
+    upward = {
+        f.name: sorted(m for m in _imported(f) if m == "compd.identify" or m.startswith("compd.identify."))
+        for f in files
+    }
     assert {k: v for k, v in upward.items() if v} == {}
 
 

@@ -56,7 +56,11 @@ def test_daemon_imports_no_fit_or_plot_library(tmp_path: Path) -> None:
     env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     p = subprocess.run(
         [sys.executable, "-c", CHILD.format(HEAVY=HEAVY), *files],
-        capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120,
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=120,
     )
     assert p.returncode == 0, p.stderr
     seen = json.loads(p.stdout)

@@ -109,8 +109,9 @@ def test_a_spindle_growing_toward_the_axis_minus_is_fitted_with_its_sign() -> No
         assert m.params.axial_sign == sign and res.report["axial_sign"] == sign
         assert m.params.length_mm == pytest.approx(165.0, rel=1e-3)
         assert m.params.lift.k_um_per_rpm2 == pytest.approx(2e-8, rel=1e-3)
-        np.testing.assert_allclose(m.predict(log.matrix(["T_xi", "speed_rpm"]), t)[:, 0], sign * (growth + lift),
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            m.predict(log.matrix(["T_xi", "speed_rpm"]), t)[:, 0], sign * (growth + lift), atol=1e-6
+        )
 
 
 def test_the_xi_sensor_is_chosen_once_and_held_while_the_lag_is_searched(monkeypatch) -> None:
@@ -145,9 +146,23 @@ def test_the_xi_sensor_is_chosen_once_and_held_while_the_lag_is_searched(monkeyp
 # paper 003, Table 1: T(ξ) °C → modelled ΔL µm (α = 13.6e-6 /K, L = 165 mm, T0 = 22.5 °C).
 # The paper prints 18.50 for 30.7 °C; α L ΔT gives 18.40.
 TABLE_1 = [
-    (22.5, 0.0), (23.2, 1.57), (26.8, 9.65), (28.5, 13.46), (28.9, 14.36), (29.2, 15.03),
-    (29.5, 15.71), (29.7, 16.16), (29.9, 16.61), (30.7, 18.40), (30.8, 18.63), (31.0, 19.07),
-    (31.1, 19.30), (31.2, 19.52), (31.3, 19.75), (31.4, 19.97), (31.5, 20.20),
+    (22.5, 0.0),
+    (23.2, 1.57),
+    (26.8, 9.65),
+    (28.5, 13.46),
+    (28.9, 14.36),
+    (29.2, 15.03),
+    (29.5, 15.71),
+    (29.7, 16.16),
+    (29.9, 16.61),
+    (30.7, 18.40),
+    (30.8, 18.63),
+    (31.0, 19.07),
+    (31.1, 19.30),
+    (31.2, 19.52),
+    (31.3, 19.75),
+    (31.4, 19.97),
+    (31.5, 20.20),
 ]
 
 
@@ -200,9 +215,7 @@ def test_find_xi_rejects_constant_profile() -> None:
         find_xi(np.array([0.0, 1.0, 2.0]), np.array([20.0, 20.0, 20.0]))
 
 
-def _radial_log(
-    k_um_per_rpm2: float | None, outer_gain: float = 1.0, inner_gain: float = 1.0
-) -> tuple[Log, XiSpindle]:
+def _radial_log(k_um_per_rpm2: float | None, outer_gain: float = 1.0, inner_gain: float = 1.0) -> tuple[Log, XiSpindle]:
     """A synthetic spindle day whose errors are exactly the model's: the axial lift k, the ring gains."""
     t = np.arange(0.0, 4 * 3600.0, 60.0)
     speed = np.where((t // 1800) % 2 == 0, 9000.0, 3000.0)
@@ -211,10 +224,13 @@ def _radial_log(
     lift = None if k_um_per_rpm2 is None else LiftParams(k_um_per_rpm2=k_um_per_rpm2)
     truth = XiSpindle(
         XiSpindleParams(
-            alpha_per_k=13.6e-6, length_mm=160.0, lift=lift,
+            alpha_per_k=13.6e-6,
+            length_mm=160.0,
+            lift=lift,
             radial=RadialParams(inner_sensors=0, outer_gain=outer_gain, inner_gain=inner_gain),
         ),
-        ["T_xi", "T_brg_front"] + ([] if lift is None else ["speed_rpm"]), ["z", "radial"],
+        ["T_xi", "T_brg_front"] + ([] if lift is None else ["speed_rpm"]),
+        ["z", "radial"],
     )
     X = np.column_stack([t_xi, t_out, speed])
     E = truth.predict(X[:, : len(truth.inputs)], t)
@@ -227,9 +243,7 @@ def test_inner_ring_at_the_xi_sensor() -> None:
     rad0 = RadialParams(inner_sensors=0, clearance=False)
     rad1 = RadialParams(inner_sensors=1, clearance=False)
     m0 = XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad0), ["T_xi", "T_o"], ["z", "r"])
-    m1 = XiSpindle(
-        XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad1), ["T_xi", "T_i", "T_o"], ["z", "r"]
-    )
+    m1 = XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad1), ["T_xi", "T_i", "T_o"], ["z", "r"])
     out0, out1 = np.zeros(2), np.zeros(2)
     m0.start(np.array([20.0, 20.0]), 0.0)
     m1.start(np.array([20.0, 20.0, 20.0]), 0.0)
@@ -242,9 +256,7 @@ def test_inner_ring_at_the_xi_sensor() -> None:
 
 def test_fit_radial_recovers_the_lift() -> None:
     log, truth = _radial_log(8e-9)
-    fit = FITS.get(XiSpindle.kind)(
-        log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"]
-    )
+    fit = FITS.get(XiSpindle.kind)(log, ["T_xi", "T_brg_front", "speed_rpm"], ["err_z_um", "err_radial_um"])
     m = fit.model
     assert m.outputs == ["z", "radial"]
     assert m.inputs == ["T_xi", "T_brg_front", "speed_rpm"]
@@ -398,7 +410,8 @@ def test_lift_goes_on_the_axial_output_not_the_radial() -> None:
     rad = RadialParams(inner_sensors=0)
     lifted = XiSpindle(
         XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, lift=LiftParams(k_um_per_rpm2=1e-7), radial=rad),
-        ["T_xi", "T_o", "speed_rpm"], ["z", "r"],
+        ["T_xi", "T_o", "speed_rpm"],
+        ["z", "r"],
     )
     plain = XiSpindle(XiSpindleParams(alpha_per_k=13.6e-6, length_mm=165, radial=rad), ["T_xi", "T_o"], ["z", "r"])
     lifted.start(np.array([22.5, 22.5, 0.0]), 0.0)
@@ -421,12 +434,16 @@ def test_lift_wiring_and_params_are_checked() -> None:
     assert XiSpindle(named, ["T_xi", "S1"], ["z"]).inputs == ["T_xi", "S1"]
     with pytest.raises(ValueError, match="cannot both be set"):
         XiSpindleParams(
-            alpha_per_k=13.6e-6, length_mm=165, lift=LiftParams(k_um_per_rpm2=1e-7),
+            alpha_per_k=13.6e-6,
+            length_mm=165,
+            lift=LiftParams(k_um_per_rpm2=1e-7),
             radial=RadialParams(k_um_per_rpm2=1e-7),
         )
     with pytest.raises(ValueError, match="same bearings"):
         XiSpindleParams(
-            alpha_per_k=13.6e-6, length_mm=165, lift=LiftParams(k_um_per_rpm2=1e-7, preload_share=0.7),
+            alpha_per_k=13.6e-6,
+            length_mm=165,
+            lift=LiftParams(k_um_per_rpm2=1e-7, preload_share=0.7),
             radial=RadialParams(),
         )
     with pytest.raises(ValueError):
@@ -457,8 +474,10 @@ def test_older_model_file_keeps_its_radial_lift(tmp_path) -> None:
     dl = 13.6e-6 * 165.0 * 1000.0 * 4.3
     assert out[0] == pytest.approx(dl)  # no lift on the axial output, however fast it turns
     expect = (
-        outer_ring_um(1.5, 1.5, 37.66, 40.0, 11.5e-6) - inner_ring_um(4.3, 4.3, 25.0, 27.34, 11.5e-6, 0.26)
-        + clearance_um(dl, 10.319, 0.53) + 2.0e-8 * 12000.0**2
+        outer_ring_um(1.5, 1.5, 37.66, 40.0, 11.5e-6)
+        - inner_ring_um(4.3, 4.3, 25.0, 27.34, 11.5e-6, 0.26)
+        + clearance_um(dl, 10.319, 0.53)
+        + 2.0e-8 * 12000.0**2
     )
     assert out[1] == pytest.approx(expect)
     assert out[1] == pytest.approx(4.5749, abs=1e-3)  # of which k n² = 2.88 µm
@@ -523,6 +542,7 @@ def test_compd_fit_with_the_speed_compares_with_mlr_on_the_temperatures() -> Non
     """`compd fit --kind all` keeps xi_spindle when the inputs are the ξ sensor and the speed,
     and the held-out MLR baseline regresses on the temperature rises only (SPEC §3.5)."""
     from compd.commissioning import fitting
+
     log, _ = _radial_log(1e-7)
     assert fitting.applicable("xi_spindle", log, ["T_xi", "speed_rpm"], {}) is None
     assert fitting.applicable("xi_spindle", log, ["T_xi", "T_brg_front"], {}) is not None

@@ -46,13 +46,18 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Path], Pa
     out = tmp_path_factory.mktemp("debbuild")
     # the source's date the build takes (the last commit's): read now, a commit during the build would move it
     (out / "epoch").write_text(last_commit_time())
-    env = {k: v for k, v in os.environ.items()
-           if k not in {"PYTHONPATH", "VIRTUAL_ENV", "KEEP_STAGE", "SOURCE_DATE_EPOCH"}}
+    env = {
+        k: v for k, v in os.environ.items() if k not in {"PYTHONPATH", "VIRTUAL_ENV", "KEEP_STAGE", "SOURCE_DATE_EPOCH"}
+    }
     # xz at level 1: the same files as `make deb`'s level 6, in a tenth of the compression time
     env["DEB_COMPRESS_LEVEL"] = "1"
     r = subprocess.run(
         ["bash", str(ROOT / "scripts" / "build_deb.sh"), "--out", str(out)],
-        env=env, capture_output=True, text=True, timeout=840, cwd=out,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=840,
+        cwd=out,
     )
     assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
     arch = subprocess.run(["dpkg", "--print-architecture"], capture_output=True, text=True, check=True).stdout.strip()
@@ -91,18 +96,24 @@ def ctree(cdeb: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def field(deb: Path, name: str) -> str:
-    return subprocess.run(["dpkg-deb", "--field", str(deb), name], capture_output=True, text=True, check=True).stdout.strip()
+    return subprocess.run(
+        ["dpkg-deb", "--field", str(deb), name], capture_output=True, text=True, check=True
+    ).stdout.strip()
 
 
 def override_file(package: str) -> Path:
-    return ROOT / "packaging" / "deb" / ("lintian-overrides" if package == "compd" else "commissioning.lintian-overrides")
+    return (
+        ROOT / "packaging" / "deb" / ("lintian-overrides" if package == "compd" else "commissioning.lintian-overrides")
+    )
 
 
 @pytest.mark.parametrize("package", PACKAGES)
 def test_lintian_reports_no_error_and_every_override_is_used(built: tuple[dict[str, Path], Path], package: str) -> None:
     lintian = tool("lintian", "lintian")
     r = subprocess.run(
-        [lintian, "--fail-on", "error", "--display-info", str(built[0][package])], capture_output=True, text=True,
+        [lintian, "--fail-on", "error", "--display-info", str(built[0][package])],
+        capture_output=True,
+        text=True,
         timeout=840,
     )
     tags = [line for line in r.stdout.splitlines() if re.match(r"^[EWIPX]: ", line)]
@@ -134,10 +145,18 @@ def test_contents_units_conffile_and_control(deb: Path, tree: Path) -> None:
     assert {owner for _, owner, _ in entries.values()} == {"root/root"}
     assert entries[f"{VENV[1:]}/bin/compd"][0] == "-rwxr-xr-x"
     for path in (
-        "usr/bin/compd", f"{UNITDIR}/compd.service", f"{UNITDIR}/compd@.service", "etc/compd/compd.yaml",
-        "usr/lib/sysusers.d/compd.conf", "usr/share/doc/compd/copyright", "usr/share/doc/compd/changelog.Debian.gz",
-        "usr/share/man/man1/compd.1.gz", "usr/share/lintian/overrides/compd", f"{VENV[1:]}/bin/pip",
-        "opt/compd/docs/commissioning.md", "opt/compd/systemd/realtime.conf.example",
+        "usr/bin/compd",
+        f"{UNITDIR}/compd.service",
+        f"{UNITDIR}/compd@.service",
+        "etc/compd/compd.yaml",
+        "usr/lib/sysusers.d/compd.conf",
+        "usr/share/doc/compd/copyright",
+        "usr/share/doc/compd/changelog.Debian.gz",
+        "usr/share/man/man1/compd.1.gz",
+        "usr/share/lintian/overrides/compd",
+        f"{VENV[1:]}/bin/pip",
+        "opt/compd/docs/commissioning.md",
+        "opt/compd/systemd/realtime.conf.example",
     ):
         assert path in entries, path
     assert not [p for p in entries if p.endswith((".pyc", "__pycache__"))], "byte code is the postinst's"
@@ -148,8 +167,10 @@ def test_contents_units_conffile_and_control(deb: Path, tree: Path) -> None:
 
     assert field(deb, "Package") == "compd"
     assert field(deb, "Version") == f"{VERSION}-1"
-    assert field(deb, "Architecture") == subprocess.run(
-        ["dpkg", "--print-architecture"], capture_output=True, text=True, check=True).stdout.strip()
+    assert (
+        field(deb, "Architecture")
+        == subprocess.run(["dpkg", "--print-architecture"], capture_output=True, text=True, check=True).stdout.strip()
+    )
     assert re.fullmatch(r".+ <[^@\s]+@[^@\s]+\.[a-z]+>", field(deb, "Maintainer"))
     assert field(deb, "Description").startswith("real-time thermal-error compensation daemon")
     assert field(deb, "Suggests") == "compd-commissioning"
@@ -194,15 +215,38 @@ def test_the_commissioning_package_and_the_split(deb: Path, cdeb: Path, ctree: P
     files = {p for p, (mode, _, _) in comm.items() if not mode.startswith("d")}
     assert not files & {p for p, (mode, _, _) in daemon.items() if not mode.startswith("d")}
     assert {owner for _, owner, _ in comm.values()} == {"root/root"}
-    for folder in ("compd/identify", "compd/commissioning", "hil_sim", "rig", "scipy", "matplotlib", "asyncua",
-                   "cryptography", "tqdm"):
+    for folder in (
+        "compd/identify",
+        "compd/commissioning",
+        "hil_sim",
+        "rig",
+        "scipy",
+        "matplotlib",
+        "asyncua",
+        "cryptography",
+        "tqdm",
+    ):
         assert f"{site}/{folder}/__init__.py" in comm and f"{site}/{folder}" not in daemon, folder
-    for folder in ("compd/cli", "compd/daemon", "compd/core", "compd/plant", "numpy", "pymodbus", "pydantic",
-                   "yaml", "paho", "prometheus_client", "rich"):
+    for folder in (
+        "compd/cli",
+        "compd/daemon",
+        "compd/core",
+        "compd/plant",
+        "numpy",
+        "pymodbus",
+        "pydantic",
+        "yaml",
+        "paho",
+        "prometheus_client",
+        "rich",
+    ):
         assert f"{site}/{folder}/__init__.py" in daemon and f"{site}/{folder}" not in comm, folder
     assert f"{site}/compd/plant/opcua.py" in daemon  # compd's own server: its stack (asyncua) is the other's
-    for path in ("usr/share/doc/compd-commissioning/copyright", "usr/share/doc/compd-commissioning/changelog.Debian.gz",
-                 "usr/share/lintian/overrides/compd-commissioning"):
+    for path in (
+        "usr/share/doc/compd-commissioning/copyright",
+        "usr/share/doc/compd-commissioning/changelog.Debian.gz",
+        "usr/share/lintian/overrides/compd-commissioning",
+    ):
         assert path in comm, path
     assert not [p for p in files if p.startswith(("etc/", "lib/", "usr/bin/", "usr/lib/"))], "the daemon's places"
     assert not [p for p in comm if p.endswith((".pyc", "__pycache__"))], "byte code is the postinst's"
@@ -228,16 +272,19 @@ def du_mb(tree: Path) -> float:
 def test_sizes_the_daemon_a_third_of_the_one_package(deb: Path, cdeb: Path, tree: Path, ctree: Path) -> None:
     """The figures docs/commissioning.md states, measured as it says (printed: pytest -s)."""
     for name, package, where in (("compd", deb, tree), ("compd-commissioning", cdeb, ctree)):
-        print(f"{name}: .deb {package.stat().st_size / 1e6:.1f} MB, Installed-Size"
-              f" {int(field(package, 'Installed-Size')) * 1024 / 1e6:.1f} MB, du {du_mb(where):.1f} MB")
+        print(
+            f"{name}: .deb {package.stat().st_size / 1e6:.1f} MB, Installed-Size"
+            f" {int(field(package, 'Installed-Size')) * 1024 / 1e6:.1f} MB, du {du_mb(where):.1f} MB"
+        )
     assert int(field(deb, "Installed-Size")) * 1024 / 1e6 <= DAEMON_MAX_MB
     assert du_mb(tree) <= DAEMON_MAX_MB
     assert int(field(cdeb, "Installed-Size")) > int(field(deb, "Installed-Size"))
 
 
 def last_commit_time() -> str:
-    return subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%ct"], capture_output=True, text=True,
-                          check=True).stdout.strip()
+    return subprocess.run(
+        ["git", "-C", str(ROOT), "log", "-1", "--format=%ct"], capture_output=True, text=True, check=True
+    ).stdout.strip()
 
 
 def test_every_time_in_the_packages_is_the_sources_at_most(built: tuple[dict[str, Path], Path]) -> None:
@@ -249,7 +296,7 @@ def test_every_time_in_the_packages_is_the_sources_at_most(built: tuple[dict[str
         assert data.startswith(b"!<arch>\n")
         at, dates = 8, []
         while at < len(data):
-            header = data[at:at + 60]
+            header = data[at : at + 60]
             dates.append(int(header[16:28]))
             at += 60 + int(header[48:58]) + (int(header[48:58]) % 2)
         assert dates == [epoch] * 3, dates  # debian-binary, control.tar, data.tar
@@ -262,7 +309,8 @@ def test_every_time_in_the_packages_is_the_sources_at_most(built: tuple[dict[str
 
 
 def test_nothing_in_the_packages_names_the_build_or_the_checkout(
-        built: tuple[dict[str, Path], Path], tree: Path, ctree: Path) -> None:
+    built: tuple[dict[str, Path], Path], tree: Path, ctree: Path
+) -> None:
     _, out = built
     for where in (tree, ctree):
         named = naming(where, [str(out), str(ROOT)])
@@ -362,7 +410,9 @@ def test_installs_and_runs_in_a_throw_away_root(deb: Path, cdeb: Path, tmp_path:
     extract(cdeb, c)
     # what `dpkg-query -L compd-commissioning` says once it is installed: its files at their final paths
     listing = subprocess.run(["dpkg-deb", "--contents", str(cdeb)], capture_output=True, text=True, check=True).stdout
-    names = (line.split(None, 5)[5].partition(" -> ")[0].removeprefix("./").rstrip("/") for line in listing.splitlines())
+    names = (
+        line.split(None, 5)[5].partition(" -> ")[0].removeprefix("./").rstrip("/") for line in listing.splitlines()
+    )
     (res / "cfiles").write_text("".join(f"/{name}\n" for name in names))
     passwd = Path("/etc/passwd").read_bytes()
     had_user = b"\ncompd:" in b"\n" + passwd
@@ -371,9 +421,23 @@ def test_installs_and_runs_in_a_throw_away_root(deb: Path, cdeb: Path, tmp_path:
     # the packages' python must see the packages only: no checkout on PYTHONPATH (pytest's, make's)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV", "COMPD"))}
     r = subprocess.run(
-        ["unshare", "--mount", "--propagation", "private", "sh", str(script), str(x), str(c), str(upper), str(work),
-         str(res)],
-        capture_output=True, text=True, timeout=600, env=env,
+        [
+            "unshare",
+            "--mount",
+            "--propagation",
+            "private",
+            "sh",
+            str(script),
+            str(x),
+            str(c),
+            str(upper),
+            str(work),
+            str(res),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
     )
     assert r.returncode == 0, r.stdout + r.stderr
 
@@ -398,15 +462,22 @@ def test_installs_and_runs_in_a_throw_away_root(deb: Path, cdeb: Path, tmp_path:
     # the daemon package alone
     assert out("alone_check").strip() == "ok"
     assert "compd: 120 cycles, 0 missed" in out("alone_run")
-    assert out("alone_shipped", 2).strip().endswith(
-        "sources[0].kind: source kind 'sim' is part of the compd-commissioning package, which is not installed")
+    assert (
+        out("alone_shipped", 2)
+        .strip()
+        .endswith(
+            "sources[0].kind: source kind 'sim' is part of the compd-commissioning package, which is not installed"
+        )
+    )
     assert out("alone_fit", 2) == "compd fit: part of the compd-commissioning package, which is not installed\n"
     assert out("alone_extras").strip().splitlines()[-1] == "ok"
     assert out("alone_absent").strip() == "[]"
     # pip knows compd's metadata asks for scipy and tqdm (the commissioning package's), and says only that
     missing = out("alone_pipcheck", 1).strip().splitlines()
-    assert sorted(missing) == [f"compd {VERSION} requires scipy, which is not installed.",
-                               f"compd {VERSION} requires tqdm, which is not installed."], missing
+    assert sorted(missing) == [
+        f"compd {VERSION} requires scipy, which is not installed.",
+        f"compd {VERSION} requires tqdm, which is not installed.",
+    ], missing
 
     # with compd-commissioning: all of today's single package
     out("cpostinst")
@@ -426,7 +497,12 @@ def test_installs_and_runs_in_a_throw_away_root(deb: Path, cdeb: Path, tmp_path:
     out("cprerm")
     left = (res / "pycs_left").read_text().split()
     assert any("/site-packages/compd/cli/__pycache__/" in p for p in left)
-    ours = ("/site-packages/scipy/", "/site-packages/matplotlib/", "/site-packages/hil_sim/", "/site-packages/compd/identify/")
+    ours = (
+        "/site-packages/scipy/",
+        "/site-packages/matplotlib/",
+        "/site-packages/hil_sim/",
+        "/site-packages/compd/identify/",
+    )
     assert not [p for p in left if any(o in p for o in ours)], left[:5]
     out("prerm")
     assert (res / "left").read_text() == "", "prerm leaves no byte code for dpkg to trip over"

@@ -73,8 +73,12 @@ def record_line(name: str, data: bytes) -> str:
 def test_relocate_points_a_staged_venv_at_its_final_path(tmp_path: Path) -> None:
     stage, final = tmp_path / "stage", "/opt/compd/venv"
     venv = fake_venv(stage, final)
-    r = subprocess.run([sys.executable, str(RELOCATE), "--destdir", str(stage), "--venv", final,
-                        "--forbid", str(tmp_path / "build")], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(RELOCATE), "--destdir", str(stage), "--venv", final, "--forbid", str(tmp_path / "build")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0, r.stderr
     assert (venv / "bin/compd").read_text() == f"#!{final}/bin/python\nfrom compd.cli import main\n"
     assert (venv / "bin/tool").read_text() == f"#!{final}/bin/python\nimport tool\n"
@@ -96,8 +100,12 @@ def test_relocate_refuses_a_file_it_cannot_fix_naming_it_in_one_line(tmp_path: P
     (venv / "lib/python3.11/site-packages/pkg/_native.so").write_bytes(b"\x7fELF\0" + os.fsencode(str(stage)) + b"\0")
     (venv / "share").mkdir()
     (venv / "share/built-from.txt").write_text(f"{tmp_path}/build\n")
-    r = subprocess.run([sys.executable, str(RELOCATE), "--destdir", str(stage), "--venv", final,
-                        "--forbid", str(tmp_path / "build")], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(RELOCATE), "--destdir", str(stage), "--venv", final, "--forbid", str(tmp_path / "build")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and "2 staged files still name" in r.stderr
     assert "_native.so" in r.stderr and "built-from.txt" in r.stderr
@@ -114,8 +122,14 @@ def test_install_script_stages_a_tree_that_names_only_its_final_paths(tmp_path: 
         "PYTHON": sys.executable,
         "PIP_ARGS": "--no-deps --no-index",  # offline: the test checks compd's own files
     }
-    r = subprocess.run(["bash", str(ROOT / "scripts" / "install.sh")], env=env, capture_output=True, text=True,
-                       timeout=300, cwd=tmp_path)
+    r = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "install.sh")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     # every runtime extra: all of pyproject's but the test tools
     extras = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["optional-dependencies"]
@@ -128,8 +142,14 @@ def test_install_script_stages_a_tree_that_names_only_its_final_paths(tmp_path: 
     assert not list(venv.rglob("__pycache__")) and not list(venv.rglob("*.pyc"))
     assert naming(stage, [str(tmp_path), str(ROOT)]) == []
     # a venv with pip, which works where it stands too
-    pip = subprocess.run([str(venv / "bin/python"), "-m", "pip", "--version"], capture_output=True, text=True,
-                         timeout=60, cwd=tmp_path, env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"})
+    pip = subprocess.run(
+        [str(venv / "bin/python"), "-m", "pip", "--version"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
+    )
     assert pip.returncode == 0 and pip.stdout.startswith("pip "), pip.stderr
 
     if os.geteuid() != 0 or shutil.which("unshare") is None:
@@ -138,12 +158,20 @@ def test_install_script_stages_a_tree_that_names_only_its_final_paths(tmp_path: 
     # validates the shipped config (dependencies from this interpreter's site-packages: --no-deps)
     deps = sysconfig.get_paths()["purelib"]
     script = (
-        "set -e; mount -t tmpfs tmpfs /opt; mkdir /opt/compd-test; mount --bind \"$1/opt/compd-test\" /opt/compd-test; "
-        "/opt/compd-test/venv/bin/compd check-config \"$1/etc/compd/compd.yaml\"; "
+        'set -e; mount -t tmpfs tmpfs /opt; mkdir /opt/compd-test; mount --bind "$1/opt/compd-test" /opt/compd-test; '
+        '/opt/compd-test/venv/bin/compd check-config "$1/etc/compd/compd.yaml"; '
         "/opt/compd-test/venv/bin/python -c 'import compd; print(compd.__file__)'"
     )
-    run = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c", script, "sh", str(stage)],
-                         env={**os.environ, "PYTHONPATH": deps}, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    run = subprocess.run(
+        ["unshare", "--mount", "--propagation", "private", "sh", "-c", script, "sh", str(stage)],
+        env={**os.environ, "PYTHONPATH": deps},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
-    assert lines[0] == "ok" and re.fullmatch(r"/opt/compd-test/venv/lib/python3\.\d+/site-packages/compd/__init__\.py", lines[1])
+    assert lines[0] == "ok" and re.fullmatch(
+        r"/opt/compd-test/venv/lib/python3\.\d+/site-packages/compd/__init__\.py", lines[1]
+    )

@@ -63,7 +63,9 @@ def composed(tmp_path: Path, name: str, *drop_ins: str) -> Path:
 def exposure(unit: Path) -> float:
     r = subprocess.run(
         [systemd_analyze(), "security", "--offline=true", "--no-pager", str(unit)],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     m = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", r.stdout + r.stderr)
     assert m, r.stdout + r.stderr
@@ -176,11 +178,17 @@ def test_realtime_drop_in_still_grants_what_realtime_py_needs(tmp_path, name):
     # systemd reads the composition the same way: the drop-in opens exactly these checks
     r = subprocess.run(
         [systemd_analyze(), "security", "--offline=true", "--json=short", str(unit)],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     failed = {t["name"] for t in json.loads(r.stdout) if t["set"] is False}
-    assert {"SystemCallFilter=~@resources", "CapabilityBoundingSet=~CAP_SYS_(NICE|RESOURCE)",
-            "CapabilityBoundingSet=~CAP_IPC_LOCK", "RestrictRealtime="} <= failed
+    assert {
+        "SystemCallFilter=~@resources",
+        "CapabilityBoundingSet=~CAP_SYS_(NICE|RESOURCE)",
+        "CapabilityBoundingSet=~CAP_IPC_LOCK",
+        "RestrictRealtime=",
+    } <= failed
 
 
 def test_network_drop_in_names_only_documentation_addresses():
@@ -209,7 +217,10 @@ def test_systemd_analyze_verify(tmp_path):
     for unit in ("compd.service", "compd@lathe1.service"):
         r = subprocess.run(
             [systemd_analyze(), "verify", str(tmp_path / unit)],
-            env=env, capture_output=True, text=True, timeout=60,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=60,
         )
         assert r.returncode == 0, r.stderr
         lines = [ln for ln in r.stderr.splitlines() if "compd" in ln]
@@ -237,7 +248,9 @@ def test_unit_command_reaches_ready_pings_the_watchdog_and_stops_on_sigterm(tmp_
     sock.bind(socket_address(name))
     sock.settimeout(30)
     env.update(NOTIFY_SOCKET=name, WATCHDOG_USEC="200000")
-    proc = subprocess.Popen(adapt(unit["ExecStart"]), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        adapt(unit["ExecStart"]), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
         messages = [sock.recv(4096).decode()]
         assert messages[0].splitlines()[0] == "READY=1"
@@ -268,7 +281,9 @@ def test_install_script_stages_everything(tmp_path):
         "PYTHON": sys.executable,
         "PIP_ARGS": "--no-deps --no-index",  # offline: the test checks compd's own files
     }
-    r = subprocess.run(["bash", str(ROOT / "scripts" / "install.sh")], env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "install.sh")], env=env, capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     unit = stage / "etc/systemd/system/compd.service"
     v = unit_values(unit)
@@ -286,16 +301,26 @@ def test_install_script_stages_everything(tmp_path):
     deps = sysconfig.get_paths()["purelib"]
     check = subprocess.run(
         [str(stage / "opt/compd-test/venv/bin/python"), "-m", "compd", "check-config", str(config)],
-        env={**os.environ, "PYTHONPATH": deps}, capture_output=True, text=True, timeout=60, cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": deps},
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
     )
     assert check.returncode == 0 and check.stdout.strip() == "ok", check.stderr
     where = subprocess.run(
         [str(stage / "opt/compd-test/venv/bin/python"), "-c", "import compd; print(compd.__file__)"],
-        env={**os.environ, "PYTHONPATH": deps}, capture_output=True, text=True, timeout=60, cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": deps},
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
     )
     assert str(stage) in where.stdout
     # a second install keeps the user's config
     config.write_text(config.read_text() + "# edited\n")
-    r = subprocess.run(["bash", str(ROOT / "scripts" / "install.sh")], env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "install.sh")], env=env, capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 0 and "keeping the existing" in r.stdout
     assert config.read_text().endswith("# edited\n")

@@ -42,7 +42,8 @@ sources:
 
 MOSQUITTO = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None)
 MOSQUITTO_PASSWD = shutil.which("mosquitto_passwd") or (
-    "/usr/bin/mosquitto_passwd" if Path("/usr/bin/mosquitto_passwd").exists() else None)
+    "/usr/bin/mosquitto_passwd" if Path("/usr/bin/mosquitto_passwd").exists() else None
+)
 
 
 def need_mosquitto() -> str:
@@ -85,11 +86,17 @@ class Tls:
         ca_key = _key()
         ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "compd test CA")])
         now = dt.datetime.now(dt.UTC)
-        ca_cert = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name)
-                   .public_key(ca_key.public_key()).serial_number(x509.random_serial_number())
-                   .not_valid_before(now - dt.timedelta(days=1)).not_valid_after(now + dt.timedelta(days=30))
-                   .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
-                   .sign(ca_key, hashes.SHA256()))
+        ca_cert = (
+            x509.CertificateBuilder()
+            .subject_name(ca_name)
+            .issuer_name(ca_name)
+            .public_key(ca_key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(days=1))
+            .not_valid_after(now + dt.timedelta(days=30))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+            .sign(ca_key, hashes.SHA256())
+        )
         self.ca = _write_cert(f / "ca.pem", ca_cert)
         self.server_cert, self.server_key = self._leaf("server", ca_key, ca_cert, server=True)
         self.client_cert, self.client_key = self._leaf("client", ca_key, ca_cert, server=False)
@@ -97,17 +104,29 @@ class Tls:
     def _leaf(self, name: str, ca_key: Any, ca_cert: Any, server: bool) -> tuple[Path, Path]:
         key = _key()
         now = dt.datetime.now(dt.UTC)
-        b = (x509.CertificateBuilder()
-             .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1" if server else name)]))
-             .issuer_name(ca_cert.subject).public_key(key.public_key()).serial_number(x509.random_serial_number())
-             .not_valid_before(now - dt.timedelta(days=1)).not_valid_after(now + dt.timedelta(days=30)))
+        b = (
+            x509.CertificateBuilder()
+            .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1" if server else name)]))
+            .issuer_name(ca_cert.subject)
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(days=1))
+            .not_valid_after(now + dt.timedelta(days=30))
+        )
         if server:
-            b = b.add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
-                                                             x509.DNSName("localhost")]), critical=False)
+            b = b.add_extension(
+                x509.SubjectAlternativeName(
+                    [x509.IPAddress(ipaddress.ip_address("127.0.0.1")), x509.DNSName("localhost")]
+                ),
+                critical=False,
+            )
         cert = b.sign(ca_key, hashes.SHA256())
         kpath = self.folder / f"{name}.key"
-        kpath.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.TraditionalOpenSSL,
-                                            serialization.NoEncryption()))
+        kpath.write_bytes(
+            key.private_bytes(
+                serialization.Encoding.PEM, serialization.PrivateFormat.TraditionalOpenSSL, serialization.NoEncryption()
+            )
+        )
         kpath.chmod(0o600)
         return _write_cert(self.folder / f"{name}.pem", cert), kpath
 
@@ -124,34 +143,56 @@ def _write_cert(path: Path, cert: Any) -> Path:
 class Mosquitto:
     """mosquitto on 127.0.0.1:`port` with a config written here; `kill` and `start` again for an outage."""
 
-    def __init__(self, folder: Path, *, users: dict[str, str] | None = None, tls: Tls | None = None,
-                 require_certificate: bool = False) -> None:
+    def __init__(
+        self,
+        folder: Path,
+        *,
+        users: dict[str, str] | None = None,
+        tls: Tls | None = None,
+        require_certificate: bool = False,
+    ) -> None:
         self.exe = need_mosquitto()
         self.folder = folder
         folder.mkdir(parents=True, exist_ok=True)
         self.port = free_port()
-        lines = [f"listener {self.port} 127.0.0.1", f"user {getpass.getuser()}", "persistence false", f"log_dest file {folder / 'mosquitto.log'}",
-                 "log_type error", "log_type warning", "max_queued_messages 100000", "max_inflight_messages 0"]
+        lines = [
+            f"listener {self.port} 127.0.0.1",
+            f"user {getpass.getuser()}",
+            "persistence false",
+            f"log_dest file {folder / 'mosquitto.log'}",
+            "log_type error",
+            "log_type warning",
+            "max_queued_messages 100000",
+            "max_inflight_messages 0",
+        ]
         if users:
             pw = folder / "passwd"
             pw.write_text("")
             for user, password in users.items():
-                subprocess.run([MOSQUITTO_PASSWD or "mosquitto_passwd", "-b", str(pw), user, password], check=True,
-                               capture_output=True)
+                subprocess.run(
+                    [MOSQUITTO_PASSWD or "mosquitto_passwd", "-b", str(pw), user, password],
+                    check=True,
+                    capture_output=True,
+                )
             pw.chmod(0o600)
             lines += ["allow_anonymous false", f"password_file {pw}"]
         else:
             lines.append("allow_anonymous true")
         if tls is not None:
-            lines += [f"cafile {tls.ca}", f"certfile {tls.server_cert}", f"keyfile {tls.server_key}",
-                      f"require_certificate {'true' if require_certificate else 'false'}"]
+            lines += [
+                f"cafile {tls.ca}",
+                f"certfile {tls.server_cert}",
+                f"keyfile {tls.server_key}",
+                f"require_certificate {'true' if require_certificate else 'false'}",
+            ]
         self.conf = folder / "mosquitto.conf"
         self.conf.write_text("\n".join(lines) + "\n")
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> Mosquitto:
-        self.proc = subprocess.Popen([self.exe, "-c", str(self.conf)], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE)
+        self.proc = subprocess.Popen(
+            [self.exe, "-c", str(self.conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+        )
         try:
             wait_port(self.port)
         except TimeoutError:
@@ -185,8 +226,16 @@ class Message:
 class Listener:
     """A Sparkplug host of the test's own: subscribes to spBv1.0/#, decodes every message."""
 
-    def __init__(self, port: int, *, username: str | None = None, password: str | None = None,
-                 tls: Tls | None = None, client_id: str = "test-listener", host_id: str | None = None) -> None:
+    def __init__(
+        self,
+        port: int,
+        *,
+        username: str | None = None,
+        password: str | None = None,
+        tls: Tls | None = None,
+        client_id: str = "test-listener",
+        host_id: str | None = None,
+    ) -> None:
         self.messages: list[Message] = []
         self.errors: list[str] = []
         self.aliases = AliasResolver()  # data comes by alias: named from the births, as a host does
@@ -213,8 +262,12 @@ class Listener:
 
     def _on_subscribe(self, client: Any, *args: Any) -> None:
         if self.host_id is not None:  # online once it receives what the edge nodes send
-            client.publish(f"spBv1.0/STATE/{self.host_id}",
-                           json.dumps({"online": True, "timestamp": int(time.time() * 1000)}), qos=1, retain=True)
+            client.publish(
+                f"spBv1.0/STATE/{self.host_id}",
+                json.dumps({"online": True, "timestamp": int(time.time() * 1000)}),
+                qos=1,
+                retain=True,
+            )
         self._subscribed.set()
 
     def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
@@ -261,8 +314,13 @@ def metric(payload: Payload, name: str) -> Any:
 def daemon(cfg: Path, err_path: Path) -> Iterator[subprocess.Popen[bytes]]:
     """`compd run CFG` (stderr to `err_path`) for the block; SIGTERM at the end, its exit awaited."""
     with open(err_path, "w") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "compd", "run", str(cfg)], cwd=cfg.parent,
-                                stdout=subprocess.DEVNULL, stderr=err, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "compd", "run", str(cfg)],
+            cwd=cfg.parent,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
         try:
             yield proc
         finally:

@@ -75,8 +75,15 @@ def test_over_the_limit_the_oldest_are_dropped_and_counted(path):
         assert [r.t_ms for r in buf.pending(100)] == [11]
         assert (buf.dropped, buf.dropped_bytes) == (12, 2251)
         status = buf.get_status()
-        assert status == {"path": str(path), "records": 1, "bytes": 1000, "max_bytes": 1000,
-                          "dropped": 12, "dropped_bytes": 2251, "oldest_t_ms": 11}
+        assert status == {
+            "path": str(path),
+            "records": 1,
+            "bytes": 1000,
+            "max_bytes": 1000,
+            "dropped": 12,
+            "dropped_bytes": 2251,
+            "oldest_t_ms": 11,
+        }
     # the counts kept in memory are the ones on disk
     with sqlite3.connect(path) as db:
         assert db.execute("SELECT COUNT(*), SUM(length(body)) FROM records").fetchone() == (1, 1000)
@@ -117,6 +124,7 @@ def test_a_lowered_limit_drops_the_oldest_on_open(path):
 
 def test_two_threads_at_once(path):
     with StoreAndForward(path, 1 << 20) as buf:
+
         def writer(k: int) -> None:
             for i in range(200):
                 buf.put(i, f"w{k}", body(i, 10))
@@ -156,8 +164,7 @@ while True:
 
 def test_kill_9_loses_nothing_committed(path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE,
-                            env=env, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, env=env, text=True)
     committed = []
     try:
         assert proc.stdout is not None

@@ -38,7 +38,9 @@ PASSWORD = "correct horse"
 TIMEOUT_S = 30.0  # for a value to appear: generous, never a speed assertion
 PERIOD_S = 0.5  # opcua.period_s: every variable's MinimumSamplingInterval is 500 ms
 # the config's guard: its clamps and signal limits are the EURanges (x has a clamp of its own, z the default)
-GUARD = GuardConfig(max_abs_um=40.0, axes={"x": {"max_abs_um": 20.0}}, signals={"T_spindle": {"min": 10.0, "max": 60.0}})
+GUARD = GuardConfig(
+    max_abs_um=40.0, axes={"x": {"max_abs_um": 20.0}}, signals={"T_spindle": {"min": 10.0, "max": 60.0}}
+)
 
 SNAP: dict[str, Any] = {
     "state": "running",
@@ -46,12 +48,32 @@ SNAP: dict[str, Any] = {
     "written_unix_s": 1795541065.5,
     "word": "0x4512",
     "axes": {
-        "x": {"correction_um": -3.25, "target_um": -3.5, "prediction_um": 3.5, "commanded_um": -3.25,
-              "applied_um": -3.0, "enable": True, "state": "normal", "inhibit": None, "saturated": False,
-              "byte": "0x12", "word_byte": "low"},
-        "z": {"correction_um": 0.0, "target_um": -5.375, "prediction_um": 5.375, "commanded_um": None,
-              "applied_um": None, "enable": False, "state": "starting", "inhibit": "waiting for reference",
-              "saturated": True, "byte": "0x45", "word_byte": "high"},
+        "x": {
+            "correction_um": -3.25,
+            "target_um": -3.5,
+            "prediction_um": 3.5,
+            "commanded_um": -3.25,
+            "applied_um": -3.0,
+            "enable": True,
+            "state": "normal",
+            "inhibit": None,
+            "saturated": False,
+            "byte": "0x12",
+            "word_byte": "low",
+        },
+        "z": {
+            "correction_um": 0.0,
+            "target_um": -5.375,
+            "prediction_um": 5.375,
+            "commanded_um": None,
+            "applied_um": None,
+            "enable": False,
+            "state": "starting",
+            "inhibit": "waiting for reference",
+            "saturated": True,
+            "byte": "0x45",
+            "word_byte": "high",
+        },
     },
     "signals": {
         "T_spindle": {"value": 22.4, "quality": "good", "age_s": 0.0},
@@ -60,7 +82,10 @@ SNAP: dict[str, Any] = {
         "coolant": {"value": 3.0, "quality": "good", "age_s": 0.0},  # its name says no unit
     },
     "loop": {
-        "period_ms": 50.0, "cycles": 12001, "misses": 3, "skipped": 1,
+        "period_ms": 50.0,
+        "cycles": 12001,
+        "misses": 3,
+        "skipped": 1,
         "lateness_us": {"p50": 1.0, "p99": 12.5, "p999": 30.0, "max": 44.0},
         "cycle_compute_us": {"p50": 144.0, "p99": 278.0, "max": 1058.9},
     },
@@ -70,12 +95,17 @@ SNAP: dict[str, Any] = {
 }
 
 # a signal's quality → the StatusCode of its Value (docs/plant.md, "Status codes")
-QUALITY_STATUS = {"good": "Good", "bad": "BadSensorFailure", "stale": "UncertainLastUsableValue",
-                  "comms_lost": "BadNoCommunication"}
+QUALITY_STATUS = {
+    "good": "Good",
+    "bad": "BadSensorFailure",
+    "stale": "UncertainLastUsableValue",
+    "comms_lost": "BadNoCommunication",
+}
 
 
 def expected(snap: dict[str, Any]) -> dict[str, tuple[Any, str]]:
     """Node id → (value, StatusCode name) that a client should read for `snap`."""
+
     def num(v: Any) -> tuple[Any, str]:
         return (v, "Good") if v is not None else (None, "BadNoData")
 
@@ -121,12 +151,27 @@ class Pki:
     def __init__(self, root: Path) -> None:
         self.root = root
         (root / "trusted").mkdir()
-        generate_certificate(root / "server.pem", root / "server.key", common_name="compd test",
-                             application_uri="urn:compd:test-server", hosts=["127.0.0.1", "localhost"])
-        generate_certificate(root / "trusted" / "client.pem", root / "client.key", common_name="scada",
-                             application_uri="urn:compd:test-client", hosts=["127.0.0.1"])
-        generate_certificate(root / "stranger.pem", root / "stranger.key", common_name="stranger",
-                             application_uri="urn:compd:test-stranger", hosts=["127.0.0.1"])
+        generate_certificate(
+            root / "server.pem",
+            root / "server.key",
+            common_name="compd test",
+            application_uri="urn:compd:test-server",
+            hosts=["127.0.0.1", "localhost"],
+        )
+        generate_certificate(
+            root / "trusted" / "client.pem",
+            root / "client.key",
+            common_name="scada",
+            application_uri="urn:compd:test-client",
+            hosts=["127.0.0.1"],
+        )
+        generate_certificate(
+            root / "stranger.pem",
+            root / "stranger.key",
+            common_name="stranger",
+            application_uri="urn:compd:test-stranger",
+            hosts=["127.0.0.1"],
+        )
         (root / "alice.password").write_text(PASSWORD + "\n")
 
     def client(self, name: str) -> tuple[bytes, bytes, str]:
@@ -137,17 +182,23 @@ class Pki:
         uri = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
         return (
             cert.public_bytes(serialization.Encoding.DER),
-            key.private_bytes(serialization.Encoding.DER, serialization.PrivateFormat.PKCS8,
-                              serialization.NoEncryption()),
+            key.private_bytes(
+                serialization.Encoding.DER, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+            ),
             uri.get_values_for_type(x509.UniformResourceIdentifier)[0],
         )
 
 
 def config(**changes: Any) -> OpcUaConfig:
     base: dict[str, Any] = dict(
-        bind="127.0.0.1", port=0, certificate="server.pem", private_key="server.key",
-        trusted_clients="trusted", users={"alice": {"password_file": "alice.password"}},
-        namespace_uri=NS_URI, period_s=PERIOD_S,
+        bind="127.0.0.1",
+        port=0,
+        certificate="server.pem",
+        private_key="server.key",
+        trusted_clients="trusted",
+        users={"alice": {"password_file": "alice.password"}},
+        namespace_uri=NS_URI,
+        period_s=PERIOD_S,
     )
     return OpcUaConfig(**(base | changes))
 
@@ -166,15 +217,17 @@ def served(pki: Pki) -> Any:
     server.stop()
 
 
-async def connect(url: str, pki: Pki, *, cert: str | None = "client", user: str | None = "alice",
-                  password: str = PASSWORD) -> Client:
+async def connect(
+    url: str, pki: Pki, *, cert: str | None = "client", user: str | None = "alice", password: str = PASSWORD
+) -> Client:
     """A connected client: Basic256Sha256 SignAndEncrypt with `cert` (None: no security)."""
     client = Client(url, timeout=TIMEOUT_S)
     if cert is not None:
         cert_der, key_der, uri = pki.client(cert)
         client.application_uri = uri
-        await client.set_security(SecurityPolicyBasic256Sha256, cert_der, key_der,
-                                  mode=ua.MessageSecurityMode.SignAndEncrypt)
+        await client.set_security(
+            SecurityPolicyBasic256Sha256, cert_der, key_der, mode=ua.MessageSecurityMode.SignAndEncrypt
+        )
     if user is not None:
         client.set_user(user)
         client.set_password(password)
@@ -184,6 +237,7 @@ async def connect(url: str, pki: Pki, *, cert: str | None = "client", user: str 
 
 def run(url: str, pki: Pki, body: Callable[[Client], Awaitable[Any]], **kw: Any) -> Any:
     """Connect, run `body(client)`, disconnect; on a loop of its own."""
+
     async def main() -> Any:
         client = await connect(url, pki, **kw)
         try:
@@ -238,9 +292,14 @@ def test_values_are_the_snapshots_and_follow_updates(served: Any, pki: Pki) -> N
         errors = server.get_status()["errors"]
         server.update(odd)  # another shape: what it has is written, the rest is Bad, one error
         assert server.get_status()["errors"] == errors + 1
-        await until(lambda: read_all(client, ["compd.State", "compd.Axes.x.CorrectionUm", "compd.Loop.Cycles"]),
-                    {"compd.State": ("running", "Good"), "compd.Axes.x.CorrectionUm": (None, "BadNoData"),
-                     "compd.Loop.Cycles": (None, "BadNoData")})
+        await until(
+            lambda: read_all(client, ["compd.State", "compd.Axes.x.CorrectionUm", "compd.Loop.Cycles"]),
+            {
+                "compd.State": ("running", "Good"),
+                "compd.Axes.x.CorrectionUm": (None, "BadNoData"),
+                "compd.Loop.Cycles": (None, "BadNoData"),
+            },
+        )
         server.update(copy.deepcopy(SNAP))
         await until(lambda: read_all(client, list(first)), first)
 
@@ -259,21 +318,33 @@ def test_a_stale_cycle_s_values_are_its_last_usable_ones(served: Any, pki: Pki) 
     stale = copy.deepcopy(SNAP)
     mark_stale(stale)
     stale["record_age_s"] = 3.0
-    nodes = ["compd.State", "compd.Axes.x.State", "compd.Axes.x.CorrectionUm", "compd.Axes.x.Enable",
-             "compd.Signals.T_spindle.Value", "compd.Signals.T_bed.Value", "compd.Loop.Cycles"]
-    want = {"compd.State": ("stale", "Good"), "compd.Axes.x.State": ("stale", "Good"),
-            "compd.Axes.x.CorrectionUm": (-3.25, "UncertainLastUsableValue"),
-            "compd.Axes.x.Enable": (None, "BadNoData"),  # not confirmed at the machine
-            "compd.Signals.T_spindle.Value": (22.4, "UncertainLastUsableValue"),
-            "compd.Signals.T_bed.Value": (None, "BadSensorFailure"),
-            "compd.Loop.Cycles": (12001, "UncertainLastUsableValue")}
+    nodes = [
+        "compd.State",
+        "compd.Axes.x.State",
+        "compd.Axes.x.CorrectionUm",
+        "compd.Axes.x.Enable",
+        "compd.Signals.T_spindle.Value",
+        "compd.Signals.T_bed.Value",
+        "compd.Loop.Cycles",
+    ]
+    want = {
+        "compd.State": ("stale", "Good"),
+        "compd.Axes.x.State": ("stale", "Good"),
+        "compd.Axes.x.CorrectionUm": (-3.25, "UncertainLastUsableValue"),
+        "compd.Axes.x.Enable": (None, "BadNoData"),  # not confirmed at the machine
+        "compd.Signals.T_spindle.Value": (22.4, "UncertainLastUsableValue"),
+        "compd.Signals.T_bed.Value": (None, "BadSensorFailure"),
+        "compd.Loop.Cycles": (12001, "UncertainLastUsableValue"),
+    }
 
     async def body(client: Client) -> Any:
         server.update(stale)
         await until(lambda: read_all(client, nodes), want)
         idx = await client.get_namespace_index(NS_URI)
-        stamps = [(await client.get_node(ua.NodeId(n, idx)).read_data_value(raise_on_bad_status=False)).SourceTimestamp
-                  for n in ("compd.Axes.x.CorrectionUm", "compd.State")]
+        stamps = [
+            (await client.get_node(ua.NodeId(n, idx)).read_data_value(raise_on_bad_status=False)).SourceTimestamp
+            for n in ("compd.Axes.x.CorrectionUm", "compd.State")
+        ]
         server.update(copy.deepcopy(SNAP))
         await until(lambda: read_all(client, ["compd.State"]), {"compd.State": ("running", "Good")})
         return stamps
@@ -339,7 +410,8 @@ def _signal_row(signal_rows: list[list[str]], name: str) -> list[str]:
     for row in signal_rows:
         for pattern in row[0].replace("`", "").split(", "):
             if (pattern.endswith("…") and name.startswith(pattern[:-1])) or (
-                    pattern.startswith("…") and name.lower().endswith(pattern[1:])):
+                pattern.startswith("…") and name.lower().endswith(pattern[1:])
+            ):
                 return row
     return next(row for row in signal_rows if row[0] == "any other")
 
@@ -372,9 +444,11 @@ def test_browse_matches_the_documented_address_space(served: Any, pki: Pki) -> N
     # compd, State, Observe; Axes, 2 × (folder + 12); Signals, 4 × (folder + 2); Loop + 9
     assert len(want) == 3 + (1 + 2 * 13) + (1 + 4 * 3) + (1 + 9)
     read_only = ua.AccessLevel.CurrentRead.mask
-    type_names = {ua.NodeId(ua.ObjectIds.FolderType): "Folder",
-                  ua.NodeId(ua.ObjectIds.AnalogItemType): "AnalogItemType",
-                  ua.NodeId(ua.ObjectIds.BaseDataVariableType): "BaseDataVariableType"}
+    type_names = {
+        ua.NodeId(ua.ObjectIds.FolderType): "Folder",
+        ua.NodeId(ua.ObjectIds.AnalogItemType): "AnalogItemType",
+        ua.NodeId(ua.ObjectIds.BaseDataVariableType): "BaseDataVariableType",
+    }
 
     async def body(client: Client) -> tuple[dict[str, Any], dict[str, str]]:
         idx = await client.get_namespace_index(NS_URI)
@@ -417,7 +491,10 @@ def test_browse_matches_the_documented_address_space(served: Any, pki: Pki) -> N
                 else:
                     unit = value.DisplayName.Text
                     assert (value.NamespaceUri, value.UnitId, value.Description.Text) == (
-                        "http://www.opcfoundation.org/UA/units/un/cefact", units[unit][1], units[unit][2])
+                        "http://www.opcfoundation.org/UA/units/un/cefact",
+                        units[unit][1],
+                        units[unit][2],
+                    )
                     assert value.UnitId == int.from_bytes(units[unit][0].encode(), "big")
             got[path] = (bname.Name, ntype, vtype.name, unit, eu_range)
 
@@ -462,8 +539,7 @@ def test_writing_is_refused(served: Any, pki: Pki) -> None:
 
     async def body(client: Client) -> None:
         idx = await client.get_namespace_index(NS_URI)
-        for nid, value in (("compd.Axes.x.CorrectionUm", 99.0), ("compd.State", "stopped"),
-                           ("compd.Observe", True)):
+        for nid, value in (("compd.Axes.x.CorrectionUm", 99.0), ("compd.State", "stopped"), ("compd.Observe", True)):
             with pytest.raises(ua.uaerrors.BadUserAccessDenied):
                 await client.get_node(ua.NodeId(nid, idx)).write_value(value)
         dv = await client.get_node(ua.NodeId("compd.Axes.x.CorrectionUm", idx)).read_data_value()
@@ -499,7 +575,8 @@ def test_unencrypted_session_refused_when_none_is_not_offered(
     monkeypatch.setattr(Client, "find_endpoint", staticmethod(lambda endpoints, mode, uri: endpoints[0]))
     # it even encrypts the password as the token policy asks, with the server certificate's key
     server_der = x509.load_pem_x509_certificate((pki.root / "server.pem").read_bytes()).public_bytes(
-        serialization.Encoding.DER)
+        serialization.Encoding.DER
+    )
     encrypt = Client._encrypt_password
 
     def with_the_servers_key(self: Client, password: str, policy_uri: str) -> tuple[bytes, str]:
@@ -514,10 +591,12 @@ def test_unencrypted_session_refused_when_none_is_not_offered(
 def test_every_endpoint_asks_for_an_encrypted_password(pki: Pki, monkeypatch: pytest.MonkeyPatch) -> None:
     """The UserName token policy of every endpoint (SignAndEncrypt, Sign, None) carries Basic256Sha256:
     the password is encrypted with the server's key on each; one sent unencrypted is refused."""
-    server = OpcUaServer(config(security=["Basic256Sha256_SignAndEncrypt", "Basic256Sha256_Sign", "None"]),
-                         pki.root, GUARD)
+    server = OpcUaServer(
+        config(security=["Basic256Sha256_SignAndEncrypt", "Basic256Sha256_Sign", "None"]), pki.root, GUARD
+    )
     url = server.start(copy.deepcopy(SNAP))
     try:
+
         async def endpoints() -> list[Any]:
             return await Client(url, timeout=TIMEOUT_S).connect_and_get_server_endpoints()
 
@@ -525,8 +604,9 @@ def test_every_endpoint_asks_for_an_encrypted_password(pki: Pki, monkeypatch: py
         for edp in asyncio.run(endpoints()):
             tokens = {t.TokenType: t for t in edp.UserIdentityTokens}
             assert set(tokens) == {ua.UserTokenType.UserName}  # no anonymous: anonymous is false
-            policies[(edp.SecurityPolicyUri.rsplit("#", 1)[1], edp.SecurityMode.name)] = (
-                tokens[ua.UserTokenType.UserName].SecurityPolicyUri)
+            policies[(edp.SecurityPolicyUri.rsplit("#", 1)[1], edp.SecurityMode.name)] = tokens[
+                ua.UserTokenType.UserName
+            ].SecurityPolicyUri
         assert policies == {
             ("Basic256Sha256", "SignAndEncrypt"): SecurityPolicyBasic256Sha256.URI,
             ("Basic256Sha256", "Sign"): SecurityPolicyBasic256Sha256.URI,
@@ -551,8 +631,13 @@ def test_every_endpoint_asks_for_an_encrypted_password(pki: Pki, monkeypatch: py
             with pytest.raises(ua.uaerrors.BadIdentityTokenInvalid):
                 run(url, pki, state)
         # a client that sends the password as it is (as for a token policy None) is refused
-        monkeypatch.setattr(Client, "server_policy", lambda self, token_type: ua.UserTokenPolicy(
-            PolicyId="username", TokenType=token_type, SecurityPolicyUri=SecurityPolicyNone.URI))
+        monkeypatch.setattr(
+            Client,
+            "server_policy",
+            lambda self, token_type: ua.UserTokenPolicy(
+                PolicyId="username", TokenType=token_type, SecurityPolicyUri=SecurityPolicyNone.URI
+            ),
+        )
         with pytest.raises(ua.uaerrors.BadIdentityTokenInvalid):
             run(url, pki, state)
     finally:
@@ -561,13 +646,13 @@ def test_every_endpoint_asks_for_an_encrypted_password(pki: Pki, monkeypatch: py
 
 def test_anonymous_and_unencrypted_when_allowed_and_stop_twice(pki: Pki) -> None:
     server = OpcUaServer(
-        config(anonymous=True, users={}, trusted_clients=None,
-               security=["Basic256Sha256_SignAndEncrypt", "None"]),
+        config(anonymous=True, users={}, trusted_clients=None, security=["Basic256Sha256_SignAndEncrypt", "None"]),
         pki.root,
     )
     before = set(threading.enumerate())
     url = server.start(copy.deepcopy(SNAP))
     try:
+
         async def state(client: Client) -> Any:
             idx = await client.get_namespace_index(NS_URI)
             return await client.get_node(ua.NodeId("compd.State", idx)).read_value()
@@ -610,8 +695,14 @@ def test_port_taken_is_bad_input(pki: Pki) -> None:
 
 
 def test_generate_certificate(tmp_path: Path) -> None:
-    generate_certificate(tmp_path / "c.pem", tmp_path / "k.pem", common_name="compd",
-                         application_uri="urn:host:compd", hosts=["cnc-7", "10.0.0.7"], days=30)
+    generate_certificate(
+        tmp_path / "c.pem",
+        tmp_path / "k.pem",
+        common_name="compd",
+        application_uri="urn:host:compd",
+        hosts=["cnc-7", "10.0.0.7"],
+        days=30,
+    )
     assert stat.S_IMODE(os.stat(tmp_path / "k.pem").st_mode) == 0o600
     cert = x509.load_pem_x509_certificate((tmp_path / "c.pem").read_bytes())
     san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
@@ -655,8 +746,12 @@ def test_asyncua_log_lines_become_rate_limited_compd_events() -> None:
             stack.error("sending service fault response: %s (%s)", "denied", "BadUserAccessDenied")
         assert [(r.levelno, r.event, r.stack_level, r.getMessage()) for r in keep.records] == [
             (logging.DEBUG, STACK_EVENT, "info", "asyncua: process message 1"),
-            (logging.WARNING, STACK_EVENT, "error",
-             "asyncua: sending service fault response: denied (BadUserAccessDenied)"),
+            (
+                logging.WARNING,
+                STACK_EVENT,
+                "error",
+                "asyncua: sending service fault response: denied (BadUserAccessDenied)",
+            ),
         ]
         assert keep.records[1].stack_logger == stack.name and not hasattr(keep.records[1], "repeated")
         now[0] += STACK_WINDOW_S
@@ -703,4 +798,7 @@ def test_the_servers_asyncua_lines_reach_compd_as_events(
     faults = [r for r in caplog.records if r.name == "compd.opcua.stack" and "service fault" in r.getMessage()]
     assert len(faults) == 1, [r.getMessage() for r in faults]
     assert (faults[0].levelno, faults[0].event, faults[0].stack_logger) == (
-        logging.WARNING, opcua.STACK_EVENT, "asyncua.server.uaprocessor")
+        logging.WARNING,
+        opcua.STACK_EVENT,
+        "asyncua.server.uaprocessor",
+    )

@@ -30,22 +30,35 @@ CLIENT_TIMEOUT_S = 180  # node-opcua's start and ~150 reads: seconds; generous f
 def _node_opcua(pki: Pki, url: str) -> list[dict[str, Any]]:
     node = shutil.which("node")
     assert node, "no node: Node.js runs node-opcua"
-    assert (NODE_OPCUA / "node-opcua-client").is_dir(), \
+    assert (NODE_OPCUA / "node-opcua-client").is_dir(), (
         "no node-opcua: `make build/tools/node-opcua/node_modules/node-opcua-client/package.json`"
+    )
     server_der = x509.load_pem_x509_certificate((pki.root / "server.pem").read_bytes()).public_bytes(
-        serialization.Encoding.DER)
+        serialization.Encoding.DER
+    )
     (pki.root / "server.der").write_bytes(server_der)
     args = {
-        "url": url, "namespaceUri": NS_URI, "userName": "alice", "password": PASSWORD,
-        "certificateFile": str(pki.root / "trusted" / "client.pem"), "privateKeyFile": str(pki.root / "client.key"),
-        "applicationUri": pki.client("client")[2], "serverCertificateFile": str(pki.root / "server.der"),
+        "url": url,
+        "namespaceUri": NS_URI,
+        "userName": "alice",
+        "password": PASSWORD,
+        "certificateFile": str(pki.root / "trusted" / "client.pem"),
+        "privateKeyFile": str(pki.root / "client.key"),
+        "applicationUri": pki.client("client")[2],
+        "serverCertificateFile": str(pki.root / "server.der"),
         "pkiFolder": str(pki.root / "node-pki"),
         "longPassword": {"userName": "bob", "password": LONG_PASSWORD},
     }
     (pki.root / "reader.json").write_text(json.dumps(args))
     env = {**os.environ, "NODE_PATH": str(NODE_OPCUA), "HOME": str(pki.root)}  # what node-opcua keeps in ~ stays here
-    r = subprocess.run([node, str(READER), str(pki.root / "reader.json")], capture_output=True, text=True,
-                       timeout=CLIENT_TIMEOUT_S, env=env, cwd=pki.root)
+    r = subprocess.run(
+        [node, str(READER), str(pki.root / "reader.json")],
+        capture_output=True,
+        text=True,
+        timeout=CLIENT_TIMEOUT_S,
+        env=env,
+        cwd=pki.root,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     lines = [json.loads(ln) for ln in r.stdout.splitlines() if ln.startswith("{")]
     assert lines and lines[-1] == {"kind": "done"}, r.stdout[-2000:] + r.stderr[-2000:]
@@ -87,7 +100,10 @@ def test_node_opcua_sees_the_documented_address_space(read_by_node_opcua: list[d
         key = nid.removeprefix(f"ns={idx};s=")
         bname, ntype, dtype, unit, eu_range = want[key]
         assert n["browsePath"] == "Objects/" + key.replace(".", "/")  # node id = browse path
-        assert (n["browseName"], n["typeDefinition"]) == (f"{idx}:{bname}", "FolderType" if ntype == "Folder" else ntype)
+        assert (n["browseName"], n["typeDefinition"]) == (
+            f"{idx}:{bname}",
+            "FolderType" if ntype == "Folder" else ntype,
+        )
         assert n["description"] and n["description"] != bname, key
         if n["nodeClass"] == "Object":
             print(f"  {key:34} {n['typeDefinition']:21} | {n['description']}")
@@ -110,8 +126,10 @@ def test_node_opcua_sees_the_documented_address_space(read_by_node_opcua: list[d
         assert (got, n["statusCode"]) == (want_value, want_status), key
         units = f"{eu['displayName']} (UnitId {eu['unitId']})" if eu else "—"
         ranges = f"{_fmt(rng['low'])} … {_fmt(rng['high'])}" if rng else "—"
-        print(f"  {key:34} {n['typeDefinition']:21} {dtype:7} {units:22} {ranges:22}"
-              f" {n['minimumSamplingInterval']:g} ms = {got!r} {n['statusCode']} | {n['description']}")
+        print(
+            f"  {key:34} {n['typeDefinition']:21} {dtype:7} {units:22} {ranges:22}"
+            f" {n['minimumSamplingInterval']:g} ms = {got!r} {n['statusCode']} | {n['description']}"
+        )
 
 
 def test_node_opcua_sees_an_encrypted_password_policy_and_is_refused_without_it(
@@ -122,8 +140,10 @@ def test_node_opcua_sees_an_encrypted_password_policy_and_is_refused_without_it(
     assert [(e["securityMode"], e["securityPolicyUri"]) for e in endpoints] == [("SignAndEncrypt", BASIC256SHA256)]
     for e in endpoints:
         tokens = {t["tokenType"]: t for t in e["userIdentityTokens"]}
-        print(f"\nendpoint {e['endpointUrl']} {e['securityMode']} {e['securityPolicyUri']}: "
-              + ", ".join(f"{t['tokenType']} ({t['policyId']}) {t['securityPolicyUri']}" for t in tokens.values()))
+        print(
+            f"\nendpoint {e['endpointUrl']} {e['securityMode']} {e['securityPolicyUri']}: "
+            + ", ".join(f"{t['tokenType']} ({t['policyId']}) {t['securityPolicyUri']}" for t in tokens.values())
+        )
         assert set(tokens) == {"UserName"}  # no Anonymous token policy
         assert tokens["UserName"]["securityPolicyUri"] == BASIC256SHA256
     refusals = {(ln["case"], ln["insist"]): ln for ln in lines if ln["kind"] == "refused"}
@@ -137,4 +157,9 @@ def test_node_opcua_sees_an_encrypted_password_policy_and_is_refused_without_it(
     assert "securityMode = None" in refusals["security None", False]["error"]
     login = next(ln for ln in lines if ln["kind"] == "login")
     print(f"user {login['userName']} with a {login['passwordBytes']}-byte password: compd.State = {login['state']!r}")
-    assert login == {"kind": "login", "userName": "bob", "passwordBytes": len(LONG_PASSWORD.encode()), "state": "running"}
+    assert login == {
+        "kind": "login",
+        "userName": "bob",
+        "passwordBytes": len(LONG_PASSWORD.encode()),
+        "state": "running",
+    }

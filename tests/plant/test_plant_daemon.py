@@ -15,7 +15,9 @@ from compd.service.status import render
 from .broker import SIM_SPINDLE, Listener, Mosquitto, compd, daemon, free_port, metric
 from .test_opcua import PASSWORD, Pki
 
-CONFIG = SIM_SPINDLE + """\
+CONFIG = (
+    SIM_SPINDLE
+    + """\
 model: {{kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {{alpha_per_k: 13.6e-6, length_mm: 165.0}}}}
 sink: {{kind: pci1756}}
 status: {{path: status.json, period_s: 0.5}}
@@ -33,6 +35,7 @@ opcua:
   users: {{alice: {{password_file: pki/alice.password}}}}
   namespace_uri: urn:compd:test
 """
+)
 
 
 async def read_nodes(url: str, pki: Pki, names: list[str]) -> dict[str, object]:
@@ -67,8 +70,13 @@ def test_the_daemon_publishes_and_serves(tmp_path: Path) -> None:
                 while "OPC UA on" not in (tmp_path / "stderr.txt").read_text() and time.monotonic() < deadline:
                     time.sleep(0.1)
                 url = f"opc.tcp://127.0.0.1:{ua_port}/compd/"
-                values = asyncio.run(read_nodes(url, pki, ["compd.State", "compd.Axes.z.ModelKind", "compd.Loop.Cycles",
-                                                           "compd.Signals.T_xi.Quality"]))
+                values = asyncio.run(
+                    read_nodes(
+                        url,
+                        pki,
+                        ["compd.State", "compd.Axes.z.ModelKind", "compd.Loop.Cycles", "compd.Signals.T_xi.Quality"],
+                    )
+                )
                 status = json.loads((tmp_path / "status.json").read_text())
         finally:
             listener.stop()
@@ -79,8 +87,11 @@ def test_the_daemon_publishes_and_serves(tmp_path: Path) -> None:
     births = listener.of("DBIRTH")
     assert births and births[0].topic == "spBv1.0/hall2/DBIRTH/cell7/lathe"
     assert metric(births[0].payload, "Model/kind").value == "xi_spindle"
-    kinds = [metric(m.payload, "Event/kind").value for m in listener.of("DDATA")
-             if any(x.name == "Event/kind" for x in m.payload.metrics)]
+    kinds = [
+        metric(m.payload, "Event/kind").value
+        for m in listener.of("DDATA")
+        if any(x.name == "Event/kind" for x in m.payload.metrics)
+    ]
     assert kinds[0] == "started" and kinds[-1] == "stopping"
     assert len(listener.of("NDEATH")) == 1  # said on the way out
     assert status["telemetry"]["connected"] is True and status["telemetry"]["dropped"] == 0
@@ -88,8 +99,11 @@ def test_the_daemon_publishes_and_serves(tmp_path: Path) -> None:
     shown = render(status, True, "")  # what `compd status` prints
     assert f"telemetry: 127.0.0.1:{broker.port} connected;" in shown
     assert f"opcua: opc.tcp://127.0.0.1:{ua_port}/compd/" in shown
-    samples = [metric(m.payload, "Sample").value for m in listener.of("DDATA")
-               if any(x.name == "Sample" for x in m.payload.metrics)]
+    samples = [
+        metric(m.payload, "Sample").value
+        for m in listener.of("DDATA")
+        if any(x.name == "Sample" for x in m.payload.metrics)
+    ]
     assert samples == list(range(1, len(samples) + 1))  # every one, in order, once
 
 
@@ -100,12 +114,18 @@ def test_check_config_names_what_is_wrong(tmp_path: Path) -> None:
     good = CONFIG.format(mqtt_port=1883, ua_port=4840)
     cases = [
         (good.replace("group_id: hall2", "group_id: hall/2"), "telemetry.group_id"),
-        (good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  password_file: nope.txt\n  username: u\n"),
-         "telemetry.password_file"),
-        (good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  remote_models: {allow: true}\n"),
-         "telemetry.remote_models.allow"),
-        (good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  remote_models: {arm_signal: nope}\n"),
-         "telemetry.remote_models.arm_signal"),
+        (
+            good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  password_file: nope.txt\n  username: u\n"),
+            "telemetry.password_file",
+        ),
+        (
+            good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  remote_models: {allow: true}\n"),
+            "telemetry.remote_models.allow",
+        ),
+        (
+            good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  remote_models: {arm_signal: nope}\n"),
+            "telemetry.remote_models.arm_signal",
+        ),
         (good.replace("pki/server.key", "pki/missing.key"), "opcua.private_key"),
         (good.replace("  users: {alice: {password_file: pki/alice.password}}\n", ""), "opcua.users"),
         (good.replace("  period_s: 0.2\n", "  period_s: 0.2\n  tls: {ca_file: ca.pem}\n"), "telemetry.tls.ca_file"),

@@ -66,8 +66,15 @@ def shell(tmp_path: Path):
     def run(command: str, background: bool = False):
         argv = ["bash", "-o", "pipefail", "-c", command]
         if background:
-            p = subprocess.Popen(argv, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                 start_new_session=True)
+            p = subprocess.Popen(
+                argv,
+                cwd=work,
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                start_new_session=True,
+            )
             started.append(p)
             return p
         return subprocess.run(argv, cwd=work, env=env, capture_output=True, text=True, timeout=300)
@@ -120,8 +127,11 @@ def test_the_plant_rehearsal_runs_as_written(shell, tmp_path: Path) -> None:
                 if r.returncode == 0 and not lost:
                     break
                 if not command.startswith("compd status") or time.monotonic() > deadline:
-                    raise AssertionError(f"`{command}` exited {r.returncode}; the page shows\n  "
-                                         + "\n  ".join(lost) + f"\nit printed:\n{r.stdout}\n{r.stderr}")
+                    raise AssertionError(
+                        f"`{command}` exited {r.returncode}; the page shows\n  "
+                        + "\n  ".join(lost)
+                        + f"\nit printed:\n{r.stdout}\n{r.stderr}"
+                    )
                 time.sleep(0.5)
     assert compd_run is not None and compd_run.poll() is None, "compd ended before the rehearsal did"
     for needed in ("mosquitto ", "compd run plant.yaml", "compd sparkplug-watch ", "uaread "):

@@ -29,7 +29,9 @@ params: {{alpha_per_k: 13.6e-6, length_mm: {length_mm}}}
 fit: {{fitted_at: "{fitted_at}", input_range: {{T_xi: [18.0, 30.0]}}}}
 """
 
-CONFIG = SIM_SPINDLE + """\
+CONFIG = (
+    SIM_SPINDLE
+    + """\
 model: {{kind: xi_spindle, file: model.yaml}}
 guard: {{max_abs_um: 40, max_slew_um_per_s: 2.0}}
 sink: {{kind: pci1756}}
@@ -43,6 +45,7 @@ telemetry:
   reconnect_max_s: 1
   remote_models: {{allow: {allow}}}
 """
+)
 
 
 def results(listener: Listener) -> list[dict]:
@@ -63,8 +66,9 @@ def results(listener: Listener) -> list[dict]:
 
 
 def send_model(listener: Listener, text: str, uuid: str) -> None:
-    payload = encode([(MetricDef("Node Control/Model", DataType.String), text)], timestamp_ms=int(time.time() * 1000),
-                     seq=None)
+    payload = encode(
+        [(MetricDef("Node Control/Model", DataType.String), text)], timestamp_ms=int(time.time() * 1000), seq=None
+    )
     listener.client.publish(topic("plant", "NCMD", "e1"), payload, qos=1).wait_for_publish(10)
 
 
@@ -157,9 +161,12 @@ params: {alpha_per_k: 9.9e-4, length_mm: 100000}
 fit: {fitted_at: "2026-11-20T10:00:00Z", input_range: {T_xi: [20.0, 24.6]}}
 """
 SANE = ABSURD.replace("alpha_per_k: 9.9e-4, length_mm: 100000", "alpha_per_k: 13.6e-6, length_mm: 150").replace(
-    "[20.0, 24.6]", "[20.0, 30.0]")
-ABSURD_REASON = ("axis z would sit at the guard's clamp: over its input range (fit.input_range) the model predicts a"
-                 " |correction| of 455400.0 µm (at T_xi 24.6 from 20 at start), beyond guard.max_abs_um 40 µm")
+    "[20.0, 24.6]", "[20.0, 30.0]"
+)
+ABSURD_REASON = (
+    "axis z would sit at the guard's clamp: over its input range (fit.input_range) the model predicts a"
+    " |correction| of 455400.0 µm (at T_xi 24.6 from 20 at start), beyond guard.max_abs_um 40 µm"
+)
 
 
 def spec_of(tmp_path: Path, text: str) -> ModelSpec:
@@ -182,7 +189,8 @@ def test_an_absurd_model_is_refused_with_the_axis_the_size_the_inputs_and_the_cl
     tight = GuardConfig(max_abs_um=40, axes={"z": {"max_abs_um": 20}})
     assert clamp_check(spec_of(tmp_path, SANE), tight) == (
         "axis z would sit at the guard's clamp: over its input range (fit.input_range) the model predicts a"
-        " |correction| of 20.4 µm (at T_xi 30 from 20 at start), beyond guard.axes.z.max_abs_um 20 µm")
+        " |correction| of 20.4 µm (at T_xi 30 from 20 at start), beyond guard.axes.z.max_abs_um 20 µm"
+    )
 
 
 def test_without_a_fit_range_the_guards_signal_limits_or_a_refusal(tmp_path: Path) -> None:
@@ -190,22 +198,30 @@ def test_without_a_fit_range_the_guards_signal_limits_or_a_refusal(tmp_path: Pat
     why = clamp_check(spec_of(tmp_path, bare), GuardConfig(max_abs_um=40))
     assert why is not None and "records no fit range" in why and "guard.signals.T_xi" in why
     # the readings the guard lets through: 15…33 °C, 18 K × 2.04 µm/K = 36.7 µm, inside 40
-    assert clamp_check(spec_of(tmp_path, bare), GuardConfig(max_abs_um=40, signals={"T_xi": {"min": 15, "max": 33}})) is None
+    assert (
+        clamp_check(spec_of(tmp_path, bare), GuardConfig(max_abs_um=40, signals={"T_xi": {"min": 15, "max": 33}}))
+        is None
+    )
     why = clamp_check(spec_of(tmp_path, bare), GuardConfig(max_abs_um=40, signals={"T_xi": {"min": 15, "max": 45}}))
     assert why is not None and "(guard.signals)" in why and "61.2 µm" in why and "T_xi 45 from 15 at start" in why
 
 
-@pytest.mark.parametrize(("fit", "says"), [
-    ("input_range: [20, 30]", "is not a mapping"),
-    ("input_range: {T_xi: [20, 30], T_bed: [20, 22]}", "names 'T_bed', which is not one of its inputs"),
-    ("input_range: {T_xi: [30, 20]}", "T_xi: min 30 is above max 20"),
-    ("input_range: {T_xi: [20, .nan]}", "T_xi is not [min, max]"),
-    ("input_range: {T_xi: [20, true]}", "T_xi is not [min, max]"),
-    ("input_range: {T_xi: [20]}", "T_xi is not [min, max]"),
-    ("input_range: {}", "T_xi is not [min, max]"),
-])
+@pytest.mark.parametrize(
+    ("fit", "says"),
+    [
+        ("input_range: [20, 30]", "is not a mapping"),
+        ("input_range: {T_xi: [20, 30], T_bed: [20, 22]}", "names 'T_bed', which is not one of its inputs"),
+        ("input_range: {T_xi: [30, 20]}", "T_xi: min 30 is above max 20"),
+        ("input_range: {T_xi: [20, .nan]}", "T_xi is not [min, max]"),
+        ("input_range: {T_xi: [20, true]}", "T_xi is not [min, max]"),
+        ("input_range: {T_xi: [20]}", "T_xi is not [min, max]"),
+        ("input_range: {}", "T_xi is not [min, max]"),
+    ],
+)
 def test_a_fit_range_of_the_wrong_shape_is_a_refusal(tmp_path: Path, fit: str, says: str) -> None:
-    text = SANE.replace("fit: {fitted_at: \"2026-11-20T10:00:00Z\", input_range: {T_xi: [20.0, 30.0]}}", f"fit: {{{fit}}}")
+    text = SANE.replace(
+        'fit: {fitted_at: "2026-11-20T10:00:00Z", input_range: {T_xi: [20.0, 30.0]}}', f"fit: {{{fit}}}"
+    )
     why = clamp_check(spec_of(tmp_path, text), GuardConfig(max_abs_um=40))
     assert why is not None and says in why, why
 
@@ -227,18 +243,19 @@ def test_a_linear_model_with_many_inputs_is_searched_exactly() -> None:
         assert np.allclose(np.abs(rise), span) and np.all(np.sign(rise) * np.sign(coef[:, a]) * np.sign(peak) > 0)
     # a fixed reference (t0_c) is the model's: only the readings move
     fixed = RiseLinearParams(coef_um_per_k=[[2.0]], intercept_um=[0.0], t0_c=[20.0])
-    (peak, _, reading), = largest_predictions(spec_for(MLR, fixed, ["T0"], ["z"]), {"T0": (15.0, 22.0)})
+    ((peak, _, reading),) = largest_predictions(spec_for(MLR, fixed, ["T0"], ["z"]), {"T0": (15.0, 22.0)})
     assert peak == pytest.approx(-10.0) and reading[0] == 15.0
 
 
 def test_a_recursive_model_is_held_until_it_settles() -> None:
     """ar1: S grows by C2 a step toward C2/(1 − C1); 8 h of 60 s steps at the top speed: 480 steps."""
     params = AR1Params(dt_s=60, c1=0.99, c2_table=[(2000.0, 0.2)], bed_gain_um_per_k=[1.0])
-    spec = spec_for(AR1, params, ["speed_rpm", "T_bed"], ["z"],
-                    {"input_range": {"speed_rpm": [0.0, 2000.0], "T_bed": [20.0, 23.0]}})
-    (peak, _, reading), = largest_predictions(spec, {"speed_rpm": (0.0, 2000.0), "T_bed": (20.0, 23.0)})
+    spec = spec_for(
+        AR1, params, ["speed_rpm", "T_bed"], ["z"], {"input_range": {"speed_rpm": [0.0, 2000.0], "T_bed": [20.0, 23.0]}}
+    )
+    ((peak, _, reading),) = largest_predictions(spec, {"speed_rpm": (0.0, 2000.0), "T_bed": (20.0, 23.0)})
     steps = int(remote_model.HORIZON_S / 60)
-    s_um = 0.2 * (1 - 0.99 ** steps) / (1 - 0.99)  # the start row (a cold start) adds nothing, then 480 steps
+    s_um = 0.2 * (1 - 0.99**steps) / (1 - 0.99)  # the start row (a cold start) adds nothing, then 480 steps
     assert abs(peak) == pytest.approx(s_um + 3.0, rel=1e-6) and reading[0] == 2000.0
     why = clamp_check(spec, GuardConfig(max_abs_um=15))
     assert why is not None and f"{abs(peak):.1f} µm" in why and "speed_rpm 2000" in why
@@ -246,8 +263,11 @@ def test_a_recursive_model_is_held_until_it_settles() -> None:
 
 def test_a_position_input_is_swept_along_its_range() -> None:
     """A position polynomial whose largest error is in the middle of the stroke (4u − 4u²): found there."""
-    params = FeedAxisParams(length_mm=600, input_roles=["position", "rise"],
-                            position_poly=PositionPoly(degree=2, coef_um_per_k=[[0.0, 4.0, -4.0]]))
+    params = FeedAxisParams(
+        length_mm=600,
+        input_roles=["position", "rise"],
+        position_poly=PositionPoly(degree=2, coef_um_per_k=[[0.0, 4.0, -4.0]]),
+    )
     spec = spec_for(FeedAxis, params, ["pos_y_mm", "T_slide"], ["y"])
-    (peak, reference, reading), = largest_predictions(spec, {"pos_y_mm": (0.0, 600.0), "T_slide": (20.0, 30.0)})
+    ((peak, reference, reading),) = largest_predictions(spec, {"pos_y_mm": (0.0, 600.0), "T_slide": (20.0, 30.0)})
     assert abs(peak) == pytest.approx(10.0) and reading[0] == 300.0 and reference[0] == 300.0

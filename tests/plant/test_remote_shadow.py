@@ -34,7 +34,9 @@ outputs: [z]
 params: {coef_um_per_k: [[2.0]], intercept_um: [0.0]}
 """
 
-CONFIG = SIM_SPINDLE + """\
+CONFIG = (
+    SIM_SPINDLE
+    + """\
 model: {{kind: xi_spindle, file: model.yaml}}
 {shadow}
 guard: {{max_abs_um: 40, max_slew_um_per_s: 2.0}}
@@ -49,6 +51,7 @@ telemetry:
   reconnect_max_s: 1
   remote_models: {{allow: true}}
 """
+)
 SHADOW_FILE = "shadow: {kind: xi_spindle, file: shadow.yaml}"
 
 _request = iter(range(1, 1 << 30))
@@ -70,8 +73,10 @@ def answers(listener: Listener, request: str) -> list[dict[str, Any]]:
 
 def answered(listener: Listener, request: str, result: str, timeout_s: float = 60) -> dict[str, Any]:
     """The answer `result` to `request`, waited for (the first answer of another result fails at once)."""
-    listener.wait_for(lambda: any(r["result"] in (result, "refused", "failed") for r in answers(listener, request)),
-                      timeout_s=timeout_s)
+    listener.wait_for(
+        lambda: any(r["result"] in (result, "refused", "failed") for r in answers(listener, request)),
+        timeout_s=timeout_s,
+    )
     got = [r for r in answers(listener, request) if r["result"] in (result, "refused", "failed")]
     assert got[0]["result"] == result, got
     return got[0]
@@ -131,11 +136,14 @@ def test_a_shadow_is_installed_without_arming_and_the_model_still_needs_it(tmp_p
                 accepted = answered(listener, r_good, "accepted")
                 applied = answered(listener, r_good, "applied")
                 assert len(listener.of("NBIRTH")) > births  # the reloaded pipeline was born again
-                after = status_when(tmp_path, lambda s: ((s.get("shadow") or {}).get("model") or {}).get(
-                    "fitted_at") == "2026-11-20T10:00:00Z")
+                after = status_when(
+                    tmp_path,
+                    lambda s: ((s.get("shadow") or {}).get("model") or {}).get("fitted_at") == "2026-11-20T10:00:00Z",
+                )
                 # the shadow predicts on the axis once it has good inputs
-                status_when(tmp_path, lambda s: isinstance(((s.get("axes") or {}).get("z") or {}).get("shadow_um"),
-                                                           float))
+                status_when(
+                    tmp_path, lambda s: isinstance(((s.get("axes") or {}).get("z") or {}).get("shadow_um"), float)
+                )
         finally:
             listener.stop()
     text = (tmp_path / "stderr.txt").read_text()
@@ -171,10 +179,13 @@ def test_a_config_without_a_shadow_section_refuses_a_shadow(tmp_path: Path) -> N
     assert proc.returncode == 0, (tmp_path / "stderr.txt").read_text()
     assert refused["target"] == "shadow" and "no shadow section" in refused["reason"], refused
     assert (tmp_path / "model.yaml").read_text() == ORIGINAL and sorted(p.name for p in tmp_path.glob("*.yaml*")) == [
-        "c.yaml", "model.yaml"]  # nothing written, nothing kept
+        "c.yaml",
+        "model.yaml",
+    ]  # nothing written, nothing kept
 
 
 # --- RemoteModels on its own: the daemon is this process (its SIGHUP caught) -----------------------
+
 
 @pytest.fixture
 def hups() -> Iterator[list[int]]:
@@ -190,9 +201,11 @@ def hups() -> Iterator[list[int]]:
 def remote(tmp_path: Path, model: str, shadow: str | None, remote_models: str = "{allow: true}") -> RemoteModels:
     """The remote model handler of a daemon on config `model`/`shadow` sections (this process its daemon)."""
     cfg = tmp_path / "c.yaml"
-    cfg.write_text(CONFIG.format(port=1883, shadow=f"shadow: {shadow}" if shadow else "").replace(
-        "model: {kind: xi_spindle, file: model.yaml}", f"model: {model}").replace(
-        "remote_models: {allow: true}", f"remote_models: {remote_models}"))
+    cfg.write_text(
+        CONFIG.format(port=1883, shadow=f"shadow: {shadow}" if shadow else "")
+        .replace("model: {kind: xi_spindle, file: model.yaml}", f"model: {model}")
+        .replace("remote_models: {allow: true}", f"remote_models: {remote_models}")
+    )
     c = load_config(cfg)
     tspec = telemetry_spec(c, [], list(c.model.outputs), 0.2)
     assert tspec.remote is not None
@@ -211,16 +224,20 @@ def files(tmp_path: Path) -> Path:
     return tmp_path
 
 
-@pytest.mark.parametrize(("model", "shadow", "says"), [
-    (MODEL_FILE, None, "the config has no shadow section"),
-    (MODEL_FILE, INLINE, "the config's shadow is given as inline params"),
-    (MODEL_FILE, CONTRIBUTIONS, "the config's shadow is a set of contributions"),
-    # the shadow's file is the model's: sending a shadow would change what drives the machine
-    (MODEL_FILE, "{kind: xi_spindle, file: model.yaml}", "one the active model reads"),
-    (CONTRIBUTIONS, "{kind: xi_spindle, file: model.yaml}", "one the active model reads"),
-])
-def test_a_shadow_with_no_file_of_its_own_to_replace_is_refused(files: Path, hups: list[int], model: str,
-                                                                 shadow: str | None, says: str) -> None:
+@pytest.mark.parametrize(
+    ("model", "shadow", "says"),
+    [
+        (MODEL_FILE, None, "the config has no shadow section"),
+        (MODEL_FILE, INLINE, "the config's shadow is given as inline params"),
+        (MODEL_FILE, CONTRIBUTIONS, "the config's shadow is a set of contributions"),
+        # the shadow's file is the model's: sending a shadow would change what drives the machine
+        (MODEL_FILE, "{kind: xi_spindle, file: model.yaml}", "one the active model reads"),
+        (CONTRIBUTIONS, "{kind: xi_spindle, file: model.yaml}", "one the active model reads"),
+    ],
+)
+def test_a_shadow_with_no_file_of_its_own_to_replace_is_refused(
+    files: Path, hups: list[int], model: str, shadow: str | None, says: str
+) -> None:
     rm = remote(files, model, shadow)
     answer = rm.handle(NEW_SHADOW, "r1", "shadow")
     assert answer["result"] == "refused" and says in answer["reason"], answer
@@ -348,8 +365,7 @@ def test_backups_of_the_shadow_file_are_bounded_and_none_is_deleted(files: Path,
     after.started()
     answer = after.handle(OLD_SHADOW, "r2", "shadow")
     assert answer["result"] == "refused", answer
-    assert (f"{remote_model.MAX_SHADOW_BACKUPS} backups of shadow.yaml are kept beside it already"
-            in answer["reason"])
+    assert f"{remote_model.MAX_SHADOW_BACKUPS} backups of shadow.yaml are kept beside it already" in answer["reason"]
     assert (files / "shadow.yaml").read_text() == NEW_SHADOW and len(hups) == 1
     assert len(list(files.glob("shadow.yaml.*.bak"))) == remote_model.MAX_SHADOW_BACKUPS
     assert all((files / name).read_text() == text for name, text in mine.items())  # none deleted
@@ -369,8 +385,11 @@ def test_a_shadow_sent_again_starts_its_score_afresh_and_promote_refuses_it(tmp_
     (tmp_path / "shadow.yaml").write_text(first)
     with Mosquitto(tmp_path / "broker") as broker:
         cfg = tmp_path / "c.yaml"
-        cfg.write_text(CONFIG.format(port=broker.port, shadow=SHADOW_FILE + "\nadapt: {apply: false}").replace(
-            "speedup: 1}", "speedup: 50}"))  # the spindle warms faster: the two models' predictions apart
+        cfg.write_text(
+            CONFIG.format(port=broker.port, shadow=SHADOW_FILE + "\nadapt: {apply: false}").replace(
+                "speedup: 1}", "speedup: 50}"
+            )
+        )  # the spindle warms faster: the two models' predictions apart
         listener = Listener(broker.port)
         try:
             with daemon(cfg, tmp_path / "stderr.txt") as proc:
@@ -389,8 +408,9 @@ def test_a_shadow_sent_again_starts_its_score_afresh_and_promote_refuses_it(tmp_
                 r_new = send(listener, "Model/shadow", NEW_SHADOW)
                 answered(listener, r_new, "applied")
                 new_sha = hashlib.sha256(NEW_SHADOW.encode()).hexdigest()
-                status = status_when(tmp_path, lambda s: (s.get("shadow") or {}).get("model", {}).get("sha256")
-                                     == new_sha)
+                status = status_when(
+                    tmp_path, lambda s: (s.get("shadow") or {}).get("model", {}).get("sha256") == new_sha
+                )
                 assert status["shadow"]["axes"]["z"]["probes"] == 0
                 refused = compd("promote", str(cfg), cwd=tmp_path)
                 # a third within the interval: refused
@@ -400,8 +420,9 @@ def test_a_shadow_sent_again_starts_its_score_afresh_and_promote_refuses_it(tmp_
             listener.stop()
     assert proc.returncode == 0, (tmp_path / "stderr.txt").read_text()
     assert refused.returncode == 2 and "too few probes (z 0; at least 3 per axis" in refused.stderr, refused.stderr
-    assert (f"compd promote: the shadow came from: the plant (Model/shadow, request {r_new}, accepted "
-            in refused.stdout), refused.stdout
+    assert (
+        f"compd promote: the shadow came from: the plant (Model/shadow, request {r_new}, accepted " in refused.stdout
+    ), refused.stdout
     assert "remote_models.shadow_min_interval_s (60 s)" in limited["reason"], limited
     assert (tmp_path / "shadow.yaml").read_text() == NEW_SHADOW
     assert "shadow: {kind: xi_spindle, file: shadow.yaml}" in cfg.read_text()  # not promoted

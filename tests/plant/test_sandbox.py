@@ -46,8 +46,10 @@ def test_a_broker_connect_refused_by_this_host_names_the_sandbox_and_the_drop_in
     finally:
         tel.stop()
     assert not st["connected"]
-    assert st["last_error"].startswith(f"cannot connect to 127.0.0.1:{port}: Operation not permitted (refused by this"
-                                       " host, not by 127.0.0.1: the service's IP sandbox"), st["last_error"]
+    assert st["last_error"].startswith(
+        f"cannot connect to 127.0.0.1:{port}: Operation not permitted (refused by this"
+        " host, not by 127.0.0.1: the service's IP sandbox"
+    ), st["last_error"]
     assert "install the network drop-in with IPAddressAllow=127.0.0.1" in st["last_error"]
     said = [r for r in caplog.records if getattr(r, "event", None) == "telemetry_down"]
     assert len(said) == 1 and "IPAddressDeny=any" in said[0].getMessage()
@@ -76,5 +78,6 @@ def test_an_opcua_server_beyond_loopback_under_systemd_says_what_reaches_it() ->
     assert listening_hint("the OPC UA server", "192.0.2.10", env=systemd) is not None
     assert listening_hint("the OPC UA server", "127.0.0.1", env=systemd) is None  # what the sandbox lets in
     assert listening_hint("the OPC UA server", "0.0.0.0", env={}) is None  # not systemd's: no sandbox known
-    assert [is_loopback(a) for a in ("127.0.0.1", "127.1.2.3", "::1", "[::1]", "localhost", "0.0.0.0", "::",
-                                     "machine1")] == [True, True, True, True, True, False, False, False]
+    assert [
+        is_loopback(a) for a in ("127.0.0.1", "127.1.2.3", "::1", "[::1]", "localhost", "0.0.0.0", "::", "machine1")
+    ] == [True, True, True, True, True, False, False, False]

@@ -106,9 +106,11 @@ def test_none_is_sent_as_null(datatype):
 
 
 def test_birth_carries_eng_units_and_data_does_not():
-    defs = [(MetricDef("x/correction_um", D.Double, "µm"), -1.25),
-            (MetricDef("T_xi", D.Float, "°C"), 21.5),
-            (MetricDef("state", D.String), "normal")]
+    defs = [
+        (MetricDef("x/correction_um", D.Double, "µm"), -1.25),
+        (MetricDef("T_xi", D.Float, "°C"), 21.5),
+        (MetricDef("state", D.String), "normal"),
+    ]
     birth = decode(encode(defs, timestamp_ms=10, seq=0, with_properties=True))
     assert [m.properties for m in birth.metrics] == [{"engUnit": "µm"}, {"engUnit": "°C"}, {}]
     data = decode(encode(defs, timestamp_ms=10, seq=1))
@@ -118,8 +120,13 @@ def test_birth_carries_eng_units_and_data_does_not():
 
 
 def test_payload_fields_and_flags():
-    data = encode([(MetricDef("a", D.Int32), -3), (MetricDef("b", D.Boolean), True)],
-                  timestamp_ms=1_700_000_000_000, seq=255, historical=True, metric_timestamp_ms=1_699_999_999_000)
+    data = encode(
+        [(MetricDef("a", D.Int32), -3), (MetricDef("b", D.Boolean), True)],
+        timestamp_ms=1_700_000_000_000,
+        seq=255,
+        historical=True,
+        metric_timestamp_ms=1_699_999_999_000,
+    )
     p = decode(data)
     assert isinstance(p, Payload)
     assert (p.timestamp_ms, p.seq, p.uuid, p.body) == (1_700_000_000_000, 255, None, None)
@@ -174,17 +181,17 @@ def test_encode_gives_tahus_wire_bytes():
 
     eng_unit = vlen(9, vlen(1, b"engUnit") + vlen(2, vint(1, 12) + vlen(8, "µm".encode())))
     expected = (
-        vint(1, 1000)                                                        # Payload.timestamp = 1
-        + metric("i8", 1, vint(10, 254))                                     # int_value = 10, two's complement 8 bits
-        + metric("i64", 4, vint(11, 2**64 - 1))                              # long_value = 11
-        + metric("f", 9, key(12, 5) + struct.pack("<f", 1.5))                # float_value = 12
-        + metric("d", 10, key(13, 1) + struct.pack("<d", 2.5), eng_unit)     # double_value = 13
-        + metric("b", 11, vint(14, 1))                                       # boolean_value = 14
-        + metric("s", 12, vlen(15, "°C".encode()))                           # string_value = 15
-        + metric("raw", 17, vlen(16, b"\x01\x02"))                           # bytes_value = 16
-        + metric("u32", 7, vint(10, 7))                                      # UInt32 in int_value
-        + metric("gone", 10, b"", vint(7, 1))                                # is_null = 7
-        + vint(3, 5)                                                         # Payload.seq = 3
+        vint(1, 1000)  # Payload.timestamp = 1
+        + metric("i8", 1, vint(10, 254))  # int_value = 10, two's complement 8 bits
+        + metric("i64", 4, vint(11, 2**64 - 1))  # long_value = 11
+        + metric("f", 9, key(12, 5) + struct.pack("<f", 1.5))  # float_value = 12
+        + metric("d", 10, key(13, 1) + struct.pack("<d", 2.5), eng_unit)  # double_value = 13
+        + metric("b", 11, vint(14, 1))  # boolean_value = 14
+        + metric("s", 12, vlen(15, "°C".encode()))  # string_value = 15
+        + metric("raw", 17, vlen(16, b"\x01\x02"))  # bytes_value = 16
+        + metric("u32", 7, vint(10, 7))  # UInt32 in int_value
+        + metric("gone", 10, b"", vint(7, 1))  # is_null = 7
+        + vint(3, 5)  # Payload.seq = 3
     )
     assert got == expected
     # spot checks of the helpers themselves against numbers from the protobuf documentation
@@ -207,8 +214,8 @@ def raw_metric(datatype: int, field_bytes: bytes, name: str = "m") -> bytes:
 @pytest.mark.parametrize(
     ("datatype", "raw", "value"),
     [
-        (D.Int8, 0xFF, -1),                 # Tahu Python: the type's own width
-        (D.Int8, 0xFFFFFFFF, -1),           # Java: sign-extended to 32 bits
+        (D.Int8, 0xFF, -1),  # Tahu Python: the type's own width
+        (D.Int8, 0xFFFFFFFF, -1),  # Java: sign-extended to 32 bits
         (D.Int8, 0xFFFFFF80, -128),
         (D.Int16, 0xFFA9, -87),
         (D.Int16, 0xFFFFFFA9, -87),
@@ -241,11 +248,16 @@ def test_metric_without_datatype_gives_the_raw_value():
 
 def test_properties_of_every_kind_decode():
     pv_set = vlen(9, vlen(1, b"inner") + vlen(2, vint(1, 3) + vint(3, 0xFFFFFFFE)))
-    props = (vlen(1, b"engUnit") + vlen(1, b"max") + vlen(1, b"none") + vlen(1, b"nested")
-             + vlen(2, vint(1, 12) + vlen(8, "°C".encode()))
-             + vlen(2, vint(1, 10) + key(6, 1) + struct.pack("<d", 80.0))
-             + vlen(2, vint(1, 3) + vint(2, 1))
-             + vlen(2, vint(1, 20) + pv_set))
+    props = (
+        vlen(1, b"engUnit")
+        + vlen(1, b"max")
+        + vlen(1, b"none")
+        + vlen(1, b"nested")
+        + vlen(2, vint(1, 12) + vlen(8, "°C".encode()))
+        + vlen(2, vint(1, 10) + key(6, 1) + struct.pack("<d", 80.0))
+        + vlen(2, vint(1, 3) + vint(2, 1))
+        + vlen(2, vint(1, 20) + pv_set)
+    )
     m = decode(raw_metric(D.Double, key(13, 1) + struct.pack("<d", 1.0) + vlen(9, props))).metrics[0]
     assert m.properties == {"engUnit": "°C", "max": 80.0, "none": None, "nested": {"inner": -2}}
 
@@ -271,8 +283,13 @@ def test_properties_of_every_kind_decode():
         (vint(1, 1) + vlen(2, vlen(1, b"\xc3\x28") + vint(4, 11) + vint(14, 1)), "not valid UTF-8"),
         (vlen(4, b"\x80"), "uuid is not valid UTF-8"),
         (raw_metric(D.Double, key(13, 1) + struct.pack("<d", 1.0) + vlen(9, vlen(1, b"k"))), "1 property keys for 0"),
-        (raw_metric(D.Double, key(13, 1) + struct.pack("<d", 1.0)
-                    + vlen(9, vlen(1, b"k") + vlen(2, vint(1, 77) + vint(3, 1)))), "unknown datatype 77"),
+        (
+            raw_metric(
+                D.Double,
+                key(13, 1) + struct.pack("<d", 1.0) + vlen(9, vlen(1, b"k") + vlen(2, vint(1, 77) + vint(3, 1))),
+            ),
+            "unknown datatype 77",
+        ),
         (vint(1, 1) + vlen(2, b""), "no datatype and no value"),
     ],
 )
@@ -305,16 +322,18 @@ def test_arbitrary_bytes_decode_or_raise_sparkplug_error(data):
         assert "\n" not in str(e)
 
 
-_VALUE_FIELDS = st.sampled_from([
-    ("int_value", st.integers(0, 2**32 - 1)),
-    ("long_value", st.integers(0, 2**64 - 1)),
-    ("float_value", st.floats(width=32)),
-    ("double_value", st.floats()),
-    ("boolean_value", st.booleans()),
-    ("string_value", st.text(max_size=5)),
-    ("bytes_value", st.binary(max_size=5)),
-    (None, st.none()),
-])
+_VALUE_FIELDS = st.sampled_from(
+    [
+        ("int_value", st.integers(0, 2**32 - 1)),
+        ("long_value", st.integers(0, 2**64 - 1)),
+        ("float_value", st.floats(width=32)),
+        ("double_value", st.floats()),
+        ("boolean_value", st.booleans()),
+        ("string_value", st.text(max_size=5)),
+        ("bytes_value", st.binary(max_size=5)),
+        (None, st.none()),
+    ]
+)
 
 
 @st.composite
@@ -403,11 +422,32 @@ def test_bad_definitions_and_header_values_are_refused():
 
 
 def test_datatype_numbers_are_tahus():
-    expected = {"Unknown": 0, "Int8": 1, "Int16": 2, "Int32": 3, "Int64": 4, "UInt8": 5, "UInt16": 6,
-                "UInt32": 7, "UInt64": 8, "Float": 9, "Double": 10, "Boolean": 11, "String": 12,
-                "DateTime": 13, "Text": 14, "UUID": 15, "DataSet": 16, "Bytes": 17, "File": 18,
-                "Template": 19, "PropertySet": 20, "PropertySetList": 21, "Int8Array": 22,
-                "DateTimeArray": 34}
+    expected = {
+        "Unknown": 0,
+        "Int8": 1,
+        "Int16": 2,
+        "Int32": 3,
+        "Int64": 4,
+        "UInt8": 5,
+        "UInt16": 6,
+        "UInt32": 7,
+        "UInt64": 8,
+        "Float": 9,
+        "Double": 10,
+        "Boolean": 11,
+        "String": 12,
+        "DateTime": 13,
+        "Text": 14,
+        "UUID": 15,
+        "DataSet": 16,
+        "Bytes": 17,
+        "File": 18,
+        "Template": 19,
+        "PropertySet": 20,
+        "PropertySetList": 21,
+        "Int8Array": 22,
+        "DateTimeArray": 34,
+    }
     assert {name: DataType[name].value for name in expected} == expected
 
 
@@ -429,19 +469,19 @@ def test_topics():
 @pytest.mark.parametrize(
     "bad",
     [
-        "spAv1.0/plant/NDATA/e",       # another namespace
+        "spAv1.0/plant/NDATA/e",  # another namespace
         "plant/NDATA/e",
-        "spBv1.0/plant/NDATA",         # too few levels
+        "spBv1.0/plant/NDATA",  # too few levels
         "spBv1.0/plant",
         "spBv1.0",
-        "spBv1.0/plant/DDATA/e/d/x",   # too many
-        "spBv1.0/plant/NDATA/e/d",     # a device on a node message
-        "spBv1.0/plant/DDATA/e",       # no device on a device message
-        "spBv1.0/plant/XDATA/e",       # unknown type
-        "spBv1.0/+/NDATA/e",           # wildcards
+        "spBv1.0/plant/DDATA/e/d/x",  # too many
+        "spBv1.0/plant/NDATA/e/d",  # a device on a node message
+        "spBv1.0/plant/DDATA/e",  # no device on a device message
+        "spBv1.0/plant/XDATA/e",  # unknown type
+        "spBv1.0/+/NDATA/e",  # wildcards
         "spBv1.0/plant/NDATA/#",
         "spBv1.0/plant/DDATA/e/+",
-        "spBv1.0//NDATA/e",            # an empty level
+        "spBv1.0//NDATA/e",  # an empty level
         "spBv1.0/STATE/",
         "",
     ],
@@ -477,16 +517,21 @@ def test_a_birth_carries_name_and_alias_data_the_alias_only():
     aliases = {"Axis/z/correction_um": 7, "State": 300}
     birth = decode(encode(defs, timestamp_ms=1, seq=0, with_properties=True, aliases=aliases))
     assert [(m.name, m.alias, m.datatype) for m in birth.metrics] == [
-        ("Axis/z/correction_um", 7, D.Double), ("State", 300, D.String)]
+        ("Axis/z/correction_um", 7, D.Double),
+        ("State", 300, D.String),
+    ]
     data = encode(defs, timestamp_ms=2, seq=1, aliases=aliases, names=False)
     got = decode(data)
     assert [(m.name, m.alias, m.value, m.datatype) for m in got.metrics] == [
-        (None, 7, -1.25, D.Double), (None, 300, "running", D.String)]
+        (None, 7, -1.25, D.Double),
+        (None, 300, "running", D.String),
+    ]
     raw = PayloadMessage.FromString(data).metrics
     assert not raw[0].HasField("name") and raw[0].alias == 7  # no name on the wire at all
     # the wire bytes of an aliased data metric: alias (field 2), datatype (4), double (13)
     assert encode([defs[0]], timestamp_ms=2, seq=1, aliases={"Axis/z/correction_um": 7}, names=False) == (
-        vint(1, 2) + vlen(2, vint(2, 7) + vint(4, 10) + key(13, 1) + struct.pack("<d", -1.25)) + vint(3, 1))
+        vint(1, 2) + vlen(2, vint(2, 7) + vint(4, 10) + key(13, 1) + struct.pack("<d", -1.25)) + vint(3, 1)
+    )
     # a metric without an alias cannot go in a message by alias; a message by alias needs aliases
     with pytest.raises(SparkplugError, match="has no alias"):
         encode(defs, timestamp_ms=2, seq=1, aliases={"State": 300}, names=False)
@@ -513,20 +558,42 @@ def test_the_alias_table_is_unique_across_the_node_and_stable():
 
 
 def test_a_host_resolves_aliases_from_the_births():
-    nb = encode([(MetricDef("bdSeq", D.UInt64), 0), (MetricDef("Telemetry/dropped", D.UInt64), 0)],
-                timestamp_ms=1, seq=0, aliases={"bdSeq": 1, "Telemetry/dropped": 2})
-    db = encode([(MetricDef("Sample", D.UInt64), 1), (MetricDef("Word", D.UInt16), 0), (MetricDef("Off", D.Int8), 0)],
-                timestamp_ms=1, seq=1, aliases={"Sample": 3, "Word": 4, "Off": 5})
+    nb = encode(
+        [(MetricDef("bdSeq", D.UInt64), 0), (MetricDef("Telemetry/dropped", D.UInt64), 0)],
+        timestamp_ms=1,
+        seq=0,
+        aliases={"bdSeq": 1, "Telemetry/dropped": 2},
+    )
+    db = encode(
+        [(MetricDef("Sample", D.UInt64), 1), (MetricDef("Word", D.UInt16), 0), (MetricDef("Off", D.Int8), 0)],
+        timestamp_ms=1,
+        seq=1,
+        aliases={"Sample": 3, "Word": 4, "Off": 5},
+    )
     host = AliasResolver()
     assert host.resolve("spBv1.0/g/NBIRTH/e", decode(nb)) == []
     assert host.resolve("spBv1.0/g/DBIRTH/e/m1", decode(db)) == []
-    data = decode(encode([(MetricDef("Word", D.UInt16), 0x4543), (MetricDef("Sample", D.UInt64), 9)],
-                         timestamp_ms=2, seq=2, aliases={"Word": 4, "Sample": 3}, names=False))
+    data = decode(
+        encode(
+            [(MetricDef("Word", D.UInt16), 0x4543), (MetricDef("Sample", D.UInt64), 9)],
+            timestamp_ms=2,
+            seq=2,
+            aliases={"Word": 4, "Sample": 3},
+            names=False,
+        )
+    )
     assert host.resolve("spBv1.0/g/DDATA/e/m1", data) == []
     assert [(m.name, m.value) for m in data.metrics] == [("Word", 0x4543), ("Sample", 9)]
     # an alias of the node is not one of the device's; one no birth gave stays nameless
-    stray = decode(encode([(MetricDef("x", D.UInt64), 1), (MetricDef("y", D.UInt64), 1)], timestamp_ms=2, seq=3,
-                          aliases={"x": 2, "y": 77}, names=False))
+    stray = decode(
+        encode(
+            [(MetricDef("x", D.UInt64), 1), (MetricDef("y", D.UInt64), 1)],
+            timestamp_ms=2,
+            seq=3,
+            aliases={"x": 2, "y": 77},
+            names=False,
+        )
+    )
     assert host.resolve("spBv1.0/g/DDATA/e/m1", stray) == [2, 77] and stray.metrics[0].name is None
     node = decode(encode([(MetricDef("x", D.UInt64), 5)], timestamp_ms=2, seq=4, aliases={"x": 2}, names=False))
     assert host.resolve("spBv1.0/g/NDATA/e", node) == [] and node.metrics[0].name == "Telemetry/dropped"

@@ -71,10 +71,18 @@ def _wait(cond: Any, what: str, timeout_s: float = 60.0) -> None:
 def _tahu(messages: list[tuple[str, bytes]]) -> list[dict[str, Any]]:
     node = shutil.which("node")
     assert node, "no node: Node.js runs Eclipse Tahu's decoder"
-    assert (TAHU / "sparkplug-payload").is_dir(), "no Tahu: `make build/tools/node/node_modules/sparkplug-payload/package.json`"
+    assert (TAHU / "sparkplug-payload").is_dir(), (
+        "no Tahu: `make build/tools/node/node_modules/sparkplug-payload/package.json`"
+    )
     lines = "".join(json.dumps({"topic": t, "hex": b.hex()}) + "\n" for t, b in messages)
-    r = subprocess.run([node, str(DECODER)], input=lines, capture_output=True, text=True, timeout=120,
-                       env={**os.environ, "NODE_PATH": str(TAHU)})
+    r = subprocess.run(
+        [node, str(DECODER)],
+        input=lines,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "NODE_PATH": str(TAHU)},
+    )
     assert r.returncode == 0, r.stderr
     out = [json.loads(ln) for ln in r.stdout.splitlines()]
     assert len(out) == len(messages) and not [o for o in out if "error" in o], [o for o in out if "error" in o][:3]
@@ -100,13 +108,19 @@ def test_every_message_of_a_session_keeps_the_sparkplug_rules(tmp_path: Path) ->
             feed(tel, 1, SAMPLES // 2, t0, make=noisy)
             tel.event("axis_fault", "z", "input T_xi bad")
             # a model command this compd does not take: its answer goes out as NDATA Model/result
-            model = encode([(MetricDef("Node Control/Model", DataType.String), "kind: lvr")],
-                           timestamp_ms=int(time.time() * 1000), seq=None)
+            model = encode(
+                [(MetricDef("Node Control/Model", DataType.String), "kind: lvr")],
+                timestamp_ms=int(time.time() * 1000),
+                seq=None,
+            )
             raw.client.publish("spBv1.0/plant/NCMD/edge1", model, qos=0)
             _wait(lambda: raw.count("DDATA") >= SAMPLES // 2 + 1 and raw.count("NDATA") >= 1, "the first half")
             # a host asks for a rebirth: births again in the same session (same bdSeq, seq from 0)
-            cmd = encode([(MetricDef("Node Control/Rebirth", DataType.Boolean), True)],
-                         timestamp_ms=int(time.time() * 1000), seq=None)
+            cmd = encode(
+                [(MetricDef("Node Control/Rebirth", DataType.Boolean), True)],
+                timestamp_ms=int(time.time() * 1000),
+                seq=None,
+            )
             raw.client.publish("spBv1.0/plant/NCMD/edge1", cmd, qos=0)
             _wait(lambda: raw.count("DBIRTH") == 2, "the rebirth")
             feed(tel, SAMPLES // 2 + 1, SAMPLES - SAMPLES // 2 - 1, t0, make=noisy)
@@ -118,9 +132,11 @@ def test_every_message_of_a_session_keeps_the_sparkplug_rules(tmp_path: Path) ->
         decoded = _tahu([(t, b) for t, b in raw.messages if t.split("/")[2] != "NCMD"])
     checked = _check_rules(decoded, _truth)
     sizes = checked.pop("sizes")
-    print(f"Sparkplug B 3.0 rules checked on {len(decoded)} messages decoded by Eclipse Tahu sparkplug-payload"
-          f" 1.0.3: {', '.join(f'{k} {v}' for k, v in checked.items())}; DDATA bytes per sample:"
-          f" {', '.join(f'{k} {v:.1f}' for k, v in sizes.items())}")
+    print(
+        f"Sparkplug B 3.0 rules checked on {len(decoded)} messages decoded by Eclipse Tahu sparkplug-payload"
+        f" 1.0.3: {', '.join(f'{k} {v}' for k, v in checked.items())}; DDATA bytes per sample:"
+        f" {', '.join(f'{k} {v:.1f}' for k, v in sizes.items())}"
+    )
     assert checked["DDATA"] == SAMPLES + 1 and checked["NBIRTH"] == 2 and checked["seq wraps"] >= 1
     assert checked["NDATA"] >= 1
     # report by exception: whole after each birth and every FULL_REFRESH_S of sample time, else the news
@@ -160,8 +176,18 @@ def _check_rules(msgs: list[dict[str, Any]], truth: Callable[[int], dict[str, An
     that holds the births and applies every DDATA's metrics on top holds `truth(Sample)` after each
     sample (equal, or within the deadbands for Double); counts, and the DDATA sizes."""
     counts: dict[str, Any] = dict.fromkeys(("NBIRTH", "DBIRTH", "DDATA", "NDATA", "NDEATH"), 0)
-    counts |= dict.fromkeys(("seq wraps", "full refreshes", "exceptions", "events", "samples reconstructed",
-                             "rebirths that kept the aliases", "aliases"), 0)
+    counts |= dict.fromkeys(
+        (
+            "seq wraps",
+            "full refreshes",
+            "exceptions",
+            "events",
+            "samples reconstructed",
+            "rebirths that kept the aliases",
+            "aliases",
+        ),
+        0,
+    )
     born: dict[str, dict[str, Any]] = {}  # per node ("") or device id: alias → (name, type, unit)
     node_aliases: dict[str, tuple[str, str]] = {}  # alias → (device or "", name), across the node's births
     before: dict[str, dict[str, str]] = {}  # per device: name → alias of the births before this one
@@ -210,8 +236,9 @@ def _check_rules(msgs: list[dict[str, Any]], truth: Callable[[int], dict[str, An
             table: dict[str, Any] = {}
             for x in metrics:
                 # every metric of a birth has a name, a type and a time stamp ...
-                assert x.get("name") and x.get("type") and x.get("timestamp") is not None, \
+                assert x.get("name") and x.get("type") and x.get("timestamp") is not None, (
                     f"{where}: {x.get('name')} lacks name, type or timestamp"
+                )
                 # ... and an alias, unique across the node and its devices; but Node Control/Rebirth,
                 # which has none (Sparkplug 3.0: an NBIRTH MUST NOT alias it)
                 if x["name"] == "Node Control/Rebirth":

@@ -14,16 +14,20 @@ from compd.plant.sparkplug import AliasResolver, DataType, MetricDef, encode, to
 
 
 def compd(*argv: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "compd", "sparkplug-watch", *argv], capture_output=True, text=True,
-                          timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "compd", "sparkplug-watch", *argv], capture_output=True, text=True, timeout=120
+    )
 
 
-@pytest.mark.parametrize(("argv", "says"), [
-    ((), "give --config or --host"),
-    (("--host", "127.0.0.1", "--config", "x.yaml"), "give --config or --host"),
-    (("--host", "127.0.0.1", "--count", "0"), "--count must be at least 1"),
-    (("--host", "127.0.0.1", "--rebirth"), "--rebirth needs the group and the edge node"),
-])
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        ((), "give --config or --host"),
+        (("--host", "127.0.0.1", "--config", "x.yaml"), "give --config or --host"),
+        (("--host", "127.0.0.1", "--count", "0"), "--count must be at least 1"),
+        (("--host", "127.0.0.1", "--rebirth"), "--rebirth needs the group and the edge node"),
+    ],
+)
 def test_bad_options_are_one_line_and_exit_2(argv: tuple[str, ...], says: str) -> None:
     r = compd(*argv)
     assert r.returncode == 2 and says in r.stderr and len(r.stderr.splitlines()) == 1, r.stderr
@@ -40,8 +44,9 @@ def test_no_broker_is_exit_1_naming_it() -> None:
 def test_births_name_the_data_and_an_unknown_alias_is_shown_as_such() -> None:
     out, units, resolver = io.StringIO(), {}, AliasResolver()
     metric = MetricDef("Axis/z/correction_um", DataType.Double, "µm")
-    birth = encode([(metric, -3.25)], timestamp_ms=1_795_000_000_000, seq=1, with_properties=True,
-                   aliases={metric.name: 13})
+    birth = encode(
+        [(metric, -3.25)], timestamp_ms=1_795_000_000_000, seq=1, with_properties=True, aliases={metric.name: 13}
+    )
     data = encode([(metric, -3.5)], timestamp_ms=1_795_000_001_000, seq=2, aliases={metric.name: 13}, names=False)
     describe(topic("desk", "DDATA", "cell1", "spindle"), data, resolver, units, out)  # before any birth
     describe(topic("desk", "DBIRTH", "cell1", "spindle"), birth, resolver, units, out)

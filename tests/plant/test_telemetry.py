@@ -40,15 +40,36 @@ from .broker import Listener, Message, Mosquitto, Tls, metric
 def snapshot(i: int) -> dict[str, Any]:
     """A status snapshot of a two-axis machine, its values moving with `i`."""
     return {
-        "state": "running", "observe": False, "word": f"0x{(0x4000 + i) & 0xFFFF:04X}",
-        "axes": {"x": {"correction_um": -0.5 * i, "target_um": -0.5 * i, "prediction_um": 0.5 * i,
-                       "enable": True, "state": "normal"},
-                 "z": {"correction_um": 1.0, "target_um": float("nan"), "prediction_um": None,
-                       "enable": False, "state": "fault"}},
-        "signals": {"T_xi": {"value": 20.0 + 0.01 * i, "quality": "good"},
-                    "speed_rpm": {"value": None, "quality": "comms_lost"}},
-        "loop": {"period_ms": 2.0, "cycles": 1000 * i, "misses": 0,
-                 "lateness_us": {"p99": 12.5, "max": 80.0}, "cycle_compute_us": {"p99": 90.0}},
+        "state": "running",
+        "observe": False,
+        "word": f"0x{(0x4000 + i) & 0xFFFF:04X}",
+        "axes": {
+            "x": {
+                "correction_um": -0.5 * i,
+                "target_um": -0.5 * i,
+                "prediction_um": 0.5 * i,
+                "enable": True,
+                "state": "normal",
+            },
+            "z": {
+                "correction_um": 1.0,
+                "target_um": float("nan"),
+                "prediction_um": None,
+                "enable": False,
+                "state": "fault",
+            },
+        },
+        "signals": {
+            "T_xi": {"value": 20.0 + 0.01 * i, "quality": "good"},
+            "speed_rpm": {"value": None, "quality": "comms_lost"},
+        },
+        "loop": {
+            "period_ms": 2.0,
+            "cycles": 1000 * i,
+            "misses": 0,
+            "lateness_us": {"p99": 12.5, "max": 80.0},
+            "cycle_compute_us": {"p99": 90.0},
+        },
         "model": {"kind": "lvr", "file": "/m.yaml", "fit": {"fitted_at": "2026-11-01T08:00:00Z"}},
     }
 
@@ -58,7 +79,7 @@ def noisy(i: int) -> dict[str, Any]:
     over them, a null that comes and goes, a state and a flag that flip now and then."""
     snap = snapshot(i)
     x, z = snap["axes"]["x"], snap["axes"]["z"]
-    wobble = ((i * 7) % 3 - 1)  # -1, 0, 1: noise
+    wobble = (i * 7) % 3 - 1  # -1, 0, 1: noise
     x["prediction_um"] = 0.5 * (i // 15) + 0.004 * wobble  # a 0.5 µm step every 15 samples, noise of ±0.004 µm
     x["correction_um"] = x["target_um"] = -x["prediction_um"]
     z["target_um"] = float("nan") if (i // 13) % 2 else 1.0  # null, then a number, then null ...
@@ -71,10 +92,21 @@ def noisy(i: int) -> dict[str, Any]:
 
 
 def spec(tmp_path: Path, port: int, **kw: Any) -> TelemetrySpec:
-    base = dict(host="127.0.0.1", port=port, client_id="t-edge1", group_id="plant", edge_node_id="edge1",
-                device_id="m1", buffer_path=tmp_path / "buf.sqlite", buffer_max_bytes=10_000_000,
-                period_s=0.1, keepalive_s=5, reconnect_max_s=1.0, properties={"config": "/c.yaml"},
-                slack_s=0.0)
+    base = dict(
+        host="127.0.0.1",
+        port=port,
+        client_id="t-edge1",
+        group_id="plant",
+        edge_node_id="edge1",
+        device_id="m1",
+        buffer_path=tmp_path / "buf.sqlite",
+        buffer_max_bytes=10_000_000,
+        period_s=0.1,
+        keepalive_s=5,
+        reconnect_max_s=1.0,
+        properties={"config": "/c.yaml"},
+        slack_s=0.0,
+    )
     base.update(kw)
     return TelemetrySpec(**base)
 
@@ -226,8 +258,11 @@ def test_births_data_and_events(tmp_path: Path) -> None:
         assert not any(h for n, h in nums if n > 1)  # live (the first was taken before the connection)
         # by alias (the conformance test checks on the bytes that no name goes with it); the
         # datatype stays (Tahu's decoder needs it)
-        assert all(x.alias is not None and x.datatype is not DataType.Unknown
-                   for m in listener.of("DDATA") for x in m.payload.metrics)
+        assert all(
+            x.alias is not None and x.datatype is not DataType.Unknown
+            for m in listener.of("DDATA")
+            for x in m.payload.metrics
+        )
         data = of(listener, "DDATA")
         assert [m.payload.seq for m in data] == list(range(2, 2 + len(data)))  # seq runs on after the births
         s5 = next(m.payload for m in data if metric(m.payload, "Sample").value == 6)
@@ -238,8 +273,15 @@ def test_births_data_and_events(tmp_path: Path) -> None:
         first = next(m.payload for m in data if metric(m.payload, "Sample").value == 1)
         assert {x.name for x in first.metrics} == {d.name for d, _ in device_metrics(snapshot(0))} | {"Sample"}
         assert metric(first, "Axis/z/target_um").is_null
-        assert {x.name for x in s5.metrics} == {"Sample", "Word", "Axis/x/correction_um", "Axis/x/target_um",
-                                                "Axis/x/prediction_um", "Signal/T_xi/value", "Loop/cycles"}
+        assert {x.name for x in s5.metrics} == {
+            "Sample",
+            "Word",
+            "Axis/x/correction_um",
+            "Axis/x/target_um",
+            "Axis/x/prediction_um",
+            "Signal/T_xi/value",
+            "Loop/cycles",
+        }
         # ... and what a host holds is every sample whole
         u = units(dbirth)
         for n, state, _ in states(named(listener)):
@@ -294,13 +336,33 @@ def test_broker_outage_every_sample_in_order_once(tmp_path: Path) -> None:
 
 def test_tls_client_certificate_and_password(tmp_path: Path) -> None:
     tls = Tls(tmp_path / "pki")
-    with Mosquitto(tmp_path / "broker", users={"edge1": "s3cret", "host": "h0st"}, tls=tls,
-                   require_certificate=True) as broker:
+    with Mosquitto(
+        tmp_path / "broker", users={"edge1": "s3cret", "host": "h0st"}, tls=tls, require_certificate=True
+    ) as broker:
         listener = Listener(broker.port, username="host", password="h0st", tls=tls)
-        wrong = Telemetry(spec(tmp_path / "w", broker.port, username="edge1", password="wrong", ca_file=str(tls.ca),
-                               cert_file=str(tls.client_cert), key_file=str(tls.client_key), client_id="w"))
-        good = Telemetry(spec(tmp_path / "g", broker.port, username="edge1", password="s3cret", ca_file=str(tls.ca),
-                              cert_file=str(tls.client_cert), key_file=str(tls.client_key)))
+        wrong = Telemetry(
+            spec(
+                tmp_path / "w",
+                broker.port,
+                username="edge1",
+                password="wrong",
+                ca_file=str(tls.ca),
+                cert_file=str(tls.client_cert),
+                key_file=str(tls.client_key),
+                client_id="w",
+            )
+        )
+        good = Telemetry(
+            spec(
+                tmp_path / "g",
+                broker.port,
+                username="edge1",
+                password="s3cret",
+                ca_file=str(tls.ca),
+                cert_file=str(tls.client_cert),
+                key_file=str(tls.client_key),
+            )
+        )
         (tmp_path / "w").mkdir()
         (tmp_path / "g").mkdir()
         try:
@@ -356,14 +418,26 @@ def test_rebirth_and_a_command_that_is_not_sparkplug(tmp_path: Path) -> None:
             listener.wait_for(lambda: len(samples(listener)) >= 3)
             cmd = topic("plant", "NCMD", "edge1")
             listener.client.publish(cmd, b"\xff\x00garbage", qos=1)
-            listener.client.publish(cmd, encode([(MetricDef("Node Control/Rebirth", DataType.Boolean), True)],
-                                                timestamp_ms=0, seq=None), qos=1)
+            listener.client.publish(
+                cmd,
+                encode([(MetricDef("Node Control/Rebirth", DataType.Boolean), True)], timestamp_ms=0, seq=None),
+                qos=1,
+            )
             listener.wait_for(lambda: len(listener.of("DBIRTH")) >= 2)
-            listener.client.publish(topic("plant", "NCMD", "edge1"), encode(
-                [(MetricDef("Node Control/Model", DataType.String), "kind: lvr")], timestamp_ms=0, seq=None), qos=1)
-            listener.wait_for(lambda: any(
-                any(x.name == "Model/result" and "takes no remote models" in (x.value or "") for x in m.payload.metrics)
-                for m in of(listener, "NDATA")))
+            listener.client.publish(
+                topic("plant", "NCMD", "edge1"),
+                encode([(MetricDef("Node Control/Model", DataType.String), "kind: lvr")], timestamp_ms=0, seq=None),
+                qos=1,
+            )
+            listener.wait_for(
+                lambda: any(
+                    any(
+                        x.name == "Model/result" and "takes no remote models" in (x.value or "")
+                        for x in m.payload.metrics
+                    )
+                    for m in of(listener, "NDATA")
+                )
+            )
         finally:
             tel.stop()
             listener.stop()
@@ -375,6 +449,7 @@ def test_rebirth_and_a_command_that_is_not_sparkplug(tmp_path: Path) -> None:
 def test_a_buffer_set_aside_never_restarts_sample_or_bdseq(tmp_path: Path) -> None:
     """A historian keys on `Sample`: after the buffer file is found corrupt and set aside, the
     numbers go on from the counters file beside it (never 1 again), and so does bdSeq."""
+
     def session(first: int, n: int) -> tuple[list[int], int]:
         with Mosquitto(tmp_path / "broker") as broker:
             listener = Listener(broker.port)
@@ -443,7 +518,9 @@ def test_a_full_disk_under_the_buffer_is_said_once_and_telemetry_goes_on_live(tm
         assert sorted(set(numbers)) == list(range(1, 13))  # every sample, none lost
         said = [r for r in caplog.records if getattr(r, "event", None) == "telemetry_unbuffered"]
         assert len(said) == 1 and said[0].levelname == "ERROR" and "disk is full" in said[0].reason
-        assert [r.event for r in caplog.records if getattr(r, "event", None) == "telemetry_buffered"] == ["telemetry_buffered"]
+        assert [r.event for r in caplog.records if getattr(r, "event", None) == "telemetry_buffered"] == [
+            "telemetry_buffered"
+        ]
         assert not [r for r in caplog.records if getattr(r, "event", None) == "telemetry_error"]
 
 
@@ -458,8 +535,11 @@ class SmallDisk:
         if os.geteuid() != 0 or shutil.which("mount") is None:
             pytest.skip("a disk that fills needs root to mount a tmpfs")
         path.mkdir()
-        run = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k,mode=0700", "tmpfs", str(path)],
-                             capture_output=True, text=True)
+        run = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={size_kb}k,mode=0700", "tmpfs", str(path)],
+            capture_output=True,
+            text=True,
+        )
         if run.returncode != 0:
             pytest.skip(f"cannot mount a tmpfs here: {run.stderr.strip()}")
         self.path = path
@@ -596,7 +676,9 @@ def test_what_is_news_by_datatype_and_unit() -> None:
     assert moved(bare, 1.0 + 1e-12, 1.0)  # no unit, no deadband
     assert moved(um, None, 1.0) and moved(um, 1.0, None) and not moved(um, None, None)
     assert moved(MetricDef("Axis/x/state", DataType.String), "fault", "normal")
-    assert not moved(MetricDef("Loop/cycles", DataType.UInt64), 7, 7) and moved(MetricDef("Word", DataType.UInt16), 1, 0)
+    assert not moved(MetricDef("Loop/cycles", DataType.UInt64), 7, 7) and moved(
+        MetricDef("Word", DataType.UInt16), 1, 0
+    )
     assert moved(MetricDef("Axis/x/enable", DataType.Boolean), None, False)
     assert not math.isnan(DEADBAND_BY_UNIT["µm"]) and all(v > 0 for v in DEADBAND_BY_UNIT.values())
 
@@ -628,8 +710,7 @@ def test_report_by_exception_with_deadbands_and_a_full_refresh(tmp_path: Path) -
     whole = [n for n, _, full in held if full]
     assert whole == list(range(1, 101, 10)), whole  # the first, then every 1.0 s of sample time
     assert (tel.full_refreshes, tel.exceptions) == (10, 90)
-    data = {metric(m.payload, "Sample").value: {x.name for x in m.payload.metrics}
-            for m in msgs if m.kind == "DDATA"}
+    data = {metric(m.payload, "Sample").value: {x.name for x in m.payload.metrics} for m in msgs if m.kind == "DDATA"}
     # the noise (±0.004 µm, ±0.002 °C, ±0.2 µs) never goes out between the steps ...
     assert "Signal/T_xi/value" not in data[3] and "Axis/x/prediction_um" not in data[3]
     assert "Loop/lateness_max_us" not in set().union(*(data[n] for n in range(2, 101) if n not in whole))
@@ -657,6 +738,7 @@ def test_full_refresh_0_sends_every_sample_whole(tmp_path: Path) -> None:
 def test_samples_buffered_in_an_outage_replay_right_after_a_restart_with_other_aliases(tmp_path: Path) -> None:
     """A sample buffered during an outage is sent (after a restart whose metric set, and so
     whose aliases, changed) in the new births' aliases: a host reads every one as it was taken."""
+
     def with_new_signal(i: int) -> dict[str, Any]:
         snap = snapshot(i)
         snap["signals"] = {"A_bed_c": {"value": 19.5, "quality": "good"}, **snap["signals"]}  # sorts first
@@ -700,8 +782,11 @@ def test_samples_buffered_in_an_outage_replay_right_after_a_restart_with_other_a
     assert alias[0]["Signal/T_xi/value"] != alias[1]["Signal/T_xi/value"]  # other aliases for the same metric
     held = states(msgs)
     assert [n for n, _, _ in held] == list(range(1, 41))  # every sample, in order, once
-    hist = {metric(m.payload, "Sample").value for m in msgs if m.kind == "DDATA"
-            and metric(m.payload, "Sample").is_historical}
+    hist = {
+        metric(m.payload, "Sample").value
+        for m in msgs
+        if m.kind == "DDATA" and metric(m.payload, "Sample").is_historical
+    }
     assert set(range(11, 31)) <= hist
     u = units(births)
     for n, state, _ in held:
@@ -733,8 +818,13 @@ def test_commands_by_alias(tmp_path: Path, caplog: Any) -> None:
             stray = PayloadMessage(timestamp=2)
             stray.metrics.add(alias=999_999, boolean_value=True)
             listener.client.publish(topic("plant", "NCMD", "edge1"), stray.SerializeToString(), qos=1)
-            listener.wait_for(lambda: tel.commands_seen == 3 and len([
-                x for m in of(listener, "NDATA") for x in m.payload.metrics if x.name == "Model/result"]) >= 2)
+            listener.wait_for(
+                lambda: (
+                    tel.commands_seen == 3
+                    and len([x for m in of(listener, "NDATA") for x in m.payload.metrics if x.name == "Model/result"])
+                    >= 2
+                )
+            )
         finally:
             tel.stop()
             listener.stop()

@@ -88,16 +88,29 @@ def test_quantiles_are_per_instance(root) -> None:
 # a metric's unit (`unit_of`) → the Grafana unit ids that show it (fieldConfig.defaults.unit, or a
 # series' override): the families are in base units, so meters, seconds, revolutions per second, …
 GRAFANA_UNITS = {
-    "m": {"lengthm"}, "s": {"s"}, "°C": {"celsius"}, "K": {"kelvin"}, "Hz": {"rothz"}, "A": {"amp"},
-    "V": {"volt"}, "ratio": {"percentunit", "none"}, "Pa": {"pressurepa"}, "bytes": {"bytes", "decbytes"},
-    "count": {"short", "none"}, "0 or 1": {"none", "bool"}, "16-bit word (0 … 65535)": {"hex0x"}, "1": {"none"},
+    "m": {"lengthm"},
+    "s": {"s"},
+    "°C": {"celsius"},
+    "K": {"kelvin"},
+    "Hz": {"rothz"},
+    "A": {"amp"},
+    "V": {"volt"},
+    "ratio": {"percentunit", "none"},
+    "Pa": {"pressurepa"},
+    "bytes": {"bytes", "decbytes"},
+    "count": {"short", "none"},
+    "0 or 1": {"none", "bool"},
+    "16-bit word (0 … 65535)": {"hex0x"},
+    "1": {"none"},
     "the signal's own (its name says none)": {"none", "short"},
 }
 # what a query does to its metric's unit: a rate or increase of a count is a count, a rate of CPU
 # seconds a share of one CPU, bytes / 1e6 megabytes, now minus a start time a time
-TRANSFORMS = ((re.compile(r"^rate\(\w+_seconds_total"), {"s": {"percentunit"}}),
-              (re.compile(r"/ 1e6$"), {"bytes": {"decmbytes"}}),
-              (re.compile(r"^time\(\) - "), {"s": {"s"}}))
+TRANSFORMS = (
+    (re.compile(r"^rate\(\w+_seconds_total"), {"s": {"percentunit"}}),
+    (re.compile(r"/ 1e6$"), {"bytes": {"decmbytes"}}),
+    (re.compile(r"^time\(\) - "), {"s": {"s"}}),
+)
 
 
 def _series_unit(panel: dict[str, Any], ref: str) -> str | None:

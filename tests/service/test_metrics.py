@@ -170,8 +170,12 @@ def test_the_adaptation_estimate_and_probe_counts(tmp_path):
     app = App(load_config(sim_config(tmp_path, "adapt: {}", duration_s=600)))
     app.run()
     ad = app.loop.adapter
-    ad.inbox.extend([Probe(t_s=app.loop.now_s, axis="z", error_um=float(app.loop.pred_um[0]) + 2.0),
-                     Probe(t_s=app.loop.now_s, axis="z", error_um=1e4)])  # the second fails the gate
+    ad.inbox.extend(
+        [
+            Probe(t_s=app.loop.now_s, axis="z", error_um=float(app.loop.pred_um[0]) + 2.0),
+            Probe(t_s=app.loop.now_s, axis="z", error_um=1e4),
+        ]
+    )  # the second fails the gate
     app.loop.step(app.loop.now_s + 1.0)
     m = _served(app, "stopped")
     assert m['compd_probes_accepted_total{axis="z"}'] == 1

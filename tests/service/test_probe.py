@@ -35,8 +35,9 @@ adapt: {{}}
 
 
 def compd(*args: str, cwd: Path, timeout: float = 30) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "compd", *args], cwd=cwd, env=ENV, capture_output=True,
-                          text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "compd", *args], cwd=cwd, env=ENV, capture_output=True, text=True, timeout=timeout
+    )
 
 
 def until(cond, what: str, timeout: float = WAIT_S):
@@ -68,8 +69,14 @@ def daemon(tmp_path):
     """A daemon on the simulated spindle (paced: 50× real time), stopped with SIGTERM at the end."""
     cfg = sim_config(tmp_path, EXTRA.format(), duration_s=1e6, speedup=50)
     stale_socket(tmp_path / "status.sock")  # a crashed daemon's: the new one must replace it
-    proc = subprocess.Popen([sys.executable, "-m", "compd", "run", cfg.name], cwd=tmp_path, env=ENV,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "compd", "run", cfg.name],
+        cwd=tmp_path,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         until(lambda: status_of(tmp_path).get("state") == "running" or proc.poll() is not None, "the daemon")
         assert proc.poll() is None, proc.communicate()
@@ -88,11 +95,9 @@ def test_probe_reaches_the_daemon_which_logs_shows_and_keeps_it(daemon, tmp_path
     proc, cfg = daemon
     sock = tmp_path / "status.sock"
     assert stat.S_IMODE(sock.stat().st_mode) == 0o660
-    until(lambda: (status_of(tmp_path).get("axes") or {}).get("z", {}).get("prediction_um") is not None,
-          "a prediction")
+    until(lambda: (status_of(tmp_path).get("axes") or {}).get("z", {}).get("prediction_um") is not None, "a prediction")
 
-    r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "3.5", "--position-mm", "120",
-              cwd=tmp_path)
+    r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "3.5", "--position-mm", "120", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert len(r.stdout.splitlines()) == 1 and "probe z error 3.5 um" in r.stdout
     assert any(w in r.stdout for w in ("accepted", "rejected", "queued"))
@@ -143,7 +148,11 @@ def run_briefly(tmp_path: Path, cfg: Path) -> tuple[str, dict]:
 def test_the_estimate_is_restored_for_the_same_model_and_reset_for_a_refit_one(tmp_path):
     cfg = sim_config(tmp_path, EXTRA.format(), duration_s=1e6, speedup=0)
     saved = {
-        "format": 1, "kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"], "saved_unix_s": time.time(),
+        "format": 1,
+        "kind": "xi_spindle",
+        "inputs": ["T_xi"],
+        "outputs": ["z"],
+        "saved_unix_s": time.time(),
         "state": {"t0_c": 19.8, "ref_c": None},
     }
     from compd.config import load_config
@@ -151,8 +160,10 @@ def test_the_estimate_is_restored_for_the_same_model_and_reset_for_a_refit_one(t
 
     digest = params_digest(load_config(cfg).model.params)
     axes = {"z": {"s": [2.5], "P": [[0.04]], "t_probe_s": 10.0, "accepted": 4, "rejected": 1, "probe_age_s": 30.0}}
-    (tmp_path / "state.json").write_text(json.dumps(
-        {**saved, "adapt": {"params_sha256": digest, "saved_unix_s": time.time(), "axes": axes}}), encoding="utf-8")
+    (tmp_path / "state.json").write_text(
+        json.dumps({**saved, "adapt": {"params_sha256": digest, "saved_unix_s": time.time(), "axes": axes}}),
+        encoding="utf-8",
+    )
     err, st = run_briefly(tmp_path, cfg)
     assert "event=adapt_restored" in err
     assert st["adapt"]["z"]["accepted"] == 4 and st["adapt"]["z"]["offset_um"] == pytest.approx(2.5)
@@ -184,8 +195,11 @@ def test_bad_input_exits_2_with_one_line(tmp_path):
     no_adapt = sim_config(tmp_path)
     r = compd("probe", "--config", no_adapt.name, "--axis", "z", "--error-um", "1", cwd=tmp_path)
     assert r.returncode == 2 and len(r.stderr.splitlines()) == 1 and "adapt" in r.stderr
-    for args in (["--axis", "z", "--error-um", "nan"], ["--axis", "z"], ["--axis", "z", "--error-um", "1",
-                                                                        "--sigma-um", "0"]):
+    for args in (
+        ["--axis", "z", "--error-um", "nan"],
+        ["--axis", "z"],
+        ["--axis", "z", "--error-um", "1", "--sigma-um", "0"],
+    ):
         r = compd("probe", *args, cwd=tmp_path)
         assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, (args, r.stderr)
 
@@ -219,8 +233,9 @@ def test_server_queues_the_probe_and_answers_queued_when_no_cycle_takes_it(tmp_p
     try:
         with pytest.raises(BadInput, match="another compd serves"):
             control.ControlServer(tmp_path / "c.sock").open()
-        answer = control.send_probe(tmp_path / "c.sock", {"op": "probe", "axis": "x", "error_um": 4.0,
-                                                          "position_mm": 3.0, "residual": True})
+        answer = control.send_probe(
+            tmp_path / "c.sock", {"op": "probe", "axis": "x", "error_um": 4.0, "position_mm": 3.0, "residual": True}
+        )
         assert answer["ok"] and answer["outcome"] == "queued" and answer["t_s"] is None
         assert answer["pid"] == os.getpid()
         (probe,) = link.sent
@@ -307,12 +322,21 @@ def test_a_state_file_with_a_nan_covariance_is_refused_at_start_and_the_estimate
     from compd.service.state import params_digest
 
     digest = params_digest(load_config(cfg).model.params)
-    axes = {"z": {"s": [2.5], "P": [[math.nan]], "t_probe_s": 10.0, "accepted": 4, "rejected": 1,
-                  "probe_age_s": 30.0}}
-    (tmp_path / "state.json").write_text(json.dumps({
-        "format": 1, "kind": "xi_spindle", "inputs": ["T_xi"], "outputs": ["z"], "saved_unix_s": time.time(),
-        "state": {"t0_c": 19.8, "ref_c": None},
-        "adapt": {"params_sha256": digest, "saved_unix_s": time.time(), "axes": axes}}), encoding="utf-8")
+    axes = {"z": {"s": [2.5], "P": [[math.nan]], "t_probe_s": 10.0, "accepted": 4, "rejected": 1, "probe_age_s": 30.0}}
+    (tmp_path / "state.json").write_text(
+        json.dumps(
+            {
+                "format": 1,
+                "kind": "xi_spindle",
+                "inputs": ["T_xi"],
+                "outputs": ["z"],
+                "saved_unix_s": time.time(),
+                "state": {"t0_c": 19.8, "ref_c": None},
+                "adapt": {"params_sha256": digest, "saved_unix_s": time.time(), "axes": axes},
+            }
+        ),
+        encoding="utf-8",
+    )
     err, st = run_briefly(tmp_path, cfg)
     assert "event=state_restored" in err  # the model's memory in the same file is sound: taken
     assert "event=adapt_restored" not in err
@@ -326,10 +350,12 @@ def test_a_state_file_with_a_nan_covariance_is_refused_at_start_and_the_estimate
 def test_a_probe_no_probe_measures_is_refused_at_the_command_line(tmp_path):
     """Issue 39: `--sigma-um 1e200` was accepted and poisoned the estimate. Refused before any daemon
     is asked (none runs here: the old command exited 1, no daemon), exit 2 and one line naming the flag."""
-    for args, flag in ((["--error-um", "10.3", "--sigma-um", "1e200"], "--sigma-um"),
-                       (["--error-um", "10.3", "--sigma-um", "1e-9"], "--sigma-um"),
-                       (["--error-um", "2e4"], "--error-um"),
-                       (["--error-um", "1", "--position-mm", "1e300"], "--position-mm")):
+    for args, flag in (
+        (["--error-um", "10.3", "--sigma-um", "1e200"], "--sigma-um"),
+        (["--error-um", "10.3", "--sigma-um", "1e-9"], "--sigma-um"),
+        (["--error-um", "2e4"], "--error-um"),
+        (["--error-um", "1", "--position-mm", "1e300"], "--position-mm"),
+    ):
         r = compd("probe", "--axis", "z", *args, cwd=tmp_path)
         assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, (args, r.returncode, r.stderr)
         assert r.stderr.startswith(f"compd: {flag}: ") and "Traceback" not in r.stderr, r.stderr
@@ -365,9 +391,12 @@ def test_the_socket_refuses_a_probe_no_probe_measures(tmp_path, monkeypatch):
     server = serving(tmp_path, link)
     try:
         sock = tmp_path / "status.sock"
-        for body, key in (('"error_um": 10.3, "sigma_um": 1e200', "sigma_um"), ('"error_um": 1e5', "error_um"),
-                          ('"error_um": 1.0, "position_mm": 1e300', "position_mm"),
-                          ('"error_um": 1.0, "sigma_um": NaN', "sigma_um")):
+        for body, key in (
+            ('"error_um": 10.3, "sigma_um": 1e200', "sigma_um"),
+            ('"error_um": 1e5', "error_um"),
+            ('"error_um": 1.0, "position_mm": 1e300', "position_mm"),
+            ('"error_um": 1.0, "sigma_um": NaN', "sigma_um"),
+        ):
             answer = raw_request(sock, b'{"op": "probe", "axis": "z", ' + body.encode() + b"}\n")
             assert answer["ok"] is False and answer["error"].startswith(key), (body, answer)
         assert link.sent == []  # none reached the cycle
@@ -412,9 +441,18 @@ class NullLink(FakeLink):
     def outcome(self, tag: str) -> dict | None:
         if not self.verdicts or not self.sent or self.sent[-1].source != tag:
             return None
-        return {"event": "rejected", "source": tag, "t_s": None, "error_um": None, "measured_um": None,
-                "innovation_um": float("nan"), "innovation_sigma_um": None, "offset_um": None,
-                "reason": "sigma_um must be within [0.001, 1000] um", "newer_key": None}
+        return {
+            "event": "rejected",
+            "source": tag,
+            "t_s": None,
+            "error_um": None,
+            "measured_um": None,
+            "innovation_um": float("nan"),
+            "innovation_sigma_um": None,
+            "offset_um": None,
+            "reason": "sigma_um must be within [0.001, 1000] um",
+            "newer_key": None,
+        }
 
 
 def test_compd_probe_prints_any_answer_nulls_included(tmp_path, monkeypatch):
@@ -434,8 +472,10 @@ def test_compd_probe_prints_any_answer_nulls_included(tmp_path, monkeypatch):
         link.verdicts = False  # the loop takes nothing: queued, t_s null
         r = compd("probe", "--config", cfg.name, "--axis", "z", "--error-um", "10.3", cwd=tmp_path)
         assert r.returncode == 0 and r.stderr == "", r.stderr
-        assert r.stdout == f"compd: probe z error 10.3 um queued (the loop has not taken it yet; see the daemon's log);" \
-                           f" t_s=null pid={os.getpid()}\n", r.stdout
+        assert (
+            r.stdout == f"compd: probe z error 10.3 um queued (the loop has not taken it yet; see the daemon's log);"
+            f" t_s=null pid={os.getpid()}\n"
+        ), r.stdout
     finally:
         server.close()
 
@@ -455,12 +495,19 @@ def _line(cfg: Path, text: str) -> int:
     return next(i for i, line in enumerate(cfg.read_text().splitlines(), 1) if text in line)
 
 
-@pytest.mark.parametrize(("extra", "key", "why"), [
-    ("adapt: {{socket_path: {long}/p.sock}}", "adapt.socket_path", "bytes long: a Unix socket path is at most 107"),
-    ("adapt: {{socket_path: missing/p.sock}}", "adapt.socket_path", "missing of the probe socket"),
-    ("status: {{path: missing/status.json}}\nadapt: {{}}", "status.path", "missing of the status file does not exist"),
-    ("status: {{path: status.json}}\nadapt: {{}}", "status.path", "status.sock exists and is not a socket"),
-])
+@pytest.mark.parametrize(
+    ("extra", "key", "why"),
+    [
+        ("adapt: {{socket_path: {long}/p.sock}}", "adapt.socket_path", "bytes long: a Unix socket path is at most 107"),
+        ("adapt: {{socket_path: missing/p.sock}}", "adapt.socket_path", "missing of the probe socket"),
+        (
+            "status: {{path: missing/status.json}}\nadapt: {{}}",
+            "status.path",
+            "missing of the status file does not exist",
+        ),
+        ("status: {{path: status.json}}\nadapt: {{}}", "status.path", "status.sock exists and is not a socket"),
+    ],
+)
 def test_check_config_refuses_a_probe_socket_that_cannot_be_bound(tmp_path, extra, key, why):
     """Issue 39 item 7: these passed check-config and then failed `compd run`; now one line naming the key."""
     (tmp_path / "status.sock").write_text("not a socket", encoding="utf-8")

@@ -30,7 +30,9 @@ def test_a_join_that_times_out_says_so(caplog) -> None:  # noqa: ANN001
     t.start()
     try:
         assert not t.join(0.01) and t.alive
-        assert [r.service_thread for r in caplog.records if getattr(r, "event", None) == "service_thread_stuck"] == ["compd-stuck"]
+        assert [r.service_thread for r in caplog.records if getattr(r, "event", None) == "service_thread_stuck"] == [
+            "compd-stuck"
+        ]
     finally:
         release.set()
     assert t.join(30.0) and t.failure is None

@@ -91,6 +91,8 @@ def test_the_writer_never_saves_an_adapt_state_that_is_not_finite(tmp_path: Path
 
 def test_a_time_stamp_no_float_holds_is_ignored_not_raised(tmp_path: Path) -> None:
     p = tmp_path / "state.json"
-    p.write_text('{"format": 1, "kind": "xi_spindle", "inputs": ["T"], "outputs": ["z"], "state": {},'
-                 ' "saved_unix_s": 1' + "0" * 400 + "}")
+    p.write_text(
+        '{"format": 1, "kind": "xi_spindle", "inputs": ["T"], "outputs": ["z"], "state": {},'
+        ' "saved_unix_s": 1' + "0" * 400 + "}"
+    )
     assert load_saved(p, "xi_spindle", ["T"], ["z"]) is None

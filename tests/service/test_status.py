@@ -122,23 +122,33 @@ def test_liveness():
 
 def test_a_stale_cycle_is_not_alive_but_held_and_a_reload_is_alive():
     now = 1000.0
-    base = {"pid": os.getpid(), "state": "running", "written_unix_s": now - 0.5, "status_period_s": 1.0,
-            "record_age_s": 0.01, "stale_after_s": 1.0}
+    base = {
+        "pid": os.getpid(),
+        "state": "running",
+        "written_unix_s": now - 0.5,
+        "status_period_s": 1.0,
+        "record_age_s": 0.01,
+        "stale_after_s": 1.0,
+    }
     alive, why = liveness({**base, "state": "stale", "record_age_s": 3.25}, now)
     assert not alive and why.startswith("stale: the cycle has not run for 3.2 s")
     assert held({**base, "state": "stale"}, now)  # its process and service are there: the file is not free
     assert not held({**base, "written_unix_s": now - 60}, now)
     assert liveness({**base, "state": "reloading", "record_age_s": 2.0}, now) == (
-        True, "reloading (the loop paused 2.0 s ago)")
+        True,
+        "reloading (the loop paused 2.0 s ago)",
+    )
     assert stale_after_s(0.002, "running") == STALE_MIN_S and stale_after_s(0.5, "running") == 2.5
     assert stale_after_s(0.002, "reloading") > 10.0
     assert stale_after_s(0.002, "stopping") is None and stale_after_s(0.002, "stopped") is None
 
 
 def test_mark_stale_keeps_what_each_axis_last_said():
-    snap = {"state": "running", "observe": False,
-            "axes": {"z": {"state": "normal", "enable": True,
-                           "contributions": {"spindle": {"state": "fault"}}}}}
+    snap = {
+        "state": "running",
+        "observe": False,
+        "axes": {"z": {"state": "normal", "enable": True, "contributions": {"spindle": {"state": "fault"}}}},
+    }
     mark_stale(snap)
     z = snap["axes"]["z"]
     assert snap["state"] == "stale" and z["state"] == "stale" and z["last_state"] == "normal"
@@ -192,9 +202,11 @@ def test_a_sink_that_cannot_reach_the_machine_is_shown_down_and_not_enabled(tmp_
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     cfg = sim_config(tmp_path, duration_s=600)
-    cfg.write_text(cfg.read_text().replace(
-        "sink: {kind: pci1756}", f"sink: {{kind: fanuc_pmc, host: 127.0.0.1, port: {port}, timeout_s: 0.1}}"
-    ))
+    cfg.write_text(
+        cfg.read_text().replace(
+            "sink: {kind: pci1756}", f"sink: {{kind: fanuc_pmc, host: 127.0.0.1, port: {port}, timeout_s: 0.1}}"
+        )
+    )
     app = App(load_config(cfg))
     app.open()
     try:

@@ -17,10 +17,17 @@ CONFIG = GOOD + "status: {path: shared.json}\n"
 
 def _other_daemon(path: Path, state: str = "running") -> None:
     """The status file of another compd: a live process (our parent), updated just now."""
-    status_mod.write_atomic(path, {
-        "schema": status_mod.SCHEMA, "pid": os.getppid(), "state": state, "written_unix_s": time.time(),
-        "status_period_s": 1.0, "config": "/elsewhere/other.yaml",
-    })
+    status_mod.write_atomic(
+        path,
+        {
+            "schema": status_mod.SCHEMA,
+            "pid": os.getppid(),
+            "state": state,
+            "written_unix_s": time.time(),
+            "status_period_s": 1.0,
+            "config": "/elsewhere/other.yaml",
+        },
+    )
 
 
 def test_a_live_daemons_status_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -32,8 +39,10 @@ def test_a_live_daemons_status_file_is_refused(tmp_path: Path, capsys: pytest.Ca
         assert main(argv) == 2
         out, err = capsys.readouterr()
         assert "cycles" not in out
-        assert err.startswith(f"compd: {cfg}:{line}: status.path: {tmp_path / 'shared.json'} is the status file"
-                              f" of a running compd (pid {os.getppid()}, config /elsewhere/other.yaml)"), err
+        assert err.startswith(
+            f"compd: {cfg}:{line}: status.path: {tmp_path / 'shared.json'} is the status file"
+            f" of a running compd (pid {os.getppid()}, config /elsewhere/other.yaml)"
+        ), err
         assert len(err.splitlines()) == 1
 
 

@@ -126,10 +126,20 @@ def test_a_running_daemon_s_status_shows_them(tmp_path):
     root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(root)}
     model = _fitted(tmp_path)
-    cfg = _config(tmp_path, model, loop="{clock: sim, period_s: 1.0, speedup: 20}",
-                  extra="status: {path: status.json, period_s: 0.1}")
-    proc = subprocess.Popen([sys.executable, "-m", "compd", "run", cfg.name], cwd=tmp_path, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cfg = _config(
+        tmp_path,
+        model,
+        loop="{clock: sim, period_s: 1.0, speedup: 20}",
+        extra="status: {path: status.json, period_s: 0.1}",
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "compd", "run", cfg.name],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 60.0  # an upper bound, never a sleep
         snap: dict = {}
@@ -140,8 +150,14 @@ def test_a_running_daemon_s_status_shows_them(tmp_path):
                 snap = json.loads((tmp_path / "status.json").read_text(encoding="utf-8"))
             except (OSError, ValueError):
                 snap = {}
-        out = subprocess.run([sys.executable, "-m", "compd", "status", "--config", cfg.name], cwd=tmp_path,
-                             env=env, capture_output=True, text=True, timeout=60)
+        out = subprocess.run(
+            [sys.executable, "-m", "compd", "status", "--config", cfg.name],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
     finally:
         proc.send_signal(signal.SIGTERM)
         try:

@@ -105,8 +105,14 @@ def test_a_malformed_status_file_is_said_not_a_traceback(tmp_path, snap):
 
 def test_a_source_s_last_error_is_shown(tmp_path, snap):
     path = tmp_path / "status.json"
-    sources = [{"kind": "dcon", "name": "adam", "last_error": "open: could not open port /dev/ttyUSB9: [Errno 2] No"
-                " such file or directory"}, {"kind": "replay", "name": "log"}]
+    sources = [
+        {
+            "kind": "dcon",
+            "name": "adam",
+            "last_error": "open: could not open port /dev/ttyUSB9: [Errno 2] No such file or directory",
+        },
+        {"kind": "replay", "name": "log"},
+    ]
     _live(path, snap, sources=sources)
     for use_rich in (False, True):
         if use_rich:

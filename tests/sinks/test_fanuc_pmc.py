@@ -212,8 +212,7 @@ def test_a_pmc_found_holding_another_shift_after_its_link_was_lost_is_stepped_fr
     port = srv.port
     second = _Spy(step_limit_um=10)
     scan2: PmcScanThread | None = None
-    sink = FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", host="127.0.0.1", port=port, max_step_um=5,
-                                       min_update_s=0.02))
+    sink = FanucPmcSink(FanucPmcConfig(kind="fanuc_pmc", host="127.0.0.1", port=port, max_step_um=5, min_update_s=0.02))
     sink.bind(["x1", "x2"], 1.0)
     sink.open(time.monotonic())
     try:

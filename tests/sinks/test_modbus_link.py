@@ -23,8 +23,10 @@ def _until(pred, timeout_s: float = 10.0) -> bool:  # noqa: ANN001
     return True
 
 
-@pytest.mark.parametrize(("mode", "opts"), [("extra", {}), ("fewer", {}), ("wrong_function", {}),
-                                            ("wrong_function", {"function": 0x06}), ("trailing", {})])
+@pytest.mark.parametrize(
+    ("mode", "opts"),
+    [("extra", {}), ("fewer", {}), ("wrong_function", {}), ("wrong_function", {"function": 0x06}), ("trailing", {})],
+)
 def test_malformed_read_back_is_a_link_error(mode: str, opts: dict) -> None:
     with RawModbusServer(TABLE) as srv:
         srv.set(mode, **opts)
@@ -79,8 +81,7 @@ def test_writes_wait_while_the_device_is_down_and_go_out_when_it_answers() -> No
 
 def test_a_write_lost_on_the_way_is_sent_again_unless_replaced() -> None:
     with RawModbusServer({}) as srv:
-        link = ModbusLink("127.0.0.1", srv.port, timeout_s=0.1, reconnect_min_s=0.02, reconnect_max_s=0.05,
-                          name="t")
+        link = ModbusLink("127.0.0.1", srv.port, timeout_s=0.1, reconnect_min_s=0.02, reconnect_max_s=0.05, name="t")
         link.start()
         try:
             srv.set("silence")

@@ -127,8 +127,16 @@ def test_write_rows_equals_writing_row_by_row(model):
     else:  # the reference writes with each row's terms as the model would give them
         for i in range(n):
             ref._row_terms = terms[i]
-            Sink.write_rows(ref, t[i:i + 1], words[i:i + 1], changed[i:i + 1], corr[i:i + 1], en[i:i + 1],
-                            a1[i:i + 1], c1[i:i + 1])
+            Sink.write_rows(
+                ref,
+                t[i : i + 1],
+                words[i : i + 1],
+                changed[i : i + 1],
+                corr[i : i + 1],
+                en[i : i + 1],
+                a1[i : i + 1],
+                c1[i : i + 1],
+            )
     got.write_rows(t, words, changed, corr, en, a2, c2, terms)
     np.testing.assert_array_equal(a2, a1)
     np.testing.assert_array_equal(c2, c1)

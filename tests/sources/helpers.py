@@ -51,4 +51,3 @@ class Harness:
                 break
             s = self.sample(polls=1)
         return s
-

@@ -37,8 +37,18 @@ import threading
 from typing import Any
 
 MODES = (
-    "none", "extra", "fewer", "wrong_function", "wrong_tid", "wrong_unit",
-    "bad_byte_count", "trailing", "truncated", "exception", "silence", "wrong_echo",
+    "none",
+    "extra",
+    "fewer",
+    "wrong_function",
+    "wrong_tid",
+    "wrong_unit",
+    "bad_byte_count",
+    "trailing",
+    "truncated",
+    "exception",
+    "silence",
+    "wrong_echo",
 )
 
 
@@ -200,8 +210,9 @@ class RawModbusServer:
         self._closing = False
         self._server = _TcpServer(self, self.port)
         self.port = self._server.server_address[1]
-        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.05},
-                                        name="raw-modbus-server", daemon=True)
+        self._thread = threading.Thread(
+            target=self._server.serve_forever, kwargs={"poll_interval": 0.05}, name="raw-modbus-server", daemon=True
+        )
         self._thread.start()
         return self
 
@@ -242,8 +253,9 @@ class RawRtuPeer(RawModbusServer):
     """The same table and misbehaviours as Modbus RTU on a serial port (a socat pty end):
     reads 8-byte requests, answers unit + PDU + CRC (a truncated reply has no CRC)."""
 
-    def __init__(self, registers: dict[int, int] | list[int], serial_port: str, *, unit_id: int = 1,
-                 baudrate: int = 115200) -> None:
+    def __init__(
+        self, registers: dict[int, int] | list[int], serial_port: str, *, unit_id: int = 1, baudrate: int = 115200
+    ) -> None:
         super().__init__(registers, unit_id=unit_id)
         self.serial_port = serial_port
         self.baudrate = baudrate

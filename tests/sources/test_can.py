@@ -29,10 +29,20 @@ def test_values_and_faults_on_virtual_bus():
         {"name": "T3", "id": 0x182, "offset": 4, "byte_order": "big"},
     ]
     cfg = CanConfig.model_validate(
-        {"kind": "can", "name": "can", "interface": "virtual", "channel": "t-can-1",
-         "timeout_s": 0.25, "stale_after_s": 0.06, "signals": sigs}
+        {
+            "kind": "can",
+            "name": "can",
+            "interface": "virtual",
+            "channel": "t-can-1",
+            "timeout_s": 0.25,
+            "stale_after_s": 0.06,
+            "signals": sigs,
+        }
     )
-    with CanPt100(tx, layout, interface="virtual", channel="t-can-1", period_s=0.01) as dev, Harness(CanSource(cfg)) as h:
+    with (
+        CanPt100(tx, layout, interface="virtual", channel="t-can-1", period_s=0.01) as dev,
+        Harness(CanSource(cfg)) as h,
+    ):
         s = _sample(h, 0.1)
         assert [s[n] for n in NAMES] == [(pytest.approx(t), "GOOD") for t in TEMPS]
 
@@ -63,7 +73,9 @@ def test_values_and_faults_on_virtual_bus():
 
 def test_signal_must_fit_in_frame():
     with pytest.raises(ValueError, match="8 data bytes"):
-        CanConfig.model_validate({"kind": "can", "name": "c", "signals": [{"name": "a", "id": 1, "offset": 7, "size": 2}]})
+        CanConfig.model_validate(
+            {"kind": "can", "name": "c", "signals": [{"name": "a", "id": 1, "offset": 7, "size": 2}]}
+        )
 
 
 def _wait(h: Harness, pred, timeout_s: float = 10.0) -> dict[str, tuple[float, str]]:  # noqa: ANN001
@@ -86,20 +98,36 @@ def test_short_dlc_is_comms_lost_for_the_ids_signals():
         {"name": "B1", "id": 0x182, "offset": 0},
     ]
     chan = f"t-can-dlc-{time.monotonic_ns()}"
-    cfg = CanConfig.model_validate({"kind": "can", "name": "can", "interface": "virtual", "channel": chan,
-                                    "timeout_s": 5.0, "signals": sigs})
+    cfg = CanConfig.model_validate(
+        {"kind": "can", "name": "can", "interface": "virtual", "channel": chan, "timeout_s": 5.0, "signals": sigs}
+    )
     good_a = bytes([253, 0, 249, 0])
     with can.Bus(interface="virtual", channel=chan) as bus, Harness(CanSource(cfg)) as h:
+
         def send(fid: int, data: bytes, dlc: int | None = None) -> None:
-            bus.send(can.Message(arbitration_id=fid, data=data, dlc=len(data) if dlc is None else dlc,
-                                 is_extended_id=False, check=False))
+            bus.send(
+                can.Message(
+                    arbitration_id=fid,
+                    data=data,
+                    dlc=len(data) if dlc is None else dlc,
+                    is_extended_id=False,
+                    check=False,
+                )
+            )
 
         send(0x181, good_a)
         send(0x182, bytes([100, 0]))
-        want = {"A1": (pytest.approx(25.3), "GOOD"), "A2": (pytest.approx(24.9), "GOOD"), "B1": (pytest.approx(10.0), "GOOD")}
+        want = {
+            "A1": (pytest.approx(25.3), "GOOD"),
+            "A2": (pytest.approx(24.9), "GOOD"),
+            "B1": (pytest.approx(10.0), "GOOD"),
+        }
         assert _wait(h, lambda s: s == want) == want
-        for what, data, dlc in [("3 bytes", good_a[:3], None), ("DLC 2, 8 bytes of padding", good_a + bytes(4), 2),
-                                ("empty", b"", None)]:
+        for what, data, dlc in [
+            ("3 bytes", good_a[:3], None),
+            ("DLC 2, 8 bytes of padding", good_a + bytes(4), 2),
+            ("empty", b"", None),
+        ]:
             bad = h.source.get_status()["bad_frames"]
             send(0x181, data, dlc)
             s = _wait(h, lambda s: s["A1"][1] != "GOOD")

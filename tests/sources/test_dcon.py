@@ -19,7 +19,13 @@ def test_checksum_and_parse():
     assert parse_reply(b">+025.30+024.90\r", 1, False) == [b"+025.30", b"+024.90"]
     body = b">+025.30-0000"
     assert parse_reply(body + dcon_checksum(body) + b"\r", 1, True) == [b"+025.30", b"-0000"]
-    for bad, msg in [(b"", "timeout"), (b"?01\r", "rejected"), (b">+02x.30\r", "garbled"), (b"*+025.30\r", "'>'"), (b"!+025.30\r", "another address")]:
+    for bad, msg in [
+        (b"", "timeout"),
+        (b"?01\r", "rejected"),
+        (b">+02x.30\r", "garbled"),
+        (b"*+025.30\r", "'>'"),
+        (b"!+025.30\r", "another address"),
+    ]:
         with pytest.raises(ValueError, match=msg):
             parse_reply(bad, 1, False)
     with pytest.raises(ValueError, match="checksum"):
@@ -32,8 +38,17 @@ def test_values_and_faults_over_pty(tmp_path, use_checksum):
     a, b = tmp_path / "ttyA", tmp_path / "ttyB"
     with PtyPair(a, b), DconModule(tx, str(a), address=0x1A, baudrate=115200, use_checksum=use_checksum) as mod:
         cfg = DconConfig.model_validate(
-            {"kind": "dcon", "name": "adam", "serial_port": str(b), "baudrate": 115200, "address": 0x1A,
-             "checksum": use_checksum, "channels": NAMES, "poll_period_s": 0.01, "timeout_s": 0.5}
+            {
+                "kind": "dcon",
+                "name": "adam",
+                "serial_port": str(b),
+                "baudrate": 115200,
+                "address": 0x1A,
+                "checksum": use_checksum,
+                "channels": NAMES,
+                "poll_period_s": 0.01,
+                "timeout_s": 0.5,
+            }
         )
         with Harness(DconSource(cfg)) as h:
             s = h.sample_good()
@@ -62,8 +77,16 @@ def test_skipped_channel_and_stale(tmp_path):
     a, b = tmp_path / "ttyA", tmp_path / "ttyB"
     with PtyPair(a, b), DconModule(tx, str(a), baudrate=115200) as mod:
         cfg = DconConfig.model_validate(
-            {"kind": "dcon", "name": "adam", "serial_port": str(b), "baudrate": 115200,
-             "channels": ["T1", None, "T3"], "poll_period_s": 0.01, "timeout_s": 5.0, "stale_after_s": 1.0}
+            {
+                "kind": "dcon",
+                "name": "adam",
+                "serial_port": str(b),
+                "baudrate": 115200,
+                "channels": ["T1", None, "T3"],
+                "poll_period_s": 0.01,
+                "timeout_s": 5.0,
+                "stale_after_s": 1.0,
+            }
         )
         with Harness(DconSource(cfg)) as h:
             s = h.sample_good()
@@ -105,8 +128,17 @@ def test_wrong_shape_reply_is_comms_lost(tmp_path, use_checksum):
     a, b = tmp_path / "ttyA", tmp_path / "ttyB"
     with PtyPair(a, b), _Mangled(tx, str(a), address=0x1A, baudrate=115200, use_checksum=use_checksum) as mod:
         cfg = DconConfig.model_validate(
-            {"kind": "dcon", "name": "adam", "serial_port": str(b), "baudrate": 115200, "address": 0x1A,
-             "checksum": use_checksum, "channels": NAMES, "poll_period_s": 0.01, "timeout_s": 0.5}
+            {
+                "kind": "dcon",
+                "name": "adam",
+                "serial_port": str(b),
+                "baudrate": 115200,
+                "address": 0x1A,
+                "checksum": use_checksum,
+                "channels": NAMES,
+                "poll_period_s": 0.01,
+                "timeout_s": 0.5,
+            }
         )
         with Harness(DconSource(cfg)) as h:
             assert [h.sample_good()[n] for n in NAMES] == [(pytest.approx(t), "GOOD") for t in TEMPS]

@@ -164,7 +164,9 @@ def test_reconnects_after_server_restart():
 
 def test_config_requires_serial_port_for_rtu():
     with pytest.raises(ValueError, match="serial_port"):
-        ModbusConfig.model_validate({"kind": "modbus", "name": "x", "transport": "rtu", "channels": [{"name": "a", "address": 0}]})
+        ModbusConfig.model_validate(
+            {"kind": "modbus", "name": "x", "transport": "rtu", "channels": [{"name": "a", "address": 0}]}
+        )
 
 
 def test_bit_channel_reads_one_register_bit_without_fault_codes():
@@ -173,8 +175,11 @@ def test_bit_channel_reads_one_register_bit_without_fault_codes():
 
     pmc = FanucPmc()
     pmc.write_registers(105, [0x8004])
-    channels = [{"name": "inh", "address": 105, "bit": 2}, {"name": "b15", "address": 105, "bit": 15},
-                {"name": "b0", "address": 105, "bit": 0}]
+    channels = [
+        {"name": "inh", "address": 105, "bit": 2},
+        {"name": "b15", "address": 105, "bit": 15},
+        {"name": "b0", "address": 105, "bit": 0},
+    ]
     with (
         ModbusServerThread(pmc, port=0) as srv,
         Harness(ModbusSource(_cfg(port=srv.port, channels=channels))) as h,

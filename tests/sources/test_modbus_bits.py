@@ -33,8 +33,15 @@ class BitServer:
         async def serve() -> None:
             bits = [SimData(0, count=16, datatype=DataType.BITS)]
             regs = [SimData(0, count=16, datatype=DataType.REGISTERS)]
-            sim = SimDevice(id=1, simdata=(bits, [SimData(0, count=16, datatype=DataType.BITS)], regs,
-                                           [SimData(0, count=16, datatype=DataType.REGISTERS)]))
+            sim = SimDevice(
+                id=1,
+                simdata=(
+                    bits,
+                    [SimData(0, count=16, datatype=DataType.BITS)],
+                    regs,
+                    [SimData(0, count=16, datatype=DataType.REGISTERS)],
+                ),
+            )
             self._server = ModbusTcpServer(sim, address=("127.0.0.1", 0))
             await self._server.serve_forever(background=True)
             self.port = self._server.transport.sockets[0].getsockname()[1]
@@ -73,9 +80,17 @@ class BitServer:
 
 
 def _cfg(port: int, **kw: Any) -> ModbusConfig:
-    base = {"kind": "modbus", "name": "plc", "port": port, "poll_period_s": 0.01, "timeout_s": 0.2,
-            "reconnect_min_s": 0.02, "reconnect_max_s": 0.1, "function": "coils",
-            "channels": [{"name": "cnc_inhibit", "address": 2}, {"name": "z_referenced", "address": 5}]}
+    base = {
+        "kind": "modbus",
+        "name": "plc",
+        "port": port,
+        "poll_period_s": 0.01,
+        "timeout_s": 0.2,
+        "reconnect_min_s": 0.02,
+        "reconnect_max_s": 0.1,
+        "function": "coils",
+        "channels": [{"name": "cnc_inhibit", "address": 2}, {"name": "z_referenced", "address": 5}],
+    }
     base.update(kw)
     return ModbusConfig.model_validate(base)
 

@@ -38,8 +38,13 @@ TRANSPORT = [
 def _cfg(port: int, **kw) -> ModbusConfig:  # noqa: ANN003
     base = {
         # a timeout a busy machine's late answer does not reach
-        "kind": "modbus", "name": "raw", "port": port, "timeout_s": 0.5, "poll_period_s": 0.01,
-        "reconnect_min_s": 0.02, "reconnect_max_s": 0.1,
+        "kind": "modbus",
+        "name": "raw",
+        "port": port,
+        "timeout_s": 0.5,
+        "poll_period_s": 0.01,
+        "reconnect_min_s": 0.02,
+        "reconnect_max_s": 0.1,
         "channels": [{"name": n, "address": a} for n, a in (("A1", 0), ("A2", 1), ("B1", 10), ("B2", 11))],
     }
     base.update(kw)
@@ -66,9 +71,12 @@ def test_plan_is_two_requests() -> None:
 
 
 @pytest.mark.parametrize("function", ["holding", "input"])
-@pytest.mark.parametrize(("mode", "opts"), SHAPE, ids=[f"{m}{o.get('function', '')}{o.get('byte_count_delta', '')}" for m, o in SHAPE])
-def test_wrong_shape_is_comms_lost_for_its_request(mode: str, opts: dict, function: str,
-                                                    caplog: pytest.LogCaptureFixture) -> None:
+@pytest.mark.parametrize(
+    ("mode", "opts"), SHAPE, ids=[f"{m}{o.get('function', '')}{o.get('byte_count_delta', '')}" for m, o in SHAPE]
+)
+def test_wrong_shape_is_comms_lost_for_its_request(
+    mode: str, opts: dict, function: str, caplog: pytest.LogCaptureFixture
+) -> None:
     caplog.set_level(logging.INFO, logger="compd")
     with RawModbusServer(TABLE) as srv, Harness(ModbusSource(_cfg(srv.port, function=function))) as h:
         _all_good(h)
@@ -126,8 +134,11 @@ def test_exception_reply_counts_as_exception() -> None:
         _all_good(h)
 
 
-@pytest.mark.parametrize(("mode", "opts"), [("extra", {"extra": 10}), ("wrong_function", {}), ("fewer", {})],
-                         ids=["extra", "wrong_function", "fewer"])
+@pytest.mark.parametrize(
+    ("mode", "opts"),
+    [("extra", {"extra": 10}), ("wrong_function", {}), ("fewer", {})],
+    ids=["extra", "wrong_function", "fewer"],
+)
 def test_rtu_wrong_shape_is_comms_lost_for_its_request(tmp_path, mode: str, opts: dict) -> None:  # noqa: ANN001
     """The same over Modbus RTU: a raw peer on a socat pty answers with the wrong shape."""
     from hil_sim.devices.ptypair import PtyPair

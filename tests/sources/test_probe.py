@@ -50,9 +50,16 @@ class RingInbox:
 
 
 def _source(port: int, cnc: str = "fanuc_pmc", axes=("x", "z")) -> ProbeSource:
-    cfg = ProbeConfig.model_validate({
-        "kind": "probe", "name": "cnc_probe", "port": port, "cnc": cnc, "axes": list(axes), "poll_period_s": 0.01,
-    })
+    cfg = ProbeConfig.model_validate(
+        {
+            "kind": "probe",
+            "name": "cnc_probe",
+            "port": port,
+            "cnc": cnc,
+            "axes": list(axes),
+            "poll_period_s": 0.01,
+        }
+    )
     return ProbeSource(cfg)
 
 

@@ -42,9 +42,14 @@ def test_profile_grid_and_error_at_the_current_position():
 
 
 def test_rigid_supports_bring_the_base_error_back_to_zero_at_the_far_support():
-    p = axis([{"duration_s": 3600, "feed_mm_min": 6000, "stroke_mm": [0, 300]}],
-             support_restraint=1.0, tool_offset_mm=0.0, stroke_offset_mm=100.0,
-             base_length_mm=800.0, stroke_mm=[0.0, 700.0])
+    p = axis(
+        [{"duration_s": 3600, "feed_mm_min": 6000, "stroke_mm": [0, 300]}],
+        support_restraint=1.0,
+        tool_offset_mm=0.0,
+        stroke_offset_mm=100.0,
+        base_length_mm=800.0,
+        stroke_mm=[0.0, 700.0],
+    )
     p.advance_to(3600)
     e = p.error_profile_um(np.array([0.0, 200.0, 699.999]))
     far = p.error_profile_um(np.array([700.0]))[0]
