@@ -1,4 +1,7 @@
-"""The log CSV (docs/formats.md): read, validate and repair it (the service's thread that writes it: compd.service.logwriter)."""
+"""The log CSV (docs/formats.md): read, validate and repair it.
+
+The service's thread that writes it is compd.service.logwriter.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""`python -m hil_sim log`: run a scenario (or a `compd testplan` plan) on its plant and write a log CSV (docs/formats.md) with the true errors."""
+"""`python -m hil_sim log`: run a scenario on its plant and write a log CSV with the true errors.
+
+The scenario may be a `compd testplan` plan; the log CSV is docs/formats.md's.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""The clock of a simulated plant, read over Modbus from its clock device, followed in real time or in lockstep: compd's `loop.clock: plant` (entry point `compd.clocks`)."""
+"""The clock of a simulated plant, read over Modbus from its clock device, followed in real time or in lockstep.
+
+It is compd's `loop.clock: plant` (entry point `compd.clocks`).
+"""
 
 from __future__ import annotations
 

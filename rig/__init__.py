@@ -1,4 +1,4 @@
-"""The closed-loop test rig: a hil_sim plant served over the real protocols, compd running against it, fits for acceptance.
+"""The closed-loop test rig: a hil_sim plant over the real protocols, compd running against it, fits for acceptance.
 
 It sits above both packages: hil_sim simulates the machine and its devices, compd
 compensates it, and the rig wires one to the other (`closedloop`: a machine's unseen

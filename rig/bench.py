@@ -687,7 +687,8 @@ def format_table(r: dict[str, Any]) -> str:
     if la:
         who = ", ".join(f"{k} {v}" for k, v in la["overlapping"].items()) or "no thread recorded"
         lines.append(
-            f"cycles late by > {la['threshold_us']:.0f} us: {la['late_cycles']}; their wait overlapped the work of: {who};"
+            f"cycles late by > {la['threshold_us']:.0f} us: {la['late_cycles']}; their wait overlapped the work of:"
+            f" {who};"
             f" of no other thread: {la['overlapping_none']}"
         )
     if r.get("trace"):

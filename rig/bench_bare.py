@@ -1,4 +1,4 @@
-"""The limit of this machine for `compd bench`: a bare Python loop that sleeps, spins to each deadline and does a fixed work.
+"""This machine's limit for `compd bench`: a bare Python loop that sleeps, spins to each deadline and does a fixed work.
 
 `python -m rig.bench_bare CYCLES PERIOD_S SCHEDULER CPU OUT.json` runs CYCLES deadlines
 on the same absolute schedule as compd's loop, with the same real-time options (SCHED_FIFO

@@ -9,13 +9,18 @@ marked window gets the causes the trace shows in it:
 
 | cause | what the trace shows |
 |---|---|
-| `gil` | the cycle thread went to sleep and another thread of its own process woke it: it waited for that thread to hand over the interpreter's lock |
+| `gil` | the cycle thread went to sleep and another thread of its own process woke it: it waited for that thread to\
+ hand over the interpreter's lock |
 | `blocked` | the cycle thread went to sleep and something else woke it (a lock, a pipe) |
 | `preempted` | the cycle thread was switched out still runnable: another task took its CPU |
 | `page_faults` | the cycle thread faulted pages in (first touch, or copy-on-write after a fork) |
-| `timer_late` | the wake-up before the deadline came more than 100 µs after it was due: the timer interrupt reached a CPU that was not running (the hypervisor had it) |
-| `host` | (late) none of these: the thread was on its CPU, spinning to its deadline, and still started late: the hypervisor ran something else on the CPU |
-| `cpu` | (slow) none of these: the thread was on its CPU the whole time; its own work took that long, or the hypervisor took the CPU meanwhile (the kernel cannot tell: the bare loop's fixed work shows how far the machine stretches the same work) |
+| `timer_late` | the wake-up before the deadline came more than 100 µs after it was due: the timer interrupt reached a\
+ CPU that was not running (the hypervisor had it) |
+| `host` | (late) none of these: the thread was on its CPU, spinning to its deadline, and still started late: the\
+ hypervisor ran something else on the CPU |
+| `cpu` | (slow) none of these: the thread was on its CPU the whole time; its own work took that long, or the\
+ hypervisor took the CPU meanwhile (the kernel cannot tell: the bare loop's fixed work shows how far the machine\
+ stretches the same work) |
 
 The first four are compd's (or its machine's configuration's) to fix; `timer_late` and
 `host` are the host's, and the bare loop of the same bench run shows them too.

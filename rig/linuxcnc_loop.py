@@ -1,4 +1,6 @@
-"""The closed loop on LinuxCNC: compd testplan's program on the controller, hil_sim's spindle at its speed, compd through its offsets.
+"""The closed loop on LinuxCNC: compd testplan's program on the controller, hil_sim's spindle at its speed.
+
+compd acts through LinuxCNC's offsets.
 
 `run` needs a LinuxCNC that runs, is on and homed (the test suite's headless sim mill, tests/linuxcnc/sim.py,
 or a machine of yours: `controller` has `getp(pin)`, `run_program(path)` and `stat()`). It designs the thermal

@@ -175,8 +175,9 @@ def probing_rows(work: Path, args: argparse.Namespace, runs: list[dict], rows: l
     estimated (goal 85 %; scripts/probe_bound.py gives the most a held estimate can reach); the lathe's
     one-C1 AR(1) with a probe every 2 h (goal 90 %); the same AR(1) off by +20 % in gain,
     probed every 2 h (goal: RMS residual after the second probe ≤ 1.5 µm); the AR(1)
-    with a +30 µm outlier probe in place of one (goal: rejected, and still ≥ 90 %); and the AR(1) with the adapt section but no probe (goal: equal to the
-    model alone, the plain rows above). Returns the rows short of their goal."""
+    with a +30 µm outlier probe in place of one (goal: rejected, and still ≥ 90 %); and the AR(1) with
+    the adapt section but no probe (goal: equal to the model alone, the plain rows above). Returns the
+    rows short of their goal."""
     import numpy as np
 
     from compd.log import read_log

@@ -520,7 +520,8 @@ def main(argv: list[str] | None = None) -> int:
     print(cl.table(table_rows))
     for r in results.values():
         print(
-            f"  {r['model']:<15} {r['plant_s'] / 3600:.0f} plant h in {r['wall_s']:.0f} s wall; compd faults {r['faults']}"
+            f"  {r['model']:<15} {r['plant_s'] / 3600:.0f} plant h in {r['wall_s']:.0f} s wall; compd faults"
+            f" {r['faults']}"
         )
 
     checks = Checks()
@@ -548,7 +549,8 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"  {f['run']:<15} {f['lost']:<8} {f['span_s'][0] / 3600:4.1f}-{f['span_s'][1] / 3600:<5.1f}"
             f" {f['rms_uncompensated_um']:>8.2f} {f['rms_residual_um']:>8.2f} {f['rms_lost_part_um']:>9.2f}"
-            f" {f['rms_lost_left_um']:>8.2f} {f['rms_other_part_um']:>10.2f} {f['rms_rest_um']:>6.2f}  {f['lost_behaviour']}"
+            f" {f['rms_lost_left_um']:>8.2f} {f['rms_other_part_um']:>10.2f} {f['rms_rest_um']:>6.2f} "
+            f" {f['lost_behaviour']}"
         )
     wall = time.monotonic() - t_all
     print(f"\n{len(results)} closed-loop runs, fits included, in {wall:.0f} s wall (lockstep, {args.jobs} at once)")

@@ -1,4 +1,5 @@
-"""Acceptance (make accept): the closed loop on LinuxCNC over compd testplan's whole 24 h test, beside the same plan in process.
+"""Acceptance (make accept): the closed loop on LinuxCNC over compd testplan's whole 24 h test,\
+ beside the same plan in process.
 
 `python scripts/accept_linuxcnc.py [--hours 24] [--speedup 240] [--workdir DIR] [--json FILE]` runs a headless
 LinuxCNC sim mill (the test suite's, tests/linuxcnc/sim.py), the loop of rig/linuxcnc_loop.py on it (6 min of

@@ -1,4 +1,5 @@
-"""`make accept`: a plant of N compd telemetry publishers into one mosquitto on loopback: loss, duplicates, latency, CPU.
+"""`make accept`: a plant of N compd telemetry publishers into one mosquitto on loopback:\
+ loss, duplicates, latency, CPU.
 
 Each machine is a `compd.plant.telemetry.Telemetry` (the daemon's own publisher, its own
 MQTT connection, its own store-and-forward file) replaying a data log at one sample a

@@ -1,4 +1,7 @@
-"""The `compd` command line: thin — parse, call, print. Each command lives with its arguments in this package's modules."""
+"""The `compd` command line: thin — parse, call, print.
+
+Each command lives with its arguments in this package's modules.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""What every command shares: argument types and output checks, the parser with compd's error form, the command table."""
+"""What every command shares: argument types, output checks, the parser with compd's error form, the command table."""
 
 from __future__ import annotations
 

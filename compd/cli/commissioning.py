@@ -1,4 +1,7 @@
-"""Commissioning commands: `compd testplan`, `fit`, `predict`, `score`, `xi`, `replay`, `plot`, `report`, `output-test`; each one's arguments beside it."""
+"""Commissioning commands, each one's arguments beside it.
+
+`compd testplan`, `fit`, `predict`, `score`, `xi`, `replay`, `plot`, `report`, `output-test`.
+"""
 
 from __future__ import annotations
 
@@ -33,7 +36,8 @@ def args_testplan(sub: Any) -> None:
         description="Design the thermal test of a machine for identification (docs/testplan.md): every speed level"
         " held short and long in a pseudo-random order, cool-down pauses, an idle stretch at the start,"
         " a measurement every N minutes; write it as CSV and, with --gcode, as a program.",
-        epilog="example:\n  compd testplan --max-rpm 12000 --hours 24 --out plan.csv --gcode linuxcnc --program plan.ngc"
+        epilog="example:\n  compd testplan --max-rpm 12000 --hours 24 --out plan.csv --gcode linuxcnc"
+        " --program plan.ngc"
         "\n  compd testplan --max-rpm 4500 --hours 24 --axis z:600:8000 --out plan.csv --gcode fanuc"
         " --program O2303.nc --probe-call 'M98 P9010'",
     )
@@ -182,10 +186,15 @@ def args_fit(sub: Any) -> None:
     s = sub.add_parser(
         "fit",
         help="identify a model's coefficients from a log",
-        description="Identify a model's coefficients from a log and write the model file (with its fit date and scores); --kind all fits every kind that applies and compares them."
-        " With --on-residual-of the model is fitted stage by stage: on what a model fitted before leaves of the error (its prediction over the log subtracted, as compd predict evaluates it), and the report's stagewise block compares, held out, that sum with the kind alone, the model before alone and MLR on every input.",
-        epilog="example:\n  compd fit --kind lvr --log day1.csv --out lvr.yaml --report fit.json\n  compd fit --kind ar1 --log day1.csv --out ar1.yaml --inputs T_bed --ambient T_amb --option dt_s=60"
-        "\n  compd fit --kind mlr --log day1.csv --inputs T_col1 T_col2 --on-residual-of spindle.yaml --out column.yaml --report column.json",
+        description="Identify a model's coefficients from a log and write the model file (with its fit date and"
+        " scores); --kind all fits every kind that applies and compares them."
+        " With --on-residual-of the model is fitted stage by stage: on what a model fitted before leaves of the"
+        " error (its prediction over the log subtracted, as compd predict evaluates it), and the report's stagewise"
+        " block compares, held out, that sum with the kind alone, the model before alone and MLR on every input.",
+        epilog="example:\n  compd fit --kind lvr --log day1.csv --out lvr.yaml --report fit.json"
+        "\n  compd fit --kind ar1 --log day1.csv --out ar1.yaml --inputs T_bed --ambient T_amb --option dt_s=60"
+        "\n  compd fit --kind mlr --log day1.csv --inputs T_col1 T_col2 --on-residual-of spindle.yaml"
+        " --out column.yaml --report column.json",
     )
     s.add_argument("--kind", required=True, choices=["feed_axis", "lvr", "xi_spindle", "ar1", "mlr", "all"])
     s.add_argument("--log", required=True, metavar="LOG.csv")
@@ -271,7 +280,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 )
         if pick is None:
             print(
-                "compd: no model to recommend: every fit did not converge, removes almost nothing or could not be scored held out (see the warnings above)",
+                "compd: no model to recommend: every fit did not converge, removes almost nothing or could not be"
+                " scored held out (see the warnings above)",
                 file=sys.stderr,
             )
             return 1
@@ -397,7 +407,8 @@ def args_xi(sub: Any) -> None:
     s = sub.add_parser(
         "xi",
         help="the mean-value point ξ of a temperature profile (CSV x_mm, T_c)",
-        description="Find the mean-value point ξ of a temperature profile along the spindle (CSV columns x_mm, T_c): where to put the ξ sensor.",
+        description="Find the mean-value point ξ of a temperature profile along the spindle (CSV columns x_mm, T_c):"
+        " where to put the ξ sensor.",
         epilog="example:\n  compd xi --profile profile.csv",
     )
     s.add_argument("--profile", required=True, metavar="FILE.csv")
@@ -422,8 +433,10 @@ def args_replay(sub: Any) -> None:
     s = sub.add_parser(
         "replay",
         help="replay a log through the pipeline into the software PLC",
-        description="Replay a log's signals through the configured pipeline (model, guard, codec) into the software PLC, as fast as it can, and score the result.",
-        epilog="example:\n  compd replay configs/replay_spindle.yaml --log configs/logs/spindle_demo_30s.csv --report r.json\n  compd replay --model model.yaml --log day1.csv --plot replay.png",
+        description="Replay a log's signals through the configured pipeline (model, guard, codec) into the software"
+        " PLC, as fast as it can, and score the result.",
+        epilog="example:\n  compd replay configs/replay_spindle.yaml --log configs/logs/spindle_demo_30s.csv"
+        " --report r.json\n  compd replay --model model.yaml --log day1.csv --plot replay.png",
     )
     s.add_argument("config", nargs="?", default=None, metavar="CONFIG")
     s.add_argument("--model", default=None, metavar="MODEL.yaml", help="a model file instead of a config")

@@ -1,4 +1,7 @@
-"""The daemon's commands: `compd run`, `check-config`, `status`, `probe`, `arm-model`, `opcua-cert`; each one's arguments beside it."""
+"""The daemon's commands, each one's arguments beside it.
+
+`compd run`, `check-config`, `status`, `probe`, `arm-model`, `opcua-cert`.
+"""
 
 from __future__ import annotations
 
@@ -50,8 +53,10 @@ def args_run(sub: Any) -> None:
     s = sub.add_parser(
         "run",
         help="run the compensation loop",
-        description="Run the compensation loop of CONFIG until SIGTERM or SIGINT (then emit the safe output); SIGHUP reloads the config.",
-        epilog="example:\n  compd run configs/demo.yaml --duration 60\n  compd run /etc/compd/compd.yaml --observe --log-level debug",
+        description="Run the compensation loop of CONFIG until SIGTERM or SIGINT (then emit the safe output); SIGHUP"
+        " reloads the config.",
+        epilog="example:\n  compd run configs/demo.yaml --duration 60"
+        "\n  compd run /etc/compd/compd.yaml --observe --log-level debug",
     )
     s.add_argument("config")
     s.add_argument("--duration", type=positive, default=None, metavar="S", help="stop after S seconds (> 0)")
@@ -79,7 +84,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     late, comp_us = loop["lateness_us"]["p99"], loop["cycle_compute_us"]["p99"]
     print(
         f"compd: {loop['cycles']} cycles, {loop['misses']} missed, lateness p99"
-        f" {percentile_text(late, late >= HIST_US, '.0f')}, compute p99 {percentile_text(comp_us, comp_us >= HIST_US, '.0f')}"
+        f" {percentile_text(late, late >= HIST_US, '.0f')}, compute p99"
+        f" {percentile_text(comp_us, comp_us >= HIST_US, '.0f')}"
     )
     for axis, r in comp.items():
         print(
@@ -107,7 +113,8 @@ def args_check_config(sub: Any) -> None:
     s = sub.add_parser(
         "check-config",
         help="validate a config; prints ok or exits 2",
-        description="Validate a config and its wiring without opening a device: prints ok, or one line naming the file, line and key (exit 2).",
+        description="Validate a config and its wiring without opening a device: prints ok, or one line naming the"
+        " file, line and key (exit 2).",
         epilog="example:\n  compd check-config configs/demo.yaml",
     )
     s.add_argument("config")
@@ -134,8 +141,10 @@ def args_status(sub: Any) -> None:
     s = sub.add_parser(
         "status",
         help="the live state of a running daemon",
-        description="Show the live state of a running daemon: per axis the model (file, fit date, coefficients, T0), correction and state, per signal value and quality; exit 1 when none runs.",
-        epilog="example:\n  compd status --config /etc/compd/compd.yaml\n  compd status --status /run/compd/status.json --watch --interval-s 1",
+        description="Show the live state of a running daemon: per axis the model (file, fit date, coefficients, T0),"
+        " correction and state, per signal value and quality; exit 1 when none runs.",
+        epilog="example:\n  compd status --config /etc/compd/compd.yaml"
+        "\n  compd status --status /run/compd/status.json --watch --interval-s 1",
     )
     s.add_argument("--json", action="store_true", help="print the status snapshot as JSON")
     s.add_argument(
@@ -197,7 +206,8 @@ def args_probe(sub: Any) -> None:
     s = sub.add_parser(
         "probe",
         help="hand one probe measurement to the running daemon",
-        description="Hand one probe measurement (the axis's thermal error measured on the machine) to the running daemon of CONFIG; exit 1 when none runs.",
+        description="Hand one probe measurement (the axis's thermal error measured on the machine) to the running"
+        " daemon of CONFIG; exit 1 when none runs.",
         epilog="example:\n  compd probe --axis z --error-um 12.5 --config /etc/compd/compd.yaml",
     )
     s.add_argument("--axis", required=True, metavar="AX", help="the axis (a model output)")
@@ -291,7 +301,8 @@ def args_arm_model(sub: Any) -> None:
     s = sub.add_parser(
         "arm-model",
         help="let the running daemon apply the next model from the plant",
-        description="Arm the running daemon of CONFIG to apply the next model published to its Sparkplug command topic (once, within --seconds); needs telemetry.remote_models.allow. Exit 1 when no daemon runs.",
+        description="Arm the running daemon of CONFIG to apply the next model published to its Sparkplug command"
+        " topic (once, within --seconds); needs telemetry.remote_models.allow. Exit 1 when no daemon runs.",
         epilog="example:\n  compd arm-model /etc/compd/compd.yaml --seconds 300",
     )
     s.add_argument("config")
@@ -439,8 +450,10 @@ def args_opcua_cert(sub: Any) -> None:
     s = sub.add_parser(
         "opcua-cert",
         help="write a self-signed certificate and key for the OPC UA server",
-        description="Write a self-signed OPC UA application certificate (RSA 2048, SHA-256, the application URI and hosts in its SubjectAltName) and its key (0600) for the opcua section; never overwrites.",
-        epilog="example:\n  compd opcua-cert --cert opcua/server.pem --key opcua/server.key --host cell3-compd --host 10.0.3.17",
+        description="Write a self-signed OPC UA application certificate (RSA 2048, SHA-256, the application URI and"
+        " hosts in its SubjectAltName) and its key (0600) for the opcua section; never overwrites.",
+        epilog="example:\n  compd opcua-cert --cert opcua/server.pem --key opcua/server.key --host cell3-compd"
+        " --host 10.0.3.17",
     )
     s.add_argument("--cert", required=True, metavar="FILE", help="the certificate to write (PEM)")
     s.add_argument("--key", required=True, metavar="FILE", help="its private key to write (PEM, 0600)")

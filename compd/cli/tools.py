@@ -110,8 +110,10 @@ def args_docs(sub: Any) -> None:
     s = sub.add_parser(
         "docs",
         help="generate docs/configuration.md from the config schema",
-        description="Generate the configuration reference (docs/configuration.md) from the config schema, or with --metrics the metrics reference (docs/metrics.md); --check tells whether FILE is up to date.",
-        epilog="example:\n  compd docs --out docs/configuration.md\n  compd docs --out docs/configuration.md --check\n  compd docs --metrics --out docs/metrics.md",
+        description="Generate the configuration reference (docs/configuration.md) from the config schema, or with"
+        " --metrics the metrics reference (docs/metrics.md); --check tells whether FILE is up to date.",
+        epilog="example:\n  compd docs --out docs/configuration.md\n  compd docs --out docs/configuration.md --check"
+        "\n  compd docs --metrics --out docs/metrics.md",
     )
     s.add_argument("--out", default=None, metavar="FILE", help="write here (default: stdout)")
     s.add_argument("--check", action="store_true", help="exit 1 if FILE differs from a fresh generation")

@@ -237,8 +237,10 @@ def generate() -> str:
         "",
         "Limits of the YAML reader (config and model files alike; exceeding one is a one-line error,",
         f"exit 2): a config is a regular file of at most {core_config.CONFIG_MAX_BYTES} bytes holding at most",
-        f"{core_config.CONFIG_MAX_VALUES} values; a model file (`model.file`) at most {core_config.MODEL_MAX_BYTES} bytes",
-        f"and {core_config.MODEL_MAX_VALUES} values; mappings and lists nest at most {core_config.MAX_DEPTH} levels; aliases",
+        f"{core_config.CONFIG_MAX_VALUES} values; a model file (`model.file`) at most {core_config.MODEL_MAX_BYTES}"
+        " bytes",
+        f"and {core_config.MODEL_MAX_VALUES} values; mappings and lists nest at most {core_config.MAX_DEPTH} levels;"
+        " aliases",
         f"(`*name`, `<<: *name`) expand to at most {core_config.MAX_ALIAS_VALUES} values in all; one YAML document",
         "per file. A merge (`<<`) is overridden by the mapping's own keys.",
         "",

@@ -1,4 +1,4 @@
-"""`compd fit` / `compd predict` / `compd xi`: fit a model from a log (compd.identify), score it against MLR, write files."""
+"""`compd fit` / `predict` / `xi`: fit a model from a log (compd.identify), score it against MLR, write files."""
 
 from __future__ import annotations
 

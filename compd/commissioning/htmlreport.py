@@ -547,7 +547,8 @@ def why_detail_empty(name: str, value: Any) -> str:
 CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:2em auto;max-width:1100px;
 color:#222;padding:0 1em;line-height:1.4}
-h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.25em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.8em}
+h1{font-size:1.6em;margin-bottom:.2em}\
+h2{font-size:1.25em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.8em}
 table{border-collapse:collapse;margin:.6em 0}th,td{border:1px solid #ccc;padding:.25em .7em;text-align:right}
 th{background:#f2f2f2}td.l,th.l{text-align:left}.muted{color:#666}.warn{color:#a40}
 pre{background:#f7f7f7;border:1px solid #ddd;padding:.8em;overflow-x:auto;font-size:.85em}
@@ -1129,7 +1130,8 @@ def render(page: Page) -> str:
                 '<meta name="viewport" content="width=device-width, initial-scale=1">',
                 f"<title>{_e(title)}</title><style>{CSS}</style></head><body>",
                 f"<h1>{_e(title)}</h1>",
-                f'<p class="muted">Thermal-error compensation: the record of its commissioning, made {_when(made_at)}.</p>',
+                '<p class="muted">Thermal-error compensation: the record of its commissioning, made'
+                f" {_when(made_at)}.</p>",
                 record_section(page, made_at),
                 summary_section(page),
                 fit_section(page),

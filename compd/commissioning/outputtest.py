@@ -7,8 +7,9 @@ is read back, and the correction walks back to zero at the same slew before the 
 is put in its safe state. The stages are the daemon's own, wired by the one pipeline
 builder (compd/cycle/pipeline.py) and stepped by the loop's own cycle: the guard (clamp,
 slew), the codec's word, the configured sink and its device; only the model is
-replaced by the fixed correction (`FixedCorrection`) and there are no sources. A device of the software PLC in process runs on simulated time,
-one over the network on the wall clock.
+replaced by the fixed correction (`FixedCorrection`) and there are no sources. A device
+of the software PLC in process runs on simulated time, one over the network on the wall
+clock.
 """
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
-"""`compd promote CONFIG`: the shadow model becomes the model, checked as a model sent from the plant is, through the ordinary validated reload.
+"""`compd promote CONFIG`: the shadow model becomes the model, through the ordinary validated reload.
+
+It is checked as a model sent from the plant is.
 
 The config's text is edited, not rewritten: the `shadow` section's lines become the `model`
 section (where `model` stood), and the old `model` section stays in the file as comment

@@ -1,4 +1,6 @@
-"""`compd fit --kind all`'s recommendation: the model that holds on an unseen day, a sum of two stages where a second one pays, and what it will do there, stated with its range.
+"""`compd fit --kind all`'s recommendation: the model that holds on an unseen day, and what it will do there.
+
+The model is a sum of two stages where a second one pays; what it will do is stated with its range.
 
 Every candidate is judged on the held-out folds of compd.identify.holdout (a log's days, else
 its duty levels — a speed spectrum's levels, each predicted by a fit that never saw it — else
@@ -20,8 +22,9 @@ stretches cut at duty changes): what a fit never saw is what an unseen day bring
   range runs from the best to the worst fold's RMS (a fold is an unseen duty, as a day is), never
   narrower than ÷/× `MIN_SPREAD` around the expectation, and for a sum whose stages cancel
   (|stage 1| + |stage 2| over |sum|, the cancel ratio, above `CANCEL_WARN`) the upper end grows by
-  ratio / CANCEL_WARN (continuous where the warning starts): each stage's own error is of the size of that stage, not of their small sum. The
-  reduction is stated against the training log's RMS error, with the same range.
+  ratio / CANCEL_WARN (continuous where the warning starts): each stage's own error is of the size
+  of that stage, not of their small sum. The reduction is stated against the training log's RMS
+  error, with the same range.
 """
 
 from __future__ import annotations

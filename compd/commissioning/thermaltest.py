@@ -1,4 +1,6 @@
-"""The thermal test's own figures, as ISO 230-3 evaluates a test: per axis the drift from the first measurement, its largest value and range, the idle stretches' drift, beside the model's residual.
+"""The thermal test's own figures, as ISO 230-3 evaluates a test, beside the model's residual.
+
+Per axis: the drift from the first measurement, its largest value and range, the idle stretches' drift.
 
 A thermal test logs the machine's displacement at fixed intervals while the spindle runs its
 speed spectrum (docs/formats.md, the log CSV): `probe_<axis>_um` at the rows where it was

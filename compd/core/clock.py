@@ -1,4 +1,7 @@
-"""Clocks injected into the loop: wall time (sleep then spin) or simulated time; other clocks (a simulated plant's) plug in through the `compd.clocks` entry points."""
+"""Clocks injected into the loop: wall time (sleep then spin) or simulated time.
+
+Other clocks (a simulated plant's) plug in through the `compd.clocks` entry points.
+"""
 
 from __future__ import annotations
 

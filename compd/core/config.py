@@ -823,7 +823,8 @@ class TelemetryConfig(Strict):
     primary_host_id: str | None = Field(
         None,
         pattern=SPARKPLUG_ID,
-        description="a Sparkplug primary host (the historian's ingest): data waits on disk while its STATE is not online",
+        description="a Sparkplug primary host (the historian's ingest): data waits on disk while its STATE is not"
+        " online",
     )
     period_s: float = Field(1.0, ge=0.1, le=3600, description="one NDATA/DDATA sample per this much wall time")
     full_refresh_s: float = Field(

@@ -21,10 +21,11 @@ A probe z at prediction p is the measurement z = p + H s + v, H = (1, p), v ~ N(
 its fit): a model that is right on average is still off by that much at any moment, and one
 probe cannot tell that from an offset, so it moves the estimate only as far as it outweighs
 it; before the first probe the offset's own σ is σ_m too (`initial_offset_sigma_um`): a model
-fitted on a day is not off by more on the next. Probes never hurt: what reaches the prediction is each estimated term only as far as it
-stands out from its own uncertainty where the axis is: c·max(0, 1 − k² var(c)/c²), c = H s and
-var(c) = H P Hᵀ for this cycle's H (`apply_above_sigma` k): where the evidence does not say the
-model is off by more than the noise, the model runs as fitted.
+fitted on a day is not off by more on the next. Probes never hurt: what reaches the prediction
+is each estimated term only as far as it stands out from its own uncertainty where the axis is:
+c·max(0, 1 − k² var(c)/c²), c = H s and var(c) = H P Hᵀ for this cycle's H (`apply_above_sigma`
+k): where the evidence does not say the model is off by more than the noise, the model runs as
+fitted.
 
 An update changes ê at once, but the correction still reaches the machine through the
 guard, whose slew limit moves it, never steps it. An estimate without a probe for

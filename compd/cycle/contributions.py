@@ -1,4 +1,4 @@
-"""The stage that sums several contributions per axis, each a model on its own inputs with its own clamp, slew and fault policy.
+"""The stage that sums contributions per axis, each a model on its own inputs with its own clamp, slew and fault policy.
 
 A machine's axis has several heat sources: a vertical machining centre's Z grows with the
 spindle (its own model on its own sensor) and with the column (a structure model on column

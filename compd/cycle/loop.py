@@ -127,7 +127,10 @@ class TimingStats:
 
 
 class Loop:
-    """Runs the pipeline on a clock. Built from a config by `compd.daemon.app.App`; `compd.commissioning.replay` builds one directly."""
+    """Runs the pipeline on a clock.
+
+    Built from a config by `compd.daemon.app.App`; `compd.commissioning.replay` builds one directly.
+    """
 
     def __init__(
         self,

@@ -1,4 +1,4 @@
-"""The shadow model: a candidate evaluated every cycle beside the active model, driving nothing, scored on the same probes.
+"""The shadow model: a candidate run every cycle beside the active model, driving nothing, scored on the same probes.
 
 A refitted model (or a whole set of contributions) named in the config's `shadow` section
 runs in the cycle after the sink has been written: its own inputs checked by the guard's

@@ -1,4 +1,6 @@
-"""The cycle's status as one fixed-layout record in shared memory, written every cycle under a seqlock; the service composes status.json from it.
+"""The cycle's status as one fixed-layout record in shared memory, written every cycle under a seqlock.
+
+The service composes status.json from it.
 
 The cycle's thread ends every cycle with `StatusBlock.write`: a few numbers per axis, per
 signal and for the loop copied into arrays made before any fork, between two bumps of a

@@ -1,4 +1,4 @@
-"""What runs beside the loop when compd is a daemon: status file, metrics, event log, data log, model state, probe socket.
+"""What runs beside the loop in a daemon: status file, metrics, event log, data log, model state, probe socket.
 
 Two halves, so that the cycle's interpreter runs no Python but the cycle's own:
 

@@ -986,7 +986,8 @@ def _rise_from_runs(
     if opt.rise_sensor is None:
         return table, {
             **linear,
-            "reason": "no rise_sensor named: C2 is linear in speed between the fitted levels (c2_exponent outside them)",
+            "reason": "no rise_sensor named: C2 is linear in speed between the fitted levels (c2_exponent outside"
+            " them)",
         }
     rises: dict[float, float] = {}
     sources = [log]

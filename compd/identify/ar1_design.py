@@ -1,4 +1,6 @@
-"""The AR(1) fit's least squares prepared once per log: its columns at every candidate C1, each fold's Gram blocks, bounded solves in batches.
+"""The AR(1) fit's least squares prepared once per log.
+
+Its columns at every candidate C1, each fold's Gram blocks, bounded solves in batches.
 
 compd.identify.ar1 chooses its sensors, its C1 form and the lag by the held-out error of many
 candidates (compd.identify.holdout's folds). Refitting the model per candidate per fold is

@@ -1,4 +1,4 @@
-"""Identification of the feed-axis model: the analytic form (paper 000) or compd's field form, whichever predicts better.
+"""Identifying the feed-axis model: the analytic form (paper 000) or compd's field form, whichever predicts better.
 
 Forms (compd.models.feed_axis states the equations):
 * analytic, the paper's: the erf temperature field driven by the motor loss, by bounded

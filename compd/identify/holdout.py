@@ -1,4 +1,6 @@
-"""Held-out scoring that looks like an unseen day: the log cut into folds at its days or duty changes, each predicted by a fit on the rest.
+"""Held-out scoring that looks like an unseen day.
+
+The log is cut into folds at its days or duty changes, each predicted by a fit on the rest.
 
 Every choice a fit makes beyond its coefficients (LVR's components, the feed axis's form,
 AR(1)'s C1 by speed, a sensor's lag compensation) and every comparison a report prints

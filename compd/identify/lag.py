@@ -1,4 +1,6 @@
-"""Identification of the inputs' sensor lag: the lead of compd.models.lead, chosen by held-out error and off where it does not help.
+"""Identifying the inputs' sensor lag: the lead of compd.models.lead, chosen by held-out error.
+
+The lead is off where it does not help.
 
 A sensor that lags its structure by τ makes every model late by about τ after a change
 of duty. The lag is not in the papers' models, and the log does not say it directly, so

@@ -1,4 +1,4 @@
-"""Identification of the LVR model: PLS on temperature rises, components by blocked cross-validation or the paper's LOO Q².
+"""Identifying the LVR model: PLS on temperature rises, components by blocked cross-validation or the paper's LOO Q².
 
 The PLS regression itself (the paper's algorithm, pure numpy) is compd.models.lvr.fit_pls;
 this module chooses how many components it keeps and fits the model from a log.

@@ -1,4 +1,4 @@
-"""compd's HAL components in agent processes: one per component, asked over a pipe by the device I/O worker that owns it.
+"""compd's HAL components in agent processes: one per component, asked over a pipe by the I/O worker that owns it.
 
 A HAL userspace component belongs to the process that made it: LinuxCNC's shutdown (`halcmd
 unload all`) SIGTERMs that process, and a process whose HAL went away cannot join the next one

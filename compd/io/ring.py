@@ -1,4 +1,4 @@
-"""Messages between processes through shared memory: a ring that never makes its writer wait, and a blob of the newest bytes.
+"""Messages between processes in shared memory: a ring that never makes its writer wait, and a blob of the newest bytes.
 
 `MessageRing` carries plain Python values (pickled) from one writer to one reader:
 the cycle hands its events, log rows and status snapshots to the service process

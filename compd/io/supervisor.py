@@ -1,4 +1,4 @@
-"""The daemon's supervisor of its I/O workers: a lost poll or link process is reported at once and restarted with back-off.
+"""The daemon's supervisor of its I/O workers: a lost poll or link process is reported at once, restarted with back-off.
 
 Every device worker (compd.io.worker: a polled source, the CAN reader, a sink's Modbus
 link) runs a thread of its own, in a child process when the daemon hosts I/O so

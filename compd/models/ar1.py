@@ -11,7 +11,8 @@ E(k) = Σ_j g_j ΔT_j(k) + s·S(k): for the paper's lathe Z axis the bed sensors
 with g = α_bed L_bed and the spindle with s = −1 (error = bed growth − spindle growth).
 C2(n) is piecewise linear in the spindle speed n between the fitted levels; outside them,
 compd's fits write the power law C2(level)·(n/level)^e (`c2_exponent`, 1 by default:
-proportional), files before it the line through (0, 0) below and the last level held above. The state S is the model's memory.
+proportional), files before it the line through (0, 0) below and the last level held
+above. The state S is the model's memory.
 
 compd's speed-dependent form (`c1_table`): C1 = e^(−b Δτ) with b = 2h/(ρcR), and a turning
 spindle's convection h grows with its speed, so b is fitted at standstill and at each
@@ -19,7 +20,8 @@ logged speed and interpolated linearly in n between them (held past the last);
 an empty table is the paper's single C1. For a log that runs at many speeds (a spectrum)
 compd fits both coefficients as smooth functions of the speed instead (`speed_law`):
 b(n) = b(0) + k (|n|/n_ref)^p, so C1(n) = C1(0)·e^(−Δτ k (|n|/n_ref)^p), and C2(n) =
-a·|n|/n_ref + q·(|n|/n_ref)² (a, q ≥ 0: the heat input grows with speed, the bearings' faster). The fit is compd.identify.ar1.
+a·|n|/n_ref + q·(|n|/n_ref)² (a, q ≥ 0: the heat input grows with speed, the bearings'
+faster). The fit is compd.identify.ar1.
 """
 
 from __future__ import annotations

@@ -769,7 +769,10 @@ class FeedAxis(Model):
         return [(self.slope_um_per_mm, float(self.params.linear_p0_mm or 0.0))]
 
     def predict_rows(self, X: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-        """Vectorised over rows (E at each row's position, also with linear_p0_mm): heat by the trapezoid rule, then eq. 21 at each row."""
+        """Vectorised over rows: heat by the trapezoid rule, then eq. 21 at each row.
+
+        E is taken at each row's position, also with linear_p0_mm.
+        """
         n = X.shape[0]
         if n == 0:
             return np.zeros((0, 1))

@@ -1,4 +1,7 @@
-"""The OPC UA server's files: its certificate and key (and a generator of them), the users' password files, the trusted clients."""
+"""The OPC UA server's files: its certificate and key, the users' password files, the trusted clients.
+
+Also a generator of the certificate and key.
+"""
 
 from __future__ import annotations
 

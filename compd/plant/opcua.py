@@ -1034,7 +1034,8 @@ class OpcUaServer:
                         ua.NodeId(var.node_id + ".EngineeringUnits", idx),
                         nid,
                         "EngineeringUnits",
-                        f"the unit of the value: {var.unit.description} (UNECE Recommendation 20 code {var.unit.unece})",
+                        f"the unit of the value: {var.unit.description} (UNECE Recommendation 20 code"
+                        f" {var.unit.unece})",
                         ua.Variant(var.unit.eu_information(), ua.VariantType.ExtensionObject),
                         ua.ObjectIds.EUInformation,
                         sampling_ms,

@@ -1,4 +1,6 @@
-"""Models in on purpose: a model from the command topic, validated like a reload, applied only when allowed and armed; a shadow without arming.
+"""Models in on purpose: a model from the command topic, validated like a reload, applied only when allowed and armed.
+
+A shadow is installed without arming.
 
 A refitted model reaches a machine as the text of a model file (the YAML `compd fit`
 writes) in an NCMD `Node Control/Model` or DCMD `Model/apply` metric
@@ -548,9 +550,10 @@ def clamp_check(model: Any, guard: Any) -> str | None:
     Tried: every input's (reference, reading) at the ends of its range — (min, max), (max, min),
     (min, min), (max, max) —, a position input at POSITION_POINTS points along it, in every
     combination (up to MAX_COMBINATIONS and MAX_ROWS model rows; beyond, a coordinate search per
-    axis and sign, which is exact for the kinds linear in their inputs: lvr, mlr). A model that evolves in time (ar1, the
-    analytic feed_axis) holds the readings for HORIZON_S; the others are evaluated once. The model
-    is evaluated as the loop runs it (Model.predict_rows: the input lead's transient left out).
+    axis and sign, which is exact for the kinds linear in their inputs: lvr, mlr). A model that
+    evolves in time (ar1, the analytic feed_axis) holds the readings for HORIZON_S; the others are
+    evaluated once. The model is evaluated as the loop runs it (Model.predict_rows: the input
+    lead's transient left out).
 
     A sum of contributions: each contribution on its own, over its own file's fit.input_range
     (else the guard's signal limits), against its own clamp (its `max_abs_um`, which defaults to

@@ -1,4 +1,4 @@
-"""The `telemetry` and `opcua` sections resolved to plain specs: files read, paths made absolute, every problem a config error.
+"""`telemetry` and `opcua` resolved to plain specs: files read, paths made absolute, every problem a config error.
 
 Built when the pipeline is built (so `compd check-config` finds a missing password
 file or an unknown arming signal), used by the service process. Imports nothing

@@ -914,7 +914,10 @@ class Telemetry:
         )
 
     def _on_message(self, client: Any, userdata: Any, msg: Any) -> None:
-        """A command (NCMD/DCMD), or the primary host's STATE: nothing in it is trusted before it is decoded and checked."""
+        """A command (NCMD/DCMD), or the primary host's STATE.
+
+        Nothing in it is trusted before it is decoded and checked.
+        """
         if msg.topic.startswith(f"{NAMESPACE}/STATE/"):
             self._host_state(msg.payload)
             return

@@ -1,4 +1,6 @@
-"""LinuxCNC's external offsets as a register map: the map compd's linuxcnc sink reads and writes, and a device of the software PLC that emulates them.
+"""LinuxCNC's external offsets as a register map, and a device of the software PLC that emulates them.
+
+The map is the one compd's linuxcnc sink reads and writes.
 
 compd drives LinuxCNC through HAL pins (compd.sinks.hal_link), but its sinks speak registers
 through one link interface (compd.io.modbus_link, compd.plc.link). So the pins are shown

@@ -18,7 +18,9 @@ Memory map (Modbus holding registers, one register per PMC byte for X and Y, one
 | 403      | —       | alarm reset: write non-zero, the next scan clears the alarms and this register |
 | 404, 405 | —       | applied external machine coordinate shift, axis 1 and 2, µm |
 | 406, 407 | —       | alarm count, axis 1 and 2 |
-| 500–507  | D100–D107 | probe result, written by the CNC's probing cycle (compd.plc.probe_block): 500 sequence (first), 501 axis index, 502–503 deviation nm int32, 504–505 position µm int32 (0x80000000 none), 506 σ nm, 507 sequence (last) |
+| 500–507  | D100–D107 | probe result, written by the CNC's probing cycle (compd.plc.probe_block): 500 sequence\
+ (first), 501 axis index, 502–503 deviation nm int32, 504–505 position µm int32 (0x80000000 none), 506 σ nm, 507\
+ sequence (last) |
 
 Ladder, every scan (default 8 ms): copy the wired card's DO bytes into X0–X3 (if a
 PCI-1756 card is wired); on any edge of the strobe bit latch X(word)..X(word)+1

@@ -1,4 +1,7 @@
-"""The PCI-1756 card: what the sink needs of a driver (DoCard), and the card as a virtual device (32 DI, 32 DO, latching)."""
+"""The PCI-1756 card: what the sink needs of a driver (DoCard), and the card as a virtual device.
+
+The virtual card has 32 DI, 32 DO, latching.
+"""
 
 from __future__ import annotations
 

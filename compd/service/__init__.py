@@ -1,1 +1,4 @@
-"""The service's process: status file and `compd status`, metrics, probe socket, systemd notify, model state, event log lines."""
+"""The service's process: status file and `compd status`, metrics, probe socket, systemd notify.
+
+Also the model state and the event log lines.
+"""

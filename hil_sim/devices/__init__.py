@@ -1,1 +1,1 @@
-"""The devices compd talks to, served over their real protocols: transmitters, compd's software PLC CNCs, the live plant."""
+"""The devices compd talks to, over their real protocols: transmitters, compd's software PLC CNCs, the live plant."""

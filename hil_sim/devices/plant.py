@@ -36,7 +36,8 @@ Register map (holding registers, read-only, unit id 1):
 | 2 | state: 0 waiting for the first clock read (`start: on_clock_read`), 1 running, 2 finished |
 | 3 | speedup (plant seconds per wall second), uint16; 0 in lockstep |
 | 4, 5 | lockstep only, writable: run to this plant time, ms, uint32 (high word first) |
-| 16 + 2·i | signal i of the plant (`signal_names`: PT100 readings, extras such as `speed_rpm` and `pos_<axis>_mm`, true errors `err_<axis>_um`), float32 high word first |
+| 16 + 2·i | signal i of the plant (`signal_names`: PT100 readings, extras such as `speed_rpm` and `pos_<axis>_mm`,\
+ true errors `err_<axis>_um`), float32 high word first |
 """
 
 from __future__ import annotations

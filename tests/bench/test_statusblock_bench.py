@@ -1,4 +1,7 @@
-"""Benchmark (make bench only): what the cycle's status record costs per cycle, and what composing the status costs the service."""
+"""Benchmark (make bench only): what the cycle's status record costs per cycle.
+
+Also what composing the status costs the service.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`compd bench` runs end to end against real devices and writes the bench JSON (docs/formats.md) (no timing asserted)."""
+"""`compd bench` runs end to end against real devices, writes the bench JSON (docs/formats.md); no timing asserted."""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""`compd fit --on-residual-of`: a model fitted on what models fitted before leave, scored held out against single-stage fits."""
+"""`compd fit --on-residual-of`: a model fitted on what models fitted before leave.
+
+It is scored held out against single-stage fits.
+"""
 
 from __future__ import annotations
 

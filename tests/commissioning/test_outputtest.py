@@ -1,4 +1,4 @@
-"""`compd output-test`: a known correction through the configured sink to a real device, read back, ramped at the slew."""
+"""`compd output-test`: a known correction via the configured sink to a real device, read back, ramped at the slew."""
 
 from __future__ import annotations
 

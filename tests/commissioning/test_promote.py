@@ -1,4 +1,8 @@
-"""`compd promote` checks the shadow as a model sent to be applied is (the clamp over its fitted range), refuses one without enough probes scored on it, and puts the config back when the reload does not take it."""
+"""`compd promote` checks the shadow as a model sent to be applied is, and puts the config back on a failed reload.
+
+The check is the clamp over its fitted range; a shadow without enough probes scored on it is refused. The config is
+put back when the reload does not take it.
+"""
 
 from __future__ import annotations
 

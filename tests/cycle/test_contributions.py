@@ -1,4 +1,7 @@
-"""model.contributions: two heat sources on one axis, each its own model and limits, summed; one's bad sensor leaves the other compensating; every channel shows each."""
+"""model.contributions: two heat sources on one axis, each its own model and limits, summed.
+
+One's bad sensor leaves the other compensating; every channel shows each.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The machine inhibits compensation or an axis waits for its reference: the correction ramps to 0 at the slew and back."""
+"""The machine inhibits compensation or an axis awaits its reference: the correction ramps to 0 at the slew and back."""
 
 from __future__ import annotations
 

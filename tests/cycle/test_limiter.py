@@ -1,4 +1,7 @@
-"""The one output limiter: the guard's cycle, the replay's float path and each contribution give its numbers; policy names round-trip."""
+"""The one output limiter: the guard's cycle, the replay's float path and each contribution give its numbers.
+
+Policy names round-trip.
+"""
 
 from __future__ import annotations
 

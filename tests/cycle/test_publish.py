@@ -1,6 +1,6 @@
-"""The cycle's side of the service: the status record every cycle, the devices' accounts once a period in a cycle that leaves
-room for them, events and rows as they come, probes from the service stamped by the cycle; and the pages a fork shares
-copied before the first cycle."""
+"""The cycle's side of the service: the status record every cycle, the devices' accounts once a period in a cycle
+that leaves room for them, events and rows as they come, probes from the service stamped by the cycle; and the pages
+a fork shares copied before the first cycle."""
 
 from __future__ import annotations
 

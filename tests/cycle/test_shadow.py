@@ -1,4 +1,4 @@
-"""The shadow model: evaluated beside the active one, driving nothing, scored on the same probes, then promoted through a reload."""
+"""The shadow model: run beside the active one, driving nothing, scored on the same probes, promoted by a reload."""
 
 from __future__ import annotations
 
@@ -60,7 +60,10 @@ sink: {kind: pci1756}
 
 
 def test_promoted_text_keeps_the_old_model_as_comments() -> None:
-    text = "loop: {period_s: 1.0}\n# the model\nmodel: {kind: mlr, file: a.yaml}\nshadow:\n  kind: mlr\n  file: b.yaml\nsink: {kind: pci1756}\n"
+    text = (
+        "loop: {period_s: 1.0}\n# the model\nmodel: {kind: mlr, file: a.yaml}\n"
+        "shadow:\n  kind: mlr\n  file: b.yaml\nsink: {kind: pci1756}\n"
+    )
     out = promoted_text(text, "c.yaml", "STAMP")
     assert out == (
         "loop: {period_s: 1.0}\n# the model\n# model before `compd promote` of STAMP (the shadow became the"
@@ -73,7 +76,10 @@ def test_promoted_text_keeps_the_old_model_as_comments() -> None:
 
 @pytest.fixture
 def daemon(tmp_path: Path):
-    """A daemon on the simulated spindle (20× real time) with a shadow (a third shorter: it predicts a third less), stopped with SIGTERM at the end."""
+    """A daemon on the simulated spindle (20× real time) with a shadow, stopped with SIGTERM at the end.
+
+    The shadow is a third shorter: it predicts a third less.
+    """
     cfg = sim_config(tmp_path, EXTRA, duration_s=1e6, speedup=20)
     (tmp_path / "shadow.yaml").write_text(SHADOW.format(length_mm=100.0))
     proc = subprocess.Popen(

@@ -1,4 +1,7 @@
-"""The status record's schema makes every channel: a field declared once reaches Prometheus, Sparkplug B and OPC UA with its unit and meaning, and a key that is not declared cannot be read or written."""
+"""The status record's schema makes every channel: a field declared once reaches them all with its unit and meaning.
+
+The channels are Prometheus, Sparkplug B and OPC UA; a key that is not declared cannot be read or written.
+"""
 
 from __future__ import annotations
 

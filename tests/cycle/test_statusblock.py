@@ -1,4 +1,4 @@
-"""The cycle's status record: every field as the pipeline has it, a consistent copy across processes, docs from the schema."""
+"""The status record: every field as the pipeline has it, a consistent copy across processes, docs from the schema."""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""Feed axis, compd's field form: gains recovered, evaluate = predict, the Siemens line, slide sensors found, form picked held out."""
+"""Feed axis, compd's field form: gains recovered, evaluate = predict, the Siemens line.
+
+Also: slide sensors found, the form picked held out.
+"""
 
 from __future__ import annotations
 

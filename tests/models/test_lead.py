@@ -1,4 +1,7 @@
-"""The sensors' lag led (compd.models.lead): the filter, the model's params, the fit that chooses it (compd.identify.lag)."""
+"""The sensors' lag led (compd.models.lead): the filter, the model's params, the fit that chooses it.
+
+The fit is compd.identify.lag.
+"""
 
 from __future__ import annotations
 

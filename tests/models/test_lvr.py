@@ -1,4 +1,7 @@
-"""LVR: the paper's PLS against scikit-learn, exact fast LOO Q², blocked cross-validation, component selection, sample library."""
+"""LVR: the paper's PLS against scikit-learn, exact fast LOO Q², blocked cross-validation.
+
+Also component selection and the sample library.
+"""
 
 from __future__ import annotations
 

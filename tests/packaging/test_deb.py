@@ -345,7 +345,8 @@ run postinst sh "$x/DEBIAN/postinst" configure
 # saying two units run (a systemctl of this namespace's, on PATH)
 run upgrade sh "$x/DEBIAN/postinst" configure 0.0.9-1
 mkdir -p /run/systemd/system /opt/fakebin
-printf '#!/bin/sh\ncase "$*" in *list-units*) printf "compd.service loaded active running compd\\ncompd@lathe1.service loaded active running compd (lathe1)\\n" ;; esac\n' >/opt/fakebin/systemctl
+printf '#!/bin/sh\ncase "$*" in *list-units*) printf "compd.service loaded active running'\
+' compd\\ncompd@lathe1.service loaded active running compd (lathe1)\\n" ;; esac\n' >/opt/fakebin/systemctl
 chmod +x /opt/fakebin/systemctl
 run upgrade_running env PATH="/opt/fakebin:$PATH" sh "$x/DEBIAN/postinst" configure 0.0.9-1
 rm -rf /run/systemd
@@ -357,8 +358,13 @@ run version $as_compd /usr/bin/compd --version
 # UA server's stack name compd-commissioning
 mkdir /opt/machine
 printf 't_s,T_xi,err_z_um\n' >/opt/machine/day.csv
-i=0; while [ $i -lt 120 ]; do printf '%d,%d.5,%d.0\n' $((i * 60)) $((20 + i / 20)) $((i / 20 * 2)) >>/opt/machine/day.csv; i=$((i + 1)); done
-printf 'loop: {clock: sim, period_s: 60.0, speedup: 0}\nsources: [{kind: replay, name: log, path: day.csv}]\nmodel: {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 13.6e-6, length_mm: 165.0}}\nguard: {stale_after_s: 120.0}\nsink: {kind: pci1756}\nstatus: {path: status.json}\nlog: {path: log.csv, period_s: 60}\nmetrics: {enabled: true, bind: 127.0.0.1, port: 0}\ntelemetry: {host: 127.0.0.1, group_id: plant, edge_node_id: cell1, device_id: spindle}\n' >/opt/machine/machine.yaml
+i=0; while [ $i -lt 120 ]; do printf '%d,%d.5,%d.0\n' $((i * 60)) $((20 + i / 20)) $((i / 20 * 2)) \
+>>/opt/machine/day.csv; i=$((i + 1)); done
+printf 'loop: {clock: sim, period_s: 60.0, speedup: 0}\nsources: [{kind: replay, name: log, path: day.csv}]\nmodel:'\
+' {kind: xi_spindle, inputs: [T_xi], outputs: [z], params: {alpha_per_k: 13.6e-6, length_mm: 165.0}}\nguard:'\
+' {stale_after_s: 120.0}\nsink: {kind: pci1756}\nstatus: {path: status.json}\nlog: {path: log.csv, period_s:'\
+' 60}\nmetrics: {enabled: true, bind: 127.0.0.1, port: 0}\ntelemetry: {host: 127.0.0.1, group_id: plant,'\
+' edge_node_id: cell1, device_id: spindle}\n' >/opt/machine/machine.yaml
 chown -R compd:compd /opt/machine
 cd /opt/machine
 run alone_check $as_compd /usr/bin/compd check-config machine.yaml
@@ -366,8 +372,11 @@ sed -i '/^telemetry:/d' machine.yaml
 run alone_run $as_compd /usr/bin/compd run machine.yaml
 run alone_shipped $as_compd /usr/bin/compd check-config /etc/compd/compd.yaml
 run alone_fit $as_compd /usr/bin/compd fit --kind mlr --log day.csv --out model.yaml
-run alone_extras $as_compd /opt/compd/venv/bin/python -c 'import paho.mqtt.client, prometheus_client, rich, numpy, pymodbus, can, serial; print("ok")'
-run alone_absent /opt/compd/venv/bin/python -c 'import importlib.util as u; print(sorted(n for n in ("scipy", "matplotlib", "hil_sim", "rig", "asyncua", "cryptography", "tqdm", "compd.identify", "compd.commissioning") if u.find_spec(n) is not None))'
+run alone_extras $as_compd /opt/compd/venv/bin/python -c 'import paho.mqtt.client, prometheus_client, rich, numpy,'\
+' pymodbus, can, serial; print("ok")'
+run alone_absent /opt/compd/venv/bin/python -c 'import importlib.util as u; print(sorted(n for n in ("scipy",'\
+' "matplotlib", "hil_sim", "rig", "asyncua", "cryptography", "tqdm", "compd.identify", "compd.commissioning") if'\
+' u.find_spec(n) is not None))'
 run alone_pipcheck /opt/compd/venv/bin/python -m pip check
 cd /
 
@@ -376,9 +385,11 @@ cp -a "$c/opt/compd/." /opt/compd/
 run cpostinst sh "$c/DEBIAN/postinst" configure
 run check $as_compd /usr/bin/compd check-config /etc/compd/compd.yaml
 cp /etc/compd/compd.yaml /opt/telemetry.yaml
-printf 'telemetry:\n  host: 127.0.0.1\n  group_id: plant\n  edge_node_id: cell1\n  device_id: spindle\n' >>/opt/telemetry.yaml
+printf 'telemetry:\n  host: 127.0.0.1\n  group_id: plant\n  edge_node_id: cell1\n  device_id: spindle\n' \
+>>/opt/telemetry.yaml
 run telemetry $as_compd /usr/bin/compd check-config /opt/telemetry.yaml
-run extras $as_compd /opt/compd/venv/bin/python -c 'import paho.mqtt.client, asyncua, prometheus_client, matplotlib, rich, scipy, hil_sim, rig.bench, compd.identify, compd.commissioning; print("ok")'
+run extras $as_compd /opt/compd/venv/bin/python -c 'import paho.mqtt.client, asyncua, prometheus_client, matplotlib,'\
+' rich, scipy, hil_sim, rig.bench, compd.identify, compd.commissioning; print("ok")'
 cd /opt/machine
 run fit $as_compd /usr/bin/compd fit --kind mlr --log day.csv --out model.yaml
 cd /

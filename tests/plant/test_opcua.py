@@ -1,4 +1,6 @@
-"""The read-only OPC UA server: values, updates, the documented address space (types, units, ranges, descriptions, sampling interval), its security, and asyncua's log lines.
+"""The read-only OPC UA server: values, updates, the documented address space, its security, and asyncua's log lines.
+
+The address space as documented: types, units, ranges, descriptions, sampling interval.
 
 One server (module scope) serves the tests that need the default security: Basic256Sha256
 SignAndEncrypt only, trusted_clients, one user, no anonymous. The asyncua client is

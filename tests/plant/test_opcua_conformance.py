@@ -1,4 +1,9 @@
-"""compd's OPC UA server browsed and read by node-opcua (npm, unpacked into build/ by the Makefile), an independent client: Basic256Sha256 SignAndEncrypt with a trusted client certificate and a user name; every node's type, units, range, description, sampling interval and value as documented; anonymous and unsecured logins refused."""
+"""compd's OPC UA server browsed and read by node-opcua, an independent client.
+
+node-opcua comes from npm, unpacked into build/ by the Makefile. Basic256Sha256 SignAndEncrypt with a trusted client
+certificate and a user name; every node's type, units, range, description, sampling interval and value as
+documented; anonymous and unsecured logins refused.
+"""
 
 from __future__ import annotations
 

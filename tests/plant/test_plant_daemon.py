@@ -1,4 +1,7 @@
-"""`compd run` with telemetry and opcua: the service process publishes to mosquitto and serves OPC UA; check-config finds what is wrong."""
+"""`compd run` with telemetry and opcua: the service process publishes to mosquitto and serves OPC UA.
+
+check-config finds what is wrong.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Walks docs/plant.md's rehearsal as written, in an empty folder: a broker, compd with telemetry and OPC UA, and two clients.
+"""Walks docs/plant.md's rehearsal as written, in an empty dir: a broker, compd with telemetry and OPC UA, two clients.
 
 Every fenced block of the section "Rehearsal" is taken in order: a ```yaml block after
 `<!-- file: NAME -->` is written to NAME, every ```console block is run line by line (`$ COMMAND`,

@@ -1,4 +1,7 @@
-"""A model from the plant's command topic: refused unless allowed and armed, validated like a reload, refused if it would drive an axis into the guard's clamp over its fit range, applied, acknowledged."""
+"""A model from the plant's command topic: refused unless allowed and armed, validated like a reload, applied.
+
+It is acknowledged; it is refused if it would drive an axis into the guard's clamp over its fit range.
+"""
 
 from __future__ import annotations
 

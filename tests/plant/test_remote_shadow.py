@@ -1,4 +1,8 @@
-"""A remote model sent as the shadow (NCMD `Node Control/Shadow`, DCMD `Model/shadow`): installed without arming, checked against the shadow section, the model itself still armed for; refused where there is no shadow file to replace."""
+"""A remote model sent as the shadow: installed without arming, checked against the shadow section.
+
+Sent by NCMD `Node Control/Shadow` or DCMD `Model/shadow`. The model itself is still armed for; a shadow is refused
+where there is no shadow file to replace.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,9 @@
-"""Sparkplug B 3.0 rules, checked on every message compd publishes to a real mosquitto, decoded by Eclipse Tahu's payload library (npm, unpacked into build/ by the Makefile), not by compd's code: topics, births before data, bdSeq, seq, time stamps, every DDATA metric declared in DBIRTH with its type, aliases, and a historian's view of the data sent by exception."""
+"""Sparkplug B 3.0 rules, checked on every message compd publishes to a real mosquitto.
+
+Each is decoded by Eclipse Tahu's payload library (npm, unpacked into build/ by the Makefile), not by compd's code:
+topics, births before data, bdSeq, seq, time stamps, every DDATA metric declared in DBIRTH with its type, aliases,
+and a historian's view of the data sent by exception.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""`compd sparkplug-watch`: bad options are one line and exit 2, a broker that is not there exit 1, and a message by an alias no birth declared is shown by its alias."""
+"""`compd sparkplug-watch`: bad options are one line and exit 2, a broker that is not there exit 1.
+
+A message by an alias no birth declared is shown by its alias.
+"""
 
 from __future__ import annotations
 

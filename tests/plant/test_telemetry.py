@@ -1,4 +1,7 @@
-"""Sparkplug B telemetry against a real mosquitto: births, aliases, data by exception, events, TLS and passwords, store and forward."""
+"""Sparkplug B telemetry against a real mosquitto: births, aliases, data by exception, events.
+
+Also TLS and passwords, store and forward.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,8 @@
-"""/metrics as Prometheus's own checker sees it: `promtool check metrics` (Debian's prometheus package, unpacked by the Makefile) on every family compd defines and on a daemon's live scrape."""
+"""/metrics as Prometheus's own checker sees it: `promtool check metrics` on every family and on a live scrape.
+
+Every family compd defines, and a daemon's live scrape; promtool is Debian's prometheus package, unpacked by the
+Makefile.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""linuxcnc sink on LinuxCNC's external offsets emulated in process (compd.plc.eoffsets): counts from what is applied."""
+"""linuxcnc sink on LinuxCNC's external offsets emulated in process (compd.plc.eoffsets): counts from what's applied."""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""A modbus source reading coils or discrete inputs (a PLC's inhibit and referenced signals) from a pymodbus server on 127.0.0.1."""
+"""A modbus source reading coils or discrete inputs from a pymodbus server on 127.0.0.1.
+
+The bits are a PLC's inhibit and referenced signals.
+"""
 
 from __future__ import annotations
 
