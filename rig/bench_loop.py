@@ -110,6 +110,7 @@ def io_stats(app: Any) -> dict[str, dict[str, float]]:
 def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     """compd's loop for `cycles` cycles; timing stats and resident size."""
     from compd.config import load_config
+    from compd.cycle.statusblock import LI
     from compd.daemon.app import App
 
     app = App(load_config(config))
@@ -157,7 +158,7 @@ def run_compd_loop(config: Path, cycles: int) -> dict[str, Any]:
     service = app.service.counts()
     pub = app.service.publisher
     service["devices_waited"] = pub.devices_waited  # cycles the devices' accounts waited for room
-    service["status_write_max_us"] = round(pub.block.read().get("write_max_ns") / 1000, 1)
+    service["status_write_max_us"] = round(pub.block.read().get(LI.write_max_ns) / 1000, 1)
     rss["end_kb"] = rss_kb()
     base = rss.get("after_warmup_kb", rss["end_kb"])
     rss["growth_kb"] = rss["end_kb"] - base
