@@ -180,7 +180,7 @@ def test_disk_full(tmp_path: Path) -> None:
     # one clear line, not one per row: one per writer, and a service process the supervisor restarted
     # (it stalled on a loaded machine: `service_restarted`) opens the log again with a writer of its own
     restarts = [r for r in run.records if getattr(r, "event", None) == "service_restarted"]
-    assert len(errors) == 1 + len(restarts), [(r.event, r.getMessage()) for r in errors + restarts]
+    assert len(errors) == 1 + len(restarts), [(r.ts, r.event, r.getMessage()) for r in errors + restarts]
     assert all(e.levelno == logging.ERROR for e in errors)
     m.event = f"log_error: {errors[0].reason}"
     m.logged = True
