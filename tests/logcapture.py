@@ -44,12 +44,15 @@ def log_lines(level: int = logging.DEBUG) -> Iterator[list[SimpleNamespace]]:
         handler = logging.StreamHandler(stream)
         handler.setFormatter(KeyValueFormatter())
         handler.setLevel(level)
-        logger.addHandler(handler)
+        # the only handler while it reads, as the daemon has one: a handler an earlier test of this process
+        # left on the logger (a `compd` command run in process) would write every line a second time
+        others = logger.handlers[:]
+        logger.handlers = [handler]
         logger.setLevel(level)
         try:
             yield records
         finally:
-            logger.removeHandler(handler)
+            logger.handlers = others
             logger.setLevel(old_level)
             handler.flush()
             stream.close()
