@@ -136,14 +136,16 @@ def _events(err: Path, event: str) -> list[dict[str, str]]:
 
 
 def _settled(status: Path, pmc_port: int) -> Any:
-    """The status says link up and a steady correction, and the PMC applies it (to its 1 µm)."""
+    """The status says link up and a steady, real correction (beyond 10 µm, not the 0 it starts from: on a
+    loaded machine the first looks can find target and correction both still 0), and the PMC applies it (to
+    its 1 µm)."""
 
     def check() -> dict | None:
         st = _status(status)
         if not st or st["state"] != "running" or st["sink"]["link"] != "up":
             return None
         a = st["axes"]["z"]
-        if abs(a["correction_um"] - a["target_um"]) > 0.01:
+        if abs(a["correction_um"] - a["target_um"]) > 0.01 or abs(a["correction_um"]) <= 10.0:
             return None
         applied = _applied_um(pmc_port)
         return st if applied is not None and abs(applied - a["correction_um"]) <= 1.0 else None
