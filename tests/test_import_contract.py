@@ -6,6 +6,7 @@ function only for an optional dependency."""
 from __future__ import annotations
 
 import ast
+import importlib.util
 import os
 import shutil
 import subprocess
@@ -40,51 +41,20 @@ OPTIONAL: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 
 
+def _import_graph():  # noqa: ANN202  (scripts/ is no package: its module, loaded from its file)
+    spec = importlib.util.spec_from_file_location("import_graph", ROOT / "scripts" / "import_graph.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def circles(package: str) -> list[list[str]]:
     """The circles of modules of `package` that import each other (strongly connected sets, each
-    of two modules or more), every import counted."""
+    of two modules or more), every import counted: grimp's graph, the circles found by
+    scripts/import_graph.py's `circles` (the one Tarjan's of the project)."""
     graph = grimp.build_graph(package, include_external_packages=False, cache_dir=None)
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    on_stack: set[str] = set()
-    found: list[list[str]] = []
-
-    def visit(root: str) -> None:  # Tarjan's, iterative: no recursion limit to meet
-        work = [(root, iter(sorted(graph.find_modules_directly_imported_by(root))))]
-        index[root] = low[root] = len(index)
-        stack.append(root)
-        on_stack.add(root)
-        while work:
-            v, children = work[-1]
-            child = next(children, None)
-            if child is not None:
-                if child not in index:
-                    index[child] = low[child] = len(index)
-                    stack.append(child)
-                    on_stack.add(child)
-                    work.append((child, iter(sorted(graph.find_modules_directly_imported_by(child)))))
-                elif child in on_stack:
-                    low[v] = min(low[v], index[child])
-                continue
-            work.pop()
-            if work:
-                low[work[-1][0]] = min(low[work[-1][0]], low[v])
-            if low[v] == index[v]:
-                ring = []
-                while True:
-                    w = stack.pop()
-                    on_stack.discard(w)
-                    ring.append(w)
-                    if w == v:
-                        break
-                if len(ring) > 1:
-                    found.append(sorted(ring))
-
-    for module in sorted(graph.modules):
-        if module not in index:
-            visit(module)
-    return found
+    return _import_graph().circles({m: set(graph.find_modules_directly_imported_by(m)) for m in graph.modules})
 
 
 def lint_imports(cwd: Path, pythonpath: Path) -> subprocess.CompletedProcess[str]:
