@@ -46,6 +46,34 @@ def _stamp(ms: int | None) -> str:
     return dt.datetime.fromtimestamp(ms / 1000.0, dt.UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + " UTC"
 
 
+class RebirthGate:
+    """What a watch that asked a node for its births shows: everything, except the node's own messages that
+    were sent before its birth came (data by aliases no birth names yet, and the old sequence). The node's
+    NBIRTH opens the gate; the NCMD that asked for it passes."""
+
+    def __init__(self, group: str | None, node: str | None) -> None:
+        self.group, self.node = group, node
+        self.born = group is None or node is None
+        self.held = 0  # messages of the node left out before its birth
+
+    def admit(self, topic: str) -> bool:
+        if self.born:
+            return True
+        from compd.plant.sparkplug import SparkplugError, parse_topic
+
+        try:
+            group, kind, node, _device = parse_topic(topic)
+        except SparkplugError:
+            return True
+        if (group, node) != (self.group, self.node) or kind == "NCMD":
+            return True
+        if kind == "NBIRTH":
+            self.born = True
+            return True
+        self.held += 1
+        return False
+
+
 def describe(topic: str, data: bytes, resolver: Any, units: dict[tuple[str, str], str], out: TextIO) -> None:
     """Print one message: its topic, seq and time, then a line per metric (name, value with the unit
     its birth gave, datatype). A metric that came by an alias no birth seen here declared is printed
@@ -125,7 +153,8 @@ def args_sparkplug_watch(sub: Any) -> None:
         "--rebirth",
         action="store_true",
         help="ask the edge node for its births first (an NCMD Node Control/Rebirth, as a Sparkplug host"
-        " that joins late does), so that its data can be shown by name",
+        " that joins late does), so that its data can be shown by name; what the node sent before its"
+        " birth is left out (and not counted)",
     )
     s.add_argument("--count", type=int, default=None, metavar="N", help="stop after N messages (default: until Ctrl-C)")
     s.add_argument(
@@ -210,6 +239,7 @@ def cmd_sparkplug_watch(args: argparse.Namespace) -> int:
         print(f"compd: watching {topic} on {where}", file=sys.stderr, flush=True)
         if args.rebirth:
             _ask_rebirth(client, group, node)
+        gate = RebirthGate(group, node) if args.rebirth else RebirthGate(None, None)
         quiet_since = time.monotonic()
         while args.count is None or seen < args.count:
             rc = client.loop(timeout=0.2)
@@ -218,11 +248,28 @@ def cmd_sparkplug_watch(args: argparse.Namespace) -> int:
                 return 1
             while inbox and (args.count is None or seen < args.count):
                 t, data = inbox.pop(0)
+                if not gate.admit(t):
+                    continue
+                if gate.held and gate.born:
+                    print(
+                        f"compd: left out {gate.held} message{'' if gate.held == 1 else 's'} of {group}/{node} sent"
+                        " before its birth (by aliases no birth seen here names)",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                    gate.held = 0
                 describe(t, data, resolver, units, sys.stdout)
                 sys.stdout.flush()
                 seen += 1
                 quiet_since = time.monotonic()
             if args.timeout_s is not None and time.monotonic() - quiet_since > args.timeout_s:
+                if not gate.born:
+                    print(
+                        f"compd: no birth of {group}/{node} for {args.timeout_s:g} s after the rebirth was asked"
+                        f" ({gate.held} of its messages left out, {seen} shown)",
+                        file=sys.stderr,
+                    )
+                    return 1
                 print(f"compd: no message on {topic} for {args.timeout_s:g} s ({seen} seen)", file=sys.stderr)
                 return 1
     finally:

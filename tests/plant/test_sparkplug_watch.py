@@ -1,6 +1,7 @@
 """`compd sparkplug-watch`: bad options are one line and exit 2, a broker that is not there exit 1.
 
-A message by an alias no birth declared is shown by its alias.
+A message by an alias no birth declared is shown by its alias; after a rebirth is asked, the node's messages
+sent before its birth are left out.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import sys
 
 import pytest
 
-from compd.cli.plant import describe
+from compd.cli.plant import RebirthGate, describe
 from compd.plant.sparkplug import AliasResolver, DataType, MetricDef, encode, topic
 
 
@@ -59,3 +60,24 @@ def test_births_name_the_data_and_an_unknown_alias_is_shown_as_such() -> None:
     assert any(line.startswith("  (aliases 13: no birth of this node seen") for line in lines)
     assert "  Axis/z/correction_um = -3.25 µm  (Double, alias 13)" in lines
     assert "  Axis/z/correction_um = -3.5 µm  (Double)" in lines
+
+
+def test_after_a_rebirth_ask_the_nodes_messages_before_its_birth_are_left_out() -> None:
+    """A DDATA the node sent before it saw the NCMD (its old sequence, by aliases) is not shown nor counted;
+    the NCMD itself, another node's messages and everything from the NBIRTH on are."""
+    gate = RebirthGate("desk", "cell1")
+    arrivals = [
+        (topic("desk", "DDATA", "cell1", "spindle"), False),  # in flight when the rebirth was asked
+        (topic("desk", "NCMD", "cell1"), True),
+        (topic("desk", "NDATA", "cell1"), False),
+        (topic("desk", "DDATA", "cell2", "spindle"), True),
+        (topic("hall", "DDATA", "cell1", "spindle"), True),
+        ("spBv1.0/STATE/scada", True),
+        (topic("desk", "NBIRTH", "cell1"), True),
+        (topic("desk", "DBIRTH", "cell1", "spindle"), True),
+        (topic("desk", "DDATA", "cell1", "spindle"), True),
+    ]
+    assert [gate.admit(t) for t, _ in arrivals] == [shown for _, shown in arrivals]
+    assert gate.born and gate.held == 2
+    ungated = RebirthGate(None, None)  # no rebirth asked: everything shows
+    assert all(ungated.admit(t) for t, _ in arrivals) and ungated.held == 0
