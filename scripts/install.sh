@@ -70,8 +70,11 @@ tar -C "$SRC" --exclude=./.venv --exclude=./.git --exclude='*.egg-info' --exclud
 "$venv/bin/python" -m pip wheel -q --disable-pip-version-check --no-deps -w "$work" "$work/src" 2>"$work/build.log" ||
     { cat "$work/build.log" >&2; exit 1; }
 wheel=$(ls "$work"/compd-*.whl)
+# staged, pip writes no byte code: relocate.py would remove it (it names the stage), so compiling it is waste
+nocompile=""
+[ -z "$DESTDIR" ] || nocompile=--no-compile
 # shellcheck disable=SC2086
-"$venv/bin/python" -m pip install -q --upgrade --disable-pip-version-check --no-warn-script-location \
+"$venv/bin/python" -m pip install -q --upgrade --disable-pip-version-check --no-warn-script-location $nocompile \
     $PIP_ARGS "$wheel${EXTRAS:+[$EXTRAS]}"
 
 say "$BINDIR/compd -> $PREFIX/venv/bin/compd"
