@@ -7,6 +7,7 @@ import functools
 import os
 import threading
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,42 @@ def _modules_sharing_a_fixture() -> frozenset[str]:
     return frozenset(out)
 
 
+@functools.cache
+def _slow() -> tuple[frozenset[str], frozenset[str]]:
+    """(the test modules marked slow as a whole, `pytestmark`; the tests marked slow one by one, as
+    "path::function"), paths from the checkout: `@pytest.mark.slow`, the longer scenario tests."""
+    modules, functions = set(), set()
+    for file in (ROOT / "tests").rglob("test_*.py"):
+        path = file.relative_to(ROOT).as_posix()
+        for node in ast.parse(file.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.Assign) and any(ast.unparse(t) == "pytestmark" for t in node.targets):
+                if "pytest.mark.slow" in ast.unparse(node.value):
+                    modules.add(path)
+            elif isinstance(node, ast.FunctionDef) and any(
+                ast.unparse(d).startswith("pytest.mark.slow") for d in node.decorator_list
+            ):
+                functions.add(f"{path}::{node.name}")
+    return frozenset(modules), frozenset(functions)
+
+
+def is_slow(nodeid: str) -> bool:
+    """Whether a test is marked slow (its function, or its module's `pytestmark`)."""
+    modules, functions = _slow()
+    path, _, rest = nodeid.partition("::")
+    return path in modules or f"{path}::{rest.split('[', 1)[0]}" in functions
+
+
+class CostliestFirst(OrderedDict):
+    """xdist's queue of work units (scope: {node id: done}), which it takes from the front: the front is
+    the unit with the most tests marked slow, then the most tests, then the first queued."""
+
+    def popitem(self, last: bool = True) -> tuple[str, dict[str, bool]]:
+        if last or not self:
+            return super().popitem(last=last)
+        scope = max(self, key=lambda s: (sum(map(is_slow, self[s])), len(self[s])))
+        return scope, self.pop(scope)
+
+
 def xdist_scope(nodeid: str) -> str:
     """The unit of work a test belongs to under `make test`'s `-n N --dist loadgroup`: every test of
     tests/linuxcnc together (one LinuxCNC per machine: a second worker's Sim would only wait on
@@ -74,12 +111,18 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """`--dist loadgroup` grouped by `xdist_scope` as well as by xdist_group marks: pytest-xdist 3.8
     reads the marks through the node id, which pytest 9.2 no longer lets it change (pytest-xdist
     issue 1386), and a mark on every test of a module would be easy to forget. Groups of many tests
-    are handed out first (xdist's loadscope reorder), single tests last, to even out the workers."""
+    are handed out costliest first: the most tests marked slow, then the most tests (the longest
+    tests started last would leave the other workers idle at the end: the demo alone for its last
+    100 s on 8943cb8)."""
     if config.getvalue("dist") != "loadgroup":
         return None
     from xdist.scheduler import LoadGroupScheduling
 
     class Scheduling(LoadGroupScheduling):
+        def __init__(self, config: pytest.Config, log: Any) -> None:
+            super().__init__(config, log)
+            self.workqueue = CostliestFirst()
+
         def _split_scope(self, nodeid: str) -> str:
             marked = super()._split_scope(nodeid)
             return marked if marked != nodeid else xdist_scope(nodeid)

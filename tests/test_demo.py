@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from compd.log import read_log
 
@@ -26,6 +27,7 @@ def demo_config(tmp_path: Path, extra: str = "") -> Path:
     return p
 
 
+@pytest.mark.slow
 def test_demo_reduces_rms_error(tmp_path: Path) -> None:
     cfg = demo_config(tmp_path, "log:\n  path: demo.csv\n  period_s: 60\n")
     r = subprocess.run([sys.executable, "-m", "compd", "run", str(cfg)], capture_output=True, text=True, timeout=300)

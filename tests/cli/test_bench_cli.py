@@ -17,6 +17,7 @@ from rig import bench
 from rig.bench import format_table
 
 
+@pytest.mark.slow
 def test_bench_writes_contract_json(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     r = subprocess.run(

@@ -9,7 +9,11 @@ coil works, and partial strokes heat one end): `make accept` runs it.
 
 from __future__ import annotations
 
+import pytest
+
 from rig import closedloop as cl
+
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
 
 HOURS, SPEEDUP = 5.0, 7200.0
 FIELD_MIN_PCT = 88.0  # measured 92.2 % on this stretch (MLR 80.5 %), 88.5 % over the whole day

@@ -3,7 +3,11 @@ over Modbus TCP, a shortened unseen day, against MLR on the same wiring."""
 
 from __future__ import annotations
 
+import pytest
+
 from rig import closedloop as cl
+
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
 
 # The unseen day's first 5 plant-hours: 2 m/min over 100-700 mm with pauses (errors
 # up to ~16 um on X2). In lockstep (closed_loop's default); SPEEDUP only sets compd's

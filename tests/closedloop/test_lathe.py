@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
+
 from rig import closedloop as cl
+
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
 
 # The unseen day's first 5 plant-hours: 1 h stopped, then 1500 rpm jobs with pauses
 # (the error reaches ~15 um). In lockstep; SPEEDUP only sets compd's period (4 s).

@@ -8,8 +8,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from rig import closedloop as cl
+
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
 
 # 2 plant-hours of the spindle's unseen day: 9000 rpm jobs, the PMC's shift moves
 # within the first hour (word mode: latch on the strobe, step limit, on plant time)

@@ -3,7 +3,11 @@ probe-result block, compd's `probe` source reads it over Modbus TCP and the adap
 
 from __future__ import annotations
 
+import pytest
+
 from rig import closedloop as cl
+
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
 
 HOURS, SPEEDUP = 3.0, 7200.0  # in lockstep; SPEEDUP only sets compd's period (4 s)
 

@@ -3,7 +3,11 @@ the FANUC PMC's external shift over Modbus TCP, a shortened unseen day, against 
 
 from __future__ import annotations
 
+import pytest
+
 from rig import closedloop as cl
+
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
 
 # The unseen day's first 5 plant-hours: 9000 rpm jobs with pauses, coolant on (axial
 # error up to ~17 um, the centrifugal lift included). In lockstep; SPEEDUP only sets

@@ -13,6 +13,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
 
 ROOT = Path(__file__).resolve().parents[2]
 HOURS, UNPLUG_S = 2.5, 5400.0

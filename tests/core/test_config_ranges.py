@@ -248,6 +248,7 @@ def accepted_config(draw: st.DrawFn) -> dict[str, Any]:
     return data
 
 
+@pytest.mark.slow
 @settings(
     max_examples=int(__import__("os").environ.get("COMPD_RANGE_EXAMPLES", "40")),
     deadline=None,

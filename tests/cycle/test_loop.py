@@ -162,6 +162,7 @@ def test_model_update_period_holds_output(tmp_path: Path) -> None:
     assert 5 <= changes <= 10
 
 
+@pytest.mark.slow
 def test_word_walks_one_lsb_at_the_slew_pace(tmp_path: Path) -> None:
     """The audit's case through the whole loop: 10 ms cycles, slew 2 µm/s, dead-band 3 µm.
     The word on the card changes by one LSB at a time, no faster than lsb/slew, and stays

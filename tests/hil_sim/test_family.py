@@ -342,6 +342,7 @@ def test_machine_file_reruns_a_day(tmp_path):
     assert (tmp_path / "again.csv").read_bytes() == (tmp_path / "spindle_2_unseen.csv").read_bytes()
 
 
+@pytest.mark.slow
 def test_family_command_writes_the_files(tmp_path, capsys):
     assert main(["family", "--kind", "lathe", "--seeds", "3,5", "--out", str(tmp_path / "f"), "--rate-s", "600"]) == 0
     out = capsys.readouterr().out.splitlines()

@@ -11,8 +11,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from rig import linuxcnc_loop
 from tests.linuxcnc.sim import Sim, require
+
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
 
 
 def test_linuxcnc_runs_compd_s_thermal_test_and_compd_compensates_the_plant_through_its_offsets(tmp_path: Path):

@@ -26,6 +26,8 @@ from tests.daemon.test_service_process import SENSOR, _config, _start
 from tests.linuxcnc.sim import Sim, require, wait_for
 from tests.service_helpers import wait_running
 
+pytestmark = pytest.mark.slow  # minutes of CPU: make test starts it first (tests/conftest.py)
+
 UM = 1e-3  # mm
 
 
