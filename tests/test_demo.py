@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from compd.log import read_log
 
@@ -78,4 +79,5 @@ def test_duration_flag_stops_early(tmp_path: Path) -> None:
     )
     assert r.returncode == 0, r.stderr
     m = re.search(r"compd: (\d+) cycles", r.stdout)
-    assert m and int(m.group(1)) == 600 / 0.05 + 1
+    period_s = yaml.safe_load(cfg.read_text())["loop"]["period_s"]
+    assert m and int(m.group(1)) == round(600 / period_s) + 1

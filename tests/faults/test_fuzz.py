@@ -106,7 +106,7 @@ def test_mutated_configs_are_one_line_bad_input(case: tuple[Path, str]) -> None:
 
 def test_cli_exit_2_with_one_line(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
-    bad.write_text((ROOT / "configs" / "demo.yaml").read_text().replace("period_s: 0.05", "period_s: [1]"))
+    bad.write_text((ROOT / "configs" / "demo.yaml").read_text().replace("period_s: 0.2 ", "period_s: [1] "))
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         code = main(["check-config", str(bad)])
