@@ -111,9 +111,8 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """`--dist loadgroup` grouped by `xdist_scope` as well as by xdist_group marks: pytest-xdist 3.8
     reads the marks through the node id, which pytest 9.2 no longer lets it change (pytest-xdist
     issue 1386), and a mark on every test of a module would be easy to forget. Groups of many tests
-    are handed out costliest first: the most tests marked slow, then the most tests (the longest
-    tests started last would leave the other workers idle at the end: the demo alone for its last
-    100 s on 8943cb8)."""
+    are handed out costliest first: the most tests marked slow, then the most tests, so that the
+    longest do not start last (on 8943cb8 the demo's 100 s was among the last tests started)."""
     if config.getvalue("dist") != "loadgroup":
         return None
     from xdist.scheduler import LoadGroupScheduling
