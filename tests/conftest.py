@@ -45,17 +45,26 @@ def _children() -> set[int]:
 
 
 @functools.cache
+def _test_modules() -> dict[str, ast.Module]:
+    """Every test module, parsed once: {path from the checkout: its syntax tree}."""
+    return {
+        file.relative_to(ROOT).as_posix(): ast.parse(file.read_text(encoding="utf-8"))
+        for file in (ROOT / "tests").rglob("test_*.py")
+    }
+
+
+@functools.cache
 def _modules_sharing_a_fixture() -> frozenset[str]:
     """The test modules (paths from the checkout) that define a fixture made once for many tests:
     `@pytest.fixture(scope=...)` with any scope but function."""
     out = set()
-    for file in (ROOT / "tests").rglob("test_*.py"):
-        for node in ast.walk(ast.parse(file.read_text(encoding="utf-8"))):
+    for path, tree in _test_modules().items():
+        for node in ast.walk(tree):
             if not (isinstance(node, ast.Call) and ast.unparse(node.func) in ("pytest.fixture", "fixture")):
                 continue
             scope = next((k.value for k in node.keywords if k.arg == "scope"), None)
             if scope is not None and not (isinstance(scope, ast.Constant) and scope.value == "function"):
-                out.add(file.relative_to(ROOT).as_posix())
+                out.add(path)
     return frozenset(out)
 
 
@@ -64,9 +73,8 @@ def _slow() -> tuple[frozenset[str], frozenset[str]]:
     """(the test modules marked slow as a whole, `pytestmark`; the tests marked slow one by one, as
     "path::function"), paths from the checkout: `@pytest.mark.slow`, the longer scenario tests."""
     modules, functions = set(), set()
-    for file in (ROOT / "tests").rglob("test_*.py"):
-        path = file.relative_to(ROOT).as_posix()
-        for node in ast.parse(file.read_text(encoding="utf-8")).body:
+    for path, tree in _test_modules().items():
+        for node in tree.body:
             if isinstance(node, ast.Assign) and any(ast.unparse(t) == "pytestmark" for t in node.targets):
                 if "pytest.mark.slow" in ast.unparse(node.value):
                     modules.add(path)
@@ -88,10 +96,18 @@ class CostliestFirst(OrderedDict):
     """xdist's queue of work units (scope: {node id: done}), which it takes from the front: the front is
     the unit with the most tests marked slow, then the most tests, then the first queued."""
 
+    def __init__(self) -> None:
+        super().__init__()
+        self._costs: dict[str, tuple[int, int]] = {}  # counted once, as a unit is queued
+
+    def __setitem__(self, scope: str, unit: dict[str, bool]) -> None:
+        super().__setitem__(scope, unit)
+        self._costs[scope] = (sum(map(is_slow, unit)), len(unit))
+
     def popitem(self, last: bool = True) -> tuple[str, dict[str, bool]]:
         if last or not self:
             return super().popitem(last=last)
-        scope = max(self, key=lambda s: (sum(map(is_slow, self[s])), len(self[s])))
+        scope = max(self, key=self._costs.__getitem__)
         return scope, self.pop(scope)
 
 
