@@ -151,7 +151,7 @@ class FaultRun:
         self.tmp_path = tmp_path
         self.cfg = cfg
         self.policy = cfg["guard"]["fault_policy"]
-        self.expect_recovery = False  # set by rows whose fault clears by itself (clock jump)
+        self.expect_recovery = False  # rows whose fault clears by itself (clock jump); a "clear" action implies it
         self.duration_s = duration_s
         self.clock = clock
         self.actions: list[tuple[float, str, Callable[[], None]]] = []
@@ -231,14 +231,14 @@ class FaultRun:
 
     def settled(self, now: float) -> bool:
         """All actions done, 0.3 s past the last, MIN_S run, and the axis either back at the
-        model's correction (NORMAL, within 0.25 µm of its target) or in its safe state."""
+        model's correction (NORMAL, within 0.25 µm of its target) or, unless the fault is gone, in its safe state."""
         tr = self.trace
         if not tr.t or now - tr.t[0] < MIN_S or (self.times and now - max(self.times.values()) < 0.3):
             return False
         k = len(tr.t) - 1
         if tr.state[k] == AxisState.NORMAL:
             return abs(tr.out[k] - tr.target[k]) <= 0.25
-        if self.expect_recovery:  # a row whose fault clears by itself: wait for NORMAL
+        if self.expect_recovery or "clear" in self.times:  # the fault is gone (cleared, or by itself): wait for NORMAL
             return False
         return tr.state[k] == AxisState.FAULT and self._safe(k) and (self.policy != "ramp_to_zero" or tr.out[k] == 0.0)
 
